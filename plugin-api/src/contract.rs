@@ -1,0 +1,326 @@
+//! The machine-backend contract: the JSON requests the host sends with `call`, the responses it
+//! expects, and the events a backend emits through the host table. Typed here so Rust plugins and
+//! the server share one definition; C plugins read the same shapes from the README.
+
+use serde::{Deserialize, Serialize};
+
+/// Axes every machine exposes (absent axes simply never move).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum Axis {
+    X,
+    Y,
+    Z,
+    A,
+}
+
+impl Axis {
+    pub const ALL: [Axis; 4] = [Axis::X, Axis::Y, Axis::Z, Axis::A];
+
+    pub fn index(self) -> usize {
+        match self {
+            Axis::X => 0,
+            Axis::Y => 1,
+            Axis::Z => 2,
+            Axis::A => 3,
+        }
+    }
+
+    pub fn letter(self) -> char {
+        ['X', 'Y', 'Z', 'A'][self.index()]
+    }
+}
+
+/// One value per axis, serialised as `{"x":..,"y":..,"z":..,"a":..}`.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct AxisValues {
+    #[serde(default)]
+    pub x: f64,
+    #[serde(default)]
+    pub y: f64,
+    #[serde(default)]
+    pub z: f64,
+    #[serde(default)]
+    pub a: f64,
+}
+
+impl AxisValues {
+    pub fn from_array(v: [f64; 4]) -> Self {
+        AxisValues {
+            x: v[0],
+            y: v[1],
+            z: v[2],
+            a: v[3],
+        }
+    }
+    pub fn to_array(self) -> [f64; 4] {
+        [self.x, self.y, self.z, self.a]
+    }
+    pub fn get(&self, axis: Axis) -> f64 {
+        self.to_array()[axis.index()]
+    }
+    pub fn set(&mut self, axis: Axis, value: f64) {
+        let mut v = self.to_array();
+        v[axis.index()] = value;
+        *self = AxisValues::from_array(v);
+    }
+}
+
+/// The six work coordinate systems.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
+pub enum WorkOffset {
+    #[default]
+    G54,
+    G55,
+    G56,
+    G57,
+    G58,
+    G59,
+}
+
+impl WorkOffset {
+    pub const ALL: [WorkOffset; 6] = [
+        WorkOffset::G54,
+        WorkOffset::G55,
+        WorkOffset::G56,
+        WorkOffset::G57,
+        WorkOffset::G58,
+        WorkOffset::G59,
+    ];
+    pub fn index(self) -> usize {
+        self as usize
+    }
+    pub fn name(self) -> &'static str {
+        ["G54", "G55", "G56", "G57", "G58", "G59"][self.index()]
+    }
+    pub fn parse(s: &str) -> Option<Self> {
+        WorkOffset::ALL
+            .into_iter()
+            .find(|o| o.name().eq_ignore_ascii_case(s))
+    }
+}
+
+/// What a machine is doing, as far as the backend can tell.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum MachineState {
+    /// No link to the controller; `MachineStatus::reason` says why.
+    #[default]
+    Offline,
+    Idle,
+    Jogging,
+    Homing,
+    Running,
+    Paused,
+    /// Latched fault (e-stop, limit, reset needed); `MachineStatus::alarm` says which.
+    Alarm,
+}
+
+impl MachineState {
+    /// States in which the machine is moving or may move without a new command.
+    pub fn is_busy(self) -> bool {
+        matches!(
+            self,
+            MachineState::Jogging
+                | MachineState::Homing
+                | MachineState::Running
+                | MachineState::Paused
+        )
+    }
+}
+
+/// A snapshot of the machine, reported by `status` and by `status` events.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+pub struct MachineStatus {
+    pub state: MachineState,
+    pub machine_position: AxisValues,
+    pub work_position: AxisValues,
+    /// Current programmed feed, mm/min.
+    pub feed: f64,
+    /// Feed override in percent (100 = programmed feed).
+    #[serde(default = "hundred")]
+    pub feed_override: f64,
+    pub active_offset: WorkOffset,
+    /// Run being executed, as given in `load_program`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub run: Option<i64>,
+    /// Source line being executed (1-based).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub line: Option<u32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alarm: Option<String>,
+    /// Why the machine is offline, when it is.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+}
+
+fn hundred() -> f64 {
+    100.0
+}
+
+/// Immediate machine commands. Serialised with a `command` tag, e.g. `{"command":"zero","axis":"X"}`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "command", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Command {
+    CycleStart,
+    FeedHold,
+    Resume,
+    Stop,
+    Reset,
+    /// Home (reference) one axis, or all when `axis` is absent.
+    Home {
+        #[serde(default)]
+        axis: Option<Axis>,
+    },
+    /// Set the active work offset so the work position of one axis (or all) becomes zero.
+    Zero {
+        #[serde(default)]
+        axis: Option<Axis>,
+    },
+    /// Move to work zero (Z first to a safe height, then XY/A, then Z down).
+    GoToZero,
+    /// Make this work offset the active one.
+    SelectOffset {
+        offset: WorkOffset,
+    },
+}
+
+impl Command {
+    /// Commands that must overtake any queue of pending calls.
+    pub fn is_urgent(&self) -> bool {
+        matches!(self, Command::FeedHold | Command::Stop | Command::Reset)
+    }
+}
+
+/// Program run control.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RunAction {
+    Start,
+    Pause,
+    Resume,
+    Cancel,
+}
+
+/// A request the host sends a machine backend. Serialised with an `op` tag.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "op", rename_all = "snake_case")]
+pub enum Request {
+    /// Open the link to the controller (idempotent). Answer: `MachineStatus`.
+    Connect,
+    /// Answer: `MachineStatus`.
+    Status,
+    /// Incremental jog. The host has already bounded distance and feed. Answer: `{}`.
+    Jog {
+        axis: Axis,
+        distance: f64,
+        /// mm/min; the backend's default jog feed when absent.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        feed: Option<f64>,
+    },
+    /// Answer: `{}` (or `{"offsets": OffsetTable}` after zeroing).
+    Command(Command),
+    /// Answer: `OffsetTable`.
+    GetOffsets,
+    /// Answer: `{}`.
+    SetOffset {
+        offset: WorkOffset,
+        values: AxisValues,
+    },
+    /// Load a program file (UTF-8 G-code) to run from `start_line` (1-based) under run id `run`.
+    /// Answer: `{"lines": total, "start_line": actual}`; a backend that knows it already executed
+    /// lines of this run (idempotent resume) may start later than asked and says so.
+    LoadProgram {
+        run: i64,
+        path: String,
+        start_line: u32,
+    },
+    /// Answer: `{}`.
+    Run { action: RunAction },
+    /// The host is about to destroy the instance: stop motion, close links. Answer: `{}`.
+    Shutdown,
+}
+
+/// Work offsets G54..G59, in the order of `WorkOffset::ALL`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+pub struct OffsetTable {
+    pub active: WorkOffset,
+    pub offsets: Vec<(WorkOffset, AxisValues)>,
+}
+
+/// Answer to `load_program`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ProgramLoaded {
+    pub lines: u32,
+    pub start_line: u32,
+}
+
+/// Events a machine backend emits. Serialised with an `event` tag.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "event", rename_all = "snake_case")]
+pub enum Event {
+    /// The status changed. Backends may emit freely; the host rate-limits what it forwards.
+    Status(MachineStatus),
+    /// Every motion of `line` of run `run` has been executed.
+    LineAcknowledged {
+        run: i64,
+        line: u32,
+    },
+    StateChanged {
+        from: MachineState,
+        to: MachineState,
+    },
+    Alarm {
+        message: String,
+    },
+    /// Run `run` finished: `completed`, `failed` (with `message`) or `cancelled`.
+    RunEnded {
+        run: i64,
+        outcome: RunOutcome,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        message: Option<String>,
+    },
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RunOutcome {
+    Completed,
+    Failed,
+    Cancelled,
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn command_wire_shape_matches_the_http_api() {
+        let c: Command = serde_json::from_value(json!({"command":"zero","axis":"X"})).unwrap();
+        assert_eq!(
+            c,
+            Command::Zero {
+                axis: Some(Axis::X)
+            }
+        );
+        let r = serde_json::to_value(Request::Command(Command::FeedHold)).unwrap();
+        assert_eq!(r, json!({"op":"command","command":"feed_hold"}));
+        let back: Request = serde_json::from_value(r).unwrap();
+        assert_eq!(back, Request::Command(Command::FeedHold));
+    }
+
+    #[test]
+    fn unknown_command_fields_are_rejected() {
+        let e = serde_json::from_value::<Command>(json!({"command":"zero","axes":"X"}));
+        assert!(e.is_err());
+    }
+
+    #[test]
+    fn events_round_trip() {
+        let e = Event::LineAcknowledged { run: 3, line: 17 };
+        let v = serde_json::to_value(&e).unwrap();
+        assert_eq!(v, json!({"event":"line_acknowledged","run":3,"line":17}));
+        assert_eq!(serde_json::from_value::<Event>(v).unwrap(), e);
+    }
+}

@@ -1,0 +1,23 @@
+use serde::{Deserialize, Serialize};
+
+/// An error a plugin returns: a stable machine-readable `code` and a message a person can act on.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, thiserror::Error)]
+#[error("{code}: {message}")]
+pub struct PluginError {
+    pub code: String,
+    pub message: String,
+}
+
+impl PluginError {
+    pub fn new(code: impl Into<String>, message: impl Into<String>) -> Self {
+        PluginError {
+            code: code.into(),
+            message: message.into(),
+        }
+    }
+
+    /// The request or config had a field the plugin could not accept.
+    pub fn invalid(message: impl Into<String>) -> Self {
+        PluginError::new("invalid_request", message)
+    }
+}

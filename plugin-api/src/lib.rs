@@ -1,0 +1,35 @@
+//! Fresa plugin API, ABI v1.
+//!
+//! * [`abi`]: the raw `repr(C)` contract, mirrored by `include/fresa_plugin.h`.
+//! * [`contract`]: the JSON requests, responses and events of a machine backend.
+//! * [`plugin`]: for plugin authors in Rust: the [`Plugin`] trait and [`export_plugin!`].
+//! * [`host`]: for the server: load a library, check it, create and call instances.
+
+pub mod abi;
+pub mod contract;
+mod error;
+pub mod host;
+pub mod plugin;
+
+pub use error::PluginError;
+pub use plugin::{Host, Plugin};
+
+/// The target triple this crate (and so the plugin or host using it) was built for.
+pub const TARGET: &str = env!("FRESA_BUILD_TARGET");
+/// `TARGET` with a NUL terminator, for the descriptor.
+pub const TARGET_CSTR: &std::ffi::CStr =
+    match std::ffi::CStr::from_bytes_with_nul(concat!(env!("FRESA_BUILD_TARGET"), "\0").as_bytes())
+    {
+        Ok(s) => s,
+        Err(_) => panic!("target triple contains a NUL byte"),
+    };
+
+/// File name of a plugin library on this platform, e.g. `libfresa_sim_machine.so`.
+pub fn library_file_name(crate_lib_name: &str) -> String {
+    format!(
+        "{}{}{}",
+        std::env::consts::DLL_PREFIX,
+        crate_lib_name,
+        std::env::consts::DLL_SUFFIX
+    )
+}
