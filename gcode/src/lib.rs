@@ -1,1 +1,258 @@
-//! placeholder
+//! # fresa-gcode
+//!
+//! G-code reader, modal interpreter, arc linearisation and program analysis for
+//! 3-axis milling. No I/O of its own (it reads any [`std::io::BufRead`]), no async.
+//!
+//! * [`Interpreter`] streams canonical [`Motion`]s (millimetres, program
+//!   coordinates, 1-based source line) from any reader, in constant memory.
+//! * [`linearise`] turns arcs into chords within a tolerance with exact endpoints.
+//! * [`analyse`] computes bounds, lengths and a feed-based run-time estimate.
+//!
+//! The dialect is the common subset of grbl and LinuxCNC; see the crate README
+//! for the full list of words and the rules that are applied.
+
+mod analysis;
+mod arc;
+mod interp;
+mod lex;
+
+pub use analysis::{analyse, Analysis, AnalysisOptions, Bounds};
+pub use arc::{linearise, segments_for, ArcGeometry, Linearise, MIN_TOLERANCE_MM};
+pub use interp::Interpreter;
+
+use serde::Serialize;
+
+/// X, Y, Z in millimetres.
+pub type Point = [f64; 3];
+
+/// What to do with words the interpreter does not implement (O-words, `#`
+/// parameters, expressions, canned cycles, cutter compensation, ...).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+pub enum Unsupported {
+    /// Stop with a [`GcodeError`] naming line and column (default: never guess).
+    #[default]
+    Error,
+    /// Skip the whole line, record a [`Warning`], and carry on. Motion that
+    /// depends on the skipped line (e.g. the following lines of a canned
+    /// cycle) is still rejected or skipped, never executed as something else.
+    SkipWithWarning,
+}
+
+/// Interpreter settings. `Config::default()` is what grbl/LinuxCNC would do
+/// with a 0.002 mm chord tolerance.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Config {
+    /// Chord tolerance used by [`analyse`] and suggested for [`linearise`] (mm).
+    pub arc_tolerance_mm: f64,
+    /// Policy for unsupported words.
+    pub unsupported: Unsupported,
+    /// Stored position for G28, program coordinates in mm.
+    pub g28_position: Point,
+    /// Stored position for G30, program coordinates in mm.
+    pub g30_position: Point,
+    /// Position assumed before the first move (program coordinates, mm).
+    pub initial_position: Point,
+    /// Machine-coordinate origin of G54..G59, G59.1..G59.3 (index 0..9), mm.
+    /// Only used to convert G53 moves and work-system switches into program
+    /// coordinates; all zeros (the default) means "same origin".
+    pub work_offsets: [Point; 9],
+    /// Skip lines starting with `/` (the block-delete switch is on). Default true.
+    pub block_delete: bool,
+    /// End the stream after M2/M30 (and after a closing `%`), as a controller
+    /// does. Default true.
+    pub stop_at_program_end: bool,
+    /// IJK arcs: start/end radius difference above which the arc is always an
+    /// error (grbl/LinuxCNC: 0.5 mm).
+    pub arc_radius_max_error_mm: f64,
+    /// IJK arcs: a difference above this AND above `arc_radius_rel_error` of the
+    /// radius is an error (0.005 mm). R arcs: how much too small R may be to
+    /// still be taken as a half circle.
+    pub arc_radius_abs_tolerance_mm: f64,
+    /// Relative radius tolerance (0.001 = 0.1 %).
+    pub arc_radius_rel_error: f64,
+    /// Longest accepted line in bytes; keeps memory bounded on garbage input.
+    pub max_line_bytes: usize,
+    /// At most this many warnings are kept (the rest are counted).
+    pub max_warnings: usize,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Config {
+            arc_tolerance_mm: 0.002,
+            unsupported: Unsupported::Error,
+            g28_position: [0.0; 3],
+            g30_position: [0.0; 3],
+            initial_position: [0.0; 3],
+            work_offsets: [[0.0; 3]; 9],
+            block_delete: true,
+            stop_at_program_end: true,
+            arc_radius_max_error_mm: 0.5,
+            arc_radius_abs_tolerance_mm: 0.005,
+            arc_radius_rel_error: 0.001,
+            max_line_bytes: 64 * 1024,
+            max_warnings: 1000,
+        }
+    }
+}
+
+/// Arc plane (G17/G18/G19).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize)]
+pub enum Plane {
+    /// G17: X then Y, normal +Z.
+    XY,
+    /// G18: Z then X, normal +Y (grbl/LinuxCNC axis order).
+    ZX,
+    /// G19: Y then Z, normal +X.
+    YZ,
+}
+
+impl Plane {
+    /// Indices (first axis, second axis, normal/linear axis) into a [`Point`].
+    /// Counter-clockwise is the positive rotation from first to second axis,
+    /// seen from the positive normal; G2 is the other way.
+    #[inline]
+    pub fn axes(self) -> (usize, usize, usize) {
+        match self {
+            Plane::XY => (0, 1, 2),
+            Plane::ZX => (2, 0, 1),
+            Plane::YZ => (1, 2, 0),
+        }
+    }
+}
+
+/// Spindle state after an M3/M4/M5 or S word.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub enum SpindleDirection {
+    /// M3
+    Clockwise,
+    /// M4
+    CounterClockwise,
+    /// M5
+    Off,
+}
+
+/// One canonical event. Coordinates are millimetres in program coordinates
+/// (the active work system), feeds are mm/min, `line` is the 1-based source line.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Motion {
+    /// G0 (also G28/G30 legs and G53 G0).
+    Rapid { line: u32, from: Point, to: Point },
+    /// G1 or one chord of a linearised arc.
+    Linear {
+        line: u32,
+        from: Point,
+        to: Point,
+        feed_mm_min: f64,
+    },
+    /// G2/G3. `centre` has the start's coordinate on the plane normal; the
+    /// normal axis moves linearly with angle (helix). `sweep_rad` is the total
+    /// positive angle travelled in the direction given by `clockwise`,
+    /// including `turns - 1` extra full turns (P word). A start radius that
+    /// differs slightly from the end radius (within tolerance) is a spiral.
+    Arc {
+        line: u32,
+        from: Point,
+        to: Point,
+        centre: Point,
+        plane: Plane,
+        clockwise: bool,
+        feed_mm_min: f64,
+        turns: u32,
+        sweep_rad: f64,
+    },
+    /// G4 P seconds.
+    Dwell { line: u32, seconds: f64 },
+    /// M3/M4/M5, or a new S while running.
+    Spindle {
+        line: u32,
+        direction: SpindleDirection,
+        rpm: f64,
+    },
+    /// M7/M8/M9.
+    Coolant { line: u32, mist: bool, flood: bool },
+    /// M6 with the tool selected by the last T word.
+    ToolChange { line: u32, tool: u32 },
+    /// G43 H (Some) or G49 (None): the controlled point changes; program
+    /// coordinates do not.
+    ToolLengthOffset { line: u32, tool: Option<u32> },
+    /// G54..G59 (1..6), G59.1..G59.3 (7..9).
+    WorkOffset { line: u32, system: u8 },
+    /// `(msg, text)` comment not on an M0/M1 line.
+    Message { line: u32, text: String },
+    /// M0 (optional = false) / M1 (optional = true), with a `(msg,...)` on the same line.
+    Pause {
+        line: u32,
+        optional: bool,
+        message: Option<String>,
+    },
+    /// M2/M30 (or the closing `%`).
+    ProgramEnd { line: u32 },
+}
+
+impl Motion {
+    /// 1-based source line.
+    #[inline]
+    pub fn line(&self) -> u32 {
+        match self {
+            Motion::Rapid { line, .. }
+            | Motion::Linear { line, .. }
+            | Motion::Arc { line, .. }
+            | Motion::Dwell { line, .. }
+            | Motion::Spindle { line, .. }
+            | Motion::Coolant { line, .. }
+            | Motion::ToolChange { line, .. }
+            | Motion::ToolLengthOffset { line, .. }
+            | Motion::WorkOffset { line, .. }
+            | Motion::Message { line, .. }
+            | Motion::Pause { line, .. }
+            | Motion::ProgramEnd { line } => *line,
+        }
+    }
+
+    /// End point of a move (rapid, linear, arc), `None` for other events.
+    #[inline]
+    pub fn end_point(&self) -> Option<Point> {
+        match self {
+            Motion::Rapid { to, .. } | Motion::Linear { to, .. } | Motion::Arc { to, .. } => {
+                Some(*to)
+            }
+            _ => None,
+        }
+    }
+}
+
+/// What went wrong, for programs that want to branch on it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub enum ErrorKind {
+    /// Malformed text: bad number, unclosed comment, unknown character.
+    Syntax,
+    /// Well-formed but not implemented here (see [`Unsupported`]).
+    Unsupported,
+    /// Semantically invalid: two words of one modal group, missing feed, ...
+    Invalid,
+    /// Arc cannot be built: radius mismatch, R too small, zero radius.
+    Arc,
+    /// Input is not UTF-8.
+    Utf8,
+    /// The reader failed, or a line is too long.
+    Io,
+}
+
+/// An error with the source position (1-based line and character column).
+#[derive(Debug, Clone, PartialEq, Serialize, thiserror::Error)]
+#[error("line {line}, column {column}: {message}")]
+pub struct GcodeError {
+    pub line: u32,
+    pub column: u32,
+    pub kind: ErrorKind,
+    pub message: String,
+}
+
+/// Something skipped or worth knowing, with its position.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Warning {
+    pub line: u32,
+    pub column: u32,
+    pub message: String,
+}

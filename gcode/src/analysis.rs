@@ -1,0 +1,204 @@
+//! Whole-program analysis in one streaming pass (constant memory).
+
+use crate::arc::ArcGeometry;
+use crate::{Config, GcodeError, Interpreter, Motion, Point, SpindleDirection, Warning};
+use serde::Serialize;
+use std::io::BufRead;
+
+/// Axis-aligned box, mm, program coordinates.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Bounds {
+    pub min: Point,
+    pub max: Point,
+}
+
+impl Bounds {
+    /// A box holding only `p`.
+    pub fn point(p: Point) -> Self {
+        Bounds { min: p, max: p }
+    }
+    /// Grows the box to hold `p`.
+    #[inline]
+    pub fn include(&mut self, p: Point) {
+        for (i, &v) in p.iter().enumerate() {
+            self.min[i] = self.min[i].min(v);
+            self.max[i] = self.max[i].max(v);
+        }
+    }
+    /// Size along X, Y, Z.
+    pub fn size(&self) -> Point {
+        [
+            self.max[0] - self.min[0],
+            self.max[1] - self.min[1],
+            self.max[2] - self.min[2],
+        ]
+    }
+}
+
+fn grow(b: &mut Option<Bounds>, lo: Point, hi: Point) {
+    match b {
+        Some(b) => {
+            b.include(lo);
+            b.include(hi);
+        }
+        None => {
+            let mut nb = Bounds::point(lo);
+            nb.include(hi);
+            *b = Some(nb);
+        }
+    }
+}
+
+/// Result of [`analyse`].
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Analysis {
+    /// Source lines read (up to the program end).
+    pub lines: u64,
+    /// Lines that produced at least one rapid, linear or arc move.
+    pub motion_lines: u64,
+    /// Bounds of feed moves (G1/G2/G3), arcs by their exact extrema.
+    pub cutting_bounds: Option<Bounds>,
+    /// Bounds of rapid moves (G0, G28/G30, G53 G0), start points included.
+    pub rapid_bounds: Option<Bounds>,
+    pub cutting_length_mm: f64,
+    pub rapid_length_mm: f64,
+    /// Rapids at `rapid_mm_min`, feeds at their F, dwells; no acceleration.
+    pub estimated_seconds: f64,
+    pub warnings: Vec<Warning>,
+    /// Warnings beyond [`Config::max_warnings`] (counted, not kept).
+    pub warnings_dropped: u64,
+    pub units_inch_seen: bool,
+    pub rapid_moves: u64,
+    pub linear_moves: u64,
+    pub arc_moves: u64,
+    pub dwell_seconds: f64,
+    /// Tools loaded by M6, in first-use order (at most 1000 kept).
+    pub tools: Vec<u32>,
+    /// Highest feed of a feed move, mm/min (0 if none).
+    pub max_feed_mm_min: f64,
+    /// Highest spindle speed programmed with the spindle on.
+    pub max_spindle_rpm: f64,
+    /// M2/M30 or a closing `%` was reached.
+    pub program_end: bool,
+}
+
+/// Settings for [`analyse`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct AnalysisOptions {
+    /// Speed assumed for rapids, mm/min (default 5000).
+    pub rapid_mm_min: f64,
+    pub config: Config,
+}
+
+impl Default for AnalysisOptions {
+    fn default() -> Self {
+        AnalysisOptions {
+            rapid_mm_min: 5000.0,
+            config: Config::default(),
+        }
+    }
+}
+
+#[inline]
+fn dist(a: Point, b: Point) -> f64 {
+    let (dx, dy, dz) = (b[0] - a[0], b[1] - a[1], b[2] - a[2]);
+    (dx * dx + dy * dy + dz * dz).sqrt()
+}
+
+/// Interprets the whole program and summarises it; the first error stops it.
+pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis, GcodeError> {
+    let mut it = Interpreter::new(reader, opts.config.clone());
+    let mut a = Analysis {
+        lines: 0,
+        motion_lines: 0,
+        cutting_bounds: None,
+        rapid_bounds: None,
+        cutting_length_mm: 0.0,
+        rapid_length_mm: 0.0,
+        estimated_seconds: 0.0,
+        warnings: Vec::new(),
+        warnings_dropped: 0,
+        units_inch_seen: false,
+        rapid_moves: 0,
+        linear_moves: 0,
+        arc_moves: 0,
+        dwell_seconds: 0.0,
+        tools: Vec::new(),
+        max_feed_mm_min: 0.0,
+        max_spindle_rpm: 0.0,
+        program_end: false,
+    };
+    let rapid_rate = if opts.rapid_mm_min > 0.0 {
+        opts.rapid_mm_min
+    } else {
+        5000.0
+    };
+    let mut feed_minutes = 0.0;
+    let mut last_motion_line = 0u32;
+    for m in it.by_ref() {
+        let m = m?;
+        let line = m.line();
+        let is_move = matches!(
+            m,
+            Motion::Rapid { .. } | Motion::Linear { .. } | Motion::Arc { .. }
+        );
+        if is_move && line != last_motion_line {
+            a.motion_lines += 1;
+            last_motion_line = line;
+        }
+        match m {
+            Motion::Rapid { from, to, .. } => {
+                a.rapid_moves += 1;
+                a.rapid_length_mm += dist(from, to);
+                grow(&mut a.rapid_bounds, from, to);
+            }
+            Motion::Linear {
+                from,
+                to,
+                feed_mm_min,
+                ..
+            } => {
+                a.linear_moves += 1;
+                let d = dist(from, to);
+                a.cutting_length_mm += d;
+                feed_minutes += d / feed_mm_min;
+                a.max_feed_mm_min = a.max_feed_mm_min.max(feed_mm_min);
+                grow(&mut a.cutting_bounds, from, to);
+            }
+            Motion::Arc { feed_mm_min, .. } => {
+                a.arc_moves += 1;
+                if let Some(g) = ArcGeometry::from_motion(&m) {
+                    let d = g.length();
+                    a.cutting_length_mm += d;
+                    feed_minutes += d / feed_mm_min;
+                    let (lo, hi) = g.bounds();
+                    grow(&mut a.cutting_bounds, lo, hi);
+                }
+                a.max_feed_mm_min = a.max_feed_mm_min.max(feed_mm_min);
+            }
+            Motion::Dwell { seconds, .. } => a.dwell_seconds += seconds,
+            Motion::Spindle { rpm, direction, .. } if direction != SpindleDirection::Off => {
+                a.max_spindle_rpm = a.max_spindle_rpm.max(rpm);
+            }
+            Motion::ToolChange { tool, .. } if !a.tools.contains(&tool) && a.tools.len() < 1000 => {
+                a.tools.push(tool);
+            }
+            Motion::ProgramEnd { .. } => a.program_end = true,
+            _ => {}
+        }
+    }
+    a.estimated_seconds = (a.rapid_length_mm / rapid_rate + feed_minutes) * 60.0 + a.dwell_seconds;
+    a.lines = it.lines_read();
+    a.units_inch_seen = it.units_inch_seen();
+    a.warnings = it.warnings().to_vec();
+    a.warnings_dropped = it.warnings_dropped();
+    if it.work_systems_used().count_ones() > 1 {
+        a.warnings.push(Warning {
+            line: 0,
+            column: 0,
+            message: "more than one work coordinate system is used; bounds mix their frames"
+                .to_string(),
+        });
+    }
+    Ok(a)
+}

@@ -1,0 +1,317 @@
+//! Arc geometry (points, bounds, length) and the linearisation adapter.
+
+use crate::{GcodeError, Motion, Plane, Point};
+use std::f64::consts::{FRAC_PI_2, TAU};
+
+/// Smallest tolerance [`linearise`] accepts; smaller (or NaN) values are
+/// raised to it so that a bad setting cannot produce an endless stream.
+pub const MIN_TOLERANCE_MM: f64 = 1e-6;
+
+/// Geometry of one [`Motion::Arc`], in the plane's (first, second, normal) axes.
+/// Angles are counter-clockwise positive from the first to the second axis.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ArcGeometry {
+    pub from: Point,
+    pub to: Point,
+    pub centre: Point,
+    /// (first, second, normal) axis indices, see [`Plane::axes`].
+    pub axes: (usize, usize, usize),
+    /// Start radius and end radius in the plane (equal unless a tolerated mismatch).
+    pub r0: f64,
+    pub r1: f64,
+    /// Signed sweep: positive counter-clockwise (G3), negative clockwise (G2).
+    pub sweep: f64,
+}
+
+impl ArcGeometry {
+    /// Geometry of an arc motion, `None` for anything else.
+    pub fn from_motion(m: &Motion) -> Option<Self> {
+        match *m {
+            Motion::Arc {
+                from,
+                to,
+                centre,
+                plane,
+                clockwise,
+                sweep_rad,
+                ..
+            } => Some(Self::new(from, to, centre, plane, clockwise, sweep_rad)),
+            _ => None,
+        }
+    }
+
+    pub fn new(
+        from: Point,
+        to: Point,
+        centre: Point,
+        plane: Plane,
+        clockwise: bool,
+        sweep_rad: f64,
+    ) -> Self {
+        let axes = plane.axes();
+        let (a, b, _) = axes;
+        let r0 = (from[a] - centre[a]).hypot(from[b] - centre[b]);
+        let r1 = (to[a] - centre[a]).hypot(to[b] - centre[b]);
+        let sweep = if clockwise {
+            -sweep_rad.abs()
+        } else {
+            sweep_rad.abs()
+        };
+        ArcGeometry {
+            from,
+            to,
+            centre,
+            axes,
+            r0,
+            r1,
+            sweep,
+        }
+    }
+
+    /// Point at fraction `t` (0..=1) of the sweep; radius and the normal axis
+    /// change linearly with angle. `t >= 1` returns `to` exactly.
+    pub fn point_at(&self, t: f64) -> Point {
+        if t >= 1.0 {
+            return self.to;
+        }
+        if t <= 0.0 {
+            return self.from;
+        }
+        let (s, c) = (self.sweep * t).sin_cos();
+        self.point_rot(t, c, s)
+    }
+
+    /// Point at fraction `t` given cos/sin of the angle travelled.
+    #[inline]
+    fn point_rot(&self, t: f64, c: f64, s: f64) -> Point {
+        let (a, b, n) = self.axes;
+        let u0 = self.from[a] - self.centre[a];
+        let v0 = self.from[b] - self.centre[b];
+        let k = if self.r0 > 0.0 {
+            (self.r0 + (self.r1 - self.r0) * t) / self.r0
+        } else {
+            1.0
+        };
+        let mut p = [0.0; 3];
+        p[a] = self.centre[a] + k * (u0 * c - v0 * s);
+        p[b] = self.centre[b] + k * (u0 * s + v0 * c);
+        p[n] = self.from[n] + (self.to[n] - self.from[n]) * t;
+        p
+    }
+
+    /// Path length (helix: in-plane length and normal travel combined).
+    pub fn length(&self) -> f64 {
+        let (_, _, n) = self.axes;
+        let planar = 0.5 * (self.r0 + self.r1) * self.sweep.abs();
+        planar.hypot(self.to[n] - self.from[n])
+    }
+
+    /// Exact axis-aligned bounds: end points plus every crossing of the
+    /// plane's axis directions within the sweep.
+    pub fn bounds(&self) -> (Point, Point) {
+        let (a, b, _) = self.axes;
+        let mut lo = [0.0; 3];
+        let mut hi = [0.0; 3];
+        for i in 0..3 {
+            lo[i] = self.from[i].min(self.to[i]);
+            hi[i] = self.from[i].max(self.to[i]);
+        }
+        let total = self.sweep.abs();
+        if total == 0.0 {
+            return (lo, hi);
+        }
+        let alpha0 = (self.from[b] - self.centre[b]).atan2(self.from[a] - self.centre[a]);
+        for q in 0..4 {
+            let phi = f64::from(q) * FRAC_PI_2;
+            let mut delta = if self.sweep > 0.0 {
+                phi - alpha0
+            } else {
+                alpha0 - phi
+            }
+            .rem_euclid(TAU);
+            while delta <= total {
+                let t = delta / total;
+                let r = self.r0 + (self.r1 - self.r0) * t;
+                let (s, c) = phi.sin_cos();
+                // Cardinal directions: use exact 0/±1 to keep extrema exact.
+                let (c, s) = (c.round(), s.round());
+                let pa = self.centre[a] + r * c;
+                let pb = self.centre[b] + r * s;
+                lo[a] = lo[a].min(pa);
+                hi[a] = hi[a].max(pa);
+                lo[b] = lo[b].min(pb);
+                hi[b] = hi[b].max(pb);
+                delta += TAU;
+            }
+        }
+        (lo, hi)
+    }
+}
+
+/// Number of chords needed so that no chord of an arc of radius `radius`
+/// deviates from it by more than `tolerance` (sagitta `r (1 - cos(θ/2))`),
+/// with at most a quarter turn per chord. At least 1.
+pub fn segments_for(radius: f64, sweep_rad: f64, tolerance: f64) -> u64 {
+    let tol = sanitize(tolerance);
+    let sweep = sweep_rad.abs();
+    if radius.is_nan() || radius <= 0.0 || !sweep.is_finite() || sweep == 0.0 {
+        return 1;
+    }
+    let max_step = if tol >= radius {
+        FRAC_PI_2
+    } else {
+        (2.0 * (1.0 - tol / radius).acos()).min(FRAC_PI_2)
+    };
+    let n = (sweep / max_step).ceil();
+    if n < 1.0 {
+        1
+    } else if n > 1e12 {
+        1_000_000_000_000
+    } else {
+        n as u64
+    }
+}
+
+#[inline]
+fn sanitize(tolerance: f64) -> f64 {
+    if tolerance >= MIN_TOLERANCE_MM {
+        tolerance
+    } else {
+        MIN_TOLERANCE_MM
+    }
+}
+
+/// Turns every [`Motion::Arc`] into [`Motion::Linear`] chords whose points lie
+/// on the arc (within `tolerance_mm` of it everywhere between), ending exactly
+/// at the arc's `to`. Other motions and errors pass through unchanged.
+/// Streaming: one arc in flight, no allocation.
+pub fn linearise<I>(motions: I, tolerance_mm: f64) -> Linearise<I>
+where
+    I: Iterator<Item = Result<Motion, GcodeError>>,
+{
+    Linearise {
+        inner: motions,
+        tolerance: sanitize(tolerance_mm),
+        arc: None,
+    }
+}
+
+/// Iterator returned by [`linearise`].
+pub struct Linearise<I> {
+    inner: I,
+    tolerance: f64,
+    arc: Option<ArcRun>,
+}
+
+struct ArcRun {
+    g: ArcGeometry,
+    line: u32,
+    feed: f64,
+    n: u64,
+    k: u64,
+    prev: Point,
+    // Rotation of one step and the running rotation (cos, sin).
+    cd: f64,
+    sd: f64,
+    c: f64,
+    s: f64,
+    step: f64,
+}
+
+/// Re-anchor the running rotation with sin_cos this often, so that the
+/// rounding drift of the recurrence stays far below any tolerance.
+const REANCHOR: u64 = 64;
+
+impl ArcRun {
+    fn next_segment(&mut self) -> Motion {
+        self.k += 1;
+        let to = if self.k >= self.n {
+            self.g.to
+        } else {
+            if self.k % REANCHOR == 0 {
+                let (s, c) = (self.step * self.k as f64).sin_cos();
+                self.c = c;
+                self.s = s;
+            } else {
+                let c = self.c * self.cd - self.s * self.sd;
+                let s = self.s * self.cd + self.c * self.sd;
+                self.c = c;
+                self.s = s;
+            }
+            self.g
+                .point_rot(self.k as f64 / self.n as f64, self.c, self.s)
+        };
+        let from = self.prev;
+        self.prev = to;
+        Motion::Linear {
+            line: self.line,
+            from,
+            to,
+            feed_mm_min: self.feed,
+        }
+    }
+}
+
+impl<I> Linearise<I> {
+    /// The tolerance in use (after raising to [`MIN_TOLERANCE_MM`]).
+    pub fn tolerance(&self) -> f64 {
+        self.tolerance
+    }
+    /// The wrapped iterator (e.g. to read an interpreter's warnings).
+    pub fn inner(&self) -> &I {
+        &self.inner
+    }
+}
+
+impl<I> Iterator for Linearise<I>
+where
+    I: Iterator<Item = Result<Motion, GcodeError>>,
+{
+    type Item = Result<Motion, GcodeError>;
+
+    #[inline]
+    fn next(&mut self) -> Option<Self::Item> {
+        if let Some(run) = &mut self.arc {
+            let m = run.next_segment();
+            if run.k >= run.n {
+                self.arc = None;
+            }
+            return Some(Ok(m));
+        }
+        let item = self.inner.next()?;
+        let m = match item {
+            Ok(m) => m,
+            Err(e) => return Some(Err(e)),
+        };
+        let (line, feed) = match &m {
+            Motion::Arc {
+                line, feed_mm_min, ..
+            } => (*line, *feed_mm_min),
+            _ => return Some(Ok(m)),
+        };
+        let Some(g) = ArcGeometry::from_motion(&m) else {
+            return Some(Ok(m));
+        };
+        let n = segments_for(g.r0.max(g.r1), g.sweep, self.tolerance);
+        let step = g.sweep / n as f64;
+        let (sd, cd) = step.sin_cos();
+        let mut run = ArcRun {
+            g,
+            line,
+            feed,
+            n,
+            k: 0,
+            prev: g.from,
+            cd,
+            sd,
+            c: 1.0,
+            s: 0.0,
+            step,
+        };
+        let first = run.next_segment();
+        if run.k < run.n {
+            self.arc = Some(run);
+        }
+        Some(Ok(first))
+    }
+}

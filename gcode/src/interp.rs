@@ -1,0 +1,1113 @@
+//! The modal interpreter: lines -> canonical [`Motion`]s.
+//!
+//! Per line: lex into a fixed [`Block`], check every word against the modal
+//! groups on a copy of the state, emit events in LinuxCNC's order of
+//! execution, and commit the state only if the whole line was valid (so a
+//! skipped line leaves no trace). No allocation per line except for messages.
+
+use crate::lex::{bit, column, lex_line, make_error, Block, LexError, LineKind};
+use crate::{
+    Config, ErrorKind, GcodeError, Motion, Plane, Point, SpindleDirection, Unsupported, Warning,
+};
+use std::collections::VecDeque;
+use std::f64::consts::TAU;
+use std::io::BufRead;
+
+const MM_PER_INCH: f64 = 25.4;
+/// Start and end closer than this (mm, in the plane) make an IJK arc a full circle.
+const FULL_CIRCLE_EPS_MM: f64 = 1e-6;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum MotionMode {
+    /// G80, or nothing programmed yet: axis words are an error.
+    None,
+    Rapid,
+    Linear,
+    Cw,
+    Ccw,
+    /// A motion-group code we do not implement (canned cycles, probing,
+    /// threading), as code * 10: later axis words are rejected, not guessed.
+    Unsupported(u16),
+}
+
+#[derive(Debug, Clone, Copy)]
+struct State {
+    pos: Point,
+    motion: MotionMode,
+    plane: Plane,
+    inch: bool,
+    absolute: bool,
+    arc_absolute: bool,
+    /// Last F word in the units active when it is used (LinuxCNC).
+    feed: Option<f64>,
+    rpm: f64,
+    spindle: SpindleDirection,
+    mist: bool,
+    flood: bool,
+    tool: u32,
+    /// 0..9 for G54..G59.3.
+    coord: u8,
+    g28: Point,
+    g30: Point,
+}
+
+impl State {
+    fn new(cfg: &Config) -> Self {
+        State {
+            pos: cfg.initial_position,
+            motion: MotionMode::None,
+            plane: Plane::XY,
+            inch: false,
+            absolute: true,
+            arc_absolute: false,
+            feed: None,
+            rpm: 0.0,
+            spindle: SpindleDirection::Off,
+            mist: false,
+            flood: false,
+            tool: 0,
+            coord: 0,
+            g28: cfg.g28_position,
+            g30: cfg.g30_position,
+        }
+    }
+}
+
+/// Streams [`Motion`]s from any [`BufRead`] (no whole-file buffering; one
+/// line at a time, bounded by [`Config::max_line_bytes`]).
+///
+/// Iterating yields `Ok(Motion)` in program order; the first error is
+/// yielded once and then the iterator ends. In-memory text:
+/// `Interpreter::new(text.as_bytes(), Config::default())`.
+pub struct Interpreter<R: BufRead> {
+    reader: R,
+    cfg: Config,
+    line: Vec<u8>,
+    line_no: u32,
+    lines_read: u64,
+    blk: Block,
+    st: State,
+    queue: VecDeque<Motion>,
+    warnings: Vec<Warning>,
+    warnings_dropped: u64,
+    done: bool,
+    words_seen: bool,
+    percent_open: bool,
+    units_inch_seen: bool,
+    work_systems: u16,
+}
+
+impl<R: BufRead> Interpreter<R> {
+    /// A new interpreter at `config.initial_position`, in G17 G21 G90 G91.1 G94 G54 G80.
+    pub fn new(reader: R, config: Config) -> Self {
+        Interpreter {
+            reader,
+            st: State::new(&config),
+            cfg: config,
+            line: Vec::with_capacity(256),
+            line_no: 0,
+            lines_read: 0,
+            blk: Block::new(),
+            queue: VecDeque::with_capacity(16),
+            warnings: Vec::new(),
+            warnings_dropped: 0,
+            done: false,
+            words_seen: false,
+            percent_open: false,
+            units_inch_seen: false,
+            work_systems: 0,
+        }
+    }
+
+    /// Lines skipped under [`Unsupported::SkipWithWarning`] and other notes
+    /// (at most [`Config::max_warnings`]).
+    pub fn warnings(&self) -> &[Warning] {
+        &self.warnings
+    }
+    /// Warnings not kept because of [`Config::max_warnings`].
+    pub fn warnings_dropped(&self) -> u64 {
+        self.warnings_dropped
+    }
+    /// Source lines read so far.
+    pub fn lines_read(&self) -> u64 {
+        self.lines_read
+    }
+    /// Whether G20 (inch) was ever in effect.
+    pub fn units_inch_seen(&self) -> bool {
+        self.units_inch_seen
+    }
+    /// Bit i set if work system i (0 = G54 ... 8 = G59.3) was selected; G54 is always set.
+    pub fn work_systems_used(&self) -> u16 {
+        self.work_systems | 1
+    }
+    /// Current position (program coordinates, mm) after the motions yielded so far
+    /// have been queued.
+    pub fn position(&self) -> Point {
+        self.st.pos
+    }
+    /// The configuration in use.
+    pub fn config(&self) -> &Config {
+        &self.cfg
+    }
+
+    fn warn(&mut self, w: Warning) {
+        if self.warnings.len() < self.cfg.max_warnings {
+            self.warnings.push(w);
+        } else {
+            self.warnings_dropped += 1;
+        }
+    }
+
+    /// Reads the next line into `self.line` (without "\n" / "\r\n").
+    /// Returns Ok(false) at end of input.
+    fn read_line(&mut self) -> Result<bool, GcodeError> {
+        self.line.clear();
+        let mut any = false;
+        loop {
+            let buf = match self.reader.fill_buf() {
+                Ok(b) => b,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+                Err(e) => {
+                    return Err(GcodeError {
+                        line: self.line_no.saturating_add(1),
+                        column: column(&self.line, self.line.len()),
+                        kind: ErrorKind::Io,
+                        message: format!("read error: {e}"),
+                    })
+                }
+            };
+            if buf.is_empty() {
+                break;
+            }
+            any = true;
+            if let Some(i) = memchr::memchr(b'\n', buf) {
+                self.line.extend_from_slice(&buf[..i]);
+                self.reader.consume(i + 1);
+                break;
+            }
+            let n = buf.len();
+            self.line.extend_from_slice(buf);
+            self.reader.consume(n);
+            if self.line.len() > self.cfg.max_line_bytes {
+                return Err(GcodeError {
+                    line: self.line_no.saturating_add(1),
+                    column: 1,
+                    kind: ErrorKind::Io,
+                    message: format!("line longer than {} bytes", self.cfg.max_line_bytes),
+                });
+            }
+        }
+        if !any {
+            return Ok(false);
+        }
+        self.line_no = self.line_no.saturating_add(1);
+        self.lines_read += 1;
+        if self.line.len() > self.cfg.max_line_bytes {
+            return Err(GcodeError {
+                line: self.line_no,
+                column: 1,
+                kind: ErrorKind::Io,
+                message: format!("line longer than {} bytes", self.cfg.max_line_bytes),
+            });
+        }
+        if self.line.last() == Some(&b'\r') {
+            self.line.pop();
+        }
+        if !self.line.is_ascii() {
+            if let Err(e) = std::str::from_utf8(&self.line) {
+                return Err(GcodeError {
+                    line: self.line_no,
+                    column: column(&self.line, e.valid_up_to()),
+                    kind: ErrorKind::Utf8,
+                    message: "invalid UTF-8".to_string(),
+                });
+            }
+        }
+        Ok(true)
+    }
+
+    /// Reads and interprets one line; events go to the queue.
+    fn step(&mut self) -> Result<(), GcodeError> {
+        if !self.read_line()? {
+            self.done = true;
+            return Ok(());
+        }
+        let kind = match lex_line(&self.line, self.cfg.block_delete, &mut self.blk) {
+            Ok(k) => k,
+            Err(e) => return self.fail(e),
+        };
+        match kind {
+            LineKind::Deleted => Ok(()),
+            LineKind::Percent => {
+                if !self.words_seen && !self.percent_open {
+                    self.percent_open = true;
+                } else {
+                    self.queue
+                        .push_back(Motion::ProgramEnd { line: self.line_no });
+                    if self.cfg.stop_at_program_end {
+                        self.done = true;
+                    }
+                }
+                Ok(())
+            }
+            LineKind::Words => {
+                if self.blk.mask == 0
+                    && self.blk.ng == 0
+                    && self.blk.nm == 0
+                    && self.blk.msg.is_none()
+                {
+                    return Ok(());
+                }
+                self.words_seen = true;
+                match self.execute() {
+                    Ok(()) => Ok(()),
+                    Err(e) => {
+                        self.queue.clear();
+                        self.fail(e)
+                    }
+                }
+            }
+        }
+    }
+
+    /// Applies the unsupported-word policy to an error of this line.
+    fn fail(&mut self, e: LexError) -> Result<(), GcodeError> {
+        let err = make_error(self.line_no, &self.line, e);
+        if err.kind == ErrorKind::Unsupported
+            && self.cfg.unsupported == Unsupported::SkipWithWarning
+        {
+            self.warn(Warning {
+                line: err.line,
+                column: err.column,
+                message: format!("line skipped: {}", err.message),
+            });
+            return Ok(());
+        }
+        Err(err)
+    }
+
+    #[inline]
+    fn scale(inch: bool) -> f64 {
+        if inch {
+            MM_PER_INCH
+        } else {
+            1.0
+        }
+    }
+
+    /// Interprets the lexed block. Works on a copy of the state and commits it
+    /// at the end, so an error or a skipped line changes nothing.
+    fn execute(&mut self) -> Result<(), LexError> {
+        let blk = &self.blk;
+        let line = self.line_no;
+        let mut st = self.st;
+
+        // --- classify G words into modal groups -------------------------
+        let mut g_motion: Option<(u16, u32)> = None;
+        let mut g_plane = None;
+        let mut g_dist = None;
+        let mut g_arcdist = None;
+        let mut g_feedmode = None;
+        let mut g_units = None;
+        let mut g_cutter = None;
+        let mut g_tlo = None;
+        let mut g_coord = None;
+        let mut g_path = None;
+        let mut g_retract = None;
+        let mut g_nonmodal: Option<(u16, u32)> = None;
+        for &(code, off) in &blk.g[..blk.ng] {
+            let slot = match code {
+                0 | 10 | 20 | 30 | 800 => &mut g_motion,
+                330 | 331 | 382..=385 | 730 | 760 | 810..=890 => {
+                    // Remember it so that following modal lines are rejected
+                    // rather than run as the previous G0/G1.
+                    self.st.motion = MotionMode::Unsupported(code);
+                    return Err(unsupported_g(
+                        code,
+                        off,
+                        "canned cycles, probing and threading are not implemented",
+                    ));
+                }
+                170 | 180 | 190 => &mut g_plane,
+                900 | 910 => &mut g_dist,
+                901 | 911 => &mut g_arcdist,
+                930 | 940 | 950 => &mut g_feedmode,
+                200 | 210 => &mut g_units,
+                400 | 410 | 420 => &mut g_cutter,
+                430 | 490 => &mut g_tlo,
+                540 | 550 | 560 | 570 | 580 | 590 | 591 | 592 | 593 => &mut g_coord,
+                610 | 611 | 640 => &mut g_path,
+                980 | 990 => &mut g_retract,
+                40 | 280 | 281 | 300 | 301 | 530 => &mut g_nonmodal,
+                100 | 920..=923 => {
+                    return Err(unsupported_g(code, off, "it changes coordinate offsets"))
+                }
+                _ => return Err(unknown_g(code, off)),
+            };
+            if let Some((prev, _)) = *slot {
+                return Err((
+                    off as usize,
+                    ErrorKind::Invalid,
+                    format!(
+                        "{} and {} are in the same modal group",
+                        gname(prev),
+                        gname(code)
+                    ),
+                ));
+            }
+            *slot = Some((code, off));
+        }
+
+        // --- M words --------------------------------------------------
+        let mut m_stop: Option<(u16, u32)> = None;
+        let mut m_spindle: Option<(u16, u32)> = None;
+        let mut m_tool = false;
+        let (mut m_mist, mut m_flood, mut m_cool_off) = (false, false, false);
+        for &(code, off) in &blk.m[..blk.nm] {
+            let slot = match code {
+                0 | 10 | 20 | 300 => &mut m_stop,
+                30 | 40 | 50 => &mut m_spindle,
+                60 => {
+                    if m_tool {
+                        return Err(same_group_m(60, 60, off));
+                    }
+                    m_tool = true;
+                    continue;
+                }
+                70 | 80 | 90 => {
+                    // M7 and M8 may be combined; M9 with either is a conflict.
+                    let flag = match code {
+                        70 => &mut m_mist,
+                        80 => &mut m_flood,
+                        _ => &mut m_cool_off,
+                    };
+                    if *flag {
+                        return Err(same_group_m(code, code, off));
+                    }
+                    *flag = true;
+                    if m_cool_off && (m_mist || m_flood) {
+                        return Err((
+                            off as usize,
+                            ErrorKind::Invalid,
+                            "M9 with M7/M8 on one line".to_string(),
+                        ));
+                    }
+                    continue;
+                }
+                _ => {
+                    return Err((
+                        off as usize,
+                        ErrorKind::Unsupported,
+                        format!("{} is not supported", mname(code)),
+                    ))
+                }
+            };
+            if let Some((prev, _)) = *slot {
+                return Err(same_group_m(prev, code, off));
+            }
+            *slot = Some((code, off));
+        }
+
+        // --- which words are used --------------------------------------
+        let axis_mask = bit(b'X') | bit(b'Y') | bit(b'Z');
+        let has_axes = blk.mask & axis_mask != 0;
+        let ijk_mask = bit(b'I') | bit(b'J') | bit(b'K');
+        let has_ijk = blk.mask & ijk_mask != 0;
+        let has_r = blk.has(b'R');
+
+        if let Some((code, off)) = g_feedmode {
+            if code != 940 {
+                return Err(unsupported_g(
+                    code,
+                    off,
+                    if code == 930 {
+                        "inverse-time feed is not implemented; use G94 units per minute"
+                    } else {
+                        "feed per revolution is not implemented; use G94 units per minute"
+                    },
+                ));
+            }
+        }
+        if let Some((code, off)) = g_cutter {
+            if code != 400 {
+                return Err(unsupported_g(
+                    code,
+                    off,
+                    "cutter radius compensation is not implemented",
+                ));
+            }
+        }
+
+        // Motion mode after this line.
+        if let Some((code, _)) = g_motion {
+            st.motion = match code {
+                0 => MotionMode::Rapid,
+                10 => MotionMode::Linear,
+                20 => MotionMode::Cw,
+                30 => MotionMode::Ccw,
+                _ => MotionMode::None,
+            };
+        }
+        let nonmodal = g_nonmodal.map(|g| g.0);
+        let uses_axes_nonmodal = matches!(nonmodal, Some(280 | 300 | 920));
+        if uses_axes_nonmodal && has_axes && g_motion.is_some_and(|g| g.0 != 800) {
+            let (code, off) = g_nonmodal.unwrap_or((0, 0));
+            return Err((
+                off as usize,
+                ErrorKind::Invalid,
+                format!(
+                    "{} and a motion G code both use the axis words",
+                    gname(code)
+                ),
+            ));
+        }
+        let is_arc = matches!(st.motion, MotionMode::Cw | MotionMode::Ccw);
+        let motion_here = !uses_axes_nonmodal && (has_axes || (is_arc && (has_ijk || has_r)));
+        if motion_here {
+            match st.motion {
+                MotionMode::None => {
+                    return Err((
+                        first_of(blk, axis_mask | ijk_mask | bit(b'R')),
+                        ErrorKind::Invalid,
+                        "axis words with no motion mode active (G80 or none programmed yet)"
+                            .to_string(),
+                    ))
+                }
+                MotionMode::Unsupported(code) => {
+                    return Err((
+                        first_of(blk, axis_mask),
+                        ErrorKind::Unsupported,
+                        format!("axis words in unsupported motion mode {}", gname(code)),
+                    ))
+                }
+                _ => {}
+            }
+        }
+        // Words no command on this line uses.
+        let arc_motion = motion_here && is_arc;
+        if (has_ijk || has_r) && !arc_motion {
+            return Err((
+                first_of(blk, ijk_mask | bit(b'R')),
+                ErrorKind::Invalid,
+                "I/J/K/R words without a G2/G3 arc on the line".to_string(),
+            ));
+        }
+        if blk.has(b'P')
+            && !(nonmodal == Some(40) || arc_motion || g_path.is_some_and(|g| g.0 == 640))
+        {
+            return Err((
+                blk.pos_of(b'P') as usize,
+                ErrorKind::Invalid,
+                "P word with no G4, G2/G3 or G64 on the line".to_string(),
+            ));
+        }
+        if blk.has(b'Q') && g_path.map(|g| g.0) != Some(640) {
+            return Err((
+                blk.pos_of(b'Q') as usize,
+                ErrorKind::Unsupported,
+                "Q word is not supported here".to_string(),
+            ));
+        }
+        if blk.has(b'H') && g_tlo.map(|g| g.0) != Some(430) {
+            return Err((
+                blk.pos_of(b'H') as usize,
+                ErrorKind::Invalid,
+                "H word without G43".to_string(),
+            ));
+        }
+        if g_nonmodal.is_some_and(|g| g.0 == 530)
+            && !(motion_here && matches!(st.motion, MotionMode::Rapid | MotionMode::Linear))
+        {
+            let off = g_nonmodal.map_or(0, |g| g.1);
+            return Err((
+                off as usize,
+                ErrorKind::Invalid,
+                "G53 needs G0 or G1 with axis words".to_string(),
+            ));
+        }
+
+        // --- execute in LinuxCNC order ----------------------------------
+        let queue = &mut self.queue;
+        // 1. message (attached to M0/M1 if on the same line)
+        let pause_here = matches!(m_stop, Some((0 | 10, _)));
+        let mut pause_msg = None;
+        if let Some((s, e)) = blk.msg {
+            let text = String::from_utf8_lossy(&self.line[s..e]).trim().to_string();
+            if pause_here {
+                pause_msg = Some(text);
+            } else {
+                queue.push_back(Motion::Message { line, text });
+            }
+        }
+        // Units first for everything numeric on this line (G20/G21 apply to
+        // the whole block, as in grbl; LinuxCNC gives the same result).
+        if let Some((code, _)) = g_units {
+            st.inch = code == 200;
+        }
+        let scale = Self::scale(st.inch);
+        // 3. feed
+        if let Some(f) = blk.get(b'F') {
+            if f < 0.0 {
+                return Err((
+                    blk.pos_of(b'F') as usize,
+                    ErrorKind::Invalid,
+                    "negative feed rate".to_string(),
+                ));
+            }
+            st.feed = Some(f);
+        }
+        // 4. spindle speed
+        let s_word = blk.get(b'S');
+        if let Some(s) = s_word {
+            if s < 0.0 {
+                return Err((
+                    blk.pos_of(b'S') as usize,
+                    ErrorKind::Invalid,
+                    "negative spindle speed".to_string(),
+                ));
+            }
+            st.rpm = s;
+        }
+        // 5. tool select
+        if let Some(t) = blk.get(b'T') {
+            if t < 0.0 || t.fract() != 0.0 || t > f64::from(u32::MAX) {
+                return Err((
+                    blk.pos_of(b'T') as usize,
+                    ErrorKind::Invalid,
+                    "T must be a non-negative integer".to_string(),
+                ));
+            }
+            st.tool = t as u32;
+        }
+        // 6. tool change
+        if m_tool {
+            queue.push_back(Motion::ToolChange {
+                line,
+                tool: st.tool,
+            });
+        }
+        // 7. spindle
+        if let Some((code, _)) = m_spindle {
+            st.spindle = match code {
+                30 => SpindleDirection::Clockwise,
+                40 => SpindleDirection::CounterClockwise,
+                _ => SpindleDirection::Off,
+            };
+        }
+        if m_spindle.is_some() || (s_word.is_some() && st.spindle != SpindleDirection::Off) {
+            queue.push_back(Motion::Spindle {
+                line,
+                direction: st.spindle,
+                rpm: st.rpm,
+            });
+        }
+        // 8. coolant
+        if m_mist || m_flood || m_cool_off {
+            if m_cool_off {
+                st.mist = false;
+                st.flood = false;
+            }
+            st.mist |= m_mist;
+            st.flood |= m_flood;
+            queue.push_back(Motion::Coolant {
+                line,
+                mist: st.mist,
+                flood: st.flood,
+            });
+        }
+        // 10. dwell
+        if nonmodal == Some(40) {
+            let Some(p) = blk.get(b'P') else {
+                let off = g_nonmodal.map_or(0, |g| g.1);
+                return Err((
+                    off as usize,
+                    ErrorKind::Invalid,
+                    "G4 needs P (seconds)".to_string(),
+                ));
+            };
+            if p < 0.0 {
+                return Err((
+                    blk.pos_of(b'P') as usize,
+                    ErrorKind::Invalid,
+                    "negative dwell time".to_string(),
+                ));
+            }
+            queue.push_back(Motion::Dwell { line, seconds: p });
+        }
+        // 11. plane
+        if let Some((code, _)) = g_plane {
+            st.plane = match code {
+                170 => Plane::XY,
+                180 => Plane::ZX,
+                _ => Plane::YZ,
+            };
+        }
+        if st.inch {
+            self.units_inch_seen = true;
+        }
+        // 14. tool length offset: program coordinates are unchanged.
+        if let Some((code, _)) = g_tlo {
+            let tool = if code == 430 {
+                match blk.get(b'H') {
+                    Some(h) if h >= 0.0 && h.fract() == 0.0 && h <= f64::from(u32::MAX) => {
+                        Some(h as u32)
+                    }
+                    Some(_) => {
+                        return Err((
+                            blk.pos_of(b'H') as usize,
+                            ErrorKind::Invalid,
+                            "H must be a non-negative integer".to_string(),
+                        ))
+                    }
+                    None => Some(st.tool),
+                }
+            } else {
+                None
+            };
+            queue.push_back(Motion::ToolLengthOffset { line, tool });
+        }
+        // 15. work coordinate system
+        if let Some((code, _)) = g_coord {
+            let idx: u8 = match code {
+                591 => 6,
+                592 => 7,
+                593 => 8,
+                c => ((c - 540) / 10) as u8,
+            };
+            let old = self.cfg.work_offsets[st.coord as usize];
+            let new = self.cfg.work_offsets[idx as usize];
+            for i in 0..3 {
+                st.pos[i] += old[i] - new[i];
+            }
+            st.coord = idx;
+            self.work_systems |= 1 << idx;
+            queue.push_back(Motion::WorkOffset {
+                line,
+                system: idx + 1,
+            });
+        }
+        // 17. distance modes
+        if let Some((code, _)) = g_dist {
+            st.absolute = code == 900;
+        }
+        if let Some((code, _)) = g_arcdist {
+            st.arc_absolute = code == 901;
+        }
+
+        // Target of the axis words (program coordinates, mm).
+        let machine = nonmodal == Some(530);
+        let mut target = st.pos;
+        for (i, letter) in [b'X', b'Y', b'Z'].into_iter().enumerate() {
+            if let Some(v) = blk.get(letter) {
+                target[i] = if machine {
+                    v * scale - self.cfg.work_offsets[st.coord as usize][i]
+                } else if st.absolute {
+                    v * scale
+                } else {
+                    st.pos[i] + v * scale
+                };
+            }
+        }
+
+        // 19. G28 / G30 (go to stored position), G28.1 / G30.1 (store).
+        match nonmodal {
+            Some(280 | 300) => {
+                let stored = if nonmodal == Some(280) {
+                    st.g28
+                } else {
+                    st.g30
+                };
+                let mut end;
+                if has_axes {
+                    if target != st.pos {
+                        queue.push_back(Motion::Rapid {
+                            line,
+                            from: st.pos,
+                            to: target,
+                        });
+                    }
+                    end = target;
+                    for (i, letter) in [b'X', b'Y', b'Z'].into_iter().enumerate() {
+                        if blk.has(letter) {
+                            end[i] = stored[i];
+                        }
+                    }
+                } else {
+                    end = stored;
+                }
+                queue.push_back(Motion::Rapid {
+                    line,
+                    from: target,
+                    to: end,
+                });
+                st.pos = end;
+            }
+            Some(281) => st.g28 = st.pos,
+            Some(301) => st.g30 = st.pos,
+            _ => {}
+        }
+
+        // 20. motion
+        if motion_here {
+            match st.motion {
+                MotionMode::Rapid => {
+                    queue.push_back(Motion::Rapid {
+                        line,
+                        from: st.pos,
+                        to: target,
+                    });
+                }
+                MotionMode::Linear => {
+                    let feed = feed_mm_min(&st, scale, blk)?;
+                    queue.push_back(Motion::Linear {
+                        line,
+                        from: st.pos,
+                        to: target,
+                        feed_mm_min: feed,
+                    });
+                }
+                MotionMode::Cw | MotionMode::Ccw => {
+                    if machine {
+                        let off = g_nonmodal.map_or(0, |g| g.1);
+                        return Err((
+                            off as usize,
+                            ErrorKind::Invalid,
+                            "G53 with an arc".to_string(),
+                        ));
+                    }
+                    let feed = feed_mm_min(&st, scale, blk)?;
+                    let m = arc_motion_of(
+                        &self.cfg,
+                        &st,
+                        blk,
+                        target,
+                        st.motion == MotionMode::Cw,
+                        feed,
+                        scale,
+                        line,
+                    )?;
+                    queue.push_back(m);
+                }
+                MotionMode::None | MotionMode::Unsupported(_) => {}
+            }
+            st.pos = target;
+        }
+
+        // 21. stops
+        let mut end = false;
+        match m_stop {
+            Some((0, _)) | Some((10, _)) => queue.push_back(Motion::Pause {
+                line,
+                optional: m_stop.is_some_and(|m| m.0 == 10),
+                message: pause_msg,
+            }),
+            Some(_) => {
+                queue.push_back(Motion::ProgramEnd { line });
+                end = true;
+            }
+            None => {}
+        }
+        if end {
+            if self.cfg.stop_at_program_end {
+                self.done = true;
+            } else {
+                // M2/M30 reset (LinuxCNC): XY plane, absolute, G54, G94,
+                // spindle and coolant off; position is kept.
+                let keep = st.pos;
+                let inch = st.inch;
+                st = State::new(&self.cfg);
+                st.pos = keep;
+                st.inch = inch;
+            }
+        }
+        self.st = st;
+        Ok(())
+    }
+}
+
+fn feed_mm_min(st: &State, scale: f64, blk: &Block) -> Result<f64, LexError> {
+    match st.feed {
+        None => Err((
+            first_of(
+                blk,
+                bit(b'X') | bit(b'Y') | bit(b'Z') | bit(b'I') | bit(b'J') | bit(b'K') | bit(b'R'),
+            ),
+            ErrorKind::Invalid,
+            "feed move with no feed rate (F) programmed".to_string(),
+        )),
+        Some(f) if f <= 0.0 => Err((
+            if blk.has(b'F') {
+                blk.pos_of(b'F') as usize
+            } else {
+                first_of(blk, bit(b'X') | bit(b'Y') | bit(b'Z'))
+            },
+            ErrorKind::Invalid,
+            "feed move with zero feed rate".to_string(),
+        )),
+        Some(f) => Ok(f * scale),
+    }
+}
+
+/// Builds a [`Motion::Arc`] from the current line (grbl / LinuxCNC rules).
+#[allow(clippy::too_many_arguments)]
+fn arc_motion_of(
+    cfg: &Config,
+    st: &State,
+    blk: &Block,
+    to: Point,
+    clockwise: bool,
+    feed: f64,
+    scale: f64,
+    line: u32,
+) -> Result<Motion, LexError> {
+    let (a, b, n) = st.plane.axes();
+    const AXIS: [u8; 3] = [b'X', b'Y', b'Z'];
+    const OFFSET: [u8; 3] = [b'I', b'J', b'K'];
+    let from = st.pos;
+    let arc_at = first_of(
+        blk,
+        bit(b'X') | bit(b'Y') | bit(b'Z') | bit(b'I') | bit(b'J') | bit(b'K') | bit(b'R'),
+    );
+    // An offset along the plane normal means the program expects another plane.
+    if let Some(v) = blk.get(OFFSET[n]) {
+        if v != 0.0 {
+            return Err((
+                blk.pos_of(OFFSET[n]) as usize,
+                ErrorKind::Invalid,
+                format!(
+                    "{} word given for an arc in the {} plane",
+                    OFFSET[n] as char,
+                    plane_name(st.plane)
+                ),
+            ));
+        }
+    }
+    let has_plane_offset = blk.has(OFFSET[a]) || blk.has(OFFSET[b]);
+    let (da, db) = (to[a] - from[a], to[b] - from[b]);
+    let chord = da.hypot(db);
+    let mut centre = from;
+    if let Some(r_word) = blk.get(b'R') {
+        if has_plane_offset {
+            return Err((
+                blk.pos_of(b'R') as usize,
+                ErrorKind::Invalid,
+                "arc with both R and I/J/K".to_string(),
+            ));
+        }
+        if !(blk.has(AXIS[a]) || blk.has(AXIS[b])) {
+            return Err((
+                blk.pos_of(b'R') as usize,
+                ErrorKind::Arc,
+                format!(
+                    "R arc needs an end point in the {} plane",
+                    plane_name(st.plane)
+                ),
+            ));
+        }
+        if chord < FULL_CIRCLE_EPS_MM {
+            return Err((
+                blk.pos_of(b'R') as usize,
+                ErrorKind::Arc,
+                "R arc with the same start and end point (use I/J/K for a full circle)".to_string(),
+            ));
+        }
+        let r = r_word.abs() * scale;
+        let half = chord / 2.0;
+        if half - r > cfg.arc_radius_abs_tolerance_mm {
+            return Err((
+                blk.pos_of(b'R') as usize,
+                ErrorKind::Arc,
+                format!(
+                    "arc radius {r:.4} mm too small to reach the end point ({half:.4} mm away)"
+                ),
+            ));
+        }
+        // Slightly too small R (within tolerance) is a half circle (LinuxCNC).
+        let h = if half >= r {
+            0.0
+        } else {
+            (r * r - half * half).sqrt()
+        };
+        // grbl: positive R and G2 put the centre right of the chord.
+        let mut side = if clockwise { -1.0 } else { 1.0 };
+        if r_word < 0.0 {
+            side = -side;
+        }
+        // Left normal of the chord, unit length.
+        let (pa, pb) = (-db / chord, da / chord);
+        centre[a] = from[a] + da / 2.0 + side * h * pa;
+        centre[b] = from[b] + db / 2.0 + side * h * pb;
+    } else {
+        if !has_plane_offset {
+            return Err((
+                arc_at,
+                ErrorKind::Arc,
+                format!(
+                    "arc needs R or {}/{} offsets in the {} plane",
+                    OFFSET[a] as char,
+                    OFFSET[b] as char,
+                    plane_name(st.plane)
+                ),
+            ));
+        }
+        if st.arc_absolute {
+            if !(blk.has(OFFSET[a]) && blk.has(OFFSET[b])) {
+                return Err((
+                    arc_at,
+                    ErrorKind::Arc,
+                    "G90.1 arc needs both centre words of the plane".to_string(),
+                ));
+            }
+            centre[a] = blk.get(OFFSET[a]).unwrap_or(0.0) * scale;
+            centre[b] = blk.get(OFFSET[b]).unwrap_or(0.0) * scale;
+        } else {
+            centre[a] = from[a] + blk.get(OFFSET[a]).unwrap_or(0.0) * scale;
+            centre[b] = from[b] + blk.get(OFFSET[b]).unwrap_or(0.0) * scale;
+        }
+        let r0 = (from[a] - centre[a]).hypot(from[b] - centre[b]);
+        let r1 = (to[a] - centre[a]).hypot(to[b] - centre[b]);
+        if r0 == 0.0 || r1 == 0.0 {
+            return Err((
+                arc_at,
+                ErrorKind::Arc,
+                "arc with zero radius (centre on an end point)".to_string(),
+            ));
+        }
+        let d = (r1 - r0).abs();
+        if d > cfg.arc_radius_max_error_mm
+            || (d > cfg.arc_radius_abs_tolerance_mm && d > cfg.arc_radius_rel_error * r0)
+        {
+            return Err((
+                arc_at,
+                ErrorKind::Arc,
+                format!(
+                    "radius to end of arc ({r1:.4} mm) differs from radius to start ({r0:.4} mm) by {d:.4} mm"
+                ),
+            ));
+        }
+    }
+    centre[n] = from[n];
+    let turns = match blk.get(b'P') {
+        None => 1,
+        Some(p) if p >= 1.0 && p.fract() == 0.0 && p <= 1e6 => p as u32,
+        Some(_) => {
+            return Err((
+                blk.pos_of(b'P') as usize,
+                ErrorKind::Invalid,
+                "arc P (turns) must be a positive integer".to_string(),
+            ))
+        }
+    };
+    let (u0, v0) = (from[a] - centre[a], from[b] - centre[b]);
+    let (u1, v1) = (to[a] - centre[a], to[b] - centre[b]);
+    let mut sweep = if chord < FULL_CIRCLE_EPS_MM {
+        TAU
+    } else {
+        let ang = (u0 * v1 - v0 * u1).atan2(u0 * u1 + v0 * v1);
+        let s = if clockwise { -ang } else { ang };
+        if s < 0.0 {
+            s + TAU
+        } else {
+            s
+        }
+    };
+    sweep += TAU * f64::from(turns - 1);
+    Ok(Motion::Arc {
+        line,
+        from,
+        to,
+        centre,
+        plane: st.plane,
+        clockwise,
+        feed_mm_min: feed,
+        turns,
+        sweep_rad: sweep,
+    })
+}
+
+/// Byte offset of the first present word among `mask` (0 if none).
+fn first_of(blk: &Block, mask: u32) -> usize {
+    let mut best = u32::MAX;
+    for i in 0..26 {
+        if blk.mask & mask & (1 << i) != 0 {
+            best = best.min(blk.pos[i]);
+        }
+    }
+    if best == u32::MAX {
+        0
+    } else {
+        best as usize
+    }
+}
+
+fn plane_name(p: Plane) -> &'static str {
+    match p {
+        Plane::XY => "XY (G17)",
+        Plane::ZX => "XZ (G18)",
+        Plane::YZ => "YZ (G19)",
+    }
+}
+
+fn gname(code: u16) -> String {
+    if code % 10 == 0 {
+        format!("G{}", code / 10)
+    } else {
+        format!("G{}.{}", code / 10, code % 10)
+    }
+}
+
+fn mname(code: u16) -> String {
+    if code % 10 == 0 {
+        format!("M{}", code / 10)
+    } else {
+        format!("M{}.{}", code / 10, code % 10)
+    }
+}
+
+#[cold]
+fn unsupported_g(code: u16, off: u32, why: &str) -> LexError {
+    (
+        off as usize,
+        ErrorKind::Unsupported,
+        format!("{} is not supported: {why}", gname(code)),
+    )
+}
+
+#[cold]
+fn unknown_g(code: u16, off: u32) -> LexError {
+    (
+        off as usize,
+        ErrorKind::Unsupported,
+        format!("{} is not supported", gname(code)),
+    )
+}
+
+#[cold]
+fn same_group_m(a: u16, b: u16, off: u32) -> LexError {
+    (
+        off as usize,
+        ErrorKind::Invalid,
+        format!("{} and {} are in the same modal group", mname(a), mname(b)),
+    )
+}
+
+impl<R: BufRead> Iterator for Interpreter<R> {
+    type Item = Result<Motion, GcodeError>;
+
+    #[inline]
+    fn next(&mut self) -> Option<Self::Item> {
+        loop {
+            if let Some(m) = self.queue.pop_front() {
+                return Some(Ok(m));
+            }
+            if self.done {
+                return None;
+            }
+            if let Err(e) = self.step() {
+                self.done = true;
+                self.queue.clear();
+                return Some(Err(e));
+            }
+        }
+    }
+}

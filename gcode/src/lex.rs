@@ -1,0 +1,443 @@
+//! Line lexer: bytes of one line -> a fixed-size [`Block`] (no allocation).
+
+use crate::{ErrorKind, GcodeError};
+
+/// Most G / M words accepted on one line; LinuxCNC allows 4 M words and real
+/// programs stay far below these.
+pub(crate) const MAX_G: usize = 16;
+pub(crate) const MAX_M: usize = 8;
+
+/// Words of one line. Values of letters are indexed by `letter - b'A'`;
+/// `mask` says which letters are present. Positions are byte offsets.
+pub(crate) struct Block {
+    pub vals: [f64; 26],
+    pub pos: [u32; 26],
+    pub mask: u32,
+    /// G codes as value * 10 (G90.1 -> 901), with byte offset.
+    pub g: [(u16, u32); MAX_G],
+    pub ng: usize,
+    pub m: [(u16, u32); MAX_M],
+    pub nm: usize,
+    /// Byte range of a `(msg, ...)` text.
+    pub msg: Option<(usize, usize)>,
+}
+
+impl Block {
+    pub fn new() -> Self {
+        Block {
+            vals: [0.0; 26],
+            pos: [0; 26],
+            mask: 0,
+            g: [(0, 0); MAX_G],
+            ng: 0,
+            m: [(0, 0); MAX_M],
+            nm: 0,
+            msg: None,
+        }
+    }
+    #[inline]
+    pub fn has(&self, letter: u8) -> bool {
+        self.mask & bit(letter) != 0
+    }
+    #[inline]
+    pub fn get(&self, letter: u8) -> Option<f64> {
+        if self.has(letter) {
+            Some(self.vals[(letter - b'A') as usize])
+        } else {
+            None
+        }
+    }
+    #[inline]
+    pub fn pos_of(&self, letter: u8) -> u32 {
+        self.pos[(letter - b'A') as usize]
+    }
+}
+
+#[inline]
+pub(crate) const fn bit(letter: u8) -> u32 {
+    1 << (letter - b'A')
+}
+
+/// What a line turned out to be.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum LineKind {
+    /// Words (possibly none: blank or comment-only lines).
+    Words,
+    /// A `%` tape marker.
+    Percent,
+    /// Starts with `/` and block delete is on.
+    Deleted,
+}
+
+/// Error before the column is known in characters: (byte offset, kind, message).
+pub(crate) type LexError = (usize, ErrorKind, String);
+
+/// 1-based character column of byte offset `off` in `line` (ASCII fast path).
+pub(crate) fn column(line: &[u8], off: usize) -> u32 {
+    let off = off.min(line.len());
+    let prefix = &line[..off];
+    let chars = if prefix.is_ascii() {
+        off
+    } else {
+        // Count UTF-8 lead bytes; invalid bytes each count as one column.
+        prefix.iter().filter(|&&b| (b & 0xC0) != 0x80).count()
+    };
+    u32::try_from(chars + 1).unwrap_or(u32::MAX)
+}
+
+pub(crate) fn make_error(line_no: u32, line: &[u8], e: LexError) -> GcodeError {
+    GcodeError {
+        line: line_no,
+        column: column(line, e.0),
+        kind: e.1,
+        message: e.2,
+    }
+}
+
+/// Exact powers of ten (all representable in f64), for the fast number path.
+const POW10: [f64; 23] = [
+    1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16,
+    1e17, 1e18, 1e19, 1e20, 1e21, 1e22,
+];
+
+/// Parses a real number starting at `*i` (after the letter). Spaces and tabs
+/// are allowed anywhere in it, as in LinuxCNC. Correctly rounded: the fast
+/// path is exact (mantissa < 2^53 and a power of ten <= 1e22, one IEEE
+/// division), anything longer goes through `str::parse`.
+#[inline]
+pub(crate) fn parse_number(b: &[u8], i: &mut usize) -> Result<f64, LexError> {
+    let start = *i;
+    let mut j = *i;
+    while j < b.len() && (b[j] == b' ' || b[j] == b'\t') {
+        j += 1;
+    }
+    let mut neg = false;
+    if j < b.len() && (b[j] == b'-' || b[j] == b'+') {
+        neg = b[j] == b'-';
+        j += 1;
+    }
+    let mut mant: u64 = 0;
+    let mut digits = 0u32; // significant digits accumulated
+    let mut frac = 0u32;
+    let mut seen_digit = false;
+    let mut seen_dot = false;
+    let mut overflow = false;
+    while j < b.len() {
+        let c = b[j];
+        if c.is_ascii_digit() {
+            seen_digit = true;
+            if digits < 19 {
+                mant = mant * 10 + u64::from(c - b'0');
+                if mant != 0 {
+                    digits += 1;
+                }
+                if seen_dot {
+                    frac += 1;
+                }
+            } else {
+                overflow = true;
+            }
+        } else if c == b'.' {
+            if seen_dot {
+                break;
+            }
+            seen_dot = true;
+        } else if c != b' ' && c != b'\t' {
+            break;
+        }
+        j += 1;
+    }
+    if !seen_digit {
+        return Err((start, ErrorKind::Syntax, number_expected(b, j)));
+    }
+    *i = j;
+    if !overflow && mant < (1u64 << 53) && (frac as usize) < POW10.len() {
+        let v = mant as f64 / POW10[frac as usize];
+        return Ok(if neg { -v } else { v });
+    }
+    slow_number(&b[start..j], start)
+}
+
+#[cold]
+fn slow_number(text: &[u8], start: usize) -> Result<f64, LexError> {
+    let mut buf = [0u8; 64];
+    let mut n = 0;
+    for &c in text {
+        if c == b' ' || c == b'\t' {
+            continue;
+        }
+        if n == buf.len() {
+            return Err((start, ErrorKind::Syntax, "number too long".to_string()));
+        }
+        buf[n] = c;
+        n += 1;
+    }
+    std::str::from_utf8(&buf[..n])
+        .ok()
+        .and_then(|s| s.parse::<f64>().ok())
+        .filter(|v| v.is_finite())
+        .ok_or_else(|| (start, ErrorKind::Syntax, "invalid number".to_string()))
+}
+
+#[cold]
+fn number_expected(b: &[u8], j: usize) -> String {
+    match b.get(j) {
+        Some(b'#') => "numbered parameters (#) are not supported".to_string(),
+        Some(b'[') => "expressions ([...]) are not supported".to_string(),
+        Some(&c) if c.is_ascii_graphic() => format!("expected a number, found '{}'", c as char),
+        _ => "expected a number".to_string(),
+    }
+}
+
+/// Letters the interpreter understands; others are unsupported words.
+const SUPPORTED: u32 = bit(b'N')
+    | bit(b'G')
+    | bit(b'M')
+    | bit(b'X')
+    | bit(b'Y')
+    | bit(b'Z')
+    | bit(b'I')
+    | bit(b'J')
+    | bit(b'K')
+    | bit(b'R')
+    | bit(b'F')
+    | bit(b'S')
+    | bit(b'T')
+    | bit(b'P')
+    | bit(b'H')
+    | bit(b'Q');
+
+/// Lexes one line (no trailing newline) into `blk`.
+pub(crate) fn lex_line(
+    b: &[u8],
+    block_delete: bool,
+    blk: &mut Block,
+) -> Result<LineKind, LexError> {
+    blk.mask = 0;
+    blk.ng = 0;
+    blk.nm = 0;
+    blk.msg = None;
+    let mut i = 0;
+    // Leading blanks, then block delete / tape marker checks.
+    while i < b.len() && (b[i] == b' ' || b[i] == b'\t') {
+        i += 1;
+    }
+    if i < b.len() {
+        if b[i] == b'/' {
+            if block_delete {
+                return Ok(LineKind::Deleted);
+            }
+            i += 1;
+        } else if b[i] == b'%' {
+            if b[i + 1..]
+                .iter()
+                .all(|&c| c == b' ' || c == b'\t' || c == b'\r')
+            {
+                return Ok(LineKind::Percent);
+            }
+            return Err((
+                i,
+                ErrorKind::Syntax,
+                "'%' must be alone on its line".to_string(),
+            ));
+        }
+    }
+    while i < b.len() {
+        let c = b[i];
+        let up = c & !0x20;
+        if up.is_ascii_uppercase() {
+            let idx = (up - b'A') as usize;
+            let at = i;
+            if SUPPORTED & (1 << idx) == 0 {
+                return Err((at, ErrorKind::Unsupported, unsupported_letter(up)));
+            }
+            i += 1;
+            let v = parse_number(b, &mut i)?;
+            match up {
+                b'G' => {
+                    if blk.ng == MAX_G {
+                        return Err((at, ErrorKind::Invalid, "too many G words".to_string()));
+                    }
+                    blk.g[blk.ng] = (code10(v, at, 'G')?, at as u32);
+                    blk.ng += 1;
+                }
+                b'M' => {
+                    if blk.nm == MAX_M {
+                        return Err((at, ErrorKind::Invalid, "too many M words".to_string()));
+                    }
+                    blk.m[blk.nm] = (code10(v, at, 'M')?, at as u32);
+                    blk.nm += 1;
+                }
+                _ => {
+                    if blk.mask & (1 << idx) != 0 {
+                        return Err((
+                            at,
+                            ErrorKind::Invalid,
+                            format!("{} word repeated on one line", up as char),
+                        ));
+                    }
+                    blk.mask |= 1 << idx;
+                    blk.vals[idx] = v;
+                    blk.pos[idx] = at as u32;
+                }
+            }
+            continue;
+        }
+        match c {
+            b' ' | b'\t' | b'\r' => i += 1,
+            b';' => break,
+            b'(' => {
+                let rest = &b[i + 1..];
+                let Some(close) = rest.iter().position(|&x| x == b')' || x == b'(') else {
+                    return Err((i, ErrorKind::Syntax, "unclosed comment '('".to_string()));
+                };
+                if rest[close] == b'(' {
+                    return Err((
+                        i + 1 + close,
+                        ErrorKind::Syntax,
+                        "nested comment '(' inside a comment".to_string(),
+                    ));
+                }
+                let text = &rest[..close];
+                let t = text
+                    .iter()
+                    .position(|&x| x != b' ' && x != b'\t')
+                    .unwrap_or(text.len());
+                if text.len() >= t + 4 && text[t..t + 4].eq_ignore_ascii_case(b"msg,") {
+                    let s = i + 1 + t + 4;
+                    blk.msg = Some((s, i + 1 + close));
+                }
+                i += close + 2;
+            }
+            b'#' => {
+                return Err((
+                    i,
+                    ErrorKind::Unsupported,
+                    "numbered parameters (#) are not supported".to_string(),
+                ))
+            }
+            b'[' => {
+                return Err((
+                    i,
+                    ErrorKind::Unsupported,
+                    "expressions ([...]) are not supported".to_string(),
+                ))
+            }
+            _ => {
+                return Err((i, ErrorKind::Syntax, unexpected(b, i)));
+            }
+        }
+    }
+    Ok(LineKind::Words)
+}
+
+#[cold]
+fn unexpected(b: &[u8], i: usize) -> String {
+    let c = b[i];
+    if c.is_ascii_graphic() {
+        format!("unexpected character '{}'", c as char)
+    } else if c < 0x80 {
+        format!("unexpected control character 0x{c:02x}")
+    } else {
+        let ch = std::str::from_utf8(&b[i..])
+            .ok()
+            .or_else(|| {
+                (2..=4)
+                    .filter_map(|n| b.get(i..i + n).and_then(|s| std::str::from_utf8(s).ok()))
+                    .next()
+            })
+            .and_then(|s| s.chars().next());
+        match ch {
+            Some(ch) => format!("unexpected character '{ch}' outside a comment"),
+            None => "unexpected non-ASCII byte outside a comment".to_string(),
+        }
+    }
+}
+
+#[cold]
+fn unsupported_letter(up: u8) -> String {
+    match up {
+        b'O' => "O-words (subroutines, loops) are not supported".to_string(),
+        b'A' | b'B' | b'C' | b'U' | b'V' | b'W' => {
+            format!(
+                "axis word {} is not supported (3-axis X/Y/Z only)",
+                up as char
+            )
+        }
+        b'D' => "D word (cutter compensation) is not supported".to_string(),
+        b'L' => "L word (G10 / canned cycle repeats) is not supported".to_string(),
+        b'E' => "E word (extruder) is not supported".to_string(),
+        _ => format!("{} word is not supported", up as char),
+    }
+}
+
+/// G/M number as value * 10 (G90.1 -> 901); at most one decimal.
+#[inline]
+fn code10(v: f64, at: usize, letter: char) -> Result<u16, LexError> {
+    let t = v * 10.0;
+    let r = t.round();
+    if !(0.0..=9999.0).contains(&r) || (t - r).abs() > 1e-6 {
+        return Err((
+            at,
+            ErrorKind::Syntax,
+            format!("invalid {letter} number {v}"),
+        ));
+    }
+    Ok(r as u16)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+    use super::*;
+
+    fn num(s: &str) -> f64 {
+        let mut i = 0;
+        parse_number(s.as_bytes(), &mut i).unwrap()
+    }
+
+    #[test]
+    fn numbers_match_std() {
+        for s in [
+            "0",
+            "1",
+            "-1",
+            "+2.5",
+            ".5",
+            "5.",
+            "-.001",
+            "123.456789",
+            "0.1",
+            "3.14159265358979323846264",
+            "99999999999999999999.5",
+            "-0.000",
+        ] {
+            let expect: f64 = s.parse().unwrap();
+            assert_eq!(num(s), expect, "{s}");
+        }
+        assert_eq!(num(" - 1 2 . 5"), -12.5);
+    }
+
+    #[test]
+    fn lexes_words_and_comments() {
+        let mut b = Block::new();
+        let k = lex_line(b"n10 g1x1.5 (msg, hi there) y-2 ; z", true, &mut b).unwrap();
+        assert_eq!(k, LineKind::Words);
+        assert_eq!(b.get(b'X'), Some(1.5));
+        assert_eq!(b.get(b'Y'), Some(-2.0));
+        assert_eq!(b.get(b'Z'), None);
+        assert_eq!(b.ng, 1);
+        assert_eq!(b.g[0].0, 10);
+        assert!(b.msg.is_some());
+        assert!(lex_line(b"G1 (open", true, &mut b).is_err());
+        assert_eq!(
+            lex_line(b"/G1 X1", true, &mut b).unwrap(),
+            LineKind::Deleted
+        );
+        assert_eq!(lex_line(b" % ", true, &mut b).unwrap(), LineKind::Percent);
+        assert_eq!(
+            lex_line(b"O100 sub", true, &mut b).unwrap_err().1,
+            ErrorKind::Unsupported
+        );
+    }
+}
