@@ -463,6 +463,16 @@ impl<R: BufRead> Interpreter<R> {
         }
         let is_arc = matches!(st.motion, MotionMode::Cw | MotionMode::Ccw);
         let motion_here = !uses_axes_nonmodal && (has_axes || (is_arc && (has_ijk || has_r)));
+        if g_nonmodal.is_some_and(|g| g.0 == 530)
+            && !(motion_here && matches!(st.motion, MotionMode::Rapid | MotionMode::Linear))
+        {
+            let off = g_nonmodal.map_or(0, |g| g.1);
+            return Err((
+                off as usize,
+                ErrorKind::Invalid,
+                "G53 needs G0 or G1 with axis words".to_string(),
+            ));
+        }
         if motion_here {
             match st.motion {
                 MotionMode::None => {
@@ -513,16 +523,6 @@ impl<R: BufRead> Interpreter<R> {
                 blk.pos_of(b'H') as usize,
                 ErrorKind::Invalid,
                 "H word without G43".to_string(),
-            ));
-        }
-        if g_nonmodal.is_some_and(|g| g.0 == 530)
-            && !(motion_here && matches!(st.motion, MotionMode::Rapid | MotionMode::Linear))
-        {
-            let off = g_nonmodal.map_or(0, |g| g.1);
-            return Err((
-                off as usize,
-                ErrorKind::Invalid,
-                "G53 needs G0 or G1 with axis words".to_string(),
             ));
         }
 

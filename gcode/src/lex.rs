@@ -148,7 +148,11 @@ pub(crate) fn parse_number(b: &[u8], i: &mut usize) -> Result<f64, LexError> {
         j += 1;
     }
     if !seen_digit {
-        return Err((start, ErrorKind::Syntax, number_expected(b, j)));
+        let kind = match b.get(j) {
+            Some(b'#' | b'[') => ErrorKind::Unsupported,
+            _ => ErrorKind::Syntax,
+        };
+        return Err((start, kind, number_expected(b, j)));
     }
     *i = j;
     if !overflow && mant < (1u64 << 53) && (frac as usize) < POW10.len() {
@@ -252,7 +256,8 @@ pub(crate) fn lex_line(
                 return Err((at, ErrorKind::Unsupported, unsupported_letter(up)));
             }
             i += 1;
-            let v = parse_number(b, &mut i)?;
+            // Report number errors at the word's letter.
+            let v = parse_number(b, &mut i).map_err(|(_, k, m)| (at, k, m))?;
             match up {
                 b'G' => {
                     if blk.ng == MAX_G {

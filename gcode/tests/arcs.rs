@@ -1,0 +1,214 @@
+//! Arc construction (R and IJK forms, planes, turns, tolerances) and linearisation.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fresa_gcode::*;
+use std::f64::consts::{FRAC_PI_2, PI, TAU};
+
+fn arcs(src: &str) -> Vec<Motion> {
+    Interpreter::new(src.as_bytes(), Config::default())
+        .collect::<Result<Vec<_>, _>>()
+        .unwrap()
+        .into_iter()
+        .filter(|m| matches!(m, Motion::Arc { .. }))
+        .collect()
+}
+
+fn one_arc(src: &str) -> (Point, f64, bool) {
+    match arcs(src).pop().unwrap() {
+        Motion::Arc {
+            centre,
+            sweep_rad,
+            clockwise,
+            ..
+        } => (centre, sweep_rad, clockwise),
+        _ => unreachable!(),
+    }
+}
+
+fn err(src: &str) -> GcodeError {
+    Interpreter::new(src.as_bytes(), Config::default())
+        .find_map(Result::err)
+        .unwrap_or_else(|| panic!("expected an error for {src:?}"))
+}
+
+fn near(a: f64, b: f64) -> bool {
+    (a - b).abs() < 1e-9
+}
+
+fn near_p(a: Point, b: Point) -> bool {
+    (0..3).all(|i| near(a[i], b[i]))
+}
+
+#[test]
+fn r_arcs_both_signs_both_directions() {
+    // Minor arc: positive R.
+    let (c, s, cw) = one_arc("F100 G2 X10 Y10 R10");
+    assert!(near_p(c, [10.0, 0.0, 0.0]) && near(s, FRAC_PI_2) && cw);
+    // Negative R: the long way round (> 180 degrees).
+    let (c, s, _) = one_arc("F100 G2 X10 Y10 R-10");
+    assert!(
+        near_p(c, [0.0, 10.0, 0.0]) && near(s, 3.0 * FRAC_PI_2),
+        "{c:?} {s}"
+    );
+    let (c, s, cw) = one_arc("F100 G3 X10 Y10 R10");
+    assert!(near_p(c, [0.0, 10.0, 0.0]) && near(s, FRAC_PI_2) && !cw);
+    let (c, s, _) = one_arc("F100 G3 X10 Y10 R-10");
+    assert!(near_p(c, [10.0, 0.0, 0.0]) && near(s, 3.0 * FRAC_PI_2));
+}
+
+#[test]
+fn r_half_circle_and_radius_slightly_too_small() {
+    // Exactly 180 degrees: no +0.001 fudge needed.
+    let (c, s, _) = one_arc("F100 G2 X10 R5");
+    assert!(near_p(c, [5.0, 0.0, 0.0]) && near(s, PI));
+    // R 0.002 too small (within 0.005 mm): taken as a half circle (LinuxCNC).
+    let (c, s, _) = one_arc("F100 G2 X10 R4.998");
+    assert!(near_p(c, [5.0, 0.0, 0.0]) && near(s, PI));
+    let e = err("F100 G2 X10 R4.9");
+    assert_eq!((e.line, e.column, e.kind), (1, 13, ErrorKind::Arc));
+    assert!(err("F100 G2 X0 Y0 R5")
+        .message
+        .contains("same start and end"));
+    assert!(err("F100 G2 Z5 R5").message.contains("end point in the XY"));
+}
+
+#[test]
+fn ijk_arcs_in_all_three_planes() {
+    // G17: quarter circle CCW from (10,0) around origin to (0,10).
+    let (c, s, _) = one_arc("G0 X10\nF100 G3 X0 Y10 I-10 J0");
+    assert!(near_p(c, [0.0; 3]) && near(s, FRAC_PI_2));
+    // G18 (Z first, X second, normal +Y): from Z=20 to X=20 clockwise is 270
+    // degrees, as in grbl and LinuxCNC.
+    let (c, s, cw) = one_arc("G18\nG1 X0 Z20 F200\nG2 X20 Z0 I0 K-20");
+    assert!(near_p(c, [0.0, 0.0, 0.0]) && near(s, 3.0 * FRAC_PI_2) && cw);
+    let (_, s, _) = one_arc("G18\nG1 X0 Z20 F200\nG3 X20 Z0 I0 K-20");
+    assert!(near(s, FRAC_PI_2));
+    // G19 (Y first, Z second, normal +X).
+    let (c, s, _) = one_arc("G19\nG1 Y0 Z20 F200\nG2 Y20 Z0 J0 K-20");
+    assert!(near_p(c, [0.0, 0.0, 0.0]) && near(s, FRAC_PI_2), "{s}");
+    // Offset along the plane normal is rejected (LinuxCNC), zero tolerated.
+    let e = err("G0 X10\nF100 G2 X-10 I-10 K1");
+    assert_eq!((e.line, e.column), (2, 19));
+    assert!(e.message.contains("K word"));
+    assert_eq!(arcs("G0 X10\nF100 G2 X-10 I-10 K0").len(), 1);
+}
+
+#[test]
+fn full_circles_without_axis_words_and_turns() {
+    let m = arcs("G0 X-2 Y.75\nG1 Y.5 F30\nG2 J-1.1\n");
+    match &m[0] {
+        Motion::Arc {
+            from,
+            to,
+            centre,
+            sweep_rad,
+            turns,
+            ..
+        } => {
+            assert_eq!(from, to);
+            assert!(near_p(*centre, [-2.0, -0.6, 0.0]));
+            assert!(near(*sweep_rad, TAU) && *turns == 1);
+        }
+        _ => unreachable!(),
+    }
+    // P = number of turns; helix with Z.
+    let m = arcs("G0 X5\nG3 X5 Y0 Z-3 I-5 P3 F100\n");
+    match &m[0] {
+        Motion::Arc {
+            sweep_rad, turns, ..
+        } => assert!(near(*sweep_rad, 3.0 * TAU) && *turns == 3),
+        _ => unreachable!(),
+    }
+    assert!(err("G0 X5\nG3 I-5 P1.5 F100").message.contains("turns"));
+}
+
+#[test]
+fn tiny_arc_is_not_a_full_circle() {
+    let (_, s, _) = one_arc("G0 X10\nG3 X9.9999999995 Y0.0001 I-10 F100");
+    assert!(s < 1e-4 && s > 0.0, "{s}");
+}
+
+#[test]
+fn radius_mismatch_follows_grbl_linuxcnc_rule() {
+    // 0.004 mm difference: accepted (a tiny spiral).
+    assert_eq!(arcs("G2 X10.004 I5 F100").len(), 1);
+    // 0.2 mm on r=5: above 0.005 mm and 0.1 % -> error.
+    let e = err("G2 X10.2 I5 F100");
+    assert_eq!((e.line, e.column, e.kind), (1, 4, ErrorKind::Arc));
+    assert!(e.message.contains("differs"), "{e}");
+    // r = 1000: 0.4 mm is within 0.1 %, 0.8 mm is past the 0.5 mm cap.
+    assert_eq!(arcs("G2 X2000.4 I1000 F100").len(), 1);
+    assert!(err("G2 X2000.8 I1000 F100").message.contains("differs"));
+    assert!(err("G2 X1 I0 J0 F100").message.contains("zero radius"));
+    assert!(err("G2 X1 R1 I1 F100").message.contains("both R"));
+    assert!(err("G2 X1 F100").message.contains("offsets"));
+}
+
+#[test]
+fn absolute_arc_centres_g90_1() {
+    let (c, s, _) = one_arc("G90.1\nG0 X10 Y5\nG3 X-10 Y5 I0 J5 F100");
+    assert!(near_p(c, [0.0, 5.0, 0.0]) && near(s, PI));
+    assert!(err("G90.1\nG0 X10\nG3 X-10 I0 F100")
+        .message
+        .contains("G90.1"));
+}
+
+#[test]
+fn inch_arcs_are_scaled() {
+    let (c, _, _) = one_arc("G20 G0 X-0.5\nG2 X0 Y0.5 I0.5 J0 F2.5");
+    assert!(near_p(c, [0.0; 3]));
+}
+
+#[test]
+fn linearise_exact_endpoint_and_pass_through() {
+    let src = "G0 X10\nG3 X0 Y10 Z-2 I-10 F300\nG1 X-5\nM2";
+    let it = Interpreter::new(src.as_bytes(), Config::default());
+    let out: Vec<Motion> = linearise(it, 0.002).collect::<Result<_, _>>().unwrap();
+    assert!(matches!(out[0], Motion::Rapid { .. }));
+    let segs: Vec<&Motion> = out.iter().filter(|m| m.line() == 2).collect();
+    // r=10, tol 0.002: step 2*acos(1-0.0002) -> 40 chords for 90 degrees.
+    assert_eq!(segs.len() as u64, segments_for(10.0, FRAC_PI_2, 0.002));
+    assert_eq!(segs.len(), 40);
+    assert_eq!(segs.last().unwrap().end_point(), Some([0.0, 10.0, -2.0]));
+    for m in &segs {
+        assert!(matches!(m, Motion::Linear { feed_mm_min, .. } if *feed_mm_min == 300.0));
+    }
+    assert!(matches!(out.last(), Some(Motion::ProgramEnd { line: 4 })));
+}
+
+#[test]
+fn linearise_chains_segments() {
+    let src = "G0 X10\nG2 I-10 F300\n";
+    let it = Interpreter::new(src.as_bytes(), Config::default());
+    let mut prev = [10.0, 0.0, 0.0];
+    let mut n = 0;
+    for m in linearise(it, 0.01).skip(1) {
+        match m.unwrap() {
+            Motion::Linear { from, to, .. } => {
+                assert_eq!(from, prev);
+                prev = to;
+                n += 1;
+            }
+            m => panic!("{m:?}"),
+        }
+    }
+    assert_eq!(prev, [10.0, 0.0, 0.0], "full circle closes exactly");
+    assert!(n > 4);
+}
+
+#[test]
+fn arc_bounds_are_analytic() {
+    // Quarter arc crossing +Y only.
+    let m = arcs("G0 X10\nG3 X-10 Y0 I-10 F100").pop().unwrap();
+    let (lo, hi) = ArcGeometry::from_motion(&m).unwrap().bounds();
+    assert!(near_p(lo, [-10.0, 0.0, 0.0]) && near_p(hi, [10.0, 10.0, 0.0]));
+}
+
+#[test]
+fn tolerance_is_clamped() {
+    let it = Interpreter::new("G0 X1\nG2 I-1 F1".as_bytes(), Config::default());
+    let l = linearise(it, 0.0);
+    assert_eq!(l.tolerance(), MIN_TOLERANCE_MM);
+    assert_eq!(segments_for(1.0, 0.0, 0.1), 1);
+    assert_eq!(segments_for(0.001, TAU, 1.0), 4);
+}
