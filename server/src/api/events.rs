@@ -1,0 +1,164 @@
+//! `GET /api/v1/events`: Server-Sent Events. Persisted events carry their id and are replayed
+//! after `Last-Event-ID`; transient ones (status, progress) are live only. A client that falls
+//! behind gets an explicit `resync` event, then the persisted events it missed.
+
+use super::error::{ApiError, Query};
+use crate::app::SharedApp;
+use crate::events::BusEvent;
+use axum::extract::State;
+use axum::http::HeaderMap;
+use axum::response::sse::{Event, KeepAlive, Sse};
+use futures_util::Stream;
+use serde::Deserialize;
+use std::convert::Infallible;
+use tokio::sync::broadcast::error::RecvError;
+
+#[derive(Deserialize, Default)]
+pub struct Filter {
+    /// Comma-separated event types; `job` matches `job.*`.
+    types: Option<String>,
+    machine: Option<i64>,
+    /// Alternative to the `Last-Event-ID` header (for clients that cannot set headers).
+    after: Option<i64>,
+}
+
+struct Matcher {
+    types: Vec<String>,
+    machine: Option<i64>,
+}
+
+impl Matcher {
+    fn matches(&self, e: &BusEvent) -> bool {
+        if let Some(m) = self.machine {
+            if e.machine != Some(m) {
+                return false;
+            }
+        }
+        self.types.is_empty()
+            || self.types.iter().any(|t| {
+                e.kind == *t
+                    || (e.kind.starts_with(t.as_str())
+                        && e.kind.as_bytes().get(t.len()) == Some(&b'.'))
+            })
+    }
+}
+
+fn to_sse(e: &BusEvent) -> Event {
+    let mut ev = Event::default()
+        .event(e.kind.clone())
+        .data(serde_json::to_string(e).unwrap_or_default());
+    if let Some(id) = e.id {
+        ev = ev.id(id.to_string());
+    }
+    ev
+}
+
+pub async fn stream(
+    State(app): State<SharedApp>,
+    headers: HeaderMap,
+    Query(f): Query<Filter>,
+) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
+    let last_id = match headers.get("last-event-id") {
+        Some(v) => Some(
+            v.to_str()
+                .ok()
+                .and_then(|s| s.trim().parse::<i64>().ok())
+                .ok_or_else(|| {
+                    ApiError::bad_request(
+                        "invalid_header",
+                        "Last-Event-ID must be an integer event id",
+                    )
+                })?,
+        ),
+        None => f.after,
+    };
+    let matcher = Matcher {
+        types: f
+            .types
+            .as_deref()
+            .map(|t| {
+                t.split(',')
+                    .map(|s| s.trim().to_string())
+                    .filter(|s| !s.is_empty())
+                    .collect()
+            })
+            .unwrap_or_default(),
+        machine: f.machine,
+    };
+    // Subscribe before replaying so nothing falls between the replay and the live stream.
+    let mut rx = app.bus.subscribe();
+    let shutdown = app.shutdown.clone();
+    let store = app.store.clone();
+    let keepalive = app.settings.sse_keepalive;
+    let s = async_stream(move |tx| async move {
+        let mut sent_up_to = last_id.unwrap_or(0);
+        if last_id.is_some() && !replay(&store, &matcher, &mut sent_up_to, &tx).await {
+            return;
+        }
+        loop {
+            tokio::select! {
+                _ = shutdown.cancelled() => return,
+                r = rx.recv() => match r {
+                    Ok(e) => {
+                        if let Some(id) = e.id {
+                            if id <= sent_up_to { continue; }
+                            sent_up_to = id;
+                        }
+                        if matcher.matches(&e) && tx.send(to_sse(&e)).await.is_err() {
+                            return;
+                        }
+                    }
+                    Err(RecvError::Lagged(n)) => {
+                        let ev = Event::default().event("resync").data(
+                            serde_json::json!({"reason": "client fell behind", "missed": n, "after": sent_up_to}).to_string(),
+                        );
+                        if tx.send(ev).await.is_err() { return; }
+                        if !replay(&store, &matcher, &mut sent_up_to, &tx).await { return; }
+                    }
+                    Err(RecvError::Closed) => return,
+                }
+            }
+        }
+    });
+    Ok(Sse::new(s).keep_alive(KeepAlive::new().interval(keepalive)))
+}
+
+/// Sends persisted events after `*after`, page by page. Returns false if the client went away.
+async fn replay(
+    store: &crate::store::Store,
+    matcher: &Matcher,
+    after: &mut i64,
+    tx: &tokio::sync::mpsc::Sender<Event>,
+) -> bool {
+    loop {
+        let page = match store.events_after(*after, 500).await {
+            Ok(p) => p,
+            Err(e) => {
+                tracing::error!(error = %e, "event replay failed");
+                return true;
+            }
+        };
+        if page.is_empty() {
+            return true;
+        }
+        for row in page {
+            let e = BusEvent::from(row);
+            *after = e.id.unwrap_or(*after);
+            if matcher.matches(&e) && tx.send(to_sse(&e)).await.is_err() {
+                return false;
+            }
+        }
+    }
+}
+
+/// A stream fed by a task through a small channel: the task ends when the client disconnects
+/// (send fails) or on shutdown, which ends the stream.
+fn async_stream<F, Fut>(f: F) -> impl Stream<Item = Result<Event, Infallible>>
+where
+    F: FnOnce(tokio::sync::mpsc::Sender<Event>) -> Fut,
+    Fut: std::future::Future<Output = ()> + Send + 'static,
+{
+    let (tx, rx) = tokio::sync::mpsc::channel(64);
+    tokio::spawn(f(tx));
+    futures_util::StreamExt::map(tokio_stream::wrappers::ReceiverStream::new(rx), Ok)
+}

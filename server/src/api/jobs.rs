@@ -1,0 +1,272 @@
+use super::auth::Caller;
+use super::error::{ApiError, Json, Path, Query};
+use crate::app::SharedApp;
+use crate::jobs::{self as core, PendingProgram, StoredProgram};
+use crate::store::NewJob;
+use axum::body::Body;
+use axum::extract::{FromRequest, Multipart, Request, State};
+use axum::http::{header, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::Extension;
+use futures_util::StreamExt;
+use serde::Deserialize;
+use serde_json::{json, Value};
+
+#[derive(Deserialize, Default)]
+pub struct UploadParams {
+    machine: Option<i64>,
+    name: Option<String>,
+    sha256: Option<String>,
+}
+
+#[derive(Deserialize)]
+pub struct ListParams {
+    machine: Option<i64>,
+    limit: Option<i64>,
+}
+
+pub async fn list(
+    State(app): State<SharedApp>,
+    Query(p): Query<ListParams>,
+) -> Result<Json<Vec<Value>>, ApiError> {
+    let jobs = app
+        .store
+        .list_jobs(p.machine, p.limit.unwrap_or(100).clamp(1, 1000))
+        .await?;
+    let mut out = Vec::with_capacity(jobs.len());
+    for j in &jobs {
+        let run = app.store.latest_run(j.id).await?;
+        out.push(core::job_json(j, run.as_ref()));
+    }
+    Ok(Json(out))
+}
+
+pub async fn get_one(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+) -> Result<Json<Value>, ApiError> {
+    let job = app
+        .store
+        .job(id)
+        .await?
+        .ok_or_else(|| ApiError::not_found("unknown_job", format!("no job with id {id}")))?;
+    let run = app.store.latest_run(id).await?;
+    Ok(Json(core::job_json(&job, run.as_ref())))
+}
+
+pub async fn gcode(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+) -> Result<Response, ApiError> {
+    let job = app
+        .store
+        .job(id)
+        .await?
+        .ok_or_else(|| ApiError::not_found("unknown_job", format!("no job with id {id}")))?;
+    let path = core::program_path(&app.settings.programs_dir(), &job.sha256);
+    let file = tokio::fs::File::open(&path).await.map_err(|e| {
+        ApiError::internal(format!("program file {} is missing: {e}", path.display()))
+    })?;
+    let body = Body::from_stream(tokio_util::io::ReaderStream::new(file));
+    Ok(([(header::CONTENT_TYPE, "text/plain; charset=utf-8")], body).into_response())
+}
+
+/// Upload: the raw body is the program (`?machine=ID&name=NAME[&sha256=HEX]`), or a multipart
+/// form with a `file` part (and optional `machine`, `name`, `sha256` parts). Streamed to disk,
+/// checked, hashed, analysed; the job exists only once all of that succeeded.
+pub async fn upload(
+    State(app): State<SharedApp>,
+    Extension(caller): Extension<Caller>,
+    Query(mut params): Query<UploadParams>,
+    req: Request,
+) -> Result<(StatusCode, Json<Value>), ApiError> {
+    let is_multipart = req
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("multipart/form-data"));
+    // Check the machine before reading a possibly huge body.
+    if !is_multipart {
+        check_machine(&app, params.machine).await?;
+    }
+    let limit = app.settings.max_upload_bytes;
+    let dir = app.settings.programs_dir();
+    let mut pending = PendingProgram::create(&dir, limit).await?;
+    let mut file_name = None;
+    if is_multipart {
+        let mut mp = Multipart::from_request(req, &())
+            .await
+            .map_err(|e| ApiError::bad_request("invalid_multipart", e.body_text()))?;
+        let mut got_file = false;
+        while let Some(mut field) = mp
+            .next_field()
+            .await
+            .map_err(|e| ApiError::bad_request("invalid_multipart", e.body_text()))?
+        {
+            match field.name().unwrap_or("") {
+                "file" => {
+                    file_name = field.file_name().map(str::to_string);
+                    while let Some(chunk) = field
+                        .chunk()
+                        .await
+                        .map_err(|e| ApiError::bad_request("invalid_multipart", e.body_text()))?
+                    {
+                        pending.write(&chunk).await?;
+                    }
+                    got_file = true;
+                }
+                other @ ("machine" | "name" | "sha256") => {
+                    let other = other.to_string();
+                    let text = field
+                        .text()
+                        .await
+                        .map_err(|e| ApiError::bad_request("invalid_multipart", e.body_text()))?;
+                    match other.as_str() {
+                        "machine" => {
+                            params.machine = Some(text.trim().parse().map_err(|_| {
+                                ApiError::bad_request(
+                                    "invalid_field",
+                                    format!("part `machine` must be an integer id, got {text:?}"),
+                                )
+                            })?)
+                        }
+                        "name" => params.name = Some(text),
+                        _ => params.sha256 = Some(text.trim().to_string()),
+                    }
+                }
+                other => {
+                    return Err(ApiError::bad_request(
+                        "invalid_multipart",
+                        format!("unexpected part {other:?} (expected file, machine, name, sha256)"),
+                    ))
+                }
+            }
+        }
+        if !got_file {
+            return Err(ApiError::bad_request(
+                "invalid_multipart",
+                "the form has no `file` part",
+            ));
+        }
+        check_machine(&app, params.machine).await?;
+    } else {
+        let mut stream = req.into_body().into_data_stream();
+        while let Some(chunk) = stream.next().await {
+            let chunk = chunk.map_err(|e| {
+                ApiError::bad_request("upload_aborted", format!("upload did not complete: {e}"))
+            })?;
+            pending.write(&chunk).await?;
+        }
+    }
+    let machine_id = params.machine.ok_or_else(|| {
+        ApiError::bad_request("missing_field", "query parameter `machine` is required")
+    })?;
+    let program = pending.finish(params.sha256.as_deref()).await?;
+    let analysis = analyse(&program).await?;
+    let name = params
+        .name
+        .or(file_name)
+        .filter(|n| !n.trim().is_empty())
+        .unwrap_or_else(|| format!("program-{}", &program.sha256[..12]));
+    let sha = program.sha256.clone();
+    let (lines, bytes) = (program.lines, program.bytes);
+    let (path, created) = program.place(&dir)?;
+    let inserted = app
+        .store
+        .insert_job(NewJob {
+            name: &name,
+            machine_id,
+            sha256: &sha,
+            size_bytes: bytes as i64,
+            line_count: lines as i64,
+            analysis: analysis.as_ref().map(|a| a.to_string()),
+            source: "http",
+        })
+        .await;
+    let id = match inserted {
+        Ok(id) => id,
+        Err(e) => {
+            if created {
+                let _ = std::fs::remove_file(&path);
+            }
+            return Err(e.into());
+        }
+    };
+    app.bus
+        .record_or_log(
+            "job.created",
+            Some(machine_id),
+            Some(&caller.name),
+            json!({"job": id, "name": name, "sha256": sha, "lines": lines, "bytes": bytes}),
+        )
+        .await;
+    Ok((
+        StatusCode::CREATED,
+        Json(json!({"id": id, "sha256": sha, "line_count": lines, "analysis": analysis})),
+    ))
+}
+
+async fn check_machine(app: &SharedApp, machine: Option<i64>) -> Result<(), ApiError> {
+    let id = machine.ok_or_else(|| {
+        ApiError::bad_request("missing_field", "query parameter `machine` is required")
+    })?;
+    if app.store.machine(id).await?.is_none() {
+        return Err(ApiError::not_found(
+            "unknown_machine",
+            format!("no machine with id {id}"),
+        ));
+    }
+    Ok(())
+}
+
+/// Interprets the whole program before the job is stored: a program with an error never becomes
+/// a job, and the stored analysis (bounds, length, ETA) serves previews and progress.
+async fn analyse(program: &StoredProgram) -> Result<Option<Value>, ApiError> {
+    let path = program
+        .temp_path()
+        .ok_or_else(|| ApiError::internal("program file already moved"))?
+        .to_path_buf();
+    let result = tokio::task::spawn_blocking(move || {
+        let file = std::fs::File::open(&path)?;
+        let reader = std::io::BufReader::with_capacity(1 << 16, file);
+        Ok::<_, std::io::Error>(fresa_gcode::analyse(
+            reader,
+            &fresa_gcode::AnalysisOptions::default(),
+        ))
+    })
+    .await
+    .map_err(|e| ApiError::internal(format!("analysis failed: {e}")))?
+    .map_err(|e| ApiError::internal(format!("cannot read the stored program: {e}")))?;
+    match result {
+        Ok(a) => Ok(Some(json!(a))),
+        Err(e) => Err(ApiError::unprocessable(
+            "invalid_gcode",
+            format!("G-code error at {e}"),
+        )),
+    }
+}
+
+pub async fn control(
+    State(app): State<SharedApp>,
+    Path((id, action)): Path<(i64, String)>,
+    Extension(caller): Extension<Caller>,
+) -> Result<Json<Value>, ApiError> {
+    let run = match action.as_str() {
+        "start" => core::start(&app, id, &caller.name).await?,
+        "pause" => core::pause(&app, id, &caller.name).await?,
+        "resume" => core::resume(&app, id, &caller.name).await?,
+        "cancel" => core::cancel(&app, id, &caller.name).await?,
+        other => {
+            return Err(ApiError::not_found(
+                "unknown_action",
+                format!("no job action {other:?} (start, pause, resume, cancel)"),
+            ))
+        }
+    };
+    let job = app
+        .store
+        .job(id)
+        .await?
+        .ok_or_else(|| ApiError::internal("job vanished"))?;
+    Ok(Json(core::job_json(&job, Some(&run))))
+}

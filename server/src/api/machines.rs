@@ -1,0 +1,456 @@
+use super::auth::Caller;
+use super::error::{ApiError, Json, Path};
+use crate::app::SharedApp;
+use crate::machines::Machine;
+use axum::extract::State;
+use axum::http::StatusCode;
+use axum::Extension;
+use fresa_plugin_api::contract::{
+    Axis, AxisValues, Command, MachineStatus, OffsetTable, Request, WorkOffset,
+};
+use serde::Deserialize;
+use serde_json::{json, Value};
+use std::sync::Arc;
+
+async fn machine(app: &SharedApp, id: i64) -> Result<Arc<Machine>, ApiError> {
+    app.machines
+        .get(id)
+        .await
+        .ok_or_else(|| ApiError::not_found("unknown_machine", format!("no machine with id {id}")))
+}
+
+fn machine_json(m: &Machine) -> Value {
+    let row = m.row();
+    let status = m.status();
+    json!({"id": row.id, "name": row.name, "backend": row.backend, "config": row.config_json(),
+           "max_jog_mm": row.max_jog_mm, "max_feed_mm_min": row.max_feed_mm_min,
+           "state": status.state, "reason": status.reason, "created_at": row.created_at})
+}
+
+pub async fn list(State(app): State<SharedApp>) -> Json<Vec<Value>> {
+    Json(
+        app.machines
+            .all()
+            .await
+            .iter()
+            .map(|m| machine_json(m))
+            .collect(),
+    )
+}
+
+pub async fn get_one(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+) -> Result<Json<Value>, ApiError> {
+    let m = machine(&app, id).await?;
+    Ok(Json(machine_json(&m)))
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NewMachine {
+    name: String,
+    backend: String,
+    #[serde(default)]
+    config: Option<Value>,
+    #[serde(default)]
+    max_jog_mm: Option<f64>,
+    #[serde(default)]
+    max_feed_mm_min: Option<f64>,
+}
+
+pub async fn create(
+    State(app): State<SharedApp>,
+    Extension(caller): Extension<Caller>,
+    Json(req): Json<NewMachine>,
+) -> Result<(StatusCode, Json<Value>), ApiError> {
+    let name = req.name.trim();
+    if name.is_empty() {
+        return Err(ApiError::unprocessable(
+            "invalid_field",
+            "field `name` must not be empty",
+        ));
+    }
+    let config = req.config.unwrap_or_else(|| json!({}));
+    if !config.is_object() {
+        return Err(ApiError::unprocessable(
+            "invalid_field",
+            "field `config` must be a JSON object",
+        ));
+    }
+    let max_jog = req.max_jog_mm.unwrap_or(50.0);
+    let max_feed = req.max_feed_mm_min.unwrap_or(5000.0);
+    for (field, v) in [("max_jog_mm", max_jog), ("max_feed_mm_min", max_feed)] {
+        if !(v.is_finite() && v > 0.0) {
+            return Err(ApiError::unprocessable(
+                "invalid_field",
+                format!("field `{field}` must be a positive number, got {v}"),
+            ));
+        }
+    }
+    let Some(lib) = app.plugins.get(&req.backend) else {
+        return Err(ApiError::unprocessable(
+            "unknown_backend",
+            format!(
+                "field `backend`: no plugin named {:?} is loaded (loaded: {})",
+                req.backend,
+                app.plugins.names().join(", ")
+            ),
+        ));
+    };
+    if app.store.machine_by_name(name).await?.is_some() {
+        return Err(ApiError::conflict(
+            "name_taken",
+            format!("a machine named {name:?} already exists"),
+        ));
+    }
+    // Let the plugin judge the config before anything is stored.
+    let probe = {
+        let lib = lib.clone();
+        let cfg = config.clone();
+        struct Quiet;
+        impl fresa_plugin_api::host::HostSink for Quiet {
+            fn event(&self, _: Value) {}
+            fn log(&self, _: u32, _: &str) {}
+        }
+        tokio::task::spawn_blocking(move || lib.create(&cfg, Arc::new(Quiet)).map(drop))
+            .await
+            .map_err(|e| ApiError::internal(e.to_string()))?
+    };
+    if let Err(e) = probe {
+        return Err(ApiError::unprocessable(
+            "invalid_config",
+            format!("field `config` rejected by {}: {e}", req.backend),
+        ));
+    }
+    let id = match app
+        .store
+        .insert_machine(name, &req.backend, &config, max_jog, max_feed)
+        .await
+    {
+        Ok(id) => id,
+        Err(sqlx::Error::Database(d)) if d.is_unique_violation() => {
+            return Err(ApiError::conflict(
+                "name_taken",
+                format!("a machine named {name:?} already exists"),
+            ))
+        }
+        Err(e) => return Err(e.into()),
+    };
+    let row = app
+        .store
+        .machine(id)
+        .await?
+        .ok_or_else(|| ApiError::internal("machine vanished"))?;
+    let m = Machine::start(
+        row,
+        Some(lib),
+        app.store.clone(),
+        app.bus.clone(),
+        &app.machine_options(),
+    )
+    .await;
+    crate::machines::restore_state(&m, &app.store).await;
+    app.machines.insert(m).await;
+    app.bus
+        .record_or_log(
+            "machine.created",
+            Some(id),
+            Some(&caller.name),
+            json!({"id": id, "name": name, "backend": req.backend}),
+        )
+        .await;
+    Ok((StatusCode::CREATED, Json(json!({"id": id}))))
+}
+
+pub async fn status(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+) -> Result<Json<Value>, ApiError> {
+    let m = machine(&app, id).await?;
+    Ok(Json(status_json(&m, m.status())))
+}
+
+fn status_json(m: &Machine, s: MachineStatus) -> Value {
+    let mut v = json!(s);
+    let job = m.current_run().map(|r| {
+        let line = m
+            .acked_line
+            .lock()
+            .ok()
+            .and_then(|a| *a)
+            .filter(|(run, _)| *run == r.run_id)
+            .map(|(_, l)| l)
+            .unwrap_or(0);
+        crate::machines::progress_json(&r, line)
+    });
+    if let Some(o) = v.as_object_mut() {
+        o.insert("machine".into(), json!(m.id));
+        o.insert("job".into(), job.unwrap_or(Value::Null));
+    }
+    v
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JogReq {
+    axis: Axis,
+    distance: f64,
+    #[serde(default)]
+    feed: Option<f64>,
+}
+
+pub async fn jog(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Extension(caller): Extension<Caller>,
+    Json(req): Json<JogReq>,
+) -> Result<Json<Value>, ApiError> {
+    let m = machine(&app, id).await?;
+    let row = m.row();
+    if !req.distance.is_finite() || req.distance == 0.0 {
+        return Err(ApiError::unprocessable(
+            "invalid_field",
+            format!(
+                "field `distance` must be a non-zero number, got {}",
+                req.distance
+            ),
+        ));
+    }
+    if req.distance.abs() > row.max_jog_mm {
+        return Err(ApiError::unprocessable(
+            "jog_too_far",
+            format!(
+                "field `distance`: {} mm exceeds this machine's jog limit of {} mm per request",
+                req.distance, row.max_jog_mm
+            ),
+        ));
+    }
+    if let Some(f) = req.feed {
+        if !(f.is_finite() && f > 0.0 && f <= row.max_feed_mm_min) {
+            return Err(ApiError::unprocessable(
+                "feed_out_of_range",
+                format!(
+                    "field `feed`: {f} mm/min is outside 0..{} mm/min",
+                    row.max_feed_mm_min
+                ),
+            ));
+        }
+    }
+    if m.current_run().is_some() {
+        return Err(ApiError::conflict(
+            "machine_busy",
+            "a job is running on this machine; pause or cancel it before jogging",
+        ));
+    }
+    m.call(&Request::Jog {
+        axis: req.axis,
+        distance: req.distance,
+        feed: req.feed,
+    })
+    .await
+    .map_err(ApiError::from_backend)?;
+    app.bus
+        .record_or_log(
+            "machine.jog",
+            Some(id),
+            Some(&caller.name),
+            json!({"axis": req.axis, "distance": req.distance, "feed": req.feed}),
+        )
+        .await;
+    Ok(Json(json!({"ok": true})))
+}
+
+pub async fn command(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Extension(caller): Extension<Caller>,
+    Json(raw): Json<Value>,
+) -> Result<Json<Value>, ApiError> {
+    let m = machine(&app, id).await?;
+    let cmd: Command = serde_json::from_value(raw)
+        .map_err(|e| ApiError::unprocessable("invalid_command", format!("{e} (commands: cycle_start, feed_hold, resume, stop, reset, home, zero, go_to_zero, select_offset)")))?;
+    let answer = m
+        .call(&Request::Command(cmd))
+        .await
+        .map_err(ApiError::from_backend)?;
+    // Commands that change offsets: persist what the backend now has.
+    if matches!(cmd, Command::Zero { .. } | Command::SelectOffset { .. }) {
+        persist_backend_offsets(&app, &m).await?;
+    }
+    app.bus
+        .record_or_log("machine.command", Some(id), Some(&caller.name), json!(cmd))
+        .await;
+    let _ = m.refresh_status(Request::Status).await;
+    Ok(Json(json!({"ok": true, "result": answer})))
+}
+
+async fn persist_backend_offsets(app: &SharedApp, m: &Machine) -> Result<OffsetTable, ApiError> {
+    let v = m
+        .call(&Request::GetOffsets)
+        .await
+        .map_err(ApiError::from_backend)?;
+    let table: OffsetTable = serde_json::from_value(v).map_err(|e| {
+        ApiError::new(
+            StatusCode::BAD_GATEWAY,
+            "backend_error",
+            format!("offsets have an unexpected shape: {e}"),
+        )
+    })?;
+    app.store.set_offsets(m.id, &table.offsets).await?;
+    app.store.set_active_offset(m.id, table.active).await?;
+    if let Some(mut row) = app.store.machine(m.id).await? {
+        row.active_offset = table.active.name().to_string();
+        m.set_row(row);
+    }
+    app.bus
+        .record_or_log("machine.offsets", Some(m.id), None, json!(table))
+        .await;
+    Ok(table)
+}
+
+pub async fn offsets(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+) -> Result<Json<Value>, ApiError> {
+    let m = machine(&app, id).await?;
+    let offsets = app.store.offsets(id).await?;
+    let map: serde_json::Map<String, Value> = offsets
+        .iter()
+        .map(|(o, v)| (o.name().to_string(), json!(v)))
+        .collect();
+    Ok(Json(
+        json!({"active": m.row().active_offset, "offsets": map}),
+    ))
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OffsetReq {
+    x: Option<f64>,
+    y: Option<f64>,
+    z: Option<f64>,
+    a: Option<f64>,
+}
+
+pub async fn set_offset(
+    State(app): State<SharedApp>,
+    Path((id, name)): Path<(i64, String)>,
+    Extension(caller): Extension<Caller>,
+    Json(req): Json<OffsetReq>,
+) -> Result<Json<Value>, ApiError> {
+    let m = machine(&app, id).await?;
+    let offset = WorkOffset::parse(&name).ok_or_else(|| {
+        ApiError::not_found(
+            "unknown_offset",
+            format!("{name:?} is not a work offset (G54..G59)"),
+        )
+    })?;
+    let current = app
+        .store
+        .offsets(id)
+        .await?
+        .into_iter()
+        .find(|(o, _)| *o == offset)
+        .map(|(_, v)| v)
+        .unwrap_or_default();
+    let mut values = current;
+    for (axis, v) in [
+        (Axis::X, req.x),
+        (Axis::Y, req.y),
+        (Axis::Z, req.z),
+        (Axis::A, req.a),
+    ] {
+        if let Some(v) = v {
+            if !v.is_finite() {
+                return Err(ApiError::unprocessable(
+                    "invalid_field",
+                    format!(
+                        "field `{}` must be a finite number",
+                        axis.letter().to_ascii_lowercase()
+                    ),
+                ));
+            }
+            values.set(axis, v);
+        }
+    }
+    if m.status().state.is_busy() {
+        return Err(ApiError::conflict(
+            "machine_busy",
+            "offsets cannot change while the machine moves",
+        ));
+    }
+    m.call(&Request::SetOffset { offset, values })
+        .await
+        .map_err(ApiError::from_backend)?;
+    app.store.set_offsets(id, &[(offset, values)]).await?;
+    app.bus
+        .record_or_log(
+            "machine.offsets",
+            Some(id),
+            Some(&caller.name),
+            json!({"offset": offset, "values": values}),
+        )
+        .await;
+    let _ = m.refresh_status(Request::Status).await;
+    Ok(Json(json!({"offset": offset, "values": values})))
+}
+
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct PartZeroReq {
+    /// Machine coordinates of the part zero; the current machine position when absent.
+    #[serde(default)]
+    position: Option<AxisValues>,
+    #[serde(default)]
+    source: Option<String>,
+    #[serde(default)]
+    note: Option<String>,
+}
+
+pub async fn record_part_zero(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Extension(caller): Extension<Caller>,
+    body: axum::body::Bytes,
+) -> Result<(StatusCode, Json<Value>), ApiError> {
+    let m = machine(&app, id).await?;
+    // The body is optional: an empty POST records the current position.
+    let req: PartZeroReq = if body.iter().all(u8::is_ascii_whitespace) {
+        PartZeroReq::default()
+    } else {
+        serde_json::from_slice(&body)
+            .map_err(|e| ApiError::bad_request("invalid_json", format!("part zero: {e}")))?
+    };
+    let at = match req.position {
+        Some(p) => p,
+        None => {
+            m.refresh_status(Request::Status)
+                .await
+                .map_err(ApiError::from_backend)?
+                .machine_position
+        }
+    };
+    let source = req.source.unwrap_or_else(|| "api".into());
+    let row = app
+        .store
+        .insert_part_zero(id, at, &source, &caller.name, req.note.as_deref())
+        .await?;
+    app.bus
+        .record_or_log(
+            "machine.part_zero",
+            Some(id),
+            Some(&caller.name),
+            json!(row),
+        )
+        .await;
+    Ok((StatusCode::CREATED, Json(json!(row))))
+}
+
+pub async fn part_zeros(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+) -> Result<Json<Value>, ApiError> {
+    machine(&app, id).await?;
+    Ok(Json(json!(app.store.part_zeros(id).await?)))
+}

@@ -1,0 +1,267 @@
+//! The command-line client: a thin layer over the HTTP API (and, for tokens, the database).
+
+use clap::{Args, Subcommand};
+use futures_util::StreamExt;
+use serde_json::Value;
+use std::path::PathBuf;
+
+type Res = Result<(), Box<dyn std::error::Error>>;
+
+#[derive(Args)]
+pub struct ServerArgs {
+    /// Server URL.
+    #[arg(
+        long,
+        env = "FRESA_URL",
+        default_value = "http://127.0.0.1:7878",
+        global = true
+    )]
+    server: String,
+    /// API token (needed when the server is not loopback-only).
+    #[arg(long, env = "FRESA_TOKEN", global = true, hide_env_values = true)]
+    token: Option<String>,
+}
+
+#[derive(Subcommand)]
+pub enum MachineCmd {
+    /// List machines with their state.
+    List,
+}
+
+#[derive(Subcommand)]
+pub enum JobCmd {
+    /// Upload a G-code file as a job.
+    Submit {
+        file: PathBuf,
+        #[arg(long)]
+        machine: i64,
+        #[arg(long)]
+        name: Option<String>,
+        /// Start the job right after the upload.
+        #[arg(long)]
+        start: bool,
+    },
+    /// Follow a job's progress until it ends.
+    Watch { id: i64 },
+}
+
+#[derive(Subcommand)]
+pub enum TokenCmd {
+    /// Create a token and print its secret (shown once).
+    Create {
+        #[arg(long, value_parser = ["viewer", "operator", "admin"])]
+        role: String,
+        #[arg(long, default_value = "cli")]
+        name: String,
+        #[arg(long, env = "FRESA_DATA_DIR")]
+        data_dir: Option<PathBuf>,
+        #[arg(long, env = "FRESA_CONFIG")]
+        config: Option<PathBuf>,
+    },
+}
+
+struct Client {
+    http: reqwest::Client,
+    base: String,
+    token: Option<String>,
+}
+
+impl Client {
+    fn new(a: ServerArgs) -> Self {
+        Client {
+            http: reqwest::Client::new(),
+            base: a.server.trim_end_matches('/').to_string(),
+            token: a.token,
+        }
+    }
+
+    fn req(&self, method: reqwest::Method, path: &str) -> reqwest::RequestBuilder {
+        let r = self.http.request(method, format!("{}{}", self.base, path));
+        match &self.token {
+            Some(t) => r.bearer_auth(t),
+            None => r,
+        }
+    }
+
+    async fn send(&self, rb: reqwest::RequestBuilder) -> Result<Value, Box<dyn std::error::Error>> {
+        let resp = rb
+            .send()
+            .await
+            .map_err(|e| format!("cannot reach the server at {}: {e}", self.base))?;
+        let status = resp.status();
+        let body: Value = resp.json().await.unwrap_or(Value::Null);
+        if !status.is_success() {
+            let msg = body
+                .get("message")
+                .and_then(Value::as_str)
+                .unwrap_or("request failed");
+            let code = body.get("code").and_then(Value::as_str).unwrap_or("");
+            return Err(format!("{status} {code}: {msg}").into());
+        }
+        Ok(body)
+    }
+}
+
+pub async fn machine(server: ServerArgs, cmd: MachineCmd) -> Res {
+    let c = Client::new(server);
+    match cmd {
+        MachineCmd::List => {
+            let v = c
+                .send(c.req(reqwest::Method::GET, "/api/v1/machines"))
+                .await?;
+            println!("{:<5} {:<20} {:<16} STATE", "ID", "NAME", "BACKEND");
+            for m in v.as_array().into_iter().flatten() {
+                println!(
+                    "{:<5} {:<20} {:<16} {}",
+                    m["id"],
+                    m["name"].as_str().unwrap_or(""),
+                    m["backend"].as_str().unwrap_or(""),
+                    m["state"].as_str().unwrap_or("")
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
+fn is_terminal(state: &str) -> bool {
+    matches!(state, "completed" | "failed" | "cancelled" | "interrupted")
+}
+
+pub async fn job(server: ServerArgs, cmd: JobCmd) -> Res {
+    let c = Client::new(server);
+    match cmd {
+        JobCmd::Submit {
+            file,
+            machine,
+            name,
+            start,
+        } => {
+            let f = tokio::fs::File::open(&file)
+                .await
+                .map_err(|e| format!("cannot open {}: {e}", file.display()))?;
+            let name = name.unwrap_or_else(|| {
+                file.file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_default()
+            });
+            let body = reqwest::Body::wrap_stream(tokio_util::io::ReaderStream::new(f));
+            let v = c
+                .send(
+                    c.req(reqwest::Method::POST, "/api/v1/jobs")
+                        .query(&[("machine", machine.to_string()), ("name", name)])
+                        .body(body),
+                )
+                .await?;
+            let id = v["id"].as_i64().ok_or("server answered without a job id")?;
+            println!(
+                "job {id} stored ({} lines, sha256 {})",
+                v["line_count"],
+                v["sha256"].as_str().unwrap_or("")
+            );
+            if start {
+                let r = c
+                    .send(c.req(reqwest::Method::POST, &format!("/api/v1/jobs/{id}/start")))
+                    .await?;
+                println!("job {id} {}", r["state"].as_str().unwrap_or("?"));
+            }
+        }
+        JobCmd::Watch { id } => {
+            // Subscribe first, then read the current state, so no transition falls in between.
+            let resp = c
+                .req(reqwest::Method::GET, "/api/v1/events")
+                .query(&[("types", "job")])
+                .send()
+                .await
+                .map_err(|e| format!("cannot reach the server: {e}"))?;
+            if !resp.status().is_success() {
+                return Err(format!("events: {}", resp.status()).into());
+            }
+            let job = c
+                .send(c.req(reqwest::Method::GET, &format!("/api/v1/jobs/{id}")))
+                .await?;
+            let state = job["state"].as_str().unwrap_or("?").to_string();
+            println!(
+                "job {id} {}: {state}, line {}/{}",
+                job["name"].as_str().unwrap_or(""),
+                job["line"],
+                job["line_count"]
+            );
+            if is_terminal(&state) {
+                return Ok(());
+            }
+            let mut stream = resp.bytes_stream();
+            let mut buf = String::new();
+            while let Some(chunk) = stream.next().await {
+                buf.push_str(&String::from_utf8_lossy(&chunk?));
+                while let Some(end) = buf.find("\n\n") {
+                    let block: String = buf.drain(..end + 2).collect();
+                    let data: String = block
+                        .lines()
+                        .filter_map(|l| l.strip_prefix("data:"))
+                        .map(str::trim_start)
+                        .collect();
+                    let Ok(ev) = serde_json::from_str::<Value>(&data) else {
+                        continue;
+                    };
+                    if ev["data"]["job"].as_i64() != Some(id) {
+                        continue;
+                    }
+                    let d = &ev["data"];
+                    match ev["type"].as_str() {
+                        Some("job.progress") => println!(
+                            "line {}/{} ({}%)",
+                            d["line"], d["total_lines"], d["percent"]
+                        ),
+                        Some("job.state") => {
+                            let s = d["state"].as_str().unwrap_or("?");
+                            println!(
+                                "{s} at line {}{}",
+                                d["line"],
+                                d["message"]
+                                    .as_str()
+                                    .map(|m| format!(": {m}"))
+                                    .unwrap_or_default()
+                            );
+                            if is_terminal(s) {
+                                return Ok(());
+                            }
+                        }
+                        _ => {}
+                    }
+                }
+            }
+            return Err("the server closed the event stream".into());
+        }
+    }
+    Ok(())
+}
+
+pub async fn token(cmd: TokenCmd) -> Res {
+    match cmd {
+        TokenCmd::Create {
+            role,
+            name,
+            data_dir,
+            config,
+        } => {
+            let settings = crate::config::Settings::resolve(crate::config::Overrides {
+                data_dir,
+                config,
+                ..Default::default()
+            })?;
+            std::fs::create_dir_all(&settings.data_dir)?;
+            let store = crate::store::Store::open(&settings.db_path()).await?;
+            let secret = crate::api::auth::new_secret();
+            store
+                .insert_token(&name, &role, &crate::api::auth::hash_token(&secret))
+                .await?;
+            eprintln!(
+                "token {name:?} ({role}) created in {}; it is shown only now:",
+                settings.db_path().display()
+            );
+            println!("{secret}");
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,235 @@
+//! Settings: built-in defaults < TOML file < environment < command line.
+
+use serde::Deserialize;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+pub const DEFAULT_LISTEN: &str = "127.0.0.1:7878";
+
+/// What the TOML file may contain. Unknown keys are an error so a typo is not silently ignored.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileConfig {
+    pub listen: Option<String>,
+    pub data_dir: Option<PathBuf>,
+    pub plugin_dirs: Option<Vec<PathBuf>>,
+    pub max_upload_bytes: Option<u64>,
+    pub status_rate_hz: Option<f64>,
+    pub plugin_call_timeout_ms: Option<u64>,
+    pub plugin_max_concurrent_calls: Option<usize>,
+    pub sse_keepalive_secs: Option<u64>,
+    pub log: Option<String>,
+}
+
+/// Command-line/environment values for `fresa serve` (already merged by clap: CLI beats env).
+#[derive(Debug, Default, Clone)]
+pub struct Overrides {
+    pub listen: Option<String>,
+    pub data_dir: Option<PathBuf>,
+    pub config: Option<PathBuf>,
+    pub plugin_dirs: Vec<PathBuf>,
+    pub max_upload_bytes: Option<u64>,
+    pub demo: bool,
+}
+
+#[derive(Debug, Clone)]
+pub struct Settings {
+    pub listen: SocketAddr,
+    pub data_dir: PathBuf,
+    pub plugin_dirs: Vec<PathBuf>,
+    pub max_upload_bytes: u64,
+    pub status_interval: Duration,
+    pub plugin_call_timeout: Duration,
+    pub plugin_max_concurrent_calls: usize,
+    pub sse_keepalive: Duration,
+    pub demo: bool,
+    pub config_file: Option<PathBuf>,
+    pub log: Option<String>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read config file {path}: {source}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("config file {path}: {message}")]
+    Parse { path: PathBuf, message: String },
+    #[error(
+        "invalid listen address {value:?}: {message} (expected ADDR:PORT, e.g. 127.0.0.1:7878)"
+    )]
+    Listen { value: String, message: String },
+    #[error("{0}")]
+    Invalid(String),
+    #[error("no data directory: set --data-dir or FRESA_DATA_DIR (no home directory found)")]
+    NoDataDir,
+}
+
+/// Where the config file is looked for when `--config` is not given.
+pub fn default_config_candidates() -> Vec<PathBuf> {
+    let mut v = vec![PathBuf::from("/etc/fresa/fresa.toml")];
+    if let Some(p) = directories::ProjectDirs::from("", "", "fresa") {
+        v.push(p.config_dir().join("fresa.toml"));
+    }
+    v
+}
+
+pub fn default_data_dir() -> Option<PathBuf> {
+    directories::ProjectDirs::from("", "", "fresa").map(|p| p.data_dir().to_path_buf())
+}
+
+/// Plugins are looked for beside the `fresa` executable first: that is where cargo puts the
+/// workspace's plugin libraries, and where a package would install them.
+pub fn default_plugin_dirs() -> Vec<PathBuf> {
+    let mut v = Vec::new();
+    if let Ok(exe) = std::env::current_exe() {
+        if let Some(dir) = exe.parent() {
+            v.push(dir.to_path_buf());
+            v.push(dir.join("plugins"));
+        }
+    }
+    v.push(PathBuf::from("/usr/lib/fresa/plugins"));
+    v
+}
+
+fn read_file(path: &Path) -> Result<FileConfig, ConfigError> {
+    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    toml::from_str(&text).map_err(|e| ConfigError::Parse {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    })
+}
+
+impl Settings {
+    pub fn resolve(o: Overrides) -> Result<Settings, ConfigError> {
+        let (file, config_file) = match &o.config {
+            Some(p) => (read_file(p)?, Some(p.clone())),
+            None => match default_config_candidates()
+                .into_iter()
+                .find(|p| p.is_file())
+            {
+                Some(p) => (read_file(&p)?, Some(p)),
+                None => (FileConfig::default(), None),
+            },
+        };
+        let listen_str = o
+            .listen
+            .or(file.listen)
+            .unwrap_or_else(|| DEFAULT_LISTEN.to_string());
+        let listen: SocketAddr =
+            listen_str
+                .parse()
+                .map_err(|e: std::net::AddrParseError| ConfigError::Listen {
+                    value: listen_str.clone(),
+                    message: e.to_string(),
+                })?;
+        let data_dir = o
+            .data_dir
+            .or(file.data_dir)
+            .or_else(default_data_dir)
+            .ok_or(ConfigError::NoDataDir)?;
+        let mut plugin_dirs = o.plugin_dirs;
+        plugin_dirs.extend(file.plugin_dirs.unwrap_or_default());
+        plugin_dirs.extend(default_plugin_dirs());
+        let rate = file.status_rate_hz.unwrap_or(10.0);
+        if !(rate.is_finite() && rate > 0.0 && rate <= 1000.0) {
+            return Err(ConfigError::Invalid(format!(
+                "status_rate_hz must be between 0 and 1000, got {rate}"
+            )));
+        }
+        let max_calls = file.plugin_max_concurrent_calls.unwrap_or(4);
+        if max_calls == 0 {
+            return Err(ConfigError::Invalid(
+                "plugin_max_concurrent_calls must be at least 1".into(),
+            ));
+        }
+        Ok(Settings {
+            listen,
+            data_dir,
+            plugin_dirs,
+            max_upload_bytes: o
+                .max_upload_bytes
+                .or(file.max_upload_bytes)
+                .unwrap_or(1 << 30),
+            status_interval: Duration::from_secs_f64(1.0 / rate),
+            plugin_call_timeout: Duration::from_millis(
+                file.plugin_call_timeout_ms.unwrap_or(10_000),
+            ),
+            plugin_max_concurrent_calls: max_calls,
+            sse_keepalive: Duration::from_secs(file.sse_keepalive_secs.unwrap_or(15)),
+            demo: o.demo,
+            config_file,
+            log: file.log,
+        })
+    }
+
+    pub fn db_path(&self) -> PathBuf {
+        self.data_dir.join("fresa.db")
+    }
+    pub fn programs_dir(&self) -> PathBuf {
+        self.data_dir.join("programs")
+    }
+    pub fn loopback_only(&self) -> bool {
+        self.listen.ip().is_loopback()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn cli_beats_file_and_file_beats_defaults() {
+        let dir = std::env::temp_dir().join(format!("fresa-cfg-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let f = dir.join("f.toml");
+        std::fs::write(
+            &f,
+            "listen = \"127.0.0.1:9000\"\nmax_upload_bytes = 100\nstatus_rate_hz = 20.0\n",
+        )
+        .unwrap();
+        let s = Settings::resolve(Overrides {
+            config: Some(f.clone()),
+            data_dir: Some(dir.clone()),
+            max_upload_bytes: Some(5),
+            ..Default::default()
+        })
+        .unwrap();
+        assert_eq!(s.listen.port(), 9000);
+        assert_eq!(s.max_upload_bytes, 5);
+        assert_eq!(s.status_interval, Duration::from_millis(50));
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn unknown_keys_and_bad_addresses_are_named() {
+        let dir = std::env::temp_dir().join(format!("fresa-cfg2-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let f = dir.join("f.toml");
+        std::fs::write(&f, "lisen = \"x\"\n").unwrap();
+        let e = Settings::resolve(Overrides {
+            config: Some(f),
+            data_dir: Some(dir.clone()),
+            ..Default::default()
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("lisen"), "{e}");
+        let e = Settings::resolve(Overrides {
+            listen: Some("localhost".into()),
+            data_dir: Some(dir.clone()),
+            config: None,
+            ..Default::default()
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("localhost") && e.contains("ADDR:PORT"), "{e}");
+        std::fs::remove_dir_all(dir).ok();
+    }
+}
