@@ -167,26 +167,35 @@ impl PluginLibrary {
                 expected: abi::MAGIC,
             });
         }
+        // Only the head (magic, versions, struct_size) is read through the raw pointer: a
+        // reference to the whole descriptor is made only once struct_size says it is all there.
         // SAFETY: magic matched, so this is a Fresa descriptor with at least the v1 head.
-        let descriptor: &'static FrPluginDescriptor = unsafe { &*ptr };
-        if descriptor.abi_major != abi::ABI_MAJOR || descriptor.abi_minor > abi::ABI_MINOR {
+        let (abi_major, abi_minor, struct_size) = unsafe {
+            (
+                std::ptr::addr_of!((*ptr).abi_major).read_unaligned(),
+                std::ptr::addr_of!((*ptr).abi_minor).read_unaligned(),
+                std::ptr::addr_of!((*ptr).struct_size).read_unaligned(),
+            )
+        };
+        if abi_major != abi::ABI_MAJOR || abi_minor > abi::ABI_MINOR {
             return Err(LoadError::AbiMismatch {
                 path: path.to_path_buf(),
-                plugin_major: descriptor.abi_major,
-                plugin_minor: descriptor.abi_minor,
+                plugin_major: abi_major,
+                plugin_minor: abi_minor,
                 host_major: abi::ABI_MAJOR,
                 host_minor: abi::ABI_MINOR,
             });
         }
-        if (descriptor.struct_size as usize) < V1_0_DESCRIPTOR_SIZE {
+        if (struct_size as usize) < V1_0_DESCRIPTOR_SIZE {
             return Err(LoadError::BadDescriptor {
                 path: path.to_path_buf(),
                 message: format!(
-                    "struct_size {} is smaller than the v1.0 descriptor ({V1_0_DESCRIPTOR_SIZE} bytes)",
-                    descriptor.struct_size
+                    "struct_size {struct_size} is smaller than the v1.0 descriptor ({V1_0_DESCRIPTOR_SIZE} bytes)"
                 ),
             });
         }
+        // SAFETY: the library promises at least a full v1.0 descriptor, which is static data.
+        let descriptor: &'static FrPluginDescriptor = unsafe { &*ptr };
         // SAFETY: the descriptor's strings are static per the ABI.
         let target = unsafe { c_string(descriptor.target, "target", path) }?;
         if !targets_compatible(&target, crate::TARGET) {
