@@ -187,6 +187,10 @@ impl Shared {
             _ => None,
         });
         for l in loaded.into_iter().chain(queued).collect::<Vec<_>>() {
+            if self.run == Some(l.run) && !self.busy {
+                self.run = None;
+                self.line = None;
+            }
             ev.push(Event::RunEnded {
                 run: l.run,
                 outcome: RunOutcome::Cancelled,
@@ -260,22 +264,17 @@ impl Core {
                 continue;
             };
             sh.busy = true;
-            let mut ev = Vec::new();
             let run = match &job {
-                Job::Program(l) => {
-                    sh.run = Some(l.run);
-                    sh.line = Some(l.start_line);
-                    Some(l.run)
-                }
+                Job::Program(l) => Some(l.run),
                 _ => None,
             };
-            self.release(sh, ev);
+            drop(sh);
 
             let result = catch_unwind(AssertUnwindSafe(|| self.run_job(job)))
                 .unwrap_or_else(|_| Err(Interrupted::Failed("internal error (panic)".into())));
 
             let mut sh = self.lock();
-            ev = Vec::new();
+            let mut ev = Vec::new();
             sh.busy = false;
             sh.abort = false;
             if let Some(run) = run {
@@ -452,7 +451,6 @@ impl Core {
                     sh.push_status(&mut ev);
                     self.release(sh, ev);
                     sh = self.lock();
-                    continue;
                 }
             }
             if frac >= 1.0 {
@@ -619,6 +617,8 @@ impl Core {
                     "no program is loaded: send load_program first",
                 )
             })?;
+            sh.run = Some(loaded.run);
+            sh.line = Some(loaded.start_line);
             sh.queue.push_back(Job::Program(loaded));
             sh.set_state(MachineState::Running, ev);
             Ok(json!({}))

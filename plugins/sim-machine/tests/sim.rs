@@ -1,0 +1,666 @@
+//! Drives `SimMachine` directly (its events go to a channel) and once through the real C ABI.
+//! Waiting is always on events, with a generous timeout that only guards against hangs.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fresa_plugin_api::contract::{Event, MachineState, MachineStatus, OffsetTable, RunOutcome};
+use fresa_sim_machine::SimMachine;
+use serde_json::{json, Value};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::mpsc::{channel, Receiver};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+const GUARD: Duration = Duration::from_secs(60);
+
+struct Rig {
+    m: SimMachine,
+    rx: Receiver<Event>,
+}
+
+fn machine(cfg: Value) -> Rig {
+    let (tx, rx) = channel();
+    let tx = Mutex::new(tx);
+    let m = SimMachine::new(
+        &cfg,
+        Arc::new(move |e: &Event| {
+            let _ = tx.lock().unwrap().send(e.clone());
+        }),
+    )
+    .unwrap();
+    let rig = Rig { m, rx };
+    rig.call(json!({"op": "connect"}));
+    // Drop what connecting emitted, so no stale `idle` is waited on.
+    while rig.rx.try_recv().is_ok() {}
+    rig
+}
+
+impl Rig {
+    fn call(&self, req: Value) -> Value {
+        self.m
+            .request(req.clone())
+            .unwrap_or_else(|e| panic!("{req} failed: {e}"))
+    }
+
+    fn status(&self) -> MachineStatus {
+        serde_json::from_value(self.call(json!({"op": "status"}))).unwrap()
+    }
+
+    /// Collects events until one matches `stop` (included); panics after `GUARD`.
+    fn until(&self, mut stop: impl FnMut(&Event) -> bool) -> Vec<Event> {
+        let deadline = Instant::now() + GUARD;
+        let mut seen = Vec::new();
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let e = self
+                .rx
+                .recv_timeout(left)
+                .unwrap_or_else(|_| panic!("event not seen in time; got {seen:?}"));
+            let done = stop(&e);
+            seen.push(e);
+            if done {
+                return seen;
+            }
+        }
+    }
+
+    fn until_state(&self, state: MachineState) -> Vec<Event> {
+        self.until(|e| matches!(e, Event::StateChanged { to, .. } if *to == state))
+    }
+
+    /// Waits until the machine reports `idle` with nothing queued (jogs may queue up, each
+    /// ending in `idle` when the motion thread is faster than the requests).
+    fn wait_idle(&self) {
+        while self.status().state != MachineState::Idle {
+            self.until_state(MachineState::Idle);
+        }
+    }
+
+    fn until_run_ended(&self, run: i64) -> (Vec<Event>, RunOutcome, Option<String>) {
+        let events = self.until(|e| matches!(e, Event::RunEnded { run: r, .. } if *r == run));
+        match events.last() {
+            Some(Event::RunEnded {
+                outcome, message, ..
+            }) => (events.clone(), *outcome, message.clone()),
+            _ => unreachable!(),
+        }
+    }
+}
+
+fn acks(events: &[Event], run: i64) -> Vec<u32> {
+    events
+        .iter()
+        .filter_map(|e| match e {
+            Event::LineAcknowledged { run: r, line } if *r == run => Some(*line),
+            _ => None,
+        })
+        .collect()
+}
+
+fn temp_path(name: &str) -> PathBuf {
+    static N: AtomicU32 = AtomicU32::new(0);
+    let dir = std::env::temp_dir().join(format!(
+        "fresa-sim-machine-{}-{}",
+        std::process::id(),
+        N.fetch_add(1, Ordering::SeqCst)
+    ));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+fn program(text: &str) -> String {
+    let p = temp_path("prog.nc");
+    std::fs::write(&p, text).unwrap();
+    p.to_string_lossy().into_owned()
+}
+
+fn close(a: f64, b: f64) -> bool {
+    (a - b).abs() < 1e-6
+}
+
+const INSTANT: fn() -> Value = || json!({"time_scale": 0});
+
+#[test]
+fn status_shape_before_and_after_connect() {
+    let (tx, _rx) = channel();
+    let tx = Mutex::new(tx);
+    let m = SimMachine::new(
+        &json!({}),
+        Arc::new(move |e: &Event| {
+            let _ = tx.lock().unwrap().send(e.clone());
+        }),
+    )
+    .unwrap();
+    let off = m.request(json!({"op": "status"})).unwrap();
+    assert_eq!(off["state"], "offline");
+    assert!(off["reason"].is_string());
+    let e = m
+        .request(json!({"op":"jog","axis":"X","distance":1.0}))
+        .unwrap_err();
+    assert_eq!(e.code, "offline");
+
+    let st = m.request(json!({"op": "connect"})).unwrap();
+    assert_eq!(st["state"], "idle");
+    for key in ["machine_position", "work_position"] {
+        for axis in ["x", "y", "z", "a"] {
+            assert_eq!(st[key][axis], 0.0, "{key}.{axis} in {st}");
+        }
+    }
+    assert_eq!(st["feed_override"], 100.0);
+    assert_eq!(st["active_offset"], "G54");
+    assert!(st.get("run").is_none() && st.get("line").is_none());
+    // connect is idempotent
+    assert_eq!(m.request(json!({"op": "connect"})).unwrap(), st);
+
+    let table: OffsetTable =
+        serde_json::from_value(m.request(json!({"op": "get_offsets"})).unwrap()).unwrap();
+    assert_eq!(table.offsets.len(), 6);
+
+    let e = m.request(json!({"op": "fly"})).unwrap_err();
+    assert_eq!(e.code, "invalid_request");
+    assert!(e.message.contains("fly"), "{}", e.message);
+}
+
+#[test]
+fn jog_moves_exactly_distance_and_queues() {
+    let rig = machine(json!({"time_scale": 0.001}));
+    rig.call(json!({"op":"jog","axis":"X","distance":12.5,"feed":3000}));
+    let events = rig.until_state(MachineState::Idle);
+    assert!(events.iter().any(|e| matches!(
+        e,
+        Event::StateChanged {
+            to: MachineState::Jogging,
+            ..
+        }
+    )));
+    let st = rig.status();
+    assert_eq!(st.state, MachineState::Idle);
+    assert_eq!(st.machine_position.x, 12.5);
+    assert_eq!(st.machine_position.y, 0.0);
+
+    // Several jogs in a row are executed in order, each incrementally.
+    rig.call(json!({"op":"jog","axis":"A","distance":90.0}));
+    rig.call(json!({"op":"jog","axis":"A","distance":-30.0}));
+    rig.call(json!({"op":"jog","axis":"Z","distance":-2.25}));
+    rig.wait_idle();
+    let st = rig.status();
+    assert!(close(st.machine_position.a, 60.0), "{st:?}");
+    assert!(close(st.machine_position.z, -2.25), "{st:?}");
+    assert!(close(st.machine_position.x, 12.5), "{st:?}");
+
+    let e = rig
+        .m
+        .request(json!({"op":"jog","axis":"X","distance":1.0,"feed":-5}))
+        .unwrap_err();
+    assert_eq!(e.code, "invalid_request");
+}
+
+#[test]
+fn jog_respects_travel() {
+    let rig = machine(json!({"time_scale": 0, "travel": {"x": [0, 100]}}));
+    let e = rig
+        .m
+        .request(json!({"op":"jog","axis":"X","distance":-1.0}))
+        .unwrap_err();
+    assert_eq!(e.code, "out_of_travel");
+    assert!(e.message.contains('X'), "{}", e.message);
+    rig.call(json!({"op":"jog","axis":"X","distance":100.0}));
+    rig.until_state(MachineState::Idle);
+    assert_eq!(rig.status().machine_position.x, 100.0);
+}
+
+#[test]
+fn zero_home_and_go_to_zero() {
+    let rig = machine(INSTANT());
+    rig.call(json!({"op":"jog","axis":"X","distance":10.0}));
+    rig.call(json!({"op":"jog","axis":"Y","distance":-5.0}));
+    rig.call(json!({"op":"jog","axis":"Z","distance":-3.0}));
+    rig.wait_idle();
+
+    let answer = rig.call(json!({"op":"command","command":"zero"}));
+    let table: OffsetTable = serde_json::from_value(answer["offsets"].clone()).unwrap();
+    assert_eq!(table.offsets[0].1.to_array(), [10.0, -5.0, -3.0, 0.0]);
+    let st = rig.status();
+    assert_eq!(st.work_position.to_array(), [0.0; 4]);
+    assert_eq!(st.machine_position.to_array(), [10.0, -5.0, -3.0, 0.0]);
+
+    // Zero one axis of another offset.
+    rig.call(json!({"op":"command","command":"select_offset","offset":"G55"}));
+    rig.call(json!({"op":"command","command":"zero","axis":"Y"}));
+    let table: OffsetTable = serde_json::from_value(rig.call(json!({"op":"get_offsets"}))).unwrap();
+    assert_eq!(table.active, fresa_plugin_api::contract::WorkOffset::G55);
+    assert_eq!(table.offsets[1].1.to_array(), [0.0, -5.0, 0.0, 0.0]);
+    let st = rig.status();
+    assert_eq!(st.work_position.to_array(), [10.0, 0.0, -3.0, 0.0]);
+    rig.call(json!({"op":"command","command":"select_offset","offset":"G54"}));
+
+    rig.call(json!({"op":"command","command":"home"}));
+    let st = rig.status();
+    assert_eq!(st.machine_position.to_array(), [0.0; 4]);
+    assert_eq!(st.work_position.to_array(), [-10.0, 5.0, 3.0, 0.0]);
+
+    rig.call(json!({"op":"command","command":"go_to_zero"}));
+    let events = rig.until_state(MachineState::Idle);
+    // Z goes up first (here it is already above work zero), so Z never dips below it.
+    for e in &events {
+        if let Event::Status(s) = e {
+            assert!(s.machine_position.z >= -3.0 - 1e-9, "{s:?}");
+        }
+    }
+    assert_eq!(rig.status().work_position.to_array(), [0.0; 4]);
+
+    rig.call(json!({"op":"set_offset","offset":"G54","values":{"x":1,"y":2,"z":3,"a":4}}));
+    let st = rig.status();
+    assert_eq!(st.work_position.to_array(), [9.0, -7.0, -6.0, -4.0]);
+}
+
+const DEMO: &str = "%\n\
+(demo: G0 / G1 / G2)\n\
+G21 G90 G17\n\
+\n\
+G0 X10 Y0 Z5\n\
+G1 Z-1 F300\n\
+G1 X20 F600 ; a cut\n\
+G2 X30 Y0 I5 J0\n\
+G0 Z5\n\
+M30\n\
+%\n";
+
+#[test]
+fn program_runs_to_completion_and_acks_every_line_once() {
+    let log = temp_path("exec.log");
+    let rig = machine(json!({"time_scale": 0, "execution_log": log}));
+    // Work zero at machine (100, 50, -20).
+    rig.call(json!({"op":"set_offset","offset":"G54","values":{"x":100,"y":50,"z":-20}}));
+    let path = program(DEMO);
+    let loaded = rig.call(json!({"op":"load_program","run":1,"path":path,"start_line":1}));
+    assert_eq!(loaded, json!({"lines": 11, "start_line": 1}));
+    rig.call(json!({"op":"run","action":"start"}));
+    let (events, outcome, message) = rig.until_run_ended(1);
+    assert_eq!(outcome, RunOutcome::Completed, "{message:?}");
+    assert_eq!(acks(&events, 1), (1..=11).collect::<Vec<_>>());
+    rig.until_state(MachineState::Idle);
+
+    let st = rig.status();
+    assert_eq!(st.state, MachineState::Idle);
+    let w = st.work_position.to_array();
+    assert!(
+        close(w[0], 30.0) && close(w[1], 0.0) && close(w[2], 5.0),
+        "{st:?}"
+    );
+    let m = st.machine_position.to_array();
+    assert!(
+        close(m[0], 130.0) && close(m[1], 50.0) && close(m[2], -15.0),
+        "{st:?}"
+    );
+    assert_eq!(st.run, None);
+
+    let logged: Vec<Value> = std::fs::read_to_string(&log)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let expected: Vec<Value> = (1..=11).map(|l| json!({"run":1,"line":l})).collect();
+    assert_eq!(logged, expected);
+}
+
+#[test]
+fn arc_moves_are_interpolated_not_cut_short() {
+    // A half circle through Y=5 at time scale 0: the path must pass near the top of the arc.
+    let rig = machine(json!({"time_scale": 0, "status_interval_ms": 0}));
+    let path = program("G21 G90\nG1 X0 Y0 F1000\nG2 X10 Y0 I5 J0\n");
+    rig.call(json!({"op":"load_program","run":2,"path":path,"start_line":1}));
+    rig.call(json!({"op":"command","command":"cycle_start"}));
+    let (events, outcome, _) = rig.until_run_ended(2);
+    assert_eq!(outcome, RunOutcome::Completed);
+    let top = events
+        .iter()
+        .filter_map(|e| match e {
+            Event::Status(s) => Some(s.machine_position.y),
+            _ => None,
+        })
+        .fold(f64::MIN, f64::max);
+    assert!(top > 4.9, "highest Y seen {top}");
+}
+
+#[test]
+fn feed_hold_then_resume_completes() {
+    // 100 mm at 600 mm/min = 10 s, scaled to 1 s.
+    let rig = machine(json!({"time_scale": 0.1}));
+    let path = program("G21 G90\nG1 X100 F600\nG0 Z10\n");
+    rig.call(json!({"op":"load_program","run":3,"path":path,"start_line":1}));
+    rig.call(json!({"op":"run","action":"start"}));
+    rig.call(json!({"op":"command","command":"feed_hold"}));
+    let events = rig.until(|e| matches!(e, Event::Status(s) if s.state == MachineState::Paused));
+    let held = rig.status();
+    assert_eq!(held.state, MachineState::Paused);
+    assert_eq!(held.run, Some(3));
+    assert!(held.machine_position.x < 100.0, "{held:?}");
+    // The status sent when the hold took effect shows the same, unmoving position.
+    let at_hold = events.iter().rev().find_map(|e| match e {
+        Event::Status(s) => Some(s.clone()),
+        _ => None,
+    });
+    assert_eq!(
+        at_hold.map(|s| s.machine_position),
+        Some(held.machine_position)
+    );
+    assert!(!acks(&events, 3).contains(&2));
+    // Jogging is refused while a program is held.
+    let e = rig
+        .m
+        .request(json!({"op":"jog","axis":"X","distance":1.0}))
+        .unwrap_err();
+    assert_eq!(e.code, "busy");
+
+    rig.call(json!({"op":"command","command":"resume"}));
+    let (rest, outcome, _) = rig.until_run_ended(3);
+    assert_eq!(outcome, RunOutcome::Completed);
+    let mut all = acks(&events, 3);
+    all.extend(acks(&rest, 3));
+    assert_eq!(all, vec![1, 2, 3]);
+    let st = rig.status();
+    assert_eq!(st.machine_position.x, 100.0);
+    assert_eq!(st.machine_position.z, 10.0);
+}
+
+#[test]
+fn stop_cancels_the_run() {
+    // 1000 mm at 100 mm/min: ten minutes of real time, so it is surely still running.
+    let rig = machine(json!({}));
+    let path = program("G21\nG1 X1000 F100\nG0 Z10\n");
+    rig.call(json!({"op":"load_program","run":4,"path":path,"start_line":1}));
+    rig.call(json!({"op":"run","action":"start"}));
+    let e = rig
+        .m
+        .request(json!({"op":"jog","axis":"X","distance":1.0}))
+        .unwrap_err();
+    assert_eq!(e.code, "busy");
+    rig.call(json!({"op":"command","command":"stop"}));
+    // stop returns once motion has ended.
+    let st = rig.status();
+    assert_eq!(st.state, MachineState::Idle);
+    assert!(st.machine_position.x < 1000.0);
+    let (events, outcome, _) = rig.until_run_ended(4);
+    assert_eq!(outcome, RunOutcome::Cancelled);
+    assert!(!acks(&events, 4).contains(&2));
+    // The machine is usable again.
+    rig.call(json!({"op":"jog","axis":"Y","distance":1.0,"feed":1e6}));
+    rig.wait_idle();
+
+    // run cancel works the same on a held program.
+    rig.call(json!({"op":"load_program","run":5,"path":path,"start_line":1}));
+    rig.call(json!({"op":"run","action":"start"}));
+    rig.call(json!({"op":"run","action":"pause"}));
+    rig.call(json!({"op":"run","action":"cancel"}));
+    let (_, outcome, _) = rig.until_run_ended(5);
+    assert_eq!(outcome, RunOutcome::Cancelled);
+    assert_eq!(rig.status().state, MachineState::Idle);
+}
+
+#[test]
+fn resume_from_line_skips_earlier_lines_but_keeps_modal_state() {
+    let rig = machine(INSTANT());
+    // Inches, incremental, feed 10 in/min: all set before line 4.
+    let path = program("G20\nG91\nG1 X1 F10\nG1 X1\nG1 X1\n");
+    let loaded = rig.call(json!({"op":"load_program","run":6,"path":path,"start_line":4}));
+    assert_eq!(loaded, json!({"lines": 5, "start_line": 4}));
+    rig.call(json!({"op":"run","action":"start"}));
+    let (events, outcome, _) = rig.until_run_ended(6);
+    assert_eq!(outcome, RunOutcome::Completed);
+    assert_eq!(acks(&events, 6), vec![4, 5]);
+    let st = rig.status();
+    // Line 4 goes to X2in and line 5 to X3in, in program coordinates, from where it was.
+    assert!(close(st.machine_position.x, 76.2), "{st:?}");
+    assert!(close(st.feed, 254.0), "{st:?}");
+}
+
+#[test]
+fn resume_is_idempotent_with_the_execution_log() {
+    let log = temp_path("exec.log");
+    let cfg = json!({"time_scale": 0, "execution_log": log});
+    let path = program("G21 G90\nG0 X1\nM0\nG0 X2\nG0 X3\n");
+    {
+        let rig = machine(cfg.clone());
+        rig.call(json!({"op":"load_program","run":7,"path":path,"start_line":1}));
+        rig.call(json!({"op":"run","action":"start"}));
+        // M0 on line 3 pauses the run; it is stopped there, as if the server went down.
+        let events = rig.until_state(MachineState::Paused);
+        assert_eq!(acks(&events, 7), vec![1, 2]);
+        rig.call(json!({"op":"command","command":"stop"}));
+        let (_, outcome, _) = rig.until_run_ended(7);
+        assert_eq!(outcome, RunOutcome::Cancelled);
+    }
+    // A new instance on the same log resumes run 7 after the last logged line.
+    let rig = machine(cfg);
+    let loaded = rig.call(json!({"op":"load_program","run":7,"path":path,"start_line":1}));
+    assert_eq!(loaded, json!({"lines": 5, "start_line": 3}));
+    rig.call(json!({"op":"run","action":"start"}));
+    let events = rig.until_state(MachineState::Paused);
+    assert!(acks(&events, 7).is_empty());
+    rig.call(json!({"op":"run","action":"resume"}));
+    let (events, outcome, _) = rig.until_run_ended(7);
+    assert_eq!(outcome, RunOutcome::Completed);
+    assert_eq!(acks(&events, 7), vec![3, 4, 5]);
+    assert_eq!(rig.status().machine_position.x, 3.0);
+
+    let logged: Vec<u32> = std::fs::read_to_string(&log)
+        .unwrap()
+        .lines()
+        .map(|l| {
+            serde_json::from_str::<Value>(l).unwrap()["line"]
+                .as_u64()
+                .unwrap() as u32
+        })
+        .collect();
+    assert_eq!(logged, vec![1, 2, 3, 4, 5]);
+
+    // Another run id is not affected; a fully logged run starts past its end and completes.
+    let other = rig.call(json!({"op":"load_program","run":8,"path":path,"start_line":2}));
+    assert_eq!(other["start_line"], 2);
+    let done = rig.call(json!({"op":"load_program","run":7,"path":path,"start_line":1}));
+    assert_eq!(done["start_line"], 6);
+    rig.call(json!({"op":"run","action":"start"}));
+    let (events, outcome, _) = rig.until_run_ended(7);
+    assert_eq!(outcome, RunOutcome::Completed);
+    assert!(acks(&events, 7).is_empty());
+}
+
+#[test]
+fn invalid_program_is_rejected_with_its_line() {
+    let rig = machine(INSTANT());
+    let path = program("G21 G90\nG0 X1\nG1 X5 Y5 Q!\nG0 X0\n");
+    let e = rig
+        .m
+        .request(json!({"op":"load_program","run":9,"path":path,"start_line":1}))
+        .unwrap_err();
+    assert_eq!(e.code, "invalid_program");
+    assert!(e.message.starts_with("line 3"), "{}", e.message);
+
+    let e = rig
+        .m
+        .request(json!({"op":"load_program","run":9,"path":"/nonexistent/p.nc","start_line":1}))
+        .unwrap_err();
+    assert!(e.message.contains("/nonexistent/p.nc"), "{}", e.message);
+
+    let e = rig
+        .m
+        .request(json!({"op":"command","command":"cycle_start"}))
+        .unwrap_err();
+    assert_eq!(e.code, "no_program");
+
+    let far = program("G0 X1\n");
+    let e = rig
+        .m
+        .request(json!({"op":"load_program","run":9,"path":far,"start_line":3}))
+        .unwrap_err();
+    assert_eq!(e.code, "invalid_request");
+}
+
+#[test]
+fn program_outside_travel_is_rejected_before_motion() {
+    let rig = machine(json!({"time_scale": 0, "travel": {"z": [-50, 0]}}));
+    let path = program("G21 G90\nG0 Z-10\nG1 Z-60 F100\n");
+    let e = rig
+        .m
+        .request(json!({"op":"load_program","run":10,"path":path,"start_line":1}))
+        .unwrap_err();
+    assert_eq!(e.code, "out_of_travel");
+    assert!(e.message.starts_with("line 3"), "{}", e.message);
+}
+
+#[test]
+fn invalid_config_is_rejected_naming_the_key() {
+    for (cfg, key) in [
+        (json!({"time_scale": "fast"}), "time_scale"),
+        (json!({"rapid": 100}), "rapid"),
+        (json!({"status_interval_ms": -1}), "status_interval_ms"),
+    ] {
+        let e = SimMachine::new(&cfg, Arc::new(|_: &Event| {}))
+            .err()
+            .unwrap();
+        assert_eq!(e.code, "invalid_config");
+        assert!(e.message.contains(key), "{}", e.message);
+    }
+    let e = SimMachine::new(
+        &json!({"execution_log": "/nonexistent-dir/x.log"}),
+        Arc::new(|_: &Event| {}),
+    )
+    .err()
+    .unwrap();
+    assert_eq!(e.code, "invalid_config");
+    assert!(e.message.contains("execution_log"), "{}", e.message);
+}
+
+#[test]
+fn large_program_runs_instantly_at_time_scale_zero() {
+    let mut text = String::from("G21 G90 G1 F1000\n");
+    for i in 0..40_000 {
+        text.push_str(&format!("X{} Y{}\n", i % 100, (i / 100) % 50));
+    }
+    let rig = machine(INSTANT());
+    let path = program(&text);
+    let loaded = rig.call(json!({"op":"load_program","run":11,"path":path,"start_line":1}));
+    assert_eq!(loaded["lines"], 40_001);
+    rig.call(json!({"op":"run","action":"start"}));
+    let (events, outcome, _) = rig.until_run_ended(11);
+    assert_eq!(outcome, RunOutcome::Completed);
+    let acked = acks(&events, 11);
+    assert_eq!(acked.len(), 40_001);
+    assert!(acked.windows(2).all(|w| w[1] == w[0] + 1));
+}
+
+/// Runs every program of the shared corpus (when present) to completion at time scale 0.
+#[test]
+fn corpus_programs_run_to_completion() {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/corpus/gcode");
+    let Ok(entries) = std::fs::read_dir(&dir) else {
+        eprintln!("corpus folder {} is absent: skipping", dir.display());
+        return;
+    };
+    let rig = machine(INSTANT());
+    let mut ran = 0;
+    for (run, entry) in (100..).zip(entries) {
+        let path = entry.unwrap().path();
+        let loaded = match rig
+            .m
+            .request(json!({"op":"load_program","run":run,"path":path,"start_line":1}))
+        {
+            Ok(v) => v,
+            // What the G-code interpreter refuses is its business (and its tests'); it must
+            // be refused cleanly, with a line number, before any motion.
+            Err(e) if e.code == "invalid_program" && e.message.starts_with("line ") => {
+                eprintln!("{}: refused: {}", path.display(), e.message);
+                continue;
+            }
+            Err(e) => panic!("{}: {e}", path.display()),
+        };
+        ran += 1;
+        let lines = loaded["lines"].as_u64().unwrap() as u32;
+        rig.call(json!({"op":"run","action":"start"}));
+        // M0 pauses the run: press resume whenever that happens.
+        let events = rig.until(|e| {
+            if matches!(
+                e,
+                Event::StateChanged {
+                    to: MachineState::Paused,
+                    ..
+                }
+            ) {
+                rig.call(json!({"op":"run","action":"resume"}));
+            }
+            matches!(e, Event::RunEnded { .. })
+        });
+        assert!(
+            matches!(
+                events.last(),
+                Some(Event::RunEnded {
+                    outcome: RunOutcome::Completed,
+                    ..
+                })
+            ),
+            "{}: {:?}",
+            path.display(),
+            events.last()
+        );
+        assert_eq!(
+            acks(&events, run),
+            (1..=lines).collect::<Vec<_>>(),
+            "{}",
+            path.display()
+        );
+        rig.until_state(MachineState::Idle);
+        rig.call(json!({"op":"command","command":"home"}));
+    }
+    assert!(ran > 0, "no corpus program could be loaded");
+}
+
+/// The same machine through the real C ABI, as the server loads it.
+#[test]
+fn works_through_the_c_abi() {
+    use fresa_plugin_api::host::{HostSink, PluginLibrary};
+    struct Sink(Mutex<std::sync::mpsc::Sender<Value>>);
+    impl HostSink for Sink {
+        fn event(&self, event: Value) {
+            let _ = self.0.lock().unwrap().send(event);
+        }
+        fn log(&self, _level: u32, _message: &str) {}
+    }
+    // Integration tests live in target/<profile>/deps; the cdylib one level up.
+    let exe = std::env::current_exe().unwrap();
+    let lib = exe
+        .parent()
+        .and_then(|d| d.parent())
+        .unwrap()
+        .join(fresa_plugin_api::library_file_name("fresa_sim_machine"));
+    let library = PluginLibrary::load(&lib).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(library.name(), "sim-machine");
+
+    let (tx, rx) = channel();
+    let sink: Arc<dyn HostSink> = Arc::new(Sink(Mutex::new(tx)));
+    let bad = library.create(&json!({"time_scale": true}), sink.clone());
+    assert!(bad.err().unwrap().to_string().contains("time_scale"));
+
+    let instance = library.create(&json!({"time_scale": 0}), sink).unwrap();
+    let st = instance.call(&json!({"op":"connect"})).unwrap();
+    assert_eq!(st["state"], "idle");
+    instance
+        .call(&json!({"op":"jog","axis":"Y","distance":7.0}))
+        .unwrap();
+    let deadline = Instant::now() + GUARD;
+    loop {
+        let e = rx
+            .recv_timeout(deadline.saturating_duration_since(Instant::now()))
+            .unwrap();
+        if e["event"] == "state_changed" && e["from"] == "jogging" && e["to"] == "idle" {
+            break;
+        }
+    }
+    let st = instance.call(&json!({"op":"status"})).unwrap();
+    assert_eq!(st["machine_position"]["y"], 7.0);
+    instance.call(&json!({"op":"shutdown"})).unwrap();
+    assert_eq!(
+        instance.call(&json!({"op":"status"})).unwrap()["state"],
+        "offline"
+    );
+}
