@@ -70,6 +70,8 @@ struct Shared {
     alarm: Option<String>,
     /// Machine position, mm (A in degrees).
     pos: [f64; 4],
+    /// End of the move in progress, if any.
+    move_end: Option<[f64; 4]>,
     /// Machine origin of G54..G59.
     offsets: [[f64; 4]; 6],
     active: WorkOffset,
@@ -414,9 +416,21 @@ impl Core {
         feed: f64,
     ) -> Result<(), Interrupted> {
         let mut sh = self.lock();
-        if path.is_some() {
+        if let Some((_, end)) = path {
             sh.feed = feed;
+            sh.move_end = Some(end);
         }
+        let result = self.timed_locked(sh, path, seconds);
+        self.lock().move_end = None;
+        result
+    }
+
+    fn timed_locked<'a>(
+        &'a self,
+        mut sh: MutexGuard<'a, Shared>,
+        path: Option<([f64; 4], [f64; 4])>,
+        seconds: f64,
+    ) -> Result<(), Interrupted> {
         let mut done = 0.0;
         let mut last = Instant::now();
         loop {
@@ -510,8 +524,8 @@ impl Core {
                     format!("{MAX_QUEUED_JOGS} jogs are already queued"),
                 ));
             }
-            // Where this jog will end, counting the jogs queued before it.
-            let mut target = sh.pos;
+            // Where this jog will end, counting the move in progress and the jogs queued.
+            let mut target = sh.move_end.unwrap_or(sh.pos);
             for job in &sh.queue {
                 if let Job::Jog { axis, distance, .. } = job {
                     target[axis.index()] += distance;
@@ -569,7 +583,7 @@ impl Core {
                 sh.set_state(MachineState::Paused, ev);
                 Ok(false)
             }
-            MachineState::Jogging => Ok(true),
+            MachineState::Jogging if !strict => Ok(true),
             _ if strict && sh.run.is_none() => Err(PluginError::new(
                 "not_running",
                 "no program is running: nothing to pause",
@@ -836,6 +850,7 @@ impl SimMachine {
                 reason: Some("not connected yet".into()),
                 alarm: None,
                 pos: [0.0; 4],
+                move_end: None,
                 offsets: [[0.0; 4]; 6],
                 active: WorkOffset::G54,
                 feed: 0.0,

@@ -207,6 +207,17 @@ fn jog_respects_travel() {
     rig.call(json!({"op":"jog","axis":"X","distance":100.0}));
     rig.until_state(MachineState::Idle);
     assert_eq!(rig.status().machine_position.x, 100.0);
+
+    // A jog is checked from where the moves before it end, not from where the axis is now.
+    let slow = machine(json!({"travel": {"x": [0, 100]}}));
+    slow.call(json!({"op":"jog","axis":"X","distance":60.0,"feed":1.0}));
+    let e = slow
+        .m
+        .request(json!({"op":"jog","axis":"X","distance":60.0}))
+        .unwrap_err();
+    assert_eq!(e.code, "out_of_travel");
+    slow.call(json!({"op":"command","command":"stop"}));
+    assert_eq!(slow.status().state, MachineState::Idle);
 }
 
 #[test]
