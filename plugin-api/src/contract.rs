@@ -129,7 +129,7 @@ impl MachineState {
 }
 
 /// A snapshot of the machine, reported by `status` and by `status` events.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MachineStatus {
     pub state: MachineState,
     pub machine_position: AxisValues,
@@ -155,6 +155,23 @@ pub struct MachineStatus {
 
 fn hundred() -> f64 {
     100.0
+}
+
+impl Default for MachineStatus {
+    fn default() -> Self {
+        MachineStatus {
+            state: MachineState::default(),
+            machine_position: AxisValues::default(),
+            work_position: AxisValues::default(),
+            feed: 0.0,
+            feed_override: hundred(),
+            active_offset: WorkOffset::default(),
+            run: None,
+            line: None,
+            alarm: None,
+            reason: None,
+        }
+    }
 }
 
 /// Immediate machine commands. Serialised with a `command` tag, e.g. `{"command":"zero","axis":"X"}`.

@@ -85,8 +85,9 @@ impl std::fmt::Debug for PluginLibrary {
 /// The `arch` and `os` of a target triple, the parts that decide binary compatibility here.
 fn arch_os(triple: &str) -> (&str, &str) {
     let arch = triple.split('-').next().unwrap_or("");
+    // Android first: "aarch64-linux-android" contains "linux" too.
     let os = [
-        "linux", "windows", "darwin", "freebsd", "netbsd", "openbsd", "android",
+        "android", "linux", "windows", "darwin", "freebsd", "netbsd", "openbsd",
     ]
     .into_iter()
     .find(|os| triple.contains(os))
@@ -432,6 +433,10 @@ mod tests {
             "x86_64-unknown-linux-gnu"
         ));
         assert!(!targets_compatible("", "x86_64-unknown-linux-gnu"));
+        assert!(!targets_compatible(
+            "aarch64-linux-android",
+            "aarch64-unknown-linux-gnu"
+        ));
     }
 
     #[test]

@@ -122,10 +122,7 @@ pub unsafe extern "C" fn create<P: Plugin>(
             abi::STATUS_ERROR
         }
         Err(p) => {
-            let e = PluginError::new(
-                "panic",
-                format!("plugin panicked in create: {}", panic_message(p)),
-            );
+            let e = PluginError::new("panic", format!("in create: {}", panic_message(p)));
             unsafe { *out_error = error_buf(&e) };
             abi::STATUS_PANIC
         }
@@ -157,10 +154,7 @@ pub unsafe extern "C" fn call<P: Plugin>(
         Ok(Err(e)) => (abi::STATUS_ERROR, error_buf(&e)),
         Err(p) => (
             abi::STATUS_PANIC,
-            error_buf(&PluginError::new(
-                "panic",
-                format!("plugin panicked: {}", panic_message(p)),
-            )),
+            error_buf(&PluginError::new("panic", panic_message(p))),
         ),
     };
     unsafe { *out_response = buf };

@@ -60,6 +60,21 @@ pub enum TokenCmd {
     },
 }
 
+#[derive(Subcommand)]
+pub enum GcodeCmd {
+    /// Interpret a whole program as the server would on upload: print its analysis, or the first
+    /// error with line and column (exit status 1).
+    Check {
+        file: PathBuf,
+        /// Rapid rate assumed for the time estimate, mm/min.
+        #[arg(long, default_value_t = 5000.0)]
+        rapid: f64,
+        /// Print the analysis as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
 struct Client {
     http: reqwest::Client,
     base: String,
@@ -261,6 +276,61 @@ pub async fn token(cmd: TokenCmd) -> Res {
                 settings.db_path().display()
             );
             println!("{secret}");
+        }
+    }
+    Ok(())
+}
+
+pub fn gcode(cmd: GcodeCmd) -> Res {
+    match cmd {
+        GcodeCmd::Check { file, rapid, json } => {
+            let f = std::fs::File::open(&file)
+                .map_err(|e| format!("cannot open {}: {e}", file.display()))?;
+            let opts = fresa_gcode::AnalysisOptions {
+                rapid_mm_min: rapid,
+                ..Default::default()
+            };
+            let a = fresa_gcode::analyse(std::io::BufReader::with_capacity(1 << 16, f), &opts)
+                .map_err(|e| format!("{}: {e}", file.display()))?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&a)?);
+                return Ok(());
+            }
+            let fmt_b = |b: &Option<fresa_gcode::Bounds>| match b {
+                Some(b) => format!(
+                    "X {:.3}..{:.3}  Y {:.3}..{:.3}  Z {:.3}..{:.3} mm",
+                    b.min[0], b.max[0], b.min[1], b.max[1], b.min[2], b.max[2]
+                ),
+                None => "none".into(),
+            };
+            println!("{}: OK", file.display());
+            println!("  lines            {}", a.lines);
+            println!(
+                "  moves            {} rapid, {} linear, {} arc",
+                a.rapid_moves, a.linear_moves, a.arc_moves
+            );
+            println!("  cutting bounds   {}", fmt_b(&a.cutting_bounds));
+            println!("  rapid bounds     {}", fmt_b(&a.rapid_bounds));
+            println!(
+                "  path length      {:.1} mm cutting, {:.1} mm rapid",
+                a.cutting_length_mm, a.rapid_length_mm
+            );
+            let t = a.estimated_seconds.round() as u64;
+            println!(
+                "  estimated time   {}:{:02}:{:02} (rapids at {rapid} mm/min, no acceleration)",
+                t / 3600,
+                t / 60 % 60,
+                t % 60
+            );
+            if a.units_inch_seen {
+                println!("  units            inch (G20) converted to mm");
+            }
+            for w in &a.warnings {
+                println!(
+                    "  warning: line {}, column {}: {}",
+                    w.line, w.column, w.message
+                );
+            }
         }
     }
     Ok(())

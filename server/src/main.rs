@@ -61,6 +61,11 @@ enum Cmd {
         #[command(subcommand)]
         command: client::JobCmd,
     },
+    /// G-code tools that need no server.
+    Gcode {
+        #[command(subcommand)]
+        command: client::GcodeCmd,
+    },
     /// API tokens (written straight to the database; run on the server host).
     Token {
         #[command(subcommand)]
@@ -116,6 +121,7 @@ fn main() -> ExitCode {
             Cmd::Machine { server, command } => client::machine(server, command).await,
             Cmd::Job { server, command } => client::job(server, command).await,
             Cmd::Token { command } => client::token(command).await,
+            Cmd::Gcode { command } => client::gcode(command),
         }
     });
     match result {
