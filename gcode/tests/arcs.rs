@@ -1,5 +1,5 @@
 //! Arc construction (R and IJK forms, planes, turns, tolerances) and linearisation.
-#![allow(clippy::unwrap_used, clippy::expect_used)]
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::needless_range_loop)]
 
 use fresa_gcode::*;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};

@@ -4,7 +4,7 @@
 //! boxes and lengths are checked against a deliberately simple and slow
 //! reference interpreter written independently below (string splitting,
 //! `str::parse`, dense sampling of arcs), and against the linearised output.
-#![allow(clippy::unwrap_used, clippy::expect_used)]
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::needless_range_loop)]
 
 use fresa_gcode::*;
 use std::collections::BTreeMap;

@@ -1,5 +1,5 @@
 //! Unit tests per modal group, per word, and for the error paths.
-#![allow(clippy::unwrap_used, clippy::expect_used)]
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::needless_range_loop)]
 
 use fresa_gcode::*;
 use std::io::{BufRead, BufReader, Read};

@@ -1,5 +1,5 @@
 //! Property tests for linearisation, the interpreter and the lexer.
-#![allow(clippy::unwrap_used, clippy::expect_used)]
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::needless_range_loop)]
 
 use fresa_gcode::*;
 use proptest::prelude::*;
@@ -207,7 +207,8 @@ proptest! {
             // Choose the R sign that gives this centre.
             let cross = (end[a] - start[a]) * (centre[b] - start[b]) - (end[b] - start[b]) * (centre[a] - start[a]);
             let left = cross > 0.0;
-            let minor = left != !g3;
+            // Minor arc: centre left of the chord for G3, right for G2.
+            let minor = left == g3;
             let rr = (start[a] - centre[a]).hypot(start[b] - centre[b]);
             words.push_str(&format!(" R{:.6}", if minor { rr } else { -rr }));
         } else {
