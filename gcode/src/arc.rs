@@ -261,6 +261,10 @@ impl<I> Linearise<I> {
     pub fn inner(&self) -> &I {
         &self.inner
     }
+    /// The wrapped iterator; an arc in progress is dropped.
+    pub fn into_inner(self) -> I {
+        self.inner
+    }
 }
 
 impl<I> Iterator for Linearise<I>

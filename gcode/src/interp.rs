@@ -150,6 +150,13 @@ impl<R: BufRead> Interpreter<R> {
         &self.cfg
     }
 
+    /// This interpreter's motions with arcs linearised at
+    /// [`Config::arc_tolerance_mm`].
+    pub fn linearised(self) -> crate::Linearise<Self> {
+        let tol = self.cfg.arc_tolerance_mm;
+        crate::linearise(self, tol)
+    }
+
     fn warn(&mut self, w: Warning) {
         if self.warnings.len() < self.cfg.max_warnings {
             self.warnings.push(w);
@@ -212,6 +219,10 @@ impl<R: BufRead> Interpreter<R> {
         }
         if self.line.last() == Some(&b'\r') {
             self.line.pop();
+        }
+        // A UTF-8 byte order mark (Windows editors) is not part of the program.
+        if self.line_no == 1 && self.line.starts_with(b"\xEF\xBB\xBF") {
+            self.line.drain(..3);
         }
         if !self.line.is_ascii() {
             if let Err(e) = std::str::from_utf8(&self.line) {

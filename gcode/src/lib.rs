@@ -42,7 +42,8 @@ pub enum Unsupported {
 /// with a 0.002 mm chord tolerance.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Config {
-    /// Chord tolerance used by [`analyse`] and suggested for [`linearise`] (mm).
+    /// Chord tolerance for [`linearise`] / [`Interpreter::linearised`] (mm).
+    /// The interpreter and [`analyse`] keep arcs exact.
     pub arc_tolerance_mm: f64,
     /// Policy for unsupported words.
     pub unsupported: Unsupported,
@@ -134,7 +135,9 @@ pub enum SpindleDirection {
 
 /// One canonical event. Coordinates are millimetres in program coordinates
 /// (the active work system), feeds are mm/min, `line` is the 1-based source line.
-#[derive(Debug, Clone, PartialEq)]
+/// Serialises as `{"type": "Rapid", "line": 3, ...}`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(tag = "type")]
 pub enum Motion {
     /// G0 (also G28/G30 legs and G53 G0).
     Rapid { line: u32, from: Point, to: Point },

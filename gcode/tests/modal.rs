@@ -443,3 +443,28 @@ fn analysis_lengths_and_time() {
     assert_eq!((rb.min, rb.max), ([0.0; 3], [50.0, 0.0, 0.0]));
     assert!(a.program_end);
 }
+
+#[test]
+fn byte_order_mark_is_ignored() {
+    let m = moves("\u{feff}G0 X1\n");
+    assert_eq!(m[0].end_point(), Some([1.0, 0.0, 0.0]));
+}
+
+#[test]
+fn motions_serialise_with_a_type_tag() {
+    let m = moves("G0 X1\n");
+    let j = serde_json::to_string(&m[0]).unwrap();
+    assert!(j.starts_with("{\"type\":\"Rapid\",\"line\":1"), "{j}");
+}
+
+#[test]
+fn linearised_uses_the_config_tolerance() {
+    let cfg = Config {
+        arc_tolerance_mm: 0.1,
+        ..Config::default()
+    };
+    let n = Interpreter::new("G0 X10\nG2 I-10 F100\n".as_bytes(), cfg)
+        .linearised()
+        .count();
+    assert_eq!(n as u64, 1 + segments_for(10.0, std::f64::consts::TAU, 0.1));
+}

@@ -1,0 +1,62 @@
+//! The hot path does not allocate per line: a counting global allocator
+//! (this test binary only) sees the same small number of allocations for one
+//! copy of a program as for twenty.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fresa_gcode::*;
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+struct Counting;
+static ALLOCS: AtomicU64 = AtomicU64::new(0);
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        ALLOCS.fetch_add(1, Ordering::Relaxed);
+        // SAFETY: forwarded unchanged to the system allocator.
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: forwarded unchanged to the system allocator.
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        ALLOCS.fetch_add(1, Ordering::Relaxed);
+        // SAFETY: forwarded unchanged to the system allocator.
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+fn count(src: &[u8]) -> (u64, u64) {
+    let cfg = Config {
+        stop_at_program_end: false,
+        ..Config::default()
+    };
+    let before = ALLOCS.load(Ordering::Relaxed);
+    let mut n = 0u64;
+    for m in linearise(Interpreter::new(src, cfg), 0.002) {
+        m.unwrap();
+        n += 1;
+    }
+    (ALLOCS.load(Ordering::Relaxed) - before, n)
+}
+
+#[test]
+fn interpret_and_linearise_do_not_allocate_per_line() {
+    // Fusion-style program with arcs in all planes, modal lines, spindle and
+    // coolant words and comments (no (msg,...) comments: those allocate their text).
+    let unit =
+        "G90 G94 G17 G21\n(comment)\nT1\nS5000 M3\nG54\nG0 X10 Y0\nZ5 ; note\nG1 Z-1 F1000\n\
+        G3 X0 Y10 I-10 J0\nG2 X-10 Y0 R10\nG18 G2 X10 Z-1 I10 K0\nG19 G3 Y0 Z-1 J-10 K0\nG17\n\
+        G1 X10 Y0\nM8\nM9\nG4 P0.1\nM5\nM2\n";
+    let one = unit.to_string();
+    let many = unit.repeat(20);
+    let (a1, n1) = count(one.as_bytes());
+    let (a20, n20) = count(many.as_bytes());
+    assert!(n20 > 19 * n1, "{n1} {n20}");
+    assert_eq!(a1, a20, "allocations grew with the program: {a1} vs {a20}");
+    assert!(a1 < 10, "{a1} allocations");
+}
