@@ -204,12 +204,24 @@ pub struct Linearise<I> {
 }
 
 struct ArcRun {
-    g: ArcGeometry,
+    to: Point,
+    axes: (usize, usize, usize),
     line: u32,
     feed: f64,
     n: u64,
     k: u64,
     prev: Point,
+    // Precomputed per arc so that a chord costs a rotation and a few FMAs:
+    // start vector from the centre, centre, radius growth per unit t
+    // (spirals), normal-axis start and rise, 1/n.
+    u0: f64,
+    v0: f64,
+    ca: f64,
+    cb: f64,
+    grow: f64,
+    n0: f64,
+    rise: f64,
+    inv_n: f64,
     // Rotation of one step and the running rotation (cos, sin).
     cd: f64,
     sd: f64,
@@ -223,10 +235,44 @@ struct ArcRun {
 const REANCHOR: u64 = 64;
 
 impl ArcRun {
+    fn new(g: &ArcGeometry, line: u32, feed: f64, tolerance: f64) -> Self {
+        let n = segments_for(g.r0.max(g.r1), g.sweep, tolerance);
+        let step = g.sweep / n as f64;
+        let (sd, cd) = step.sin_cos();
+        let (a, b, nn) = g.axes;
+        ArcRun {
+            to: g.to,
+            axes: g.axes,
+            line,
+            feed,
+            n,
+            k: 0,
+            prev: g.from,
+            u0: g.from[a] - g.centre[a],
+            v0: g.from[b] - g.centre[b],
+            ca: g.centre[a],
+            cb: g.centre[b],
+            grow: if g.r0 > 0.0 {
+                (g.r1 - g.r0) / g.r0
+            } else {
+                0.0
+            },
+            n0: g.from[nn],
+            rise: g.to[nn] - g.from[nn],
+            inv_n: 1.0 / n as f64,
+            cd,
+            sd,
+            c: 1.0,
+            s: 0.0,
+            step,
+        }
+    }
+
+    #[inline]
     fn next_segment(&mut self) -> Motion {
         self.k += 1;
         let to = if self.k >= self.n {
-            self.g.to
+            self.to
         } else {
             if self.k % REANCHOR == 0 {
                 let (s, c) = (self.step * self.k as f64).sin_cos();
@@ -238,8 +284,14 @@ impl ArcRun {
                 self.c = c;
                 self.s = s;
             }
-            self.g
-                .point_rot(self.k as f64 / self.n as f64, self.c, self.s)
+            let t = self.k as f64 * self.inv_n;
+            let scale = 1.0 + self.grow * t;
+            let (a, b, n) = self.axes;
+            let mut p = [0.0; 3];
+            p[a] = self.ca + scale * (self.u0 * self.c - self.v0 * self.s);
+            p[b] = self.cb + scale * (self.u0 * self.s + self.v0 * self.c);
+            p[n] = self.n0 + self.rise * t;
+            p
         };
         let from = self.prev;
         self.prev = to;
@@ -296,22 +348,7 @@ where
         let Some(g) = ArcGeometry::from_motion(&m) else {
             return Some(Ok(m));
         };
-        let n = segments_for(g.r0.max(g.r1), g.sweep, self.tolerance);
-        let step = g.sweep / n as f64;
-        let (sd, cd) = step.sin_cos();
-        let mut run = ArcRun {
-            g,
-            line,
-            feed,
-            n,
-            k: 0,
-            prev: g.from,
-            cd,
-            sd,
-            c: 1.0,
-            s: 0.0,
-            step,
-        };
+        let mut run = ArcRun::new(&g, line, feed, self.tolerance);
         let first = run.next_segment();
         if run.k < run.n {
             self.arc = Some(run);
