@@ -1,0 +1,304 @@
+//! Start-up, machine listing, jogging, zeroing, work offsets and part zero over the REST API.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fresa_tests::serde_json::{json, Value};
+use fresa_tests::{Server, Sim};
+use std::time::Duration;
+
+const T: Duration = Duration::from_secs(30);
+
+fn axis(v: &Value, a: &str) -> f64 {
+    v[a].as_f64()
+        .unwrap_or_else(|| panic!("no number {a} in {v}"))
+}
+
+#[track_caller]
+fn assert_close(got: f64, want: f64, what: &str) {
+    assert!(
+        (got - want).abs() < 1e-9,
+        "{what}: expected {want}, got {got}"
+    );
+}
+
+#[test]
+fn demo_server_starts_is_healthy_and_lists_the_demo_machine() {
+    let s = Server::start_demo();
+    let h = s.get("/healthz").expect(200);
+    assert_eq!(h["status"], "ok");
+
+    let machines = s.get("/api/v1/machines").expect(200);
+    let list = machines.as_array().expect("machines is an array");
+    assert_eq!(list.len(), 1, "{machines}");
+    let demo = &list[0];
+    assert!(demo["id"].as_i64().is_some(), "{demo}");
+    assert_eq!(demo["name"], "demo");
+    assert_eq!(demo["backend"], "sim-machine");
+    let id = demo["id"].as_i64().unwrap();
+    // The demo machine connects at start-up.
+    let st = s.wait_machine_state(id, "idle", T);
+    assert_eq!(st["active_offset"], "G54");
+    assert!(st["job"].is_null(), "no job yet: {st}");
+    // The plugin is reported loaded.
+    let plugins = s.get("/api/v1/plugins").expect(200);
+    assert!(
+        plugins.to_string().contains("sim-machine"),
+        "plugins: {plugins}"
+    );
+    // Unknown endpoints are JSON errors too.
+    s.get("/api/v1/nope").expect_error(404, "not_found");
+
+    // A restart with --demo again does not create a second demo machine.
+    let mut s = s;
+    s.restart_after_kill();
+    let list = s.get("/api/v1/machines").expect(200);
+    assert_eq!(list.as_array().unwrap().len(), 1, "{list}");
+}
+
+fn jog(s: &Server, m: &Sim, axis_name: &str, distance: f64) {
+    let r = s
+        .post(
+            &format!("/api/v1/machines/{}/jog", m.id),
+            &json!({"axis": axis_name, "distance": distance}),
+        )
+        .expect(200);
+    assert_eq!(r["ok"], true);
+}
+
+#[test]
+fn jog_zero_offsets_and_part_zero() {
+    let mut s = Server::start();
+    let m = s.sim_with(
+        "mill",
+        0.0,
+        json!({"max_jog_mm": 10.0, "max_feed_mm_min": 2000.0}),
+    );
+    let st = s.wait_machine_state(m.id, "idle", T);
+    assert_close(axis(&st["work_position"], "x"), 0.0, "initial x");
+
+    // Jogs are relative and asynchronous: wait for idle, then the position is exact.
+    jog(&s, &m, "X", 5.5);
+    jog(&s, &m, "Y", -2.25);
+    jog(&s, &m, "X", 1.25);
+    // The status may lag the jog requests: wait for idle at the expected place (a wrong
+    // distance shows up as a timeout with the last status).
+    let st = s.wait_status(
+        m.id,
+        Duration::from_secs(10),
+        "idle at x 6.75, y -2.25",
+        |st| {
+            st["state"] == "idle"
+                && (axis(&st["work_position"], "x") - 6.75).abs() < 1e-9
+                && (axis(&st["work_position"], "y") + 2.25).abs() < 1e-9
+        },
+    );
+    assert_close(axis(&st["work_position"], "x"), 6.75, "work x after jogs");
+    assert_close(axis(&st["work_position"], "y"), -2.25, "work y after jogs");
+    assert_close(
+        axis(&st["machine_position"], "x"),
+        6.75,
+        "machine x after jogs",
+    );
+
+    // Jog limits: too far names the limit; too fast names the feed limit; bad axis is refused.
+    let msg = s
+        .post(
+            &format!("/api/v1/machines/{}/jog", m.id),
+            &json!({"axis": "X", "distance": 10.5}),
+        )
+        .expect_error(422, "jog_too_far");
+    assert!(msg.contains("10") && msg.contains("10.5"), "{msg}");
+    let msg = s
+        .post(
+            &format!("/api/v1/machines/{}/jog", m.id),
+            &json!({"axis": "X", "distance": 1.0, "feed": 2500.0}),
+        )
+        .expect_error(422, "feed_out_of_range");
+    assert!(msg.contains("2000"), "{msg}");
+    let r = s.post(
+        &format!("/api/v1/machines/{}/jog", m.id),
+        &json!({"axis": "Q", "distance": 1.0}),
+    );
+    assert!((400..500).contains(&r.status), "bad axis: {r:?}");
+    assert!(r.body["code"].is_string(), "{r:?}");
+    s.post(
+        &format!("/api/v1/machines/{}/jog", m.id),
+        &json!({"axis": "X", "distance": 0.0}),
+    )
+    .expect_error(422, "invalid_field");
+    // None of the refused jogs moved the machine.
+    let st = s.status(m.id);
+    assert_close(
+        axis(&st["machine_position"], "x"),
+        6.75,
+        "x after refused jogs",
+    );
+
+    // Zero X: work X becomes 0, G54.x takes the machine position and is persisted.
+    let r = s
+        .post(
+            &format!("/api/v1/machines/{}/commands", m.id),
+            &json!({"command": "zero", "axis": "X"}),
+        )
+        .expect(200);
+    assert_eq!(r["ok"], true, "{r}");
+    let st = s.status(m.id);
+    assert_close(axis(&st["work_position"], "x"), 0.0, "work x after zero");
+    assert_close(
+        axis(&st["work_position"], "y"),
+        -2.25,
+        "work y unchanged by zero X",
+    );
+    let machine_x = axis(&st["machine_position"], "x");
+    assert_close(machine_x, 6.75, "machine x after zero");
+    let off = s
+        .get(&format!("/api/v1/machines/{}/offsets", m.id))
+        .expect(200);
+    assert_eq!(off["active"], "G54");
+    assert_close(axis(&off["offsets"]["G54"], "x"), machine_x, "G54.x");
+    assert_close(axis(&off["offsets"]["G54"], "y"), 0.0, "G54.y");
+
+    // Set and read G55; selecting it changes the work position accordingly.
+    let r = s
+        .put(
+            &format!("/api/v1/machines/{}/offsets/G55", m.id),
+            &json!({"x": 1.5, "z": -3.0}),
+        )
+        .expect(200);
+    assert_eq!(r["offset"], "G55", "{r}");
+    let off = s
+        .get(&format!("/api/v1/machines/{}/offsets", m.id))
+        .expect(200);
+    assert_close(axis(&off["offsets"]["G55"], "x"), 1.5, "G55.x");
+    assert_close(axis(&off["offsets"]["G55"], "y"), 0.0, "G55.y");
+    assert_close(axis(&off["offsets"]["G55"], "z"), -3.0, "G55.z");
+    assert_eq!(off["active"], "G54", "setting G55 does not select it");
+    s.put(
+        &format!("/api/v1/machines/{}/offsets/G60", m.id),
+        &json!({"x": 1.0}),
+    )
+    .expect_error(404, "unknown_offset");
+    s.post(
+        &format!("/api/v1/machines/{}/commands", m.id),
+        &json!({"command": "select_offset", "offset": "G55"}),
+    )
+    .expect(200);
+    let st = s.status(m.id);
+    assert_eq!(st["active_offset"], "G55", "{st}");
+    assert_close(axis(&st["work_position"], "x"), 6.75 - 1.5, "work x in G55");
+    assert_close(axis(&st["work_position"], "z"), 3.0, "work z in G55");
+    let off = s
+        .get(&format!("/api/v1/machines/{}/offsets", m.id))
+        .expect(200);
+    assert_eq!(off["active"], "G55");
+
+    // Unknown commands are refused with the list of commands.
+    let msg = s
+        .post(
+            &format!("/api/v1/machines/{}/commands", m.id),
+            &json!({"command": "self_destruct"}),
+        )
+        .expect_error(422, "invalid_command");
+    assert!(
+        msg.contains("self_destruct") || msg.contains("cycle_start"),
+        "{msg}"
+    );
+
+    // Part zero: explicit source and note, then an empty body (current position, source api).
+    let row = s
+        .post(
+            &format!("/api/v1/machines/{}/part-zero", m.id),
+            &json!({"source": "probe", "note": "left front corner"}),
+        )
+        .expect(201);
+    assert_eq!(row["source"], "probe", "{row}");
+    assert_eq!(row["actor"], "local", "{row}");
+    assert_eq!(row["note"], "left front corner");
+    assert_close(axis(&row, "x"), 6.75, "part zero x = machine x");
+    assert_close(axis(&row, "y"), -2.25, "part zero y = machine y");
+    let row2 = s
+        .post_empty(&format!("/api/v1/machines/{}/part-zero", m.id))
+        .expect(201);
+    assert_eq!(row2["source"], "api", "{row2}");
+    let row3 = s
+        .post(
+            &format!("/api/v1/machines/{}/part-zero", m.id),
+            &json!({"position": {"x": 1.0, "y": 2.0, "z": 3.0, "a": 0.0}, "source": "manual"}),
+        )
+        .expect(201);
+    assert_close(axis(&row3, "z"), 3.0, "explicit part zero z");
+    let hist = s
+        .get(&format!("/api/v1/machines/{}/part-zero", m.id))
+        .expect(200);
+    let hist = hist.as_array().expect("history array").clone();
+    assert_eq!(hist.len(), 3, "{hist:?}");
+    let mut sources: Vec<&str> = hist.iter().map(|r| r["source"].as_str().unwrap()).collect();
+    sources.sort();
+    assert_eq!(sources, ["api", "manual", "probe"]);
+    assert!(hist.iter().all(|r| r["actor"] == "local"), "{hist:?}");
+    s.post(
+        &format!("/api/v1/machines/{}/part-zero", m.id),
+        &json!({"bogus": 1}),
+    )
+    .expect_error(400, "invalid_json");
+
+    // Offsets and the active offset survive a restart (the backend is re-seeded from the store).
+    s.restart_after_kill();
+    let off = s
+        .get(&format!("/api/v1/machines/{}/offsets", m.id))
+        .expect(200);
+    assert_eq!(off["active"], "G55", "{off}");
+    assert_close(
+        axis(&off["offsets"]["G54"], "x"),
+        6.75,
+        "G54.x after restart",
+    );
+    assert_close(
+        axis(&off["offsets"]["G55"], "z"),
+        -3.0,
+        "G55.z after restart",
+    );
+    let st = s.wait_machine_state(m.id, "idle", T);
+    assert_eq!(st["active_offset"], "G55", "{st}");
+    assert_close(
+        axis(&st["work_position"], "x"),
+        axis(&st["machine_position"], "x") - 1.5,
+        "work x = machine x - G55.x after restart",
+    );
+    let hist = s
+        .get(&format!("/api/v1/machines/{}/part-zero", m.id))
+        .expect(200);
+    assert_eq!(hist.as_array().unwrap().len(), 3);
+}
+
+#[test]
+fn machine_names_are_unique_and_unknown_machines_are_404() {
+    let s = Server::start();
+    let m = s.sim("a", 0.0);
+    let msg = s
+        .post(
+            "/api/v1/machines",
+            &json!({"name": "a", "backend": "sim-machine", "config": {"time_scale": 0.0}}),
+        )
+        .expect_error(409, "name_taken");
+    assert!(msg.contains("\"a\""), "{msg}");
+    let one = s.get(&format!("/api/v1/machines/{}", m.id)).expect(200);
+    assert_eq!(one["name"], "a");
+    let missing = m.id + 100;
+    for path in [
+        format!("/api/v1/machines/{missing}"),
+        format!("/api/v1/machines/{missing}/status"),
+        format!("/api/v1/machines/{missing}/offsets"),
+        format!("/api/v1/machines/{missing}/part-zero"),
+    ] {
+        let msg = s.get(&path).expect_error(404, "unknown_machine");
+        assert!(msg.contains(&missing.to_string()), "{path}: {msg}");
+    }
+    s.post(
+        &format!("/api/v1/machines/{missing}/jog"),
+        &json!({"axis": "X", "distance": 1.0}),
+    )
+    .expect_error(404, "unknown_machine");
+    s.get("/api/v1/machines/abc")
+        .expect_error(400, "invalid_path");
+}
