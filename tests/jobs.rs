@@ -1,1 +1,254 @@
-//! placeholder
+//! Jobs: upload, run to completion (execution log checked line by line), download, pause /
+//! resume / cancel, and refusing a second job on a busy machine.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fresa_tests::serde_json::{json, Value};
+use fresa_tests::{assert_every_line_once, back_and_forth, corpus, sha256_hex, Server, Sim};
+use std::time::{Duration, Instant};
+
+const T: Duration = Duration::from_secs(60);
+
+fn line_count(data: &[u8]) -> i64 {
+    let n = data.iter().filter(|b| **b == b'\n').count() as i64;
+    if data.last() == Some(&b'\n') {
+        n
+    } else {
+        n + 1
+    }
+}
+
+fn run_id(job: &Value) -> i64 {
+    job["run"]["id"]
+        .as_i64()
+        .unwrap_or_else(|| panic!("job has no run: {job}"))
+}
+
+/// Uploads `data`, checks what the upload reports, runs it to completion and checks the job, the
+/// execution log and the stored program.
+fn run_corpus_file(s: &Server, m: &Sim, name: &str, data: &[u8], multipart: bool) {
+    let sha = sha256_hex(data);
+    let up = if multipart {
+        let form = reqwest::blocking::multipart::Form::new()
+            .text("machine", m.id.to_string())
+            .part(
+                "file",
+                reqwest::blocking::multipart::Part::bytes(data.to_vec())
+                    .file_name(name.to_string()),
+            );
+        s.send(s.req(reqwest::Method::POST, "/api/v1/jobs").multipart(form))
+            .expect(201)
+    } else {
+        s.post_bytes(
+            &format!("/api/v1/jobs?machine={}&name={name}&sha256={sha}", m.id),
+            data.to_vec(),
+        )
+        .expect(201)
+    };
+    let id = up["id"].as_i64().expect("job id");
+    let lines = line_count(data);
+    assert_eq!(up["sha256"], sha.as_str(), "{up}");
+    assert_eq!(up["line_count"], lines, "{up}");
+    assert!(up["analysis"].is_object(), "analysis: {up}");
+
+    let job = s.job(id);
+    assert_eq!(job["state"], "ready", "{job}");
+    assert_eq!(job["line"], 0);
+    assert_eq!(
+        job["name"], name,
+        "multipart file name or ?name= is the job name"
+    );
+    assert_eq!(job["machine"], m.id);
+
+    // The stored program is byte-identical to the upload.
+    let r = s
+        .req(reqwest::Method::GET, &format!("/api/v1/jobs/{id}/gcode"))
+        .send()
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 200);
+    let body = r.bytes().unwrap();
+    assert!(body.as_ref() == data, "GET gcode differs from the upload");
+
+    let started = s.job_action(id, "start").expect(200);
+    assert!(
+        matches!(started["state"].as_str(), Some("running" | "completed")),
+        "{started}"
+    );
+    let job = s.wait_job_state(id, "completed", Duration::from_secs(120));
+    assert_eq!(job["line"], lines, "last acknowledged line: {job}");
+    assert_eq!(job["line_count"], lines);
+    assert_eq!(job["percent"].as_f64(), Some(100.0), "{job}");
+    let run = run_id(&job);
+    assert_every_line_once(&m.executed(), run, lines);
+    // Only this run is in the log.
+    assert!(m.executed().iter().all(|(r, _)| *r == run));
+
+    let st = s.wait_machine_state(m.id, "idle", T);
+    assert!(st["job"].is_null(), "no current job after completion: {st}");
+    assert!(
+        s.program_files().contains(&format!("{sha}.nc")),
+        "{:?}",
+        s.program_files()
+    );
+}
+
+#[test]
+fn corpus_job_runs_to_completion_every_line_executed_once() {
+    let s = Server::start();
+    let m = s.sim("m", 0.0);
+    let name = "fusion-1122_jig_28bit_first.nc";
+    let data = std::fs::read(corpus(name)).unwrap();
+    run_corpus_file(&s, &m, name, &data, false);
+
+    // The same program again is a second job on the same stored file.
+    let again = s.upload(m.id, "again", data.clone());
+    assert_ne!(again["id"], Value::Null);
+    let jobs = s.get("/api/v1/jobs").expect(200);
+    assert_eq!(jobs.as_array().unwrap().len(), 2, "{jobs}");
+    assert_eq!(s.program_files(), [format!("{}.nc", sha256_hex(&data))]);
+}
+
+#[test]
+fn large_corpus_job_uploaded_as_multipart_runs_to_completion() {
+    let s = Server::start();
+    let m = s.sim("m", 0.0);
+    let name = "cncjs-tball-pocket.gcode";
+    let data = std::fs::read(corpus(name)).unwrap();
+    run_corpus_file(&s, &m, name, &data, true);
+}
+
+/// 200 lines of 1 mm at 600 mm/min: 10 ms a line at time scale 0.1, about 2 s in all.
+fn slow_program() -> String {
+    back_and_forth(200, 1.0, 600.0)
+}
+
+#[test]
+fn pause_holds_the_job_resume_completes_it_and_busy_machines_refuse_a_second_job() {
+    let s = Server::start();
+    let m = s.sim("m", 0.1);
+    let program = slow_program();
+    let id = s.upload(m.id, "slow", program.clone())["id"]
+        .as_i64()
+        .unwrap();
+    let other = s.upload(m.id, "other", "G0 X1\n")["id"].as_i64().unwrap();
+
+    // Pausing or resuming a job never started is a conflict, not a crash.
+    s.job_action(id, "pause").expect_error(409, "not_started");
+    s.job_action(id, "resume").expect_error(409, "not_started");
+
+    let r = s.job_action(id, "start").expect(200);
+    assert_eq!(r["state"], "running", "{r}");
+    s.wait_job(id, T, "line >= 20", |j| j["line"].as_i64().unwrap() >= 20);
+
+    // While it runs: a second job, the same job again and jogs are refused.
+    let msg = s
+        .job_action(other, "start")
+        .expect_error(409, "machine_busy");
+    assert!(!msg.is_empty());
+    s.job_action(id, "start").expect_error(409, "machine_busy");
+    s.post(
+        &format!("/api/v1/machines/{}/jog", m.id),
+        &json!({"axis": "X", "distance": 1.0}),
+    )
+    .expect_error(409, "machine_busy");
+    s.job_action(id, "resume")
+        .expect_error(409, "not_resumable");
+    let st = s.status(m.id);
+    assert_eq!(st["job"]["job"], id, "status shows the running job: {st}");
+    assert_eq!(st["job"]["total_lines"], 200, "{st}");
+
+    let r = s.job_action(id, "pause").expect(200);
+    assert_eq!(r["state"], "paused", "{r}");
+    s.wait_machine_state(m.id, "paused", T);
+    assert_eq!(s.job(id)["state"], "paused");
+    s.job_action(id, "pause").expect_error(409, "not_running");
+
+    // Once the acknowledgements in flight are in, nothing advances while paused.
+    let held = fresa_tests::wait_for(T, "job line to catch up with the execution log", || {
+        let logged = m.executed().last().map_or(0, |e| e.1);
+        let line = s.job(id)["line"].as_i64().unwrap();
+        (line == logged).then_some(line)
+    });
+    assert!(held >= 20 && held < 200, "held at line {held}");
+    let log_len = m.executed().len();
+    let watch_until = Instant::now() + Duration::from_millis(400);
+    while Instant::now() < watch_until {
+        let j = s.job(id);
+        assert_eq!(j["line"], held, "line advanced while paused: {j}");
+        assert_eq!(j["state"], "paused");
+        assert_eq!(
+            m.executed().len(),
+            log_len,
+            "execution log grew while paused"
+        );
+        assert_eq!(s.status(m.id)["state"], "paused");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+
+    let r = s.job_action(id, "resume").expect(200);
+    assert_eq!(r["state"], "running", "{r}");
+    let job = s.wait_job_state(id, "completed", T);
+    assert_eq!(job["line"], 200);
+    let run = run_id(&job);
+    assert_every_line_once(&m.executed(), run, 200);
+
+    // Finished jobs can be neither resumed nor cancelled; the machine is free again.
+    let msg = s
+        .job_action(id, "resume")
+        .expect_error(409, "not_resumable");
+    assert!(msg.contains("completed"), "{msg}");
+    s.job_action(id, "cancel")
+        .expect_error(409, "not_cancellable");
+    s.job_action(id, "explode")
+        .expect_error(404, "unknown_action");
+    s.wait_machine_state(m.id, "idle", T);
+    s.job_action(other, "start").expect(200);
+    s.wait_job_state(other, "completed", T);
+}
+
+#[test]
+fn cancel_stops_the_job_and_a_new_start_runs_it_again_from_the_top() {
+    let s = Server::start();
+    let m = s.sim("m", 0.1);
+    let id = s.upload(m.id, "slow", slow_program())["id"]
+        .as_i64()
+        .unwrap();
+    s.job_action(id, "start").expect(200);
+    s.wait_job(id, T, "line >= 5", |j| j["line"].as_i64().unwrap() >= 5);
+    let r = s.job_action(id, "cancel").expect(200);
+    assert_eq!(r["state"], "cancelled", "{r}");
+    let job = s.job(id);
+    assert_eq!(job["state"], "cancelled");
+    let first_run = run_id(&job);
+    let st = s.wait_machine_state(m.id, "idle", T);
+    assert!(st["job"].is_null(), "{st}");
+
+    // The log holds a prefix of the program, each line once, and stops there.
+    let log: Vec<i64> = m
+        .executed()
+        .iter()
+        .filter(|e| e.0 == first_run)
+        .map(|e| e.1)
+        .collect();
+    assert!(log.len() >= 5 && log.len() < 200, "{} lines ran", log.len());
+    assert!(log.iter().copied().eq(1..=log.len() as i64), "{log:?}");
+    s.job_action(id, "cancel")
+        .expect_error(409, "not_cancellable");
+    s.job_action(id, "resume")
+        .expect_error(409, "not_resumable");
+
+    // Starting it again is a new run from line 1.
+    let r = s.job_action(id, "start").expect(200);
+    let second_run = r["run"]["id"].as_i64().unwrap();
+    assert_ne!(second_run, first_run);
+    let job = s.wait_job_state(id, "completed", T);
+    assert_eq!(job["line"], 200);
+    assert_every_line_once(&m.executed(), second_run, 200);
+    let after: Vec<i64> = m
+        .executed()
+        .iter()
+        .filter(|e| e.0 == first_run)
+        .map(|e| e.1)
+        .collect();
+    assert_eq!(after, log, "the cancelled run did not continue");
+}
