@@ -9,13 +9,56 @@ use crate::lex::{bit, column, lex_line, make_error, Block, LexError, LineKind};
 use crate::{
     Config, ErrorKind, GcodeError, Motion, Plane, Point, SpindleDirection, Unsupported, Warning,
 };
-use std::collections::VecDeque;
 use std::f64::consts::TAU;
 use std::io::BufRead;
 
 const MM_PER_INCH: f64 = 25.4;
 /// Start and end closer than this (mm, in the plane) make an IJK arc a full circle.
 const FULL_CIRCLE_EPS_MM: f64 = 1e-6;
+
+/// Events of one line. A line yields at most 11 (message, M6, spindle,
+/// coolant, dwell, G43/G49, work system, two G28 legs, motion, stop); a
+/// fixed ring keeps push/pop inlined and allocation-free.
+struct Queue {
+    items: [Option<Motion>; QUEUE_CAP],
+    head: usize,
+    len: usize,
+}
+
+const QUEUE_CAP: usize = 16;
+
+impl Queue {
+    fn new() -> Self {
+        Queue {
+            items: Default::default(),
+            head: 0,
+            len: 0,
+        }
+    }
+    #[inline]
+    fn push_back(&mut self, m: Motion) {
+        // Cannot overflow (see above); a debug check documents it.
+        debug_assert!(self.len < QUEUE_CAP);
+        if self.len < QUEUE_CAP {
+            self.items[(self.head + self.len) % QUEUE_CAP] = Some(m);
+            self.len += 1;
+        }
+    }
+    #[inline]
+    fn pop_front(&mut self) -> Option<Motion> {
+        if self.len == 0 {
+            return None;
+        }
+        let m = self.items[self.head].take();
+        self.head = (self.head + 1) % QUEUE_CAP;
+        self.len -= 1;
+        m
+    }
+    fn clear(&mut self) {
+        while self.pop_front().is_some() {}
+        self.head = 0;
+    }
+}
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum MotionMode {
@@ -87,7 +130,7 @@ pub struct Interpreter<R: BufRead> {
     lines_read: u64,
     blk: Block,
     st: State,
-    queue: VecDeque<Motion>,
+    queue: Queue,
     warnings: Vec<Warning>,
     warnings_dropped: u64,
     done: bool,
@@ -108,7 +151,7 @@ impl<R: BufRead> Interpreter<R> {
             line_no: 0,
             lines_read: 0,
             blk: Block::new(),
-            queue: VecDeque::with_capacity(16),
+            queue: Queue::new(),
             warnings: Vec::new(),
             warnings_dropped: 0,
             done: false,
