@@ -5,7 +5,9 @@
 //! Run (from the workspace root):
 //!   CARGO_TARGET_DIR=/work/target-gcode cargo bench -p fresa-gcode --bench gcode-bench
 //! Options after `--`: `--mem-mb N` (synthetic program size, default 1024,
-//! 0 to skip), `--secs S` (time per measurement, default 0.5).
+//! 0 to skip), `--secs S` (time per measurement, default 0.5), `--python P`
+//! (a python with pygcode installed: adds pygcode as a second independent
+//! parser; `benches/with-pygcode.sh` sets that up).
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fresa_gcode::{analyse, linearise, AnalysisOptions, Config, Interpreter, Motion};
@@ -280,15 +282,26 @@ fn main() {
             .unwrap_or(false)
     });
 
+    let python = args
+        .iter()
+        .position(|a| a == "--python")
+        .and_then(|i| args.get(i + 1))
+        .cloned();
     println!(
         "## Throughput per file (best of 3 rounds of {:.1} s, one core)",
         budget.as_secs_f64()
     );
     println!();
-    println!("| file | lines | MB | fresa interpret | fresa interpret+linearise (motions out) | fresa analyse | `gcode` 0.7 parse-only | ratio lin/`gcode` |");
-    println!("|---|---:|---:|---:|---:|---:|---:|---:|");
+    let mut head = String::from("| file | lines | MB | fresa interpret | fresa interpret+linearise (motions out) | fresa analyse | `gcode` 0.7 parse-only | lin / `gcode` |");
+    let mut rule = String::from("|---|---:|---:|---:|---:|---:|---:|---:|");
+    if python.is_some() {
+        head.push_str(" pygcode 0.2 parse-only | lin / pygcode |");
+        rule.push_str("---:|---:|");
+    }
+    println!("{head}");
+    println!("{rule}");
     let (mut tot_bytes, mut tot_lines) = (0u64, 0u64);
-    let (mut t_int, mut t_lin, mut t_an, mut t_oth) = (0.0, 0.0, 0.0, 0.0);
+    let (mut t_int, mut t_lin, mut t_an, mut t_oth, mut t_py) = (0.0, 0.0, 0.0, 0.0, 0.0);
     for p in &files {
         let src = std::fs::read(p).unwrap();
         let text = std::str::from_utf8(&src).unwrap();
@@ -306,7 +319,7 @@ fn main() {
             )
         };
         let out = fresa_linearise(&src);
-        println!(
+        let mut row = format!(
             "| {} | {} | {:.2} | {} | {} ({} = {:.1} M/s) | {} | {} | {:.1}x |",
             p.file_name().unwrap().to_string_lossy(),
             lines,
@@ -319,6 +332,17 @@ fn main() {
             fmt(to),
             to / tl
         );
+        if let Some(py) = &python {
+            let tp = pygcode_seconds(py, p);
+            row.push_str(&format!(
+                " {:.3} M lines/s, {:.2} MB/s | {:.0}x |",
+                lines as f64 / tp / 1e6,
+                mb / tp,
+                tp / tl
+            ));
+            t_py += tp;
+        }
+        println!("{row}");
         tot_bytes += src.len() as u64;
         tot_lines += lines;
         t_int += ti;
@@ -334,7 +358,7 @@ fn main() {
             mb / t
         )
     };
-    println!(
+    let mut row = format!(
         "| **all of the above** | {} | {:.2} | {} | {} | {} | {} | {:.1}x |",
         tot_lines,
         mb,
@@ -344,4 +368,33 @@ fn main() {
         fmt(t_oth),
         t_oth / t_lin
     );
+    if python.is_some() {
+        row.push_str(&format!(
+            " {:.3} M lines/s, {:.2} MB/s | {:.0}x |",
+            tot_lines as f64 / t_py / 1e6,
+            mb / t_py,
+            t_py / t_lin
+        ));
+    }
+    println!("{row}");
+}
+
+/// Best-of-3 parse time of pygcode on `file`, via benches/pygcode_parse.py.
+fn pygcode_seconds(python: &str, file: &std::path::Path) -> f64 {
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/benches/pygcode_parse.py");
+    let out = std::process::Command::new(python)
+        .arg(script)
+        .arg(file)
+        .output()
+        .expect("run python");
+    assert!(
+        out.status.success(),
+        "pygcode bench failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    text.split_whitespace()
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .expect("pygcode bench output")
 }
