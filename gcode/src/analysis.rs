@@ -2,7 +2,7 @@
 
 use crate::arc::ArcGeometry;
 use crate::{Config, GcodeError, Interpreter, Motion, Point, SpindleDirection, Warning};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::io::BufRead;
 
 /// Axis-aligned box, mm, program coordinates.
@@ -82,8 +82,9 @@ pub struct Analysis {
     pub program_end: bool,
 }
 
-/// Settings for [`analyse`].
-#[derive(Debug, Clone, PartialEq)]
+/// Settings for [`analyse`] (missing fields take their defaults when deserialised).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct AnalysisOptions {
     /// Speed assumed for rapids, mm/min (default 5000).
     pub rapid_mm_min: f64,

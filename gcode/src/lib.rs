@@ -11,6 +11,8 @@
 //! The dialect is the common subset of grbl and LinuxCNC; see the crate README
 //! for the full list of words and the rules that are applied.
 
+#![forbid(unsafe_code)]
+
 mod analysis;
 mod arc;
 mod interp;
@@ -20,14 +22,14 @@ pub use analysis::{analyse, Analysis, AnalysisOptions, Bounds};
 pub use arc::{linearise, segments_for, ArcGeometry, Linearise, MIN_TOLERANCE_MM};
 pub use interp::Interpreter;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// X, Y, Z in millimetres.
 pub type Point = [f64; 3];
 
 /// What to do with words the interpreter does not implement (O-words, `#`
 /// parameters, expressions, canned cycles, cutter compensation, ...).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub enum Unsupported {
     /// Stop with a [`GcodeError`] naming line and column (default: never guess).
     #[default]
@@ -39,8 +41,10 @@ pub enum Unsupported {
 }
 
 /// Interpreter settings. `Config::default()` is what grbl/LinuxCNC would do
-/// with a 0.002 mm chord tolerance.
-#[derive(Debug, Clone, PartialEq)]
+/// with a 0.002 mm chord tolerance. (De)serialisable for settings files;
+/// missing fields take their defaults.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct Config {
     /// Chord tolerance for [`linearise`] / [`Interpreter::linearised`] (mm).
     /// The interpreter and [`analyse`] keep arcs exact.

@@ -468,3 +468,16 @@ fn linearised_uses_the_config_tolerance() {
         .count();
     assert_eq!(n as u64, 1 + segments_for(10.0, std::f64::consts::TAU, 0.1));
 }
+
+#[test]
+fn config_deserialises_with_defaults() {
+    let cfg: Config =
+        serde_json::from_str(r#"{"unsupported":"SkipWithWarning","g28_position":[0,0,50]}"#)
+            .unwrap();
+    assert_eq!(cfg.unsupported, Unsupported::SkipWithWarning);
+    assert_eq!(cfg.g28_position, [0.0, 0.0, 50.0]);
+    assert_eq!(cfg.arc_tolerance_mm, 0.002);
+    let opts: AnalysisOptions = serde_json::from_str(r#"{"rapid_mm_min":8000}"#).unwrap();
+    assert_eq!(opts.rapid_mm_min, 8000.0);
+    assert_eq!(opts.config, Config::default());
+}

@@ -142,6 +142,35 @@ proptest! {
         prop_assert_eq!(segs.len() as u64, segments_for(c.radius, c.sweep, c.tol));
     }
 
+    /// Arcs whose end radius differs from the start radius (within the
+    /// grbl/LinuxCNC 0.1 % rule) are spirals: every chord stays within the
+    /// tolerance of the spiral and the end point is exact.
+    #[test]
+    fn linearised_spirals_stay_within_tolerance(c in arc_case(), grow in -0.001..0.001f64) {
+        prop_assume!(!c.full);
+        let Motion::Arc { from, mut to, centre, plane, clockwise, sweep_rad, .. } = build(&c) else {
+            unreachable!()
+        };
+        let (a, b, _) = plane.axes();
+        to[a] = centre[a] + (to[a] - centre[a]) * (1.0 + grow);
+        to[b] = centre[b] + (to[b] - centre[b]) * (1.0 + grow);
+        let arc = Motion::Arc { line: 1, from, to, centre, plane, clockwise, feed_mm_min: 1.0, turns: 1, sweep_rad };
+        let g = ArcGeometry::from_motion(&arc).unwrap();
+        let segs: Vec<Motion> = linearise(std::iter::once(Ok(arc)), c.tol).collect::<Result<_, _>>().unwrap();
+        let n = segs.len() as f64;
+        let eps = 1e-9 * (1.0 + c.radius + 200.0);
+        let mut last = from;
+        for (k, m) in segs.iter().enumerate() {
+            let Motion::Linear { from: f, to: t, .. } = *m else { unreachable!() };
+            let mid = [(f[0] + t[0]) / 2.0, (f[1] + t[1]) / 2.0, (f[2] + t[2]) / 2.0];
+            let on_curve = g.point_at((k as f64 + 0.5) / n);
+            let d = ((mid[0] - on_curve[0]).powi(2) + (mid[1] - on_curve[1]).powi(2) + (mid[2] - on_curve[2]).powi(2)).sqrt();
+            prop_assert!(d <= c.tol + eps, "chord {k} is {d} from the spiral (tol {})", c.tol);
+            last = t;
+        }
+        prop_assert_eq!(last, to);
+    }
+
     /// Analytic arc bounds contain every linearised point and are reached by
     /// dense sampling.
     #[test]
