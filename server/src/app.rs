@@ -138,14 +138,11 @@ impl App {
         Ok(app)
     }
 
-    /// Stops motion on every machine and marks active runs interrupted so they can be resumed.
+    /// Marks active runs interrupted so they can be resumed, then stops motion on every machine.
+    /// In that order: a backend reports a run it stops on shutdown as cancelled, and that report
+    /// must find the run already interrupted (so it is ignored), not turn it into a cancelled one.
     pub async fn stop(&self) {
         self.shutdown.cancel();
-        for m in self.machines.all().await {
-            if let Err(e) = m.call(&fresa_plugin_api::contract::Request::Shutdown).await {
-                tracing::warn!(machine = m.id, error = %e, "shutdown call failed");
-            }
-        }
         match self.store.interrupt_active_runs().await {
             Ok(rows) => {
                 for r in rows {
@@ -154,9 +151,22 @@ impl App {
                         last_line = r.last_line,
                         "run interrupted by shutdown"
                     );
+                    self.bus
+                        .record_or_log(
+                            "job.state",
+                            Some(r.machine_id),
+                            None,
+                            serde_json::json!({"job": r.job_id, "run": r.id, "state": "interrupted", "line": r.last_line, "message": r.message}),
+                        )
+                        .await;
                 }
             }
             Err(e) => tracing::error!(error = %e, "could not mark runs interrupted"),
+        }
+        for m in self.machines.all().await {
+            if let Err(e) = m.call(&fresa_plugin_api::contract::Request::Shutdown).await {
+                tracing::warn!(machine = m.id, error = %e, "shutdown call failed");
+            }
         }
     }
 }
