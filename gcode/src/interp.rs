@@ -325,19 +325,54 @@ impl<R: BufRead> Interpreter<R> {
     }
 
     /// Applies the unsupported-word policy to an error of this line.
+    ///
+    /// Skipping must not silently change what later lines do, so a line is
+    /// only skipped if that is safe: one that also sets units, distance
+    /// modes, plane or work system, or an incremental move (which would shift
+    /// every later incremental move), stays an error; one that sets a motion
+    /// mode leaves the motion mode unknown, so the following modal lines are
+    /// skipped too until a G0/G1/G2/G3/G80 says what to do.
     fn fail(&mut self, e: LexError) -> Result<(), GcodeError> {
-        let err = make_error(self.line_no, &self.line, e);
-        if err.kind == ErrorKind::Unsupported
-            && self.cfg.unsupported == Unsupported::SkipWithWarning
+        let mut err = make_error(self.line_no, &self.line, e);
+        if err.kind != ErrorKind::Unsupported
+            || self.cfg.unsupported != Unsupported::SkipWithWarning
         {
-            self.warn(Warning {
-                line: err.line,
-                column: err.column,
-                message: format!("line skipped: {}", err.message),
-            });
-            return Ok(());
+            return Err(err);
         }
-        Err(err)
+        let scan = lenient_scan(&self.line);
+        let mut motion = None;
+        for &code in &scan.g[..scan.ng] {
+            match code {
+                170 | 180 | 190 | 200 | 210 | 900 | 910 | 901 | 911 | 540..=593 => {
+                    err.message = format!(
+                        "{} (the line cannot be skipped: it also sets {}, which later lines depend on)",
+                        err.message,
+                        gname(code)
+                    );
+                    return Err(err);
+                }
+                0 | 10 | 20 | 30 | 800 | 330 | 331 | 382..=385 | 730 | 760 | 810..=890 => {
+                    motion = Some(code);
+                }
+                _ => {}
+            }
+        }
+        if scan.axes && !self.st.absolute {
+            err.message = format!(
+                "{} (the line cannot be skipped: it is an incremental (G91) move)",
+                err.message
+            );
+            return Err(err);
+        }
+        if let Some(code) = motion {
+            self.st.motion = MotionMode::Unsupported(code);
+        }
+        self.warn(Warning {
+            line: err.line,
+            column: err.column,
+            message: format!("line skipped: {}", err.message),
+        });
+        Ok(())
     }
 
     #[inline]
@@ -541,7 +576,10 @@ impl<R: BufRead> Interpreter<R> {
                     return Err((
                         first_of(blk, axis_mask),
                         ErrorKind::Unsupported,
-                        format!("axis words in unsupported motion mode {}", gname(code)),
+                        format!(
+                            "axis words while the motion mode is unknown ({} was on an unsupported or skipped line)",
+                            gname(code)
+                        ),
                     ))
                 }
                 _ => {}
@@ -1077,6 +1115,55 @@ fn arc_motion_of(
         turns,
         sweep_rad: sweep,
     })
+}
+
+/// G codes and axis words of a line that could not be lexed, found leniently
+/// (comments skipped, unparsable numbers ignored).
+struct Scan {
+    g: [u16; 16],
+    ng: usize,
+    axes: bool,
+}
+
+fn lenient_scan(b: &[u8]) -> Scan {
+    let mut scan = Scan {
+        g: [0; 16],
+        ng: 0,
+        axes: false,
+    };
+    let mut i = 0;
+    while i < b.len() {
+        match b[i] {
+            b'(' => {
+                i += b[i..]
+                    .iter()
+                    .position(|&c| c == b')')
+                    .unwrap_or(b.len() - i);
+            }
+            b';' => break,
+            c => {
+                let up = c & !0x20;
+                if up == b'G' || up == b'X' || up == b'Y' || up == b'Z' {
+                    let mut j = i + 1;
+                    if let Ok(v) = crate::lex::parse_number(b, &mut j) {
+                        if up == b'G' {
+                            let t = v * 10.0;
+                            if (0.0..9999.5).contains(&t) && scan.ng < scan.g.len() {
+                                scan.g[scan.ng] = (t + 0.5) as u16;
+                                scan.ng += 1;
+                            }
+                        } else {
+                            scan.axes = true;
+                        }
+                        i = j;
+                        continue;
+                    }
+                }
+            }
+        }
+        i += 1;
+    }
+    scan
 }
 
 /// Byte offset of the first present word among `mask` (0 if none).

@@ -481,3 +481,25 @@ fn config_deserialises_with_defaults() {
     assert_eq!(opts.rapid_mm_min, 8000.0);
     assert_eq!(opts.config, Config::default());
 }
+
+#[test]
+fn skipping_never_changes_what_later_lines_do() {
+    let skip = Config {
+        unsupported: Unsupported::SkipWithWarning,
+        ..Config::default()
+    };
+    // A skipped line that sets a modal group later lines depend on is an error.
+    for src in ["G91 G0 X1 A5\n", "G20 A1\n", "G18 O100\n", "G55 #1=2\n"] {
+        let e = run_cfg(src, skip.clone()).unwrap_err();
+        assert!(e.message.contains("cannot be skipped"), "{src}: {e}");
+    }
+    // An incremental move cannot be skipped either.
+    let e = run_cfg("G91\nG0 X1 A5\n", skip.clone()).unwrap_err();
+    assert!(e.message.contains("incremental"), "{e}");
+    // A skipped motion mode makes the following modal lines skip too.
+    let mut it = Interpreter::new("G1 X1 F1\nG0 X5 A5\nX6\nG1 X7\n".as_bytes(), skip);
+    let ends: Vec<Point> = it.by_ref().filter_map(|m| m.unwrap().end_point()).collect();
+    assert_eq!(ends, vec![[1.0, 0.0, 0.0], [7.0, 0.0, 0.0]]);
+    assert_eq!(it.warnings().len(), 2);
+    assert!(it.warnings()[1].message.contains("motion mode is unknown"));
+}
