@@ -212,3 +212,22 @@ fn tolerance_is_clamped() {
     assert_eq!(segments_for(1.0, 0.0, 0.1), 1);
     assert_eq!(segments_for(0.001, TAU, 1.0), 4);
 }
+
+#[test]
+fn g18_direction_matches_the_smoothieware_fix_example() {
+    // From Smoothieware PR #1226 (Vectorcam output): a 90 degree arc over the
+    // top (+Z) in each plane; G2 is clockwise seen from +Y for G18.
+    let m = arcs("G0 X0.7071068 Y0\nG1 Z0.7071068 F100\nG18 G2 X-0.7071068 Z0.7071068 I-0.7071068 K-0.7071068")
+        .pop()
+        .unwrap();
+    let g = ArcGeometry::from_motion(&m).unwrap();
+    assert!((g.sweep.abs() - FRAC_PI_2).abs() < 1e-6, "{}", g.sweep);
+    let (_, hi) = g.bounds();
+    assert!((hi[2] - 1.0).abs() < 1e-6, "{hi:?}");
+    let m = arcs("G0 X0 Y-0.7071068\nG1 Z0.7071068 F100\nG19 G2 Y0.7071068 Z0.7071068 J0.7071068 K-0.7071068")
+        .pop()
+        .unwrap();
+    let g = ArcGeometry::from_motion(&m).unwrap();
+    assert!((g.sweep.abs() - FRAC_PI_2).abs() < 1e-6, "{}", g.sweep);
+    assert!((g.bounds().1[2] - 1.0).abs() < 1e-6);
+}
