@@ -102,7 +102,14 @@ pub async fn middleware(
                 role: Role::Admin,
             },
         };
-    let need = required_role(req.method(), req.uri().path());
+    // This middleware runs inside `nest("/api/v1", ..)`, which strips the prefix from the URI:
+    // judge the full path, as `required_role` expects.
+    let path = req
+        .extensions()
+        .get::<axum::extract::OriginalUri>()
+        .map(|u| u.path().to_string())
+        .unwrap_or_else(|| req.uri().path().to_string());
+    let need = required_role(req.method(), &path);
     if caller.role < need {
         return Err(ApiError::new(
             StatusCode::FORBIDDEN,
