@@ -37,7 +37,7 @@ impl Fixture {
         assert_eq!(jobs.as_array().unwrap().len(), 1, "{what}: jobs {jobs}");
         assert_eq!(
             self.s.program_files(),
-            [self.good_file.clone()],
+            std::slice::from_ref(&self.good_file),
             "{what}: stray files in programs/"
         );
         let machines = self.s.get("/api/v1/machines").expect(200);

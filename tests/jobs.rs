@@ -169,7 +169,7 @@ fn pause_holds_the_job_resume_completes_it_and_busy_machines_refuse_a_second_job
         let line = s.job(id)["line"].as_i64().unwrap();
         (line == logged).then_some(line)
     });
-    assert!(held >= 20 && held < 200, "held at line {held}");
+    assert!((20..200).contains(&held), "held at line {held}");
     let log_len = m.executed().len();
     let watch_until = Instant::now() + Duration::from_millis(400);
     while Instant::now() < watch_until {
