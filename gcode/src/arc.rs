@@ -3,6 +3,14 @@
 use crate::{GcodeError, Motion, Plane, Point};
 use std::f64::consts::{FRAC_PI_2, TAU};
 
+/// Length of (x, y). `f64::hypot` guards against overflow near 1e154 at
+/// several times the cost, a libm call per arc; coordinates here are far
+/// smaller (arc radii are capped by the interpreter).
+#[inline]
+pub(crate) fn len2(x: f64, y: f64) -> f64 {
+    (x * x + y * y).sqrt()
+}
+
 /// Smallest tolerance [`linearise`] accepts; smaller (or NaN) values are
 /// raised to it so that a bad setting cannot produce an endless stream.
 pub const MIN_TOLERANCE_MM: f64 = 1e-6;
@@ -50,8 +58,8 @@ impl ArcGeometry {
     ) -> Self {
         let axes = plane.axes();
         let (a, b, _) = axes;
-        let r0 = (from[a] - centre[a]).hypot(from[b] - centre[b]);
-        let r1 = (to[a] - centre[a]).hypot(to[b] - centre[b]);
+        let r0 = len2(from[a] - centre[a], from[b] - centre[b]);
+        let r1 = len2(to[a] - centre[a], to[b] - centre[b]);
         let sweep = if clockwise {
             -sweep_rad.abs()
         } else {
@@ -103,7 +111,7 @@ impl ArcGeometry {
     pub fn length(&self) -> f64 {
         let (_, _, n) = self.axes;
         let planar = 0.5 * (self.r0 + self.r1) * self.sweep.abs();
-        planar.hypot(self.to[n] - self.from[n])
+        len2(planar, self.to[n] - self.from[n])
     }
 
     /// Exact axis-aligned bounds: end points plus every crossing of the

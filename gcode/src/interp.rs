@@ -5,6 +5,7 @@
 //! execution, and commit the state only if the whole line was valid (so a
 //! skipped line leaves no trace). No allocation per line except for messages.
 
+use crate::arc::len2;
 use crate::lex::{bit, column, lex_line, make_error, Block, LexError, LineKind};
 use crate::{
     Config, ErrorKind, GcodeError, Motion, Plane, Point, SpindleDirection, Unsupported, Warning,
@@ -13,6 +14,9 @@ use std::f64::consts::TAU;
 use std::io::BufRead;
 
 const MM_PER_INCH: f64 = 25.4;
+/// Most turns accepted for one arc (P word): bounds the chords one line can
+/// produce (thread milling uses tens).
+const MAX_TURNS: f64 = 10_000.0;
 /// Start and end closer than this (mm, in the plane) make an IJK arc a full circle.
 const FULL_CIRCLE_EPS_MM: f64 = 1e-6;
 
@@ -976,7 +980,7 @@ fn arc_motion_of(
     }
     let has_plane_offset = blk.has(OFFSET[a]) || blk.has(OFFSET[b]);
     let (da, db) = (to[a] - from[a], to[b] - from[b]);
-    let chord = da.hypot(db);
+    let chord = len2(da, db);
     let mut centre = from;
     if let Some(r_word) = blk.get(b'R') {
         if has_plane_offset {
@@ -1056,8 +1060,8 @@ fn arc_motion_of(
             centre[a] = from[a] + blk.get(OFFSET[a]).unwrap_or(0.0) * scale;
             centre[b] = from[b] + blk.get(OFFSET[b]).unwrap_or(0.0) * scale;
         }
-        let r0 = (from[a] - centre[a]).hypot(from[b] - centre[b]);
-        let r1 = (to[a] - centre[a]).hypot(to[b] - centre[b]);
+        let r0 = len2(from[a] - centre[a], from[b] - centre[b]);
+        let r1 = len2(to[a] - centre[a], to[b] - centre[b]);
         if r0 == 0.0 || r1 == 0.0 {
             return Err((
                 arc_at,
@@ -1078,15 +1082,28 @@ fn arc_motion_of(
             ));
         }
     }
+    // A huge radius (a typo, or 1e30 in a file) would make linearise emit
+    // billions of chords for one line; no machine has such an arc.
+    let r_max = len2(from[a] - centre[a], from[b] - centre[b]);
+    if r_max.is_nan() || r_max > cfg.max_arc_radius_mm {
+        return Err((
+            arc_at,
+            ErrorKind::Arc,
+            format!(
+                "arc radius {r_max:.4} mm is larger than the {} mm limit",
+                cfg.max_arc_radius_mm
+            ),
+        ));
+    }
     centre[n] = from[n];
     let turns = match blk.get(b'P') {
         None => 1,
-        Some(p) if p >= 1.0 && p.fract() == 0.0 && p <= 1e6 => p as u32,
+        Some(p) if p >= 1.0 && p.fract() == 0.0 && p <= MAX_TURNS => p as u32,
         Some(_) => {
             return Err((
                 blk.pos_of(b'P') as usize,
                 ErrorKind::Invalid,
-                "arc P (turns) must be a positive integer".to_string(),
+                format!("arc P (turns) must be an integer from 1 to {MAX_TURNS}"),
             ))
         }
     };

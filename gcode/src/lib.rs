@@ -10,6 +10,36 @@
 //!
 //! The dialect is the common subset of grbl and LinuxCNC; see the crate README
 //! for the full list of words and the rules that are applied.
+//!
+//! ```
+//! use fresa_gcode::{analyse, linearise, AnalysisOptions, Config, Interpreter, Motion};
+//!
+//! let program = "G21 G90\nG0 X10 Y0\nG1 Z-1 F300\nG2 X-10 I-10 (half circle)\nM30\n";
+//!
+//! // Canonical motions: arcs stay arcs.
+//! let motions: Vec<Motion> = Interpreter::new(program.as_bytes(), Config::default())
+//!     .collect::<Result<_, _>>()?;
+//! assert!(matches!(motions[2], Motion::Arc { line: 4, clockwise: true, .. }));
+//!
+//! // Arcs as chords within 0.002 mm; the last chord ends exactly at X-10.
+//! let chords = linearise(Interpreter::new(program.as_bytes(), Config::default()), 0.002)
+//!     .filter_map(Result::ok)
+//!     .filter(|m| m.line() == 4)
+//!     .count();
+//! assert_eq!(chords as u64, fresa_gcode::segments_for(10.0, std::f64::consts::PI, 0.002));
+//!
+//! // Bounds, lengths and a feed-based time estimate in one streaming pass.
+//! let a = analyse(program.as_bytes(), &AnalysisOptions::default())?;
+//! let cut = a.cutting_bounds.unwrap();
+//! assert_eq!((cut.min[1], cut.max[1]), (-10.0, 0.0)); // G2 goes through -Y
+//!
+//! // Errors name line and column.
+//! let err = Interpreter::new("G0 X1\nG1 X2 Q3 F1\n".as_bytes(), Config::default())
+//!     .find_map(Result::err)
+//!     .unwrap();
+//! assert_eq!((err.line, err.column), (2, 7));
+//! # Ok::<(), fresa_gcode::GcodeError>(())
+//! ```
 
 #![forbid(unsafe_code)]
 
@@ -75,6 +105,9 @@ pub struct Config {
     pub arc_radius_abs_tolerance_mm: f64,
     /// Relative radius tolerance (0.001 = 0.1 %).
     pub arc_radius_rel_error: f64,
+    /// Largest arc radius accepted (mm); default 1e6 (1 km). Bounds the chords
+    /// one arc can produce.
+    pub max_arc_radius_mm: f64,
     /// Longest accepted line in bytes; keeps memory bounded on garbage input.
     pub max_line_bytes: usize,
     /// At most this many warnings are kept (the rest are counted).
@@ -95,6 +128,7 @@ impl Default for Config {
             arc_radius_max_error_mm: 0.5,
             arc_radius_abs_tolerance_mm: 0.005,
             arc_radius_rel_error: 0.001,
+            max_arc_radius_mm: 1e6,
             max_line_bytes: 64 * 1024,
             max_warnings: 1000,
         }

@@ -231,3 +231,10 @@ fn g18_direction_matches_the_smoothieware_fix_example() {
     assert!((g.sweep.abs() - FRAC_PI_2).abs() < 1e-6, "{}", g.sweep);
     assert!((g.bounds().1[2] - 1.0).abs() < 1e-6);
 }
+
+#[test]
+fn absurd_radius_and_turns_are_rejected() {
+    let e = err("G2 X2000000000 I1000000000 F100");
+    assert!(e.message.contains("limit"), "{e}");
+    assert!(err("G0 X5\nG3 I-5 P20000 F100").message.contains("turns"));
+}
