@@ -455,3 +455,28 @@ fn skip_with_warning_runs_the_helical_thread_file() {
     assert!((b.min[2] - (-0.6533 * 25.4)).abs() < 1e-9, "{b:?}");
     assert!((b.max[2] - 0.0).abs() < 1e-9, "{b:?}");
 }
+
+#[test]
+fn fusion_zmin_header_matches_cutting_bounds() {
+    // Fusion 360 states the deepest Z of each tool in a header comment
+    // "(T1  D=2.65 CR=0 - ZMIN=-12.55 - flat end mill)": an independent
+    // statement of the lower cutting bound.
+    let mut checked = 0;
+    for p in corpus_files() {
+        let name = p.file_name().unwrap().to_string_lossy().to_string();
+        if !name.starts_with("fusion-") {
+            continue;
+        }
+        let text = fs::read_to_string(&p).unwrap();
+        let zmin: f64 = text
+            .lines()
+            .find_map(|l| l.split("ZMIN=").nth(1))
+            .and_then(|rest| rest.split_whitespace().next())
+            .and_then(|v| v.parse().ok())
+            .unwrap_or_else(|| panic!("{name}: no ZMIN in header"));
+        let a = analyse(open(&p), &AnalysisOptions::default()).unwrap();
+        assert_eq!(a.cutting_bounds.unwrap().min[2], zmin, "{name}");
+        checked += 1;
+    }
+    assert!(checked >= 2);
+}
