@@ -205,17 +205,8 @@ fn job_state_events_of_instant_jobs_end_with_the_final_state() {
             .filter(|e| e.job() == Some(id))
             .map(|e| e.state().unwrap())
             .collect();
-        // Normally [running, completed]; if the run ends before the starting request records
-        // `running`, that request reports the state it finds (completed) instead.
-        assert_eq!(seq.last(), Some(&"completed"), "job {id}: {seq:?}");
-        let done = seq.iter().position(|s| *s == "completed").unwrap();
-        assert!(
-            seq[done..].iter().all(|s| *s == "completed"),
-            "job {id}: state after completed: {seq:?}"
-        );
-        assert!(
-            seq.iter().all(|s| matches!(*s, "running" | "completed")),
-            "job {id}: {seq:?}"
-        );
+        // `running` is recorded before the backend is told to start, so even an instant run
+        // shows exactly this sequence.
+        assert_eq!(seq, ["running", "completed"], "job {id}");
     }
 }

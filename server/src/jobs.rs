@@ -75,13 +75,15 @@ impl ProgramChecker {
                     self.column = 1;
                 }
                 '\r' | '\t' => self.column += 1,
-                c if c.is_control() => return Err(ApiError::unprocessable(
-                    "binary_program",
-                    format!(
+                c if c.is_control() => {
+                    return Err(ApiError::unprocessable(
+                        "binary_program",
+                        format!(
                         "program looks binary: control character U+{:04X} at line {}, column {}",
                         c as u32, self.line, self.column
                     ),
-                )),
+                    ))
+                }
                 _ => self.column += 1,
             }
         }
@@ -349,6 +351,16 @@ async fn launch(
                     );
                 }
             }
+            // Announce `running` before the backend can finish the run, so the audit log never
+            // shows `completed` without the `running` before it.
+            app.bus
+                .record_or_log(
+                    "job.state",
+                    Some(run.machine_id),
+                    Some(actor),
+                    run_event(&run),
+                )
+                .await;
             machine
                 .call(&Request::Run {
                     action: RunAction::Start,
@@ -363,16 +375,7 @@ async fn launch(
         finish_run(machine, &app.store, &app.bus, run.id, "failed", Some(&msg)).await;
         return Err(ApiError::from_backend(e));
     }
-    let row = app.store.run(run.id).await?.unwrap_or(run);
-    app.bus
-        .record_or_log(
-            "job.state",
-            Some(row.machine_id),
-            Some(actor),
-            run_event(&row),
-        )
-        .await;
-    Ok(row)
+    Ok(app.store.run(run.id).await?.unwrap_or(run))
 }
 
 pub async fn start(app: &App, job_id: i64, actor: &str) -> Result<RunRow, ApiError> {
