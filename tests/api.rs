@@ -302,3 +302,23 @@ fn machine_names_are_unique_and_unknown_machines_are_404() {
     s.get("/api/v1/machines/abc")
         .expect_error(400, "invalid_path");
 }
+
+#[test]
+fn metrics_report_machine_states_and_job_runs_in_prometheus_text() {
+    let s = Server::start_demo();
+    let id = s.get("/api/v1/machines").expect(200)[0]["id"]
+        .as_i64()
+        .unwrap();
+    s.wait_machine_state(id, "idle", T);
+    let r = s.get("/metrics");
+    assert_eq!(r.status, 200);
+    let text = r.text;
+    assert!(
+        text.contains(&format!(
+            "fresa_machine_state{{machine=\"{id}\",name=\"demo\",state=\"idle\"}} 1"
+        )),
+        "{text}"
+    );
+    assert!(text.contains("fresa_plugins_loaded 1"), "{text}");
+    assert!(text.contains("# TYPE fresa_job_runs gauge"), "{text}");
+}

@@ -106,4 +106,9 @@ impl EventBus {
     pub fn subscribe(&self) -> broadcast::Receiver<Arc<BusEvent>> {
         self.tx.subscribe()
     }
+
+    /// Live event-stream subscribers (SSE clients and internal listeners).
+    pub fn subscribers(&self) -> usize {
+        self.tx.receiver_count()
+    }
 }

@@ -475,6 +475,13 @@ impl Store {
         Ok(Ok(row))
     }
 
+    /// Number of job runs per state, for `/metrics`.
+    pub async fn run_state_counts(&self) -> Result<Vec<(String, i64)>> {
+        sqlx::query_as("SELECT state, COUNT(*) FROM job_runs GROUP BY state ORDER BY state")
+            .fetch_all(&self.pool)
+            .await
+    }
+
     // ---- tokens ----
 
     pub async fn insert_token(&self, name: &str, role: &str, hash: &str) -> Result<i64> {

@@ -46,6 +46,13 @@ pub fn router(app: SharedApp) -> Router {
     Router::new()
         .nest("/api/v1", api)
         .route("/healthz", get(healthz))
+        .route(
+            "/metrics",
+            get(metrics).layer(axum::middleware::from_fn_with_state(
+                app.clone(),
+                auth::middleware,
+            )),
+        )
         .fallback(not_found)
         .layer(tower_http::trace::TraceLayer::new_for_http())
         .with_state(app)
@@ -62,6 +69,56 @@ async fn healthz(State(app): State<SharedApp>) -> impl IntoResponse {
             axum::Json(serde_json::json!({"status": "unavailable", "message": e.to_string()})),
         ),
     }
+}
+
+/// Prometheus text format. Read-only and cheap: gauges from memory plus one grouped query.
+async fn metrics(State(app): State<SharedApp>) -> Result<impl IntoResponse, error::ApiError> {
+    use std::fmt::Write;
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "# HELP fresa_machine_state 1 for the state each machine is in."
+    );
+    let _ = writeln!(out, "# TYPE fresa_machine_state gauge");
+    for m in app.machines.all().await {
+        let state = serde_json::to_value(m.status().state)
+            .ok()
+            .and_then(|v| v.as_str().map(str::to_string))
+            .unwrap_or_default();
+        let name = m.row().name.replace(['\\', '"', '\n'], "_");
+        let _ = writeln!(
+            out,
+            "fresa_machine_state{{machine=\"{}\",name=\"{name}\",state=\"{state}\"}} 1",
+            m.id
+        );
+    }
+    let _ = writeln!(out, "# HELP fresa_job_runs Job runs by state.");
+    let _ = writeln!(out, "# TYPE fresa_job_runs gauge");
+    for (state, n) in app.store.run_state_counts().await? {
+        let _ = writeln!(out, "fresa_job_runs{{state=\"{state}\"}} {n}");
+    }
+    let _ = writeln!(
+        out,
+        "# TYPE fresa_plugins_loaded gauge\nfresa_plugins_loaded {}",
+        app.plugins.names().len()
+    );
+    let _ = writeln!(
+        out,
+        "# TYPE fresa_plugin_load_failures gauge\nfresa_plugin_load_failures {}",
+        app.plugins.failures.len()
+    );
+    let _ = writeln!(
+        out,
+        "# TYPE fresa_event_subscribers gauge\nfresa_event_subscribers {}",
+        app.bus.subscribers()
+    );
+    Ok((
+        [(
+            axum::http::header::CONTENT_TYPE,
+            "text/plain; version=0.0.4",
+        )],
+        out,
+    ))
 }
 
 async fn plugins(State(app): State<SharedApp>) -> Json<serde_json::Value> {
