@@ -107,6 +107,19 @@ impl ArcGeometry {
         p
     }
 
+    /// Radius to size chords with: the larger radius for a circle; for a
+    /// spiral r(φ) = r0 + kφ the chord midpoint deviates by about
+    /// Δφ²·|P''|/8 with |P''| = sqrt(r² + 4k²), so that is used instead.
+    pub fn effective_radius(&self) -> f64 {
+        let r = self.r0.max(self.r1);
+        let sweep = self.sweep.abs();
+        if self.r0 == self.r1 || sweep == 0.0 {
+            return r;
+        }
+        let k = (self.r1 - self.r0) / sweep;
+        (r * r + 4.0 * k * k).sqrt()
+    }
+
     /// Path length (helix: in-plane length and normal travel combined).
     pub fn length(&self) -> f64 {
         let (_, _, n) = self.axes;
@@ -213,7 +226,7 @@ pub struct Linearise<I> {
 
 struct ArcRun {
     to: Point,
-    axes: (usize, usize, usize),
+    plane: Plane,
     line: u32,
     feed: f64,
     n: u64,
@@ -243,14 +256,14 @@ struct ArcRun {
 const REANCHOR: u64 = 64;
 
 impl ArcRun {
-    fn new(g: &ArcGeometry, line: u32, feed: f64, tolerance: f64) -> Self {
-        let n = segments_for(g.r0.max(g.r1), g.sweep, tolerance);
+    fn new(g: &ArcGeometry, plane: Plane, line: u32, feed: f64, tolerance: f64) -> Self {
+        let n = segments_for(g.effective_radius(), g.sweep, tolerance);
         let step = g.sweep / n as f64;
         let (sd, cd) = step.sin_cos();
         let (a, b, nn) = g.axes;
         ArcRun {
             to: g.to,
-            axes: g.axes,
+            plane,
             line,
             feed,
             n,
@@ -294,12 +307,16 @@ impl ArcRun {
             }
             let t = self.k as f64 * self.inv_n;
             let scale = 1.0 + self.grow * t;
-            let (a, b, n) = self.axes;
-            let mut p = [0.0; 3];
-            p[a] = self.ca + scale * (self.u0 * self.c - self.v0 * self.s);
-            p[b] = self.cb + scale * (self.u0 * self.s + self.v0 * self.c);
-            p[n] = self.n0 + self.rise * t;
-            p
+            let pa = self.ca + scale * (self.u0 * self.c - self.v0 * self.s);
+            let pb = self.cb + scale * (self.u0 * self.s + self.v0 * self.c);
+            let pn = self.n0 + self.rise * t;
+            // Build the point whole: stores through run-time indices followed
+            // by a 16-byte load stalled store forwarding (half the chord time).
+            match self.plane {
+                Plane::XY => [pa, pb, pn],
+                Plane::ZX => [pb, pn, pa],
+                Plane::YZ => [pn, pa, pb],
+            }
         };
         let from = self.prev;
         self.prev = to;
@@ -347,16 +364,19 @@ where
             Ok(m) => m,
             Err(e) => return Some(Err(e)),
         };
-        let (line, feed) = match &m {
+        let (line, feed, plane) = match &m {
             Motion::Arc {
-                line, feed_mm_min, ..
-            } => (*line, *feed_mm_min),
+                line,
+                feed_mm_min,
+                plane,
+                ..
+            } => (*line, *feed_mm_min, *plane),
             _ => return Some(Ok(m)),
         };
         let Some(g) = ArcGeometry::from_motion(&m) else {
             return Some(Ok(m));
         };
-        let mut run = ArcRun::new(&g, line, feed, self.tolerance);
+        let mut run = ArcRun::new(&g, plane, line, feed, self.tolerance);
         let first = run.next_segment();
         if run.k < run.n {
             self.arc = Some(run);

@@ -960,10 +960,13 @@ fn arc_motion_of(
     const AXIS: [u8; 3] = [b'X', b'Y', b'Z'];
     const OFFSET: [u8; 3] = [b'I', b'J', b'K'];
     let from = st.pos;
-    let arc_at = first_of(
-        blk,
-        bit(b'X') | bit(b'Y') | bit(b'Z') | bit(b'I') | bit(b'J') | bit(b'K') | bit(b'R'),
-    );
+    // Column for arc errors; only computed when there is one.
+    let arc_at = || {
+        first_of(
+            blk,
+            bit(b'X') | bit(b'Y') | bit(b'Z') | bit(b'I') | bit(b'J') | bit(b'K') | bit(b'R'),
+        )
+    };
     // An offset along the plane normal means the program expects another plane.
     if let Some(v) = blk.get(OFFSET[n]) {
         if v != 0.0 {
@@ -1036,7 +1039,7 @@ fn arc_motion_of(
     } else {
         if !has_plane_offset {
             return Err((
-                arc_at,
+                arc_at(),
                 ErrorKind::Arc,
                 format!(
                     "arc needs R or {}/{} offsets in the {} plane",
@@ -1049,7 +1052,7 @@ fn arc_motion_of(
         if st.arc_absolute {
             if !(blk.has(OFFSET[a]) && blk.has(OFFSET[b])) {
                 return Err((
-                    arc_at,
+                    arc_at(),
                     ErrorKind::Arc,
                     "G90.1 arc needs both centre words of the plane".to_string(),
                 ));
@@ -1064,7 +1067,7 @@ fn arc_motion_of(
         let r1 = len2(to[a] - centre[a], to[b] - centre[b]);
         if r0 == 0.0 || r1 == 0.0 {
             return Err((
-                arc_at,
+                arc_at(),
                 ErrorKind::Arc,
                 "arc with zero radius (centre on an end point)".to_string(),
             ));
@@ -1074,7 +1077,7 @@ fn arc_motion_of(
             || (d > cfg.arc_radius_abs_tolerance_mm && d > cfg.arc_radius_rel_error * r0)
         {
             return Err((
-                arc_at,
+                arc_at(),
                 ErrorKind::Arc,
                 format!(
                     "radius to end of arc ({r1:.4} mm) differs from radius to start ({r0:.4} mm) by {d:.4} mm"
@@ -1087,7 +1090,7 @@ fn arc_motion_of(
     let r_max = len2(from[a] - centre[a], from[b] - centre[b]);
     if r_max.is_nan() || r_max > cfg.max_arc_radius_mm {
         return Err((
-            arc_at,
+            arc_at(),
             ErrorKind::Arc,
             format!(
                 "arc radius {r_max:.4} mm is larger than the {} mm limit",
