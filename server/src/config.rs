@@ -22,14 +22,23 @@ pub struct FileConfig {
     pub log: Option<String>,
 }
 
-/// Command-line/environment values for `fresa serve` (already merged by clap: CLI beats env).
-#[derive(Debug, Default, Clone)]
+/// Command-line/environment values for `fresa serve` (clap merges them: CLI beats env).
+#[derive(Debug, Default, Clone, clap::Args)]
 pub struct Overrides {
+    /// Address to listen on; port 0 picks a free one (the log says which).
+    #[arg(long, env = "FRESA_LISTEN")]
     pub listen: Option<String>,
+    #[arg(long, env = "FRESA_DATA_DIR")]
     pub data_dir: Option<PathBuf>,
+    #[arg(long, env = "FRESA_CONFIG")]
     pub config: Option<PathBuf>,
+    /// Extra plugin directory, searched before the defaults (repeatable).
+    #[arg(long = "plugin-dir", env = "FRESA_PLUGIN_DIR")]
     pub plugin_dirs: Vec<PathBuf>,
+    #[arg(long, env = "FRESA_MAX_UPLOAD_BYTES")]
     pub max_upload_bytes: Option<u64>,
+    /// Create a simulated machine named "demo" (real-time motion) if there is none.
+    #[arg(long)]
     pub demo: bool,
 }
 

@@ -13,7 +13,6 @@ mod serve;
 mod store;
 
 use clap::{Parser, Subcommand};
-use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Parser)]
@@ -30,23 +29,7 @@ struct Cli {
 #[derive(Subcommand)]
 enum Cmd {
     /// Run the daemon.
-    Serve {
-        /// Address to listen on; port 0 picks a free one (the log says which).
-        #[arg(long, env = "FRESA_LISTEN")]
-        listen: Option<String>,
-        #[arg(long, env = "FRESA_DATA_DIR")]
-        data_dir: Option<PathBuf>,
-        #[arg(long, env = "FRESA_CONFIG")]
-        config: Option<PathBuf>,
-        /// Extra plugin directory, searched before the defaults (repeatable).
-        #[arg(long = "plugin-dir", env = "FRESA_PLUGIN_DIR")]
-        plugin_dirs: Vec<PathBuf>,
-        #[arg(long, env = "FRESA_MAX_UPLOAD_BYTES")]
-        max_upload_bytes: Option<u64>,
-        /// Create a simulated machine named "demo" (real-time motion) if there is none.
-        #[arg(long)]
-        demo: bool,
-    },
+    Serve(config::Overrides),
     /// Machines on a running server.
     Machine {
         #[command(flatten)]
@@ -94,22 +77,8 @@ fn main() -> ExitCode {
     };
     let result: Result<(), Box<dyn std::error::Error>> = rt.block_on(async move {
         match cli.command {
-            Cmd::Serve {
-                listen,
-                data_dir,
-                config,
-                plugin_dirs,
-                max_upload_bytes,
-                demo,
-            } => {
-                let settings = config::Settings::resolve(config::Overrides {
-                    listen,
-                    data_dir,
-                    config,
-                    plugin_dirs,
-                    max_upload_bytes,
-                    demo,
-                })?;
+            Cmd::Serve(overrides) => {
+                let settings = config::Settings::resolve(overrides)?;
                 init_logging(
                     settings
                         .log

@@ -560,9 +560,7 @@ mod tests {
         (Store::open(&dir.join("t.db")).await.unwrap(), dir)
     }
 
-    #[tokio::test]
-    async fn second_start_on_a_busy_machine_is_refused() {
-        let (s, dir) = store().await;
+    async fn machine_with_job(s: &Store, lines: i64) -> (i64, i64) {
         let m = s
             .insert_machine("m", "sim-machine", &serde_json::json!({}), 50.0, 1000.0)
             .await
@@ -573,12 +571,19 @@ mod tests {
                 machine_id: m,
                 sha256: "x",
                 size_bytes: 1,
-                line_count: 1,
+                line_count: lines,
                 analysis: None,
                 source: "http",
             })
             .await
             .unwrap();
+        (m, j)
+    }
+
+    #[tokio::test]
+    async fn second_start_on_a_busy_machine_is_refused() {
+        let (s, dir) = store().await;
+        let (m, j) = machine_with_job(&s, 1).await;
         let first = s.start_run(j, m).await.unwrap();
         assert!(first.is_ok());
         let second = s.start_run(j, m).await.unwrap();
@@ -589,22 +594,7 @@ mod tests {
     #[tokio::test]
     async fn restart_marks_active_runs_interrupted_and_keeps_last_line() {
         let (s, dir) = store().await;
-        let m = s
-            .insert_machine("m", "sim-machine", &serde_json::json!({}), 50.0, 1000.0)
-            .await
-            .unwrap();
-        let j = s
-            .insert_job(NewJob {
-                name: "a",
-                machine_id: m,
-                sha256: "x",
-                size_bytes: 1,
-                line_count: 9,
-                analysis: None,
-                source: "http",
-            })
-            .await
-            .unwrap();
+        let (m, j) = machine_with_job(&s, 9).await;
         let run = s.start_run(j, m).await.unwrap().unwrap();
         s.ack_line(run.id, 5).await.unwrap();
         s.ack_line(run.id, 3).await.unwrap(); // never backwards
