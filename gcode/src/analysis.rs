@@ -136,6 +136,11 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
     };
     let mut feed_minutes = 0.0;
     let mut last_motion_line = 0u32;
+    // Work systems that moves happened in (bit 0 = G54), to warn once where
+    // the bounds start mixing frames.
+    let mut active_system = 1u8;
+    let mut moved_in = 0u16;
+    let mut mixed_at = None;
     for m in it.by_ref() {
         let m = m?;
         let line = m.line();
@@ -143,9 +148,18 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
             m,
             Motion::Rapid { .. } | Motion::Linear { .. } | Motion::Arc { .. }
         );
-        if is_move && line != last_motion_line {
-            a.motion_lines += 1;
-            last_motion_line = line;
+        if is_move {
+            if line != last_motion_line {
+                a.motion_lines += 1;
+                last_motion_line = line;
+            }
+            moved_in |= 1 << (active_system - 1);
+            if mixed_at.is_none() && moved_in.count_ones() > 1 {
+                mixed_at = Some((line, active_system));
+            }
+        }
+        if let Motion::WorkOffset { system, .. } = m {
+            active_system = system;
         }
         match m {
             Motion::Rapid { from, to, .. } => {
@@ -193,13 +207,22 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
     a.units_inch_seen = it.units_inch_seen();
     a.warnings = it.warnings().to_vec();
     a.warnings_dropped = it.warnings_dropped();
-    if it.work_systems_used().count_ones() > 1 {
+    if let Some((line, system)) = mixed_at {
         a.warnings.push(Warning {
-            line: 0,
-            column: 0,
-            message: "more than one work coordinate system is used; bounds mix their frames"
-                .to_string(),
+            line,
+            column: 1,
+            message: format!(
+                "moves in more than one work coordinate system (here {}); bounds and lengths mix their frames",
+                system_name(system)
+            ),
         });
     }
     Ok(a)
+}
+
+fn system_name(system: u8) -> String {
+    match system {
+        1..=6 => format!("G{}", 53 + system),
+        _ => format!("G59.{}", system - 6),
+    }
 }

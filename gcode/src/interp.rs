@@ -187,8 +187,8 @@ impl<R: BufRead> Interpreter<R> {
     pub fn work_systems_used(&self) -> u16 {
         self.work_systems | 1
     }
-    /// Current position (program coordinates, mm) after the motions yielded so far
-    /// have been queued.
+    /// Position (program coordinates, mm) after the last line interpreted;
+    /// motions of that line may still be waiting to be yielded.
     pub fn position(&self) -> Point {
         self.st.pos
     }

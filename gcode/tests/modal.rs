@@ -503,3 +503,17 @@ fn skipping_never_changes_what_later_lines_do() {
     assert_eq!(it.warnings().len(), 2);
     assert!(it.warnings()[1].message.contains("motion mode is unknown"));
 }
+
+#[test]
+fn analysis_warns_where_work_systems_mix() {
+    let a = analyse(
+        "G54 G0 X1\nG55\nG0 X2\n".as_bytes(),
+        &AnalysisOptions::default(),
+    )
+    .unwrap();
+    assert_eq!(a.warnings.len(), 1);
+    assert_eq!(a.warnings[0].line, 3);
+    assert!(a.warnings[0].message.contains("G55"));
+    let a = analyse("G55\nG0 X2\n".as_bytes(), &AnalysisOptions::default()).unwrap();
+    assert!(a.warnings.is_empty(), "one system only: {:?}", a.warnings);
+}
