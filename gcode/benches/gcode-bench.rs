@@ -212,8 +212,14 @@ fn main() {
             .and_then(|v| v.parse().ok())
             .unwrap_or(default)
     };
-    let mem_mb = opt("--mem-mb", 1024.0);
-    let budget = Duration::from_secs_f64(opt("--secs", 0.5));
+    // `cargo bench` passes --bench; `cargo test --all-targets` runs this
+    // binary without it, where a quick smoke run is enough.
+    let smoke = !args.iter().any(|a| a == "--bench");
+    let mem_mb = opt("--mem-mb", if smoke { 1.0 } else { 1024.0 });
+    let budget = Duration::from_secs_f64(opt("--secs", if smoke { 0.001 } else { 0.5 }));
+    if smoke {
+        println!("(smoke run: use `cargo bench` for real numbers)");
+    }
     let dir = corpus_dir();
     let pocket = std::fs::read(dir.join("cncjs-tball-pocket.gcode")).unwrap();
 
