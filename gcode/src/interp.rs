@@ -85,7 +85,8 @@ struct State {
     inch: bool,
     absolute: bool,
     arc_absolute: bool,
-    /// Last F word in the units active when it is used (LinuxCNC).
+    /// Last F word in mm/min, converted with the units of its own line: a
+    /// later G20/G21 keeps the physical feed (grbl; LinuxCNC rescales it).
     feed: Option<f64>,
     rpm: f64,
     spindle: SpindleDirection,
@@ -650,7 +651,7 @@ impl<R: BufRead> Interpreter<R> {
                     "negative feed rate".to_string(),
                 ));
             }
-            st.feed = Some(f);
+            st.feed = Some(f * scale);
         }
         // 4. spindle speed
         let s_word = blk.get(b'S');
@@ -854,7 +855,7 @@ impl<R: BufRead> Interpreter<R> {
                     });
                 }
                 MotionMode::Linear => {
-                    let feed = feed_mm_min(&st, scale, blk)?;
+                    let feed = feed_mm_min(&st, blk)?;
                     queue.push_back(Motion::Linear {
                         line,
                         from: st.pos,
@@ -871,7 +872,7 @@ impl<R: BufRead> Interpreter<R> {
                             "G53 with an arc".to_string(),
                         ));
                     }
-                    let feed = feed_mm_min(&st, scale, blk)?;
+                    let feed = feed_mm_min(&st, blk)?;
                     let m = arc_motion_of(
                         &self.cfg,
                         &st,
@@ -921,7 +922,7 @@ impl<R: BufRead> Interpreter<R> {
     }
 }
 
-fn feed_mm_min(st: &State, scale: f64, blk: &Block) -> Result<f64, LexError> {
+fn feed_mm_min(st: &State, blk: &Block) -> Result<f64, LexError> {
     match st.feed {
         None => Err((
             first_of(
@@ -940,7 +941,7 @@ fn feed_mm_min(st: &State, scale: f64, blk: &Block) -> Result<f64, LexError> {
             ErrorKind::Invalid,
             "feed move with zero feed rate".to_string(),
         )),
-        Some(f) => Ok(f * scale),
+        Some(f) => Ok(f),
     }
 }
 

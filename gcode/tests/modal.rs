@@ -87,6 +87,17 @@ fn feed_is_units_per_minute() {
 }
 
 #[test]
+fn unit_change_keeps_the_physical_feed() {
+    let m = moves("G21 F254\nG20 G1 X1\nG21 G1 X2\n");
+    for mv in &m {
+        match mv {
+            Motion::Linear { feed_mm_min, .. } => assert!((feed_mm_min - 254.0).abs() < 1e-9),
+            _ => panic!("{mv:?}"),
+        }
+    }
+}
+
+#[test]
 fn feed_missing_or_zero_is_an_error() {
     let e = err("G1 X1\n");
     assert_eq!((e.line, e.kind), (1, ErrorKind::Invalid));
