@@ -126,9 +126,19 @@ impl App {
             .await
             .map_err(|source| StartError::Store { path: db, source })?;
         for row in rows {
-            let lib = app.plugins.get(&row.backend);
-            let m =
-                Machine::start(row, lib, store.clone(), bus.clone(), &app.machine_options()).await;
+            let backend = match app.plugins.get(&row.backend) {
+                Some(lib) => Machine::prepare(lib, row.config_json())
+                    .await
+                    .map_err(|e| format!("backend rejected its config: {e}")),
+                None => Err(format!("no plugin named {:?} is loaded", row.backend)),
+            };
+            let m = Machine::start(
+                row,
+                backend,
+                store.clone(),
+                bus.clone(),
+                &app.machine_options(),
+            );
             crate::machines::restore_state(&m, &store).await;
             if let Some(reason) = m.unavailable_reason() {
                 tracing::error!(machine = m.id, reason, "machine offline");

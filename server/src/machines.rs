@@ -9,6 +9,7 @@ use fresa_plugin_api::contract::{
 use fresa_plugin_api::host::{CallError, HostSink, Instance, PluginLibrary};
 use serde_json::{json, Value};
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicI64, Ordering};
 use std::sync::{Arc, Mutex as StdMutex};
 use std::time::Duration;
 use tokio::sync::{mpsc, watch, RwLock, Semaphore};
@@ -46,9 +47,17 @@ pub struct Machine {
     pub acked_line: StdMutex<Option<(i64, i64)>>,
 }
 
+/// A backend instance created but not yet attached to a machine.
+pub struct Prepared {
+    instance: Instance,
+    events: mpsc::UnboundedReceiver<Value>,
+    machine_id: Arc<AtomicI64>,
+}
+
 struct Sink {
     tx: mpsc::UnboundedSender<Value>,
-    machine_id: i64,
+    /// Set once the machine row exists; 0 while the config is being checked.
+    machine_id: Arc<AtomicI64>,
 }
 
 impl HostSink for Sink {
@@ -59,7 +68,7 @@ impl HostSink for Sink {
     }
     fn log(&self, level: u32, message: &str) {
         use fresa_plugin_api::abi::*;
-        let id = self.machine_id;
+        let id = self.machine_id.load(Ordering::Relaxed);
         match level {
             LOG_ERROR => tracing::error!(machine = id, "{message}"),
             LOG_WARN => tracing::warn!(machine = id, "{message}"),
@@ -77,34 +86,43 @@ pub struct MachineOptions {
 }
 
 impl Machine {
-    /// Creates the plugin instance for `row`. Never fails: a machine whose plugin cannot be
-    /// created is kept, offline with the reason, so the operator sees it and can fix the config.
-    pub async fn start(
+    /// Creates a backend instance from `config`, off the async runtime. Its events queue until
+    /// [`Machine::start`] takes it, so the instance a config was checked with is the one kept
+    /// (a real controller is not connected twice).
+    pub async fn prepare(library: &PluginLibrary, config: Value) -> Result<Prepared, String> {
+        let (tx, rx) = mpsc::unbounded_channel();
+        let machine_id = Arc::new(AtomicI64::new(0));
+        let sink = Arc::new(Sink {
+            tx,
+            machine_id: machine_id.clone(),
+        });
+        let lib = library.clone();
+        match tokio::task::spawn_blocking(move || lib.create(&config, sink)).await {
+            Ok(Ok(instance)) => Ok(Prepared {
+                instance,
+                events: rx,
+                machine_id,
+            }),
+            Ok(Err(e)) => Err(e.to_string()),
+            Err(e) => Err(format!("backend create failed: {e}")),
+        }
+    }
+
+    /// Starts the machine for `row`. Never fails: a machine whose backend could not be created
+    /// is kept, offline with the reason, so the operator sees it and can fix the config.
+    pub fn start(
         row: MachineRow,
-        library: Option<&PluginLibrary>,
+        backend: Result<Prepared, String>,
         store: Store,
         bus: EventBus,
         opts: &MachineOptions,
     ) -> Arc<Machine> {
-        let (tx, rx) = mpsc::unbounded_channel();
-        let (instance, unavailable) = match library {
-            None => (
-                None,
-                Some(format!("no plugin named {:?} is loaded", row.backend)),
-            ),
-            Some(lib) => {
-                let lib = lib.clone();
-                let cfg = row.config_json();
-                let sink = Arc::new(Sink {
-                    tx,
-                    machine_id: row.id,
-                });
-                match tokio::task::spawn_blocking(move || lib.create(&cfg, sink)).await {
-                    Ok(Ok(i)) => (Some(Arc::new(i)), None),
-                    Ok(Err(e)) => (None, Some(format!("backend rejected its config: {e}"))),
-                    Err(e) => (None, Some(format!("backend create failed: {e}"))),
-                }
+        let (instance, events, unavailable) = match backend {
+            Ok(p) => {
+                p.machine_id.store(row.id, Ordering::Relaxed);
+                (Some(Arc::new(p.instance)), p.events, None)
             }
+            Err(reason) => (None, mpsc::unbounded_channel().1, Some(reason)),
         };
         let status = MachineStatus {
             state: MachineState::Offline,
@@ -123,7 +141,7 @@ impl Machine {
             current_run: StdMutex::new(None),
             acked_line: StdMutex::new(None),
         });
-        tokio::spawn(event_loop(m.clone(), rx, store, bus.clone()));
+        tokio::spawn(event_loop(m.clone(), events, store, bus.clone()));
         tokio::spawn(status_loop(m.clone(), bus, opts.status_interval));
         m
     }

@@ -104,25 +104,13 @@ pub async fn create(
             format!("a machine named {name:?} already exists"),
         ));
     }
-    // Let the plugin judge the config before anything is stored.
-    let probe = {
-        let lib = lib.clone();
-        let cfg = config.clone();
-        struct Quiet;
-        impl fresa_plugin_api::host::HostSink for Quiet {
-            fn event(&self, _: Value) {}
-            fn log(&self, _: u32, _: &str) {}
-        }
-        tokio::task::spawn_blocking(move || lib.create(&cfg, Arc::new(Quiet)).map(drop))
-            .await
-            .map_err(|e| ApiError::internal(e.to_string()))?
-    };
-    if let Err(e) = probe {
-        return Err(ApiError::unprocessable(
+    // The plugin judges the config before anything is stored; that instance is the one kept.
+    let backend = Machine::prepare(lib, config.clone()).await.map_err(|e| {
+        ApiError::unprocessable(
             "invalid_config",
             format!("field `config` rejected by {}: {e}", req.backend),
-        ));
-    }
+        )
+    })?;
     let id = match app
         .store
         .insert_machine(name, &req.backend, &config, max_jog, max_feed)
@@ -144,12 +132,11 @@ pub async fn create(
         .ok_or_else(|| ApiError::internal("machine vanished"))?;
     let m = Machine::start(
         row,
-        Some(lib),
+        Ok(backend),
         app.store.clone(),
         app.bus.clone(),
         &app.machine_options(),
-    )
-    .await;
+    );
     crate::machines::restore_state(&m, &app.store).await;
     app.machines.insert(m).await;
     app.bus
