@@ -385,10 +385,10 @@ pub async fn start(app: &App, job_id: i64, actor: &str) -> Result<RunRow, ApiErr
         return Err(ApiError::conflict(
             "machine_busy",
             format!(
-                "machine {} is {:?}; wait for it to be idle",
-                machine.id, status.state
-            )
-            .to_lowercase(),
+                "machine {} is {}; wait for it to be idle",
+                machine.id,
+                json!(status.state).as_str().unwrap_or("busy")
+            ),
         ));
     }
     if let Some(reason) = machine.unavailable_reason() {

@@ -338,13 +338,7 @@ impl Store {
         machine_id: i64,
     ) -> Result<std::result::Result<RunRow, RunRow>> {
         let mut tx = self.begin().await?;
-        let busy: Option<RunRow> = sqlx::query_as(&format!(
-            "SELECT * FROM job_runs WHERE machine_id = ? AND state IN {ACTIVE_RUN_STATES} LIMIT 1"
-        ))
-        .bind(machine_id)
-        .fetch_optional(&mut *tx)
-        .await?;
-        if let Some(b) = busy {
+        if let Some(b) = active_run_except(&mut tx, machine_id, None).await? {
             return Ok(Err(b));
         }
         let now = now_ms();
@@ -430,6 +424,21 @@ impl Store {
             .await
     }
 
+    /// The latest run of each of `job_ids`, in one query (for job lists).
+    pub async fn latest_runs(&self, job_ids: &[i64]) -> Result<Vec<RunRow>> {
+        if job_ids.is_empty() {
+            return Ok(Vec::new());
+        }
+        let ids = serde_json::to_string(job_ids).unwrap_or_else(|_| "[]".into());
+        sqlx::query_as(
+            "SELECT * FROM job_runs WHERE id IN (SELECT MAX(id) FROM job_runs
+               WHERE job_id IN (SELECT value FROM json_each(?)) GROUP BY job_id)",
+        )
+        .bind(ids)
+        .fetch_all(&self.pool)
+        .await
+    }
+
     /// At start-up nothing can be running: every run that was active when the previous process
     /// died becomes `interrupted`, keeping its last acknowledged line for a resume.
     pub async fn interrupt_active_runs(&self) -> Result<Vec<RunRow>> {
@@ -453,14 +462,7 @@ impl Store {
         machine_id: i64,
     ) -> Result<std::result::Result<RunRow, RunRow>> {
         let mut tx = self.begin().await?;
-        let busy: Option<RunRow> = sqlx::query_as(&format!(
-            "SELECT * FROM job_runs WHERE machine_id = ? AND id != ? AND state IN {ACTIVE_RUN_STATES} LIMIT 1"
-        ))
-        .bind(machine_id)
-        .bind(run_id)
-        .fetch_optional(&mut *tx)
-        .await?;
-        if let Some(b) = busy {
+        if let Some(b) = active_run_except(&mut tx, machine_id, Some(run_id)).await? {
             return Ok(Err(b));
         }
         let row: RunRow = sqlx::query_as(
@@ -545,6 +547,23 @@ impl Store {
     }
 }
 
+/// The run that owns `machine_id` (queued, running or paused), other than `except`. Called
+/// inside the write transaction that is about to make a run active, so two starts cannot race.
+async fn active_run_except(
+    tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
+    machine_id: i64,
+    except: Option<i64>,
+) -> Result<Option<RunRow>> {
+    sqlx::query_as(&format!(
+        "SELECT * FROM job_runs WHERE machine_id = ?1 AND (?2 IS NULL OR id != ?2)
+           AND state IN {ACTIVE_RUN_STATES} LIMIT 1"
+    ))
+    .bind(machine_id)
+    .bind(except)
+    .fetch_optional(&mut **tx)
+    .await
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used, clippy::expect_used)]
@@ -608,6 +627,35 @@ mod tests {
             .await
             .unwrap()
             .is_none());
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[tokio::test]
+    async fn latest_runs_gives_each_jobs_newest_run() {
+        let (s, dir) = store().await;
+        let (m, j1) = machine_with_job(&s, 3).await;
+        let j2 = s
+            .insert_job(NewJob {
+                name: "b",
+                machine_id: m,
+                sha256: "y",
+                size_bytes: 1,
+                line_count: 1,
+                analysis: None,
+                source: "http",
+            })
+            .await
+            .unwrap();
+        let first = s.start_run(j1, m).await.unwrap().unwrap();
+        s.transition_run(first.id, &["running"], "cancelled", None)
+            .await
+            .unwrap();
+        let second = s.start_run(j1, m).await.unwrap().unwrap();
+        let mut runs = s.latest_runs(&[j1, j2]).await.unwrap();
+        runs.sort_by_key(|r| r.job_id);
+        assert_eq!(runs.len(), 1, "job {j2} has no run");
+        assert_eq!((runs[0].job_id, runs[0].id), (j1, second.id));
+        assert!(s.latest_runs(&[]).await.unwrap().is_empty());
         std::fs::remove_dir_all(dir).ok();
     }
 }

@@ -17,6 +17,14 @@ pub enum Role {
 }
 
 impl Role {
+    pub fn name(self) -> &'static str {
+        match self {
+            Role::Viewer => "viewer",
+            Role::Operator => "operator",
+            Role::Admin => "admin",
+        }
+    }
+
     pub fn parse(s: &str) -> Option<Role> {
         match s {
             "viewer" => Some(Role::Viewer),
@@ -115,10 +123,11 @@ pub async fn middleware(
             StatusCode::FORBIDDEN,
             "forbidden",
             format!(
-                "token {:?} has role {:?}; this request needs {:?}",
-                caller.name, caller.role, need
-            )
-            .to_lowercase(),
+                "token {:?} has role {}; this request needs {}",
+                caller.name,
+                caller.role.name(),
+                need.name()
+            ),
         ));
     }
     req.extensions_mut().insert(caller);

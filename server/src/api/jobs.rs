@@ -33,11 +33,18 @@ pub async fn list(
         .store
         .list_jobs(p.machine, p.limit.unwrap_or(100).clamp(1, 1000))
         .await?;
-    let mut out = Vec::with_capacity(jobs.len());
-    for j in &jobs {
-        let run = app.store.latest_run(j.id).await?;
-        out.push(core::job_json(j, run.as_ref()));
-    }
+    let ids: Vec<i64> = jobs.iter().map(|j| j.id).collect();
+    let runs: std::collections::HashMap<i64, crate::store::RunRow> = app
+        .store
+        .latest_runs(&ids)
+        .await?
+        .into_iter()
+        .map(|r| (r.job_id, r))
+        .collect();
+    let out = jobs
+        .iter()
+        .map(|j| core::job_json(j, runs.get(&j.id)))
+        .collect();
     Ok(Json(out))
 }
 
