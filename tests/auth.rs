@@ -103,12 +103,7 @@ fn every_request_needs_a_valid_token_with_the_right_role() {
         &json!({"axis": "X", "distance": 1.0}),
     )
     .expect_error(403, "forbidden");
-    assert!(s
-        .get("/api/v1/jobs")
-        .expect(200)
-        .as_array()
-        .unwrap()
-        .is_empty());
+    s.assert_no_jobs();
 
     s.token = Some(operator.clone());
     let job = s.upload(m.id, "j", "G0 X1\nG0 X0\n")["id"]

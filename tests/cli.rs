@@ -101,12 +101,7 @@ fn cli_errors_name_the_problem_and_exit_non_zero() {
         "{}",
         output_text(&out)
     );
-    assert!(s
-        .get("/api/v1/jobs")
-        .expect(200)
-        .as_array()
-        .unwrap()
-        .is_empty());
+    s.assert_no_jobs();
 
     let out = s.cli(&["job", "watch", "4242"]);
     assert!(!out.status.success(), "{}", output_text(&out));

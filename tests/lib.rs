@@ -525,6 +525,13 @@ impl Server {
         .expect(201)
     }
 
+    /// Asserts that no job was stored (after a rejected upload or request).
+    #[track_caller]
+    pub fn assert_no_jobs(&self) {
+        let jobs = self.get("/api/v1/jobs").expect(200);
+        assert!(jobs.as_array().is_some_and(Vec::is_empty), "{jobs}");
+    }
+
     #[track_caller]
     pub fn job(&self, id: i64) -> Value {
         self.get(&format!("/api/v1/jobs/{id}")).expect(200)

@@ -65,16 +65,22 @@ fn check_interrupted(
     line
 }
 
-#[test]
-fn sigkill_mid_job_then_resume_executes_every_line_exactly_once() {
-    let mut s = Server::start();
-    let m = s.sim("m", 0.1);
+/// Uploads and starts a job long enough (at the sim's time scale) to be caught mid-run.
+fn start_slow_job(s: &Server, m: &Sim) -> (i64, i64) {
     let job = s.upload(m.id, "slow", back_and_forth(LINES as usize, 1.0, 600.0))["id"]
         .as_i64()
         .unwrap();
     let run = s.job_action(job, "start").expect(200)["run"]["id"]
         .as_i64()
         .unwrap();
+    (job, run)
+}
+
+#[test]
+fn sigkill_mid_job_then_resume_executes_every_line_exactly_once() {
+    let mut s = Server::start();
+    let m = s.sim("m", 0.1);
+    let (job, run) = start_slow_job(&s, &m);
 
     // First crash, early in the job.
     let acked = s.wait_job(job, T, "line >= 40", |j| j["line"].as_i64().unwrap() >= 40)["line"]
@@ -117,12 +123,7 @@ fn sigkill_mid_job_then_resume_executes_every_line_exactly_once() {
 fn sigterm_mid_job_interrupts_it_and_resume_completes_it() {
     let mut s = Server::start();
     let m = s.sim("m", 0.1);
-    let job = s.upload(m.id, "slow", back_and_forth(LINES as usize, 1.0, 600.0))["id"]
-        .as_i64()
-        .unwrap();
-    let run = s.job_action(job, "start").expect(200)["run"]["id"]
-        .as_i64()
-        .unwrap();
+    let (job, run) = start_slow_job(&s, &m);
     let acked = s.wait_job(job, T, "line >= 30", |j| j["line"].as_i64().unwrap() >= 30)["line"]
         .as_i64()
         .unwrap();
