@@ -57,8 +57,8 @@ fn profile_dir() -> PathBuf {
     })
 }
 
-/// Builds `fresa` and `libfresa_sim_machine.so` (once per test process; `cargo test` does not
-/// build them) and returns the directory holding both.
+/// Builds `fresa`, every plugin library and every simulator binary of the workspace (once per
+/// test process; `cargo test` does not build them) and returns the directory holding them.
 pub fn bin_dir() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
@@ -66,7 +66,7 @@ pub fn bin_dir() -> &'static Path {
         let target_dir = profile.parent().expect("profile dir has a parent");
         let mut cmd = Command::new(env!("CARGO"));
         cmd.current_dir(workspace_root())
-            .args(["build", "-p", "fresa-server", "-p", "fresa-sim-machine"])
+            .args(["build", "--workspace"])
             .arg("--target-dir")
             .arg(target_dir);
         if !cfg!(debug_assertions) {
@@ -75,7 +75,7 @@ pub fn bin_dir() -> &'static Path {
         let out = cmd.output().expect("run cargo build");
         assert!(
             out.status.success(),
-            "cargo build of the server and plugin failed:\n{}",
+            "cargo build of the server, plugins and simulators failed:\n{}",
             String::from_utf8_lossy(&out.stderr)
         );
         assert!(
