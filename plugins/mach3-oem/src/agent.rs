@@ -186,9 +186,10 @@ impl Connection {
                     a.protocol
                 )))
             }
-            Ok(a) if !protocol::verify(&self.cfg.secret, &nonce, &a.auth) => Some(
-                Mach3Error::new(ErrorKind::Auth, "wrong secret: check the `secret` in the server's machine config"),
-            ),
+            Ok(a) if !protocol::verify(&self.cfg.secret, &nonce, &a.auth) => Some(Mach3Error::new(
+                ErrorKind::Auth,
+                "wrong secret: check the `secret` in the server's machine config",
+            )),
             Ok(_) => None,
         };
         let welcome = Welcome {
@@ -373,7 +374,9 @@ fn write_program(dir: &Path, call: &Call) -> Result<serde_json::Value, Mach3Erro
     std::fs::rename(&part, &done)
         .map_err(|e| io(&format!("cannot rename to {}", done.display()), e))?;
     let full = std::path::absolute(&done).unwrap_or(done);
-    Ok(serde_json::Value::String(full.to_string_lossy().into_owned()))
+    Ok(serde_json::Value::String(
+        full.to_string_lossy().into_owned(),
+    ))
 }
 
 #[cfg(test)]

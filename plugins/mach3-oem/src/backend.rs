@@ -174,7 +174,8 @@ impl Inner {
 
     fn button(&self, code: Code, urgent: bool) -> Result<(), PluginError> {
         let code = self.cfg.codes.get(code);
-        self.exec(vec![Call::DoOemButton { code }], urgent).map(|_| ())
+        self.exec(vec![Call::DoOemButton { code }], urgent)
+            .map(|_| ())
     }
 
     fn status_calls(&self) -> Vec<Call> {
@@ -190,7 +191,12 @@ impl Inner {
                 code: c.axis(Code::FixtureX, i),
             });
         }
-        for code in [Code::FixtureNumber, Code::Line, Code::Feed, Code::FeedOverride] {
+        for code in [
+            Code::FixtureNumber,
+            Code::Line,
+            Code::Feed,
+            Code::FeedOverride,
+        ] {
             calls.push(Call::GetOemDro { code: c.get(code) });
         }
         for code in [
@@ -428,7 +434,7 @@ impl Inner {
     /// An MDI jog in G91 that puts back the distance mode, motion mode and feed it found.
     fn jog(&self, axis: Axis, distance: f64, feed: Option<f64>) -> Result<Value, PluginError> {
         let feed = feed.unwrap_or(self.cfg.jog_feed_mm_min);
-        if !distance.is_finite() || !(feed.is_finite() && feed > 0.0) {
+        if !(distance.is_finite() && feed.is_finite() && feed > 0.0) {
             return Err(PluginError::invalid(format!(
                 "jog needs a finite distance and a feed > 0, got {distance} mm at {feed} mm/min"
             )));
@@ -534,21 +540,45 @@ impl Inner {
         self.button(Code::Stop, true)
     }
 
+    /// All six offsets. Mach3 shows only the active fixture's (DROs 830-835), so when idle
+    /// each fixture is selected in turn by MDI and the active one selected again, all in one
+    /// batch (nothing runs in between); while busy the others come from what was last seen.
     fn offsets(&self) -> Result<OffsetTable, PluginError> {
         let c = &self.cfg.codes;
+        let fixture = |calls: &mut Vec<Call>| {
+            calls.extend((0..4).map(|i| Call::GetOemDro {
+                code: c.axis(Code::FixtureX, i),
+            }))
+        };
         let mut calls = vec![Call::GetOemDro {
             code: c.get(Code::FixtureNumber),
         }];
-        calls.extend((0..4).map(|i| Call::GetOemDro {
-            code: c.axis(Code::FixtureX, i),
-        }));
+        fixture(&mut calls);
         let v = self.exec(calls, false)?;
         let active = match num(&v[0]).round() as i64 {
             n @ 1..=6 => WorkOffset::ALL[(n - 1) as usize],
             _ => WorkOffset::G54,
         };
-        let mut sh = self.lock();
-        sh.offsets[active.index()] = std::array::from_fn(|i| num(&v[1 + i]));
+        let values: [f64; 4] = std::array::from_fn(|i| num(&v[1 + i]));
+        self.lock().offsets[active.index()] = values;
+        if self.lock().status.state == MachineState::Idle {
+            let mut calls = Vec::new();
+            for o in WorkOffset::ALL {
+                calls.push(Call::Code {
+                    line: o.name().to_string(),
+                });
+                fixture(&mut calls);
+            }
+            calls.push(Call::Code {
+                line: active.name().to_string(),
+            });
+            let v = self.exec(calls, false)?;
+            let mut sh = self.lock();
+            for (k, o) in WorkOffset::ALL.into_iter().enumerate() {
+                sh.offsets[o.index()] = std::array::from_fn(|i| num(&v[k * 5 + 1 + i]));
+            }
+        }
+        let sh = self.lock();
         Ok(OffsetTable {
             active,
             offsets: WorkOffset::ALL
@@ -563,12 +593,15 @@ impl Inner {
         if v.iter().any(|x| !x.is_finite()) {
             return Err(PluginError::invalid("offset values must be finite numbers"));
         }
-        self.require(
-            "change offsets",
-            &[MachineState::Idle, MachineState::Alarm],
+        self.require("change offsets", &[MachineState::Idle, MachineState::Alarm])?;
+        let number = self.exec(
+            vec![Call::GetOemDro {
+                code: self.cfg.codes.get(Code::FixtureNumber),
+            }],
+            false,
         )?;
-        let active = self.offsets()?.active;
-        let calls = if offset == active {
+        let active = num(&number[0]).round() as usize == offset.index() + 1;
+        let calls = if active {
             (0..4)
                 .map(|i| Call::SetOemDro {
                     code: self.cfg.codes.axis(Code::FixtureX, i),
@@ -589,12 +622,11 @@ impl Inner {
 
     fn load_program(&self, run: i64, path: &str, start_line: u32) -> Result<Value, PluginError> {
         if start_line == 0 {
-            return Err(PluginError::invalid("start_line is 1-based: 0 is not a line"));
+            return Err(PluginError::invalid(
+                "start_line is 1-based: 0 is not a line",
+            ));
         }
-        self.require(
-            "load a program",
-            &[MachineState::Idle, MachineState::Alarm],
-        )?;
+        self.require("load a program", &[MachineState::Idle, MachineState::Alarm])?;
         let text = std::fs::read_to_string(path).map_err(|e| {
             PluginError::new("program_unreadable", format!("cannot read {path}: {e}"))
         })?;
@@ -626,7 +658,10 @@ impl Inner {
             stored = v.into_iter().next().unwrap_or(Value::Null);
         }
         let stored = stored.as_str().map(str::to_owned).ok_or_else(|| {
-            PluginError::new("mach3_error", "the agent did not say where it stored the program")
+            PluginError::new(
+                "mach3_error",
+                "the agent did not say where it stored the program",
+            )
         })?;
         let line_dro = f64::from(start_line - 1 + self.cfg.line_dro_base);
         self.exec(
@@ -664,7 +699,10 @@ impl Inner {
             return Ok(json!({}));
         }
         let loaded = self.lock().loaded.take().ok_or_else(|| {
-            PluginError::new("no_program", "no program is loaded: send load_program first")
+            PluginError::new(
+                "no_program",
+                "no program is loaded: send load_program first",
+            )
         })?;
         if loaded.start_line > loaded.lines {
             self.emit(vec![Event::RunEnded {

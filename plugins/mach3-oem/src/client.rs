@@ -65,7 +65,9 @@ impl AgentClient {
                     protocol::frame_excerpt(&buf)
                 ))
             }),
-            Ok(false) => Err(self.unreachable(format!("connection closed while waiting for {what}"))),
+            Ok(false) => {
+                Err(self.unreachable(format!("connection closed while waiting for {what}")))
+            }
             Err(e) => Err(self.unreachable(format!("while waiting for {what}: {e}"))),
         }
     }
@@ -90,7 +92,9 @@ impl AgentClient {
             }
         }
         let stream = stream.ok_or_else(|| {
-            self.unreachable(last.map_or("the address resolves to nothing".into(), |e| e.to_string()))
+            self.unreachable(
+                last.map_or("the address resolves to nothing".into(), |e| e.to_string()),
+            )
         })?;
         let setup = stream
             .set_read_timeout(Some(self.timeout))

@@ -39,7 +39,9 @@ fn number(key: &str, v: &Value, min: f64, max: f64) -> Result<f64, PluginError> 
 fn string(key: &str, v: &Value) -> Result<String, PluginError> {
     match v.as_str() {
         Some(s) if !s.trim().is_empty() => Ok(s.trim().to_string()),
-        _ => Err(invalid(format!("`{key}` must be a non-empty string, got {v}"))),
+        _ => Err(invalid(format!(
+            "`{key}` must be a non-empty string, got {v}"
+        ))),
     }
 }
 
@@ -69,9 +71,10 @@ impl Config {
                     let path = string(key, v)?;
                     let text = std::fs::read_to_string(&path)
                         .map_err(|e| invalid(format!("`secret_file`: cannot read {path}: {e}")))?;
-                    secret = Some(string(key, &Value::String(text)).map_err(|_| {
-                        invalid(format!("`secret_file`: {path} is empty"))
-                    })?);
+                    secret = Some(
+                        string(key, &Value::String(text))
+                            .map_err(|_| invalid(format!("`secret_file`: {path} is empty")))?,
+                    );
                 }
                 "poll_hz" => {
                     cfg.poll_interval = Duration::from_secs_f64(1.0 / number(key, v, 0.5, 50.0)?)
@@ -122,10 +125,22 @@ mod tests {
             (json!({"secret": "x"}), "agent"),
             (json!({"agent": "h:1"}), "secret"),
             (json!({"agent": "h", "secret": "x"}), "agent"),
-            (json!({"agent": "h:1", "secret": "x", "poll_hz": 0}), "poll_hz"),
-            (json!({"agent": "h:1", "secret": "x", "codes": {"nope": 1}}), "codes.nope"),
-            (json!({"agent": "h:1", "secret": "x", "secret_file": "/nonexistent/x"}), "secret_file"),
-            (json!({"agent": "h:1", "secret": "x", "colour": 1}), "colour"),
+            (
+                json!({"agent": "h:1", "secret": "x", "poll_hz": 0}),
+                "poll_hz",
+            ),
+            (
+                json!({"agent": "h:1", "secret": "x", "codes": {"nope": 1}}),
+                "codes.nope",
+            ),
+            (
+                json!({"agent": "h:1", "secret": "x", "secret_file": "/nonexistent/x"}),
+                "secret_file",
+            ),
+            (
+                json!({"agent": "h:1", "secret": "x", "colour": 1}),
+                "colour",
+            ),
         ] {
             let e = Config::from_json(&cfg).unwrap_err();
             assert_eq!(e.code, "invalid_config");

@@ -76,14 +76,32 @@ pub trait Mach3 {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "op", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Call {
-    DoOemButton { code: i16 },
-    GetOemDro { code: i16 },
-    SetOemDro { code: i16, value: f64 },
-    GetOemLed { code: i16 },
-    Code { line: String },
-    LoadFile { path: String },
-    JogOn { axis: i16, direction: i16 },
-    JogOff { axis: i16 },
+    DoOemButton {
+        code: i16,
+    },
+    GetOemDro {
+        code: i16,
+    },
+    SetOemDro {
+        code: i16,
+        value: f64,
+    },
+    GetOemLed {
+        code: i16,
+    },
+    Code {
+        line: String,
+    },
+    LoadFile {
+        path: String,
+    },
+    JogOn {
+        axis: i16,
+        direction: i16,
+    },
+    JogOff {
+        axis: i16,
+    },
     IsMoving,
     IsEstop,
     /// Not a Mach3 method: the agent stores a program under its program directory, in chunks
@@ -117,7 +135,9 @@ impl Call {
             Call::GetOemLed { code } => json!(m.get_oem_led(*code)?),
             Call::Code { line } => {
                 if line.contains(['\n', '\r']) {
-                    return Err(Mach3Error::invalid("Code(): one MDI line, without newlines"));
+                    return Err(Mach3Error::invalid(
+                        "Code(): one MDI line, without newlines",
+                    ));
                 }
                 m.code(line)?;
                 Value::Null

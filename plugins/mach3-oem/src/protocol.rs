@@ -103,9 +103,7 @@ pub fn new_nonce() -> String {
 /// Reads one `\n`-terminated frame into `buf` (cleared first). `Ok(false)` at end of stream.
 pub fn read_frame(r: &mut impl BufRead, buf: &mut Vec<u8>) -> io::Result<bool> {
     buf.clear();
-    let n = r
-        .take(MAX_LINE_BYTES as u64 + 1)
-        .read_until(b'\n', buf)?;
+    let n = r.take(MAX_LINE_BYTES as u64 + 1).read_until(b'\n', buf)?;
     if n == 0 {
         return Ok(false);
     }
@@ -133,7 +131,11 @@ pub fn protocol_error(message: impl Into<String>) -> Mach3Error {
 /// A short, printable view of a bad frame for logs and errors.
 pub fn frame_excerpt(frame: &[u8]) -> String {
     let text = String::from_utf8_lossy(&frame[..frame.len().min(120)]);
-    format!("{:?}{}", text.trim_end(), if frame.len() > 120 { "..." } else { "" })
+    format!(
+        "{:?}{}",
+        text.trim_end(),
+        if frame.len() > 120 { "..." } else { "" }
+    )
 }
 
 #[cfg(test)]
@@ -164,7 +166,10 @@ mod tests {
             json!({"id": 3, "results": [{"ok": 1.5},
                 {"err": {"kind": "not_running", "message": "no Mach3"}}]})
         );
-        assert!(serde_json::from_value::<Request>(json!({"id": 1, "calls": [{"op": "launch"}]})).is_err());
+        assert!(
+            serde_json::from_value::<Request>(json!({"id": 1, "calls": [{"op": "launch"}]}))
+                .is_err()
+        );
         assert!(serde_json::from_value::<Request>(json!({"id": 1, "calls": [], "x": 1})).is_err());
     }
 

@@ -84,7 +84,10 @@ impl Default for SimConfig {
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Step {
     /// To a point in program (work) coordinates; rapid when `feed` is `None`.
-    Move { to: [f64; 3], feed: Option<f64> },
+    Move {
+        to: [f64; 3],
+        feed: Option<f64>,
+    },
     Dwell(f64),
     Pause,
     UseFixture(usize),
@@ -133,6 +136,8 @@ struct State {
     active: Option<Active>,
     jogs: [f64; AXES],
     other_dros: HashMap<i16, f64>,
+    /// Mach3 "closed": every call fails as `MK_E_UNAVAILABLE` would.
+    closed: bool,
 }
 
 struct Core {
@@ -329,11 +334,7 @@ impl State {
         }
         match code {
             code::CYCLE_START => self.cycle_start(),
-            code::FEED_HOLD => {
-                if self.moving() {
-                    self.paused = true;
-                }
-            }
+            code::FEED_HOLD if self.moving() => self.paused = true,
             code::RESUME => self.paused = false,
             code::STOP => self.halt(),
             code::REWIND if !self.running => self.line = 0,
@@ -379,11 +380,11 @@ impl State {
         for (letter, value) in words {
             match letter {
                 'G' => match value {
-                    v if v == 0.0 => self.rapid_mode = true,
-                    v if v == 1.0 => self.rapid_mode = false,
-                    v if v == 90.0 => self.incremental = false,
-                    v if v == 91.0 => self.incremental = true,
-                    v if v == 10.0 => g10 = true,
+                    0.0 => self.rapid_mode = true,
+                    1.0 => self.rapid_mode = false,
+                    90.0 => self.incremental = false,
+                    91.0 => self.incremental = true,
+                    10.0 => g10 = true,
                     v if (54.0..=59.0).contains(&v) && v.fract() == 0.0 => {
                         self.fixture = (v - 54.0) as usize
                     }
@@ -444,10 +445,15 @@ impl State {
 
     fn load(&mut self, path: &str) -> Mach3Result<()> {
         if self.running {
-            return Err(Mach3Error::invalid("cannot load a file while a program runs"));
+            return Err(Mach3Error::invalid(
+                "cannot load a file while a program runs",
+            ));
         }
         let text = std::fs::read_to_string(path).map_err(|e| {
-            Mach3Error::new(crate::mach3::ErrorKind::Io, format!("cannot read {path}: {e}"))
+            Mach3Error::new(
+                crate::mach3::ErrorKind::Io,
+                format!("cannot read {path}: {e}"),
+            )
         })?;
         let mut config = fresa_gcode::Config {
             initial_position: [self.work(0), self.work(1), self.work(2)],
@@ -632,6 +638,7 @@ impl Mach3Sim {
                 active: None,
                 jogs: [0.0; AXES],
                 other_dros: HashMap::new(),
+                closed: false,
             }),
             stop: Condvar::new(),
         });
@@ -645,6 +652,31 @@ impl Mach3Sim {
 
     fn lock(&self) -> MutexGuard<'_, State> {
         self.core.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The state of a running Mach3, or the error a closed one gives.
+    fn open(&self) -> Mach3Result<MutexGuard<'_, State>> {
+        let st = self.lock();
+        if st.closed {
+            return Err(Mach3Error::new(
+                crate::mach3::ErrorKind::NotRunning,
+                "Mach3 is not running (simulated MK_E_UNAVAILABLE)",
+            ));
+        }
+        Ok(st)
+    }
+
+    /// Simulates closing Mach3 (`false`) and starting it again (`true`): a restarted Mach3
+    /// comes back in reset, with nothing loaded and nothing moving.
+    pub fn set_running(&self, running: bool) {
+        let mut st = self.lock();
+        if running && st.closed {
+            st.halt();
+            st.estop = true;
+            st.program = None;
+            st.line = 0;
+        }
+        st.closed = !running;
     }
 }
 
@@ -665,27 +697,27 @@ fn motion_thread(core: Weak<Core>) {
 
 impl Mach3 for Mach3Sim {
     fn do_oem_button(&mut self, code: i16) -> Mach3Result<()> {
-        self.lock().button(code);
+        self.open()?.button(code);
         Ok(())
     }
     fn get_oem_dro(&mut self, code: i16) -> Mach3Result<f64> {
-        Ok(self.lock().dro(code))
+        Ok(self.open()?.dro(code))
     }
     fn set_oem_dro(&mut self, code: i16, value: f64) -> Mach3Result<()> {
-        self.lock().set_dro(code, value);
+        self.open()?.set_dro(code, value);
         Ok(())
     }
     fn get_oem_led(&mut self, code: i16) -> Mach3Result<bool> {
-        Ok(self.lock().led(code))
+        Ok(self.open()?.led(code))
     }
     fn code(&mut self, line: &str) -> Mach3Result<()> {
-        self.lock().mdi(line)
+        self.open()?.mdi(line)
     }
     fn load_file(&mut self, path: &str) -> Mach3Result<()> {
-        self.lock().load(path)
+        self.open()?.load(path)
     }
     fn jog_on(&mut self, axis: i16, direction: i16) -> Mach3Result<()> {
-        let mut st = self.lock();
+        let mut st = self.open()?;
         if !st.estop && !st.running {
             st.jogs[axis.clamp(0, AXES as i16 - 1) as usize] =
                 if direction == 0 { 1.0 } else { -1.0 };
@@ -693,14 +725,14 @@ impl Mach3 for Mach3Sim {
         Ok(())
     }
     fn jog_off(&mut self, axis: i16) -> Mach3Result<()> {
-        self.lock().jogs[axis.clamp(0, AXES as i16 - 1) as usize] = 0.0;
+        self.open()?.jogs[axis.clamp(0, AXES as i16 - 1) as usize] = 0.0;
         Ok(())
     }
     fn is_moving(&mut self) -> Mach3Result<bool> {
-        Ok(self.lock().moving())
+        Ok(self.open()?.moving())
     }
     fn is_estop(&mut self) -> Mach3Result<bool> {
-        Ok(self.lock().estop)
+        Ok(self.open()?.estop)
     }
 }
 

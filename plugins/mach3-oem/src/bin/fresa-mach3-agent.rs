@@ -33,7 +33,8 @@ struct Args {
     #[arg(long, default_value_t = 3000)]
     watchdog_ms: u64,
     /// Serve a simulated Mach3 instead of the real one. Reads operator actions from stdin:
-    /// `button <code>` presses an OEM button on the simulated screen.
+    /// `button <code>` presses an OEM button on the simulated screen, `close` / `open` quit
+    /// and restart the simulated Mach3.
     #[arg(long)]
     simulate: bool,
     /// Simulator only: multiplies every motion time (0.01 = 100x faster, 0 = instant).
@@ -47,7 +48,9 @@ fn secret(args: &Args) -> Result<String, String> {
             .map_err(|e| format!("cannot read --secret-file {}: {e}", path.display()))?,
         (None, Some(s)) => s.clone(),
         (None, None) => {
-            return Err("a shared secret is required: --secret-file PATH (or FRESA_MACH3_SECRET)".into())
+            return Err(
+                "a shared secret is required: --secret-file PATH (or FRESA_MACH3_SECRET)".into(),
+            )
         }
     };
     let s = s.trim().to_string();
@@ -69,8 +72,12 @@ fn operator(mut sim: Mach3Sim) {
                 }
                 Err(_) => eprintln!("simulator: `button` needs a code, got {code:?}"),
             },
+            ["close"] => sim.set_running(false),
+            ["open"] => sim.set_running(true),
             [] => {}
-            _ => eprintln!("simulator: unknown operator action {line:?} (known: button <code>)"),
+            _ => eprintln!(
+                "simulator: unknown operator action {line:?} (known: button <code>, close, open)"
+            ),
         }
     }
 }
@@ -78,7 +85,10 @@ fn operator(mut sim: Mach3Sim) {
 fn factory(args: &Args) -> Result<Mach3Factory, String> {
     if args.simulate {
         if !(args.time_scale.is_finite() && args.time_scale >= 0.0) {
-            return Err(format!("--time-scale must be 0 or more, got {}", args.time_scale));
+            return Err(format!(
+                "--time-scale must be 0 or more, got {}",
+                args.time_scale
+            ));
         }
         let sim = Mach3Sim::new(SimConfig {
             time_scale: args.time_scale,
@@ -93,14 +103,16 @@ fn factory(args: &Args) -> Result<Mach3Factory, String> {
     }
     #[cfg(windows)]
     {
-        let timeout = Duration::from_millis(args.call_timeout_ms);
-        Ok(Box::new(move || {
-            Box::new(fresa_mach3_oem::com::ComMach3::new(timeout)) as Box<dyn Mach3>
+        Ok(Box::new(|| {
+            Box::new(fresa_mach3_oem::com::ComMach3::new()) as Box<dyn Mach3>
         }))
     }
     #[cfg(not(windows))]
     {
-        Err("Mach3 is reached through COM, which exists only on Windows; use --simulate here".into())
+        Err(
+            "Mach3 is reached through COM, which exists only on Windows; use --simulate here"
+                .into(),
+        )
     }
 }
 
