@@ -828,6 +828,12 @@ impl Inner {
                     // Best effort: the server is going away and motion must not outlive it.
                     let _ = self.stop();
                 }
+                {
+                    let mut sh = self.lock();
+                    sh.shutdown = true;
+                    sh.status = offline("shut down".into());
+                }
+                self.wake.notify_all();
                 self.link
                     .lock()
                     .unwrap_or_else(|e| e.into_inner())
