@@ -246,6 +246,16 @@ fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode() {
     assert_eq!(off["offsets"]["G54"]["x"], 10.0, "{off}");
     assert_eq!(off["offsets"]["G55"]["z"], -3.0, "{off}");
     assert_eq!(dro(&mut mach, 46), 2.0, "G55 still selected in Mach3");
+
+    // A program without M2/M30, over before the first poll sees it run, with trailing
+    // comment and blank lines: Mach3 stops on its last active line, which is completion.
+    let job = s.upload(m, "short", "G21 G90\nG1 X1 F600\nG1 X2\n(done)\n\n")["id"]
+        .as_i64()
+        .unwrap();
+    s.job_action(job, "start").expect(200);
+    let j = s.wait_job_state(job, "completed", T);
+    assert_eq!(j["line"], 5, "{j}");
+    assert_eq!(dro(&mut mach, 800), 2.0);
 }
 
 #[test]
@@ -282,6 +292,16 @@ fn a_program_runs_to_completion_with_progress_feed_hold_and_reset_toggles_right(
     assert_eq!(dro(&mut mach, 816), 0.0, "M30 rewound Mach3");
     let st = s.wait_machine_state(m, "idle", T);
     assert!(st["job"].is_null(), "{st}");
+
+    // Cancel mid-run: Mach3 is stopped (Stop button) and the run ends cancelled, not failed.
+    s.job_action(job, "start").expect(200);
+    s.wait_job(job, T, "progress of the second run", |j| {
+        j["state"] == "running" && j["line"].as_i64().unwrap() > 5
+    });
+    s.job_action(job, "cancel").expect(200);
+    s.wait_job_state(job, "cancelled", T);
+    s.wait_machine_state(m, "idle", T);
+    assert!(!led(&mut mach, 804), "Mach3 stopped");
 
     // Reset when not in reset must not press Mach3's Reset toggle (that would latch it).
     for _ in 0..2 {

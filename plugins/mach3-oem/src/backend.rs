@@ -41,6 +41,9 @@ struct Loaded {
     run: i64,
     lines: u32,
     start_line: u32,
+    /// The last line that does anything (trailing comments and blank lines do not): a run
+    /// that ends there without M2/M30 completed.
+    last_active_line: u32,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -354,7 +357,7 @@ impl Inner {
                 RunOutcome::Failed,
                 Some(format!("Mach3 went into reset (e-stop) at line {current}")),
             )
-        } else if dro_line == 0 || current >= t.loaded.lines {
+        } else if dro_line == 0 || current >= t.loaded.last_active_line.min(t.loaded.lines) {
             // M2/M30 rewinds DRO 816 to the first line; a program without them ends on its last.
             if t.acked < t.loaded.lines {
                 events.push(Event::LineAcknowledged {
@@ -632,8 +635,10 @@ impl Inner {
         })?;
         // Validate the whole program before anything reaches Mach3.
         let interp = fresa_gcode::Interpreter::new(text.as_bytes(), Default::default());
+        let mut last_active_line = 1;
         for m in fresa_gcode::linearise(interp, 0.01) {
-            m.map_err(|e| PluginError::new("invalid_program", e.to_string()))?;
+            let m = m.map_err(|e| PluginError::new("invalid_program", e.to_string()))?;
+            last_active_line = last_active_line.max(m.line());
         }
         let lines = u32::try_from(text.lines().count()).unwrap_or(u32::MAX);
         if start_line > lines.saturating_add(1) {
@@ -679,6 +684,7 @@ impl Inner {
             run,
             lines,
             start_line,
+            last_active_line,
         }) {
             if old.run != run {
                 self.emit(vec![Event::RunEnded {
