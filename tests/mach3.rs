@@ -390,3 +390,38 @@ fn mach3_closing_shows_offline_with_that_reason_and_recovers() {
     s.wait_machine_state(m, "alarm", T);
     wait_for(T, "status answers", || Some(s.status(m)));
 }
+
+#[test]
+fn an_agent_that_never_answers_or_is_absent_gives_offline_not_a_hang() {
+    // Accepts connections (the kernel does) but never says hello.
+    let silent = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    // Nothing listens here once the listener is dropped.
+    let absent = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap();
+    let s = Server::start();
+    for (name, addr, why) in [
+        ("silent", silent.local_addr().unwrap().to_string(), "hello"),
+        ("absent", absent.to_string(), "agent"),
+    ] {
+        let m = s.create_machine(&json!({
+            "name": name, "backend": "mach3-oem",
+            "config": {"agent": addr, "secret": SECRET, "timeout_ms": 300},
+        }));
+        let st = s.wait_machine_state(m, "offline", T);
+        let reason = st["reason"].as_str().unwrap();
+        assert!(reason.contains(&addr) && reason.contains(why), "{st}");
+        // Commands fail with the reason instead of hanging.
+        let r = s.post(
+            &format!("/api/v1/machines/{m}/commands"),
+            &json!({"command": "cycle_start"}),
+        );
+        assert!(r.status >= 400, "{r:?}");
+        assert!(
+            r.body["message"].as_str().unwrap().contains("offline"),
+            "{r:?}"
+        );
+    }
+    drop(silent);
+}
