@@ -1,0 +1,946 @@
+//! The `mach3-oem` machine backend: Fresa's backend contract mapped onto Mach3's OEM buttons,
+//! DROs and LEDs, through the agent. A poller thread reads the whole status in one batch at
+//! `poll_hz`, turns DRO 816 into line acknowledgements and LED 804 into the end of a run.
+//! Requests never wait on anything but the agent link, which has a timeout.
+
+use crate::client::{AgentClient, LinkError};
+use crate::codes::Code;
+use crate::config::Config;
+use crate::mach3::{Call, ErrorKind};
+use crate::protocol::{CallResult, PROGRAM_CHUNK_BYTES};
+use fresa_plugin_api::contract::{
+    Axis, AxisValues, Command, Event, MachineState, MachineStatus, OffsetTable, ProgramLoaded,
+    Request, RunAction, RunOutcome, WorkOffset,
+};
+use fresa_plugin_api::PluginError;
+use serde_json::{json, Value};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+pub type EventSink = Arc<dyn Fn(&Event) + Send + Sync>;
+
+/// How long a started run may show no "running" LED before it counts as ended (Mach3 lights it
+/// a moment after cycle start; a very short program may also finish between two polls).
+const START_GRACE: Duration = Duration::from_secs(2);
+const BACKOFF_MIN: Duration = Duration::from_millis(200);
+const BACKOFF_MAX: Duration = Duration::from_secs(5);
+/// How long reset waits for LED 800 to go out.
+const RESET_CONFIRM: Duration = Duration::from_secs(2);
+
+struct Link {
+    client: AgentClient,
+    /// After a failed connect: no new attempt before this.
+    retry_at: Option<Instant>,
+    backoff: Duration,
+    last_error: String,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Loaded {
+    run: i64,
+    lines: u32,
+    start_line: u32,
+    /// The last line that does anything (trailing comments and blank lines do not): a run
+    /// that ends there without M2/M30 completed.
+    last_active_line: u32,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct RunTrack {
+    loaded: Loaded,
+    acked: u32,
+    saw_running: bool,
+    started: Instant,
+    stop_requested: bool,
+}
+
+struct Shared {
+    status: MachineStatus,
+    polled: bool,
+    loaded: Option<Loaded>,
+    run: Option<RunTrack>,
+    /// Machine origins of G54..G59 as last read or set (Mach3 shows only the active one).
+    offsets: [[f64; 4]; 6],
+    shutdown: bool,
+}
+
+struct Inner {
+    cfg: Config,
+    sink: EventSink,
+    link: Mutex<Link>,
+    shared: Mutex<Shared>,
+    wake: Condvar,
+    /// Held for a whole poll (read + apply), so an older reading never overwrites a newer one.
+    polling: Mutex<()>,
+}
+
+pub struct Mach3Backend {
+    inner: Arc<Inner>,
+    poller: Mutex<Option<JoinHandle<()>>>,
+}
+
+fn offline(reason: String) -> MachineStatus {
+    MachineStatus {
+        state: MachineState::Offline,
+        reason: Some(reason),
+        ..Default::default()
+    }
+}
+
+fn mach3_error(e: &crate::mach3::Mach3Error) -> PluginError {
+    match e.kind {
+        ErrorKind::NotRunning => PluginError::new(
+            "offline",
+            format!("Mach3 is not running on the agent's PC: {}", e.message),
+        ),
+        ErrorKind::Invalid => PluginError::invalid(format!("Mach3 refused: {}", e.message)),
+        _ => PluginError::new("mach3_error", e.message.clone()),
+    }
+}
+
+fn link_error(e: &LinkError) -> PluginError {
+    PluginError::new("offline", e.to_string())
+}
+
+fn num(v: &Value) -> f64 {
+    v.as_f64().unwrap_or(0.0)
+}
+
+/// The status batch: what is read, in this order.
+struct Poll {
+    work: [f64; 4],
+    fixture: [f64; 4],
+    fixture_number: f64,
+    line: f64,
+    feed: f64,
+    fro: f64,
+    estop: bool,
+    running: bool,
+    paused: bool,
+    moving: bool,
+}
+
+impl Inner {
+    fn lock(&self) -> MutexGuard<'_, Shared> {
+        self.shared.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn emit(&self, events: Vec<Event>) {
+        for e in &events {
+            (self.sink)(e);
+        }
+    }
+
+    /// One agent request; connects (respecting the backoff) when not connected.
+    fn batch(&self, calls: Vec<Call>, urgent: bool) -> Result<Vec<CallResult>, LinkError> {
+        let mut link = self.link.lock().unwrap_or_else(|e| e.into_inner());
+        if !link.client.is_connected() {
+            if let Some(at) = link.retry_at {
+                if Instant::now() < at {
+                    return Err(LinkError::Unreachable {
+                        addr: self.cfg.agent.clone(),
+                        message: format!("{} (retrying)", link.last_error),
+                    });
+                }
+            }
+        }
+        match link.client.batch(calls, urgent) {
+            Ok(r) => {
+                link.retry_at = None;
+                link.backoff = BACKOFF_MIN;
+                Ok(r)
+            }
+            Err(e) => {
+                link.last_error = match &e {
+                    LinkError::Unreachable { message, .. } => message.clone(),
+                    LinkError::Refused { error, .. } => error.to_string(),
+                };
+                link.retry_at = Some(Instant::now() + link.backoff);
+                link.backoff = (link.backoff * 2).min(BACKOFF_MAX);
+                Err(e)
+            }
+        }
+    }
+
+    /// Runs `calls` and returns their values, or the first failure.
+    fn exec(&self, calls: Vec<Call>, urgent: bool) -> Result<Vec<Value>, PluginError> {
+        let results = self.batch(calls, urgent).map_err(|e| link_error(&e))?;
+        results
+            .into_iter()
+            .map(|r| match r {
+                CallResult::Ok(v) => Ok(v),
+                CallResult::Err(e) => Err(mach3_error(&e)),
+            })
+            .collect()
+    }
+
+    fn button(&self, code: Code, urgent: bool) -> Result<(), PluginError> {
+        let code = self.cfg.codes.get(code);
+        self.exec(vec![Call::DoOemButton { code }], urgent)
+            .map(|_| ())
+    }
+
+    fn status_calls(&self) -> Vec<Call> {
+        let c = &self.cfg.codes;
+        let mut calls = Vec::with_capacity(18);
+        for i in 0..4 {
+            calls.push(Call::GetOemDro {
+                code: c.axis(Code::PosX, i),
+            });
+        }
+        for i in 0..4 {
+            calls.push(Call::GetOemDro {
+                code: c.axis(Code::FixtureX, i),
+            });
+        }
+        for code in [
+            Code::FixtureNumber,
+            Code::Line,
+            Code::Feed,
+            Code::FeedOverride,
+        ] {
+            calls.push(Call::GetOemDro { code: c.get(code) });
+        }
+        for code in [
+            Code::EstopLed,
+            Code::RunningLed,
+            Code::PausedLed,
+            Code::MovingLed,
+        ] {
+            calls.push(Call::GetOemLed { code: c.get(code) });
+        }
+        calls
+    }
+
+    fn read_poll(&self) -> Result<Poll, String> {
+        let results = self
+            .batch(self.status_calls(), false)
+            .map_err(|e| format!("{e}; retrying"))?;
+        let mut values = Vec::with_capacity(results.len());
+        for r in results {
+            match r {
+                CallResult::Ok(v) => values.push(v),
+                CallResult::Err(e) if e.kind == ErrorKind::NotRunning => {
+                    return Err(format!(
+                        "Mach3 is not running on the agent's PC ({}); retrying",
+                        e.message
+                    ))
+                }
+                CallResult::Err(e) => return Err(format!("Mach3 did not answer: {e}; retrying")),
+            }
+        }
+        let b = |i: usize| values[i].as_bool().unwrap_or(false);
+        Ok(Poll {
+            work: std::array::from_fn(|i| num(&values[i])),
+            fixture: std::array::from_fn(|i| num(&values[4 + i])),
+            fixture_number: num(&values[8]),
+            line: num(&values[9]),
+            feed: num(&values[10]),
+            fro: num(&values[11]),
+            estop: b(12),
+            running: b(13),
+            paused: b(14),
+            moving: b(15),
+        })
+    }
+
+    /// Reads the status from Mach3 and publishes what changed: status, state, line
+    /// acknowledgements and the end of a run.
+    fn poll(&self) {
+        let _one_at_a_time = self.polling.lock().unwrap_or_else(|e| e.into_inner());
+        let polled = self.read_poll();
+        let mut sh = self.lock();
+        let mut events = Vec::new();
+        let before = sh.status.clone();
+        let status = match polled {
+            Err(reason) => {
+                if let Some(t) = sh.run.take() {
+                    events.push(Event::RunEnded {
+                        run: t.loaded.run,
+                        outcome: RunOutcome::Failed,
+                        message: Some(format!(
+                            "lost Mach3 after line {} ({reason}); Mach3 may still be running the \
+                             program: check the machine, then resume the job",
+                            t.acked
+                        )),
+                    });
+                }
+                offline(reason)
+            }
+            Ok(p) => self.track(&mut sh, &p, &mut events),
+        };
+        sh.polled = true;
+        if status.state != before.state {
+            events.insert(
+                0,
+                Event::StateChanged {
+                    from: before.state,
+                    to: status.state,
+                },
+            );
+        }
+        if status != before {
+            sh.status = status.clone();
+            events.insert(0, Event::Status(status));
+        }
+        // Emitted under the lock so events leave in the order the states were seen.
+        self.emit(events);
+        drop(sh);
+    }
+
+    fn track(&self, sh: &mut Shared, p: &Poll, events: &mut Vec<Event>) -> MachineStatus {
+        let active = match p.fixture_number.round() as i64 {
+            n @ 1..=6 => WorkOffset::ALL[(n - 1) as usize],
+            _ => WorkOffset::G54,
+        };
+        sh.offsets[active.index()] = p.fixture;
+        let machine: [f64; 4] = std::array::from_fn(|i| p.work[i] + p.fixture[i]);
+        let base = f64::from(self.cfg.line_dro_base);
+        let dro_line = (p.line - base).max(0.0).round() as u32;
+        // DRO 816 shows the line being executed: every line before it is done.
+        let current = dro_line.saturating_add(1);
+        let state = if p.estop {
+            MachineState::Alarm
+        } else if p.paused {
+            MachineState::Paused
+        } else if p.running {
+            MachineState::Running
+        } else if p.moving {
+            MachineState::Jogging
+        } else {
+            MachineState::Idle
+        };
+        let mut status = MachineStatus {
+            state,
+            machine_position: AxisValues::from_array(machine),
+            work_position: AxisValues::from_array(p.work),
+            feed: p.feed,
+            feed_override: p.fro,
+            active_offset: active,
+            run: None,
+            line: None,
+            alarm: p
+                .estop
+                .then(|| "Mach3 is in reset (e-stop latched): send reset".to_string()),
+            reason: None,
+        };
+        let Some(mut t) = sh.run else {
+            return status;
+        };
+        let run = t.loaded.run;
+        if p.running {
+            t.saw_running = true;
+        }
+        if p.running || p.paused {
+            let done = current.saturating_sub(1).min(t.loaded.lines);
+            if done > t.acked && done >= t.loaded.start_line {
+                t.acked = done;
+                events.push(Event::LineAcknowledged { run, line: done });
+            }
+            status.run = Some(run);
+            status.line = Some(current);
+            sh.run = Some(t);
+            return status;
+        }
+        if !t.saw_running && t.started.elapsed() < START_GRACE && !p.estop {
+            status.run = Some(run);
+            status.line = Some(t.loaded.start_line);
+            sh.run = Some(t);
+            return status;
+        }
+        // The run is over; say how.
+        let (outcome, message) = if t.stop_requested {
+            (RunOutcome::Cancelled, None)
+        } else if p.estop {
+            (
+                RunOutcome::Failed,
+                Some(format!("Mach3 went into reset (e-stop) at line {current}")),
+            )
+        } else if dro_line == 0 || current >= t.loaded.last_active_line.min(t.loaded.lines) {
+            // M2/M30 rewinds DRO 816 to the first line; a program without them ends on its last.
+            if t.acked < t.loaded.lines {
+                events.push(Event::LineAcknowledged {
+                    run,
+                    line: t.loaded.lines,
+                });
+            }
+            (RunOutcome::Completed, None)
+        } else {
+            (
+                RunOutcome::Failed,
+                Some(format!(
+                    "Mach3 stopped at line {current} of {} (stopped on the Mach3 screen?)",
+                    t.loaded.lines
+                )),
+            )
+        };
+        events.push(Event::RunEnded {
+            run,
+            outcome,
+            message,
+        });
+        sh.run = None;
+        status
+    }
+
+    fn poller(self: Arc<Self>) {
+        loop {
+            self.poll();
+            let sh = self.lock();
+            if sh.shutdown {
+                return;
+            }
+            let (sh, _) = self
+                .wake
+                .wait_timeout(sh, self.cfg.poll_interval)
+                .unwrap_or_else(|e| e.into_inner());
+            if sh.shutdown {
+                return;
+            }
+        }
+    }
+
+    // ----- requests -----
+
+    fn status(&self) -> Result<Value, PluginError> {
+        if !self.lock().polled {
+            self.poll();
+        }
+        to_value(&self.lock().status)
+    }
+
+    fn require(&self, what: &str, allowed: &[MachineState]) -> Result<MachineStatus, PluginError> {
+        let st = self.lock().status.clone();
+        if allowed.contains(&st.state) {
+            return Ok(st);
+        }
+        Err(match st.state {
+            MachineState::Offline => PluginError::new(
+                "offline",
+                format!(
+                    "cannot {what}: {}",
+                    st.reason.as_deref().unwrap_or("Mach3 is offline")
+                ),
+            ),
+            MachineState::Alarm => PluginError::new(
+                "alarm",
+                format!("cannot {what}: Mach3 is in reset (e-stop); send reset first"),
+            ),
+            s => PluginError::new(
+                "busy",
+                format!("cannot {what} while Mach3 is {}", state_name(s)),
+            ),
+        })
+    }
+
+    /// An MDI jog in G91 that puts back the distance mode, motion mode and feed it found.
+    fn jog(&self, axis: Axis, distance: f64, feed: Option<f64>) -> Result<Value, PluginError> {
+        let feed = feed.unwrap_or(self.cfg.jog_feed_mm_min);
+        if !(distance.is_finite() && feed.is_finite() && feed > 0.0) {
+            return Err(PluginError::invalid(format!(
+                "jog needs a finite distance and a feed > 0, got {distance} mm at {feed} mm/min"
+            )));
+        }
+        self.require("jog", &[MachineState::Idle, MachineState::Jogging])?;
+        let c = &self.cfg.codes;
+        let modal = self.exec(
+            vec![
+                Call::GetOemLed {
+                    code: c.get(Code::IncrementalLed),
+                },
+                Call::GetOemDro {
+                    code: c.get(Code::MotionMode),
+                },
+                Call::GetOemDro {
+                    code: c.get(Code::Feed),
+                },
+                Call::GetOemLed {
+                    code: c.get(Code::RunningLed),
+                },
+                Call::IsEstop,
+            ],
+            false,
+        )?;
+        if modal[3].as_bool().unwrap_or(true) {
+            return Err(PluginError::new("busy", "cannot jog: a program is running"));
+        }
+        if modal[4].as_bool().unwrap_or(true) {
+            return Err(PluginError::new(
+                "alarm",
+                "cannot jog: Mach3 is in reset (e-stop); send reset first",
+            ));
+        }
+        let mut restore = String::from(if modal[0].as_bool().unwrap_or(false) {
+            "G91"
+        } else {
+            "G90"
+        });
+        match num(&modal[1]).round() as i64 {
+            0 => restore.push_str(" G0"),
+            1 => restore.push_str(" G1"),
+            // G2/G3 cannot be re-entered without an arc; the next program line sets its own.
+            _ => {}
+        }
+        let old_feed = num(&modal[2]);
+        if old_feed > 0.0 {
+            restore.push_str(&format!(" F{old_feed}"));
+        }
+        let results = self
+            .batch(
+                vec![
+                    Call::Code {
+                        line: format!("G91 G1 {}{distance} F{feed}", axis.letter()),
+                    },
+                    // Same batch: runs right after the move is queued, even if it failed.
+                    Call::Code { line: restore },
+                ],
+                false,
+            )
+            .map_err(|e| link_error(&e))?;
+        for r in results {
+            if let CallResult::Err(e) = r {
+                return Err(mach3_error(&e));
+            }
+        }
+        self.poll();
+        Ok(json!({}))
+    }
+
+    /// Reset is a toggle in Mach3: press it only when reset is latched, or it latches.
+    fn reset(&self) -> Result<Value, PluginError> {
+        let led = self.cfg.codes.get(Code::EstopLed);
+        let latched = |v: &[Value]| v.iter().any(|x| x.as_bool().unwrap_or(false));
+        let state = self.exec(vec![Call::GetOemLed { code: led }, Call::IsEstop], true)?;
+        if latched(&state) {
+            self.button(Code::Reset, true)?;
+            let deadline = Instant::now() + RESET_CONFIRM;
+            loop {
+                let state = self.exec(vec![Call::GetOemLed { code: led }, Call::IsEstop], true)?;
+                if !latched(&state) {
+                    break;
+                }
+                if Instant::now() >= deadline {
+                    return Err(PluginError::new(
+                        "reset_failed",
+                        "Mach3 is still in reset after pressing Reset: is an e-stop input active?",
+                    ));
+                }
+                std::thread::sleep(Duration::from_millis(50));
+            }
+        } else {
+            // Not latched: a reset here only means "stop"; pressing Reset would latch it.
+            self.stop()?;
+        }
+        self.poll();
+        Ok(json!({}))
+    }
+
+    fn stop(&self) -> Result<(), PluginError> {
+        if let Some(t) = self.lock().run.as_mut() {
+            t.stop_requested = true;
+        }
+        self.button(Code::Stop, true)
+    }
+
+    /// All six offsets. Mach3 shows only the active fixture's (DROs 830-835), so when idle
+    /// each fixture is selected in turn by MDI and the active one selected again, all in one
+    /// batch (nothing runs in between); while busy the others come from what was last seen.
+    fn offsets(&self) -> Result<OffsetTable, PluginError> {
+        let c = &self.cfg.codes;
+        let fixture = |calls: &mut Vec<Call>| {
+            calls.extend((0..4).map(|i| Call::GetOemDro {
+                code: c.axis(Code::FixtureX, i),
+            }))
+        };
+        let mut calls = vec![Call::GetOemDro {
+            code: c.get(Code::FixtureNumber),
+        }];
+        fixture(&mut calls);
+        let v = self.exec(calls, false)?;
+        let active = match num(&v[0]).round() as i64 {
+            n @ 1..=6 => WorkOffset::ALL[(n - 1) as usize],
+            _ => WorkOffset::G54,
+        };
+        let values: [f64; 4] = std::array::from_fn(|i| num(&v[1 + i]));
+        self.lock().offsets[active.index()] = values;
+        if self.lock().status.state == MachineState::Idle {
+            let mut calls = Vec::new();
+            for o in WorkOffset::ALL {
+                calls.push(Call::Code {
+                    line: o.name().to_string(),
+                });
+                fixture(&mut calls);
+            }
+            calls.push(Call::Code {
+                line: active.name().to_string(),
+            });
+            let v = self.exec(calls, false)?;
+            let mut sh = self.lock();
+            for (k, o) in WorkOffset::ALL.into_iter().enumerate() {
+                sh.offsets[o.index()] = std::array::from_fn(|i| num(&v[k * 5 + 1 + i]));
+            }
+        }
+        let sh = self.lock();
+        Ok(OffsetTable {
+            active,
+            offsets: WorkOffset::ALL
+                .into_iter()
+                .map(|o| (o, AxisValues::from_array(sh.offsets[o.index()])))
+                .collect(),
+        })
+    }
+
+    fn set_offset(&self, offset: WorkOffset, values: AxisValues) -> Result<Value, PluginError> {
+        let v = values.to_array();
+        if v.iter().any(|x| !x.is_finite()) {
+            return Err(PluginError::invalid("offset values must be finite numbers"));
+        }
+        self.require("change offsets", &[MachineState::Idle, MachineState::Alarm])?;
+        let number = self.exec(
+            vec![Call::GetOemDro {
+                code: self.cfg.codes.get(Code::FixtureNumber),
+            }],
+            false,
+        )?;
+        let active = num(&number[0]).round() as usize == offset.index() + 1;
+        let calls = if active {
+            (0..4)
+                .map(|i| Call::SetOemDro {
+                    code: self.cfg.codes.axis(Code::FixtureX, i),
+                    value: v[i],
+                })
+                .collect()
+        } else {
+            let p = offset.index() + 1;
+            vec![Call::Code {
+                line: format!("G10 L2 P{p} X{} Y{} Z{} A{}", v[0], v[1], v[2], v[3]),
+            }]
+        };
+        self.exec(calls, false)?;
+        self.lock().offsets[offset.index()] = v;
+        self.poll();
+        Ok(json!({}))
+    }
+
+    fn load_program(&self, run: i64, path: &str, start_line: u32) -> Result<Value, PluginError> {
+        if start_line == 0 {
+            return Err(PluginError::invalid(
+                "start_line is 1-based: 0 is not a line",
+            ));
+        }
+        self.require("load a program", &[MachineState::Idle, MachineState::Alarm])?;
+        let text = std::fs::read_to_string(path).map_err(|e| {
+            PluginError::new("program_unreadable", format!("cannot read {path}: {e}"))
+        })?;
+        // Validate the whole program before anything reaches Mach3.
+        let interp = fresa_gcode::Interpreter::new(text.as_bytes(), Default::default());
+        let mut last_active_line = 1;
+        for m in fresa_gcode::linearise(interp, 0.01) {
+            let m = m.map_err(|e| PluginError::new("invalid_program", e.to_string()))?;
+            last_active_line = last_active_line.max(m.line());
+        }
+        let lines = u32::try_from(text.lines().count()).unwrap_or(u32::MAX);
+        if start_line > lines.saturating_add(1) {
+            return Err(PluginError::invalid(format!(
+                "start_line {start_line} is past the end of the program ({lines} lines)"
+            )));
+        }
+        let name = format!("fresa-run-{run}.nc");
+        let chunks = chunk(&text, PROGRAM_CHUNK_BYTES);
+        let last = chunks.len() - 1;
+        let mut stored = Value::Null;
+        for (i, data) in chunks.into_iter().enumerate() {
+            let v = self.exec(
+                vec![Call::WriteProgram {
+                    name: name.clone(),
+                    data: data.to_string(),
+                    first: i == 0,
+                    last: i == last,
+                }],
+                false,
+            )?;
+            stored = v.into_iter().next().unwrap_or(Value::Null);
+        }
+        let stored = stored.as_str().map(str::to_owned).ok_or_else(|| {
+            PluginError::new(
+                "mach3_error",
+                "the agent did not say where it stored the program",
+            )
+        })?;
+        let line_dro = f64::from(start_line - 1 + self.cfg.line_dro_base);
+        self.exec(
+            vec![
+                Call::LoadFile { path: stored },
+                Call::SetOemDro {
+                    code: self.cfg.codes.get(Code::Line),
+                    value: line_dro,
+                },
+            ],
+            false,
+        )?;
+        let mut sh = self.lock();
+        if let Some(old) = sh.loaded.replace(Loaded {
+            run,
+            lines,
+            start_line,
+            last_active_line,
+        }) {
+            if old.run != run {
+                self.emit(vec![Event::RunEnded {
+                    run: old.run,
+                    outcome: RunOutcome::Cancelled,
+                    message: Some(format!("replaced by run {run} before it started")),
+                }]);
+            }
+        }
+        to_value(&ProgramLoaded { lines, start_line })
+    }
+
+    fn start(&self) -> Result<Value, PluginError> {
+        let st = self.require("start", &[MachineState::Idle, MachineState::Paused])?;
+        if st.state == MachineState::Paused {
+            self.button(Code::CycleStart, false)?;
+            self.poll();
+            return Ok(json!({}));
+        }
+        let loaded = self.lock().loaded.take().ok_or_else(|| {
+            PluginError::new(
+                "no_program",
+                "no program is loaded: send load_program first",
+            )
+        })?;
+        if loaded.start_line > loaded.lines {
+            self.emit(vec![Event::RunEnded {
+                run: loaded.run,
+                outcome: RunOutcome::Completed,
+                message: None,
+            }]);
+            return Ok(json!({}));
+        }
+        self.lock().run = Some(RunTrack {
+            loaded,
+            acked: loaded.start_line - 1,
+            saw_running: false,
+            started: Instant::now(),
+            stop_requested: false,
+        });
+        if let Err(e) = self.button(Code::CycleStart, false) {
+            self.lock().run = None;
+            return Err(e);
+        }
+        self.poll();
+        Ok(json!({}))
+    }
+
+    fn command(&self, c: Command) -> Result<Value, PluginError> {
+        let codes = &self.cfg.codes;
+        let press = |code: i16| -> Result<Value, PluginError> {
+            self.exec(vec![Call::DoOemButton { code }], false)?;
+            self.poll();
+            Ok(json!({}))
+        };
+        match c {
+            Command::CycleStart => self.start(),
+            Command::FeedHold => {
+                self.button(Code::FeedHold, true)?;
+                self.poll();
+                Ok(json!({}))
+            }
+            Command::Resume => press(codes.get(Code::Resume)),
+            Command::Stop => {
+                self.stop()?;
+                self.poll();
+                Ok(json!({}))
+            }
+            Command::Reset => self.reset(),
+            Command::Home { axis } => {
+                self.require("home", &[MachineState::Idle])?;
+                press(match axis {
+                    Some(a) => codes.axis(Code::RefX, a.index()),
+                    None => codes.get(Code::HomeAll),
+                })
+            }
+            Command::Zero { axis } => {
+                self.require("zero", &[MachineState::Idle])?;
+                press(match axis {
+                    Some(a) => codes.axis(Code::ZeroX, a.index()),
+                    None => codes.get(Code::ZeroAll),
+                })?;
+                Ok(json!({ "offsets": to_value(&self.offsets()?)? }))
+            }
+            Command::GoToZero => {
+                self.require("go to zero", &[MachineState::Idle])?;
+                press(codes.get(Code::GoToZero))
+            }
+            Command::SelectOffset { offset } => {
+                self.require("select an offset", &[MachineState::Idle])?;
+                self.exec(
+                    vec![Call::Code {
+                        line: offset.name().to_string(),
+                    }],
+                    false,
+                )?;
+                self.poll();
+                Ok(json!({}))
+            }
+        }
+    }
+
+    fn handle(&self, request: Request) -> Result<Value, PluginError> {
+        match request {
+            Request::Connect => {
+                self.poll();
+                self.wake.notify_all();
+                to_value(&self.lock().status)
+            }
+            Request::Status => self.status(),
+            Request::Jog {
+                axis,
+                distance,
+                feed,
+            } => self.jog(axis, distance, feed),
+            Request::Command(c) => self.command(c),
+            Request::GetOffsets => to_value(&self.offsets()?),
+            Request::SetOffset { offset, values } => self.set_offset(offset, values),
+            Request::LoadProgram {
+                run,
+                path,
+                start_line,
+            } => self.load_program(run, &path, start_line),
+            Request::Run { action } => match action {
+                RunAction::Start => self.start(),
+                RunAction::Pause => self.command(Command::FeedHold),
+                RunAction::Resume => self.command(Command::Resume),
+                RunAction::Cancel => {
+                    let pending = self.lock().loaded.take();
+                    if let Some(l) = pending {
+                        self.emit(vec![Event::RunEnded {
+                            run: l.run,
+                            outcome: RunOutcome::Cancelled,
+                            message: Some("cancelled before it started".into()),
+                        }]);
+                    }
+                    if self.lock().run.is_some() {
+                        self.stop()?;
+                        self.poll();
+                    }
+                    Ok(json!({}))
+                }
+            },
+            Request::Shutdown => {
+                let moving = self.lock().status.state.is_busy();
+                if moving {
+                    // Best effort: the server is going away and motion must not outlive it.
+                    let _ = self.stop();
+                }
+                {
+                    let mut sh = self.lock();
+                    sh.shutdown = true;
+                    sh.status = offline("shut down".into());
+                }
+                self.wake.notify_all();
+                self.link
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .client
+                    .disconnect();
+                Ok(json!({}))
+            }
+        }
+    }
+}
+
+/// Splits `text` into pieces of at most `max` bytes, on character boundaries; never empty.
+fn chunk(text: &str, max: usize) -> Vec<&str> {
+    let mut out = Vec::new();
+    let mut rest = text;
+    while rest.len() > max {
+        let mut cut = max;
+        while !rest.is_char_boundary(cut) {
+            cut -= 1;
+        }
+        let (a, b) = rest.split_at(cut);
+        out.push(a);
+        rest = b;
+    }
+    out.push(rest);
+    out
+}
+
+fn state_name(s: MachineState) -> String {
+    serde_json::to_value(s)
+        .ok()
+        .and_then(|v| v.as_str().map(str::to_owned))
+        .unwrap_or_else(|| format!("{s:?}"))
+}
+
+fn to_value<T: serde::Serialize>(v: &T) -> Result<Value, PluginError> {
+    serde_json::to_value(v)
+        .map_err(|e| PluginError::new("internal", format!("cannot encode answer: {e}")))
+}
+
+impl Mach3Backend {
+    pub fn new(config: &Value, sink: EventSink) -> Result<Mach3Backend, PluginError> {
+        let cfg = Config::from_json(config)?;
+        let client = AgentClient::new(cfg.agent.clone(), cfg.secret.clone(), cfg.timeout);
+        let inner = Arc::new(Inner {
+            link: Mutex::new(Link {
+                client,
+                retry_at: None,
+                backoff: BACKOFF_MIN,
+                last_error: String::new(),
+            }),
+            shared: Mutex::new(Shared {
+                status: offline("not connected yet".into()),
+                polled: false,
+                loaded: None,
+                run: None,
+                offsets: [[0.0; 4]; 6],
+                shutdown: false,
+            }),
+            wake: Condvar::new(),
+            polling: Mutex::new(()),
+            cfg,
+            sink,
+        });
+        let worker = Arc::clone(&inner);
+        let poller = std::thread::Builder::new()
+            .name("mach3-oem poll".into())
+            .spawn(move || worker.poller())
+            .map_err(|e| PluginError::new("internal", format!("cannot start the poller: {e}")))?;
+        Ok(Mach3Backend {
+            inner,
+            poller: Mutex::new(Some(poller)),
+        })
+    }
+
+    pub fn request(&self, request: Value) -> Result<Value, PluginError> {
+        let request: Request = serde_json::from_value(request)
+            .map_err(|e| PluginError::invalid(format!("invalid request: {e}")))?;
+        self.inner.handle(request)
+    }
+}
+
+impl Drop for Mach3Backend {
+    fn drop(&mut self) {
+        self.inner.lock().shutdown = true;
+        self.inner.wake.notify_all();
+        let handle = self.poller.lock().unwrap_or_else(|e| e.into_inner()).take();
+        if let Some(h) = handle {
+            let _ = h.join();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::chunk;
+
+    #[test]
+    fn chunks_split_on_char_boundaries() {
+        assert_eq!(chunk("", 4), vec![""]);
+        assert_eq!(chunk("abcdefgh", 4), vec!["abcd", "efgh"]);
+        assert_eq!(chunk("aé bc", 2), vec!["a", "é", " b", "c"]);
+    }
+}

@@ -1,0 +1,856 @@
+//! A Mach3 simulator: models what the adapter relies on, with Mach3's own codes, so the agent
+//! and the plugin can be tested end to end on any OS.
+//!
+//! * Axis DROs 800-805 show work coordinates (machine position minus the active fixture's
+//!   offset, DROs 830-835; fixture number in DRO 46). MDI `Code()` understands G0 G1 G90 G91
+//!   G54-G59 `G10 L2 P..` F and X..C words, keeps G90/G91, G0/G1 and F modal between calls and
+//!   queues the moves; LED 48 lights in G91.
+//! * `LoadFile` interprets the whole file with `fresa-gcode`; cycle start (1000) runs it from
+//!   the line in DRO 816 (0-based), advancing DRO 816 and the elapsed time in DRO 814 (DRO 815 is
+//!   the estimate). M0 pauses, M2/M30 end the run and rewind DRO 816 to 0. LED 804 = running.
+//! * Feed hold (1001) pauses everything (LED 805); resume (1005) or cycle start continue.
+//!   Stop (1003) ends motion and the run, keeping the line. Rewind (1002) sets the line to 0.
+//! * Reset (1021) is a toggle like Mach3's: it latches or clears the reset/e-stop state
+//!   (LED 800, `IsEstop`; the simulator starts latched, as Mach3 does). While latched nothing
+//!   moves and buttons other than reset, and MDI, are ignored.
+//! * Zero buttons (1007-1013) set the active fixture offset so the axis reads 0; ref buttons
+//!   (105, 1022-1027) set the machine position to 0 at once; GotoZs (1017) rapids to work zero
+//!   (Z up first). `JogOn`/`JogOff` move an axis continuously. LED 999 / `IsMoving`: motion.
+//!
+//! Motion is feed-rate true, with times multiplied by `time_scale` (0 = instant).
+
+use crate::mach3::{Mach3, Mach3Error, Mach3Result};
+use fresa_gcode::{linearise, Interpreter, Motion};
+use std::collections::{HashMap, VecDeque};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, Weak};
+use std::time::{Duration, Instant};
+
+/// Time between two simulation steps.
+const TICK: Duration = Duration::from_millis(2);
+const AXES: usize = 6;
+
+/// Mach3's own codes, as the simulator understands them.
+mod code {
+    pub const CYCLE_START: i16 = 1000;
+    pub const FEED_HOLD: i16 = 1001;
+    pub const REWIND: i16 = 1002;
+    pub const STOP: i16 = 1003;
+    pub const RESUME: i16 = 1005;
+    pub const ZERO_ALL: i16 = 1007;
+    pub const ZERO_X: i16 = 1008;
+    pub const GOTO_ZERO: i16 = 1017;
+    pub const RESET: i16 = 1021;
+    pub const REF_ALL: i16 = 105;
+    pub const REF_X: i16 = 1022;
+    pub const DRO_X: i16 = 800;
+    pub const DRO_VEL_X: i16 = 806;
+    pub const DRO_ELAPSED: i16 = 814;
+    pub const DRO_ESTIMATE: i16 = 815;
+    pub const DRO_LINE: i16 = 816;
+    pub const DRO_FEED: i16 = 818;
+    pub const DRO_MOTION_MODE: i16 = 819;
+    pub const DRO_FRO: i16 = 821;
+    pub const DRO_TOOL: i16 = 824;
+    pub const DRO_FIXTURE_X: i16 = 830;
+    pub const DRO_FIXTURE_NUMBER: i16 = 46;
+    pub const LED_ESTOP: i16 = 800;
+    pub const LED_RUNNING: i16 = 804;
+    pub const LED_PAUSED: i16 = 805;
+    pub const LED_REFERENCED_X: i16 = 807;
+    pub const LED_MOVING: i16 = 999;
+    pub const LED_INCREMENTAL: i16 = 48;
+}
+
+/// Simulator settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SimConfig {
+    /// Multiplies every motion and dwell time: 1.0 = real time, 0.0 = instant.
+    pub time_scale: f64,
+    pub rapid_mm_min: f64,
+    /// Speed of `JogOn` jogs.
+    pub jog_feed_mm_min: f64,
+}
+
+impl Default for SimConfig {
+    fn default() -> Self {
+        SimConfig {
+            time_scale: 1.0,
+            rapid_mm_min: 5000.0,
+            jog_feed_mm_min: 600.0,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Step {
+    /// To a point in program (work) coordinates; rapid when `feed` is `None`.
+    Move {
+        to: [f64; 3],
+        feed: Option<f64>,
+    },
+    Dwell(f64),
+    Pause,
+    UseFixture(usize),
+    End,
+}
+
+#[derive(Debug)]
+struct Program {
+    /// `(1-based source line, step)`, in execution order.
+    steps: Vec<(u32, Step)>,
+    estimate_s: f64,
+}
+
+/// A straight move (or a dwell, when `start == target`) in progress.
+#[derive(Debug, Clone, Copy)]
+struct Active {
+    start: [f64; AXES],
+    target: [f64; AXES],
+    total_s: f64,
+    left_s: f64,
+}
+
+#[derive(Debug)]
+struct State {
+    cfg: SimConfig,
+    pos: [f64; AXES],
+    fixtures: [[f64; AXES]; 6],
+    fixture: usize,
+    incremental: bool,
+    rapid_mode: bool,
+    feed: f64,
+    fro: f64,
+    tool: f64,
+    estop: bool,
+    referenced: [bool; AXES],
+    program: Option<Program>,
+    running: bool,
+    paused: bool,
+    /// Index of the next program step while running.
+    cursor: usize,
+    /// DRO 816: 0-based line.
+    line: usize,
+    elapsed_s: f64,
+    /// MDI and go-to-zero moves: `(machine target, feed mm/min)`.
+    queue: VecDeque<([f64; AXES], f64)>,
+    active: Option<Active>,
+    jogs: [f64; AXES],
+    other_dros: HashMap<i16, f64>,
+    /// Mach3 "closed": every call fails as `MK_E_UNAVAILABLE` would.
+    closed: bool,
+}
+
+struct Core {
+    state: Mutex<State>,
+    stop: Condvar,
+}
+
+/// A simulated Mach3. Cheap to clone (all clones are the same Mach3); its motion thread ends
+/// when the last clone is dropped.
+#[derive(Clone)]
+pub struct Mach3Sim {
+    core: Arc<Core>,
+}
+
+fn seconds(from: &[f64; AXES], to: &[f64; AXES], feed: f64) -> f64 {
+    let d = from
+        .iter()
+        .zip(to)
+        .map(|(a, b)| (a - b) * (a - b))
+        .sum::<f64>()
+        .sqrt();
+    if feed > 0.0 {
+        d / feed * 60.0
+    } else {
+        0.0
+    }
+}
+
+impl State {
+    fn work(&self, axis: usize) -> f64 {
+        self.pos[axis] - self.fixtures[self.fixture][axis]
+    }
+
+    fn moving(&self) -> bool {
+        !self.paused
+            && (self.active.is_some()
+                || !self.queue.is_empty()
+                || self.jogs.iter().any(|j| *j != 0.0)
+                || self.running)
+    }
+
+    fn halt(&mut self) {
+        self.queue.clear();
+        self.active = None;
+        self.running = false;
+        self.paused = false;
+        self.jogs = [0.0; AXES];
+    }
+
+    /// Where queued motion ends (the base of an incremental MDI move).
+    fn planned_end(&self) -> [f64; AXES] {
+        self.queue
+            .back()
+            .map(|q| q.0)
+            .or(self.active.map(|a| a.target))
+            .unwrap_or(self.pos)
+    }
+
+    fn start_move(&mut self, target: [f64; AXES], feed: f64) {
+        let total_s = seconds(&self.pos, &target, feed);
+        self.active = Some(Active {
+            start: self.pos,
+            target,
+            total_s,
+            left_s: total_s,
+        });
+    }
+
+    /// Advances the simulation by `dt` of real time.
+    fn tick(&mut self, dt: f64) {
+        if self.estop {
+            return;
+        }
+        let mut budget = if self.cfg.time_scale == 0.0 {
+            f64::INFINITY
+        } else {
+            dt / self.cfg.time_scale
+        };
+        if self.running && !self.paused {
+            self.elapsed_s += dt;
+        }
+        if !self.paused {
+            // Continuous jogs run in real time: an operator holds them.
+            let jog_step = self.cfg.jog_feed_mm_min / 60.0 * dt;
+            for (p, j) in self.pos.iter_mut().zip(self.jogs) {
+                *p += j * jog_step;
+            }
+        }
+        while budget > 0.0 && !self.paused {
+            if let Some(mut a) = self.active {
+                let t = budget.min(a.left_s);
+                a.left_s -= t;
+                budget -= t;
+                if a.left_s <= 0.0 {
+                    self.pos = a.target;
+                    self.active = None;
+                } else {
+                    let f = 1.0 - a.left_s / a.total_s;
+                    self.pos = std::array::from_fn(|i| a.start[i] + (a.target[i] - a.start[i]) * f);
+                    self.active = Some(a);
+                }
+                continue;
+            }
+            if let Some((target, feed)) = self.queue.pop_front() {
+                self.start_move(target, feed);
+                continue;
+            }
+            if !self.running {
+                break;
+            }
+            self.next_program_step();
+        }
+    }
+
+    fn next_program_step(&mut self) {
+        let Some((line, step)) = self
+            .program
+            .as_ref()
+            .and_then(|p| p.steps.get(self.cursor).copied())
+        else {
+            // Ran off the end without M2/M30: Mach3 stops on the last line.
+            self.running = false;
+            return;
+        };
+        self.cursor += 1;
+        self.line = line.saturating_sub(1) as usize;
+        match step {
+            Step::Move { to, feed } => {
+                let mut target = self.pos;
+                for i in 0..3 {
+                    target[i] = to[i] + self.fixtures[self.fixture][i];
+                }
+                if let Some(f) = feed {
+                    self.feed = f;
+                }
+                let f = feed.unwrap_or(self.cfg.rapid_mm_min) * self.fro / 100.0;
+                self.start_move(target, f);
+            }
+            Step::Dwell(s) => {
+                self.active = Some(Active {
+                    start: self.pos,
+                    target: self.pos,
+                    total_s: s,
+                    left_s: s,
+                })
+            }
+            Step::Pause => self.paused = true,
+            Step::UseFixture(f) => self.fixture = f,
+            Step::End => {
+                self.running = false;
+                self.line = 0;
+            }
+        }
+    }
+
+    fn cycle_start(&mut self) {
+        if self.paused {
+            self.paused = false;
+            return;
+        }
+        if self.running || self.active.is_some() || !self.queue.is_empty() {
+            return;
+        }
+        let Some(p) = &self.program else { return };
+        // Start at the line in DRO 816; the modal effects of the lines before it carry over.
+        let start = p
+            .steps
+            .partition_point(|(l, _)| (l.saturating_sub(1) as usize) < self.line);
+        let (mut fixture, mut feed) = (self.fixture, self.feed);
+        for (_, s) in &p.steps[..start] {
+            match s {
+                Step::UseFixture(f) => fixture = *f,
+                Step::Move { feed: Some(f), .. } => feed = *f,
+                _ => {}
+            }
+        }
+        self.fixture = fixture;
+        self.feed = feed;
+        self.cursor = start;
+        self.elapsed_s = 0.0;
+        self.running = true;
+    }
+
+    fn button(&mut self, code: i16) {
+        if code == code::RESET {
+            self.estop = !self.estop;
+            if self.estop {
+                self.halt();
+            }
+            return;
+        }
+        if self.estop {
+            return;
+        }
+        match code {
+            code::CYCLE_START => self.cycle_start(),
+            code::FEED_HOLD if self.moving() => self.paused = true,
+            code::RESUME => self.paused = false,
+            code::STOP => self.halt(),
+            code::REWIND if !self.running => self.line = 0,
+            code::ZERO_ALL => self.fixtures[self.fixture] = self.pos,
+            c if (code::ZERO_X..code::ZERO_X + AXES as i16).contains(&c) => {
+                let i = (c - code::ZERO_X) as usize;
+                self.fixtures[self.fixture][i] = self.pos[i];
+            }
+            code::REF_ALL if !self.moving() => {
+                self.pos = [0.0; AXES];
+                self.referenced = [true; AXES];
+            }
+            c if (code::REF_X..code::REF_X + AXES as i16).contains(&c) && !self.moving() => {
+                let i = (c - code::REF_X) as usize;
+                self.pos[i] = 0.0;
+                self.referenced[i] = true;
+            }
+            code::GOTO_ZERO if !self.moving() => {
+                let zero = self.fixtures[self.fixture];
+                let mut up = self.pos;
+                up[2] = up[2].max(zero[2]);
+                let mut over = zero;
+                over[2] = up[2];
+                for p in [up, over, zero] {
+                    self.queue.push_back((p, self.cfg.rapid_mm_min));
+                }
+            }
+            // Mach3 ignores buttons it has no use for in the current state.
+            _ => {}
+        }
+    }
+
+    fn mdi(&mut self, line: &str) -> Mach3Result<()> {
+        if self.estop {
+            return Ok(()); // Mach3 ignores MDI while in reset.
+        }
+        if self.running {
+            return Err(Mach3Error::invalid("MDI is ignored while a program runs"));
+        }
+        let words = parse_words(line)?;
+        let mut target: [Option<f64>; AXES] = [None; AXES];
+        let (mut g10, mut l, mut p) = (false, None, None);
+        for (letter, value) in words {
+            match letter {
+                'G' => match value {
+                    0.0 => self.rapid_mode = true,
+                    1.0 => self.rapid_mode = false,
+                    90.0 => self.incremental = false,
+                    91.0 => self.incremental = true,
+                    10.0 => g10 = true,
+                    v if (54.0..=59.0).contains(&v) && v.fract() == 0.0 => {
+                        self.fixture = (v - 54.0) as usize
+                    }
+                    v => {
+                        return Err(Mach3Error::invalid(format!(
+                            "the simulator does not model G{v} in MDI"
+                        )))
+                    }
+                },
+                'F' => self.feed = value,
+                'L' => l = Some(value),
+                'P' => p = Some(value),
+                'X' | 'Y' | 'Z' | 'A' | 'B' | 'C' => {
+                    let i = "XYZABC".find(letter).unwrap_or(0);
+                    target[i] = Some(value);
+                }
+                // Spindle, coolant, tool words do not move the simulated machine.
+                _ => {}
+            }
+        }
+        if g10 {
+            let n = match (l, p) {
+                (Some(l), Some(p)) if l == 2.0 && (1.0..=6.0).contains(&p) && p.fract() == 0.0 => {
+                    p as usize - 1
+                }
+                _ => {
+                    return Err(Mach3Error::invalid(
+                        "the simulator models G10 only as G10 L2 P1..P6",
+                    ))
+                }
+            };
+            for (i, v) in target.iter().enumerate() {
+                if let Some(v) = v {
+                    self.fixtures[n][i] = *v;
+                }
+            }
+            return Ok(());
+        }
+        if target.iter().all(Option::is_none) {
+            return Ok(());
+        }
+        let feed = if self.rapid_mode {
+            self.cfg.rapid_mm_min
+        } else if self.feed > 0.0 {
+            self.feed
+        } else {
+            return Err(Mach3Error::invalid("G1 with feed rate 0: set F first"));
+        };
+        let base = self.planned_end();
+        let end: [f64; AXES] = std::array::from_fn(|i| match target[i] {
+            Some(v) if self.incremental => base[i] + v,
+            Some(v) => v + self.fixtures[self.fixture][i],
+            None => base[i],
+        });
+        self.queue.push_back((end, feed * self.fro / 100.0));
+        Ok(())
+    }
+
+    fn load(&mut self, path: &str) -> Mach3Result<()> {
+        if self.running {
+            return Err(Mach3Error::invalid(
+                "cannot load a file while a program runs",
+            ));
+        }
+        let text = std::fs::read_to_string(path).map_err(|e| {
+            Mach3Error::new(
+                crate::mach3::ErrorKind::Io,
+                format!("cannot read {path}: {e}"),
+            )
+        })?;
+        let mut config = fresa_gcode::Config {
+            initial_position: [self.work(0), self.work(1), self.work(2)],
+            ..Default::default()
+        };
+        for (i, f) in self.fixtures.iter().enumerate() {
+            config.work_offsets[i] = [f[0], f[1], f[2]];
+        }
+        let mut steps = Vec::new();
+        let mut estimate_s = 0.0;
+        let mut at = config.initial_position;
+        for m in linearise(Interpreter::new(text.as_bytes(), config), 0.01) {
+            let m = m.map_err(|e| Mach3Error::invalid(e.to_string()))?;
+            let line = m.line();
+            let step = match m {
+                Motion::Rapid { to, .. } => Step::Move { to, feed: None },
+                Motion::Linear {
+                    to, feed_mm_min, ..
+                }
+                | Motion::Arc {
+                    to, feed_mm_min, ..
+                } => Step::Move {
+                    to,
+                    feed: Some(feed_mm_min),
+                },
+                Motion::Dwell { seconds, .. } => Step::Dwell(seconds.max(0.0)),
+                Motion::Pause {
+                    optional: false, ..
+                } => Step::Pause,
+                Motion::WorkOffset { system, .. } if (1..=6).contains(&system) => {
+                    Step::UseFixture(usize::from(system) - 1)
+                }
+                Motion::ProgramEnd { .. } => Step::End,
+                _ => continue,
+            };
+            if let Step::Move { to, feed } = step {
+                let f = feed.unwrap_or(self.cfg.rapid_mm_min);
+                estimate_s += seconds(
+                    &[at[0], at[1], at[2], 0.0, 0.0, 0.0],
+                    &[to[0], to[1], to[2], 0.0, 0.0, 0.0],
+                    f,
+                );
+                at = to;
+            }
+            steps.push((line, step));
+        }
+        self.program = Some(Program { steps, estimate_s });
+        self.line = 0;
+        self.paused = false;
+        Ok(())
+    }
+
+    fn dro(&self, c: i16) -> f64 {
+        match c {
+            c if (code::DRO_X..code::DRO_X + AXES as i16).contains(&c) => {
+                self.work((c - code::DRO_X) as usize)
+            }
+            c if (code::DRO_VEL_X..code::DRO_VEL_X + AXES as i16).contains(&c) => 0.0,
+            c if (code::DRO_FIXTURE_X..code::DRO_FIXTURE_X + AXES as i16).contains(&c) => {
+                self.fixtures[self.fixture][(c - code::DRO_FIXTURE_X) as usize]
+            }
+            code::DRO_ELAPSED => self.elapsed_s,
+            code::DRO_ESTIMATE => self.program.as_ref().map_or(0.0, |p| p.estimate_s),
+            code::DRO_LINE => self.line as f64,
+            code::DRO_FEED => self.feed,
+            code::DRO_MOTION_MODE => {
+                if self.rapid_mode {
+                    0.0
+                } else {
+                    1.0
+                }
+            }
+            code::DRO_FRO => self.fro,
+            code::DRO_TOOL => self.tool,
+            code::DRO_FIXTURE_NUMBER => (self.fixture + 1) as f64,
+            other => self.other_dros.get(&other).copied().unwrap_or(0.0),
+        }
+    }
+
+    fn set_dro(&mut self, c: i16, v: f64) {
+        match c {
+            c if (code::DRO_X..code::DRO_X + AXES as i16).contains(&c) => {
+                let i = (c - code::DRO_X) as usize;
+                self.fixtures[self.fixture][i] = self.pos[i] - v;
+            }
+            c if (code::DRO_FIXTURE_X..code::DRO_FIXTURE_X + AXES as i16).contains(&c) => {
+                self.fixtures[self.fixture][(c - code::DRO_FIXTURE_X) as usize] = v;
+            }
+            code::DRO_LINE if !self.running => self.line = v.max(0.0) as usize,
+            code::DRO_FRO => self.fro = v.clamp(0.0, 300.0),
+            code::DRO_TOOL => self.tool = v,
+            code::DRO_FIXTURE_NUMBER if (1.0..=6.0).contains(&v) => self.fixture = v as usize - 1,
+            other => {
+                self.other_dros.insert(other, v);
+            }
+        }
+    }
+
+    fn led(&self, c: i16) -> bool {
+        match c {
+            code::LED_ESTOP => self.estop,
+            code::LED_RUNNING => self.running,
+            code::LED_PAUSED => self.paused,
+            code::LED_MOVING => self.moving(),
+            code::LED_INCREMENTAL => self.incremental,
+            c if (code::LED_REFERENCED_X..code::LED_REFERENCED_X + AXES as i16).contains(&c) => {
+                self.referenced[(c - code::LED_REFERENCED_X) as usize]
+            }
+            _ => false,
+        }
+    }
+}
+
+/// Splits an MDI line into `(letter, number)` words; `( )` and `;` comments are skipped.
+fn parse_words(line: &str) -> Mach3Result<Vec<(char, f64)>> {
+    let mut words = Vec::new();
+    let mut chars = line.char_indices().peekable();
+    while let Some((col, c)) = chars.next() {
+        match c {
+            ' ' | '\t' => {}
+            '(' => {
+                for (_, c) in chars.by_ref() {
+                    if c == ')' {
+                        break;
+                    }
+                }
+            }
+            ';' => break,
+            c if c.is_ascii_alphabetic() => {
+                let mut num = String::new();
+                while let Some((_, d)) = chars.peek() {
+                    if d.is_ascii_digit() || matches!(d, '.' | '-' | '+') || *d == ' ' {
+                        if *d != ' ' {
+                            num.push(*d);
+                        }
+                        chars.next();
+                    } else {
+                        break;
+                    }
+                }
+                let value: f64 = num.parse().map_err(|_| {
+                    Mach3Error::invalid(format!(
+                        "MDI {line:?}, column {}: `{c}` needs a number",
+                        col + 1
+                    ))
+                })?;
+                words.push((c.to_ascii_uppercase(), value));
+            }
+            other => {
+                return Err(Mach3Error::invalid(format!(
+                    "MDI {line:?}, column {}: unexpected {other:?}",
+                    col + 1
+                )))
+            }
+        }
+    }
+    Ok(words)
+}
+
+impl Mach3Sim {
+    pub fn new(cfg: SimConfig) -> Mach3Sim {
+        let core = Arc::new(Core {
+            state: Mutex::new(State {
+                cfg,
+                pos: [0.0; AXES],
+                fixtures: [[0.0; AXES]; 6],
+                fixture: 0,
+                incremental: false,
+                rapid_mode: true,
+                feed: 0.0,
+                fro: 100.0,
+                tool: 0.0,
+                estop: true,
+                referenced: [false; AXES],
+                program: None,
+                running: false,
+                paused: false,
+                cursor: 0,
+                line: 0,
+                elapsed_s: 0.0,
+                queue: VecDeque::new(),
+                active: None,
+                jogs: [0.0; AXES],
+                other_dros: HashMap::new(),
+                closed: false,
+            }),
+            stop: Condvar::new(),
+        });
+        let weak = Arc::downgrade(&core);
+        // If the thread cannot start the simulator does not move; tests would show it at once.
+        let _ = std::thread::Builder::new()
+            .name("mach3-sim motion".into())
+            .spawn(move || motion_thread(weak));
+        Mach3Sim { core }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, State> {
+        self.core.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The state of a running Mach3, or the error a closed one gives.
+    fn open(&self) -> Mach3Result<MutexGuard<'_, State>> {
+        let st = self.lock();
+        if st.closed {
+            return Err(Mach3Error::new(
+                crate::mach3::ErrorKind::NotRunning,
+                "Mach3 is not running (simulated MK_E_UNAVAILABLE)",
+            ));
+        }
+        Ok(st)
+    }
+
+    /// Simulates closing Mach3 (`false`) and starting it again (`true`): a restarted Mach3
+    /// comes back in reset, with nothing loaded and nothing moving.
+    pub fn set_running(&self, running: bool) {
+        let mut st = self.lock();
+        if running && st.closed {
+            st.halt();
+            st.estop = true;
+            st.program = None;
+            st.line = 0;
+        }
+        st.closed = !running;
+    }
+}
+
+fn motion_thread(core: Weak<Core>) {
+    let mut last = Instant::now();
+    loop {
+        let Some(core) = core.upgrade() else { return };
+        let st = core.state.lock().unwrap_or_else(|e| e.into_inner());
+        let (mut st, _) = core
+            .stop
+            .wait_timeout(st, TICK)
+            .unwrap_or_else(|e| e.into_inner());
+        let now = Instant::now();
+        st.tick(now.duration_since(last).as_secs_f64());
+        last = now;
+    }
+}
+
+impl Mach3 for Mach3Sim {
+    fn do_oem_button(&mut self, code: i16) -> Mach3Result<()> {
+        self.open()?.button(code);
+        Ok(())
+    }
+    fn get_oem_dro(&mut self, code: i16) -> Mach3Result<f64> {
+        Ok(self.open()?.dro(code))
+    }
+    fn set_oem_dro(&mut self, code: i16, value: f64) -> Mach3Result<()> {
+        self.open()?.set_dro(code, value);
+        Ok(())
+    }
+    fn get_oem_led(&mut self, code: i16) -> Mach3Result<bool> {
+        Ok(self.open()?.led(code))
+    }
+    fn code(&mut self, line: &str) -> Mach3Result<()> {
+        self.open()?.mdi(line)
+    }
+    fn load_file(&mut self, path: &str) -> Mach3Result<()> {
+        self.open()?.load(path)
+    }
+    fn jog_on(&mut self, axis: i16, direction: i16) -> Mach3Result<()> {
+        let mut st = self.open()?;
+        if !st.estop && !st.running {
+            st.jogs[axis.clamp(0, AXES as i16 - 1) as usize] =
+                if direction == 0 { 1.0 } else { -1.0 };
+        }
+        Ok(())
+    }
+    fn jog_off(&mut self, axis: i16) -> Mach3Result<()> {
+        self.open()?.jogs[axis.clamp(0, AXES as i16 - 1) as usize] = 0.0;
+        Ok(())
+    }
+    fn is_moving(&mut self) -> Mach3Result<bool> {
+        Ok(self.open()?.moving())
+    }
+    fn is_estop(&mut self) -> Mach3Result<bool> {
+        Ok(self.open()?.estop)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+    use super::*;
+
+    fn sim(time_scale: f64) -> Mach3Sim {
+        let mut m = Mach3Sim::new(SimConfig {
+            time_scale,
+            ..Default::default()
+        });
+        m.do_oem_button(code::RESET).unwrap(); // leave the start-up reset
+        m
+    }
+
+    fn wait_still(m: &mut Mach3Sim) {
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while m.is_moving().unwrap() {
+            assert!(Instant::now() < deadline, "still moving");
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    }
+
+    #[test]
+    fn starts_in_reset_and_reset_toggles() {
+        let mut m = Mach3Sim::new(SimConfig::default());
+        assert!(m.is_estop().unwrap());
+        assert!(m.get_oem_led(code::LED_ESTOP).unwrap());
+        m.code("G91 G1 X5 F100").unwrap();
+        assert!(!m.is_moving().unwrap(), "nothing moves in reset");
+        m.do_oem_button(code::RESET).unwrap();
+        assert!(!m.is_estop().unwrap());
+        m.do_oem_button(code::RESET).unwrap();
+        assert!(m.is_estop().unwrap());
+    }
+
+    #[test]
+    fn mdi_moves_are_modal_and_exact() {
+        let mut m = sim(0.0);
+        m.code("G91 G1 X1.5 F600").unwrap();
+        wait_still(&mut m);
+        assert!(m.get_oem_led(code::LED_INCREMENTAL).unwrap());
+        m.code("Y-2").unwrap(); // still G91 G1
+        wait_still(&mut m);
+        assert_eq!(m.get_oem_dro(code::DRO_X).unwrap(), 1.5);
+        assert_eq!(m.get_oem_dro(code::DRO_X + 1).unwrap(), -2.0);
+        assert_eq!(m.get_oem_dro(code::DRO_MOTION_MODE).unwrap(), 1.0);
+        m.code("G90 G0 X10").unwrap();
+        wait_still(&mut m);
+        assert!(!m.get_oem_led(code::LED_INCREMENTAL).unwrap());
+        assert_eq!(m.get_oem_dro(code::DRO_X).unwrap(), 10.0);
+        assert!(m.code("G1 X(").is_err());
+    }
+
+    #[test]
+    fn zero_buttons_and_fixture_dros() {
+        let mut m = sim(0.0);
+        m.code("G0 X4 Y5 Z6").unwrap();
+        wait_still(&mut m);
+        m.do_oem_button(code::ZERO_X + 1).unwrap();
+        assert_eq!(m.get_oem_dro(code::DRO_X + 1).unwrap(), 0.0);
+        assert_eq!(m.get_oem_dro(code::DRO_FIXTURE_X + 1).unwrap(), 5.0);
+        assert_eq!(m.get_oem_dro(code::DRO_X).unwrap(), 4.0);
+        m.set_oem_dro(code::DRO_FIXTURE_X, 1.0).unwrap();
+        assert_eq!(m.get_oem_dro(code::DRO_X).unwrap(), 3.0);
+        m.code("G10 L2 P2 X7").unwrap();
+        m.code("G55").unwrap();
+        assert_eq!(m.get_oem_dro(code::DRO_FIXTURE_NUMBER).unwrap(), 2.0);
+        assert_eq!(m.get_oem_dro(code::DRO_X).unwrap(), -3.0);
+    }
+
+    #[test]
+    fn program_runs_holds_and_rewinds_at_m30() {
+        let dir = std::env::temp_dir().join(format!("mach3-sim-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("p.nc");
+        std::fs::write(&path, "G21 G90\nG1 X10 F600\nG1 X0\nG1 Y10\nM30\n").unwrap();
+        let mut m = sim(0.2); // 1 s of machine time a line -> 0.2 s
+        m.load_file(path.to_str().unwrap()).unwrap();
+        assert!(m.get_oem_dro(code::DRO_ESTIMATE).unwrap() > 2.9);
+        m.do_oem_button(code::CYCLE_START).unwrap();
+        assert!(m.get_oem_led(code::LED_RUNNING).unwrap());
+        m.do_oem_button(code::FEED_HOLD).unwrap();
+        assert!(m.get_oem_led(code::LED_PAUSED).unwrap());
+        let x = m.get_oem_dro(code::DRO_X).unwrap();
+        std::thread::sleep(Duration::from_millis(50)); // nothing may move while held
+        assert_eq!(m.get_oem_dro(code::DRO_X).unwrap(), x);
+        m.do_oem_button(code::RESUME).unwrap();
+        let mut lines = Vec::new();
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while m.get_oem_led(code::LED_RUNNING).unwrap() {
+            lines.push(m.get_oem_dro(code::DRO_LINE).unwrap());
+            assert!(Instant::now() < deadline);
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        assert!(lines.contains(&2.0), "{lines:?}");
+        assert_eq!(m.get_oem_dro(code::DRO_LINE).unwrap(), 0.0, "M30 rewinds");
+        assert_eq!(m.get_oem_dro(code::DRO_X + 1).unwrap(), 10.0);
+        assert!(m.get_oem_dro(code::DRO_ELAPSED).unwrap() > 0.0);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn jog_on_runs_until_jog_off() {
+        let mut m = sim(1.0);
+        m.jog_on(2, 1).unwrap();
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while m.get_oem_dro(code::DRO_X + 2).unwrap() > -0.1 {
+            assert!(Instant::now() < deadline);
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        assert!(m.is_moving().unwrap());
+        m.jog_off(2).unwrap();
+        assert!(!m.is_moving().unwrap());
+        let z = m.get_oem_dro(code::DRO_X + 2).unwrap();
+        std::thread::sleep(Duration::from_millis(20));
+        assert_eq!(m.get_oem_dro(code::DRO_X + 2).unwrap(), z);
+    }
+}

@@ -1,0 +1,427 @@
+//! The `mach3-oem` backend end to end: the server's HTTP API -> plugin -> loopback TCP ->
+//! `fresa-mach3-agent --simulate` -> simulated Mach3. The test reads Mach3's DROs and LEDs
+//! itself through the agent protocol, so "what Mach3 shows" is checked, not what the plugin
+//! says about it.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fresa_mach3_oem::client::AgentClient;
+use fresa_mach3_oem::mach3::Call;
+use fresa_mach3_oem::protocol::CallResult;
+use fresa_tests::{bin_dir, corpus, wait_for, Server};
+use serde_json::{json, Value};
+use std::io::{BufRead, BufReader, Write};
+use std::process::{Child, ChildStdin, Command, Stdio};
+use std::sync::mpsc;
+use std::time::Duration;
+
+const T: Duration = Duration::from_secs(60);
+const SECRET: &str = "test-secret-0123456789";
+/// 663 lines, G54, M30 at the end; about 410 s of machine time -> about 4 s at 0.01.
+const PROGRAM: &str = "fusion-1122_jig_28bit_first.nc";
+const TIME_SCALE: f64 = 0.01;
+
+/// A `fresa-mach3-agent --simulate` process; killed when dropped.
+struct Agent {
+    child: Child,
+    stdin: ChildStdin,
+    addr: String,
+    _programs: tempfile::TempDir,
+}
+
+impl Agent {
+    fn start(listen: &str) -> Agent {
+        let programs = tempfile::tempdir().unwrap();
+        let mut child = Command::new(bin_dir().join("fresa-mach3-agent"))
+            .args(["--simulate", "--listen", listen, "--time-scale"])
+            .arg(TIME_SCALE.to_string())
+            .arg("--program-dir")
+            .arg(programs.path())
+            .env("FRESA_MACH3_SECRET", SECRET)
+            .env_remove("FRESA_MACH3_SECRET_FILE")
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn()
+            .expect("start fresa-mach3-agent");
+        let stdout = child.stdout.take().unwrap();
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            let mut line = String::new();
+            let _ = BufReader::new(stdout).read_line(&mut line);
+            let _ = tx.send(line);
+        });
+        let line = rx.recv_timeout(T).expect("the agent prints its address");
+        let addr = line
+            .trim()
+            .strip_prefix("listening on ")
+            .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
+            .to_string();
+        let stdin = child.stdin.take().unwrap();
+        Agent {
+            child,
+            stdin,
+            addr,
+            _programs: programs,
+        }
+    }
+
+    /// The operator presses a button on the (simulated) Mach3 screen.
+    fn press(&mut self, code: i16) {
+        writeln!(self.stdin, "button {code}").unwrap();
+        self.stdin.flush().unwrap();
+    }
+
+    fn client(&self) -> AgentClient {
+        AgentClient::new(self.addr.clone(), SECRET.into(), Duration::from_secs(5))
+    }
+
+    fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for Agent {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+/// Reads Mach3 directly: one value per call. The agent's watchdog drops a connection that was
+/// quiet for 3 s, so a stale one is replaced once.
+fn mach3(client: &mut AgentClient, calls: Vec<Call>) -> Vec<Value> {
+    client
+        .batch(calls.clone(), false)
+        .or_else(|_| client.batch(calls, false))
+        .unwrap()
+        .into_iter()
+        .map(|r| match r {
+            CallResult::Ok(v) => v,
+            CallResult::Err(e) => panic!("Mach3 call failed: {e}"),
+        })
+        .collect()
+}
+
+fn dro(client: &mut AgentClient, code: i16) -> f64 {
+    mach3(client, vec![Call::GetOemDro { code }])[0]
+        .as_f64()
+        .unwrap()
+}
+
+fn led(client: &mut AgentClient, code: i16) -> bool {
+    mach3(client, vec![Call::GetOemLed { code }])[0]
+        .as_bool()
+        .unwrap()
+}
+
+fn machine(s: &Server, name: &str, agent: &Agent) -> i64 {
+    s.create_machine(&json!({
+        "name": name, "backend": "mach3-oem", "max_jog_mm": 20.0,
+        "config": {"agent": agent.addr, "secret": SECRET, "poll_hz": 20},
+    }))
+}
+
+fn command(s: &Server, m: i64, body: Value) -> Value {
+    s.post(&format!("/api/v1/machines/{m}/commands"), &body)
+        .expect(200)
+}
+
+fn jog(s: &Server, m: i64, axis: &str, distance: f64) {
+    s.post(
+        &format!("/api/v1/machines/{m}/jog"),
+        &json!({"axis": axis, "distance": distance, "feed": 600.0}),
+    )
+    .expect(200);
+}
+
+fn pos(st: &Value, kind: &str, axis: &str) -> f64 {
+    st[kind][axis].as_f64().unwrap_or(0.0)
+}
+
+/// Waits until the machine is idle with work X and Y exactly at the given values.
+fn wait_idle_at(s: &Server, m: i64, x: f64, y: f64) -> Value {
+    s.wait_status(m, T, &format!("idle at work x {x}, y {y}"), |st| {
+        st["state"] == "idle"
+            && pos(st, "work_position", "x") == x
+            && pos(st, "work_position", "y") == y
+    })
+}
+
+/// Mach3 starts in reset, like the real one: the machine shows an alarm until reset.
+fn reset_to_idle(s: &Server, m: i64) {
+    let st = s.wait_machine_state(m, "alarm", T);
+    assert!(st["alarm"].as_str().unwrap().contains("reset"), "{st}");
+    command(s, m, json!({"command": "reset"}));
+    s.wait_machine_state(m, "idle", T);
+}
+
+#[test]
+fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode() {
+    let agent = Agent::start("127.0.0.1:0");
+    let mut mach = agent.client();
+    let s = Server::start();
+    let m = machine(&s, "mach3", &agent);
+
+    // In reset nothing may move: the jog is refused and Mach3 was not touched.
+    let st = s.wait_machine_state(m, "alarm", T);
+    assert!(st["alarm"].as_str().unwrap().contains("reset"), "{st}");
+    let r = s.post(
+        &format!("/api/v1/machines/{m}/jog"),
+        &json!({"axis": "X", "distance": 1.0}),
+    );
+    assert_eq!(r.status, 422, "{r:?}");
+    assert!(
+        r.body["message"].as_str().unwrap().contains("alarm"),
+        "{r:?}"
+    );
+    command(&s, m, json!({"command": "reset"}));
+    s.wait_machine_state(m, "idle", T);
+    assert!(!led(&mut mach, 800), "reset cleared Mach3's reset LED");
+
+    // Mach3 left in G91 G0 F250 by someone: the jog is exact and puts all of it back.
+    mach3(
+        &mut mach,
+        vec![Call::Code {
+            line: "G91 G0 F250".into(),
+        }],
+    );
+    jog(&s, m, "X", 1.5);
+    wait_idle_at(&s, m, 1.5, 0.0);
+    assert_eq!(dro(&mut mach, 800), 1.5, "X DRO");
+    assert!(led(&mut mach, 48), "G91 restored");
+    assert_eq!(dro(&mut mach, 819), 0.0, "G0 restored");
+    assert_eq!(dro(&mut mach, 818), 250.0, "F250 restored");
+
+    // Now in G90 G1 F300: the jog is still incremental, and G90 G1 F300 come back.
+    mach3(
+        &mut mach,
+        vec![Call::Code {
+            line: "G90 G1 F300".into(),
+        }],
+    );
+    jog(&s, m, "Y", -2.25);
+    jog(&s, m, "X", 1.25);
+    let st = wait_idle_at(&s, m, 2.75, -2.25);
+    assert_eq!(pos(&st, "machine_position", "x"), 2.75);
+    assert!(!led(&mut mach, 48), "G90 restored");
+    assert_eq!(dro(&mut mach, 819), 1.0, "G1 restored");
+    assert_eq!(dro(&mut mach, 818), 300.0, "F300 restored");
+
+    // Zero X presses Mach3's zero button: the fixture offset takes the machine position.
+    let r = command(&s, m, json!({"command": "zero", "axis": "X"}));
+    let g54 = &r["result"]["offsets"]["offsets"][0];
+    assert_eq!(g54[0], "G54", "{r}");
+    assert_eq!(g54[1]["x"], 2.75, "{r}");
+    let st = s.wait_status(m, T, "work x 0 after zero", |st| {
+        pos(st, "work_position", "x") == 0.0
+    });
+    assert_eq!(pos(&st, "work_position", "y"), -2.25, "{st}");
+    assert_eq!(dro(&mut mach, 830), 2.75, "X fixture DRO");
+
+    // The active offset is written to the fixture DROs; another one through G10 L2.
+    s.put(
+        &format!("/api/v1/machines/{m}/offsets/G54"),
+        &json!({"x": 10.0}),
+    )
+    .expect(200);
+    assert_eq!(dro(&mut mach, 830), 10.0);
+    s.wait_status(m, T, "work x -7.25", |st| {
+        pos(st, "work_position", "x") == -7.25
+    });
+    s.put(
+        &format!("/api/v1/machines/{m}/offsets/G55"),
+        &json!({"x": 1.5, "z": -3.0}),
+    )
+    .expect(200);
+    assert_eq!(dro(&mut mach, 46), 1.0, "G54 still active in Mach3");
+    assert_eq!(dro(&mut mach, 830), 10.0, "G54 untouched");
+    command(&s, m, json!({"command": "select_offset", "offset": "G55"}));
+    let st = s.wait_status(m, T, "G55 active", |st| st["active_offset"] == "G55");
+    assert_eq!(pos(&st, "work_position", "x"), 2.75 - 1.5, "{st}");
+    assert_eq!(pos(&st, "work_position", "z"), 3.0, "{st}");
+    assert_eq!(dro(&mut mach, 46), 2.0);
+    // Reading all offsets visits each fixture and leaves G55 selected.
+    let off = s.get(&format!("/api/v1/machines/{m}/offsets")).expect(200);
+    assert_eq!(off["active"], "G55", "{off}");
+    assert_eq!(off["offsets"]["G54"]["x"], 10.0, "{off}");
+    assert_eq!(off["offsets"]["G55"]["z"], -3.0, "{off}");
+    assert_eq!(dro(&mut mach, 46), 2.0, "G55 still selected in Mach3");
+
+    // A program without M2/M30, over before the first poll sees it run, with trailing
+    // comment and blank lines: Mach3 stops on its last active line, which is completion.
+    let job = s.upload(m, "short", "G21 G90\nG1 X1 F600\nG1 X2\n(done)\n\n")["id"]
+        .as_i64()
+        .unwrap();
+    s.job_action(job, "start").expect(200);
+    let j = s.wait_job_state(job, "completed", T);
+    assert_eq!(j["line"], 5, "{j}");
+    assert_eq!(dro(&mut mach, 800), 2.0);
+}
+
+#[test]
+fn a_program_runs_to_completion_with_progress_feed_hold_and_reset_toggles_right() {
+    let mut agent = Agent::start("127.0.0.1:0");
+    let mut mach = agent.client();
+    let s = Server::start();
+    let m = machine(&s, "mach3", &agent);
+    reset_to_idle(&s, m);
+
+    let program = std::fs::read(corpus(PROGRAM)).unwrap();
+    let job = s.upload(m, "jig", program)["id"].as_i64().unwrap();
+    let total = s.job(job)["line_count"].as_i64().unwrap();
+    s.job_action(job, "start").expect(200);
+    let j = s.wait_job(job, T, "progress", |j| {
+        j["state"] == "running" && j["line"].as_i64().unwrap() > 20
+    });
+    assert!(j["line"].as_i64().unwrap() < total, "{j}");
+    assert!(led(&mut mach, 804), "Mach3 runs the program");
+
+    // Feed hold: Mach3 pauses and nothing moves until resumed.
+    s.job_action(job, "pause").expect(200);
+    s.wait_machine_state(m, "paused", T);
+    assert!(led(&mut mach, 805));
+    let at = |c: &mut AgentClient| [dro(c, 800), dro(c, 801), dro(c, 802), dro(c, 816)];
+    let held = at(&mut mach);
+    std::thread::sleep(Duration::from_millis(200)); // observing stillness, not synchronising
+    assert_eq!(at(&mut mach), held, "nothing moves in feed hold");
+    s.job_action(job, "resume").expect(200);
+
+    let j = s.wait_job_state(job, "completed", T);
+    assert_eq!(j["line"].as_i64().unwrap(), total, "{j}");
+    assert_eq!(j["percent"], 100.0, "{j}");
+    assert_eq!(dro(&mut mach, 816), 0.0, "M30 rewound Mach3");
+    let st = s.wait_machine_state(m, "idle", T);
+    assert!(st["job"].is_null(), "{st}");
+
+    // Cancel mid-run: Mach3 is stopped (Stop button) and the run ends cancelled, not failed.
+    s.job_action(job, "start").expect(200);
+    s.wait_job(job, T, "progress of the second run", |j| {
+        j["state"] == "running" && j["line"].as_i64().unwrap() > 5
+    });
+    s.job_action(job, "cancel").expect(200);
+    s.wait_job_state(job, "cancelled", T);
+    s.wait_machine_state(m, "idle", T);
+    assert!(!led(&mut mach, 804), "Mach3 stopped");
+
+    // Reset when not in reset must not press Mach3's Reset toggle (that would latch it).
+    for _ in 0..2 {
+        command(&s, m, json!({"command": "reset"}));
+        assert!(!led(&mut mach, 800), "reset never toggles into e-stop");
+        assert_eq!(s.status(m)["state"], "idle");
+    }
+    // The operator hits Reset on the Mach3 screen: alarm; reset clears it, twice is still clear.
+    agent.press(1021);
+    s.wait_machine_state(m, "alarm", T);
+    for _ in 0..2 {
+        command(&s, m, json!({"command": "reset"}));
+        assert!(!led(&mut mach, 800));
+        assert_eq!(s.status(m)["state"], "idle");
+    }
+}
+
+#[test]
+fn losing_the_agent_mid_job_goes_offline_and_the_job_resumes_later() {
+    let mut agent = Agent::start("127.0.0.1:0");
+    let s = Server::start();
+    let m = machine(&s, "mach3", &agent);
+    reset_to_idle(&s, m);
+    let job = s.upload(m, "jig", std::fs::read(corpus(PROGRAM)).unwrap())["id"]
+        .as_i64()
+        .unwrap();
+    let total = s.job(job)["line_count"].as_i64().unwrap();
+    s.job_action(job, "start").expect(200);
+    s.wait_job(job, T, "progress", |j| j["line"].as_i64().unwrap() > 20);
+
+    agent.kill();
+    let st = s.wait_machine_state(m, "offline", T);
+    assert!(
+        st["reason"].as_str().unwrap().contains("agent"),
+        "the reason names the agent: {st}"
+    );
+    let j = s.wait_job_state(job, "failed", T);
+    let stopped_at = j["line"].as_i64().unwrap();
+    assert!(stopped_at > 20 && stopped_at < total, "{j}");
+    assert!(
+        j["run"]["message"].as_str().unwrap().contains("resume"),
+        "{j}"
+    );
+    // The server stays responsive; machine calls fail at once with the reason.
+    let r = s.post(
+        &format!("/api/v1/machines/{m}/jog"),
+        &json!({"axis": "X", "distance": 1.0}),
+    );
+    assert!(
+        r.body["message"].as_str().unwrap().contains("agent"),
+        "{r:?}"
+    );
+
+    // The agent comes back (Mach3 restarted with it, in reset): the plugin reconnects by itself.
+    let agent = Agent::start(&agent.addr.clone());
+    reset_to_idle(&s, m);
+    s.job_action(job, "resume").expect(200);
+    let st = s.wait_status(m, T, "running the resumed run", |st| st["line"].is_u64());
+    assert!(
+        st["line"].as_i64().unwrap() > stopped_at,
+        "resumed after line {stopped_at}: {st}"
+    );
+    let j = s.wait_job_state(job, "completed", T);
+    assert_eq!(j["line"].as_i64().unwrap(), total, "{j}");
+    drop(agent);
+}
+
+#[test]
+fn mach3_closing_shows_offline_with_that_reason_and_recovers() {
+    let agent = Agent::start("127.0.0.1:0");
+    let s = Server::start();
+    let m = machine(&s, "mach3", &agent);
+    reset_to_idle(&s, m);
+    let mut stdin = &agent.stdin;
+    writeln!(stdin, "close").unwrap();
+    let st = s.wait_machine_state(m, "offline", T);
+    assert!(
+        st["reason"]
+            .as_str()
+            .unwrap()
+            .contains("Mach3 is not running"),
+        "{st}"
+    );
+    writeln!(stdin, "open").unwrap();
+    // Mach3 restarted comes back in reset.
+    s.wait_machine_state(m, "alarm", T);
+    wait_for(T, "status answers", || Some(s.status(m)));
+}
+
+#[test]
+fn an_agent_that_never_answers_or_is_absent_gives_offline_not_a_hang() {
+    // Accepts connections (the kernel does) but never says hello.
+    let silent = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    // Nothing listens here once the listener is dropped.
+    let absent = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap();
+    let s = Server::start();
+    for (name, addr, why) in [
+        ("silent", silent.local_addr().unwrap().to_string(), "hello"),
+        ("absent", absent.to_string(), "agent"),
+    ] {
+        let m = s.create_machine(&json!({
+            "name": name, "backend": "mach3-oem",
+            "config": {"agent": addr, "secret": SECRET, "timeout_ms": 300},
+        }));
+        let st = s.wait_machine_state(m, "offline", T);
+        let reason = st["reason"].as_str().unwrap();
+        assert!(reason.contains(&addr) && reason.contains(why), "{st}");
+        // Commands fail with the reason instead of hanging.
+        let r = s.post(
+            &format!("/api/v1/machines/{m}/commands"),
+            &json!({"command": "cycle_start"}),
+        );
+        assert!(r.status >= 400, "{r:?}");
+        assert!(
+            r.body["message"].as_str().unwrap().contains("offline"),
+            "{r:?}"
+        );
+    }
+    drop(silent);
+}
