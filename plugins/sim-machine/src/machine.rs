@@ -692,6 +692,10 @@ impl Core {
                 sh.set_state(MachineState::Jogging, ev);
                 Ok(json!({}))
             }),
+            Command::SetOutput { name, .. } => Err(PluginError::new(
+                "unsupported",
+                format!("sim-machine has no output {name:?}"),
+            )),
             Command::SelectOffset { offset } => self.with(|sh, ev| {
                 sh.require_still("select an offset")?;
                 sh.active = offset;
