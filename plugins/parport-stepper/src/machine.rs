@@ -468,7 +468,6 @@ impl Core {
         plan: &Plan,
         run: Option<(i64, u32)>,
     ) -> Result<(), Interrupted> {
-        let tick_hz = self.cfg.machine.tick_hz;
         let mut t: u64 = 0;
         let mut next_ack = run.map_or(1, |r| r.1);
         let mut line_dev: Option<(u32, f64)> = None;
@@ -483,7 +482,8 @@ impl Core {
         }
         for item in &plan.items {
             if let Some((run, _)) = run {
-                if item.line >= next_ack {
+                // The first item of a later line: every line before it is done.
+                if item.line > next_ack {
                     self.line_done(run, item.line - 1, &mut next_ack, &mut line_dev, t, plan)?;
                     self.with(|sh, _| sh.line = Some(item.line));
                 }
@@ -555,7 +555,6 @@ impl Core {
         if let Some((run, _)) = run {
             self.line_done(run, plan.lines, &mut next_ack, &mut line_dev, t, plan)?;
         }
-        let _ = tick_hz;
         Ok(())
     }
 
