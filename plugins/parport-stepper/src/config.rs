@@ -184,7 +184,9 @@ fn travel(v: &Value) -> Result<[Option<(f64, f64)>; 2], PluginError> {
             }
         };
         let pair = range.as_array().filter(|a| a.len() == 2).ok_or_else(|| {
-            invalid(format!("`travel.{key}` must be [min, max] in mm, got {range}"))
+            invalid(format!(
+                "`travel.{key}` must be [min, max] in mm, got {range}"
+            ))
         })?;
         let name = format!("travel.{key}");
         let (min, max) = (number(&name, &pair[0])?, number(&name, &pair[1])?);
@@ -338,17 +340,13 @@ impl Config {
         let mut axes_v: Option<&Map<String, Value>> = None;
         for (key, v) in obj {
             match key.as_str() {
-                "port" => {
-                    port = Some(match v.as_str() {
-                        Some("sim") => PortSpec::Sim,
-                        Some(p) if p.starts_with("/dev/") => PortSpec::Ppdev(PathBuf::from(p)),
-                        _ => {
-                            return Err(invalid(format!(
-                                "`port` must be \"sim\" or a ppdev device like \"/dev/parport0\", got {v}"
-                            )))
-                        }
-                    })
-                }
+                "port" => port = Some(match v.as_str() {
+                    Some("sim") => PortSpec::Sim,
+                    Some(p) if p.starts_with("/dev/") => PortSpec::Ppdev(PathBuf::from(p)),
+                    _ => return Err(invalid(format!(
+                        "`port` must be \"sim\" or a ppdev device like \"/dev/parport0\", got {v}"
+                    ))),
+                }),
                 "tick_hz" => tick_hz = positive(key, v)?,
                 "idle_off_ms" => idle_off_ms = positive(key, v)?,
                 "spin_us" => spin_us = non_negative(key, v)?,
@@ -476,12 +474,30 @@ mod tests {
         for (cfg, needle) in [
             (json!({}), "`port` is required"),
             (json!({"port":"lpt1"}), "`port`"),
-            (json!({"port":"sim","axes":{"x":{"excitation":"micro"}}}), "axes.x.excitation"),
-            (json!({"port":"sim","axes":{"y":{"coil_bits":[0,1,2,3]}}}), "data bit 0 is used twice"),
-            (json!({"port":"sim","inputs":[{"pin":9,"function":"estop"}]}), "inputs[0].pin"),
-            (json!({"port":"sim","axes":{"x":{"max_rate":20000}}}), "axes.x.max_rate"),
-            (json!({"port":"sim","speed":1}), "unknown config key `speed`"),
-            (json!({"port":"/dev/parport0","sim_inputs":[{"pin":10}]}), "sim_inputs"),
+            (
+                json!({"port":"sim","axes":{"x":{"excitation":"micro"}}}),
+                "axes.x.excitation",
+            ),
+            (
+                json!({"port":"sim","axes":{"y":{"coil_bits":[0,1,2,3]}}}),
+                "data bit 0 is used twice",
+            ),
+            (
+                json!({"port":"sim","inputs":[{"pin":9,"function":"estop"}]}),
+                "inputs[0].pin",
+            ),
+            (
+                json!({"port":"sim","axes":{"x":{"max_rate":20000}}}),
+                "axes.x.max_rate",
+            ),
+            (
+                json!({"port":"sim","speed":1}),
+                "unknown config key `speed`",
+            ),
+            (
+                json!({"port":"/dev/parport0","sim_inputs":[{"pin":10}]}),
+                "sim_inputs",
+            ),
         ] {
             let e = Config::from_json(&cfg).unwrap_err();
             assert!(e.message.contains(needle), "{cfg}: {}", e.message);

@@ -67,7 +67,11 @@ struct Loaded {
 
 #[derive(Debug)]
 enum Job {
-    Jog { axis: Axis, distance: f64, feed: f64 },
+    Jog {
+        axis: Axis,
+        distance: f64,
+        feed: f64,
+    },
     GoToZero,
     Program(Loaded),
 }
@@ -442,7 +446,8 @@ impl Core {
     /// not held. Every started tick reads the inputs and the stop / hold flags.
     fn advance(&self, out: &mut Output, t: &mut u64) -> Result<(), Interrupted> {
         loop {
-            out.end(true).map_err(|e| Interrupted::Alarm(format!("parallel port I/O failed: {e}")))?;
+            out.end(true)
+                .map_err(|e| Interrupted::Alarm(format!("parallel port I/O failed: {e}")))?;
             let trip = out
                 .begin()
                 .map_err(|e| Interrupted::Alarm(format!("parallel port I/O failed: {e}")))?;
@@ -501,7 +506,8 @@ impl Core {
                             Some((l, d)) if *l == item.line => *d = d.max(s.deviation_mm),
                             _ => line_dev = Some((item.line, s.deviation_mm)),
                         }
-                        if out.tick & 0xff == 0 && last_publish.elapsed() >= self.cfg.status_interval
+                        if out.tick & 0xff == 0
+                            && last_publish.elapsed() >= self.cfg.status_interval
                         {
                             last_publish = Instant::now();
                             let pos = out.pos;
@@ -895,14 +901,15 @@ impl Core {
                 actual = actual.max(last.saturating_add(1));
             }
         }
-        let plan = planner::plan_program(&self.cfg.machine, &text, &start, actual).map_err(|m| {
-            let code = if m.contains("outside the travel") {
-                "out_of_travel"
-            } else {
-                "invalid_program"
-            };
-            PluginError::new(code, m)
-        })?;
+        let plan =
+            planner::plan_program(&self.cfg.machine, &text, &start, actual).map_err(|m| {
+                let code = if m.contains("outside the travel") {
+                    "out_of_travel"
+                } else {
+                    "invalid_program"
+                };
+                PluginError::new(code, m)
+            })?;
         let end = plan.lines.saturating_add(1);
         if start_line > end {
             return Err(PluginError::invalid(format!(

@@ -136,7 +136,10 @@ impl Move {
         ideal: [[f64; 2]; 2],
         feed_mm_min: Option<f64>,
     ) -> Move {
-        let d = [(to[0] - from[0]).unsigned_abs(), (to[1] - from[1]).unsigned_abs()];
+        let d = [
+            (to[0] - from[0]).unsigned_abs(),
+            (to[1] - from[1]).unsigned_abs(),
+        ];
         let n = d[0].max(d[1]);
         let nf = n.max(1) as f64;
         // Limits of each axis, expressed in major-axis steps.
@@ -262,7 +265,10 @@ impl Iterator for MoveSteps<'_> {
 pub enum Action {
     Move(Move),
     /// Tool lift on (up) or off (down), then wait `settle` ticks.
-    Lift { on: bool, settle: u64 },
+    Lift {
+        on: bool,
+        settle: u64,
+    },
     /// G4: wait this many ticks.
     Dwell(u64),
     /// M0: hold until resumed.

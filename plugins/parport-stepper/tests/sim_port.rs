@@ -70,7 +70,9 @@ impl Rig {
         self.m
             .request(json!({"op":"load_program","run":1,"path":path,"start_line":1}))
             .unwrap();
-        self.m.request(json!({"op":"run","action":"start"})).unwrap();
+        self.m
+            .request(json!({"op":"run","action":"start"}))
+            .unwrap();
         self.wait(|e| matches!(e, Event::RunEnded { .. }))
     }
 
@@ -161,7 +163,16 @@ fn sim(extra: Value) -> Value {
 fn diagonal_is_straight_and_ends_exactly_then_coils_go_off() {
     let r = rig("diag", sim(json!({})));
     let end = r.run("G21 G90\nG1 X60 Y30 F600\nG1 X-7.5 Y12.25\n");
-    assert!(matches!(end, Event::RunEnded { outcome: fresa_plugin_api::contract::RunOutcome::Completed, .. }), "{end:?}");
+    assert!(
+        matches!(
+            end,
+            Event::RunEnded {
+                outcome: fresa_plugin_api::contract::RunOutcome::Completed,
+                ..
+            }
+        ),
+        "{end:?}"
+    );
     let writes = r.writes_after_idle();
     let path = replay(&r.cfg.coils, &writes);
     // Line 2: (0,0) -> (1200, 600) steps; every point within one step of the line.
@@ -195,7 +206,10 @@ fn diagonal_is_straight_and_ends_exactly_then_coils_go_off() {
         .map(|w| w[1].0)
         .unwrap();
     let idle = off.tick - last_step;
-    assert!((300..=302).contains(&idle), "de-energised after {idle} ticks");
+    assert!(
+        (300..=302).contains(&idle),
+        "de-energised after {idle} ticks"
+    );
     // Status agrees.
     let st = r.m.request(json!({"op":"status"})).unwrap();
     assert_eq!(st["machine_position"]["x"], -7.5);
@@ -207,8 +221,10 @@ fn arcs_stay_near_the_circle_and_report_deviation_per_line() {
     for exc in ["full_step", "wave", "half_step"] {
         let r = rig(
             "arc",
-            sim(json!({"axes":{"x":{"steps_per_mm":20,"max_rate":2000,"accel":20000,"excitation":exc},
-                               "y":{"steps_per_mm":20,"max_rate":2000,"accel":20000,"excitation":exc}}})),
+            sim(
+                json!({"axes":{"x":{"steps_per_mm":20,"max_rate":2000,"accel":20000,"excitation":exc},
+                               "y":{"steps_per_mm":20,"max_rate":2000,"accel":20000,"excitation":exc}}}),
+            ),
         );
         r.run("G21 G90\nG0 X10 Y0\nG3 X-10 Y0 I-10 J0 F600\n");
         let writes = r.writes_after_idle();
@@ -246,8 +262,10 @@ fn arcs_stay_near_the_circle_and_report_deviation_per_line() {
 fn limit_input_stops_within_one_tick_alarms_and_fails_the_run() {
     let r = rig(
         "limit",
-        sim(json!({"inputs":[{"pin":10,"function":"limit_x"},{"pin":11,"function":"estop","active_low":true}],
-                   "sim_inputs":[{"after_writes":100,"pin":10,"level":"high"}]})),
+        sim(
+            json!({"inputs":[{"pin":10,"function":"limit_x"},{"pin":11,"function":"estop","active_low":true}],
+                   "sim_inputs":[{"after_writes":100,"pin":10,"level":"high"}]}),
+        ),
     );
     let end = r.run("G1 X50 Y5 F600\n");
     match &end {
@@ -270,24 +288,37 @@ fn limit_input_stops_within_one_tick_alarms_and_fails_the_run() {
         .find(|(_, v)| pins::input_level(*v, 10))
         .map(|(t, _)| *t)
         .expect("the loop read the limit");
-    let data: Vec<_> = p.writes.iter().filter(|w| w.register == Register::Data).collect();
+    let data: Vec<_> = p
+        .writes
+        .iter()
+        .filter(|w| w.register == Register::Data)
+        .collect();
     // The 100th write (a step) set the input; it was read at the next tick, in which the only
     // write is all coils off, and nothing is written after it.
     let trip_write = data.iter().position(|w| w.tick >= limit_seen).unwrap();
     assert_eq!(trip_write, 100);
     assert_eq!(data[trip_write].value, 0);
-    assert_eq!(data[trip_write].tick, limit_seen, "stopped in the tick that saw the input");
-    assert!(limit_seen - data[99].tick <= 40, "read within one step period");
+    assert_eq!(
+        data[trip_write].tick, limit_seen,
+        "stopped in the tick that saw the input"
+    );
+    assert!(
+        limit_seen - data[99].tick <= 40,
+        "read within one step period"
+    );
     assert_eq!(data.len(), 101, "no write after the stop");
     drop(p);
     // Motion is refused until reset.
-    let e = r
-        .m
-        .request(json!({"op":"jog","axis":"X","distance":-1.0}))
-        .unwrap_err();
+    let e =
+        r.m.request(json!({"op":"jog","axis":"X","distance":-1.0}))
+            .unwrap_err();
     assert_eq!(e.code, "alarm");
-    r.m.request(json!({"op":"command","command":"reset"})).unwrap();
-    assert_eq!(r.m.request(json!({"op":"status"})).unwrap()["state"], "idle");
+    r.m.request(json!({"op":"command","command":"reset"}))
+        .unwrap();
+    assert_eq!(
+        r.m.request(json!({"op":"status"})).unwrap()["state"],
+        "idle"
+    );
 }
 
 #[test]

@@ -1,0 +1,151 @@
+//! The parport-stepper backend end to end through the server's API, on its simulated port:
+//! a program run (with the process monitor's line reports on the event stream), jog, zero, the
+//! Z-lift output, and a limit input that stops the job with an alarm naming the pin.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fresa_tests::serde_json::{json, Value};
+use fresa_tests::{Server, SseEvent};
+use std::time::Duration;
+
+const T: Duration = Duration::from_secs(60);
+
+/// A fast simulated router: 20 steps/mm, 2000 steps/s, 5 kHz ticks.
+fn parport_machine(s: &Server, name: &str, extra: Value) -> i64 {
+    let mut config = json!({
+        "port": "sim",
+        "tick_hz": 5000,
+        "spin_us": 0,
+        "realtime_priority": false,
+        "execution_log": s.root().join(format!("exec-{name}.log")),
+        "axes": {
+            "x": {"steps_per_mm": 20, "max_rate": 2000, "accel": 40000},
+            "y": {"steps_per_mm": 20, "max_rate": 2000, "accel": 40000}
+        },
+        "z_lift": {"settle_ms": 5}
+    });
+    for (k, v) in extra.as_object().unwrap() {
+        config[k] = v.clone();
+    }
+    s.create_machine(&json!({"name": name, "backend": "parport-stepper", "config": config}))
+}
+
+fn axis(st: &Value, pos: &str, a: &str) -> f64 {
+    st[pos][a]
+        .as_f64()
+        .unwrap_or_else(|| panic!("no {pos}.{a} in {st}"))
+}
+
+#[test]
+fn runs_a_program_with_line_reports_then_jogs_zeroes_and_lifts() {
+    let s = Server::start();
+    let m = parport_machine(&s, "router", json!({}));
+    s.wait_machine_state(m, "idle", T);
+    let events = s.events("types=job.line_report", None);
+
+    let program =
+        "G21 G90\nG0 Z5\nG0 X10 Y5\nG1 Z-1 F300\nG1 X20 Y10 F1200\nG2 X30 Y10 I5 J0\nG0 Z5\nM2\n";
+    let job = s.upload(m, "part.nc", program);
+    let id = job["id"].as_i64().unwrap();
+    s.job_action(id, "start").expect(200);
+    let done = s.wait_job_state(id, "completed", T);
+    assert_eq!(done["line"], 8, "{done}");
+    let st = s.wait_machine_state(m, "idle", T);
+    assert_eq!(axis(&st, "machine_position", "x"), 30.0);
+    assert_eq!(axis(&st, "machine_position", "y"), 10.0);
+    assert_eq!(axis(&st, "machine_position", "z"), 5.0);
+
+    // The process monitor: one report per line that moved XY, with the deviation, the percent
+    // done and the time left, ending at 100 %.
+    let seen = events.until(T, "line report of line 6", |e: &SseEvent| {
+        e.data["data"]["line"] == 6
+    });
+    let reports: Vec<&Value> = seen.iter().map(|e| &e.data["data"]).collect();
+    let lines: Vec<i64> = reports
+        .iter()
+        .map(|r| r["line"].as_i64().unwrap())
+        .collect();
+    assert_eq!(lines, [3, 5, 6], "{reports:?}");
+    for r in &reports {
+        assert_eq!(r["job"], id);
+        let dev = r["max_deviation_mm"].as_f64().unwrap();
+        // Within one step (0.05 mm) of the programmed line.
+        assert!((0.0..=0.05).contains(&dev), "{r}");
+    }
+    let last = reports[2];
+    assert!(last["percent"].as_f64().unwrap() > 50.0, "{last}");
+    assert!(last["remaining_s"].as_f64().unwrap() >= 0.0, "{last}");
+
+    // Jog (bounded by the host), zero, and the Z lift by hand.
+    s.post(
+        &format!("/api/v1/machines/{m}/jog"),
+        &json!({"axis": "X", "distance": -2.5, "feed": 600}),
+    )
+    .expect(200);
+    let st = s.wait_status(m, T, "jog done", |st| {
+        st["state"] == "idle" && st["machine_position"]["x"] == 27.5
+    });
+    assert_eq!(axis(&st, "machine_position", "y"), 10.0);
+    s.post(
+        &format!("/api/v1/machines/{m}/commands"),
+        &json!({"command": "zero", "axis": "X"}),
+    )
+    .expect(200);
+    let st = s.status(m);
+    assert_eq!(axis(&st, "work_position", "x"), 0.0);
+    let r = s
+        .post(
+            &format!("/api/v1/machines/{m}/commands"),
+            &json!({"command": "set_output", "name": "z_lift", "on": false}),
+        )
+        .expect(200);
+    assert_eq!(r["result"]["z_lift"], false, "{r}");
+    let e = s
+        .post(
+            &format!("/api/v1/machines/{m}/commands"),
+            &json!({"command": "set_output", "name": "spindle", "on": true}),
+        )
+        .expect_error(422, "invalid_command");
+    assert!(e.contains("set_output") || e.contains("spindle"), "{e}");
+}
+
+#[test]
+fn a_limit_input_stops_the_job_with_an_alarm_naming_the_pin() {
+    let s = Server::start();
+    let m = parport_machine(
+        &s,
+        "limited",
+        json!({
+            "inputs": [{"pin": 10, "function": "limit_x"}, {"pin": 15, "function": "estop", "active_low": true}],
+            "sim_inputs": [{"after_writes": 60, "pin": 10, "level": "high"}]
+        }),
+    );
+    s.wait_machine_state(m, "idle", T);
+    let job = s.upload(m, "long.nc", "G21 G90\nG1 X40 Y2 F1200\nG1 X0 Y0\n");
+    let id = job["id"].as_i64().unwrap();
+    s.job_action(id, "start").expect(200);
+    let failed = s.wait_job(id, T, "failed", |j| j["state"] == "failed");
+    assert!(
+        failed.to_string().contains("limit X (pin 10)"),
+        "the job names the input: {failed}"
+    );
+    let st = s.wait_machine_state(m, "alarm", T);
+    assert_eq!(st["alarm"], "limit X (pin 10)", "{st}");
+    // Stopped early: 60 coil writes is about 3 mm at 20 steps/mm, far from X40.
+    let x = axis(&st, "machine_position", "x");
+    assert!(x > 0.0 && x < 5.0, "stopped at x={x}");
+    // No motion until reset.
+    let e = s
+        .post(
+            &format!("/api/v1/machines/{m}/jog"),
+            &json!({"axis": "X", "distance": -1.0}),
+        )
+        .expect_error(422, "backend_rejected");
+    assert!(e.contains("in alarm (limit X (pin 10))"), "{e}");
+    s.post(
+        &format!("/api/v1/machines/{m}/commands"),
+        &json!({"command": "reset"}),
+    )
+    .expect(200);
+    s.wait_machine_state(m, "idle", T);
+}
