@@ -5,7 +5,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fresa_tests::serde_json::{json, Value};
-use fresa_tests::{Server, SseEvent};
+use fresa_tests::{assert_every_line_once, back_and_forth, read_exec_log, Server, SseEvent};
 use std::time::Duration;
 
 const T: Duration = Duration::from_secs(60);
@@ -147,5 +147,60 @@ fn a_limit_input_stops_the_job_with_an_alarm_naming_the_pin() {
         &json!({"command": "reset"}),
     )
     .expect(200);
+    s.wait_machine_state(m, "idle", T);
+}
+
+#[test]
+fn pause_resume_and_resume_after_a_crash_run_every_line_once() {
+    const LINES: i64 = 200;
+    let mut s = Server::start();
+    let m = parport_machine(
+        &s,
+        "crashy",
+        json!({"axes": {
+            "x": {"steps_per_mm": 20, "max_rate": 2000, "start_rate": 1000, "accel": 40000},
+            "y": {"steps_per_mm": 20, "max_rate": 2000, "start_rate": 1000, "accel": 40000}
+        }}),
+    );
+    let log = s.root().join("exec-crashy.log");
+    s.wait_machine_state(m, "idle", T);
+    // 200 lines of 1 mm (20 steps) at 3000 mm/min: about 25 ms a line.
+    let job = s.upload(m, "slow.nc", back_and_forth(LINES as usize, 1.0, 3000.0))["id"]
+        .as_i64()
+        .unwrap();
+    let run = s.job_action(job, "start").expect(200)["run"]["id"]
+        .as_i64()
+        .unwrap();
+    s.wait_job(job, T, "line >= 20", |j| j["line"].as_i64().unwrap() >= 20);
+
+    // Feed hold: the machine holds, the job stops acknowledging lines.
+    s.job_action(job, "pause").expect(200);
+    s.wait_machine_state(m, "paused", T);
+    let held = s.wait_job_state(job, "paused", T)["line"].as_i64().unwrap();
+    let logged = read_exec_log(&log).len();
+    s.job_action(job, "resume").expect(200);
+    s.wait_job(job, T, "moving again", |j| j["line"].as_i64().unwrap() > held);
+    assert!(read_exec_log(&log).len() > logged);
+
+    // Crash mid-run, come back, resume: every line exactly once.
+    s.wait_job(job, T, "line >= 60", |j| j["line"].as_i64().unwrap() >= 60);
+    s.restart_after_kill();
+    let j = s.job(job);
+    assert_eq!(j["state"], "interrupted", "{j}");
+    s.wait_machine_state(m, "idle", T);
+    s.job_action(job, "resume").expect(200);
+    let j = s.wait_job_state(job, "completed", T);
+    assert_eq!(j["line"], LINES, "{j}");
+    assert_every_line_once(&read_exec_log(&log), run, LINES);
+
+    // Cancel stops a run at once.
+    let other = s.upload(m, "again.nc", back_and_forth(LINES as usize, 1.0, 3000.0))["id"]
+        .as_i64()
+        .unwrap();
+    s.job_action(other, "start").expect(200);
+    s.wait_job(other, T, "line >= 5", |j| j["line"].as_i64().unwrap() >= 5);
+    s.job_action(other, "cancel").expect(200);
+    let j = s.wait_job_state(other, "cancelled", T);
+    assert!(j["line"].as_i64().unwrap() < LINES, "{j}");
     s.wait_machine_state(m, "idle", T);
 }
