@@ -340,13 +340,17 @@ impl Config {
         let mut axes_v: Option<&Map<String, Value>> = None;
         for (key, v) in obj {
             match key.as_str() {
-                "port" => port = Some(match v.as_str() {
-                    Some("sim") => PortSpec::Sim,
-                    Some(p) if p.starts_with("/dev/") => PortSpec::Ppdev(PathBuf::from(p)),
-                    _ => return Err(invalid(format!(
+                "port" => {
+                    port = Some(match v.as_str() {
+                        Some("sim") => PortSpec::Sim,
+                        Some(p) if p.starts_with("/dev/") => PortSpec::Ppdev(PathBuf::from(p)),
+                        _ => {
+                            return Err(invalid(format!(
                         "`port` must be \"sim\" or a ppdev device like \"/dev/parport0\", got {v}"
-                    ))),
-                }),
+                    )))
+                        }
+                    })
+                }
                 "tick_hz" => tick_hz = positive(key, v)?,
                 "idle_off_ms" => idle_off_ms = positive(key, v)?,
                 "spin_us" => spin_us = non_negative(key, v)?,

@@ -33,13 +33,20 @@ impl Pacer {
         self.next = Instant::now();
     }
 
+    /// The deadline of the tick being waited for (or last waited for).
+    pub fn deadline(&self) -> Instant {
+        self.next
+    }
+
     /// Waits for the next tick's deadline.
     pub fn wait(&mut self) {
         let Some(period) = self.period else { return };
         self.next += period;
         let now = Instant::now();
-        if now > self.next + period * 1000 {
-            // Hopelessly late (suspended, overloaded): start over instead of bursting.
+        if now > self.next + period {
+            // A whole tick missed (preempted, overloaded): shift the schedule instead of
+            // catching up, since a burst of late ticks would step a motor faster than its
+            // max rate and lose steps. Motion is delayed, never compressed.
             self.next = now;
             self.overruns += 1;
             return;
@@ -129,9 +136,9 @@ impl Output {
 
     /// Moves the motors to `pos` in this tick (each axis by at most one step).
     pub fn step(&mut self, pos: [i64; 2]) {
-        for i in 0..2 {
-            if pos[i] != self.pos[i] {
-                self.pos[i] = pos[i];
+        for (i, p) in pos.into_iter().enumerate() {
+            if p != self.pos[i] {
+                self.pos[i] = p;
                 self.energised[i] = true;
                 self.last_step[i] = self.tick;
             }

@@ -496,24 +496,20 @@ pub fn plan_program(
         let line = motion.line().clamp(1, lines.max(1));
         let run = line >= start_line;
         match motion {
-            Motion::Rapid { to, .. } => {
-                if run {
-                    let m = [to[0] + offsets_now[0], to[1] + offsets_now[1]];
-                    b.move_to(line, m, to[2] + offsets_now[2], Some(machine.rapid_mm_min))
-                        .map_err(|e| format!("line {line}: {e}"))?;
-                }
+            Motion::Rapid { to, .. } if run => {
+                let m = [to[0] + offsets_now[0], to[1] + offsets_now[1]];
+                b.move_to(line, m, to[2] + offsets_now[2], Some(machine.rapid_mm_min))
+                    .map_err(|e| format!("line {line}: {e}"))?;
             }
             Motion::Linear {
                 to, feed_mm_min, ..
             }
             | Motion::Arc {
                 to, feed_mm_min, ..
-            } => {
-                if run {
-                    let m = [to[0] + offsets_now[0], to[1] + offsets_now[1]];
-                    b.move_to(line, m, to[2] + offsets_now[2], Some(feed_mm_min))
-                        .map_err(|e| format!("line {line}: {e}"))?;
-                }
+            } if run => {
+                let m = [to[0] + offsets_now[0], to[1] + offsets_now[1]];
+                b.move_to(line, m, to[2] + offsets_now[2], Some(feed_mm_min))
+                    .map_err(|e| format!("line {line}: {e}"))?;
             }
             Motion::Dwell { seconds, .. } if run => b.dwell(line, seconds),
             Motion::Pause {
@@ -587,8 +583,8 @@ mod tests {
             count += 1;
             assert!(s.tick > prev_tick, "ticks strictly increase");
             prev_tick = s.tick;
-            for i in 0..2 {
-                assert!((s.pos[i] - prev[i]).abs() <= 1);
+            for (now, before) in s.pos.iter().zip(prev) {
+                assert!((now - before).abs() <= 1, "one step per axis per slot");
             }
             let k = (s.pos[major] - from[major]).abs() as f64;
             for i in 0..2 {
