@@ -179,7 +179,9 @@ fn pause_resume_and_resume_after_a_crash_run_every_line_once() {
     let held = s.wait_job_state(job, "paused", T)["line"].as_i64().unwrap();
     let logged = read_exec_log(&log).len();
     s.job_action(job, "resume").expect(200);
-    s.wait_job(job, T, "moving again", |j| j["line"].as_i64().unwrap() > held);
+    s.wait_job(job, T, "moving again", |j| {
+        j["line"].as_i64().unwrap() > held
+    });
     assert!(read_exec_log(&log).len() > logged);
 
     // Crash mid-run, come back, resume: every line exactly once.

@@ -202,7 +202,10 @@ pub enum Command {
     // --- parport-stepper additions (issue 7) ---
     /// Switch a named digital output on or off, e.g.
     /// `{"command":"set_output","name":"z_lift","on":true}`. Refused while the machine moves.
-    SetOutput { name: OutputName, on: bool },
+    SetOutput {
+        name: OutputName,
+        on: bool,
+    },
 }
 
 /// Digital outputs a backend may expose to `Command::SetOutput`.

@@ -495,7 +495,7 @@ impl Core {
             }
             match &item.action {
                 Action::Move(mv) => {
-                    self.with(|sh, _| sh.feed = mv.profile.peak_rate());
+                    self.with(|sh, _| sh.feed = mv.peak_feed_mm_min());
                     for s in mv.steps() {
                         let at = item.start_tick + s.tick;
                         while t < at {
@@ -518,10 +518,14 @@ impl Core {
                         }
                     }
                 }
-                Action::Lift { on, settle } => {
+                Action::Lift { on, settle, z } => {
                     out.set_lift(*on);
-                    let on = *on;
-                    self.with(|sh, _| sh.lift = on);
+                    let (on, z) = (*on, *z);
+                    self.with(|sh, ev| {
+                        sh.lift = on;
+                        sh.z = z;
+                        self.push_status(sh, ev);
+                    });
                     let until = item.start_tick + settle;
                     while t < until {
                         self.advance(out, &mut t)?;

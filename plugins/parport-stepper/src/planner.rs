@@ -185,6 +185,16 @@ impl Move {
         self.profile.n
     }
 
+    /// Path speed at the top of the profile, mm/min.
+    pub fn peak_feed_mm_min(&self) -> f64 {
+        let d = [
+            (self.to[0] - self.from[0]) as f64 / self.steps_per_mm[0],
+            (self.to[1] - self.from[1]) as f64 / self.steps_per_mm[1],
+        ];
+        let n = self.profile.n.max(1) as f64;
+        self.profile.peak_rate() / n * d[0].hypot(d[1]) * 60.0
+    }
+
     /// The steps, in order.
     pub fn steps(&self) -> MoveSteps<'_> {
         let d = [self.to[0] - self.from[0], self.to[1] - self.from[1]];
@@ -264,10 +274,11 @@ impl Iterator for MoveSteps<'_> {
 #[derive(Debug, Clone, PartialEq)]
 pub enum Action {
     Move(Move),
-    /// Tool lift on (up) or off (down), then wait `settle` ticks.
+    /// Tool lift on (up) or off (down) for commanded machine Z `z`, then wait `settle` ticks.
     Lift {
         on: bool,
         settle: u64,
+        z: f64,
     },
     /// G4: wait this many ticks.
     Dwell(u64),
@@ -379,7 +390,7 @@ impl<'a> Builder<'a> {
         Ok(())
     }
 
-    fn set_lift(&mut self, line: u32, on: bool) {
+    fn set_lift(&mut self, line: u32, on: bool, z: f64) {
         if on != self.lift {
             self.lift = on;
             self.push(
@@ -387,6 +398,7 @@ impl<'a> Builder<'a> {
                 Action::Lift {
                     on,
                     settle: self.machine.lift_settle_ticks,
+                    z,
                 },
             );
         }
@@ -404,7 +416,7 @@ impl<'a> Builder<'a> {
         self.check_travel(to)?;
         let lift = z - self.offset[2] > self.machine.lift_above_mm;
         if lift {
-            self.set_lift(line, true);
+            self.set_lift(line, true, z);
         }
         let spm = [
             self.machine.axes[0].steps_per_mm,
@@ -427,7 +439,7 @@ impl<'a> Builder<'a> {
         }
         self.ideal_xy = to;
         if !lift {
-            self.set_lift(line, false);
+            self.set_lift(line, false, z);
         }
         self.z = z;
         Ok(())
