@@ -2,7 +2,7 @@
 //! the simulated port (which timestamps every write), stepping both motors every tick.
 //!
 //! Run (from the workspace root):
-//!   cargo bench -p fresa-parport-stepper --bench jitter-bench -- [--hz 20000] [--secs 5] [--cpu N]
+//!   cargo bench -p fresa-parport-stepper --bench jitter-bench -- [--hz 20000] [--secs 5] [--cpu N] [--spin-us 20]
 //! `--cpu N` pins the loop to CPU N (pick an idle one). Real-time priority is tried and reported.
 //! Under `cargo test --all-targets` (no `--bench` argument) it does a quick smoke run.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
@@ -29,7 +29,7 @@ fn main() {
     let full = std::env::args().any(|a| a == "--bench");
     let hz = arg("--hz").unwrap_or(20_000.0);
     let secs = arg("--secs").unwrap_or(if full { 5.0 } else { 0.05 });
-    let spin_us = arg("--spin-us").unwrap_or(100.0);
+    let spin_us = arg("--spin-us").unwrap_or(20.0);
     if let Some(cpu) = arg("--cpu") {
         // SAFETY: a zeroed cpu_set_t is valid; CPU_SET writes within it.
         unsafe {
