@@ -7,7 +7,6 @@
 
 pub mod coils;
 pub mod config;
-mod exec_log;
 mod machine;
 pub mod output;
 pub mod pins;

@@ -3,7 +3,6 @@
 //! inputs every tick and reports what happened.
 
 use crate::config::{Config, PortSpec};
-use crate::exec_log::ExecLog;
 use crate::output::{realtime_priority, Output, Pacer};
 use crate::planner::{self, Action, Builder, Plan, Start};
 use crate::port::{Port, SharedSimPort, SimPort};
@@ -11,6 +10,7 @@ use fresa_plugin_api::contract::{
     Axis, AxisValues, Command, Event, MachineState, MachineStatus, OffsetTable, OutputName,
     ProgramLoaded, Request, RunAction, RunOutcome, WorkOffset,
 };
+use fresa_plugin_api::exec_log::ExecLog;
 use fresa_plugin_api::PluginError;
 use serde_json::{json, Value};
 use std::collections::VecDeque;
