@@ -442,9 +442,11 @@ impl Core {
         }
     }
 
-    /// Moves the timeline one tick on: ends the current tick, then starts ticks until one is
-    /// not held. Every started tick reads the inputs and the stop / hold flags.
-    fn advance(&self, out: &mut Output, t: &mut u64) -> Result<(), Interrupted> {
+    /// Moves the timeline one tick on: ends the current tick, then starts real ticks until the
+    /// timeline has advanced by one. Every started tick reads the inputs and the stop / hold
+    /// flags. A feed hold slows the timeline down to a stop along a ramp (and resume speeds it
+    /// up again), so the motors decelerate instead of stopping dead.
+    fn advance(&self, out: &mut Output, tl: &mut Timeline) -> Result<(), Interrupted> {
         loop {
             out.end(true)
                 .map_err(|e| Interrupted::Alarm(format!("parallel port I/O failed: {e}")))?;
@@ -459,8 +461,7 @@ impl Core {
             if self.abort.load(Ordering::SeqCst) {
                 return Err(Interrupted::Aborted);
             }
-            if !self.hold.load(Ordering::SeqCst) {
-                *t += 1;
+            if tl.tick(self.hold.load(Ordering::SeqCst)) {
                 return Ok(());
             }
         }
@@ -473,7 +474,7 @@ impl Core {
         plan: &Plan,
         run: Option<(i64, u32)>,
     ) -> Result<(), Interrupted> {
-        let mut t: u64 = 0;
+        let mut tl = Timeline::new(&self.cfg);
         let mut next_ack = run.map_or(1, |r| r.1);
         let mut line_dev: Option<(u32, f64)> = None;
         let mut last_publish = Instant::now();
@@ -489,7 +490,7 @@ impl Core {
             if let Some((run, _)) = run {
                 // The first item of a later line: every line before it is done.
                 if item.line > next_ack {
-                    self.line_done(run, item.line - 1, &mut next_ack, &mut line_dev, t, plan)?;
+                    self.line_done(run, item.line - 1, &mut next_ack, &mut line_dev, tl.t, plan)?;
                     self.with(|sh, _| sh.line = Some(item.line));
                 }
             }
@@ -498,8 +499,8 @@ impl Core {
                     self.with(|sh, _| sh.feed = mv.peak_feed_mm_min());
                     for s in mv.steps() {
                         let at = item.start_tick + s.tick;
-                        while t < at {
-                            self.advance(out, &mut t)?;
+                        while tl.t < at {
+                            self.advance(out, &mut tl)?;
                         }
                         out.step(s.pos);
                         match &mut line_dev {
@@ -527,18 +528,20 @@ impl Core {
                         self.push_status(sh, ev);
                     });
                     let until = item.start_tick + settle;
-                    while t < until {
-                        self.advance(out, &mut t)?;
+                    while tl.t < until {
+                        self.advance(out, &mut tl)?;
                     }
                 }
                 Action::Dwell(ticks) => {
                     let until = item.start_tick + ticks;
-                    while t < until {
-                        self.advance(out, &mut t)?;
+                    while tl.t < until {
+                        self.advance(out, &mut tl)?;
                     }
                 }
                 Action::Pause => {
+                    // M0 comes between moves, with the motors at rest: hold at once.
                     self.hold.store(true, Ordering::SeqCst);
+                    tl.rate = 0.0;
                     self.with(|sh, ev| {
                         if sh.state == MachineState::Running {
                             self.set_state(sh, MachineState::Paused, ev);
@@ -563,7 +566,7 @@ impl Core {
             sh.lift = plan.end_lift;
         });
         if let Some((run, _)) = run {
-            self.line_done(run, plan.lines, &mut next_ack, &mut line_dev, t, plan)?;
+            self.line_done(run, plan.lines, &mut next_ack, &mut line_dev, tl.t, plan)?;
         }
         Ok(())
     }
@@ -986,6 +989,51 @@ impl Core {
                 self.shutdown();
                 Ok(json!({}))
             }
+        }
+    }
+}
+
+/// A plan's clock: advances by `rate` (0..=1) timeline ticks per real tick. Feed hold ramps
+/// the rate to 0, resume back to 1, each over the time the slowest-accelerating axis needs to
+/// stop from its max rate, so the step rate never changes faster than about twice `accel`.
+struct Timeline {
+    t: u64,
+    rate: f64,
+    phase: f64,
+    ramp_step: f64,
+}
+
+impl Timeline {
+    fn new(cfg: &Config) -> Timeline {
+        let ramp_s = cfg
+            .machine
+            .axes
+            .iter()
+            .map(|a| a.max_rate / a.accel)
+            .fold(0.0, f64::max);
+        let ramp_ticks = (ramp_s * cfg.machine.tick_hz).max(1.0);
+        Timeline {
+            t: 0,
+            rate: 1.0,
+            phase: 0.0,
+            ramp_step: 1.0 / ramp_ticks,
+        }
+    }
+
+    /// One real tick; true when the timeline moved on by one tick.
+    fn tick(&mut self, hold: bool) -> bool {
+        self.rate = if hold {
+            (self.rate - self.ramp_step).max(0.0)
+        } else {
+            (self.rate + self.ramp_step).min(1.0)
+        };
+        self.phase += self.rate;
+        if self.phase >= 1.0 - 1e-9 {
+            self.phase = (self.phase - 1.0).max(0.0);
+            self.t += 1;
+            true
+        } else {
+            false
         }
     }
 }

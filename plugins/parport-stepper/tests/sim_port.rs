@@ -41,6 +41,10 @@ mod tempfile_dir {
 }
 
 fn rig(tag: &str, config: Value) -> Rig {
+    rig_timed(tag, config, Timing::Virtual)
+}
+
+fn rig_timed(tag: &str, config: Value, timing: Timing) -> Rig {
     let cfg = Config::from_json(&config).unwrap();
     let events = Arc::new(Mutex::new(Vec::new()));
     let sink = events.clone();
@@ -48,7 +52,7 @@ fn rig(tag: &str, config: Value) -> Rig {
         &config,
         Arc::new(move |e: &Event| sink.lock().unwrap().push(e.clone())),
         Arc::new(|_, _| {}),
-        Timing::Virtual,
+        timing,
     )
     .unwrap();
     m.request(json!({"op":"connect"})).unwrap();
@@ -357,4 +361,87 @@ fn z_lift_output_and_jogs() {
         assert!(Instant::now() < deadline, "jogs never finished: {st}");
         std::thread::sleep(Duration::from_millis(2));
     }
+}
+
+#[test]
+fn feed_hold_ramps_down_and_resume_ramps_up_on_the_same_line() {
+    // Real ticks at 5 kHz: 1000 steps/s cruise = a step every 5 ticks; the hold ramp is
+    // 1000 / 4000 = 0.25 s.
+    let r = rig_timed(
+        "hold",
+        json!({"port":"sim","tick_hz":5000,"spin_us":0,"realtime_priority":false,
+               "axes":{"x":{"steps_per_mm":20,"max_rate":1000,"start_rate":50,"accel":4000},
+                       "y":{"steps_per_mm":20,"max_rate":1000,"start_rate":50,"accel":4000}}}),
+        Timing::Real,
+    );
+    let path = r._dir.0.join("p.nc");
+    std::fs::write(&path, "G1 X100 Y20 F60000\n").unwrap();
+    r.m.request(json!({"op":"load_program","run":1,"path":path,"start_line":1}))
+        .unwrap();
+    r.m.request(json!({"op":"run","action":"start"})).unwrap();
+    let poll = |what: &str, f: &dyn Fn(&Value) -> bool| {
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            let st = r.m.request(json!({"op":"status"})).unwrap();
+            if f(&st) {
+                return st;
+            }
+            assert!(Instant::now() < deadline, "timed out: {what}; {st}");
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    };
+    poll("cruising", &|st| {
+        st["machine_position"]["x"].as_f64().unwrap() > 15.0
+    });
+    r.m.request(json!({"op":"run","action":"pause"})).unwrap();
+    // Held: wait for the coils to go off (no step for 15 ms), then resume.
+    let port = r.m.sim_port.clone().unwrap();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while port
+        .lock()
+        .writes
+        .iter()
+        .rev()
+        .find(|w| w.register == Register::Data)
+        .is_none_or(|w| w.value != 0)
+    {
+        assert!(Instant::now() < deadline, "never came to rest");
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    r.m.request(json!({"op":"run","action":"resume"})).unwrap();
+    r.wait(|e| matches!(e, Event::RunEnded { .. }));
+    let writes: Vec<Write> = port.lock().writes.iter().copied().collect();
+    let path = replay(&r.cfg.coils, &writes);
+    assert_eq!(
+        path.last().unwrap().1,
+        [2000, 400],
+        "exact end after hold and resume"
+    );
+    // Step ticks of the major axis (X).
+    let steps: Vec<u64> = path
+        .windows(2)
+        .filter(|w| w[0].1[0] != w[1].1[0])
+        .map(|w| w[1].0)
+        .collect();
+    let gaps: Vec<u64> = steps.windows(2).map(|w| w[1] - w[0]).collect();
+    let (hold, _) = gaps.iter().enumerate().max_by_key(|(_, g)| **g).unwrap();
+    let cruise = *gaps.iter().min().unwrap();
+    assert!(cruise <= 6, "cruised at {cruise} ticks a step");
+    // Slowed down before the stop and started slowly after it: the step periods around the
+    // hold are several times the cruise period, and they change gradually.
+    assert!(
+        gaps[hold - 1] >= 4 * cruise,
+        "{:?}",
+        &gaps[hold - 10..hold + 10]
+    );
+    assert!(
+        gaps[hold + 1] >= 4 * cruise,
+        "{:?}",
+        &gaps[hold - 10..hold + 10]
+    );
+    let before = &gaps[hold - 30..hold];
+    assert!(
+        before.windows(2).all(|w| w[1] + 1 >= w[0]),
+        "deceleration never speeds up: {before:?}"
+    );
 }
