@@ -363,9 +363,12 @@ impl Core {
         // Write what the job left (coils off after an alarm) before anyone looks.
         let _ = out.end(false);
         let pos = out.pos;
+        let estop = out.estop_active().map(|i| i.describe());
         let mut sh = self.lock();
         let mut ev = Vec::new();
         sh.busy = false;
+        // Before anyone can send reset after the alarm below.
+        sh.estop = estop;
         self.hold.store(false, Ordering::SeqCst);
         self.abort.store(false, Ordering::SeqCst);
         sh.steps = pos;

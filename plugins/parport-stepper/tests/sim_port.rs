@@ -445,3 +445,39 @@ fn feed_hold_ramps_down_and_resume_ramps_up_on_the_same_line() {
         "deceleration never speeds up: {before:?}"
     );
 }
+
+#[test]
+fn e_stop_alarms_while_active_and_reset_waits_for_its_release() {
+    let r = rig(
+        "estop",
+        sim(
+            json!({"inputs":[{"pin":15,"function":"estop","active_low":true}],
+                   "sim_inputs":[{"after_writes":5,"pin":15,"level":"low"}]}),
+        ),
+    );
+    r.m.request(json!({"op":"jog","axis":"Y","distance":5.0,"feed":600}))
+        .unwrap();
+    let alarm = r.wait(|e| matches!(e, Event::Alarm { .. }));
+    assert_eq!(
+        alarm,
+        Event::Alarm {
+            message: "e-stop (pin 15)".into()
+        }
+    );
+    let st = r.m.request(json!({"op":"status"})).unwrap();
+    assert_eq!(st["state"], "alarm");
+    let y = st["machine_position"]["y"].as_f64().unwrap();
+    assert!(y > 0.0 && y < 0.5, "stopped after a few steps: {y}");
+    let e =
+        r.m.request(json!({"op":"command","command":"reset"}))
+            .unwrap_err();
+    assert!(
+        e.message.contains("e-stop (pin 15) is still active"),
+        "{}",
+        e.message
+    );
+    assert_eq!(
+        r.m.request(json!({"op":"status"})).unwrap()["state"],
+        "alarm"
+    );
+}
