@@ -322,16 +322,18 @@ impl Core {
                 return;
             }
         };
-        if let Some(input) = trip {
+        if trip.is_some() {
             out.coils_off();
-            self.with(|sh, ev| {
+        }
+        let estop = out.estop_active().map(|i| i.describe());
+        self.with(|sh, ev| {
+            sh.estop = estop;
+            if let Some(input) = trip {
                 if sh.state != MachineState::Alarm && sh.state != MachineState::Offline {
                     self.raise_alarm(sh, input.describe(), ev);
                 }
-            });
-        }
-        let estop = out.estop_active().map(|i| i.describe());
-        self.with(|sh, _| sh.estop = estop);
+            }
+        });
         let wait = out.coils_on();
         if let Err(e) = out.end(wait) {
             self.port_failed(out, e);
