@@ -1053,7 +1053,8 @@ pub enum Timing {
 }
 
 impl Stepper {
-    /// Creates a machine from its JSON config. `port` overrides the configured port (tests).
+    /// Creates a machine from its JSON config; events go to `sink`, log lines to `log`.
+    /// `Timing::Virtual` runs the loop without waiting (tests of its logic).
     pub fn new(
         config: &Value,
         sink: EventSink,
