@@ -40,57 +40,74 @@ pub struct Machine {
     pub travel: [Option<(f64, f64)>; 2],
 }
 
-/// A trapezoidal (or triangular) profile over `n` steps of the major axis.
+/// A trapezoidal (or triangular) profile over `n` steps of the major axis: from `v_in`
+/// up to at most `v` at `a`, cruise, down to `v_out`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Profile {
     n: u64,
-    v0: f64,
+    v_in: f64,
+    v_out: f64,
     v: f64,
     a: f64,
-    /// Steps spent accelerating (= decelerating).
+    /// Steps spent accelerating / decelerating.
     d_acc: f64,
+    d_dec: f64,
     t_acc: f64,
     total: f64,
 }
 
 impl Profile {
-    /// `v_max` and `v0` in steps/s, `a` in steps/s².
-    pub fn new(n: u64, v_max: f64, v0: f64, a: f64) -> Profile {
-        let v0 = v0.min(v_max);
+    /// Rates in steps/s, `a` in steps/s². Entry and exit rates that the move is too short to
+    /// join at `a` are lowered until it can.
+    pub fn new(n: u64, v_max: f64, v_in: f64, v_out: f64, a: f64) -> Profile {
         let nf = n as f64;
+        let mut v_in = v_in.min(v_max);
+        let mut v_out = v_out.min(v_max);
+        // Reachable within the move at all (the junction planner keeps this true; this only
+        // guards against rounding).
+        v_out = v_out.min((v_in * v_in + 2.0 * a * nf).sqrt());
+        v_in = v_in.min((v_out * v_out + 2.0 * a * nf).sqrt());
         let mut v = v_max;
-        let mut d_acc = (v * v - v0 * v0) / (2.0 * a);
-        if 2.0 * d_acc > nf {
-            // Triangle: the peak is reached half-way.
-            d_acc = nf / 2.0;
-            v = (v0 * v0 + a * nf).sqrt();
+        let mut d_acc = (v * v - v_in * v_in) / (2.0 * a);
+        let mut d_dec = (v * v - v_out * v_out) / (2.0 * a);
+        if d_acc + d_dec > nf {
+            // Triangle: the peak where the two ramps meet.
+            v = ((2.0 * a * nf + v_in * v_in + v_out * v_out) / 2.0)
+                .sqrt()
+                .max(v_in)
+                .max(v_out);
+            d_acc = ((v * v - v_in * v_in) / (2.0 * a)).clamp(0.0, nf);
+            d_dec = (nf - d_acc).max(0.0);
         }
-        let t_acc = (v - v0) / a;
-        let total = 2.0 * t_acc + (nf - 2.0 * d_acc) / v;
+        let t_acc = (v - v_in) / a;
+        let t_dec = (v - v_out) / a;
+        let total = t_acc + (nf - d_acc - d_dec).max(0.0) / v + t_dec;
         Profile {
             n,
-            v0,
+            v_in,
+            v_out,
             v,
             a,
             d_acc,
+            d_dec,
             t_acc,
             total,
         }
     }
 
-    fn ramp_time(&self, s: f64) -> f64 {
-        ((self.v0 * self.v0 + 2.0 * self.a * s).sqrt() - self.v0) / self.a
+    fn ramp_time(&self, v0: f64, s: f64) -> f64 {
+        ((v0 * v0 + 2.0 * self.a * s).sqrt() - v0) / self.a
     }
 
     /// Seconds from the start of the move until the major axis has made `s` steps.
     pub fn time_at(&self, s: f64) -> f64 {
         let nf = self.n as f64;
         if s <= self.d_acc {
-            self.ramp_time(s)
-        } else if s < nf - self.d_acc {
+            self.ramp_time(self.v_in, s)
+        } else if s < nf - self.d_dec {
             self.t_acc + (s - self.d_acc) / self.v
         } else {
-            self.total - self.ramp_time((nf - s).max(0.0))
+            self.total - self.ramp_time(self.v_out, (nf - s).max(0.0))
         }
     }
 
@@ -100,6 +117,14 @@ impl Profile {
 
     pub fn peak_rate(&self) -> f64 {
         self.v
+    }
+
+    pub fn entry_rate(&self) -> f64 {
+        self.v_in
+    }
+
+    pub fn exit_rate(&self) -> f64 {
+        self.v_out
     }
 }
 
@@ -115,6 +140,13 @@ pub struct Move {
     tick_hz: f64,
     /// Tick of the last step, counted from the start of the move (the move's length).
     pub ticks: u64,
+    /// Limits of this move in major-axis steps: top rate, no-ramp rate, acceleration.
+    v_max: f64,
+    v_start: f64,
+    accel: f64,
+    /// Length (mm, of the stepped line) and unit direction, for junction speeds.
+    length_mm: f64,
+    unit: [f64; 2],
 }
 
 /// One step of a move: the new position (both axes) and how far it is from the programmed line.
@@ -167,18 +199,52 @@ impl Move {
             let seconds = length_mm / (f / 60.0);
             v_max = v_max.min(nf / seconds);
         }
-        let profile = Profile::new(n, v_max, v0, a);
+        let unit = if length_mm > 0.0 {
+            [
+                (to[0] - from[0]) as f64 / machine.axes[0].steps_per_mm / length_mm,
+                (to[1] - from[1]) as f64 / machine.axes[1].steps_per_mm / length_mm,
+            ]
+        } else {
+            [0.0, 0.0]
+        };
         let mut m = Move {
             from,
             to,
             ideal,
             steps_per_mm: [machine.axes[0].steps_per_mm, machine.axes[1].steps_per_mm],
-            profile,
+            profile: Profile::new(n, v_max, v0, v0, a),
             tick_hz: machine.tick_hz,
             ticks: 0,
+            v_max,
+            v_start: v0.min(v_max),
+            accel: a,
+            length_mm,
+            unit,
         };
         m.ticks = m.steps().last().map_or(0, |s| s.tick);
         m
+    }
+
+    /// Major-axis steps per mm of path.
+    fn steps_per_path_mm(&self) -> f64 {
+        if self.length_mm > 0.0 {
+            self.profile.n as f64 / self.length_mm
+        } else {
+            1.0
+        }
+    }
+
+    /// Re-times the move to enter at `v_in` and leave at `v_out` (path mm/s).
+    pub fn set_junction_speeds(&mut self, v_in: f64, v_out: f64) {
+        let k = self.steps_per_path_mm();
+        self.profile = Profile::new(self.profile.n, self.v_max, v_in * k, v_out * k, self.accel);
+        self.ticks = self.steps().last().map_or(0, |s| s.tick);
+    }
+
+    /// Path speeds (mm/s): top, no-ramp, and acceleration (mm/s²).
+    fn path_limits(&self) -> (f64, f64, f64) {
+        let k = self.steps_per_path_mm();
+        (self.v_max / k, self.v_start / k, self.accel / k)
     }
 
     pub fn major_steps(&self) -> u64 {
@@ -467,12 +533,87 @@ impl<'a> Builder<'a> {
     }
 
     pub fn finish(mut self, lines: u32) -> Plan {
+        blend_junctions(self.machine, &mut self.plan.items);
+        let mut tick = 0;
+        for item in &mut self.plan.items {
+            item.start_tick = tick;
+            tick += item.action.ticks();
+        }
+        self.tick = tick;
         self.plan.lines = lines;
         self.plan.total_ticks = self.tick;
         self.plan.end_steps = self.steps;
         self.plan.end_z = self.z;
         self.plan.end_lift = self.lift;
         self.plan
+    }
+}
+
+/// Lets consecutive moves flow into each other instead of stopping at every junction (the
+/// chords of an arc, a polyline): the speed at a junction is the highest at which no axis's
+/// velocity jumps by more than its no-ramp `start_rate`, never above either move's top speed
+/// nor below the stop-to-stop speed, then lowered by a backward and a forward pass so that
+/// every move can reach its exit speed from its entry speed at its acceleration. Anything
+/// between moves (lift, dwell, pause, offset change) is a full stop.
+fn blend_junctions(machine: &Machine, items: &mut [Item]) {
+    let mut i = 0;
+    while i < items.len() {
+        let run = items[i..]
+            .iter()
+            .take_while(|it| matches!(it.action, Action::Move(_)))
+            .count();
+        if run >= 2 {
+            let moves: Vec<&mut Move> = items[i..i + run]
+                .iter_mut()
+                .filter_map(|it| match &mut it.action {
+                    Action::Move(m) => Some(m),
+                    _ => None,
+                })
+                .collect();
+            blend_chain(machine, moves);
+        }
+        i += run.max(1);
+    }
+}
+
+fn blend_chain(machine: &Machine, mut moves: Vec<&mut Move>) {
+    let n = moves.len();
+    let limits: Vec<(f64, f64, f64)> = moves.iter().map(|m| m.path_limits()).collect();
+    let start_mm = [
+        machine.axes[0].start_rate / machine.axes[0].steps_per_mm,
+        machine.axes[1].start_rate / machine.axes[1].steps_per_mm,
+    ];
+    let mut junction: Vec<f64> = (0..n - 1)
+        .map(|k| {
+            let (a, b) = (&moves[k], &moves[k + 1]);
+            let mut v = limits[k].0.min(limits[k + 1].0);
+            for (ax, start) in start_mm.iter().enumerate() {
+                let jump = (a.unit[ax] - b.unit[ax]).abs();
+                if jump > 1e-12 {
+                    v = v.min(start / jump);
+                }
+            }
+            v.max(limits[k].1.min(limits[k + 1].1))
+        })
+        .collect();
+    // Backward: each move must be able to slow down to its exit speed.
+    let mut next = limits[n - 1].1;
+    for k in (0..n - 1).rev() {
+        let reach = (next * next + 2.0 * limits[k + 1].2 * moves[k + 1].length_mm).sqrt();
+        junction[k] = junction[k].min(reach);
+        next = junction[k];
+    }
+    // Forward: each move must be able to speed up to its exit speed.
+    let mut prev = limits[0].1;
+    for k in 0..n - 1 {
+        let reach = (prev * prev + 2.0 * limits[k].2 * moves[k].length_mm).sqrt();
+        junction[k] = junction[k].min(reach);
+        prev = junction[k];
+    }
+    for (k, m) in moves.iter_mut().enumerate() {
+        let v_in = if k == 0 { limits[0].1 } else { junction[k - 1] };
+        let v_out = if k == n - 1 { limits[k].1 } else { junction[k] };
+        m.set_junction_speeds(v_in, v_out);
     }
 }
 
@@ -667,6 +808,73 @@ mod tests {
         assert!(worst <= 1.0 / 140.0 + ARC_TOLERANCE_MM, "{worst}");
         assert_eq!(end, [0, -1400]);
         assert_eq!(plan.end_steps, [0, -1400]);
+    }
+
+    /// Step ticks of each axis over a whole plan (timeline ticks).
+    fn axis_step_ticks(plan: &Plan) -> [Vec<u64>; 2] {
+        let mut out = [Vec::new(), Vec::new()];
+        for item in &plan.items {
+            if let Action::Move(mv) = &item.action {
+                let mut prev = mv.from;
+                for s in mv.steps() {
+                    for (i, ticks) in out.iter_mut().enumerate() {
+                        if s.pos[i] != prev[i] {
+                            ticks.push(item.start_tick + s.tick);
+                        }
+                    }
+                    prev = s.pos;
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn arc_chords_flow_into_each_other_and_corners_slow_down() {
+        let m = machine();
+        // A full circle of r = 10 mm at F600 (10 mm/s = 1400 steps/s, capped at 500).
+        let arc = plan_program(&m, "G0 X10\nG2 X10 Y0 I-10 J0 F600\n", &start(), 1).unwrap();
+        let chords = arc.items.iter().filter(|i| i.line == 2).count();
+        assert!(chords > 50, "{chords} chords");
+        // Versus stopping at every chord (each move on its own, start_rate in and out).
+        let (mut blended, mut stop_to_stop) = (0.0, 0.0);
+        for item in arc.items.iter().filter(|i| i.line == 2) {
+            if let Action::Move(mv) = &item.action {
+                blended += mv.profile.seconds();
+                stop_to_stop +=
+                    Profile::new(mv.profile.n, mv.v_max, mv.v_start, mv.v_start, mv.accel)
+                        .seconds();
+            }
+        }
+        // Circumference 62.8 mm with the faster axis capped at 500 steps/s: 3.6..5 mm/s.
+        assert!(blended < 17.5, "circle took {blended} s");
+        assert!(
+            blended < 0.6 * stop_to_stop,
+            "blended {blended} s vs stop-to-stop {stop_to_stop} s"
+        );
+        // Never faster than max_rate on either axis (500 steps/s = 40 ticks; rounding: 39).
+        for ticks in axis_step_ticks(&arc) {
+            for w in ticks.windows(2) {
+                assert!(w[1] - w[0] >= 39, "step gap {} ticks", w[1] - w[0]);
+            }
+        }
+        // A right-angle corner: the junction speed is the no-ramp speed, not the cruise.
+        let corner = plan_program(&m, "G1 X20 F6000\nG1 Y20\n", &start(), 1).unwrap();
+        let speeds: Vec<_> = corner
+            .items
+            .iter()
+            .filter_map(|i| match &i.action {
+                Action::Move(mv) => Some((mv.profile.entry_rate(), mv.profile.exit_rate())),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(speeds, [(100.0, 100.0), (100.0, 100.0)]);
+        // Collinear segments join at full speed.
+        let line = plan_program(&m, "G1 X20 F6000\nG1 X40\n", &start(), 1).unwrap();
+        match &line.items[0].action {
+            Action::Move(mv) => assert_eq!(mv.profile.exit_rate(), 500.0),
+            other => panic!("{other:?}"),
+        }
     }
 
     #[test]
