@@ -480,6 +480,7 @@ impl Core {
         run: Option<(i64, u32)>,
     ) -> Result<(), Interrupted> {
         let mut tl = Timeline::new(&self.cfg);
+        let mut stepped_at: Option<u64> = None;
         let mut next_ack = run.map_or(1, |r| r.1);
         let mut line_dev: Option<(u32, f64)> = None;
         let mut last_publish = Instant::now();
@@ -504,9 +505,12 @@ impl Core {
                     self.with(|sh, _| sh.feed = mv.peak_feed_mm_min());
                     for s in mv.steps() {
                         let at = item.start_tick + s.tick;
-                        while tl.t < at {
+                        // At most one step per tick, whatever the schedule says: two in one
+                        // write would skip a phase.
+                        while tl.t < at || stepped_at == Some(tl.t) {
                             self.advance(out, &mut tl)?;
                         }
+                        stepped_at = Some(tl.t);
                         out.step(s.pos);
                         match &mut line_dev {
                             Some((l, d)) if *l == item.line => *d = d.max(s.deviation_mm),

@@ -221,8 +221,19 @@ impl Move {
             length_mm,
             unit,
         };
-        m.ticks = m.steps().last().map_or(0, |s| s.tick);
+        m.ticks = m.last_tick();
         m
+    }
+
+    /// Tick of the last step, in closed form: steps are at least two ticks apart at any rate
+    /// the config allows (`max_rate <= tick_hz / 2`), so rounding never has to push one later
+    /// and the last step lands at the rounded end time (the proptest checks this).
+    fn last_tick(&self) -> u64 {
+        let n = self.profile.n;
+        if n == 0 {
+            return 0;
+        }
+        ((self.profile.time_at(n as f64) * self.tick_hz).round() as u64).max(n)
     }
 
     /// Major-axis steps per mm of path.
@@ -238,7 +249,7 @@ impl Move {
     pub fn set_junction_speeds(&mut self, v_in: f64, v_out: f64) {
         let k = self.steps_per_path_mm();
         self.profile = Profile::new(self.profile.n, self.v_max, v_in * k, v_out * k, self.accel);
-        self.ticks = self.steps().last().map_or(0, |s| s.tick);
+        self.ticks = self.last_tick();
     }
 
     /// Path speeds (mm/s): top, no-ramp, and acceleration (mm/s²).
@@ -752,6 +763,7 @@ mod tests {
         }
         assert_eq!(count, n);
         assert_eq!(prev, to);
+        assert_eq!(mv.ticks, prev_tick, "closed-form length = last step");
     }
 
     #[test]
@@ -919,6 +931,36 @@ mod tests {
     }
 
     proptest! {
+        #[test]
+        fn blended_polylines_at_the_top_rate_keep_one_step_per_tick(
+            pts in proptest::collection::vec((-50i32..50, -50i32..50), 2..6),
+        ) {
+            // max_rate = tick_hz / 2: the tightest the config allows.
+            let mut m = machine();
+            for ax in &mut m.axes {
+                ax.max_rate = 10_000.0;
+                ax.start_rate = 500.0;
+                ax.accel = 200_000.0;
+            }
+            let mut prog = String::from("G1 F100000\n");
+            for (x, y) in &pts {
+                prog.push_str(&format!("G1 X{} Y{}\n", *x as f64 / 7.0, *y as f64 / 3.0));
+            }
+            let plan = plan_program(&m, &prog, &start(), 1).unwrap();
+            let mut last_tick = None;
+            for item in &plan.items {
+                if let Action::Move(mv) = &item.action {
+                    let steps: Vec<_> = mv.steps().collect();
+                    prop_assert_eq!(mv.ticks, steps.last().unwrap().tick);
+                    for s in &steps {
+                        let t = item.start_tick + s.tick;
+                        prop_assert!(last_tick.is_none_or(|l| t > l), "two steps in tick {}", t);
+                        last_tick = Some(t);
+                    }
+                }
+            }
+        }
+
         #[test]
         fn dda_lines_stay_within_half_a_step(
             fx in -3000i64..3000, fy in -3000i64..3000,
