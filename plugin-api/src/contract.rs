@@ -199,6 +199,21 @@ pub enum Command {
     SelectOffset {
         offset: WorkOffset,
     },
+    // --- parport-stepper additions (issue 7) ---
+    /// Switch a named digital output on or off, e.g.
+    /// `{"command":"set_output","name":"z_lift","on":true}`. Refused while the machine moves.
+    SetOutput {
+        name: OutputName,
+        on: bool,
+    },
+}
+
+/// Digital outputs a backend may expose to `Command::SetOutput`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OutputName {
+    /// The tool lift (Z up/down) of a machine whose Z is not interpolated.
+    ZLift,
 }
 
 impl Command {
@@ -296,6 +311,19 @@ pub enum Event {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         message: Option<String>,
     },
+    // --- parport-stepper additions (issue 7) ---
+    /// Process monitor, once per executed program line that moved: the largest distance (mm)
+    /// between the stepped path and the programmed path of `line`, and the run's progress by
+    /// planned time. Transient: the host forwards it, it does not store it.
+    LineReport {
+        run: i64,
+        line: u32,
+        max_deviation_mm: f64,
+        /// Planned motion time done, 0..100.
+        percent: f64,
+        /// Planned motion time left, seconds (pauses not counted).
+        remaining_s: f64,
+    },
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -331,6 +359,38 @@ mod tests {
     fn unknown_command_fields_are_rejected() {
         let e = serde_json::from_value::<Command>(json!({"command":"zero","axes":"X"}));
         assert!(e.is_err());
+    }
+
+    #[test]
+    fn set_output_and_line_report_wire_shapes() {
+        let c: Command =
+            serde_json::from_value(json!({"command":"set_output","name":"z_lift","on":true}))
+                .unwrap();
+        assert_eq!(
+            c,
+            Command::SetOutput {
+                name: OutputName::ZLift,
+                on: true
+            }
+        );
+        assert!(serde_json::from_value::<Command>(
+            json!({"command":"set_output","name":"coolant","on":true})
+        )
+        .is_err());
+        let e = Event::LineReport {
+            run: 2,
+            line: 5,
+            max_deviation_mm: 0.25,
+            percent: 50.0,
+            remaining_s: 1.5,
+        };
+        let v = serde_json::to_value(&e).unwrap();
+        assert_eq!(
+            v,
+            json!({"event":"line_report","run":2,"line":5,"max_deviation_mm":0.25,
+                   "percent":50.0,"remaining_s":1.5})
+        );
+        assert_eq!(serde_json::from_value::<Event>(v).unwrap(), e);
     }
 
     #[test]

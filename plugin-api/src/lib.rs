@@ -3,11 +3,13 @@
 //! * [`abi`]: the raw `repr(C)` contract, mirrored by `include/fresa_plugin.h`.
 //! * [`contract`]: the JSON requests, responses and events of a machine backend.
 //! * [`plugin`]: for plugin authors in Rust: the [`Plugin`] trait and [`export_plugin!`].
+//! * [`exec_log`]: for Rust machine backends: the execution log behind idempotent resume.
 //! * [`host`]: for the server: load a library, check it, create and call instances.
 
 pub mod abi;
 pub mod contract;
 mod error;
+pub mod exec_log;
 pub mod host;
 pub mod plugin;
 

@@ -274,6 +274,27 @@ async fn event_loop(
                     crate::jobs::finish_run(&machine, &store, &bus, run, to, message.as_deref())
                         .await;
                 }
+                Event::LineReport {
+                    run,
+                    line,
+                    max_deviation_mm,
+                    percent,
+                    remaining_s,
+                } => {
+                    // Transient like job.progress: one per line is too many for the audit log,
+                    // and the next report supersedes it for the monitor.
+                    let job = machine
+                        .current_run()
+                        .filter(|c| c.run_id == run)
+                        .map(|c| c.job_id);
+                    bus.transient(
+                        "job.line_report",
+                        Some(id),
+                        json!({"job": job, "run": run, "line": line,
+                               "max_deviation_mm": max_deviation_mm,
+                               "percent": percent, "remaining_s": remaining_s}),
+                    );
+                }
             }
         }
         flush_acks(&machine, &store, &mut acks).await;

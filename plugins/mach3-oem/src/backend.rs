@@ -784,6 +784,11 @@ impl Inner {
                 self.poll();
                 Ok(json!({}))
             }
+            // Mach3's outputs belong to its own screen set and macros; none is mapped yet.
+            Command::SetOutput { name, .. } => Err(PluginError::new(
+                "unsupported",
+                format!("mach3-oem has no output {name:?} mapped"),
+            )),
         }
     }
 

@@ -5,7 +5,6 @@
 //! resuming a run idempotent. See the crate README for the configuration and behaviour.
 
 mod config;
-mod exec_log;
 mod machine;
 mod program;
 

@@ -3,12 +3,12 @@
 //! small time slices, so stop and feed hold take effect within one slice.
 
 use crate::config::Config;
-use crate::exec_log::ExecLog;
 use crate::program::{self, Plan, Step};
 use fresa_plugin_api::contract::{
     Axis, AxisValues, Command, Event, MachineState, MachineStatus, OffsetTable, ProgramLoaded,
     Request, RunAction, RunOutcome, WorkOffset,
 };
+use fresa_plugin_api::exec_log::ExecLog;
 use fresa_plugin_api::PluginError;
 use serde_json::{json, Value};
 use std::collections::VecDeque;
@@ -692,6 +692,10 @@ impl Core {
                 sh.set_state(MachineState::Jogging, ev);
                 Ok(json!({}))
             }),
+            Command::SetOutput { name, .. } => Err(PluginError::new(
+                "unsupported",
+                format!("sim-machine has no output {name:?}"),
+            )),
             Command::SelectOffset { offset } => self.with(|sh, ev| {
                 sh.require_still("select an offset")?;
                 sh.active = offset;

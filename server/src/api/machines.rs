@@ -256,7 +256,7 @@ pub async fn command(
 ) -> Result<Json<Value>, ApiError> {
     let m = machine(&app, id).await?;
     let cmd: Command = serde_json::from_value(raw)
-        .map_err(|e| ApiError::unprocessable("invalid_command", format!("{e} (commands: cycle_start, feed_hold, resume, stop, reset, home, zero, go_to_zero, select_offset)")))?;
+        .map_err(|e| ApiError::unprocessable("invalid_command", format!("{e} (commands: cycle_start, feed_hold, resume, stop, reset, home, zero, go_to_zero, select_offset, set_output)")))?;
     let answer = m
         .call(&Request::Command(cmd))
         .await

@@ -1,6 +1,8 @@
-//! The execution log: one JSON line `{"run":R,"line":L}` per executed program line.
+//! The execution log of a machine backend: one JSON line `{"run":R,"line":L}` per executed
+//! program line, so that `load_program` after a restart can start past what already ran
+//! (idempotent resume, see the README). Shared by the Rust backends.
 
-use fresa_plugin_api::PluginError;
+use crate::PluginError;
 use serde::{Deserialize, Serialize};
 use std::fs::{File, OpenOptions};
 use std::io::{BufRead, BufReader, Write};

@@ -1,0 +1,210 @@
+//! The output side of the loop: coil and lift registers, input decoding, idle de-energising
+//! and tick pacing with absolute deadlines. Owned by the one output thread.
+
+use crate::coils::CoilMap;
+use crate::config::{Config, Input, InputFunction};
+use crate::pins;
+use crate::port::Port;
+use std::io;
+use std::time::{Duration, Instant};
+
+/// Keeps ticks on absolute deadlines: sleep until close to the deadline, then spin.
+pub struct Pacer {
+    /// `None`: virtual time (tests), never waits.
+    period: Option<Duration>,
+    spin: Duration,
+    next: Instant,
+    /// Times the loop fell so far behind that it gave up catching up.
+    pub overruns: u64,
+}
+
+impl Pacer {
+    pub fn new(period: Option<Duration>, spin: Duration) -> Pacer {
+        Pacer {
+            period,
+            spin,
+            next: Instant::now(),
+            overruns: 0,
+        }
+    }
+
+    /// Deadlines count from now on (after idling).
+    pub fn restart(&mut self) {
+        self.next = Instant::now();
+    }
+
+    /// The deadline of the tick being waited for (or last waited for).
+    pub fn deadline(&self) -> Instant {
+        self.next
+    }
+
+    /// Waits for the next tick's deadline.
+    pub fn wait(&mut self) {
+        let Some(period) = self.period else { return };
+        self.next += period;
+        let now = Instant::now();
+        if now > self.next + period {
+            // A whole tick missed (preempted, overloaded): shift the schedule instead of
+            // catching up, since a burst of late ticks would step a motor faster than its
+            // max rate and lose steps. Motion is delayed, never compressed.
+            self.next = now;
+            self.overruns += 1;
+            return;
+        }
+        if self.next > now + self.spin {
+            std::thread::sleep(self.next - now - self.spin);
+        }
+        while Instant::now() < self.next {
+            std::hint::spin_loop();
+        }
+    }
+}
+
+/// Register state and I/O of the output loop.
+pub struct Output {
+    port: Box<dyn Port>,
+    coils: [CoilMap; 2],
+    pub pos: [i64; 2],
+    energised: [bool; 2],
+    last_step: [u64; 2],
+    idle_ticks: u64,
+    written_data: Option<u8>,
+    control: u8,
+    written_control: Option<u8>,
+    lift_pin: u8,
+    lift_invert: bool,
+    inputs: Vec<Input>,
+    /// Inputs active at the last read (bit per entry of `inputs`).
+    active: u32,
+    /// Global tick counter (never frozen, unlike a plan's timeline).
+    pub tick: u64,
+    pub pacer: Pacer,
+}
+
+impl Output {
+    pub fn new(cfg: &Config, port: Box<dyn Port>, pacer: Pacer, lift: bool) -> Output {
+        let idle_ticks = (cfg.idle_off.as_secs_f64() * cfg.machine.tick_hz).ceil() as u64;
+        let mut out = Output {
+            port,
+            coils: cfg.coils,
+            pos: [0, 0],
+            energised: [false; 2],
+            last_step: [0; 2],
+            idle_ticks: idle_ticks.max(1),
+            written_data: None,
+            control: 0,
+            written_control: None,
+            lift_pin: cfg.lift_pin,
+            lift_invert: cfg.lift_invert,
+            inputs: cfg.inputs.clone(),
+            active: 0,
+            tick: 0,
+            pacer,
+        };
+        out.set_lift(lift);
+        out
+    }
+
+    /// Starts a tick: reads the inputs. Returns an input that trips the machine: an e-stop
+    /// while active, a limit when it becomes active (so the axis can be jogged off it).
+    pub fn begin(&mut self) -> io::Result<Option<Input>> {
+        self.port.begin_tick(self.tick);
+        let status = self.port.read_status()?;
+        let mut trip = None;
+        let mut active = 0;
+        for (i, input) in self.inputs.iter().enumerate() {
+            if pins::input_level(status, input.pin) != input.active_low {
+                active |= 1 << i;
+                let edge = self.active & (1 << i) == 0;
+                if trip.is_none() && (edge || input.function == InputFunction::EStop) {
+                    trip = Some(*input);
+                }
+            }
+        }
+        self.active = active;
+        Ok(trip)
+    }
+
+    /// An active e-stop input, if any (for refusing reset).
+    pub fn estop_active(&self) -> Option<Input> {
+        self.inputs
+            .iter()
+            .enumerate()
+            .find(|(i, inp)| self.active & (1 << i) != 0 && inp.function == InputFunction::EStop)
+            .map(|(_, inp)| *inp)
+    }
+
+    /// Moves the motors to `pos` in this tick (each axis by at most one step).
+    pub fn step(&mut self, pos: [i64; 2]) {
+        for (i, p) in pos.into_iter().enumerate() {
+            if p != self.pos[i] {
+                self.pos[i] = p;
+                self.energised[i] = true;
+                self.last_step[i] = self.tick;
+            }
+        }
+    }
+
+    pub fn set_lift(&mut self, on: bool) {
+        self.control = pins::control_register([(self.lift_pin, on != self.lift_invert)]);
+    }
+
+    /// Switches every coil off now (alarm).
+    pub fn coils_off(&mut self) {
+        self.energised = [false; 2];
+    }
+
+    pub fn coils_on(&self) -> bool {
+        self.energised.iter().any(|e| *e)
+    }
+
+    /// Ends a tick: de-energises idle motors, writes what changed, and (when `wait`) waits for
+    /// the next tick's deadline.
+    pub fn end(&mut self, wait: bool) -> io::Result<()> {
+        let mut data = 0;
+        for i in 0..2 {
+            if self.energised[i] && self.tick - self.last_step[i] >= self.idle_ticks {
+                self.energised[i] = false;
+            }
+            if self.energised[i] {
+                data |= self.coils[i].register_bits(self.pos[i]);
+            }
+        }
+        if self.written_data != Some(data) {
+            self.port.write_data(data)?;
+            self.written_data = Some(data);
+        }
+        if self.written_control != Some(self.control) {
+            self.port.write_control(self.control)?;
+            self.written_control = Some(self.control);
+        }
+        if wait {
+            self.pacer.wait();
+        }
+        self.tick += 1;
+        Ok(())
+    }
+}
+
+/// Asks for real-time (SCHED_FIFO) priority for the calling thread. Err says why not.
+pub fn realtime_priority() -> Result<(), String> {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: plain syscalls on the calling thread with a valid, initialised parameter.
+        let r = unsafe {
+            let param = libc::sched_param {
+                sched_priority: libc::sched_get_priority_min(libc::SCHED_FIFO).max(1),
+            };
+            libc::sched_setscheduler(0, libc::SCHED_FIFO, &param)
+        };
+        if r == 0 {
+            Ok(())
+        } else {
+            Err(io::Error::last_os_error().to_string())
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        Err("only implemented on Linux".into())
+    }
+}

@@ -1,0 +1,972 @@
+//! The pure planner: a program (or a jog) becomes a timeline of output actions on a tick grid,
+//! with no clock and no I/O, so it is tested and benchmarked on its own.
+//!
+//! Every move is a straight line in step space: the axis with more steps (major) steps on a
+//! trapezoidal velocity profile, the other follows with a Bresenham interleave, so at every
+//! major step the minor axis is within half a step of the ideal line, and both end on the exact
+//! step counts. Z is a tool lift (on/off), not interpolated.
+
+use fresa_gcode::{linearise, Interpreter, Motion};
+use fresa_plugin_api::contract::WorkOffset;
+
+/// Chord tolerance for arcs, mm.
+pub const ARC_TOLERANCE_MM: f64 = 0.002;
+
+/// Speed limits of one stepper axis.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AxisLimits {
+    pub steps_per_mm: f64,
+    /// Highest step rate, steps/s.
+    pub max_rate: f64,
+    /// Rate the motor can start and stop at without a ramp, steps/s.
+    pub start_rate: f64,
+    /// Acceleration, steps/s².
+    pub accel: f64,
+}
+
+/// Everything the planner needs to know about the machine.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Machine {
+    pub axes: [AxisLimits; 2],
+    /// Output ticks per second.
+    pub tick_hz: f64,
+    /// G0 and go-to-zero speed, mm/min (capped by the axes' max rates).
+    pub rapid_mm_min: f64,
+    /// Work Z above this is "tool lifted".
+    pub lift_above_mm: f64,
+    /// Time the lift needs to settle before XY moves on, ticks.
+    pub lift_settle_ticks: u64,
+    /// Soft limits, machine mm, per XY axis.
+    pub travel: [Option<(f64, f64)>; 2],
+}
+
+/// A trapezoidal (or triangular) profile over `n` steps of the major axis: from `v_in`
+/// up to at most `v` at `a`, cruise, down to `v_out`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Profile {
+    n: u64,
+    v_in: f64,
+    v_out: f64,
+    v: f64,
+    a: f64,
+    /// Steps spent accelerating / decelerating.
+    d_acc: f64,
+    d_dec: f64,
+    t_acc: f64,
+    total: f64,
+}
+
+impl Profile {
+    /// Rates in steps/s, `a` in steps/s². Entry and exit rates that the move is too short to
+    /// join at `a` are lowered until it can.
+    pub fn new(n: u64, v_max: f64, v_in: f64, v_out: f64, a: f64) -> Profile {
+        let nf = n as f64;
+        let mut v_in = v_in.min(v_max);
+        let mut v_out = v_out.min(v_max);
+        // Reachable within the move at all (the junction planner keeps this true; this only
+        // guards against rounding).
+        v_out = v_out.min((v_in * v_in + 2.0 * a * nf).sqrt());
+        v_in = v_in.min((v_out * v_out + 2.0 * a * nf).sqrt());
+        let mut v = v_max;
+        let mut d_acc = (v * v - v_in * v_in) / (2.0 * a);
+        let mut d_dec = (v * v - v_out * v_out) / (2.0 * a);
+        if d_acc + d_dec > nf {
+            // Triangle: the peak where the two ramps meet.
+            v = ((2.0 * a * nf + v_in * v_in + v_out * v_out) / 2.0)
+                .sqrt()
+                .max(v_in)
+                .max(v_out);
+            d_acc = ((v * v - v_in * v_in) / (2.0 * a)).clamp(0.0, nf);
+            d_dec = (nf - d_acc).max(0.0);
+        }
+        let t_acc = (v - v_in) / a;
+        let t_dec = (v - v_out) / a;
+        let total = t_acc + (nf - d_acc - d_dec).max(0.0) / v + t_dec;
+        Profile {
+            n,
+            v_in,
+            v_out,
+            v,
+            a,
+            d_acc,
+            d_dec,
+            t_acc,
+            total,
+        }
+    }
+
+    fn ramp_time(&self, v0: f64, s: f64) -> f64 {
+        ((v0 * v0 + 2.0 * self.a * s).sqrt() - v0) / self.a
+    }
+
+    /// Seconds from the start of the move until the major axis has made `s` steps.
+    pub fn time_at(&self, s: f64) -> f64 {
+        let nf = self.n as f64;
+        if s <= self.d_acc {
+            self.ramp_time(self.v_in, s)
+        } else if s < nf - self.d_dec {
+            self.t_acc + (s - self.d_acc) / self.v
+        } else {
+            self.total - self.ramp_time(self.v_out, (nf - s).max(0.0))
+        }
+    }
+
+    pub fn seconds(&self) -> f64 {
+        self.total
+    }
+
+    pub fn peak_rate(&self) -> f64 {
+        self.v
+    }
+
+    pub fn entry_rate(&self) -> f64 {
+        self.v_in
+    }
+
+    pub fn exit_rate(&self) -> f64 {
+        self.v_out
+    }
+}
+
+/// One straight move in step space.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Move {
+    pub from: [i64; 2],
+    pub to: [i64; 2],
+    /// The programmed line, machine mm: the deviation is measured against it.
+    pub ideal: [[f64; 2]; 2],
+    pub steps_per_mm: [f64; 2],
+    pub profile: Profile,
+    tick_hz: f64,
+    /// Tick of the last step, counted from the start of the move (the move's length).
+    pub ticks: u64,
+    /// Limits of this move in major-axis steps: top rate, no-ramp rate, acceleration.
+    v_max: f64,
+    v_start: f64,
+    accel: f64,
+    /// Length (mm, of the stepped line) and unit direction, for junction speeds.
+    length_mm: f64,
+    unit: [f64; 2],
+}
+
+/// One step of a move: the new position (both axes) and how far it is from the programmed line.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepEvent {
+    /// Tick, counted from the start of the move (>= 1, strictly increasing).
+    pub tick: u64,
+    pub pos: [i64; 2],
+    pub deviation_mm: f64,
+}
+
+impl Move {
+    /// A move from step position `from` to `to`; `ideal` the programmed line in machine mm;
+    /// `feed_mm_min` the path feed (None = as fast as the axes allow).
+    pub fn new(
+        machine: &Machine,
+        from: [i64; 2],
+        to: [i64; 2],
+        ideal: [[f64; 2]; 2],
+        feed_mm_min: Option<f64>,
+    ) -> Move {
+        let d = [
+            (to[0] - from[0]).unsigned_abs(),
+            (to[1] - from[1]).unsigned_abs(),
+        ];
+        let n = d[0].max(d[1]);
+        let nf = n.max(1) as f64;
+        // Limits of each axis, expressed in major-axis steps.
+        let mut v_max = f64::INFINITY;
+        let mut v0 = f64::INFINITY;
+        let mut a = f64::INFINITY;
+        for (i, ax) in machine.axes.iter().enumerate() {
+            if d[i] > 0 {
+                let k = nf / d[i] as f64;
+                v_max = v_max.min(ax.max_rate * k);
+                v0 = v0.min(ax.start_rate * k);
+                a = a.min(ax.accel * k);
+            }
+        }
+        if !v_max.is_finite() {
+            v_max = 1.0;
+            v0 = 1.0;
+            a = 1.0;
+        }
+        let length_mm = (0..2)
+            .map(|i| (d[i] as f64 / machine.axes[i].steps_per_mm).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        if let Some(f) = feed_mm_min.filter(|f| *f > 0.0 && length_mm > 0.0) {
+            let seconds = length_mm / (f / 60.0);
+            v_max = v_max.min(nf / seconds);
+        }
+        let unit = if length_mm > 0.0 {
+            [
+                (to[0] - from[0]) as f64 / machine.axes[0].steps_per_mm / length_mm,
+                (to[1] - from[1]) as f64 / machine.axes[1].steps_per_mm / length_mm,
+            ]
+        } else {
+            [0.0, 0.0]
+        };
+        let mut m = Move {
+            from,
+            to,
+            ideal,
+            steps_per_mm: [machine.axes[0].steps_per_mm, machine.axes[1].steps_per_mm],
+            profile: Profile::new(n, v_max, v0, v0, a),
+            tick_hz: machine.tick_hz,
+            ticks: 0,
+            v_max,
+            v_start: v0.min(v_max),
+            accel: a,
+            length_mm,
+            unit,
+        };
+        m.ticks = m.last_tick();
+        m
+    }
+
+    /// Tick of the last step, in closed form: steps are at least two ticks apart at any rate
+    /// the config allows (`max_rate <= tick_hz / 2`), so rounding never has to push one later
+    /// and the last step lands at the rounded end time (the proptest checks this).
+    fn last_tick(&self) -> u64 {
+        let n = self.profile.n;
+        if n == 0 {
+            return 0;
+        }
+        ((self.profile.time_at(n as f64) * self.tick_hz).round() as u64).max(n)
+    }
+
+    /// Major-axis steps per mm of path.
+    fn steps_per_path_mm(&self) -> f64 {
+        if self.length_mm > 0.0 {
+            self.profile.n as f64 / self.length_mm
+        } else {
+            1.0
+        }
+    }
+
+    /// Re-times the move to enter at `v_in` and leave at `v_out` (path mm/s).
+    pub fn set_junction_speeds(&mut self, v_in: f64, v_out: f64) {
+        let k = self.steps_per_path_mm();
+        self.profile = Profile::new(self.profile.n, self.v_max, v_in * k, v_out * k, self.accel);
+        self.ticks = self.last_tick();
+    }
+
+    /// Path speeds (mm/s): top, no-ramp, and acceleration (mm/s²).
+    fn path_limits(&self) -> (f64, f64, f64) {
+        let k = self.steps_per_path_mm();
+        (self.v_max / k, self.v_start / k, self.accel / k)
+    }
+
+    pub fn major_steps(&self) -> u64 {
+        self.profile.n
+    }
+
+    /// Path speed at the top of the profile, mm/min.
+    pub fn peak_feed_mm_min(&self) -> f64 {
+        let d = [
+            (self.to[0] - self.from[0]) as f64 / self.steps_per_mm[0],
+            (self.to[1] - self.from[1]) as f64 / self.steps_per_mm[1],
+        ];
+        let n = self.profile.n.max(1) as f64;
+        self.profile.peak_rate() / n * d[0].hypot(d[1]) * 60.0
+    }
+
+    /// The steps, in order.
+    pub fn steps(&self) -> MoveSteps<'_> {
+        let d = [self.to[0] - self.from[0], self.to[1] - self.from[1]];
+        let n = self.profile.n as i64;
+        let a = self.ideal[0];
+        let dir = [self.ideal[1][0] - a[0], self.ideal[1][1] - a[1]];
+        let len2 = dir[0] * dir[0] + dir[1] * dir[1];
+        MoveSteps {
+            m: self,
+            k: 0,
+            pos: self.from,
+            sign: [d[0].signum(), d[1].signum()],
+            inc: [2 * d[0].abs(), 2 * d[1].abs()],
+            acc: [n, n],
+            two_n: 2 * n,
+            last_tick: 0,
+            origin: a,
+            dir,
+            inv_len2: if len2 > 0.0 { 1.0 / len2 } else { 0.0 },
+            mm_per_step: [1.0 / self.steps_per_mm[0], 1.0 / self.steps_per_mm[1]],
+        }
+    }
+}
+
+/// Iterator over the steps of a [`Move`].
+pub struct MoveSteps<'a> {
+    m: &'a Move,
+    k: u64,
+    pos: [i64; 2],
+    sign: [i64; 2],
+    inc: [i64; 2],
+    /// Bresenham accumulators, starting at n (half a step) so minor steps round to nearest.
+    acc: [i64; 2],
+    two_n: i64,
+    last_tick: u64,
+    origin: [f64; 2],
+    dir: [f64; 2],
+    inv_len2: f64,
+    mm_per_step: [f64; 2],
+}
+
+impl Iterator for MoveSteps<'_> {
+    type Item = StepEvent;
+
+    #[inline]
+    fn next(&mut self) -> Option<StepEvent> {
+        if self.k >= self.m.profile.n {
+            return None;
+        }
+        self.k += 1;
+        for i in 0..2 {
+            self.acc[i] += self.inc[i];
+            if self.acc[i] >= self.two_n {
+                self.acc[i] -= self.two_n;
+                self.pos[i] += self.sign[i];
+            }
+        }
+        let t = self.m.profile.time_at(self.k as f64);
+        let tick = ((t * self.m.tick_hz).round() as u64).max(self.last_tick + 1);
+        self.last_tick = tick;
+        // Distance from the stepped point to the programmed segment, mm.
+        let p = [
+            self.pos[0] as f64 * self.mm_per_step[0] - self.origin[0],
+            self.pos[1] as f64 * self.mm_per_step[1] - self.origin[1],
+        ];
+        let u = ((p[0] * self.dir[0] + p[1] * self.dir[1]) * self.inv_len2).clamp(0.0, 1.0);
+        let e = [p[0] - u * self.dir[0], p[1] - u * self.dir[1]];
+        Some(StepEvent {
+            tick,
+            pos: self.pos,
+            deviation_mm: (e[0] * e[0] + e[1] * e[1]).sqrt(),
+        })
+    }
+}
+
+/// What one plan item does.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Action {
+    Move(Move),
+    /// Tool lift on (up) or off (down) for commanded machine Z `z`, then wait `settle` ticks.
+    Lift {
+        on: bool,
+        settle: u64,
+        z: f64,
+    },
+    /// G4: wait this many ticks.
+    Dwell(u64),
+    /// M0: hold until resumed.
+    Pause,
+    /// G54..G59 in the program: later moves use this offset.
+    UseOffset(WorkOffset),
+}
+
+impl Action {
+    /// Ticks the item takes on the timeline.
+    pub fn ticks(&self) -> u64 {
+        match self {
+            Action::Move(m) => m.ticks,
+            Action::Lift { settle, .. } => *settle,
+            Action::Dwell(t) => *t,
+            Action::Pause | Action::UseOffset(_) => 0,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct Item {
+    /// 1-based source line (0 for jogs).
+    pub line: u32,
+    /// Planned tick at which the item starts (pauses excluded).
+    pub start_tick: u64,
+    pub action: Action,
+}
+
+/// A plan: items in order, each starting where the one before ended.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Plan {
+    /// Source lines of the program (0 for jogs).
+    pub lines: u32,
+    pub items: Vec<Item>,
+    pub total_ticks: u64,
+    /// Where the plan leaves the machine: XY steps, Z machine mm, lift.
+    pub end_steps: [i64; 2],
+    pub end_z: f64,
+    pub end_lift: bool,
+    pub end_offset: Option<WorkOffset>,
+}
+
+/// Where the machine is when a plan starts.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Start {
+    pub steps: [i64; 2],
+    /// Z, machine mm (commanded; Z is a lift).
+    pub z: f64,
+    pub lift: bool,
+    /// Machine origin of G54..G59 (XYZA).
+    pub offsets: [[f64; 4]; 6],
+    pub active: WorkOffset,
+}
+
+/// Builds plans; keeps the running position between items.
+pub struct Builder<'a> {
+    machine: &'a Machine,
+    plan: Plan,
+    steps: [i64; 2],
+    z: f64,
+    lift: bool,
+    offset: [f64; 4],
+    tick: u64,
+    /// Programmed XY end of the last move, machine mm (unquantised): the next ideal line
+    /// starts here.
+    ideal_xy: [f64; 2],
+}
+
+impl<'a> Builder<'a> {
+    pub fn new(machine: &'a Machine, start: &Start) -> Builder<'a> {
+        Builder {
+            machine,
+            plan: Plan::default(),
+            steps: start.steps,
+            z: start.z,
+            lift: start.lift,
+            offset: start.offsets[start.active.index()],
+            tick: 0,
+            ideal_xy: [
+                start.steps[0] as f64 / machine.axes[0].steps_per_mm,
+                start.steps[1] as f64 / machine.axes[1].steps_per_mm,
+            ],
+        }
+    }
+
+    fn push(&mut self, line: u32, action: Action) {
+        let ticks = action.ticks();
+        self.plan.items.push(Item {
+            line,
+            start_tick: self.tick,
+            action,
+        });
+        self.tick += ticks;
+    }
+
+    fn check_travel(&self, machine_xy: [f64; 2]) -> Result<(), String> {
+        for (i, v) in machine_xy.iter().enumerate() {
+            if let Some((min, max)) = self.machine.travel[i] {
+                if *v < min || *v > max {
+                    return Err(format!(
+                        "{} {v:.3} mm is outside the travel [{min}, {max}] (machine coordinates)",
+                        ['X', 'Y'][i]
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn set_lift(&mut self, line: u32, on: bool, z: f64) {
+        if on != self.lift {
+            self.lift = on;
+            self.push(
+                line,
+                Action::Lift {
+                    on,
+                    settle: self.machine.lift_settle_ticks,
+                    z,
+                },
+            );
+        }
+    }
+
+    /// A straight move to machine XY `to` (mm) and machine Z `z`. Lifting happens before the XY
+    /// motion, lowering after it (Z is not interpolated).
+    pub fn move_to(
+        &mut self,
+        line: u32,
+        to: [f64; 2],
+        z: f64,
+        feed_mm_min: Option<f64>,
+    ) -> Result<(), String> {
+        self.check_travel(to)?;
+        let lift = z - self.offset[2] > self.machine.lift_above_mm;
+        if lift {
+            self.set_lift(line, true, z);
+        }
+        let spm = [
+            self.machine.axes[0].steps_per_mm,
+            self.machine.axes[1].steps_per_mm,
+        ];
+        let target = [
+            (to[0] * spm[0]).round() as i64,
+            (to[1] * spm[1]).round() as i64,
+        ];
+        if target != self.steps {
+            let m = Move::new(
+                self.machine,
+                self.steps,
+                target,
+                [self.ideal_xy, to],
+                feed_mm_min,
+            );
+            self.steps = target;
+            self.push(line, Action::Move(m));
+        }
+        self.ideal_xy = to;
+        if !lift {
+            self.set_lift(line, false, z);
+        }
+        self.z = z;
+        Ok(())
+    }
+
+    pub fn dwell(&mut self, line: u32, seconds: f64) {
+        let ticks = (seconds.max(0.0) * self.machine.tick_hz).round() as u64;
+        if ticks > 0 {
+            self.push(line, Action::Dwell(ticks));
+        }
+    }
+
+    pub fn pause(&mut self, line: u32) {
+        self.push(line, Action::Pause);
+    }
+
+    pub fn use_offset(&mut self, line: u32, o: WorkOffset, offsets: &[[f64; 4]; 6]) {
+        self.offset = offsets[o.index()];
+        self.plan.end_offset = Some(o);
+        self.push(line, Action::UseOffset(o));
+    }
+
+    pub fn position(&self) -> ([i64; 2], f64) {
+        (self.steps, self.z)
+    }
+
+    pub fn finish(mut self, lines: u32) -> Plan {
+        blend_junctions(self.machine, &mut self.plan.items);
+        let mut tick = 0;
+        for item in &mut self.plan.items {
+            item.start_tick = tick;
+            tick += item.action.ticks();
+        }
+        self.tick = tick;
+        self.plan.lines = lines;
+        self.plan.total_ticks = self.tick;
+        self.plan.end_steps = self.steps;
+        self.plan.end_z = self.z;
+        self.plan.end_lift = self.lift;
+        self.plan
+    }
+}
+
+/// Lets consecutive moves flow into each other instead of stopping at every junction (the
+/// chords of an arc, a polyline): the speed at a junction is the highest at which no axis's
+/// velocity jumps by more than its no-ramp `start_rate`, never above either move's top speed
+/// nor below the stop-to-stop speed, then lowered by a backward and a forward pass so that
+/// every move can reach its exit speed from its entry speed at its acceleration. Anything
+/// between moves (lift, dwell, pause, offset change) is a full stop.
+fn blend_junctions(machine: &Machine, items: &mut [Item]) {
+    let mut i = 0;
+    while i < items.len() {
+        let run = items[i..]
+            .iter()
+            .take_while(|it| matches!(it.action, Action::Move(_)))
+            .count();
+        if run >= 2 {
+            let moves: Vec<&mut Move> = items[i..i + run]
+                .iter_mut()
+                .filter_map(|it| match &mut it.action {
+                    Action::Move(m) => Some(m),
+                    _ => None,
+                })
+                .collect();
+            blend_chain(machine, moves);
+        }
+        i += run.max(1);
+    }
+}
+
+fn blend_chain(machine: &Machine, mut moves: Vec<&mut Move>) {
+    let n = moves.len();
+    let limits: Vec<(f64, f64, f64)> = moves.iter().map(|m| m.path_limits()).collect();
+    let start_mm = [
+        machine.axes[0].start_rate / machine.axes[0].steps_per_mm,
+        machine.axes[1].start_rate / machine.axes[1].steps_per_mm,
+    ];
+    let mut junction: Vec<f64> = (0..n - 1)
+        .map(|k| {
+            let (a, b) = (&moves[k], &moves[k + 1]);
+            let mut v = limits[k].0.min(limits[k + 1].0);
+            for (ax, start) in start_mm.iter().enumerate() {
+                let jump = (a.unit[ax] - b.unit[ax]).abs();
+                if jump > 1e-12 {
+                    v = v.min(start / jump);
+                }
+            }
+            v.max(limits[k].1.min(limits[k + 1].1))
+        })
+        .collect();
+    // Backward: each move must be able to slow down to its exit speed.
+    let mut next = limits[n - 1].1;
+    for k in (0..n - 1).rev() {
+        let reach = (next * next + 2.0 * limits[k + 1].2 * moves[k + 1].length_mm).sqrt();
+        junction[k] = junction[k].min(reach);
+        next = junction[k];
+    }
+    // Forward: each move must be able to speed up to its exit speed.
+    let mut prev = limits[0].1;
+    for k in 0..n - 1 {
+        let reach = (prev * prev + 2.0 * limits[k].2 * moves[k].length_mm).sqrt();
+        junction[k] = junction[k].min(reach);
+        prev = junction[k];
+    }
+    for (k, m) in moves.iter_mut().enumerate() {
+        let v_in = if k == 0 { limits[0].1 } else { junction[k - 1] };
+        let v_out = if k == n - 1 { limits[k].1 } else { junction[k] };
+        m.set_junction_speeds(v_in, v_out);
+    }
+}
+
+/// Plans a whole G-code program, validating all of it first. Lines before `start_line` are
+/// interpreted for their modal state but not executed: the first executed move starts from
+/// where the machine is. Errors name the line (and column for G-code errors).
+pub fn plan_program(
+    machine: &Machine,
+    text: &str,
+    start: &Start,
+    start_line: u32,
+) -> Result<Plan, String> {
+    let lines = u32::try_from(text.lines().count()).unwrap_or(u32::MAX);
+    let off = start.offsets[start.active.index()];
+    let work = [
+        start.steps[0] as f64 / machine.axes[0].steps_per_mm - off[0],
+        start.steps[1] as f64 / machine.axes[1].steps_per_mm - off[1],
+        start.z - off[2],
+    ];
+    let mut config = fresa_gcode::Config {
+        initial_position: work,
+        arc_tolerance_mm: ARC_TOLERANCE_MM,
+        ..Default::default()
+    };
+    for (i, o) in start.offsets.iter().enumerate() {
+        config.work_offsets[i] = [o[0], o[1], o[2]];
+    }
+    let interp = Interpreter::new(text.as_bytes(), config);
+    let mut b = Builder::new(machine, start);
+    let mut offsets_now = off;
+    for motion in linearise(interp, ARC_TOLERANCE_MM) {
+        let motion = motion.map_err(|e| e.to_string())?;
+        let line = motion.line().clamp(1, lines.max(1));
+        let run = line >= start_line;
+        match motion {
+            Motion::Rapid { to, .. } if run => {
+                let m = [to[0] + offsets_now[0], to[1] + offsets_now[1]];
+                b.move_to(line, m, to[2] + offsets_now[2], Some(machine.rapid_mm_min))
+                    .map_err(|e| format!("line {line}: {e}"))?;
+            }
+            Motion::Linear {
+                to, feed_mm_min, ..
+            }
+            | Motion::Arc {
+                to, feed_mm_min, ..
+            } if run => {
+                let m = [to[0] + offsets_now[0], to[1] + offsets_now[1]];
+                b.move_to(line, m, to[2] + offsets_now[2], Some(feed_mm_min))
+                    .map_err(|e| format!("line {line}: {e}"))?;
+            }
+            Motion::Dwell { seconds, .. } if run => b.dwell(line, seconds),
+            Motion::Pause {
+                optional: false, ..
+            } if run => b.pause(line),
+            Motion::WorkOffset { system, .. } => {
+                if let Some(o) = usize::from(system)
+                    .checked_sub(1)
+                    .and_then(|i| WorkOffset::ALL.get(i))
+                {
+                    offsets_now = start.offsets[o.index()];
+                    if run {
+                        b.use_offset(line, *o, &start.offsets);
+                    } else {
+                        b.offset = offsets_now;
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
+    Ok(b.finish(lines))
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use proptest::prelude::*;
+
+    pub fn machine() -> Machine {
+        let ax = AxisLimits {
+            steps_per_mm: 140.0,
+            max_rate: 500.0,
+            start_rate: 100.0,
+            accel: 2000.0,
+        };
+        Machine {
+            axes: [ax, ax],
+            tick_hz: 20_000.0,
+            rapid_mm_min: 6000.0,
+            lift_above_mm: 0.0,
+            lift_settle_ticks: 100,
+            travel: [None, None],
+        }
+    }
+
+    fn start() -> Start {
+        Start {
+            steps: [0, 0],
+            z: 0.0,
+            lift: false,
+            offsets: [[0.0; 4]; 6],
+            active: WorkOffset::G54,
+        }
+    }
+
+    /// Checks the DDA line property of a move: every step moves each axis by at most one
+    /// step, the minor axis is within half a step of the ideal line at every major step, and
+    /// the move ends on the exact target.
+    fn check_line(from: [i64; 2], to: [i64; 2]) {
+        let m = machine();
+        let mv = Move::new(&m, from, to, [[0.0; 2], [0.0; 2]], None);
+        let d = [to[0] - from[0], to[1] - from[1]];
+        let n = d[0].abs().max(d[1].abs());
+        let major = if d[0].abs() >= d[1].abs() { 0 } else { 1 };
+        let mut prev = from;
+        let mut prev_tick = 0;
+        let mut count = 0;
+        for s in mv.steps() {
+            count += 1;
+            assert!(s.tick > prev_tick, "ticks strictly increase");
+            prev_tick = s.tick;
+            for (now, before) in s.pos.iter().zip(prev) {
+                assert!((now - before).abs() <= 1, "one step per axis per slot");
+            }
+            let k = (s.pos[major] - from[major]).abs() as f64;
+            for i in 0..2 {
+                let ideal = from[i] as f64 + d[i] as f64 * k / n as f64;
+                assert!(
+                    (s.pos[i] as f64 - ideal).abs() <= 0.5 + 1e-9,
+                    "{from:?}->{to:?}: axis {i} at {:?} vs ideal {ideal}",
+                    s.pos
+                );
+            }
+            prev = s.pos;
+        }
+        assert_eq!(count, n);
+        assert_eq!(prev, to);
+        assert_eq!(mv.ticks, prev_tick, "closed-form length = last step");
+    }
+
+    #[test]
+    fn the_seeds_diagonal_is_a_straight_line() {
+        // 6 cm x 3 cm at 7 turns/cm x 200 steps: 8400 x 4200 steps, no dog-leg.
+        check_line([0, 0], [8400, 4200]);
+        check_line([10, -5], [-3, 40]);
+        check_line([0, 0], [0, 7]);
+        check_line([0, 0], [0, 0]);
+    }
+
+    #[test]
+    fn profile_is_a_trapezoid_within_the_limits() {
+        let m = machine();
+        let mv = Move::new(&m, [0, 0], [8400, 4200], [[0.0; 2], [60.0, 30.0]], None);
+        // X is major at 500 steps/s; Y does half of that.
+        assert!((mv.profile.peak_rate() - 500.0).abs() < 1e-9);
+        let steps: Vec<_> = mv.steps().collect();
+        let min_gap = steps
+            .windows(2)
+            .map(|w| w[1].tick - w[0].tick)
+            .min()
+            .unwrap();
+        // 500 steps/s at 20 kHz = 40 ticks.
+        assert!(min_gap >= 39, "gap {min_gap}");
+        let first_gap = steps[1].tick - steps[0].tick;
+        assert!(first_gap > 100, "starts slow: {first_gap}");
+        // Cruise time 8400/500 = 16.8 s, plus the ramps.
+        let secs = mv.ticks as f64 / 20_000.0;
+        assert!(secs > 16.8 && secs < 17.2, "{secs}");
+    }
+
+    #[test]
+    fn arcs_follow_the_circle() {
+        let m = machine();
+        let prog = "G21 G90\nG0 X10 Y0\nG2 X0 Y-10 I-10 J0 F300\n";
+        let plan = plan_program(&m, prog, &start(), 1).unwrap();
+        let mut worst: f64 = 0.0;
+        let mut end = [0, 0];
+        for item in &plan.items {
+            if let Action::Move(mv) = &item.action {
+                for s in mv.steps() {
+                    if item.line == 3 {
+                        let p = [s.pos[0] as f64 / 140.0, s.pos[1] as f64 / 140.0];
+                        let r = (p[0] * p[0] + p[1] * p[1]).sqrt();
+                        worst = worst.max((r - 10.0).abs());
+                        assert!(s.deviation_mm <= 1.0 / 140.0 + 1e-9);
+                    }
+                    end = s.pos;
+                }
+            }
+        }
+        // Within one step (plus the chord tolerance) of the circle.
+        assert!(worst <= 1.0 / 140.0 + ARC_TOLERANCE_MM, "{worst}");
+        assert_eq!(end, [0, -1400]);
+        assert_eq!(plan.end_steps, [0, -1400]);
+    }
+
+    /// Step ticks of each axis over a whole plan (timeline ticks).
+    fn axis_step_ticks(plan: &Plan) -> [Vec<u64>; 2] {
+        let mut out = [Vec::new(), Vec::new()];
+        for item in &plan.items {
+            if let Action::Move(mv) = &item.action {
+                let mut prev = mv.from;
+                for s in mv.steps() {
+                    for (i, ticks) in out.iter_mut().enumerate() {
+                        if s.pos[i] != prev[i] {
+                            ticks.push(item.start_tick + s.tick);
+                        }
+                    }
+                    prev = s.pos;
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn arc_chords_flow_into_each_other_and_corners_slow_down() {
+        let m = machine();
+        // A full circle of r = 10 mm at F600 (10 mm/s = 1400 steps/s, capped at 500).
+        let arc = plan_program(&m, "G0 X10\nG2 X10 Y0 I-10 J0 F600\n", &start(), 1).unwrap();
+        let chords = arc.items.iter().filter(|i| i.line == 2).count();
+        assert!(chords > 50, "{chords} chords");
+        // Versus stopping at every chord (each move on its own, start_rate in and out).
+        let (mut blended, mut stop_to_stop) = (0.0, 0.0);
+        for item in arc.items.iter().filter(|i| i.line == 2) {
+            if let Action::Move(mv) = &item.action {
+                blended += mv.profile.seconds();
+                stop_to_stop +=
+                    Profile::new(mv.profile.n, mv.v_max, mv.v_start, mv.v_start, mv.accel)
+                        .seconds();
+            }
+        }
+        // Circumference 62.8 mm with the faster axis capped at 500 steps/s: 3.6..5 mm/s.
+        assert!(blended < 17.5, "circle took {blended} s");
+        assert!(
+            blended < 0.6 * stop_to_stop,
+            "blended {blended} s vs stop-to-stop {stop_to_stop} s"
+        );
+        // Never faster than max_rate on either axis (500 steps/s = 40 ticks; rounding: 39).
+        for ticks in axis_step_ticks(&arc) {
+            for w in ticks.windows(2) {
+                assert!(w[1] - w[0] >= 39, "step gap {} ticks", w[1] - w[0]);
+            }
+        }
+        // A right-angle corner: the junction speed is the no-ramp speed, not the cruise.
+        let corner = plan_program(&m, "G1 X20 F6000\nG1 Y20\n", &start(), 1).unwrap();
+        let speeds: Vec<_> = corner
+            .items
+            .iter()
+            .filter_map(|i| match &i.action {
+                Action::Move(mv) => Some((mv.profile.entry_rate(), mv.profile.exit_rate())),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(speeds, [(100.0, 100.0), (100.0, 100.0)]);
+        // Collinear segments join at full speed.
+        let line = plan_program(&m, "G1 X20 F6000\nG1 X40\n", &start(), 1).unwrap();
+        match &line.items[0].action {
+            Action::Move(mv) => assert_eq!(mv.profile.exit_rate(), 500.0),
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn lift_goes_up_before_and_down_after_xy() {
+        let m = machine();
+        let plan = plan_program(&m, "G0 Z5\nG0 X1\nG1 X2 Z-1 F100\n", &start(), 1).unwrap();
+        let kinds: Vec<_> = plan
+            .items
+            .iter()
+            .map(|i| match &i.action {
+                Action::Lift { on, .. } => format!("{}:lift{on}", i.line),
+                Action::Move(_) => format!("{}:move", i.line),
+                other => format!("{other:?}"),
+            })
+            .collect();
+        assert_eq!(
+            kinds,
+            ["1:lifttrue", "2:move", "3:move", "3:liftfalse"],
+            "{kinds:?}"
+        );
+    }
+
+    #[test]
+    fn travel_and_gcode_errors_name_the_line() {
+        let mut m = machine();
+        m.travel = [Some((0.0, 50.0)), None];
+        let e = plan_program(&m, "G0 X10\nG0 X60\n", &start(), 1).unwrap_err();
+        assert!(e.starts_with("line 2: X 60.000"), "{e}");
+        let e = plan_program(&m, "G0 X10\nG1 X20\n", &start(), 1).unwrap_err();
+        assert!(e.contains("line 2"), "{e}");
+    }
+
+    #[test]
+    fn start_line_skips_motion_but_keeps_modes() {
+        let m = machine();
+        let plan = plan_program(&m, "G91\nG0 X1\nG0 X1\n", &start(), 3).unwrap();
+        // Lines 1-2 are interpreted (G91, X at 1) but not run; line 3 goes straight from
+        // where the machine is to the program's X2.
+        assert_eq!(plan.items.len(), 1);
+        assert_eq!(plan.items[0].line, 3);
+        assert_eq!(plan.end_steps, [280, 0]);
+    }
+
+    proptest! {
+        #[test]
+        fn blended_polylines_at_the_top_rate_keep_one_step_per_tick(
+            pts in proptest::collection::vec((-50i32..50, -50i32..50), 2..6),
+        ) {
+            // max_rate = tick_hz / 2: the tightest the config allows.
+            let mut m = machine();
+            for ax in &mut m.axes {
+                ax.max_rate = 10_000.0;
+                ax.start_rate = 500.0;
+                ax.accel = 200_000.0;
+            }
+            let mut prog = String::from("G1 F100000\n");
+            for (x, y) in &pts {
+                prog.push_str(&format!("G1 X{} Y{}\n", *x as f64 / 7.0, *y as f64 / 3.0));
+            }
+            let plan = plan_program(&m, &prog, &start(), 1).unwrap();
+            let mut last_tick = None;
+            for item in &plan.items {
+                if let Action::Move(mv) = &item.action {
+                    let steps: Vec<_> = mv.steps().collect();
+                    prop_assert_eq!(mv.ticks, steps.last().unwrap().tick);
+                    for s in &steps {
+                        let t = item.start_tick + s.tick;
+                        prop_assert!(last_tick.is_none_or(|l| t > l), "two steps in tick {}", t);
+                        last_tick = Some(t);
+                    }
+                }
+            }
+        }
+
+        #[test]
+        fn dda_lines_stay_within_half_a_step(
+            fx in -3000i64..3000, fy in -3000i64..3000,
+            tx in -3000i64..3000, ty in -3000i64..3000,
+        ) {
+            check_line([fx, fy], [tx, ty]);
+        }
+    }
+}

@@ -1,0 +1,483 @@
+//! The output loop on a simulated port, in virtual time (no waiting; ticks are counted): what
+//! reaches the coils is decoded back into motor positions and checked.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fresa_parport_stepper::coils::CoilMap;
+use fresa_parport_stepper::pins;
+use fresa_parport_stepper::port::{Register, Write};
+use fresa_parport_stepper::{Config, Stepper, Timing};
+use fresa_plugin_api::contract::Event;
+use serde_json::{json, Value};
+use std::io::Write as _;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+struct Rig {
+    m: Stepper,
+    cfg: Config,
+    events: Arc<Mutex<Vec<Event>>>,
+    _dir: tempfile_dir::Dir,
+}
+
+mod tempfile_dir {
+    pub struct Dir(pub std::path::PathBuf);
+    impl Dir {
+        pub fn new(tag: &str) -> Dir {
+            let p = std::env::temp_dir().join(format!(
+                "parport-test-{tag}-{}-{:?}",
+                std::process::id(),
+                std::time::SystemTime::now()
+            ));
+            std::fs::create_dir_all(&p).unwrap();
+            Dir(p)
+        }
+    }
+    impl Drop for Dir {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+}
+
+fn rig(tag: &str, config: Value) -> Rig {
+    rig_timed(tag, config, Timing::Virtual)
+}
+
+fn rig_timed(tag: &str, config: Value, timing: Timing) -> Rig {
+    let cfg = Config::from_json(&config).unwrap();
+    let events = Arc::new(Mutex::new(Vec::new()));
+    let sink = events.clone();
+    let m = Stepper::new(
+        &config,
+        Arc::new(move |e: &Event| sink.lock().unwrap().push(e.clone())),
+        Arc::new(|_, _| {}),
+        timing,
+    )
+    .unwrap();
+    m.request(json!({"op":"connect"})).unwrap();
+    Rig {
+        m,
+        cfg,
+        events,
+        _dir: tempfile_dir::Dir::new(tag),
+    }
+}
+
+impl Rig {
+    fn run(&self, program: &str) -> Event {
+        let path = self._dir.0.join("p.nc");
+        std::fs::File::create(&path)
+            .unwrap()
+            .write_all(program.as_bytes())
+            .unwrap();
+        self.m
+            .request(json!({"op":"load_program","run":1,"path":path,"start_line":1}))
+            .unwrap();
+        self.m
+            .request(json!({"op":"run","action":"start"}))
+            .unwrap();
+        self.wait(|e| matches!(e, Event::RunEnded { .. }))
+    }
+
+    fn wait(&self, f: impl Fn(&Event) -> bool) -> Event {
+        let deadline = Instant::now() + Duration::from_secs(60);
+        loop {
+            if let Some(e) = self.events.lock().unwrap().iter().find(|e| f(e)) {
+                return e.clone();
+            }
+            assert!(Instant::now() < deadline, "timed out waiting for an event");
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+
+    /// Waits until the loop has switched every coil off, then returns the writes.
+    fn writes_after_idle(&self) -> Vec<Write> {
+        let port = self.m.sim_port.clone().unwrap();
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            let w: Vec<Write> = port.lock().writes.iter().copied().collect();
+            let last_data = w.iter().rev().find(|w| w.register == Register::Data);
+            if last_data.is_some_and(|w| w.value == 0) {
+                return w;
+            }
+            assert!(Instant::now() < deadline, "coils never switched off");
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+}
+
+/// Replays the data writes: positions of each motor after every write, checking that every
+/// energised pattern follows the last energised one legally (same or one step either way).
+fn replay(coils: &[CoilMap; 2], writes: &[Write]) -> Vec<(u64, [i64; 2])> {
+    let mut pos = [0i64; 2];
+    let mut last: [Option<u8>; 2] = [None; 2];
+    let mut out = Vec::new();
+    for w in writes.iter().filter(|w| w.register == Register::Data) {
+        for i in 0..2 {
+            let p = coils[i].gather(w.value);
+            if p == 0 {
+                continue;
+            }
+            let e = coils[i].excitation;
+            let seq = e.sequence();
+            match last[i] {
+                None => {
+                    // First energising: from position 0's pattern or one step away.
+                    assert!(
+                        e.is_legal_transition(e.pattern(0), p),
+                        "axis {i}: first pattern {p:04b} skips a phase"
+                    );
+                }
+                Some(prev) => {
+                    assert!(
+                        e.is_legal_transition(prev, p),
+                        "axis {i}: {prev:04b} -> {p:04b} skips a phase at tick {}",
+                        w.tick
+                    );
+                }
+            }
+            let prev = last[i].unwrap_or(e.pattern(0));
+            let a = seq.iter().position(|x| *x == prev).unwrap() as i64;
+            let b = seq.iter().position(|x| *x == p).unwrap() as i64;
+            let n = seq.len() as i64;
+            let d = (b - a).rem_euclid(n);
+            pos[i] += match d {
+                0 => 0,
+                1 => 1,
+                _ => -1,
+            };
+            last[i] = Some(p);
+        }
+        out.push((w.tick, pos));
+    }
+    out
+}
+
+fn sim(extra: Value) -> Value {
+    let mut c = json!({"port":"sim","axes":{"x":{"steps_per_mm":20,"max_rate":2000,"accel":20000},
+                                            "y":{"steps_per_mm":20,"max_rate":2000,"accel":20000}}});
+    for (k, v) in extra.as_object().unwrap() {
+        c[k] = v.clone();
+    }
+    c
+}
+
+#[test]
+fn diagonal_is_straight_and_ends_exactly_then_coils_go_off() {
+    let r = rig("diag", sim(json!({})));
+    let end = r.run("G21 G90\nG1 X60 Y30 F600\nG1 X-7.5 Y12.25\n");
+    assert!(
+        matches!(
+            end,
+            Event::RunEnded {
+                outcome: fresa_plugin_api::contract::RunOutcome::Completed,
+                ..
+            }
+        ),
+        "{end:?}"
+    );
+    let writes = r.writes_after_idle();
+    let path = replay(&r.cfg.coils, &writes);
+    // Line 2: (0,0) -> (1200, 600) steps; every point within one step of the line.
+    let mut worst: f64 = 0.0;
+    let mut corner = None;
+    for (_, p) in &path {
+        if corner.is_none() {
+            let d = (p[0] as f64 * 600.0 - p[1] as f64 * 1200.0).abs() / (1200.0f64.hypot(600.0));
+            worst = worst.max(d);
+            if *p == [1200, 600] {
+                corner = Some(*p);
+            }
+        }
+    }
+    assert!(corner.is_some(), "reached the corner");
+    assert!(worst <= 1.0, "deviation {worst} steps");
+    let last = path.last().unwrap().1;
+    assert_eq!(last, [-150, 245], "exact final step counts");
+    // Idle de-energise: the final all-off write comes 15 ms (300 ticks at 20 kHz) after the
+    // last step, not earlier and not much later.
+    let off = writes
+        .iter()
+        .rev()
+        .find(|w| w.register == Register::Data)
+        .unwrap();
+    assert_eq!(off.value, 0);
+    let last_step = path
+        .windows(2)
+        .rev()
+        .find(|w| w[0].1 != w[1].1)
+        .map(|w| w[1].0)
+        .unwrap();
+    let idle = off.tick - last_step;
+    assert!(
+        (300..=302).contains(&idle),
+        "de-energised after {idle} ticks"
+    );
+    // Status agrees.
+    let st = r.m.request(json!({"op":"status"})).unwrap();
+    assert_eq!(st["machine_position"]["x"], -7.5);
+    assert_eq!(st["machine_position"]["y"], 12.25);
+}
+
+#[test]
+fn arcs_stay_near_the_circle_and_report_deviation_per_line() {
+    for exc in ["full_step", "wave", "half_step"] {
+        let r = rig(
+            "arc",
+            sim(
+                json!({"axes":{"x":{"steps_per_mm":20,"max_rate":2000,"accel":20000,"excitation":exc},
+                               "y":{"steps_per_mm":20,"max_rate":2000,"accel":20000,"excitation":exc}}}),
+            ),
+        );
+        r.run("G21 G90\nG0 X10 Y0\nG3 X-10 Y0 I-10 J0 F600\n");
+        let writes = r.writes_after_idle();
+        let path = replay(&r.cfg.coils, &writes);
+        let start = path.iter().position(|(_, p)| *p == [200, 0]).unwrap();
+        let mut worst: f64 = 0.0;
+        for (_, p) in &path[start..] {
+            let rad = (p[0] as f64).hypot(p[1] as f64);
+            worst = worst.max((rad - 200.0).abs());
+        }
+        assert!(worst <= 1.0, "{exc}: {worst} steps off the circle");
+        assert_eq!(path.last().unwrap().1, [-200, 0]);
+        let reports: Vec<_> = r
+            .events
+            .lock()
+            .unwrap()
+            .iter()
+            .filter_map(|e| match e {
+                Event::LineReport {
+                    line,
+                    max_deviation_mm,
+                    percent,
+                    ..
+                } => Some((*line, *max_deviation_mm, *percent)),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(reports.iter().map(|r| r.0).collect::<Vec<_>>(), [2, 3]);
+        assert!(reports[1].1 > 0.0 && reports[1].1 <= 0.05, "{reports:?}");
+        assert_eq!(reports[1].2, 100.0);
+    }
+}
+
+#[test]
+fn limit_input_stops_within_one_tick_alarms_and_fails_the_run() {
+    let r = rig(
+        "limit",
+        sim(
+            json!({"inputs":[{"pin":10,"function":"limit_x"},{"pin":11,"function":"estop","active_low":true}],
+                   "sim_inputs":[{"after_writes":100,"pin":10,"level":"high"}]}),
+        ),
+    );
+    let end = r.run("G1 X50 Y5 F600\n");
+    match &end {
+        Event::RunEnded {
+            outcome, message, ..
+        } => {
+            assert_eq!(*outcome, fresa_plugin_api::contract::RunOutcome::Failed);
+            assert_eq!(message.as_deref(), Some("limit X (pin 10)"));
+        }
+        other => panic!("{other:?}"),
+    }
+    let st = r.m.request(json!({"op":"status"})).unwrap();
+    assert_eq!(st["state"], "alarm");
+    assert_eq!(st["alarm"], "limit X (pin 10)");
+    let port = r.m.sim_port.clone().unwrap();
+    let p = port.lock();
+    let limit_seen = p
+        .status_changes
+        .iter()
+        .find(|(_, v)| pins::input_level(*v, 10))
+        .map(|(t, _)| *t)
+        .expect("the loop read the limit");
+    let data: Vec<_> = p
+        .writes
+        .iter()
+        .filter(|w| w.register == Register::Data)
+        .collect();
+    // The 100th write (a step) set the input; it was read at the next tick, in which the only
+    // write is all coils off, and nothing is written after it.
+    let trip_write = data.iter().position(|w| w.tick >= limit_seen).unwrap();
+    assert_eq!(trip_write, 100);
+    assert_eq!(data[trip_write].value, 0);
+    assert_eq!(
+        data[trip_write].tick, limit_seen,
+        "stopped in the tick that saw the input"
+    );
+    assert!(
+        limit_seen - data[99].tick <= 40,
+        "read within one step period"
+    );
+    assert_eq!(data.len(), 101, "no write after the stop");
+    drop(p);
+    // Motion is refused until reset.
+    let e =
+        r.m.request(json!({"op":"jog","axis":"X","distance":-1.0}))
+            .unwrap_err();
+    assert_eq!(e.code, "alarm");
+    r.m.request(json!({"op":"command","command":"reset"}))
+        .unwrap();
+    assert_eq!(
+        r.m.request(json!({"op":"status"})).unwrap()["state"],
+        "idle"
+    );
+}
+
+#[test]
+fn z_lift_output_and_jogs() {
+    let r = rig("lift", sim(json!({"z_lift":{"pin":16}})));
+    r.m.request(json!({"op":"command","command":"set_output","name":"z_lift","on":true}))
+        .unwrap();
+    let port = r.m.sim_port.clone().unwrap();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let lifted = port
+            .lock()
+            .writes
+            .iter()
+            .rev()
+            .find(|w| w.register == Register::Control)
+            .is_some_and(|w| pins::output_level(w.value, 16));
+        if lifted {
+            break;
+        }
+        assert!(Instant::now() < deadline, "lift never switched on");
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    r.m.request(json!({"op":"jog","axis":"X","distance":2.5,"feed":600}))
+        .unwrap();
+    r.m.request(json!({"op":"jog","axis":"Y","distance":-1.0,"feed":600}))
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let st = r.m.request(json!({"op":"status"})).unwrap();
+        if st["state"] == "idle" {
+            assert_eq!(st["machine_position"]["x"], 2.5);
+            assert_eq!(st["machine_position"]["y"], -1.0);
+            break;
+        }
+        assert!(Instant::now() < deadline, "jogs never finished: {st}");
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
+#[test]
+fn feed_hold_ramps_down_and_resume_ramps_up_on_the_same_line() {
+    // Real ticks at 5 kHz: 1000 steps/s cruise = a step every 5 ticks; the hold ramp is
+    // 1000 / 4000 = 0.25 s.
+    let r = rig_timed(
+        "hold",
+        json!({"port":"sim","tick_hz":5000,"spin_us":0,"realtime_priority":false,
+               "axes":{"x":{"steps_per_mm":20,"max_rate":1000,"start_rate":50,"accel":4000},
+                       "y":{"steps_per_mm":20,"max_rate":1000,"start_rate":50,"accel":4000}}}),
+        Timing::Real,
+    );
+    let path = r._dir.0.join("p.nc");
+    std::fs::write(&path, "G1 X100 Y20 F60000\n").unwrap();
+    r.m.request(json!({"op":"load_program","run":1,"path":path,"start_line":1}))
+        .unwrap();
+    r.m.request(json!({"op":"run","action":"start"})).unwrap();
+    let poll = |what: &str, f: &dyn Fn(&Value) -> bool| {
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            let st = r.m.request(json!({"op":"status"})).unwrap();
+            if f(&st) {
+                return st;
+            }
+            assert!(Instant::now() < deadline, "timed out: {what}; {st}");
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    };
+    poll("cruising", &|st| {
+        st["machine_position"]["x"].as_f64().unwrap() > 15.0
+    });
+    r.m.request(json!({"op":"run","action":"pause"})).unwrap();
+    // Held: wait for the coils to go off (no step for 15 ms), then resume.
+    let port = r.m.sim_port.clone().unwrap();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while port
+        .lock()
+        .writes
+        .iter()
+        .rev()
+        .find(|w| w.register == Register::Data)
+        .is_none_or(|w| w.value != 0)
+    {
+        assert!(Instant::now() < deadline, "never came to rest");
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    r.m.request(json!({"op":"run","action":"resume"})).unwrap();
+    r.wait(|e| matches!(e, Event::RunEnded { .. }));
+    let writes: Vec<Write> = port.lock().writes.iter().copied().collect();
+    let path = replay(&r.cfg.coils, &writes);
+    assert_eq!(
+        path.last().unwrap().1,
+        [2000, 400],
+        "exact end after hold and resume"
+    );
+    // Step ticks of the major axis (X).
+    let steps: Vec<u64> = path
+        .windows(2)
+        .filter(|w| w[0].1[0] != w[1].1[0])
+        .map(|w| w[1].0)
+        .collect();
+    let gaps: Vec<u64> = steps.windows(2).map(|w| w[1] - w[0]).collect();
+    let (hold, _) = gaps.iter().enumerate().max_by_key(|(_, g)| **g).unwrap();
+    let cruise = *gaps.iter().min().unwrap();
+    assert!(cruise <= 6, "cruised at {cruise} ticks a step");
+    // Slowed down before the stop and started slowly after it: the step periods around the
+    // hold are several times the cruise period, and they change gradually.
+    assert!(
+        gaps[hold - 1] >= 4 * cruise,
+        "{:?}",
+        &gaps[hold - 10..hold + 10]
+    );
+    assert!(
+        gaps[hold + 1] >= 4 * cruise,
+        "{:?}",
+        &gaps[hold - 10..hold + 10]
+    );
+    let before = &gaps[hold - 30..hold];
+    assert!(
+        before.windows(2).all(|w| w[1] + 1 >= w[0]),
+        "deceleration never speeds up: {before:?}"
+    );
+}
+
+#[test]
+fn e_stop_alarms_while_active_and_reset_waits_for_its_release() {
+    let r = rig(
+        "estop",
+        sim(
+            json!({"inputs":[{"pin":15,"function":"estop","active_low":true}],
+                   "sim_inputs":[{"after_writes":5,"pin":15,"level":"low"}]}),
+        ),
+    );
+    r.m.request(json!({"op":"jog","axis":"Y","distance":5.0,"feed":600}))
+        .unwrap();
+    let alarm = r.wait(|e| matches!(e, Event::Alarm { .. }));
+    assert_eq!(
+        alarm,
+        Event::Alarm {
+            message: "e-stop (pin 15)".into()
+        }
+    );
+    let st = r.m.request(json!({"op":"status"})).unwrap();
+    assert_eq!(st["state"], "alarm");
+    let y = st["machine_position"]["y"].as_f64().unwrap();
+    assert!(y > 0.0 && y < 0.5, "stopped after a few steps: {y}");
+    let e =
+        r.m.request(json!({"op":"command","command":"reset"}))
+            .unwrap_err();
+    assert!(
+        e.message.contains("e-stop (pin 15) is still active"),
+        "{}",
+        e.message
+    );
+    assert_eq!(
+        r.m.request(json!({"op":"status"})).unwrap()["state"],
+        "alarm"
+    );
+}

@@ -1,0 +1,208 @@
+//! The parport-stepper backend end to end through the server's API, on its simulated port:
+//! a program run (with the process monitor's line reports on the event stream), jog, zero, the
+//! Z-lift output, and a limit input that stops the job with an alarm naming the pin.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fresa_tests::serde_json::{json, Value};
+use fresa_tests::{assert_every_line_once, back_and_forth, read_exec_log, Server, SseEvent};
+use std::time::Duration;
+
+const T: Duration = Duration::from_secs(60);
+
+/// A fast simulated router: 20 steps/mm, 2000 steps/s, 5 kHz ticks.
+fn parport_machine(s: &Server, name: &str, extra: Value) -> i64 {
+    let mut config = json!({
+        "port": "sim",
+        "tick_hz": 5000,
+        "spin_us": 0,
+        "realtime_priority": false,
+        "execution_log": s.root().join(format!("exec-{name}.log")),
+        "axes": {
+            "x": {"steps_per_mm": 20, "max_rate": 2000, "accel": 40000},
+            "y": {"steps_per_mm": 20, "max_rate": 2000, "accel": 40000}
+        },
+        "z_lift": {"settle_ms": 5}
+    });
+    for (k, v) in extra.as_object().unwrap() {
+        config[k] = v.clone();
+    }
+    s.create_machine(&json!({"name": name, "backend": "parport-stepper", "config": config}))
+}
+
+fn axis(st: &Value, pos: &str, a: &str) -> f64 {
+    st[pos][a]
+        .as_f64()
+        .unwrap_or_else(|| panic!("no {pos}.{a} in {st}"))
+}
+
+#[test]
+fn runs_a_program_with_line_reports_then_jogs_zeroes_and_lifts() {
+    let s = Server::start();
+    let m = parport_machine(&s, "router", json!({}));
+    s.wait_machine_state(m, "idle", T);
+    let events = s.events("types=job.line_report", None);
+
+    let program =
+        "G21 G90\nG0 Z5\nG0 X10 Y5\nG1 Z-1 F300\nG1 X20 Y10 F1200\nG2 X30 Y10 I5 J0\nG0 Z5\nM2\n";
+    let job = s.upload(m, "part.nc", program);
+    let id = job["id"].as_i64().unwrap();
+    s.job_action(id, "start").expect(200);
+    let done = s.wait_job_state(id, "completed", T);
+    assert_eq!(done["line"], 8, "{done}");
+    let st = s.wait_machine_state(m, "idle", T);
+    assert_eq!(axis(&st, "machine_position", "x"), 30.0);
+    assert_eq!(axis(&st, "machine_position", "y"), 10.0);
+    assert_eq!(axis(&st, "machine_position", "z"), 5.0);
+
+    // The process monitor: one report per line that moved XY, with the deviation, the percent
+    // done and the time left, ending at 100 %.
+    let seen = events.until(T, "line report of line 6", |e: &SseEvent| {
+        e.data["data"]["line"] == 6
+    });
+    let reports: Vec<&Value> = seen.iter().map(|e| &e.data["data"]).collect();
+    let lines: Vec<i64> = reports
+        .iter()
+        .map(|r| r["line"].as_i64().unwrap())
+        .collect();
+    assert_eq!(lines, [3, 5, 6], "{reports:?}");
+    for r in &reports {
+        assert_eq!(r["job"], id);
+        let dev = r["max_deviation_mm"].as_f64().unwrap();
+        // Within one step (0.05 mm) of the programmed line.
+        assert!((0.0..=0.05).contains(&dev), "{r}");
+    }
+    let last = reports[2];
+    assert!(last["percent"].as_f64().unwrap() > 50.0, "{last}");
+    assert!(last["remaining_s"].as_f64().unwrap() >= 0.0, "{last}");
+
+    // Jog (bounded by the host), zero, and the Z lift by hand.
+    s.post(
+        &format!("/api/v1/machines/{m}/jog"),
+        &json!({"axis": "X", "distance": -2.5, "feed": 600}),
+    )
+    .expect(200);
+    let st = s.wait_status(m, T, "jog done", |st| {
+        st["state"] == "idle" && st["machine_position"]["x"] == 27.5
+    });
+    assert_eq!(axis(&st, "machine_position", "y"), 10.0);
+    s.post(
+        &format!("/api/v1/machines/{m}/commands"),
+        &json!({"command": "zero", "axis": "X"}),
+    )
+    .expect(200);
+    let st = s.status(m);
+    assert_eq!(axis(&st, "work_position", "x"), 0.0);
+    let r = s
+        .post(
+            &format!("/api/v1/machines/{m}/commands"),
+            &json!({"command": "set_output", "name": "z_lift", "on": false}),
+        )
+        .expect(200);
+    assert_eq!(r["result"]["z_lift"], false, "{r}");
+    let e = s
+        .post(
+            &format!("/api/v1/machines/{m}/commands"),
+            &json!({"command": "set_output", "name": "spindle", "on": true}),
+        )
+        .expect_error(422, "invalid_command");
+    assert!(e.contains("set_output") || e.contains("spindle"), "{e}");
+}
+
+#[test]
+fn a_limit_input_stops_the_job_with_an_alarm_naming_the_pin() {
+    let s = Server::start();
+    let m = parport_machine(
+        &s,
+        "limited",
+        json!({
+            "inputs": [{"pin": 10, "function": "limit_x"}, {"pin": 15, "function": "estop", "active_low": true}],
+            "sim_inputs": [{"after_writes": 60, "pin": 10, "level": "high"}]
+        }),
+    );
+    s.wait_machine_state(m, "idle", T);
+    let job = s.upload(m, "long.nc", "G21 G90\nG1 X40 Y2 F1200\nG1 X0 Y0\n");
+    let id = job["id"].as_i64().unwrap();
+    s.job_action(id, "start").expect(200);
+    let failed = s.wait_job(id, T, "failed", |j| j["state"] == "failed");
+    assert!(
+        failed.to_string().contains("limit X (pin 10)"),
+        "the job names the input: {failed}"
+    );
+    let st = s.wait_machine_state(m, "alarm", T);
+    assert_eq!(st["alarm"], "limit X (pin 10)", "{st}");
+    // Stopped early: 60 coil writes is about 3 mm at 20 steps/mm, far from X40.
+    let x = axis(&st, "machine_position", "x");
+    assert!(x > 0.0 && x < 5.0, "stopped at x={x}");
+    // No motion until reset.
+    let e = s
+        .post(
+            &format!("/api/v1/machines/{m}/jog"),
+            &json!({"axis": "X", "distance": -1.0}),
+        )
+        .expect_error(422, "backend_rejected");
+    assert!(e.contains("in alarm (limit X (pin 10))"), "{e}");
+    s.post(
+        &format!("/api/v1/machines/{m}/commands"),
+        &json!({"command": "reset"}),
+    )
+    .expect(200);
+    s.wait_machine_state(m, "idle", T);
+}
+
+#[test]
+fn pause_resume_and_resume_after_a_crash_run_every_line_once() {
+    const LINES: i64 = 200;
+    let mut s = Server::start();
+    let m = parport_machine(
+        &s,
+        "crashy",
+        json!({"axes": {
+            "x": {"steps_per_mm": 20, "max_rate": 2000, "start_rate": 1000, "accel": 40000},
+            "y": {"steps_per_mm": 20, "max_rate": 2000, "start_rate": 1000, "accel": 40000}
+        }}),
+    );
+    let log = s.root().join("exec-crashy.log");
+    s.wait_machine_state(m, "idle", T);
+    // 200 lines of 1 mm (20 steps) at 3000 mm/min: about 25 ms a line.
+    let job = s.upload(m, "slow.nc", back_and_forth(LINES as usize, 1.0, 3000.0))["id"]
+        .as_i64()
+        .unwrap();
+    let run = s.job_action(job, "start").expect(200)["run"]["id"]
+        .as_i64()
+        .unwrap();
+    s.wait_job(job, T, "line >= 20", |j| j["line"].as_i64().unwrap() >= 20);
+
+    // Feed hold: machine and job report paused (the motors ramp down; that the steps stop is
+    // checked on the simulated port's ticks in the plugin's own tests), then resume continues.
+    s.job_action(job, "pause").expect(200);
+    s.wait_machine_state(m, "paused", T);
+    let held = s.wait_job_state(job, "paused", T)["line"].as_i64().unwrap();
+    s.job_action(job, "resume").expect(200);
+    s.wait_job(job, T, "well past the hold", |j| {
+        j["line"].as_i64().unwrap() >= held + 10
+    });
+
+    // Crash mid-run, come back, resume: every line exactly once.
+    s.wait_job(job, T, "line >= 60", |j| j["line"].as_i64().unwrap() >= 60);
+    assert!(!read_exec_log(&log).is_empty());
+    s.restart_after_kill();
+    let j = s.job(job);
+    assert_eq!(j["state"], "interrupted", "{j}");
+    s.wait_machine_state(m, "idle", T);
+    s.job_action(job, "resume").expect(200);
+    let j = s.wait_job_state(job, "completed", T);
+    assert_eq!(j["line"], LINES, "{j}");
+    assert_every_line_once(&read_exec_log(&log), run, LINES);
+
+    // Cancel stops a run at once.
+    let other = s.upload(m, "again.nc", back_and_forth(LINES as usize, 1.0, 3000.0))["id"]
+        .as_i64()
+        .unwrap();
+    s.job_action(other, "start").expect(200);
+    s.wait_job(other, T, "line >= 5", |j| j["line"].as_i64().unwrap() >= 5);
+    s.job_action(other, "cancel").expect(200);
+    let j = s.wait_job_state(other, "cancelled", T);
+    assert!(j["line"].as_i64().unwrap() < LINES, "{j}");
+    s.wait_machine_state(m, "idle", T);
+}
