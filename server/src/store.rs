@@ -284,6 +284,34 @@ impl Store {
         Ok(row)
     }
 
+    /// The latest part zero recorded for a machine, if any.
+    pub async fn latest_part_zero(&self, machine_id: i64) -> Result<Option<PartZeroRow>> {
+        sqlx::query_as("SELECT * FROM part_zeros WHERE machine_id = ? ORDER BY id DESC LIMIT 1")
+            .bind(machine_id)
+            .fetch_optional(&self.pool)
+            .await
+    }
+
+    /// The part zero the controller reported when `run` started (see migration 0003).
+    pub async fn run_part_zero(&self, run_id: i64) -> Result<Option<AxisValues>> {
+        let text: Option<Option<String>> =
+            sqlx::query_scalar("SELECT part_zero FROM job_runs WHERE id = ?")
+                .bind(run_id)
+                .fetch_optional(&self.pool)
+                .await?;
+        Ok(text.flatten().and_then(|t| serde_json::from_str(&t).ok()))
+    }
+
+    pub async fn set_run_part_zero(&self, run_id: i64, at: AxisValues) -> Result<()> {
+        let mut tx = self.begin().await?;
+        sqlx::query("UPDATE job_runs SET part_zero = ? WHERE id = ?")
+            .bind(serde_json::json!(at).to_string())
+            .bind(run_id)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await
+    }
+
     pub async fn part_zeros(&self, machine_id: i64) -> Result<Vec<PartZeroRow>> {
         sqlx::query_as("SELECT * FROM part_zeros WHERE machine_id = ? ORDER BY id DESC")
             .bind(machine_id)
