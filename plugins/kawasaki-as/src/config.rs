@@ -91,7 +91,7 @@ impl Default for Config {
             arc_tolerance_mm: 0.01,
             window: 4,
             unsupported: Unsupported::Error,
-            connect_timeout: Duration::from_secs(5),
+            connect_timeout: Duration::from_secs(3),
             handshake_timeout: Duration::from_secs(5),
             reply_timeout: Duration::from_secs(60),
             journal: None,

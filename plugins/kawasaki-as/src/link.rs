@@ -47,7 +47,44 @@ pub fn connect(address: &str, timeout: Duration) -> Result<TcpStream, LinkError>
     Err(err(last))
 }
 
-/// Reads with a deadline; `Ok(0)` is end of stream.
+/// A socket whose read timeout is only changed when it must be (one system call less per
+/// message on the hot path).
+struct Socket {
+    stream: TcpStream,
+    timeout: Option<Duration>,
+}
+
+impl Socket {
+    fn new(stream: TcpStream) -> Socket {
+        Socket {
+            stream,
+            timeout: None,
+        }
+    }
+
+    /// Reads with a deadline; `Ok(0)` is end of stream. The socket's timeout is the whole
+    /// limit, so one read that trickles may overrun the deadline by up to one limit; the
+    /// deadline is checked again between reads.
+    fn read_some(
+        &mut self,
+        buf: &mut [u8],
+        deadline: Instant,
+        what: &'static str,
+        limit: Duration,
+    ) -> Result<usize, LinkError> {
+        let left = deadline.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return Err(LinkError::Timeout(limit, what));
+        }
+        if self.timeout != Some(limit) || left < limit / 2 {
+            let t = if left < limit / 2 { left } else { limit };
+            self.stream.set_read_timeout(Some(t))?;
+            self.timeout = if t == limit { Some(limit) } else { None };
+        }
+        read_some(&mut self.stream, buf, deadline, what, limit)
+    }
+}
+
 fn read_some(
     stream: &mut TcpStream,
     buf: &mut [u8],
@@ -56,11 +93,9 @@ fn read_some(
     limit: Duration,
 ) -> Result<usize, LinkError> {
     loop {
-        let left = deadline.saturating_duration_since(Instant::now());
-        if left.is_zero() {
+        if Instant::now() >= deadline {
             return Err(LinkError::Timeout(limit, what));
         }
-        stream.set_read_timeout(Some(left))?;
         match stream.read(buf) {
             Ok(n) => return Ok(n),
             Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {
@@ -74,7 +109,7 @@ fn read_some(
 
 /// The seed's robot program.
 pub struct LegacyLink {
-    stream: TcpStream,
+    sock: Socket,
     reader: LegacyReader,
     buf: Vec<u8>,
     /// Malformed messages seen (for the caller to log).
@@ -84,7 +119,7 @@ pub struct LegacyLink {
 impl LegacyLink {
     pub fn new(stream: TcpStream) -> LegacyLink {
         LegacyLink {
-            stream,
+            sock: Socket::new(stream),
             reader: LegacyReader::default(),
             buf: vec![0; 4096],
             garbage: Vec::new(),
@@ -101,7 +136,7 @@ impl LegacyLink {
                     Err(text) => self.garbage.push(text),
                 }
             }
-            let n = read_some(&mut self.stream, &mut self.buf, deadline, what, limit)?;
+            let n = self.sock.read_some(&mut self.buf, deadline, what, limit)?;
             if n == 0 {
                 return Err(LinkError::Closed(what));
             }
@@ -137,12 +172,13 @@ impl LegacyLink {
 
     /// `inicio` -> `done`.
     pub fn start(&mut self, limit: Duration) -> Result<(), LinkError> {
-        self.stream.write_all(codec::LEGACY_START.as_bytes())?;
+        self.sock.stream.write_all(codec::LEGACY_START.as_bytes())?;
         self.expect_done(limit, "`done` after `inicio`")
     }
 
     pub fn send_move(&mut self, rapid: bool, to: [f64; 3]) -> Result<(), LinkError> {
-        self.stream
+        self.sock
+            .stream
             .write_all(codec::legacy_move(rapid, to).as_bytes())?;
         Ok(())
     }
@@ -158,19 +194,19 @@ impl LegacyLink {
 
     /// `EXIT`, then close. Only when the robot waits for a command (nothing in flight).
     pub fn exit(mut self) {
-        let _ = self.stream.write_all(codec::LEGACY_EXIT.as_bytes());
-        let _ = self.stream.shutdown(Shutdown::Both);
+        let _ = self.sock.stream.write_all(codec::LEGACY_EXIT.as_bytes());
+        let _ = self.sock.stream.shutdown(Shutdown::Both);
     }
 
     /// Closes without a word (the robot program's receive fails and it ends).
     pub fn close(self) {
-        let _ = self.stream.shutdown(Shutdown::Both);
+        let _ = self.sock.stream.shutdown(Shutdown::Both);
     }
 }
 
 /// The generated fresa-v1 program.
 pub struct V1Link {
-    stream: TcpStream,
+    sock: Socket,
     pending: Vec<u8>,
     buf: Vec<u8>,
     out: Vec<u8>,
@@ -180,7 +216,7 @@ pub struct V1Link {
 impl V1Link {
     pub fn new(stream: TcpStream) -> V1Link {
         V1Link {
-            stream,
+            sock: Socket::new(stream),
             pending: Vec::new(),
             buf: vec![0; 4096],
             out: Vec::new(),
@@ -208,7 +244,7 @@ impl V1Link {
                     String::from_utf8_lossy(&junk[..64])
                 ));
             }
-            let n = read_some(&mut self.stream, &mut self.buf, deadline, what, limit)?;
+            let n = self.sock.read_some(&mut self.buf, deadline, what, limit)?;
             if n == 0 {
                 return Err(LinkError::Closed(what));
             }
@@ -248,7 +284,7 @@ impl V1Link {
 
     pub fn flush(&mut self) -> Result<(), LinkError> {
         if !self.out.is_empty() {
-            self.stream.write_all(&self.out)?;
+            self.sock.stream.write_all(&self.out)?;
             self.out.clear();
         }
         Ok(())
@@ -269,10 +305,10 @@ impl V1Link {
                 }
             }
         }
-        let _ = self.stream.shutdown(Shutdown::Both);
+        let _ = self.sock.stream.shutdown(Shutdown::Both);
     }
 
     pub fn close(self) {
-        let _ = self.stream.shutdown(Shutdown::Both);
+        let _ = self.sock.stream.shutdown(Shutdown::Both);
     }
 }

@@ -190,7 +190,10 @@ impl Sim {
             }
             _ => false,
         };
-        let garbage = self.cfg.garbage_every.is_some_and(|g| g > 0 && n.is_multiple_of(g));
+        let garbage = self
+            .cfg
+            .garbage_every
+            .is_some_and(|g| g > 0 && n.is_multiple_of(g));
         (drop, garbage)
     }
 
@@ -395,8 +398,10 @@ impl Sim {
 }
 
 /// Replies leave through a writer thread, each `delay` after it was produced, so a latency
-/// does not limit a pipelined throughput.
+/// does not limit a pipelined throughput. Without a delay they are written at once (one
+/// thread hop less per message).
 struct Replies {
+    direct: Option<Mutex<TcpStream>>,
     tx: Option<mpsc::Sender<(Instant, Vec<u8>)>>,
     thread: Option<std::thread::JoinHandle<()>>,
     abort: Arc<std::sync::atomic::AtomicBool>,
@@ -405,8 +410,17 @@ struct Replies {
 
 impl Replies {
     fn start(mut stream: TcpStream, delay: Duration) -> Replies {
-        let (tx, rx) = mpsc::channel::<(Instant, Vec<u8>)>();
         let abort = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        if delay.is_zero() {
+            return Replies {
+                direct: Some(Mutex::new(stream)),
+                tx: None,
+                thread: None,
+                abort,
+                delay,
+            };
+        }
+        let (tx, rx) = mpsc::channel::<(Instant, Vec<u8>)>();
         let stop = abort.clone();
         let thread = std::thread::spawn(move || {
             for (due, bytes) in rx {
@@ -424,6 +438,7 @@ impl Replies {
             }
         });
         Replies {
+            direct: None,
             tx: Some(tx),
             thread: Some(thread),
             abort,
@@ -432,7 +447,12 @@ impl Replies {
     }
 
     fn send(&self, bytes: Vec<u8>) {
-        if let Some(tx) = &self.tx {
+        if let Some(d) = &self.direct {
+            let _ = d
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .write_all(&bytes);
+        } else if let Some(tx) = &self.tx {
             let _ = tx.send((Instant::now() + self.delay, bytes));
         }
     }
