@@ -328,8 +328,8 @@ fn kill_mid_job(protocol: &str) {
     let mut s = Server::start();
     // 1 mm moves: ~7-10 ms each at this time scale.
     let robot = Robot::start(s.root(), protocol, &["--time-scale", "0.1"]);
-    let journal = s.root().join("kawasaki.journal");
-    let m = machine(&s, &robot, protocol, json!({"journal": journal}));
+    // legacy journals acknowledged motions next to the stored program by default.
+    let m = machine(&s, &robot, protocol, json!({}));
     let program = fresa_tests::back_and_forth(300, 1.0, 600.0);
     let job = upload(&s, m, &program);
     s.job_action(job, "start").expect(200);
@@ -390,11 +390,13 @@ fn resume_refuses_a_changed_part_zero_until_confirmed() {
     );
     let moved = robot.moves().len();
     assert_eq!(moved, 20, "nothing moved after the refusal");
-    // The new zero joined the history.
-    let zeros = s
-        .get(&format!("/api/v1/machines/{m}/part-zero"))
-        .expect(200);
-    assert_eq!(zeros[0]["x"], -390.0, "{zeros}");
+    // The new zero joins the history (the report is persisted by the event loop).
+    fresa_tests::wait_for(T, "the new part zero in the history", || {
+        let zeros = s
+            .get(&format!("/api/v1/machines/{m}/part-zero"))
+            .expect(200);
+        (zeros[0]["x"] == -390.0 && zeros[0]["source"] == "robot").then_some(())
+    });
     let r = s.post(
         &format!("/api/v1/jobs/{job}/resume"),
         &json!({"confirm_part_zero": true}),
@@ -454,4 +456,30 @@ fn pause_stops_sending_and_cancel_sends_exit() {
             .then_some(())
     });
     assert!(robot.moves().len() < 300);
+}
+
+fn garbage_is_skipped(protocol: &str) {
+    let s = Server::start();
+    let robot = Robot::start(
+        s.root(),
+        protocol,
+        &["--garbage-every", "7", "--reply-delay-ms", "1"],
+    );
+    let m = machine(&s, &robot, protocol, json!({}));
+    let program = test_program();
+    let job = upload(&s, m, &program);
+    s.job_action(job, "start").expect(200);
+    s.wait_job_state(job, "completed", T);
+    assert_same_motions(&robot.moves(), &expected(&program, Unsupported::Error));
+    assert!(s.log().contains("malformed robot message"), "{}", s.log());
+}
+
+#[test]
+fn legacy_garbage_from_the_robot_is_logged_and_skipped() {
+    garbage_is_skipped("legacy");
+}
+
+#[test]
+fn fresa_v1_garbage_from_the_robot_is_logged_and_skipped() {
+    garbage_is_skipped("fresa-v1");
 }

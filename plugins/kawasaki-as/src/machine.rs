@@ -44,7 +44,6 @@ struct Core {
     log: LogSink,
     sh: Mutex<Shared>,
     cv: Condvar,
-    journal: Option<Mutex<Journal>>,
 }
 
 struct Loaded {
@@ -56,6 +55,8 @@ struct Loaded {
     start_cmd: usize,
     tag: String,
     expected_zero: Option<[f64; 3]>,
+    /// legacy only: where acknowledged commands are recorded.
+    journal: Option<Journal>,
 }
 
 #[derive(Default)]
@@ -75,6 +76,8 @@ struct Shared {
     feed_mm_s: f64,
     /// Commands done per run, as far as this process saw (resume after a link drop).
     progress: HashMap<i64, usize>,
+    /// The run's connection, so a shutdown can cut it without waiting for a long motion.
+    socket: Option<std::net::TcpStream>,
 }
 
 impl Shared {
@@ -193,10 +196,6 @@ impl KawasakiMachine {
         log: LogSink,
     ) -> Result<KawasakiMachine, PluginError> {
         let cfg = Config::from_json(config)?;
-        let journal = match &cfg.journal {
-            Some(p) => Some(Mutex::new(Journal::open(p)?)),
-            None => None,
-        };
         let convert = Convert {
             mapping: cfg.mapping,
             speeds: cfg.speeds,
@@ -211,7 +210,6 @@ impl KawasakiMachine {
                 log,
                 sh: Mutex::new(Shared::default()),
                 cv: Condvar::new(),
-                journal,
             }),
             worker: Mutex::new(None),
         })
@@ -262,7 +260,7 @@ impl KawasakiMachine {
             },
             Request::GetArtifact { name } => self.artifact(&name),
             Request::Shutdown => {
-                self.cancel();
+                self.cut();
                 self.join();
                 core.with(|sh, ev| sh.set_state(MachineState::Offline, ev));
                 Ok(json!({}))
@@ -353,10 +351,22 @@ impl KawasakiMachine {
         let mut start_cmd = plan.first_cmd_at(start_line);
         // What this process or the journal knows was done already.
         let seen = self.core.lock().progress.get(&run).copied().unwrap_or(0);
-        let journaled = match (&self.core.journal, self.core.cfg.protocol) {
-            (Some(j), Protocol::Legacy) => j.lock().unwrap_or_else(|e| e.into_inner()).done(run),
-            _ => 0,
+        // legacy: the robot cannot say what it executed, so every acknowledged command is
+        // journalled; by default next to the program file the server stored (one data
+        // directory, one journal: runs of another database can never be mistaken for ours).
+        let journal = match self.core.cfg.protocol {
+            Protocol::Legacy => {
+                let p = self
+                    .core
+                    .cfg
+                    .journal
+                    .clone()
+                    .unwrap_or_else(|| PathBuf::from(format!("{path}.kawasaki-journal")));
+                Some(Journal::open(&p)?)
+            }
+            Protocol::FresaV1 => None,
         };
+        let journaled = journal.as_ref().map_or(0, |j| j.done(run));
         start_cmd = start_cmd.max(seen).max(journaled).min(plan.cmds.len());
         let actual_line = start_line
             .max(plan.acked_through(start_cmd) + 1)
@@ -371,6 +381,7 @@ impl KawasakiMachine {
                 start_cmd,
                 tag,
                 expected_zero: expected_zero.map(|z| [z.x, z.y, z.z]),
+                journal,
             });
         });
         to_value(&ProgramLoaded {
@@ -397,6 +408,7 @@ impl KawasakiMachine {
         self.join();
         let cfg = &core.cfg;
         let stream = link::connect(&cfg.address, cfg.connect_timeout).map_err(link_error)?;
+        let cut = stream.try_clone().ok();
         let (mut session, zero) = match cfg.protocol {
             Protocol::Legacy => {
                 let mut l = LegacyLink::new(stream);
@@ -469,6 +481,7 @@ impl KawasakiMachine {
             sh.pause = false;
             sh.cancel = false;
             sh.run = Some(run);
+            sh.socket = cut;
             sh.line = Some(loaded.start_line);
             sh.alarm = None;
             sh.reason = None;
@@ -540,9 +553,22 @@ impl KawasakiMachine {
     }
 }
 
+impl KawasakiMachine {
+    /// Cancels and closes the link at once: the robot program's receive fails after the motion
+    /// in progress and it ends. What was executed is known at the next start (journal or the
+    /// robot's sequence number).
+    fn cut(&self) {
+        self.cancel();
+        let socket = self.core.lock().socket.take();
+        if let Some(s) = socket {
+            let _ = s.shutdown(std::net::Shutdown::Both);
+        }
+    }
+}
+
 impl Drop for KawasakiMachine {
     fn drop(&mut self) {
-        self.cancel();
+        self.cut();
         self.join();
     }
 }
@@ -598,13 +624,16 @@ impl Core {
     }
 
     /// Marks commands `..done` as executed.
-    fn mark(&self, run: i64, plan: &Plan, done: usize, acked: &mut u32) -> Result<(), String> {
-        if let Some(j) = &self.journal {
-            if self.cfg.protocol == Protocol::Legacy {
-                j.lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .record(run, done)?;
-            }
+    fn mark(
+        &self,
+        run: i64,
+        plan: &Plan,
+        journal: &mut Option<Journal>,
+        done: usize,
+        acked: &mut u32,
+    ) -> Result<(), String> {
+        if let Some(j) = journal {
+            j.record(run, done)?;
         }
         {
             let mut sh = self.lock();
@@ -657,8 +686,9 @@ impl Core {
     }
 
     /// The run thread.
-    fn stream(self: Arc<Self>, session: Session, loaded: Loaded, start_cmd: usize) {
+    fn stream(self: Arc<Self>, session: Session, mut loaded: Loaded, start_cmd: usize) {
         let run = loaded.run;
+        let journal = &mut loaded.journal;
         let plan = loaded.plan.clone();
         let mut acked = loaded.start_line.saturating_sub(1);
         // Lines already done before this start (known from the journal or the robot).
@@ -668,8 +698,10 @@ impl Core {
             plan.acked_through(start_cmd).min(plan.lines),
         );
         let ended = match session {
-            Session::Legacy(link) => self.stream_legacy(link, &plan, run, start_cmd, &mut acked),
-            Session::V1(link) => self.stream_v1(link, &plan, run, start_cmd, &mut acked),
+            Session::Legacy(link) => {
+                self.stream_legacy(link, &plan, journal, run, start_cmd, &mut acked)
+            }
+            Session::V1(link) => self.stream_v1(link, &plan, journal, run, start_cmd, &mut acked),
         };
         let (outcome, message) = match ended {
             Ended::Completed => {
@@ -681,6 +713,7 @@ impl Core {
         };
         self.with(|sh, ev| {
             sh.busy = false;
+            sh.socket = None;
             sh.run = None;
             sh.line = None;
             sh.pause = false;
@@ -703,6 +736,7 @@ impl Core {
         &self,
         mut link: LegacyLink,
         plan: &Plan,
+        journal: &mut Option<Journal>,
         run: i64,
         start_cmd: usize,
         acked: &mut u32,
@@ -745,7 +779,7 @@ impl Core {
                     }
                 }
             }
-            if let Err(e) = self.mark(run, plan, i + 1, acked) {
+            if let Err(e) = self.mark(run, plan, journal, i + 1, acked) {
                 link.exit();
                 return Ended::Failed(e);
             }
@@ -758,6 +792,7 @@ impl Core {
         &self,
         mut link: V1Link,
         plan: &Plan,
+        journal: &mut Option<Journal>,
         run: i64,
         start_cmd: usize,
         acked: &mut u32,
@@ -802,7 +837,7 @@ impl Core {
                             break;
                         }
                         next += 1;
-                        if let Err(e) = self.mark(run, plan, next, acked) {
+                        if let Err(e) = self.mark(run, plan, journal, next, acked) {
                             link.close();
                             return Ended::Failed(e);
                         }
@@ -811,7 +846,7 @@ impl Core {
                     Cmd::Pause => {
                         self.pause_at_m0();
                         next += 1;
-                        if let Err(e) = self.mark(run, plan, next, acked) {
+                        if let Err(e) = self.mark(run, plan, journal, next, acked) {
                             link.close();
                             return Ended::Failed(e);
                         }
@@ -863,7 +898,7 @@ impl Core {
                         if let Some((_, Cmd::Speed(v))) = plan.cmds.get(front) {
                             self.lock().feed_mm_s = *v;
                         }
-                        if let Err(e) = self.mark(run, plan, front + 1, acked) {
+                        if let Err(e) = self.mark(run, plan, journal, front + 1, acked) {
                             link.close();
                             return Ended::Failed(e);
                         }
