@@ -686,4 +686,29 @@ mod tests {
         assert!(s.latest_runs(&[]).await.unwrap().is_empty());
         std::fs::remove_dir_all(dir).ok();
     }
+
+    #[tokio::test]
+    async fn a_run_keeps_the_part_zero_it_started_with() {
+        let (s, dir) = store().await;
+        let (m, j) = machine_with_job(&s, 3).await;
+        let run = s.start_run(j, m).await.unwrap().unwrap();
+        assert_eq!(s.run_part_zero(run.id).await.unwrap(), None);
+        let zero = AxisValues {
+            x: -400.0,
+            y: 0.5,
+            z: -30.0,
+            a: 0.0,
+        };
+        s.set_run_part_zero(run.id, zero).await.unwrap();
+        assert_eq!(s.run_part_zero(run.id).await.unwrap(), Some(zero));
+        // The run row itself still reads (the new column is not in RunRow).
+        assert_eq!(s.run(run.id).await.unwrap().unwrap().id, run.id);
+        assert!(s.latest_part_zero(m).await.unwrap().is_none());
+        s.insert_part_zero(m, zero, "robot", "robot", None)
+            .await
+            .unwrap();
+        let last = s.latest_part_zero(m).await.unwrap().unwrap();
+        assert_eq!((last.source.as_str(), last.y), ("robot", 0.5));
+        std::fs::remove_dir_all(dir).ok();
+    }
 }
