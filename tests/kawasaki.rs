@@ -435,13 +435,21 @@ fn pause_stops_sending_and_cancel_sends_exit() {
     s.wait_job(job, T, "line >= 5", |j| j["line"].as_i64().unwrap() >= 5);
     s.job_action(job, "pause").expect(200);
     s.wait_machine_state(m, "paused", T);
-    // Once the motion in flight is done, nothing more is sent while paused.
+    // Once the motion in flight is done, every motion received was executed and acknowledged
+    // (one motion per line), and nothing more is sent while paused.
+    let received = |r: &Robot| {
+        r.entries()
+            .iter()
+            .filter(|e| e["recv"].as_str().is_some_and(|m| m.contains("MOVE")))
+            .count()
+    };
     let settled = fresa_tests::wait_for(T, "the robot to settle", || {
-        let a = robot.moves().len();
-        std::thread::sleep(Duration::from_millis(100));
-        (robot.moves().len() == a).then_some(a)
+        let line = s.job(job)["line"].as_i64().unwrap() as usize;
+        (robot.moves().len() == line && received(&robot) == line).then_some(line)
     });
     assert!(settled < 300);
+    assert_eq!(s.status(m)["state"], "paused");
+    assert_eq!(received(&robot), settled);
     s.job_action(job, "resume").expect(200);
     s.wait_job(job, T, "more lines", |j| {
         j["line"].as_i64().unwrap() as usize > settled + 5

@@ -28,6 +28,9 @@ pub type EventSink = Arc<dyn Fn(&Event) + Send + Sync>;
 /// Receives warnings for the host's log.
 pub type LogSink = Arc<dyn Fn(&str) + Send + Sync>;
 
+/// Least time between two `status` events while streaming.
+const STATUS_INTERVAL: Duration = Duration::from_millis(100);
+
 /// A resumed run's robot part zero may differ by this much (mm) from the one it started with.
 pub const PART_ZERO_TOLERANCE_MM: f64 = 0.001;
 
@@ -78,6 +81,8 @@ struct Shared {
     progress: HashMap<i64, usize>,
     /// The run's connection, so a shutdown can cut it without waiting for a long motion.
     socket: Option<std::net::TcpStream>,
+    /// When the last `status` event left during a run.
+    last_status: Option<Instant>,
 }
 
 impl Shared {
@@ -635,7 +640,7 @@ impl Core {
         if let Some(j) = journal {
             j.record(run, done)?;
         }
-        {
+        let status = {
             let mut sh = self.lock();
             sh.progress.insert(run, done);
             if let Some((line, Cmd::Move { to, .. })) =
@@ -644,6 +649,18 @@ impl Core {
                 sh.at = *to;
                 sh.line = Some(*line);
             }
+            // The position moves with every motion; report it a few times a second.
+            let now = Instant::now();
+            let due = sh
+                .last_status
+                .is_none_or(|t| now.duration_since(t) >= STATUS_INTERVAL);
+            if due {
+                sh.last_status = Some(now);
+            }
+            due.then(|| sh.status(&self.cfg))
+        };
+        if let Some(st) = status {
+            self.emit(&Event::Status(st));
         }
         self.ack(run, acked, plan.acked_through(done));
         Ok(())
