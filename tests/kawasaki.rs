@@ -491,3 +491,28 @@ fn legacy_garbage_from_the_robot_is_logged_and_skipped() {
 fn fresa_v1_garbage_from_the_robot_is_logged_and_skipped() {
     garbage_is_skipped("fresa-v1");
 }
+
+#[test]
+fn sigterm_mid_job_closes_the_link_and_resume_completes() {
+    let mut s = Server::start();
+    let robot = Robot::start(s.root(), "legacy", &["--time-scale", "0.1"]);
+    let m = machine(&s, &robot, "legacy", json!({}));
+    let program = fresa_tests::back_and_forth(300, 1.0, 600.0);
+    let job = upload(&s, m, &program);
+    s.job_action(job, "start").expect(200);
+    s.wait_job(job, T, "line >= 40", |j| j["line"].as_i64().unwrap() >= 40);
+    let status = s.terminate();
+    assert!(status.success(), "{status}\n{}", s.log());
+    s.spawn().unwrap();
+    assert_eq!(s.job(job)["state"], "interrupted");
+    s.job_action(job, "resume").expect(200);
+    s.wait_job_state(job, "completed", T);
+    let want = expected(&program, Unsupported::Error);
+    let mut got = robot.moves();
+    // As after a crash: at most the motion in flight is repeated, with length zero.
+    if got.len() == want.len() + 1 {
+        let i = got.windows(2).position(|w| w[0] == w[1]).expect("a repeat");
+        got.remove(i + 1);
+    }
+    assert_same_motions(&got, &want);
+}
