@@ -111,7 +111,14 @@ fn run(
         Arc::new(|_: &str| {}),
     )
     .unwrap();
-    let path = dir.join(format!("bench-{}-{window}-{lines}.nc", protocol.name()));
+    // A fresh file per round: legacy journals progress next to the program, per run id, and a
+    // reused path would find this run already done.
+    static ROUND: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    let round = ROUND.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let path = dir.join(format!(
+        "bench-{}-{window}-{lines}-{round}.nc",
+        protocol.name()
+    ));
     std::fs::write(&path, program(lines)).unwrap();
     let load: Value = m
         .request(json!({"op": "load_program", "run": 1, "path": path, "start_line": 1}))
