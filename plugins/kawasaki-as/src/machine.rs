@@ -113,15 +113,17 @@ impl Shared {
     }
 }
 
-/// legacy: `{"run":R,"done":N}` per acknowledged command, so a resume after a crash of the
-/// server starts at the exact next motion.
+/// legacy: `{"tag":"<run>-<program hash>","done":N}` per acknowledged command, so a resume
+/// after a crash of the server starts at the exact next motion. Keyed by run id and program
+/// content, so a journal shared by mistake cannot match another program.
 struct Journal {
     path: PathBuf,
     file: File,
+    tag: String,
 }
 
 impl Journal {
-    fn open(path: &Path) -> Result<Journal, PluginError> {
+    fn open(path: &Path, tag: &str) -> Result<Journal, PluginError> {
         let file = OpenOptions::new()
             .create(true)
             .append(true)
@@ -138,17 +140,18 @@ impl Journal {
         Ok(Journal {
             path: path.to_path_buf(),
             file,
+            tag: tag.to_string(),
         })
     }
 
-    fn record(&mut self, run: i64, done: usize) -> Result<(), String> {
-        let text = format!("{{\"run\":{run},\"done\":{done}}}\n");
+    fn record(&mut self, done: usize) -> Result<(), String> {
+        let text = format!("{{\"tag\":\"{}\",\"done\":{done}}}\n", self.tag);
         self.file
             .write_all(text.as_bytes())
             .map_err(|e| format!("cannot write journal {}: {e}", self.path.display()))
     }
 
-    fn done(&self, run: i64) -> usize {
+    fn done(&self) -> usize {
         let Ok(f) = File::open(&self.path) else {
             return 0;
         };
@@ -156,7 +159,7 @@ impl Journal {
             .lines()
             .map_while(Result::ok)
             .filter_map(|l| serde_json::from_str::<Value>(&l).ok())
-            .filter(|v| v["run"].as_i64() == Some(run))
+            .filter(|v| v["tag"].as_str() == Some(self.tag.as_str()))
             .filter_map(|v| v["done"].as_u64())
             .max()
             .unwrap_or(0) as usize
@@ -353,6 +356,8 @@ impl KawasakiMachine {
         for w in &plan.warnings {
             self.core.log_warn(&format!("run {run}: {w}"));
         }
+        // Identifies this run of this program to the robot (fresa-v1) and in the journal.
+        let tag = format!("{run}-{:08x}", fnv1a(&text) as u32);
         let mut start_cmd = plan.first_cmd_at(start_line);
         // What this process or the journal knows was done already.
         let seen = self.core.lock().progress.get(&run).copied().unwrap_or(0);
@@ -367,16 +372,15 @@ impl KawasakiMachine {
                     .journal
                     .clone()
                     .unwrap_or_else(|| PathBuf::from(format!("{path}.kawasaki-journal")));
-                Some(Journal::open(&p)?)
+                Some(Journal::open(&p, &tag)?)
             }
             Protocol::FresaV1 => None,
         };
-        let journaled = journal.as_ref().map_or(0, |j| j.done(run));
+        let journaled = journal.as_ref().map_or(0, Journal::done);
         start_cmd = start_cmd.max(seen).max(journaled).min(plan.cmds.len());
         let actual_line = start_line
             .max(plan.acked_through(start_cmd) + 1)
             .min(plan.lines + 1);
-        let tag = format!("{run}-{:08x}", fnv1a(&text) as u32);
         let lines = plan.lines;
         self.core.with(|sh, _| {
             sh.loaded = Some(Loaded {
@@ -638,7 +642,7 @@ impl Core {
         acked: &mut u32,
     ) -> Result<(), String> {
         if let Some(j) = journal {
-            j.record(run, done)?;
+            j.record(done)?;
         }
         let status = {
             let mut sh = self.lock();
