@@ -378,9 +378,14 @@ impl KawasakiMachine {
         };
         let journaled = journal.as_ref().map_or(0, Journal::done);
         start_cmd = start_cmd.max(seen).max(journaled).min(plan.cmds.len());
-        let actual_line = start_line
-            .max(plan.acked_through(start_cmd) + 1)
-            .min(plan.lines + 1);
+        // Later than asked only when commands from the asked line on are known to be done.
+        let actual_line = if start_cmd > plan.first_cmd_at(start_line) {
+            start_line
+                .max(plan.acked_through(start_cmd) + 1)
+                .min(plan.lines + 1)
+        } else {
+            start_line
+        };
         let lines = plan.lines;
         self.core.with(|sh, _| {
             sh.loaded = Some(Loaded {
