@@ -749,12 +749,14 @@ impl Core {
             if let Some(m) = &message {
                 sh.reason = Some(m.clone());
             }
+            // Idle first: whoever sees the run end may start or resume at once and must not
+            // find the machine still running.
+            sh.set_state(MachineState::Idle, ev);
             ev.push(Event::RunEnded {
                 run,
                 outcome,
                 message,
             });
-            sh.set_state(MachineState::Idle, ev);
         });
     }
 
