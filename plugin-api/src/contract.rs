@@ -265,11 +265,22 @@ pub enum Request {
         run: i64,
         path: String,
         start_line: u32,
+        /// The part zero the run started with, when resuming it: a backend whose controller
+        /// reports its own part zero refuses to start (code `part_zero_changed`) if the
+        /// reported one differs. Absent on a first start or an operator-confirmed resume.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        expected_part_zero: Option<AxisValues>,
     },
     /// Answer: `{}`.
     Run { action: RunAction },
     /// The host is about to destroy the instance: stop motion, close links. Answer: `{}`.
     Shutdown,
+    // --- kawasaki-as additions (issue 6) ---
+    /// A named file the backend generates for the operator, e.g. `as-program` (the controller
+    /// program of a robot backend). Answer: `{"content_type": "...", "file_name"?: "...",
+    /// "body": "..."}`. Errors: `unknown_artifact` (this backend has none of that name),
+    /// `not_available` (not in the current configuration).
+    GetArtifact { name: String },
 }
 
 /// Work offsets G54..G59, in the order of `WorkOffset::ALL`.
@@ -323,6 +334,14 @@ pub enum Event {
         percent: f64,
         /// Planned motion time left, seconds (pauses not counted).
         remaining_s: f64,
+    },
+    // --- kawasaki-as additions (issue 6) ---
+    /// The controller reported its part zero (machine/robot base coordinates), e.g. at the
+    /// start of a run. The host stores it in the part-zero history with source `robot`.
+    PartZeroReported {
+        values: AxisValues,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        run: Option<i64>,
     },
 }
 

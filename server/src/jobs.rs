@@ -7,7 +7,7 @@ use crate::app::App;
 use crate::events::EventBus;
 use crate::machines::{CurrentRun, Machine};
 use crate::store::{JobRow, RunRow, Store};
-use fresa_plugin_api::contract::{ProgramLoaded, Request, RunAction};
+use fresa_plugin_api::contract::{AxisValues, ProgramLoaded, Request, RunAction};
 use serde_json::json;
 use sha2::{Digest, Sha256};
 use std::path::{Path, PathBuf};
@@ -324,6 +324,7 @@ async fn launch(
     run: RunRow,
     start_line: u32,
     actor: &str,
+    expected_part_zero: Option<AxisValues>,
 ) -> Result<RunRow, ApiError> {
     let path = program_path(&app.settings.programs_dir(), &job.sha256);
     machine.set_current_run(Some(CurrentRun {
@@ -336,6 +337,7 @@ async fn launch(
             run: run.id,
             path: path.to_string_lossy().into_owned(),
             start_line,
+            expected_part_zero,
         })
         .await;
     let started = match load {
@@ -369,11 +371,22 @@ async fn launch(
         }
         Err(e) => Err(e),
     };
-    if let Err(e) = started {
-        machine.set_current_run(None);
-        let msg = e.to_string();
-        finish_run(machine, &app.store, &app.bus, run.id, "failed", Some(&msg)).await;
-        return Err(ApiError::from_backend(e));
+    let answer = match started {
+        Ok(a) => a,
+        Err(e) => {
+            machine.set_current_run(None);
+            let msg = e.to_string();
+            finish_run(machine, &app.store, &app.bus, run.id, "failed", Some(&msg)).await;
+            return Err(ApiError::from_backend(e));
+        }
+    };
+    // A controller that reports its own part zero: the run keeps the one it (re)started with,
+    // for the check on the next resume.
+    if let Some(zero) = answer
+        .get("part_zero")
+        .and_then(|z| serde_json::from_value::<AxisValues>(z.clone()).ok())
+    {
+        app.store.set_run_part_zero(run.id, zero).await?;
     }
     Ok(app.store.run(run.id).await?.unwrap_or(run))
 }
@@ -406,7 +419,7 @@ pub async fn start(app: &App, job_id: i64, actor: &str) -> Result<RunRow, ApiErr
             ))
         }
     };
-    launch(app, &machine, &job, run, 1, actor).await
+    launch(app, &machine, &job, run, 1, actor, None).await
 }
 
 pub async fn pause(app: &App, job_id: i64, actor: &str) -> Result<RunRow, ApiError> {
@@ -427,7 +440,14 @@ pub async fn pause(app: &App, job_id: i64, actor: &str) -> Result<RunRow, ApiErr
     transition(app, &run, &["running"], "paused", actor).await
 }
 
-pub async fn resume(app: &App, job_id: i64, actor: &str) -> Result<RunRow, ApiError> {
+/// `confirm_part_zero`: the operator accepts whatever part zero the controller reports now,
+/// instead of requiring the one the run started with.
+pub async fn resume(
+    app: &App,
+    job_id: i64,
+    actor: &str,
+    confirm_part_zero: bool,
+) -> Result<RunRow, ApiError> {
     let (job, machine) = load_job(app, job_id).await?;
     let run = latest(app, job_id).await?;
     match run.state.as_str() {
@@ -454,7 +474,12 @@ pub async fn resume(app: &App, job_id: i64, actor: &str) -> Result<RunRow, ApiEr
                 finish_run(&machine, &app.store, &app.bus, run.id, "completed", None).await;
                 return Ok(app.store.run(run.id).await?.unwrap_or(reopened));
             }
-            launch(app, &machine, &job, reopened, next, actor).await
+            let expected = if confirm_part_zero {
+                None
+            } else {
+                app.store.run_part_zero(run.id).await?
+            };
+            launch(app, &machine, &job, reopened, next, actor, expected).await
         }
         other => Err(ApiError::conflict(
             "not_resumable",

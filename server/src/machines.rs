@@ -295,9 +295,62 @@ async fn event_loop(
                                "percent": percent, "remaining_s": remaining_s}),
                     );
                 }
+                Event::PartZeroReported { values, run } => {
+                    record_reported_part_zero(&machine, &store, &bus, values, run).await;
+                }
             }
         }
         flush_acks(&machine, &store, &mut acks).await;
+    }
+}
+
+/// A controller's own part zero joins the history (source `robot`) when it differs from the
+/// latest record, so repeated reports of the same zero do not flood it.
+async fn record_reported_part_zero(
+    machine: &Machine,
+    store: &Store,
+    bus: &EventBus,
+    values: fresa_plugin_api::contract::AxisValues,
+    run: Option<i64>,
+) {
+    const SAME_MM: f64 = 1e-6;
+    match store.latest_part_zero(machine.id).await {
+        Ok(Some(last))
+            if last.source == "robot"
+                && [
+                    last.x - values.x,
+                    last.y - values.y,
+                    last.z - values.z,
+                    last.a - values.a,
+                ]
+                .iter()
+                .all(|d| d.abs() <= SAME_MM) =>
+        {
+            return;
+        }
+        Ok(_) => {}
+        Err(e) => {
+            tracing::error!(machine = machine.id, error = %e, "could not read the part-zero history");
+            return;
+        }
+    }
+    let note = run.map(|r| format!("reported by the controller at the start of run {r}"));
+    match store
+        .insert_part_zero(machine.id, values, "robot", "robot", note.as_deref())
+        .await
+    {
+        Ok(row) => {
+            bus.record_or_log(
+                "machine.part_zero",
+                Some(machine.id),
+                Some("robot"),
+                json!(row),
+            )
+            .await
+        }
+        Err(e) => {
+            tracing::error!(machine = machine.id, error = %e, "could not store the reported part zero")
+        }
     }
 }
 

@@ -284,6 +284,34 @@ impl Store {
         Ok(row)
     }
 
+    /// The latest part zero recorded for a machine, if any.
+    pub async fn latest_part_zero(&self, machine_id: i64) -> Result<Option<PartZeroRow>> {
+        sqlx::query_as("SELECT * FROM part_zeros WHERE machine_id = ? ORDER BY id DESC LIMIT 1")
+            .bind(machine_id)
+            .fetch_optional(&self.pool)
+            .await
+    }
+
+    /// The part zero the controller reported when `run` started (see migration 0003).
+    pub async fn run_part_zero(&self, run_id: i64) -> Result<Option<AxisValues>> {
+        let text: Option<Option<String>> =
+            sqlx::query_scalar("SELECT part_zero FROM job_runs WHERE id = ?")
+                .bind(run_id)
+                .fetch_optional(&self.pool)
+                .await?;
+        Ok(text.flatten().and_then(|t| serde_json::from_str(&t).ok()))
+    }
+
+    pub async fn set_run_part_zero(&self, run_id: i64, at: AxisValues) -> Result<()> {
+        let mut tx = self.begin().await?;
+        sqlx::query("UPDATE job_runs SET part_zero = ? WHERE id = ?")
+            .bind(serde_json::json!(at).to_string())
+            .bind(run_id)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await
+    }
+
     pub async fn part_zeros(&self, machine_id: i64) -> Result<Vec<PartZeroRow>> {
         sqlx::query_as("SELECT * FROM part_zeros WHERE machine_id = ? ORDER BY id DESC")
             .bind(machine_id)
@@ -656,6 +684,31 @@ mod tests {
         assert_eq!(runs.len(), 1, "job {j2} has no run");
         assert_eq!((runs[0].job_id, runs[0].id), (j1, second.id));
         assert!(s.latest_runs(&[]).await.unwrap().is_empty());
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[tokio::test]
+    async fn a_run_keeps_the_part_zero_it_started_with() {
+        let (s, dir) = store().await;
+        let (m, j) = machine_with_job(&s, 3).await;
+        let run = s.start_run(j, m).await.unwrap().unwrap();
+        assert_eq!(s.run_part_zero(run.id).await.unwrap(), None);
+        let zero = AxisValues {
+            x: -400.0,
+            y: 0.5,
+            z: -30.0,
+            a: 0.0,
+        };
+        s.set_run_part_zero(run.id, zero).await.unwrap();
+        assert_eq!(s.run_part_zero(run.id).await.unwrap(), Some(zero));
+        // The run row itself still reads (the new column is not in RunRow).
+        assert_eq!(s.run(run.id).await.unwrap().unwrap().id, run.id);
+        assert!(s.latest_part_zero(m).await.unwrap().is_none());
+        s.insert_part_zero(m, zero, "robot", "robot", None)
+            .await
+            .unwrap();
+        let last = s.latest_part_zero(m).await.unwrap().unwrap();
+        assert_eq!((last.source.as_str(), last.y), ("robot", 0.5));
         std::fs::remove_dir_all(dir).ok();
     }
 }

@@ -794,6 +794,10 @@ impl Inner {
 
     fn handle(&self, request: Request) -> Result<Value, PluginError> {
         match request {
+            Request::GetArtifact { name } => Err(PluginError::new(
+                "unknown_artifact",
+                format!("mach3-oem has no artifact {name:?}"),
+            )),
             Request::Connect => {
                 self.poll();
                 self.wake.notify_all();
@@ -812,6 +816,7 @@ impl Inner {
                 run,
                 path,
                 start_line,
+                ..
             } => self.load_program(run, &path, start_line),
             Request::Run { action } => match action {
                 RunAction::Start => self.start(),

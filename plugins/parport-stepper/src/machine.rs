@@ -970,6 +970,10 @@ impl Core {
 
     fn handle(&self, request: Request) -> Result<Value, PluginError> {
         match request {
+            Request::GetArtifact { name } => Err(PluginError::new(
+                "unknown_artifact",
+                format!("parport-stepper has no artifact {name:?}"),
+            )),
             Request::Connect => self.connect(),
             Request::Status => to_value(&self.lock().status(&self.cfg)),
             Request::Jog {
@@ -984,6 +988,7 @@ impl Core {
                 run,
                 path,
                 start_line,
+                ..
             } => self.load_program(run, &path, start_line),
             Request::Run { action } => match action {
                 RunAction::Start => self.cycle_start(),

@@ -816,10 +816,12 @@ impl Core {
             Request::Command(c) => self.command(c),
             Request::GetOffsets => to_value(&self.lock().offset_table()),
             Request::SetOffset { offset, values } => self.set_offset(offset, values),
+            // The simulated machine has no part zero of its own to compare.
             Request::LoadProgram {
                 run,
                 path,
                 start_line,
+                ..
             } => self.load_program(run, &path, start_line),
             Request::Run { action } => match action {
                 RunAction::Start => self.cycle_start(),
@@ -834,6 +836,10 @@ impl Core {
                 self.shutdown();
                 Ok(json!({}))
             }
+            Request::GetArtifact { name } => Err(PluginError::new(
+                "unknown_artifact",
+                format!("sim-machine has no artifact {name:?}"),
+            )),
         }
     }
 }

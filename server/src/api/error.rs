@@ -50,6 +50,10 @@ impl ApiError {
                 "backend_timeout",
                 format!("machine backend did not answer within {d:?}"),
             ),
+            // The controller's part zero moved since the run started: the operator must decide.
+            BackendError::Call(CallError::Plugin(p)) if p.code == "part_zero_changed" => {
+                Self::new(StatusCode::CONFLICT, "part_zero_changed", p.message)
+            }
             BackendError::Call(CallError::Plugin(p)) => {
                 let status = if p.code == "busy" {
                     StatusCode::CONFLICT

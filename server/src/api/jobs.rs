@@ -169,7 +169,8 @@ pub async fn upload(
         ApiError::bad_request("missing_field", "query parameter `machine` is required")
     })?;
     let program = pending.finish(params.sha256.as_deref()).await?;
-    let analysis = analyse(&program).await?;
+    let policy = unsupported_policy(&app, machine_id).await?;
+    let analysis = analyse(&program, policy).await?;
     let name = params
         .name
         .or(file_name)
@@ -228,7 +229,25 @@ async fn check_machine(app: &SharedApp, machine: Option<i64>) -> Result<(), ApiE
 
 /// Interprets the whole program before the job is stored: a program with an error never becomes
 /// a job, and the stored analysis (bounds, length, ETA) serves previews and progress.
-async fn analyse(program: &StoredProgram) -> Result<Option<Value>, ApiError> {
+/// A machine whose config says `"unsupported": "skip_with_warning"` gets its programs analysed
+/// with that policy (its backend converts them the same way); every other machine: errors.
+async fn unsupported_policy(
+    app: &SharedApp,
+    machine_id: i64,
+) -> Result<fresa_gcode::Unsupported, ApiError> {
+    let row = app.store.machine(machine_id).await?;
+    let skip = row.is_some_and(|r| r.config_json()["unsupported"] == "skip_with_warning");
+    Ok(if skip {
+        fresa_gcode::Unsupported::SkipWithWarning
+    } else {
+        fresa_gcode::Unsupported::Error
+    })
+}
+
+async fn analyse(
+    program: &StoredProgram,
+    unsupported: fresa_gcode::Unsupported,
+) -> Result<Option<Value>, ApiError> {
     let path = program
         .temp_path()
         .ok_or_else(|| ApiError::internal("program file already moved"))?
@@ -236,10 +255,9 @@ async fn analyse(program: &StoredProgram) -> Result<Option<Value>, ApiError> {
     let result = tokio::task::spawn_blocking(move || {
         let file = std::fs::File::open(&path)?;
         let reader = std::io::BufReader::with_capacity(1 << 16, file);
-        Ok::<_, std::io::Error>(fresa_gcode::analyse(
-            reader,
-            &fresa_gcode::AnalysisOptions::default(),
-        ))
+        let mut opts = fresa_gcode::AnalysisOptions::default();
+        opts.config.unsupported = unsupported;
+        Ok::<_, std::io::Error>(fresa_gcode::analyse(reader, &opts))
     })
     .await
     .map_err(|e| ApiError::internal(format!("analysis failed: {e}")))?
@@ -253,15 +271,34 @@ async fn analyse(program: &StoredProgram) -> Result<Option<Value>, ApiError> {
     }
 }
 
+/// Optional body of `POST /jobs/{id}/resume`.
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct ResumeBody {
+    /// Accept the part zero the controller reports now, even if it differs from the run's.
+    #[serde(default)]
+    confirm_part_zero: bool,
+}
+
 pub async fn control(
     State(app): State<SharedApp>,
     Path((id, action)): Path<(i64, String)>,
     Extension(caller): Extension<Caller>,
+    body: axum::body::Bytes,
 ) -> Result<Json<Value>, ApiError> {
     let run = match action.as_str() {
         "start" => core::start(&app, id, &caller.name).await?,
         "pause" => core::pause(&app, id, &caller.name).await?,
-        "resume" => core::resume(&app, id, &caller.name).await?,
+        "resume" => {
+            // The body is optional: an empty POST resumes without confirming anything.
+            let body: ResumeBody = if body.iter().all(u8::is_ascii_whitespace) {
+                ResumeBody::default()
+            } else {
+                serde_json::from_slice(&body)
+                    .map_err(|e| ApiError::bad_request("invalid_json", format!("resume: {e}")))?
+            };
+            core::resume(&app, id, &caller.name, body.confirm_part_zero).await?
+        }
         "cancel" => core::cancel(&app, id, &caller.name).await?,
         other => {
             return Err(ApiError::not_found(

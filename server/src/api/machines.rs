@@ -441,3 +441,68 @@ pub async fn part_zeros(
     machine(&app, id).await?;
     Ok(Json(json!(app.store.part_zeros(id).await?)))
 }
+
+/// `GET /machines/{id}/as-program`: the controller program the backend generates (robot
+/// backends), as a download.
+pub async fn as_program(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+) -> Result<axum::response::Response, ApiError> {
+    artifact(&app, id, "as-program").await
+}
+
+async fn artifact(
+    app: &SharedApp,
+    id: i64,
+    name: &str,
+) -> Result<axum::response::Response, ApiError> {
+    use axum::response::IntoResponse;
+    use fresa_plugin_api::host::CallError;
+    let m = machine(app, id).await?;
+    let backend = m.row().backend;
+    let answer = m
+        .call(&Request::GetArtifact {
+            name: name.to_string(),
+        })
+        .await
+        .map_err(|e| match e {
+            crate::machines::BackendError::Call(CallError::Plugin(p))
+                if p.code == "not_available" =>
+            {
+                ApiError::conflict("not_available", format!("machine {id}: {}", p.message))
+            }
+            crate::machines::BackendError::Call(CallError::Plugin(p)) => ApiError::not_found(
+                "no_artifact",
+                format!(
+                    "machine {id} (backend {backend}) has no {name}: {}",
+                    p.message
+                ),
+            ),
+            other => ApiError::from_backend(other),
+        })?;
+    let body = answer["body"]
+        .as_str()
+        .ok_or_else(|| {
+            ApiError::internal(format!("backend {backend} answered {name} without a body"))
+        })?
+        .to_string();
+    let content_type = answer["content_type"]
+        .as_str()
+        .unwrap_or("application/octet-stream")
+        .to_string();
+    let file_name = answer["file_name"]
+        .as_str()
+        .unwrap_or(name)
+        .replace('"', "");
+    Ok((
+        [
+            (axum::http::header::CONTENT_TYPE, content_type),
+            (
+                axum::http::header::CONTENT_DISPOSITION,
+                format!("attachment; filename=\"{file_name}\""),
+            ),
+        ],
+        body,
+    )
+        .into_response())
+}

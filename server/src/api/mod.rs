@@ -27,6 +27,7 @@ pub fn router(app: SharedApp) -> Router {
             "/machines/{id}/part-zero",
             get(machines::part_zeros).post(machines::record_part_zero),
         )
+        .route("/machines/{id}/as-program", get(machines::as_program))
         .route(
             "/jobs",
             get(jobs::list)
