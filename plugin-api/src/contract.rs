@@ -116,6 +116,19 @@ pub enum MachineState {
 }
 
 impl MachineState {
+    /// The state's wire name (`"idle"`, `"running"`, ...), for messages and logs.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            MachineState::Offline => "offline",
+            MachineState::Idle => "idle",
+            MachineState::Jogging => "jogging",
+            MachineState::Homing => "homing",
+            MachineState::Running => "running",
+            MachineState::Paused => "paused",
+            MachineState::Alarm => "alarm",
+        }
+    }
+
     /// States in which the machine is moving or may move without a new command.
     pub fn is_busy(self) -> bool {
         matches!(
@@ -358,6 +371,14 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
     use serde_json::json;
+
+    #[test]
+    fn state_names_are_the_wire_names() {
+        use MachineState::*;
+        for s in [Offline, Idle, Jogging, Homing, Running, Paused, Alarm] {
+            assert_eq!(serde_json::to_value(s).unwrap(), json!(s.as_str()));
+        }
+    }
 
     #[test]
     fn command_wire_shape_matches_the_http_api() {

@@ -16,6 +16,13 @@ impl PluginError {
         }
     }
 
+    /// Encodes an answer as JSON; a value that cannot be encoded becomes an `internal` error
+    /// instead of a panic.
+    pub fn encode<T: serde::Serialize>(answer: &T) -> Result<serde_json::Value, PluginError> {
+        serde_json::to_value(answer)
+            .map_err(|e| PluginError::new("internal", format!("cannot encode answer: {e}")))
+    }
+
     /// The request or config had a field the plugin could not accept.
     pub fn invalid(message: impl Into<String>) -> Self {
         PluginError::new("invalid_request", message)

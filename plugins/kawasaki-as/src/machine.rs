@@ -166,10 +166,6 @@ impl Journal {
     }
 }
 
-fn to_value<T: serde::Serialize>(v: &T) -> Result<Value, PluginError> {
-    serde_json::to_value(v).map_err(|e| PluginError::new("internal", e.to_string()))
-}
-
 /// FNV-1a: a hash that stays the same across builds (the tag must survive a server upgrade).
 fn fnv1a(text: &str) -> u64 {
     text.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
@@ -239,14 +235,14 @@ impl KawasakiMachine {
                         sh.set_state(MachineState::Idle, ev);
                     }
                 });
-                to_value(&core.lock().status(&core.cfg))
+                PluginError::encode(&core.lock().status(&core.cfg))
             }
-            Request::Status => to_value(&core.lock().status(&core.cfg)),
+            Request::Status => PluginError::encode(&core.lock().status(&core.cfg)),
             Request::Jog { .. } => Err(PluginError::new(
                 "unsupported",
                 "the robot is jogged with its teach pendant, not through this server",
             )),
-            Request::GetOffsets => to_value(&OffsetTable::default()),
+            Request::GetOffsets => PluginError::encode(&OffsetTable::default()),
             // The robot works relative to the part zero taught on the pendant; G54..G59 are
             // kept by the server but do not move it.
             Request::SetOffset { .. } => Ok(json!({})),
@@ -402,7 +398,7 @@ impl KawasakiMachine {
                 journal,
             });
         });
-        to_value(&ProgramLoaded {
+        PluginError::encode(&ProgramLoaded {
             lines,
             start_line: actual_line.min(lines.max(1)),
         })

@@ -407,7 +407,7 @@ impl Inner {
         if !self.lock().polled {
             self.poll();
         }
-        to_value(&self.lock().status)
+        PluginError::encode(&self.lock().status)
     }
 
     fn require(&self, what: &str, allowed: &[MachineState]) -> Result<MachineStatus, PluginError> {
@@ -429,7 +429,7 @@ impl Inner {
             ),
             s => PluginError::new(
                 "busy",
-                format!("cannot {what} while Mach3 is {}", state_name(s)),
+                format!("cannot {what} while Mach3 is {}", s.as_str()),
             ),
         })
     }
@@ -694,7 +694,7 @@ impl Inner {
                 }]);
             }
         }
-        to_value(&ProgramLoaded { lines, start_line })
+        PluginError::encode(&ProgramLoaded { lines, start_line })
     }
 
     fn start(&self) -> Result<Value, PluginError> {
@@ -767,7 +767,7 @@ impl Inner {
                     Some(a) => codes.axis(Code::ZeroX, a.index()),
                     None => codes.get(Code::ZeroAll),
                 })?;
-                Ok(json!({ "offsets": to_value(&self.offsets()?)? }))
+                Ok(json!({ "offsets": PluginError::encode(&self.offsets()?)? }))
             }
             Command::GoToZero => {
                 self.require("go to zero", &[MachineState::Idle])?;
@@ -801,7 +801,7 @@ impl Inner {
             Request::Connect => {
                 self.poll();
                 self.wake.notify_all();
-                to_value(&self.lock().status)
+                PluginError::encode(&self.lock().status)
             }
             Request::Status => self.status(),
             Request::Jog {
@@ -810,7 +810,7 @@ impl Inner {
                 feed,
             } => self.jog(axis, distance, feed),
             Request::Command(c) => self.command(c),
-            Request::GetOffsets => to_value(&self.offsets()?),
+            Request::GetOffsets => PluginError::encode(&self.offsets()?),
             Request::SetOffset { offset, values } => self.set_offset(offset, values),
             Request::LoadProgram {
                 run,
@@ -876,18 +876,6 @@ fn chunk(text: &str, max: usize) -> Vec<&str> {
     }
     out.push(rest);
     out
-}
-
-fn state_name(s: MachineState) -> String {
-    serde_json::to_value(s)
-        .ok()
-        .and_then(|v| v.as_str().map(str::to_owned))
-        .unwrap_or_else(|| format!("{s:?}"))
-}
-
-fn to_value<T: serde::Serialize>(v: &T) -> Result<Value, PluginError> {
-    serde_json::to_value(v)
-        .map_err(|e| PluginError::new("internal", format!("cannot encode answer: {e}")))
 }
 
 impl Mach3Backend {

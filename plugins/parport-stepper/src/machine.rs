@@ -110,18 +110,6 @@ enum Interrupted {
 
 type Events = Vec<Event>;
 
-fn state_name(s: MachineState) -> String {
-    serde_json::to_value(s)
-        .ok()
-        .and_then(|v| v.as_str().map(str::to_owned))
-        .unwrap_or_else(|| format!("{s:?}"))
-}
-
-fn to_value<T: serde::Serialize>(v: &T) -> Result<Value, PluginError> {
-    serde_json::to_value(v)
-        .map_err(|e| PluginError::new("internal", format!("cannot encode answer: {e}")))
-}
-
 impl Shared {
     fn machine_mm(&self, cfg: &Config) -> [f64; 4] {
         [
@@ -184,10 +172,7 @@ impl Shared {
         if self.state.is_busy() || self.busy {
             return Err(PluginError::new(
                 "busy",
-                format!(
-                    "cannot {what} while the machine is {}",
-                    state_name(self.state)
-                ),
+                format!("cannot {what} while the machine is {}", self.state.as_str()),
             ));
         }
         Ok(())
@@ -632,7 +617,7 @@ impl Core {
             }
             sh.status(&self.cfg)
         });
-        to_value(&st)
+        PluginError::encode(&st)
     }
 
     fn jog(&self, axis: Axis, distance: f64, feed: Option<f64>) -> Result<Value, PluginError> {
@@ -659,7 +644,7 @@ impl Core {
             if !matches!(sh.state, MachineState::Idle | MachineState::Jogging) {
                 return Err(PluginError::new(
                     "busy",
-                    format!("cannot jog while the machine is {}", state_name(sh.state)),
+                    format!("cannot jog while the machine is {}", sh.state.as_str()),
                 ));
             }
             if sh.queue.len() >= MAX_QUEUED_JOGS {
@@ -841,7 +826,7 @@ impl Core {
                     None => sh.offsets[i] = pos,
                 }
                 self.push_status(sh, ev);
-                Ok(json!({ "offsets": to_value(&sh.offset_table())? }))
+                Ok(json!({ "offsets": PluginError::encode(&sh.offset_table())? }))
             }),
             Command::GoToZero => self.with(|sh, ev| {
                 sh.require_no_alarm("go to zero")?;
@@ -953,7 +938,7 @@ impl Core {
             });
             Ok(())
         })?;
-        to_value(&ProgramLoaded {
+        PluginError::encode(&ProgramLoaded {
             lines,
             start_line: actual,
         })
@@ -975,14 +960,14 @@ impl Core {
                 format!("parport-stepper has no artifact {name:?}"),
             )),
             Request::Connect => self.connect(),
-            Request::Status => to_value(&self.lock().status(&self.cfg)),
+            Request::Status => PluginError::encode(&self.lock().status(&self.cfg)),
             Request::Jog {
                 axis,
                 distance,
                 feed,
             } => self.jog(axis, distance, feed),
             Request::Command(c) => self.command(c),
-            Request::GetOffsets => to_value(&self.lock().offset_table()),
+            Request::GetOffsets => PluginError::encode(&self.lock().offset_table()),
             Request::SetOffset { offset, values } => self.set_offset(offset, values),
             Request::LoadProgram {
                 run,

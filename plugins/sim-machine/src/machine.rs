@@ -158,10 +158,7 @@ impl Shared {
         if self.state.is_busy() || self.busy {
             return Err(PluginError::new(
                 "busy",
-                format!(
-                    "cannot {what} while the machine is {}",
-                    state_name(self.state)
-                ),
+                format!("cannot {what} while the machine is {}", self.state.as_str()),
             ));
         }
         Ok(())
@@ -200,18 +197,6 @@ impl Shared {
             });
         }
     }
-}
-
-fn state_name(s: MachineState) -> String {
-    serde_json::to_value(s)
-        .ok()
-        .and_then(|v| v.as_str().map(str::to_owned))
-        .unwrap_or_else(|| format!("{s:?}"))
-}
-
-fn to_value<T: serde::Serialize>(v: &T) -> Result<Value, PluginError> {
-    serde_json::to_value(v)
-        .map_err(|e| PluginError::new("internal", format!("cannot encode answer: {e}")))
 }
 
 fn distance(a: &[f64; 4], b: &[f64; 4]) -> f64 {
@@ -483,7 +468,7 @@ impl Core {
 
     fn status(&self) -> Result<Value, PluginError> {
         let st = self.lock().status();
-        to_value(&st)
+        PluginError::encode(&st)
     }
 
     fn connect(&self) -> Result<Value, PluginError> {
@@ -494,7 +479,7 @@ impl Core {
             }
             sh.status()
         });
-        to_value(&st)
+        PluginError::encode(&st)
     }
 
     fn jog(&self, axis: Axis, distance: f64, feed: Option<f64>) -> Result<Value, PluginError> {
@@ -515,7 +500,7 @@ impl Core {
             if !matches!(sh.state, MachineState::Idle | MachineState::Jogging) {
                 return Err(PluginError::new(
                     "busy",
-                    format!("cannot jog while the machine is {}", state_name(sh.state)),
+                    format!("cannot jog while the machine is {}", sh.state.as_str()),
                 ));
             }
             if sh.queue.len() >= MAX_QUEUED_JOGS {
@@ -675,7 +660,7 @@ impl Core {
                     None => sh.offsets[i] = pos,
                 }
                 sh.push_status(ev);
-                Ok(json!({ "offsets": to_value(&sh.offset_table())? }))
+                Ok(json!({ "offsets": PluginError::encode(&sh.offset_table())? }))
             }),
             Command::GoToZero => self.with(|sh, ev| {
                 sh.require_no_alarm("go to zero")?;
@@ -789,7 +774,7 @@ impl Core {
             });
             Ok(())
         })?;
-        to_value(&ProgramLoaded {
+        PluginError::encode(&ProgramLoaded {
             lines,
             start_line: actual,
         })
@@ -814,7 +799,7 @@ impl Core {
                 feed,
             } => self.jog(axis, distance, feed),
             Request::Command(c) => self.command(c),
-            Request::GetOffsets => to_value(&self.lock().offset_table()),
+            Request::GetOffsets => PluginError::encode(&self.lock().offset_table()),
             Request::SetOffset { offset, values } => self.set_offset(offset, values),
             // The simulated machine has no part zero of its own to compare.
             Request::LoadProgram {
