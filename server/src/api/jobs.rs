@@ -1,8 +1,7 @@
 use super::auth::Caller;
 use super::error::{ApiError, Json, Path, Query};
 use crate::app::SharedApp;
-use crate::jobs::{self as core, PendingProgram, StoredProgram};
-use crate::store::NewJob;
+use crate::jobs::{self as core, PendingProgram};
 use axum::body::Body;
 use axum::extract::{FromRequest, Multipart, Request, State};
 use axum::http::{header, StatusCode};
@@ -169,44 +168,16 @@ pub async fn upload(
         ApiError::bad_request("missing_field", "query parameter `machine` is required")
     })?;
     let program = pending.finish(params.sha256.as_deref()).await?;
-    let analysis = analyse(&program).await?;
-    let name = params
-        .name
-        .or(file_name)
-        .filter(|n| !n.trim().is_empty())
-        .unwrap_or_else(|| format!("program-{}", &program.sha256[..12]));
-    let sha = program.sha256.clone();
-    let (lines, bytes) = (program.lines, program.bytes);
-    let (path, created) = program.place(&dir)?;
-    let inserted = app
-        .store
-        .insert_job(NewJob {
-            name: &name,
-            machine_id,
-            sha256: &sha,
-            size_bytes: bytes as i64,
-            line_count: lines as i64,
-            analysis: analysis.as_ref().map(|a| a.to_string()),
-            source: "http",
-        })
-        .await;
-    let id = match inserted {
-        Ok(id) => id,
-        Err(e) => {
-            if created {
-                let _ = std::fs::remove_file(&path);
-            }
-            return Err(e.into());
-        }
-    };
-    app.bus
-        .record_or_log(
-            "job.created",
-            Some(machine_id),
-            Some(&caller.name),
-            json!({"job": id, "name": name, "sha256": sha, "lines": lines, "bytes": bytes}),
-        )
-        .await;
+    let job = core::store_program(
+        &app,
+        program,
+        machine_id,
+        params.name.or(file_name),
+        "http",
+        &caller.name,
+    )
+    .await?;
+    let (id, sha, lines, analysis) = (job.id, job.sha256, job.lines, job.analysis);
     Ok((
         StatusCode::CREATED,
         Json(json!({"id": id, "sha256": sha, "line_count": lines, "analysis": analysis})),
@@ -224,33 +195,6 @@ async fn check_machine(app: &SharedApp, machine: Option<i64>) -> Result<(), ApiE
         ));
     }
     Ok(())
-}
-
-/// Interprets the whole program before the job is stored: a program with an error never becomes
-/// a job, and the stored analysis (bounds, length, ETA) serves previews and progress.
-async fn analyse(program: &StoredProgram) -> Result<Option<Value>, ApiError> {
-    let path = program
-        .temp_path()
-        .ok_or_else(|| ApiError::internal("program file already moved"))?
-        .to_path_buf();
-    let result = tokio::task::spawn_blocking(move || {
-        let file = std::fs::File::open(&path)?;
-        let reader = std::io::BufReader::with_capacity(1 << 16, file);
-        Ok::<_, std::io::Error>(fresa_gcode::analyse(
-            reader,
-            &fresa_gcode::AnalysisOptions::default(),
-        ))
-    })
-    .await
-    .map_err(|e| ApiError::internal(format!("analysis failed: {e}")))?
-    .map_err(|e| ApiError::internal(format!("cannot read the stored program: {e}")))?;
-    match result {
-        Ok(a) => Ok(Some(json!(a))),
-        Err(e) => Err(ApiError::unprocessable(
-            "invalid_gcode",
-            format!("G-code error at {e}"),
-        )),
-    }
 }
 
 pub async fn control(

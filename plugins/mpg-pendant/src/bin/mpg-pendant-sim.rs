@@ -15,7 +15,8 @@
 //! sleep MS
 //! quit
 //! ```
-//! Everything received is printed as `recv FRAME`; each command ends with `ok ...` or `error ...`.
+//! With `--exit-on-eof` the simulator exits when its input ends; otherwise it keeps playing the
+//! pendant until killed. Everything received is printed as `recv FRAME`; each command ends with `ok ...` or `error ...`.
 
 use clap::Parser;
 use fresa_mpg_pendant::codec::{parse_key_word, Decoded, Decoder, Frame, Info};
@@ -41,6 +42,9 @@ struct Args {
     /// Do not print N51 answers (they arrive at the poll rate).
     #[arg(long)]
     quiet_polls: bool,
+    /// Exit when the command input ends (for a parent that holds our stdin, e.g. `fresa serve --demo`).
+    #[arg(long)]
+    exit_on_eof: bool,
 }
 
 struct Sim {
@@ -130,6 +134,9 @@ fn main() {
             Ok(()) => sim.say(&format!("ok {line}")),
             Err(e) => sim.say(&format!("error {line}: {e}")),
         }
+    }
+    if args.exit_on_eof {
+        return;
     }
     // Input ended: keep playing the pendant (polls, answers) until killed.
     loop {
