@@ -97,7 +97,14 @@ async fn try_demo_pendant(app: &App) -> Result<(), String> {
             .map_err(|e| e.to_string())?,
         None => {
             app.store
-                .insert_pendant(DEMO_PENDANT, &addr, "firmware", machine, &serde_json::json!({}), &[])
+                .insert_pendant(
+                    DEMO_PENDANT,
+                    &addr,
+                    "firmware",
+                    machine,
+                    &serde_json::json!({}),
+                    &[],
+                )
                 .await
                 .map_err(|e| e.to_string())?;
         }

@@ -112,7 +112,11 @@ impl Store {
             .await
     }
 
-    pub async fn set_pendant_machine(&self, id: i64, machine: Option<i64>) -> crate::store::Result<()> {
+    pub async fn set_pendant_machine(
+        &self,
+        id: i64,
+        machine: Option<i64>,
+    ) -> crate::store::Result<()> {
         let mut tx = self.begin().await?;
         sqlx::query("UPDATE pendants SET machine_id = ? WHERE id = ?")
             .bind(machine)
@@ -122,7 +126,12 @@ impl Store {
         tx.commit().await
     }
 
-    pub async fn set_pendant_address(&self, id: i64, address: &str, machine: Option<i64>) -> crate::store::Result<()> {
+    pub async fn set_pendant_address(
+        &self,
+        id: i64,
+        address: &str,
+        machine: Option<i64>,
+    ) -> crate::store::Result<()> {
         let mut tx = self.begin().await?;
         sqlx::query("UPDATE pendants SET address = ?, machine_id = ? WHERE id = ?")
             .bind(address)
@@ -134,7 +143,12 @@ impl Store {
     }
 
     /// Sets (Some) or clears (None) one macro slot.
-    pub async fn set_pendant_macro(&self, id: i64, slot: u8, action: Option<&MacroAction>) -> crate::store::Result<()> {
+    pub async fn set_pendant_macro(
+        &self,
+        id: i64,
+        slot: u8,
+        action: Option<&MacroAction>,
+    ) -> crate::store::Result<()> {
         let mut tx = self.begin().await?;
         match action {
             Some(a) => {
@@ -338,7 +352,11 @@ pub async fn create_instance(app: &App, row: &PendantRow) -> Result<Created, Str
 
 /// Makes `row` live with its transport (or without one, keeping the reason so the operator
 /// sees it), and starts the tasks that route its events and push its status cache.
-pub async fn attach(app: &Arc<App>, row: PendantRow, created: Result<Created, String>) -> Arc<Pendant> {
+pub async fn attach(
+    app: &Arc<App>,
+    row: PendantRow,
+    created: Result<Created, String>,
+) -> Arc<Pendant> {
     let macros = app.store.pendant_macros(row.id).await.unwrap_or_default();
     let (instance, rx, unavailable) = match created {
         Ok((i, rx)) => (Some(Arc::new(i)), rx, None),
@@ -400,7 +418,14 @@ async fn bound_machine(app: &App, p: &Pendant) -> Option<Arc<Machine>> {
 }
 
 /// Records that pendant input did nothing, and why.
-async fn refuse(app: &App, p: &Pendant, machine: Option<i64>, input: Value, code: &str, reason: &str) {
+async fn refuse(
+    app: &App,
+    p: &Pendant,
+    machine: Option<i64>,
+    input: Value,
+    code: &str,
+    reason: &str,
+) {
     tracing::warn!(pendant = p.id, %input, code, reason, "pendant input refused");
     app.bus
         .record_or_log(
@@ -418,7 +443,12 @@ async fn handle(app: &Arc<App>, p: &Arc<Pendant>, ev: PendantEvent) {
             p.connected.store(true, Ordering::Relaxed);
             let m = p.row().machine_id;
             app.bus
-                .record_or_log("pendant.connected", m, Some(&p.actor()), json!({"pendant": p.id, "address": address}))
+                .record_or_log(
+                    "pendant.connected",
+                    m,
+                    Some(&p.actor()),
+                    json!({"pendant": p.id, "address": address}),
+                )
                 .await;
         }
         PendantEvent::Lost { reason } => {
@@ -436,7 +466,9 @@ async fn handle(app: &Arc<App>, p: &Arc<Pendant>, ev: PendantEvent) {
         }
         PendantEvent::Jog { axis, count, step } => {
             let input = json!({"jog": {"axis": axis, "count": count, "step": step}});
-            let Some(m) = ready_machine(app, p, &input).await else { return };
+            let Some(m) = ready_machine(app, p, &input).await else {
+                return;
+            };
             let distance = count as f64 * step;
             app.pendants.last_mover_set(m.id, p.id);
             if let Err(e) =
@@ -446,13 +478,21 @@ async fn handle(app: &Arc<App>, p: &Arc<Pendant>, ev: PendantEvent) {
             }
         }
         PendantEvent::Key { key } => key_pressed(app, p, key).await,
-        PendantEvent::Upload { upload, lines, declared_lines, declared_chars } => {
-            receive_upload(app, p, upload, lines, declared_lines, declared_chars).await
-        }
+        PendantEvent::Upload {
+            upload,
+            lines,
+            declared_lines,
+            declared_chars,
+        } => receive_upload(app, p, upload, lines, declared_lines, declared_chars).await,
         PendantEvent::UploadFailed { reason } => {
             let m = p.row().machine_id;
             app.bus
-                .record_or_log("pendant.upload_rejected", m, Some(&p.actor()), json!({"pendant": p.id, "reason": reason}))
+                .record_or_log(
+                    "pendant.upload_rejected",
+                    m,
+                    Some(&p.actor()),
+                    json!({"pendant": p.id, "reason": reason}),
+                )
                 .await;
         }
     }
@@ -476,12 +516,24 @@ impl Pendants {
 /// The bound machine if it may move; otherwise records why not and returns None.
 async fn ready_machine(app: &App, p: &Pendant, input: &Value) -> Option<Arc<Machine>> {
     let Some(m) = bound_machine(app, p).await else {
-        refuse(app, p, None, input.clone(), "not_bound", "the pendant is not bound to a machine").await;
+        refuse(
+            app,
+            p,
+            None,
+            input.clone(),
+            "not_bound",
+            "the pendant is not bound to a machine",
+        )
+        .await;
         return None;
     };
     let st = m.status();
     if st.state == MachineState::Alarm {
-        let why = format!("machine {} is in alarm: {}", m.id, st.alarm.unwrap_or_default());
+        let why = format!(
+            "machine {} is in alarm: {}",
+            m.id,
+            st.alarm.unwrap_or_default()
+        );
         refuse(app, p, Some(m.id), input.clone(), "machine_alarm", &why).await;
         return None;
     }
@@ -491,15 +543,24 @@ async fn ready_machine(app: &App, p: &Pendant, input: &Value) -> Option<Arc<Mach
 /// Lost pendant: stop motion it started that may still be running (urgent stop, which
 /// overtakes queued calls). A program it started keeps running unless `stop_program_on_lost`.
 async fn stop_motion_of_lost(app: &Arc<App>, p: &Pendant) -> bool {
-    let Some(m) = bound_machine(app, p).await else { return false };
+    let Some(m) = bound_machine(app, p).await else {
+        return false;
+    };
     let mut stopped = false;
     if app.pendants.last_mover_take_if(m.id, p.id) && m.current_run().is_none() {
         // Only motion from a jog or go-to-zero; a Stop while idle is harmless.
-        match m.call(&fresa_plugin_api::contract::Request::Command(Command::Stop)).await {
+        match m
+            .call(&fresa_plugin_api::contract::Request::Command(Command::Stop))
+            .await
+        {
             Ok(_) => stopped = true,
-            Err(e) => tracing::error!(pendant = p.id, machine = m.id, error = %e, "could not stop motion of a lost pendant"),
+            Err(e) => {
+                tracing::error!(pendant = p.id, machine = m.id, error = %e, "could not stop motion of a lost pendant")
+            }
         }
-        let _ = m.refresh_status(fresa_plugin_api::contract::Request::Status).await;
+        let _ = m
+            .refresh_status(fresa_plugin_api::contract::Request::Status)
+            .await;
     }
     let started = *lock(&p.started_run);
     if p.stop_program_on_lost() {
@@ -507,7 +568,9 @@ async fn stop_motion_of_lost(app: &Arc<App>, p: &Pendant) -> bool {
             if cur.run_id == run {
                 match crate::jobs::pause(app, cur.job_id, &p.actor()).await {
                     Ok(_) => stopped = true,
-                    Err(e) => tracing::error!(pendant = p.id, error = %e.message, "could not hold the program of a lost pendant"),
+                    Err(e) => {
+                        tracing::error!(pendant = p.id, error = %e.message, "could not hold the program of a lost pendant")
+                    }
                 }
             }
         }
@@ -519,12 +582,23 @@ async fn key_pressed(app: &Arc<App>, p: &Arc<Pendant>, key: PendantKey) {
     let input = json!({"key": key});
     let actor = p.actor();
     // Stop, pause and reset never wait for anything and are allowed in alarm.
-    let safe = matches!(key, PendantKey::Stop | PendantKey::Pause | PendantKey::Reset);
+    let safe = matches!(
+        key,
+        PendantKey::Stop | PendantKey::Pause | PendantKey::Reset
+    );
     let m = if safe {
         match bound_machine(app, p).await {
             Some(m) => m,
             None => {
-                refuse(app, p, None, input, "not_bound", "the pendant is not bound to a machine").await;
+                refuse(
+                    app,
+                    p,
+                    None,
+                    input,
+                    "not_bound",
+                    "the pendant is not bound to a machine",
+                )
+                .await;
                 return;
             }
         }
@@ -550,16 +624,25 @@ async fn key_pressed(app: &Arc<App>, p: &Arc<Pendant>, key: PendantKey) {
         _ => None,
     };
     let result: Result<(), ApiError> = match (command, key) {
-        (Some(c), _) => crate::api::machines::command_machine(app, &m, c, &actor).await.map(|_| ()),
+        (Some(c), _) => crate::api::machines::command_machine(app, &m, c, &actor)
+            .await
+            .map(|_| ()),
         (None, PendantKey::Pause) => match m.current_run() {
             Some(r) => crate::jobs::pause(app, r.job_id, &actor).await.map(|_| ()),
-            None => crate::api::machines::command_machine(app, &m, Command::FeedHold, &actor).await.map(|_| ()),
+            None => crate::api::machines::command_machine(app, &m, Command::FeedHold, &actor)
+                .await
+                .map(|_| ()),
         },
         (None, PendantKey::Start) => start_key(app, p, &m, &actor).await,
         (None, PendantKey::Rewind) => {
             // Every Start of a finished or new job runs from line 1; nothing to move.
             app.bus
-                .record_or_log("pendant.rewind", Some(m.id), Some(&actor), json!({"pendant": p.id}))
+                .record_or_log(
+                    "pendant.rewind",
+                    Some(m.id),
+                    Some(&actor),
+                    json!({"pendant": p.id}),
+                )
                 .await;
             Ok(())
         }
@@ -577,7 +660,10 @@ async fn start_key(app: &Arc<App>, p: &Pendant, m: &Machine, actor: &str) -> Res
         if run.map(|r| r.state) == Some("paused".into()) {
             return crate::jobs::resume(app, r.job_id, actor).await.map(|_| ());
         }
-        return Err(ApiError::conflict("machine_busy", format!("machine {} is already running job {}", m.id, r.job_id)));
+        return Err(ApiError::conflict(
+            "machine_busy",
+            format!("machine {} is already running job {}", m.id, r.job_id),
+        ));
     }
     let job = app
         .store
@@ -585,13 +671,21 @@ async fn start_key(app: &Arc<App>, p: &Pendant, m: &Machine, actor: &str) -> Res
         .await?
         .into_iter()
         .next()
-        .ok_or_else(|| ApiError::conflict("no_job", format!("machine {} has no job to start", m.id)))?;
+        .ok_or_else(|| {
+            ApiError::conflict("no_job", format!("machine {} has no job to start", m.id))
+        })?;
     let run = crate::jobs::start(app, job.id, actor).await?;
     *lock(&p.started_run) = Some(run.id);
     Ok(())
 }
 
-async fn run_macro(app: &Arc<App>, p: &Pendant, m: &Machine, key: PendantKey, actor: &str) -> Result<(), ApiError> {
+async fn run_macro(
+    app: &Arc<App>,
+    p: &Pendant,
+    m: &Machine,
+    key: PendantKey,
+    actor: &str,
+) -> Result<(), ApiError> {
     let slot = match key {
         PendantKey::M1 => 1,
         PendantKey::M2 => 2,
@@ -599,14 +693,19 @@ async fn run_macro(app: &Arc<App>, p: &Pendant, m: &Machine, key: PendantKey, ac
         _ => 4,
     };
     let action = p.macros()[slot - 1].clone().ok_or_else(|| {
-        ApiError::conflict("macro_unassigned", format!("M{slot} has no action configured for pendant {}", p.id))
+        ApiError::conflict(
+            "macro_unassigned",
+            format!("M{slot} has no action configured for pendant {}", p.id),
+        )
     })?;
     match action {
         MacroAction::Command { command } => {
             if matches!(command, Command::GoToZero | Command::Home { .. }) {
                 app.pendants.last_mover_set(m.id, p.id);
             }
-            crate::api::machines::command_machine(app, m, command, actor).await.map(|_| ())
+            crate::api::machines::command_machine(app, m, command, actor)
+                .await
+                .map(|_| ())
         }
         MacroAction::Jog { axis, distance } => {
             app.pendants.last_mover_set(m.id, p.id);
@@ -629,11 +728,23 @@ async fn receive_upload(
     let actor = p.actor();
     let chars: u64 = lines.iter().map(|l| l.len() as u64).sum();
     let problem = if row.machine_id.is_none() {
-        Some(("not_bound", "the pendant is not bound to a machine; the upload is dropped".to_string()))
+        Some((
+            "not_bound",
+            "the pendant is not bound to a machine; the upload is dropped".to_string(),
+        ))
     } else if lines.len() as u64 != declared_lines {
-        Some(("line_count_mismatch", format!("received {} lines but N03START declared {declared_lines}", lines.len())))
+        Some((
+            "line_count_mismatch",
+            format!(
+                "received {} lines but N03START declared {declared_lines}",
+                lines.len()
+            ),
+        ))
     } else if chars != declared_chars {
-        Some(("char_count_mismatch", format!("received {chars} characters but N03FIN declared {declared_chars}")))
+        Some((
+            "char_count_mismatch",
+            format!("received {chars} characters but N03FIN declared {declared_chars}"),
+        ))
     } else {
         None
     };
@@ -651,8 +762,11 @@ async fn receive_upload(
     }
     let machine_id = row.machine_id.unwrap_or_default();
     let stored = async {
-        let mut pending =
-            crate::jobs::PendingProgram::create(&app.settings.programs_dir(), app.settings.max_upload_bytes).await?;
+        let mut pending = crate::jobs::PendingProgram::create(
+            &app.settings.programs_dir(),
+            app.settings.max_upload_bytes,
+        )
+        .await?;
         // Newline-normalised: every line ends with \n.
         let mut chunk = Vec::with_capacity(1 << 16);
         for l in &lines {

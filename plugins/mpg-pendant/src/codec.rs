@@ -131,7 +131,10 @@ fn position_field(v: f64) -> (String, bool) {
     // Round first so 99999.99996 does not print as 100000.0000.
     let rounded = (v.abs() * 10_000.0).round() / 10_000.0;
     let sign = if v < 0.0 && rounded != 0.0 { '-' } else { '+' };
-    (format!("{sign}{:010.4}", rounded.min(MAX_POSITION)), clamped)
+    (
+        format!("{sign}{:010.4}", rounded.min(MAX_POSITION)),
+        clamped,
+    )
 }
 
 fn mm_ss(seconds: u64) -> (String, bool) {
@@ -166,7 +169,11 @@ impl Frame {
                 }
                 build(
                     "01",
-                    &format!("S{}{}{dir}{n:04}", &step_s[..6.min(step_s.len())], axis.letter()),
+                    &format!(
+                        "S{}{}{dir}{n:04}",
+                        &step_s[..6.min(step_s.len())],
+                        axis.letter()
+                    ),
                     "",
                 )
             }
@@ -265,7 +272,9 @@ impl Frame {
                     .parse()
                     .ok()
                     .filter(|s: &f64| s.is_finite() && *s > 0.0)
-                    .ok_or_else(|| format!("jog: step {:?} is not a positive number", &text[1..7]))?;
+                    .ok_or_else(|| {
+                        format!("jog: step {:?} is not a positive number", &text[1..7])
+                    })?;
                 let axis = axis_from(p[7])
                     .ok_or_else(|| format!("jog: axis {:?} is not X, Y, Z or A", p[7] as char))?;
                 let sign = match p[8] {
@@ -301,8 +310,12 @@ impl Frame {
                     .ok_or_else(|| format!("action: unknown word {head:?}"))
             }
             b"03" if text.starts_with("START") => {
-                let n = digits(&p[44..49])
-                    .ok_or_else(|| format!("upload start: line count {:?} is not 5 digits", &text[44..49]))?;
+                let n = digits(&p[44..49]).ok_or_else(|| {
+                    format!(
+                        "upload start: line count {:?} is not 5 digits",
+                        &text[44..49]
+                    )
+                })?;
                 if !stars(&p[5..44]) {
                     return Err("upload start: C9-C47 are not all '*'".into());
                 }
@@ -313,7 +326,10 @@ impl Frame {
                     return Err("upload end: C42 is not 'L'".into());
                 }
                 let n = digits(&p[39..49]).ok_or_else(|| {
-                    format!("upload end: character count {:?} is not 10 digits", &text[39..49])
+                    format!(
+                        "upload end: character count {:?} is not 10 digits",
+                        &text[39..49]
+                    )
                 })?;
                 if !stars(&p[3..38]) {
                     return Err("upload end: C7-C41 are not all '*'".into());
@@ -326,7 +342,9 @@ impl Frame {
             b"04" => {
                 let (a, b2) = (&text[..2], &text[47..49]);
                 if a != b2 || !stars(&p[2..47]) {
-                    return Err(format!("request: {a:?} and {b2:?} differ or padding is wrong"));
+                    return Err(format!(
+                        "request: {a:?} and {b2:?} differ or padding is wrong"
+                    ));
                 }
                 match a {
                     "51" => Ok(Frame::Request(Info::Positions)),
@@ -355,7 +373,9 @@ impl Frame {
                 for (i, axis) in Axis::ALL.iter().enumerate() {
                     let f = &text[1 + i * 12..1 + (i + 1) * 12];
                     if !f.ends_with(axis.letter().to_ascii_lowercase()) {
-                        return Err(format!("positions: field {f:?} does not end with the axis letter"));
+                        return Err(format!(
+                            "positions: field {f:?} does not end with the axis letter"
+                        ));
                     }
                     v[i] = f[..11]
                         .parse()
@@ -364,8 +384,13 @@ impl Frame {
                 Ok(Frame::Positions(AxisValues::from_array(v)))
             }
             b"52" => {
-                let bad = || format!("progress: {text:?} does not match ELmm:ssESmm:ssNL0000LA0000");
-                if &text[..2] != "EL" || &text[7..9] != "ES" || &text[14..16] != "NL" || &text[20..22] != "LA" {
+                let bad =
+                    || format!("progress: {text:?} does not match ELmm:ssESmm:ssNL0000LA0000");
+                if &text[..2] != "EL"
+                    || &text[7..9] != "ES"
+                    || &text[14..16] != "NL"
+                    || &text[20..22] != "LA"
+                {
                     return Err(bad());
                 }
                 let secs = |s: &str| -> Option<u64> {
@@ -395,9 +420,14 @@ pub enum Decoded {
     /// One raw G-code line of an upload (between `UploadStart` and `UploadEnd`), without newline.
     Line(Vec<u8>),
     /// Bytes that were not part of any valid frame, with the reason the last candidate failed.
-    Skipped { bytes: Vec<u8>, reason: String },
+    Skipped {
+        bytes: Vec<u8>,
+        reason: String,
+    },
     /// Raw-line mode was abandoned (line too long); the decoder is back in frame mode.
-    UploadAborted { reason: String },
+    UploadAborted {
+        reason: String,
+    },
 }
 
 #[derive(Debug, Default)]

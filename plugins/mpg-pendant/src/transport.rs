@@ -272,7 +272,11 @@ fn resolve(cfg: &Config) -> Result<Vec<SocketAddr>, String> {
         .map(|a| a.collect())
         .unwrap_or_default();
     if addrs.is_empty() && host.to_ascii_lowercase().ends_with(".local") {
-        addrs = crate::discovery::resolve_mdns(&host, port, Duration::from_millis(cfg.connect_timeout_ms.max(500)))?;
+        addrs = crate::discovery::resolve_mdns(
+            &host,
+            port,
+            Duration::from_millis(cfg.connect_timeout_ms.max(500)),
+        )?;
     }
     if addrs.is_empty() {
         return Err(format!("cannot resolve {host:?}"));
@@ -386,11 +390,13 @@ fn session(s: &Shared, mut stream: TcpStream) -> String {
         let now = Instant::now();
         if now >= next_hb {
             counter = counter.wrapping_add(1) % 10_000_000;
-            s.send(&Frame::Heartbeat {
-                dialect: cfg.dialect,
-                counter,
-            }
-            .encode());
+            s.send(
+                &Frame::Heartbeat {
+                    dialect: cfg.dialect,
+                    counter,
+                }
+                .encode(),
+            );
             next_hb = now + heartbeat;
         }
         if lock(&s.link).is_none() {
@@ -513,8 +519,8 @@ fn handle(s: &Shared, d: Decoded, upload: &mut Option<Upload>, next_id: &mut u64
                 bytes.len()
             ));
         }
-        Decoded::Frame(other) => {
-            s.warn(&format!("unexpected frame from a pendant: {other:?}; ignored"))
-        }
+        Decoded::Frame(other) => s.warn(&format!(
+            "unexpected frame from a pendant: {other:?}; ignored"
+        )),
     }
 }

@@ -25,7 +25,9 @@ pub struct NewPendant {
 }
 
 /// `{"M1": action|null, ...}` -> slots; names the bad key or action.
-fn parse_macros(m: &BTreeMap<String, Option<Value>>) -> Result<Vec<(u8, Option<MacroAction>)>, ApiError> {
+fn parse_macros(
+    m: &BTreeMap<String, Option<Value>>,
+) -> Result<Vec<(u8, Option<MacroAction>)>, ApiError> {
     let mut out = Vec::new();
     for (k, v) in m {
         let slot = match k.as_str() {
@@ -42,12 +44,14 @@ fn parse_macros(m: &BTreeMap<String, Option<Value>>) -> Result<Vec<(u8, Option<M
         };
         let action = match v {
             None | Some(Value::Null) => None,
-            Some(v) => Some(serde_json::from_value::<MacroAction>(v.clone()).map_err(|e| {
-                ApiError::unprocessable(
-                    "invalid_field",
-                    format!("field `macros.{k}`: {e} (types: command, jog)"),
-                )
-            })?),
+            Some(v) => Some(
+                serde_json::from_value::<MacroAction>(v.clone()).map_err(|e| {
+                    ApiError::unprocessable(
+                        "invalid_field",
+                        format!("field `macros.{k}`: {e} (types: command, jog)"),
+                    )
+                })?,
+            ),
         };
         if let Some(MacroAction::Jog { distance, .. }) = &action {
             if !distance.is_finite() || *distance == 0.0 {
@@ -81,7 +85,10 @@ pub async fn create(
 ) -> Result<(StatusCode, Json<Value>), ApiError> {
     let name = req.name.trim();
     if name.is_empty() {
-        return Err(ApiError::unprocessable("invalid_field", "field `name` must not be empty"));
+        return Err(ApiError::unprocessable(
+            "invalid_field",
+            "field `name` must not be empty",
+        ));
     }
     let (host, port) = split_address(&req.address);
     if host.is_empty() || port == 0 {
@@ -99,36 +106,62 @@ pub async fn create(
     }
     let config = req.config.unwrap_or_else(|| json!({}));
     if !config.is_object() {
-        return Err(ApiError::unprocessable("invalid_field", "field `config` must be a JSON object"));
+        return Err(ApiError::unprocessable(
+            "invalid_field",
+            "field `config` must be a JSON object",
+        ));
     }
     if let Some(v) = config.get("stop_program_on_lost") {
         if !v.is_boolean() {
-            return Err(ApiError::unprocessable("invalid_field", "field `config.stop_program_on_lost` must be true or false"));
+            return Err(ApiError::unprocessable(
+                "invalid_field",
+                "field `config.stop_program_on_lost` must be true or false",
+            ));
         }
     }
     check_machine(&app, req.machine).await?;
     let macros: Vec<(u8, MacroAction)> = match &req.macros {
-        Some(m) => parse_macros(m)?.into_iter().filter_map(|(s, a)| a.map(|a| (s, a))).collect(),
+        Some(m) => parse_macros(m)?
+            .into_iter()
+            .filter_map(|(s, a)| a.map(|a| (s, a)))
+            .collect(),
         None => Vec::new(),
     };
     let id = match app
         .store
-        .insert_pendant(name, req.address.trim(), &dialect, req.machine, &config, &macros)
+        .insert_pendant(
+            name,
+            req.address.trim(),
+            &dialect,
+            req.machine,
+            &config,
+            &macros,
+        )
         .await
     {
         Ok(id) => id,
         Err(sqlx::Error::Database(d)) if d.is_unique_violation() => {
-            return Err(ApiError::conflict("name_taken", format!("a pendant named {name:?} already exists")))
+            return Err(ApiError::conflict(
+                "name_taken",
+                format!("a pendant named {name:?} already exists"),
+            ))
         }
         Err(e) => return Err(e.into()),
     };
-    let row = app.store.pendant(id).await?.ok_or_else(|| ApiError::internal("pendant vanished"))?;
+    let row = app
+        .store
+        .pendant(id)
+        .await?
+        .ok_or_else(|| ApiError::internal("pendant vanished"))?;
     // The transport judges its config before the pendant is kept; that instance is the one used.
     let created = match core::create_instance(&app, &row).await {
         Ok(c) => c,
         Err(e) => {
             let _ = app.store.delete_pendant(id).await;
-            return Err(ApiError::unprocessable("invalid_config", format!("field `config` rejected by {}: {e}", core::TRANSPORT_PLUGIN)));
+            return Err(ApiError::unprocessable(
+                "invalid_config",
+                format!("field `config` rejected by {}: {e}", core::TRANSPORT_PLUGIN),
+            ));
         }
     };
     core::attach(&app, row, Ok(created)).await;
@@ -156,7 +189,14 @@ fn split_address(address: &str) -> (String, u16) {
 }
 
 pub async fn list(State(app): State<SharedApp>) -> Json<Vec<Value>> {
-    Json(app.pendants.all().await.iter().map(|p| core::pendant_json(p)).collect())
+    Json(
+        app.pendants
+            .all()
+            .await
+            .iter()
+            .map(|p| core::pendant_json(p))
+            .collect(),
+    )
 }
 
 async fn pendant(app: &SharedApp, id: i64) -> Result<std::sync::Arc<core::Pendant>, ApiError> {
@@ -166,7 +206,10 @@ async fn pendant(app: &SharedApp, id: i64) -> Result<std::sync::Arc<core::Pendan
         .ok_or_else(|| ApiError::not_found("unknown_pendant", format!("no pendant with id {id}")))
 }
 
-pub async fn get_one(State(app): State<SharedApp>, Path(id): Path<i64>) -> Result<Json<Value>, ApiError> {
+pub async fn get_one(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+) -> Result<Json<Value>, ApiError> {
     let p = pendant(&app, id).await?;
     Ok(Json(core::pendant_json(&p)))
 }
@@ -201,11 +244,18 @@ pub async fn patch(
         app.store.set_pendant_machine(id, machine).await?;
         p.set_machine(machine);
         app.bus
-            .record_or_log("pendant.bound", machine, Some(&caller.name), json!({"pendant": id, "machine": machine}))
+            .record_or_log(
+                "pendant.bound",
+                machine,
+                Some(&caller.name),
+                json!({"pendant": id, "machine": machine}),
+            )
             .await;
     }
     for (slot, action) in macros {
-        app.store.set_pendant_macro(id, slot, action.as_ref()).await?;
+        app.store
+            .set_pendant_macro(id, slot, action.as_ref())
+            .await?;
         app.bus
             .record_or_log(
                 "pendant.macro",
@@ -228,7 +278,12 @@ pub async fn delete(
     app.pendants.remove(id).await;
     app.store.delete_pendant(id).await?;
     app.bus
-        .record_or_log("pendant.deleted", None, Some(&caller.name), json!({"pendant": id}))
+        .record_or_log(
+            "pendant.deleted",
+            None,
+            Some(&caller.name),
+            json!({"pendant": id}),
+        )
         .await;
     Ok(StatusCode::NO_CONTENT)
 }

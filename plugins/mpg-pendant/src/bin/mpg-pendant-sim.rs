@@ -39,7 +39,7 @@ struct Args {
     /// Run commands from this file instead of stdin.
     #[arg(long)]
     script: Option<std::path::PathBuf>,
-    /// Do not print N51 answers (they arrive at the poll rate).
+    /// Print an N51 answer only when it differs from the previous one (they arrive at the poll rate).
     #[arg(long)]
     quiet_polls: bool,
     /// Exit when the command input ends (for a parent that holds our stdin, e.g. `fresa serve --demo`).
@@ -173,6 +173,7 @@ fn read_loop(sim: &Sim, mut stream: TcpStream, gen: u64) {
     use std::io::Read;
     let mut decoder = Decoder::new();
     let mut buf = [0u8; 4096];
+    let mut last_positions = None;
     let reason = loop {
         match stream.read(&mut buf) {
             Ok(0) => break "closed by the server".to_string(),
@@ -182,7 +183,10 @@ fn read_loop(sim: &Sim, mut stream: TcpStream, gen: u64) {
                     match d {
                         Decoded::Frame(f) => {
                             if sim.quiet_polls && matches!(f, Frame::Positions(_)) {
-                                continue;
+                                if last_positions.as_ref() == Some(&f) {
+                                    continue;
+                                }
+                                last_positions = Some(f.clone());
                             }
                             let text = String::from_utf8_lossy(&f.encode()).into_owned();
                             sim.say(&format!("recv {text}"));
@@ -334,7 +338,12 @@ fn upload(sim: &Sim, path: &str, opts: &[&str]) -> Result<(), String> {
             std::thread::sleep(Duration::from_millis(gap_min));
         }
         let declared_chars = (chars as i64 + chars_delta).max(0) as u64;
-        sim.send(&Frame::UploadEnd { chars: declared_chars }.encode())?;
+        sim.send(
+            &Frame::UploadEnd {
+                chars: declared_chars,
+            }
+            .encode(),
+        )?;
         sim.say(&format!("upload-sent lines={} chars={chars}", lines.len()));
         Ok(())
     })();

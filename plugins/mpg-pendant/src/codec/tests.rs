@@ -31,31 +31,60 @@ fn frames_only(v: Vec<Decoded>) -> Vec<Frame> {
 #[test]
 fn spec_examples_parse() {
     assert_eq!(
-        Frame::parse(&frame("N01S0.0001X+1000************************************F")).unwrap(),
-        Frame::Jog { step: 0.0001, axis: Axis::X, count: 1000 }
+        Frame::parse(&frame(
+            "N01S0.0001X+1000************************************F"
+        ))
+        .unwrap(),
+        Frame::Jog {
+            step: 0.0001,
+            axis: Axis::X,
+            count: 1000
+        }
     );
     assert_eq!(
-        Frame::parse(&frame("N01S0.0001Z-0100************************************F")).unwrap(),
-        Frame::Jog { step: 0.0001, axis: Axis::Z, count: -100 }
+        Frame::parse(&frame(
+            "N01S0.0001Z-0100************************************F"
+        ))
+        .unwrap(),
+        Frame::Jog {
+            step: 0.0001,
+            axis: Axis::Z,
+            count: -100
+        }
     );
     assert_eq!(
-        Frame::parse(&frame("N02ZeroX***************************************ZeroXF")).unwrap(),
+        Frame::parse(&frame(
+            "N02ZeroX***************************************ZeroXF"
+        ))
+        .unwrap(),
         Frame::Key(PendantKey::ZeroX)
     );
     assert_eq!(
-        Frame::parse(&frame("N03START***************************************40000F")).unwrap(),
+        Frame::parse(&frame(
+            "N03START***************************************40000F"
+        ))
+        .unwrap(),
         Frame::UploadStart { lines: 40000 }
     );
     assert_eq!(
-        Frame::parse(&frame("N03FIN***********************************L0001234567F")).unwrap(),
+        Frame::parse(&frame(
+            "N03FIN***********************************L0001234567F"
+        ))
+        .unwrap(),
         Frame::UploadEnd { chars: 1234567 }
     );
     assert_eq!(
-        Frame::parse(&frame("N0451*********************************************51F")).unwrap(),
+        Frame::parse(&frame(
+            "N0451*********************************************51F"
+        ))
+        .unwrap(),
         Frame::Request(Info::Positions)
     );
     assert_eq!(
-        Frame::parse(&frame("N04Conected*****************************************F")).unwrap(),
+        Frame::parse(&frame(
+            "N04Conected*****************************************F"
+        ))
+        .unwrap(),
         Frame::Hello(Dialect::Firmware)
     );
 }
@@ -64,11 +93,21 @@ fn spec_examples_parse() {
 fn encodings_match_the_spec_byte_for_byte() {
     let e = |f: Frame| String::from_utf8(f.encode().to_vec()).unwrap();
     assert_eq!(
-        e(Frame::Positions(AxisValues { x: 0.0, y: -12.5, z: 3.25, a: 0.0 })),
+        e(Frame::Positions(AxisValues {
+            x: 0.0,
+            y: -12.5,
+            z: 3.25,
+            a: 0.0
+        })),
         "N51E+00000.0000x-00012.5000y+00003.2500z+00000.0000aF"
     );
     assert_eq!(
-        e(Frame::Progress(PendantJob { elapsed_s: 65, estimated_s: 600, total_lines: 40, line: 7 })),
+        e(Frame::Progress(PendantJob {
+            elapsed_s: 65,
+            estimated_s: 600,
+            total_lines: 40,
+            line: 7
+        })),
         "N52EL01:05ES10:00NL0040LA0007***********************F"
     );
     assert_eq!(
@@ -80,11 +119,18 @@ fn encodings_match_the_spec_byte_for_byte() {
         "N04Conected*****************************************F"
     );
     assert_eq!(
-        e(Frame::Heartbeat { dialect: Dialect::Firmware, counter: 0 }),
+        e(Frame::Heartbeat {
+            dialect: Dialect::Firmware,
+            counter: 0
+        }),
         "N05Vivo0000000**************************************F"
     );
     assert_eq!(
-        e(Frame::Jog { step: 0.0001, axis: Axis::X, count: 1000 }),
+        e(Frame::Jog {
+            step: 0.0001,
+            axis: Axis::X,
+            count: 1000
+        }),
         "N01S0.0001X+1000************************************F"
     );
     assert_eq!(
@@ -92,23 +138,43 @@ fn encodings_match_the_spec_byte_for_byte() {
         "N02ZeroX***************************************ZeroXF"
     );
     assert!(e(Frame::Hello(Dialect::Document)).starts_with("N54"));
-    assert!(e(Frame::Heartbeat { dialect: Dialect::Document, counter: 3 }).starts_with("N55Vivo0000003"));
+    assert!(e(Frame::Heartbeat {
+        dialect: Dialect::Document,
+        counter: 3
+    })
+    .starts_with("N55Vivo0000003"));
 }
 
 #[test]
 fn out_of_range_numbers_are_clamped_and_reported() {
-    let (b, note) = Frame::Positions(AxisValues { x: 123456.0, y: -1e9, z: f64::NAN, a: 1.0 })
-        .encode_checked();
+    let (b, note) = Frame::Positions(AxisValues {
+        x: 123456.0,
+        y: -1e9,
+        z: f64::NAN,
+        a: 1.0,
+    })
+    .encode_checked();
     assert_eq!(b.len(), FRAME_LEN);
     let s = String::from_utf8(b.to_vec()).unwrap();
     assert_eq!(s, "N51E+99999.9999x-99999.9999y+00000.0000z+00001.0000aF");
     assert!(note.unwrap().contains("X=123456"));
-    let (b, note) = Frame::Progress(PendantJob { elapsed_s: 1 << 40, estimated_s: 0, total_lines: 40000, line: 12 })
-        .encode_checked();
-    assert!(String::from_utf8(b.to_vec()).unwrap().starts_with("N52EL99:59ES00:00NL9999LA0012"));
+    let (b, note) = Frame::Progress(PendantJob {
+        elapsed_s: 1 << 40,
+        estimated_s: 0,
+        total_lines: 40000,
+        line: 12,
+    })
+    .encode_checked();
+    assert!(String::from_utf8(b.to_vec())
+        .unwrap()
+        .starts_with("N52EL99:59ES00:00NL9999LA0012"));
     assert!(note.is_some());
     // Rounding up must not overflow the field.
-    let s = Frame::Positions(AxisValues { x: 99999.99996, ..Default::default() }).encode();
+    let s = Frame::Positions(AxisValues {
+        x: 99999.99996,
+        ..Default::default()
+    })
+    .encode();
     assert_eq!(&s[4..16], b"+99999.9999x");
 }
 
@@ -121,16 +187,37 @@ fn every_frame_round_trips() {
 
 fn sample_frames() -> Vec<Frame> {
     let mut v = vec![
-        Frame::Jog { step: 0.01, axis: Axis::Y, count: -3 },
-        Frame::Jog { step: 1.0, axis: Axis::A, count: 9999 },
+        Frame::Jog {
+            step: 0.01,
+            axis: Axis::Y,
+            count: -3,
+        },
+        Frame::Jog {
+            step: 1.0,
+            axis: Axis::A,
+            count: 9999,
+        },
         Frame::UploadEnd { chars: 0 },
         Frame::Request(Info::Positions),
         Frame::Request(Info::Job),
         Frame::Hello(Dialect::Firmware),
         Frame::Hello(Dialect::Document),
-        Frame::Heartbeat { dialect: Dialect::Document, counter: 42 },
-        Frame::Positions(AxisValues { x: 1.5, y: -2.25, z: 0.0001, a: -99999.0 }),
-        Frame::Progress(PendantJob { elapsed_s: 5, estimated_s: 3000, total_lines: 10, line: 9 }),
+        Frame::Heartbeat {
+            dialect: Dialect::Document,
+            counter: 42,
+        },
+        Frame::Positions(AxisValues {
+            x: 1.5,
+            y: -2.25,
+            z: 0.0001,
+            a: -99999.0,
+        }),
+        Frame::Progress(PendantJob {
+            elapsed_s: 5,
+            estimated_s: 3000,
+            total_lines: 10,
+            line: 9,
+        }),
         Frame::UploadConfirmed,
     ];
     v.extend(KEY_WORDS.iter().map(|(_, k)| Frame::Key(*k)));
@@ -142,7 +229,10 @@ fn malformed_frames_are_skipped_with_a_reason() {
     let bad = b"N01S0.0001Q+1000************************************F";
     let good = Frame::Key(PendantKey::Stop).encode();
     let out = decode_all(&[bad, &good]);
-    assert!(matches!(&out[0], Decoded::Skipped { reason, .. } if reason.contains("axis")), "{out:?}");
+    assert!(
+        matches!(&out[0], Decoded::Skipped { reason, .. } if reason.contains("axis")),
+        "{out:?}"
+    );
     assert_eq!(frames_only(out), vec![Frame::Key(PendantKey::Stop)]);
 }
 
@@ -161,7 +251,14 @@ fn upload_lines_starting_with_n_are_lines_not_frames() {
         })
         .collect();
     // A frame-shaped line inside an upload is a line too; only FIN ends raw mode.
-    assert_eq!(lines, vec!["N10 G1 X5".to_string(), "G0 Z1".into(), String::from_utf8(poll.to_vec()).unwrap()]);
+    assert_eq!(
+        lines,
+        vec![
+            "N10 G1 X5".to_string(),
+            "G0 Z1".into(),
+            String::from_utf8(poll.to_vec()).unwrap()
+        ]
+    );
     let frames = frames_only(out);
     assert_eq!(frames.last(), Some(&Frame::Request(Info::Positions)));
     assert!(frames.contains(&Frame::UploadEnd { chars: 20 }));
@@ -187,9 +284,16 @@ fn two_lines_in_one_read_and_lines_split_across_reads() {
         // A cut inside the first line before any newline was seen splits it in the firmware
         // (unterminated) reading; from the first newline on, lines are reassembled.
         if cut <= FRAME_LEN || cut > FRAME_LEN + 9 {
-            assert_eq!(lines, vec![&b"N10 G1 X5"[..], b"G1 Y2", b"G1 Z3"], "cut at {cut}");
+            assert_eq!(
+                lines,
+                vec![&b"N10 G1 X5"[..], b"G1 Y2", b"G1 Z3"],
+                "cut at {cut}"
+            );
         }
-        assert!(frames_only(out.clone()).contains(&Frame::UploadEnd { chars: 0 }), "cut {cut}");
+        assert!(
+            frames_only(out.clone()).contains(&Frame::UploadEnd { chars: 0 }),
+            "cut {cut}"
+        );
     }
 }
 
@@ -224,12 +328,18 @@ fn any_frame() -> impl Strategy<Value = Frame> {
     let step = prop_oneof![Just(0.0001), Just(0.001), Just(0.01), Just(0.1), Just(1.0)];
     let pos = -99999.0f64..99999.0;
     prop_oneof![
-        (step, axis, 1i32..=9999, any::<bool>())
-            .prop_map(|(step, axis, n, neg)| Frame::Jog { step, axis, count: if neg { -n } else { n } }),
+        (step, axis, 1i32..=9999, any::<bool>()).prop_map(|(step, axis, n, neg)| Frame::Jog {
+            step,
+            axis,
+            count: if neg { -n } else { n }
+        }),
         (0..KEY_WORDS.len()).prop_map(|i| Frame::Key(KEY_WORDS[i].1)),
         Just(Frame::Request(Info::Positions)),
         Just(Frame::Request(Info::Job)),
-        any::<u32>().prop_map(|c| Frame::Heartbeat { dialect: Dialect::Document, counter: c % 10_000_000 }),
+        any::<u32>().prop_map(|c| Frame::Heartbeat {
+            dialect: Dialect::Document,
+            counter: c % 10_000_000
+        }),
         (pos.clone(), pos.clone(), pos.clone(), pos).prop_map(|(x, y, z, a)| {
             // Compare after one encode/parse, which rounds to 4 decimals.
             let p = AxisValues { x, y, z, a };
