@@ -8,7 +8,7 @@ use std::collections::VecDeque;
 /// Every framed message is exactly this long: `N`, two type digits, 49 payload bytes, `F`.
 pub const FRAME_LEN: usize = 53;
 /// Largest absolute value a position field can hold (`00000.0000` is 10 characters).
-pub const MAX_POSITION: f64 = 99_999.9999;
+pub const MAX_POSITION: f64 = 99_999.999_9;
 /// A raw upload line longer than this is not G-code: the upload is abandoned.
 pub const MAX_LINE_LEN: usize = 64 * 1024;
 
@@ -439,7 +439,7 @@ struct Raw {
 }
 
 /// Reassembles frames from a byte stream. Feed each read with [`Decoder::push`] (the end of a
-/// push is a read boundary, which delimits raw upload lines), then drain [`Decoder::next`].
+/// push is a read boundary, which delimits raw upload lines), then drain [`Decoder::pop`].
 #[derive(Debug, Default)]
 pub struct Decoder {
     buf: Vec<u8>,
@@ -468,7 +468,7 @@ impl Decoder {
         self.raw = None;
     }
 
-    pub fn next(&mut self) -> Option<Decoded> {
+    pub fn pop(&mut self) -> Option<Decoded> {
         self.out.pop_front()
     }
 

@@ -317,8 +317,8 @@ fn run(s: &Shared) {
             }
             Err(e) => {
                 failures += 1;
-                // Log the first failure and then rarely: an absent pendant is normal.
-                if failures == 1 || failures % 20 == 0 {
+                // Log the 1st, 2nd, 4th, 8th... failure: an absent pendant is normal.
+                if failures.is_power_of_two() {
                     s.info(&format!("cannot connect ({failures} tries): {e}"));
                 }
             }
@@ -379,7 +379,7 @@ fn session(s: &Shared, mut stream: TcpStream) -> String {
             Ok(n) => {
                 last_rx = Instant::now();
                 decoder.push(&buf[..n]);
-                while let Some(d) = decoder.next() {
+                while let Some(d) = decoder.pop() {
                     handle(s, d, &mut upload, &mut next_upload_id);
                 }
             }

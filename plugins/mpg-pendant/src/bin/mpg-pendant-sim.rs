@@ -179,7 +179,7 @@ fn read_loop(sim: &Sim, mut stream: TcpStream, gen: u64) {
             Ok(0) => break "closed by the server".to_string(),
             Ok(n) => {
                 decoder.push(&buf[..n]);
-                while let Some(d) = decoder.next() {
+                while let Some(d) = decoder.pop() {
                     match d {
                         Decoded::Frame(f) => {
                             if sim.quiet_polls && matches!(f, Frame::Positions(_)) {

@@ -12,7 +12,7 @@ fn decode_all(chunks: &[&[u8]]) -> Vec<Decoded> {
     let mut out = Vec::new();
     for c in chunks {
         d.push(c);
-        while let Some(x) = d.next() {
+        while let Some(x) = d.pop() {
             out.push(x);
         }
     }
@@ -316,7 +316,7 @@ fn overlong_raw_line_aborts_the_upload() {
     d.push(b"G1\n");
     d.push(&vec![b'X'; MAX_LINE_LEN + 1]);
     let mut aborted = false;
-    while let Some(x) = d.next() {
+    while let Some(x) = d.pop() {
         aborted |= matches!(x, Decoded::UploadAborted { .. });
     }
     assert!(aborted);
