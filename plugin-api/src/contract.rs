@@ -339,12 +339,22 @@ pub enum PendantKey {
 #[serde(tag = "event", rename_all = "snake_case")]
 pub enum PendantEvent {
     /// The link to the pendant is up (hello sent).
-    Connected { address: String },
+    Connected {
+        address: String,
+    },
     /// The link is down (closed, reset, or silent too long); the transport keeps reconnecting.
-    Lost { reason: String },
+    Lost {
+        reason: String,
+    },
     /// The wheel turned: move `axis` by `count` (signed) x `step` in the machine's units.
-    Jog { axis: Axis, count: i32, step: f64 },
-    Key { key: PendantKey },
+    Jog {
+        axis: Axis,
+        count: i32,
+        step: f64,
+    },
+    Key {
+        key: PendantKey,
+    },
     /// A program upload finished. The counts are what the pendant declared; the core checks them
     /// against `lines` and answers `confirm_upload` only once the job is stored.
     Upload {
@@ -354,7 +364,9 @@ pub enum PendantEvent {
         declared_chars: u64,
     },
     /// An upload could not even be received (not text, too long, connection lost, no end).
-    UploadFailed { reason: String },
+    UploadFailed {
+        reason: String,
+    },
 }
 
 /// Job progress for the pendant's display.
@@ -380,6 +392,9 @@ pub enum PendantRequest {
     ConfirmUpload { upload: u64 },
     /// Answer: `{"connected": bool, "address": "host:port"}`.
     LinkState,
+    /// Only for an instance created with `{"discover": true}`: pendants seen on the LAN.
+    /// Answer: `{"pendants": [{"name", "host", "addresses", "port", "address"}]}`.
+    Discovered,
 }
 
 #[cfg(test)]

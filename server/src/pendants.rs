@@ -261,6 +261,8 @@ pub struct Pendants {
     map: RwLock<HashMap<i64, Arc<Pendant>>>,
     /// Per machine, the pendant that last started motion on it (jog, go to zero).
     last_mover: StdMutex<HashMap<i64, i64>>,
+    /// The mDNS browser, started on the first request for the discovered list.
+    discovery: tokio::sync::Mutex<Option<Arc<Instance>>>,
 }
 
 impl Pendants {
@@ -278,7 +280,76 @@ impl Pendants {
             shut(&p).await;
         }
     }
+    /// Pendants announced on the LAN by mDNS, each marked with the configured pendant (if any)
+    /// that uses its address. The browser starts on the first call, so a fresh list fills in
+    /// over the next second or two.
+    pub async fn discovered(&self, app: &App) -> Result<Value, ApiError> {
+        let inst = {
+            let mut d = self.discovery.lock().await;
+            match d.as_ref() {
+                Some(i) => i.clone(),
+                None => {
+                    let lib = app.plugins.get(TRANSPORT_PLUGIN).ok_or_else(|| {
+                        ApiError::conflict(
+                            "plugin_missing",
+                            format!("no plugin named {TRANSPORT_PLUGIN:?} is loaded"),
+                        )
+                    })?;
+                    let (tx, _) = mpsc::unbounded_channel();
+                    let sink = Arc::new(Sink { tx, id: 0 });
+                    let lib = lib.clone();
+                    let i = tokio::task::spawn_blocking(move || {
+                        lib.create(&json!({"discover": true}), sink)
+                    })
+                    .await
+                    .map_err(|e| ApiError::internal(e.to_string()))?
+                    .map_err(|e| {
+                        ApiError::new(
+                            axum::http::StatusCode::SERVICE_UNAVAILABLE,
+                            "mdns_unavailable",
+                            e.to_string(),
+                        )
+                    })?;
+                    let i = Arc::new(i);
+                    *d = Some(i.clone());
+                    i
+                }
+            }
+        };
+        let req = json!(PendantRequest::Discovered);
+        let mut v = tokio::task::spawn_blocking(move || inst.call(&req))
+            .await
+            .map_err(|e| ApiError::internal(e.to_string()))?
+            .map_err(|e| ApiError::internal(e.to_string()))?;
+        let configured: Vec<(String, i64)> = self
+            .all()
+            .await
+            .iter()
+            .map(|p| {
+                let r = p.row();
+                (r.address.to_ascii_lowercase(), r.id)
+            })
+            .collect();
+        if let Some(list) = v["pendants"].as_array_mut() {
+            for f in list {
+                let addr = f["address"]
+                    .as_str()
+                    .unwrap_or_default()
+                    .to_ascii_lowercase();
+                let id = configured
+                    .iter()
+                    .find(|(a, _)| *a == addr)
+                    .map(|(_, id)| *id);
+                f["pendant"] = json!(id);
+            }
+        }
+        Ok(v)
+    }
+
     pub async fn stop_all(&self) {
+        if let Some(d) = self.discovery.lock().await.take() {
+            let _ = tokio::task::spawn_blocking(move || drop(d)).await;
+        }
         let all: Vec<_> = self.map.write().await.drain().map(|(_, p)| p).collect();
         for p in all {
             shut(&p).await;

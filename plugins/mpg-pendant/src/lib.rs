@@ -15,12 +15,20 @@ use fresa_plugin_api::contract::PendantRequest;
 use fresa_plugin_api::{Host, Plugin, PluginError};
 use serde_json::{json, Value};
 
-pub struct MpgPendant {
-    transport: Transport,
+/// An instance is either the link to one pendant or, with config `{"discover": true}`, an mDNS
+/// browser that lists the pendants on the LAN.
+pub enum MpgPendant {
+    Link(Transport),
+    Discovery(discovery::Browser),
 }
 
 impl Plugin for MpgPendant {
     fn create(host: Host, config: Value) -> Result<Self, PluginError> {
+        if config.get("discover") == Some(&Value::Bool(true)) {
+            return discovery::Browser::start()
+                .map(MpgPendant::Discovery)
+                .map_err(|e| PluginError::new("unavailable", e));
+        }
         let cfg: Config = serde_json::from_value(config)
             .map_err(|e| PluginError::new("invalid_config", format!("pendant config: {e}")))?;
         let transport = Transport::start(
@@ -29,7 +37,7 @@ impl Plugin for MpgPendant {
             Box::new(move |level, msg| host.log(level, msg)),
         )
         .map_err(|e| PluginError::new("invalid_config", e))?;
-        Ok(MpgPendant { transport })
+        Ok(MpgPendant::Link(transport))
     }
 
     fn call(&self, request: Value) -> Result<Value, PluginError> {
@@ -39,20 +47,42 @@ impl Plugin for MpgPendant {
         let req: PendantRequest = serde_json::from_value(request).map_err(|e| {
             PluginError::new(
                 "invalid_request",
-                format!("{e} (ops: pendant_status, confirm_upload, link_state, shutdown)"),
+                format!(
+                    "{e} (ops: pendant_status, confirm_upload, link_state, discovered, shutdown)"
+                ),
             )
         })?;
+        let transport = match (self, req) {
+            (MpgPendant::Discovery(b), PendantRequest::Discovered) => {
+                return Ok(json!({"pendants": b.list()}))
+            }
+            (MpgPendant::Discovery(_), _) => {
+                return Err(PluginError::new(
+                    "invalid_request",
+                    "this is a discovery instance: only `discovered` is supported",
+                ))
+            }
+            (MpgPendant::Link(_), PendantRequest::Discovered) => {
+                return Err(PluginError::new(
+                    "invalid_request",
+                    "`discovered` needs an instance created with {\"discover\": true}",
+                ))
+            }
+            (MpgPendant::Link(t), req) => (t, req),
+        };
+        let (t, req) = transport;
         Ok(match req {
             PendantRequest::PendantStatus { position, job } => {
-                self.transport.set_status(position, job);
+                t.set_status(position, job);
                 json!({})
             }
             PendantRequest::ConfirmUpload { upload } => {
-                json!({"sent": self.transport.confirm_upload(upload)})
+                json!({"sent": t.confirm_upload(upload)})
             }
             PendantRequest::LinkState => {
-                json!({"connected": self.transport.connected(), "address": self.transport.address()})
+                json!({"connected": t.connected(), "address": t.address()})
             }
+            PendantRequest::Discovered => json!({}),
         })
     }
 }

@@ -39,6 +39,7 @@ pub fn router(app: SharedApp) -> Router {
         .route("/jobs/{id}/gcode", get(jobs::gcode))
         .route("/jobs/{id}/{action}", post(jobs::control))
         .route("/pendants", get(pendants::list).post(pendants::create))
+        .route("/pendants/discovered", get(pendants::discovered))
         .route(
             "/pendants/{id}",
             get(pendants::get_one)

@@ -287,3 +287,7 @@ pub async fn delete(
         .await;
     Ok(StatusCode::NO_CONTENT)
 }
+
+pub async fn discovered(State(app): State<SharedApp>) -> Result<Json<Value>, ApiError> {
+    Ok(Json(app.pendants.discovered(&app).await?))
+}
