@@ -268,13 +268,12 @@ impl Frame {
                 if p[0] != b'S' {
                     return Err(format!("jog: C4 is {:?}, expected 'S'", p[0] as char));
                 }
-                let step: f64 = text[1..7]
-                    .parse()
-                    .ok()
-                    .filter(|s: &f64| s.is_finite() && *s > 0.0)
-                    .ok_or_else(|| {
-                        format!("jog: step {:?} is not a positive number", &text[1..7])
-                    })?;
+                // `%06.4f`: one digit, a point, four digits.
+                let step: f64 = Some(&p[1..7])
+                    .filter(|f| f[0].is_ascii_digit() && f[1] == b'.' && all_digits(&f[2..]))
+                    .and_then(|_| text[1..7].parse().ok())
+                    .filter(|s: &f64| *s > 0.0)
+                    .ok_or_else(|| format!("jog: step {:?} is not d.dddd above 0", &text[1..7]))?;
                 let axis = axis_from(p[7])
                     .ok_or_else(|| format!("jog: axis {:?} is not X, Y, Z or A", p[7] as char))?;
                 let sign = match p[8] {
@@ -377,9 +376,15 @@ impl Frame {
                             "positions: field {f:?} does not end with the axis letter"
                         ));
                     }
-                    v[i] = f[..11]
-                        .parse()
-                        .map_err(|_| format!("positions: {:?} is not a number", &f[..11]))?;
+                    let b = f.as_bytes();
+                    let shape = matches!(b[0], b'+' | b'-')
+                        && all_digits(&b[1..6])
+                        && b[6] == b'.'
+                        && all_digits(&b[7..11]);
+                    v[i] = Some(&f[..11])
+                        .filter(|_| shape)
+                        .and_then(|n| n.parse().ok())
+                        .ok_or_else(|| format!("positions: {:?} is not +00000.0000", &f[..11]))?;
                 }
                 Ok(Frame::Positions(AxisValues::from_array(v)))
             }
@@ -395,13 +400,18 @@ impl Frame {
                 }
                 let secs = |s: &str| -> Option<u64> {
                     let (m, s) = s.split_once(':')?;
-                    Some(m.parse::<u64>().ok()? * 60 + s.parse::<u64>().ok()?)
+                    if !(all_digits(m.as_bytes()) && all_digits(s.as_bytes())) {
+                        return None;
+                    }
+                    let (m, s) = (m.parse::<u64>().ok()?, s.parse::<u64>().ok()?);
+                    (s < 60).then_some(m * 60 + s)
                 };
+                let four = |s: &str| all_digits(s.as_bytes()).then(|| s.parse().ok()).flatten();
                 Ok(Frame::Progress(PendantJob {
                     elapsed_s: secs(&text[2..7]).ok_or_else(bad)?,
                     estimated_s: secs(&text[9..14]).ok_or_else(bad)?,
-                    total_lines: text[16..20].parse().map_err(|_| bad())?,
-                    line: text[22..26].parse().map_err(|_| bad())?,
+                    total_lines: four(&text[16..20]).ok_or_else(bad)?,
+                    line: four(&text[22..26]).ok_or_else(bad)?,
                 }))
             }
             b"53" => Ok(Frame::UploadConfirmed),
@@ -411,6 +421,10 @@ impl Frame {
             )),
         }
     }
+}
+
+fn all_digits(s: &[u8]) -> bool {
+    !s.is_empty() && s.iter().all(u8::is_ascii_digit)
 }
 
 /// What the decoder found in the byte stream.

@@ -383,6 +383,25 @@ proptest! {
     }
 
     #[test]
+    fn whatever_parses_re_encodes_to_itself(
+        kind in 0usize..10,
+        payload in proptest::collection::vec(
+            prop_oneof![Just(b'*'), Just(b'0'), Just(b'9'), Just(b'.'), Just(b':'), Just(b'+'), 32u8..127],
+            49,
+        ),
+    ) {
+        let kinds = ["01", "02", "03", "04", "05", "51", "52", "53", "54", "55"];
+        let mut b = [0u8; FRAME_LEN];
+        b[0] = b'N';
+        b[1..3].copy_from_slice(kinds[kind].as_bytes());
+        b[3..52].copy_from_slice(&payload);
+        b[52] = b'F';
+        if let Ok(f) = Frame::parse(&b) {
+            prop_assert_eq!(Frame::parse(&f.encode()), Ok(f));
+        }
+    }
+
+    #[test]
     fn parse_never_panics(bytes in proptest::collection::vec(any::<u8>(), FRAME_LEN..=FRAME_LEN)) {
         let mut b = [0u8; FRAME_LEN];
         b.copy_from_slice(&bytes);
