@@ -468,18 +468,55 @@ pub async fn start_all(app: &Arc<App>) {
 }
 
 async fn event_loop(app: Arc<App>, p: Arc<Pendant>, mut rx: mpsc::UnboundedReceiver<Value>) {
+    let mut batch = Vec::new();
     loop {
-        let raw = tokio::select! {
+        let n = tokio::select! {
             _ = p.stop.cancelled() => return,
             _ = app.shutdown.cancelled() => return,
-            v = rx.recv() => match v { Some(v) => v, None => return },
+            n = rx.recv_many(&mut batch, 256) => n,
         };
-        match serde_json::from_value::<PendantEvent>(raw.clone()) {
-            Ok(ev) => handle(&app, &p, ev).await,
-            Err(e) => {
-                tracing::warn!(pendant = p.id, error = %e, event = %raw, "unknown pendant event; ignored")
-            }
+        if n == 0 {
+            return;
         }
+        let events: Vec<PendantEvent> = batch
+            .drain(..)
+            .filter_map(|raw| match serde_json::from_value(raw.clone()) {
+                Ok(e) => Some(e),
+                Err(e) => {
+                    tracing::warn!(pendant = p.id, error = %e, event = %raw, "unknown pendant event; ignored");
+                    None
+                }
+            })
+            .collect();
+        // Motion asked for just before the link died is not started: nobody can stop it from
+        // that pendant any more. Stop, pause and reset still go through.
+        let lost_at = events
+            .iter()
+            .rposition(|e| matches!(e, PendantEvent::Lost { .. }));
+        for (i, ev) in events.into_iter().enumerate() {
+            if lost_at.is_some_and(|l| i < l) && starts_motion(&ev) {
+                tracing::warn!(pendant = p.id, event = ?ev, "input dropped: the pendant was lost right after sending it");
+                continue;
+            }
+            if matches!(ev, PendantEvent::Upload { .. }) {
+                // Storing a long program takes a while; it must not delay a lost-pendant stop.
+                let (app, p) = (app.clone(), p.clone());
+                tokio::spawn(async move { handle(&app, &p, ev).await });
+                continue;
+            }
+            handle(&app, &p, ev).await;
+        }
+    }
+}
+
+fn starts_motion(ev: &PendantEvent) -> bool {
+    match ev {
+        PendantEvent::Jog { .. } => true,
+        PendantEvent::Key { key } => !matches!(
+            key,
+            PendantKey::Stop | PendantKey::Pause | PendantKey::Reset
+        ),
+        _ => false,
     }
 }
 
