@@ -366,6 +366,20 @@ fn jogs_over_the_limit_unbound_pendants_and_the_document_dialect_move_nothing() 
             .len(),
         1
     );
+
+    // Deleting a pendant closes its link.
+    let before = sim.seen.len();
+    s.send(s.req(reqwest::Method::DELETE, &format!("/api/v1/pendants/{p}")))
+        .expect(204);
+    sim.wait_line_from(before, "the link closed", |l| l.starts_with("disconnected"));
+    assert!(s
+        .get("/api/v1/pendants")
+        .expect(200)
+        .as_array()
+        .unwrap()
+        .is_empty());
+    s.get(&format!("/api/v1/pendants/{p}"))
+        .expect_error(404, "unknown_pendant");
 }
 
 fn normalised(text: &str) -> String {
@@ -439,8 +453,10 @@ fn firmware_paced_upload_with_n_lines_and_count_mismatches() {
     s.assert_no_jobs();
     assert_eq!(sim.received("N53"), 0);
 
-    // Like the firmware: one send per line, no newline, 50-70 ms apart, lines starting with N.
-    sim.cmd(&format!("upload {} gap=50-70 end=none", prog.display()));
+    // Like the firmware: one send per line, no newline, lines starting with N. The end of a read
+    // is the end of a line; gaps a bit above the firmware's 50-70 ms keep a loaded test machine
+    // from merging two sends into one read.
+    sim.cmd(&format!("upload {} gap=120-150 end=none", prog.display()));
     sim.wait_line_from(0, "N53", |l| l.starts_with("recv N53Confirm"));
     assert_eq!(sim.received("N53"), 1);
     let jobs = s.get("/api/v1/jobs").expect(200);
