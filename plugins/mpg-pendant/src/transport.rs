@@ -308,12 +308,15 @@ fn run(s: &Shared) {
             Ok(stream) => {
                 backoff = initial;
                 failures = 0;
-                let reason = session(s, stream);
-                if s.stop.load(Ordering::Relaxed) {
-                    break;
+                match session(s, stream) {
+                    _ if s.stop.load(Ordering::Relaxed) => break,
+                    Ok(reason) => {
+                        s.warn(&format!("lost: {reason}"));
+                        (s.emit)(&PendantEvent::Lost { reason });
+                    }
+                    // Never got as far as `connected`: nothing to report as lost.
+                    Err(e) => s.info(&format!("connection failed at setup: {e}")),
                 }
-                s.warn(&format!("lost: {reason}"));
-                (s.emit)(&PendantEvent::Lost { reason });
             }
             Err(e) => {
                 failures += 1;
@@ -336,8 +339,9 @@ struct Upload {
     last_data: Instant,
 }
 
-/// Serves one connection until it ends; returns why it ended.
-fn session(s: &Shared, mut stream: TcpStream) -> String {
+/// Serves one connection until it ends; returns why it ended (Err: it ended before the pendant
+/// was reported connected).
+fn session(s: &Shared, mut stream: TcpStream) -> Result<String, String> {
     let cfg = &s.cfg;
     let _ = stream.set_nodelay(true);
     let heartbeat = Duration::from_millis(cfg.heartbeat_ms);
@@ -346,11 +350,11 @@ fn session(s: &Shared, mut stream: TcpStream) -> String {
         .min(lost_after / 4)
         .clamp(Duration::from_millis(5), Duration::from_millis(50));
     if let Err(e) = stream.set_read_timeout(Some(tick)) {
-        return format!("cannot set a read timeout: {e}");
+        return Err(format!("cannot set a read timeout: {e}"));
     }
     match stream.try_clone() {
         Ok(w) => *lock(&s.link) = Some(w),
-        Err(e) => return format!("cannot share the socket: {e}"),
+        Err(e) => return Err(format!("cannot share the socket: {e}")),
     }
     let peer = stream
         .peer_addr()
@@ -358,7 +362,7 @@ fn session(s: &Shared, mut stream: TcpStream) -> String {
         .unwrap_or_else(|_| cfg.address.clone());
     if !s.send(&Frame::Hello(cfg.dialect).encode()) {
         *lock(&s.link) = None;
-        return "could not send the hello frame".into();
+        return Err("could not send the hello frame".into());
     }
     s.connected.store(true, Ordering::Relaxed);
     s.info(&format!("connected to {peer}"));
@@ -428,7 +432,7 @@ fn session(s: &Shared, mut stream: TcpStream) -> String {
             reason: format!("connection ended during the upload: {reason}"),
         });
     }
-    reason
+    Ok(reason)
 }
 
 fn handle(s: &Shared, d: Decoded, upload: &mut Option<Upload>, next_id: &mut u64) {
