@@ -558,3 +558,16 @@ fn fifty_pendants_on_one_machine_at_once() {
         .iter()
         .all(|p| p["connected"] == true && p["machine"] == m));
 }
+
+#[test]
+fn the_demo_starts_a_simulated_pendant_bound_to_the_demo_machine() {
+    let s = Server::start_demo();
+    let machine = s.get("/api/v1/machines").expect(200)[0]["id"]
+        .as_i64()
+        .unwrap();
+    let list = s.get("/api/v1/pendants").expect(200);
+    assert_eq!(list[0]["name"], "demo-pendant", "{list}");
+    assert_eq!(list[0]["machine"], machine);
+    let id = list[0]["id"].as_i64().unwrap();
+    wait_connected(&s, id, true);
+}
