@@ -960,14 +960,7 @@ async fn status_loop(app: Arc<App>, p: Arc<Pendant>) {
                                 .unwrap_or(0.0);
                             run_seen = Some((r.run_id, Instant::now(), eta.max(0.0) as u64));
                         }
-                        let line = m
-                            .acked_line
-                            .lock()
-                            .ok()
-                            .and_then(|a| *a)
-                            .filter(|(run, _)| *run == r.run_id)
-                            .map(|(_, l)| l)
-                            .unwrap_or(0);
+                        let line = m.acked_line_of(r.run_id);
                         let (_, since, eta) = run_seen.unwrap_or((0, Instant::now(), 0));
                         Some(PendantJob {
                             elapsed_s: since.elapsed().as_secs(),

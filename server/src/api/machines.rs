@@ -160,17 +160,9 @@ pub async fn status(
 
 fn status_json(m: &Machine, s: MachineStatus) -> Value {
     let mut v = json!(s);
-    let job = m.current_run().map(|r| {
-        let line = m
-            .acked_line
-            .lock()
-            .ok()
-            .and_then(|a| *a)
-            .filter(|(run, _)| *run == r.run_id)
-            .map(|(_, l)| l)
-            .unwrap_or(0);
-        crate::machines::progress_json(&r, line)
-    });
+    let job = m
+        .current_run()
+        .map(|r| crate::machines::progress_json(&r, m.acked_line_of(r.run_id)));
     if let Some(o) = v.as_object_mut() {
         o.insert("machine".into(), json!(m.id));
         o.insert("job".into(), job.unwrap_or(Value::Null));
