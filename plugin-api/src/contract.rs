@@ -366,6 +366,97 @@ pub enum RunOutcome {
     Cancelled,
 }
 
+// ---- Pendant transport (kind `pendant_transport`) -------------------------------------------
+// A pendant transport instance speaks to one handwheel pendant. It never touches the store or the
+// HTTP API: it reports what the operator did (events below) and the core decides what moves.
+
+/// A key (or key combination) pressed on a pendant.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PendantKey {
+    /// Zero every axis.
+    Zero,
+    ZeroX,
+    ZeroY,
+    ZeroZ,
+    ZeroA,
+    Reset,
+    Stop,
+    Rewind,
+    Start,
+    Pause,
+    /// Go to work zero.
+    Home,
+    /// User macros (Fn + key); what they do is configured per pendant in the core.
+    M1,
+    M2,
+    M3,
+    M4,
+}
+
+/// Events a pendant transport emits. Serialised with an `event` tag.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "event", rename_all = "snake_case")]
+pub enum PendantEvent {
+    /// The link to the pendant is up (hello sent).
+    Connected {
+        address: String,
+    },
+    /// The link is down (closed, reset, or silent too long); the transport keeps reconnecting.
+    Lost {
+        reason: String,
+    },
+    /// The wheel turned: move `axis` by `count` (signed) x `step` in the machine's units.
+    Jog {
+        axis: Axis,
+        count: i32,
+        step: f64,
+    },
+    Key {
+        key: PendantKey,
+    },
+    /// A program upload finished. The counts are what the pendant declared; the core checks them
+    /// against `lines` and answers `confirm_upload` only once the job is stored.
+    Upload {
+        upload: u64,
+        lines: Vec<String>,
+        declared_lines: u64,
+        declared_chars: u64,
+    },
+    /// An upload could not even be received (not text, too long, connection lost, no end).
+    UploadFailed {
+        reason: String,
+    },
+}
+
+/// Job progress for the pendant's display.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct PendantJob {
+    pub elapsed_s: u64,
+    pub estimated_s: u64,
+    pub total_lines: u64,
+    pub line: u64,
+}
+
+/// Requests the host sends a pendant transport. Serialised with an `op` tag.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "op", rename_all = "snake_case")]
+pub enum PendantRequest {
+    /// The status cache the pendant's position/progress polls are answered from. Answer: `{}`.
+    PendantStatus {
+        position: AxisValues,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        job: Option<PendantJob>,
+    },
+    /// The upload was stored as a job: tell the pendant (N53). Answer: `{"sent": bool}`.
+    ConfirmUpload { upload: u64 },
+    /// Answer: `{"connected": bool, "address": "host:port"}`.
+    LinkState,
+    /// Only for an instance created with `{"discover": true}`: pendants seen on the LAN.
+    /// Answer: `{"pendants": [{"name", "host", "addresses", "port", "address"}]}`.
+    Discovered,
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]

@@ -14,6 +14,7 @@ pub struct App {
     pub bus: EventBus,
     pub plugins: Registry,
     pub machines: Machines,
+    pub pendants: crate::pendants::Pendants,
     /// Cancelled on shutdown: ends SSE streams and background loops.
     pub shutdown: CancellationToken,
     /// Whether requests must carry a token (any non-loopback bind).
@@ -92,6 +93,7 @@ impl App {
             bus: bus.clone(),
             plugins,
             machines: Machines::default(),
+            pendants: Default::default(),
             shutdown: CancellationToken::new(),
             auth_required,
         });
@@ -145,6 +147,10 @@ impl App {
             }
             app.machines.insert(m).await;
         }
+        if app.settings.demo {
+            crate::demo::ensure_demo_pendant(&app).await;
+        }
+        crate::pendants::start_all(&app).await;
         Ok(app)
     }
 
@@ -153,6 +159,7 @@ impl App {
     /// must find the run already interrupted (so it is ignored), not turn it into a cancelled one.
     pub async fn stop(&self) {
         self.shutdown.cancel();
+        self.pendants.stop_all().await;
         match self.store.interrupt_active_runs().await {
             Ok(rows) => {
                 for r in rows {

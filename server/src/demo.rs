@@ -31,3 +31,84 @@ pub async fn ensure_demo_machine(app: &App) {
         Err(e) => tracing::error!(error = %e, "could not look up the demo machine"),
     }
 }
+
+pub const DEMO_PENDANT: &str = "demo-pendant";
+
+/// Starts `mpg-pendant-sim` (found next to this executable) on a free loopback port and makes
+/// sure a pendant named `demo-pendant` points at it, bound to the demo machine. The simulator
+/// exits when this process does (its stdin is a pipe we hold). Missing simulator: log and go on.
+pub async fn ensure_demo_pendant(app: &App) {
+    if let Err(e) = try_demo_pendant(app).await {
+        tracing::warn!("demo pendant not started: {e}");
+    }
+}
+
+async fn try_demo_pendant(app: &App) -> Result<(), String> {
+    use tokio::io::AsyncBufReadExt;
+    let exe = std::env::current_exe().map_err(|e| e.to_string())?;
+    let sim = exe
+        .parent()
+        .map(|d| d.join(format!("mpg-pendant-sim{}", std::env::consts::EXE_SUFFIX)))
+        .filter(|p| p.is_file())
+        .ok_or("mpg-pendant-sim is not next to the fresa executable (build the workspace)")?;
+    let mut child = tokio::process::Command::new(&sim)
+        .args(["--listen", "127.0.0.1:0", "--quiet-polls", "--exit-on-eof"])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .kill_on_drop(true)
+        .spawn()
+        .map_err(|e| format!("cannot start {}: {e}", sim.display()))?;
+    let stdout = child.stdout.take().ok_or("no stdout")?;
+    let mut lines = tokio::io::BufReader::new(stdout).lines();
+    let first = tokio::time::timeout(std::time::Duration::from_secs(10), lines.next_line())
+        .await
+        .map_err(|_| "the simulator did not say where it listens".to_string())?
+        .map_err(|e| e.to_string())?
+        .unwrap_or_default();
+    let addr = first
+        .strip_prefix("listening on ")
+        .ok_or_else(|| format!("unexpected simulator output {first:?}"))?
+        .to_string();
+    // Keep the simulator (and its stdin pipe) alive for the life of the server; show its output.
+    tokio::spawn(async move {
+        while let Ok(Some(l)) = lines.next_line().await {
+            tracing::debug!(target: "demo_pendant", "{l}");
+        }
+        let _ = child.wait().await;
+    });
+    let machine = app
+        .store
+        .machine_by_name(DEMO_MACHINE)
+        .await
+        .map_err(|e| e.to_string())?
+        .map(|m| m.id);
+    let existing = app
+        .store
+        .list_pendants()
+        .await
+        .map_err(|e| e.to_string())?
+        .into_iter()
+        .find(|p| p.name == DEMO_PENDANT);
+    match existing {
+        Some(p) => app
+            .store
+            .set_pendant_address(p.id, &addr, machine)
+            .await
+            .map_err(|e| e.to_string())?,
+        None => {
+            app.store
+                .insert_pendant(
+                    DEMO_PENDANT,
+                    &addr,
+                    "firmware",
+                    machine,
+                    &serde_json::json!({}),
+                    &[],
+                )
+                .await
+                .map_err(|e| e.to_string())?;
+        }
+    }
+    tracing::info!(address = %addr, "demo pendant simulator started (mpg-pendant-sim)");
+    Ok(())
+}

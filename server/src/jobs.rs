@@ -6,7 +6,7 @@ use crate::api::error::ApiError;
 use crate::app::App;
 use crate::events::EventBus;
 use crate::machines::{CurrentRun, Machine};
-use crate::store::{JobRow, RunRow, Store};
+use crate::store::{JobRow, NewJob, RunRow, Store};
 use fresa_plugin_api::contract::{AxisValues, ProgramLoaded, Request, RunAction};
 use serde_json::json;
 use sha2::{Digest, Sha256};
@@ -245,6 +245,116 @@ impl Drop for StoredProgram {
 
 pub fn program_path(programs_dir: &Path, sha256: &str) -> PathBuf {
     programs_dir.join(format!("{sha256}.nc"))
+}
+
+/// A job created from a checked program.
+pub struct CreatedJob {
+    pub id: i64,
+    pub sha256: String,
+    pub lines: u64,
+    pub bytes: u64,
+    pub analysis: Option<serde_json::Value>,
+}
+
+/// Analyses a finished program, moves it to its content-addressed name and inserts the job row:
+/// the one path from an uploaded program to a job (HTTP and pendant uploads). The job exists only
+/// once all of that succeeded; a failed insert removes a file this upload created.
+pub async fn store_program(
+    app: &App,
+    program: StoredProgram,
+    machine_id: i64,
+    name: Option<String>,
+    source: &str,
+    actor: &str,
+) -> Result<CreatedJob, ApiError> {
+    let analysis = analyse(&program, unsupported_policy(app, machine_id).await?).await?;
+    let name = name
+        .filter(|n| !n.trim().is_empty())
+        .unwrap_or_else(|| format!("program-{}", &program.sha256[..12]));
+    let sha = program.sha256.clone();
+    let (lines, bytes) = (program.lines, program.bytes);
+    let dir = app.settings.programs_dir();
+    let (path, created) = program.place(&dir)?;
+    let inserted = app
+        .store
+        .insert_job(NewJob {
+            name: &name,
+            machine_id,
+            sha256: &sha,
+            size_bytes: bytes as i64,
+            line_count: lines as i64,
+            analysis: analysis.as_ref().map(|a| a.to_string()),
+            source,
+        })
+        .await;
+    let id = match inserted {
+        Ok(id) => id,
+        Err(e) => {
+            if created {
+                let _ = std::fs::remove_file(&path);
+            }
+            return Err(e.into());
+        }
+    };
+    app.bus
+        .record_or_log(
+            "job.created",
+            Some(machine_id),
+            Some(actor),
+            json!({"job": id, "name": name, "sha256": sha, "lines": lines, "bytes": bytes, "source": source}),
+        )
+        .await;
+    Ok(CreatedJob {
+        id,
+        sha256: sha,
+        lines,
+        bytes,
+        analysis,
+    })
+}
+
+/// A machine whose config says `"unsupported": "skip_with_warning"` gets its programs analysed
+/// with that policy (its backend converts them the same way); every other machine: errors.
+async fn unsupported_policy(
+    app: &App,
+    machine_id: i64,
+) -> Result<fresa_gcode::Unsupported, ApiError> {
+    let row = app.store.machine(machine_id).await?;
+    let skip = row.is_some_and(|r| r.config_json()["unsupported"] == "skip_with_warning");
+    Ok(if skip {
+        fresa_gcode::Unsupported::SkipWithWarning
+    } else {
+        fresa_gcode::Unsupported::Error
+    })
+}
+
+/// Interprets the whole program before the job is stored: a program with an error never becomes
+/// a job, and the stored analysis (bounds, length, ETA) serves previews and progress.
+async fn analyse(
+    program: &StoredProgram,
+    unsupported: fresa_gcode::Unsupported,
+) -> Result<Option<serde_json::Value>, ApiError> {
+    let path = program
+        .temp_path()
+        .ok_or_else(|| ApiError::internal("program file already moved"))?
+        .to_path_buf();
+    let result = tokio::task::spawn_blocking(move || {
+        let file = std::fs::File::open(&path)?;
+        let reader = std::io::BufReader::with_capacity(1 << 16, file);
+        let mut opts = fresa_gcode::AnalysisOptions::default();
+        opts.config.unsupported = unsupported;
+        Ok::<_, std::io::Error>(fresa_gcode::analyse(reader, &opts))
+    })
+    .await
+    .map_err(|e| ApiError::internal(format!("analysis failed: {e}")))?
+    .map_err(|e| ApiError::internal(format!("cannot read the stored program: {e}")))?;
+    match result {
+        Ok(a) => Ok(Some(json!(a))),
+        Err(e) => Err(ApiError::unprocessable(
+            "invalid_gcode",
+            format!("G-code error at {e}"),
+        )),
+    }
 }
 
 /// Job as the API shows it: the job row, its analysis and its latest run.

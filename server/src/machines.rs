@@ -217,6 +217,17 @@ impl Machine {
     pub fn current_run(&self) -> Option<CurrentRun> {
         self.current_run.lock().ok().and_then(|r| *r)
     }
+
+    /// The last acknowledged line of run `run_id` (0 when none or another run's).
+    pub fn acked_line_of(&self, run_id: i64) -> i64 {
+        self.acked_line
+            .lock()
+            .ok()
+            .and_then(|a| *a)
+            .filter(|(run, _)| *run == run_id)
+            .map(|(_, l)| l)
+            .unwrap_or(0)
+    }
 }
 
 /// Persists what the backend reports. Line acknowledgements are coalesced: everything queued is

@@ -8,6 +8,7 @@ mod demo;
 mod events;
 mod jobs;
 mod machines;
+mod pendants;
 mod plugins;
 mod serve;
 mod store;

@@ -140,8 +140,13 @@ impl Store {
             .map(|_| ())
     }
 
-    async fn begin(&self) -> Result<sqlx::Transaction<'static, sqlx::Sqlite>> {
+    pub(crate) async fn begin(&self) -> Result<sqlx::Transaction<'static, sqlx::Sqlite>> {
         self.pool.begin_with("BEGIN IMMEDIATE").await
+    }
+
+    /// For feature modules that keep their queries next to their code (e.g. `pendants`).
+    pub(crate) fn pool(&self) -> &SqlitePool {
+        &self.pool
     }
 
     // ---- machines ----

@@ -1,8 +1,7 @@
 use super::auth::Caller;
 use super::error::{ApiError, Json, Path, Query};
 use crate::app::SharedApp;
-use crate::jobs::{self as core, PendingProgram, StoredProgram};
-use crate::store::NewJob;
+use crate::jobs::{self as core, PendingProgram};
 use axum::body::Body;
 use axum::extract::{FromRequest, Multipart, Request, State};
 use axum::http::{header, StatusCode};
@@ -169,45 +168,16 @@ pub async fn upload(
         ApiError::bad_request("missing_field", "query parameter `machine` is required")
     })?;
     let program = pending.finish(params.sha256.as_deref()).await?;
-    let policy = unsupported_policy(&app, machine_id).await?;
-    let analysis = analyse(&program, policy).await?;
-    let name = params
-        .name
-        .or(file_name)
-        .filter(|n| !n.trim().is_empty())
-        .unwrap_or_else(|| format!("program-{}", &program.sha256[..12]));
-    let sha = program.sha256.clone();
-    let (lines, bytes) = (program.lines, program.bytes);
-    let (path, created) = program.place(&dir)?;
-    let inserted = app
-        .store
-        .insert_job(NewJob {
-            name: &name,
-            machine_id,
-            sha256: &sha,
-            size_bytes: bytes as i64,
-            line_count: lines as i64,
-            analysis: analysis.as_ref().map(|a| a.to_string()),
-            source: "http",
-        })
-        .await;
-    let id = match inserted {
-        Ok(id) => id,
-        Err(e) => {
-            if created {
-                let _ = std::fs::remove_file(&path);
-            }
-            return Err(e.into());
-        }
-    };
-    app.bus
-        .record_or_log(
-            "job.created",
-            Some(machine_id),
-            Some(&caller.name),
-            json!({"job": id, "name": name, "sha256": sha, "lines": lines, "bytes": bytes}),
-        )
-        .await;
+    let job = core::store_program(
+        &app,
+        program,
+        machine_id,
+        params.name.or(file_name),
+        "http",
+        &caller.name,
+    )
+    .await?;
+    let (id, sha, lines, analysis) = (job.id, job.sha256, job.lines, job.analysis);
     Ok((
         StatusCode::CREATED,
         Json(json!({"id": id, "sha256": sha, "line_count": lines, "analysis": analysis})),
@@ -225,50 +195,6 @@ async fn check_machine(app: &SharedApp, machine: Option<i64>) -> Result<(), ApiE
         ));
     }
     Ok(())
-}
-
-/// Interprets the whole program before the job is stored: a program with an error never becomes
-/// a job, and the stored analysis (bounds, length, ETA) serves previews and progress.
-/// A machine whose config says `"unsupported": "skip_with_warning"` gets its programs analysed
-/// with that policy (its backend converts them the same way); every other machine: errors.
-async fn unsupported_policy(
-    app: &SharedApp,
-    machine_id: i64,
-) -> Result<fresa_gcode::Unsupported, ApiError> {
-    let row = app.store.machine(machine_id).await?;
-    let skip = row.is_some_and(|r| r.config_json()["unsupported"] == "skip_with_warning");
-    Ok(if skip {
-        fresa_gcode::Unsupported::SkipWithWarning
-    } else {
-        fresa_gcode::Unsupported::Error
-    })
-}
-
-async fn analyse(
-    program: &StoredProgram,
-    unsupported: fresa_gcode::Unsupported,
-) -> Result<Option<Value>, ApiError> {
-    let path = program
-        .temp_path()
-        .ok_or_else(|| ApiError::internal("program file already moved"))?
-        .to_path_buf();
-    let result = tokio::task::spawn_blocking(move || {
-        let file = std::fs::File::open(&path)?;
-        let reader = std::io::BufReader::with_capacity(1 << 16, file);
-        let mut opts = fresa_gcode::AnalysisOptions::default();
-        opts.config.unsupported = unsupported;
-        Ok::<_, std::io::Error>(fresa_gcode::analyse(reader, &opts))
-    })
-    .await
-    .map_err(|e| ApiError::internal(format!("analysis failed: {e}")))?
-    .map_err(|e| ApiError::internal(format!("cannot read the stored program: {e}")))?;
-    match result {
-        Ok(a) => Ok(Some(json!(a))),
-        Err(e) => Err(ApiError::unprocessable(
-            "invalid_gcode",
-            format!("G-code error at {e}"),
-        )),
-    }
 }
 
 /// Optional body of `POST /jobs/{id}/resume`.

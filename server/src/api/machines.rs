@@ -1,6 +1,6 @@
 use super::auth::Caller;
 use super::error::{ApiError, Json, Path};
-use crate::app::SharedApp;
+use crate::app::{App, SharedApp};
 use crate::machines::Machine;
 use axum::extract::State;
 use axum::http::StatusCode;
@@ -160,17 +160,9 @@ pub async fn status(
 
 fn status_json(m: &Machine, s: MachineStatus) -> Value {
     let mut v = json!(s);
-    let job = m.current_run().map(|r| {
-        let line = m
-            .acked_line
-            .lock()
-            .ok()
-            .and_then(|a| *a)
-            .filter(|(run, _)| *run == r.run_id)
-            .map(|(_, l)| l)
-            .unwrap_or(0);
-        crate::machines::progress_json(&r, line)
-    });
+    let job = m
+        .current_run()
+        .map(|r| crate::machines::progress_json(&r, m.acked_line_of(r.run_id)));
     if let Some(o) = v.as_object_mut() {
         o.insert("machine".into(), json!(m.id));
         o.insert("job".into(), job.unwrap_or(Value::Null));
@@ -194,26 +186,36 @@ pub async fn jog(
     Json(req): Json<JogReq>,
 ) -> Result<Json<Value>, ApiError> {
     let m = machine(&app, id).await?;
+    jog_machine(&app, &m, req.axis, req.distance, req.feed, &caller.name).await?;
+    Ok(Json(json!({"ok": true})))
+}
+
+/// Bounds-checks and sends one jog, and records it. Shared by the HTTP API and pendants.
+pub(crate) async fn jog_machine(
+    app: &App,
+    m: &Machine,
+    axis: Axis,
+    distance: f64,
+    feed: Option<f64>,
+    actor: &str,
+) -> Result<(), ApiError> {
     let row = m.row();
-    if !req.distance.is_finite() || req.distance == 0.0 {
+    if !distance.is_finite() || distance == 0.0 {
         return Err(ApiError::unprocessable(
             "invalid_field",
-            format!(
-                "field `distance` must be a non-zero number, got {}",
-                req.distance
-            ),
+            format!("field `distance` must be a non-zero number, got {distance}"),
         ));
     }
-    if req.distance.abs() > row.max_jog_mm {
+    if distance.abs() > row.max_jog_mm {
         return Err(ApiError::unprocessable(
             "jog_too_far",
             format!(
-                "field `distance`: {} mm exceeds this machine's jog limit of {} mm per request",
-                req.distance, row.max_jog_mm
+                "field `distance`: {distance} mm exceeds this machine's jog limit of {} mm per request",
+                row.max_jog_mm
             ),
         ));
     }
-    if let Some(f) = req.feed {
+    if let Some(f) = feed {
         if !(f.is_finite() && f > 0.0 && f <= row.max_feed_mm_min) {
             return Err(ApiError::unprocessable(
                 "feed_out_of_range",
@@ -231,21 +233,21 @@ pub async fn jog(
         ));
     }
     m.call(&Request::Jog {
-        axis: req.axis,
-        distance: req.distance,
-        feed: req.feed,
+        axis,
+        distance,
+        feed,
     })
     .await
     .map_err(ApiError::from_backend)?;
     app.bus
         .record_or_log(
             "machine.jog",
-            Some(id),
-            Some(&caller.name),
-            json!({"axis": req.axis, "distance": req.distance, "feed": req.feed}),
+            Some(m.id),
+            Some(actor),
+            json!({"axis": axis, "distance": distance, "feed": feed}),
         )
         .await;
-    Ok(Json(json!({"ok": true})))
+    Ok(())
 }
 
 pub async fn command(
@@ -257,22 +259,34 @@ pub async fn command(
     let m = machine(&app, id).await?;
     let cmd: Command = serde_json::from_value(raw)
         .map_err(|e| ApiError::unprocessable("invalid_command", format!("{e} (commands: cycle_start, feed_hold, resume, stop, reset, home, zero, go_to_zero, select_offset, set_output)")))?;
+    let answer = command_machine(&app, &m, cmd, &caller.name).await?;
+    Ok(Json(json!({"ok": true, "result": answer})))
+}
+
+/// Sends one immediate command, persists offsets it changed, and records it. Shared by the HTTP
+/// API and pendants.
+pub(crate) async fn command_machine(
+    app: &App,
+    m: &Machine,
+    cmd: Command,
+    actor: &str,
+) -> Result<Value, ApiError> {
     let answer = m
         .call(&Request::Command(cmd))
         .await
         .map_err(ApiError::from_backend)?;
     // Commands that change offsets: persist what the backend now has.
     if matches!(cmd, Command::Zero { .. } | Command::SelectOffset { .. }) {
-        persist_backend_offsets(&app, &m).await?;
+        persist_backend_offsets(app, m).await?;
     }
     app.bus
-        .record_or_log("machine.command", Some(id), Some(&caller.name), json!(cmd))
+        .record_or_log("machine.command", Some(m.id), Some(actor), json!(cmd))
         .await;
     let _ = m.refresh_status(Request::Status).await;
-    Ok(Json(json!({"ok": true, "result": answer})))
+    Ok(answer)
 }
 
-async fn persist_backend_offsets(app: &SharedApp, m: &Machine) -> Result<OffsetTable, ApiError> {
+async fn persist_backend_offsets(app: &App, m: &Machine) -> Result<OffsetTable, ApiError> {
     let v = m
         .call(&Request::GetOffsets)
         .await

@@ -4,7 +4,8 @@ pub mod auth;
 pub mod error;
 mod events;
 mod jobs;
-mod machines;
+pub(crate) mod machines;
+mod pendants;
 
 use crate::app::SharedApp;
 use axum::extract::{DefaultBodyLimit, State};
@@ -38,6 +39,14 @@ pub fn router(app: SharedApp) -> Router {
         .route("/jobs/{id}", get(jobs::get_one))
         .route("/jobs/{id}/gcode", get(jobs::gcode))
         .route("/jobs/{id}/{action}", post(jobs::control))
+        .route("/pendants", get(pendants::list).post(pendants::create))
+        .route("/pendants/discovered", get(pendants::discovered))
+        .route(
+            "/pendants/{id}",
+            get(pendants::get_one)
+                .patch(pendants::patch)
+                .delete(pendants::delete),
+        )
         .route("/plugins", get(plugins))
         .route("/events", get(events::stream))
         .layer(axum::middleware::from_fn_with_state(

@@ -1,0 +1,530 @@
+//! The link to one pendant: the server side is the TCP client. Connect, say hello, send
+//! heartbeats, answer polls from the status cache, reconnect with capped exponential backoff,
+//! and declare the pendant lost when it closes the link or stays silent too long.
+
+use crate::codec::{Decoded, Decoder, Dialect, Frame, Info, FRAME_LEN};
+use fresa_plugin_api::contract::{AxisValues, PendantEvent, PendantJob};
+use serde::Deserialize;
+use std::io::{ErrorKind, Read, Write};
+use std::net::{Shutdown, SocketAddr, TcpStream, ToSocketAddrs};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+/// The pendants' TCP port.
+pub const DEFAULT_PORT: u16 = 8001;
+
+/// Per-pendant transport settings (the plugin instance's JSON config).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    /// `host:port` or `host` (port 8001). `MPG000001.local` names are resolved by mDNS.
+    pub address: String,
+    #[serde(default)]
+    pub dialect: Dialect,
+    /// Only used to label log lines.
+    #[serde(default)]
+    pub pendant: Option<i64>,
+    #[serde(default = "default_heartbeat")]
+    pub heartbeat_ms: u64,
+    #[serde(default = "default_lost")]
+    pub lost_after_ms: u64,
+    #[serde(default = "default_backoff_initial")]
+    pub backoff_initial_ms: u64,
+    #[serde(default = "default_backoff_max")]
+    pub backoff_max_ms: u64,
+    #[serde(default = "default_connect_timeout")]
+    pub connect_timeout_ms: u64,
+    /// An upload with no data for this long is abandoned.
+    #[serde(default = "default_upload_idle")]
+    pub upload_idle_ms: u64,
+    #[serde(default = "default_max_upload")]
+    pub max_upload_bytes: u64,
+}
+
+fn default_heartbeat() -> u64 {
+    1000
+}
+fn default_lost() -> u64 {
+    3000
+}
+fn default_backoff_initial() -> u64 {
+    100
+}
+fn default_backoff_max() -> u64 {
+    5000
+}
+fn default_connect_timeout() -> u64 {
+    1000
+}
+fn default_upload_idle() -> u64 {
+    5000
+}
+fn default_max_upload() -> u64 {
+    64 << 20
+}
+
+impl Config {
+    pub fn check(&self) -> Result<(), String> {
+        if self.address.trim().is_empty() {
+            return Err("field `address` must not be empty".into());
+        }
+        for (name, v) in [
+            ("heartbeat_ms", self.heartbeat_ms),
+            ("lost_after_ms", self.lost_after_ms),
+            ("backoff_initial_ms", self.backoff_initial_ms),
+            ("backoff_max_ms", self.backoff_max_ms),
+            ("connect_timeout_ms", self.connect_timeout_ms),
+            ("upload_idle_ms", self.upload_idle_ms),
+        ] {
+            if v == 0 {
+                return Err(format!("field `{name}` must be at least 1"));
+            }
+        }
+        Ok(())
+    }
+
+    /// Host and port of `address`, with the default port when none is given.
+    pub fn host_port(&self) -> (String, u16) {
+        split_host_port(&self.address)
+    }
+}
+
+pub fn split_host_port(address: &str) -> (String, u16) {
+    let a = address.trim();
+    if let Ok(sa) = a.parse::<SocketAddr>() {
+        return (sa.ip().to_string(), sa.port());
+    }
+    match a.rsplit_once(':') {
+        Some((h, p)) if !h.contains(':') => match p.parse() {
+            Ok(port) => (h.to_string(), port),
+            Err(_) => (a.to_string(), DEFAULT_PORT),
+        },
+        _ => (a.trim_matches(['[', ']']).to_string(), DEFAULT_PORT),
+    }
+}
+
+pub type EmitFn = Box<dyn Fn(&PendantEvent) + Send + Sync>;
+pub type LogFn = Box<dyn Fn(u32, &str) + Send + Sync>;
+
+struct Cache {
+    positions: [u8; FRAME_LEN],
+    progress: [u8; FRAME_LEN],
+    last_note: Option<String>,
+}
+
+struct Shared {
+    cfg: Config,
+    stop: AtomicBool,
+    cache: Mutex<Cache>,
+    /// Write half of the live connection; every write goes through it, so frames never interleave.
+    link: Mutex<Option<TcpStream>>,
+    connected: AtomicBool,
+    /// Upload waiting for the core's confirmation.
+    awaiting: AtomicU64,
+    wake: (Mutex<()>, Condvar),
+    emit: EmitFn,
+    log: LogFn,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl Shared {
+    fn info(&self, msg: &str) {
+        (self.log)(fresa_plugin_api::abi::LOG_INFO, &self.label(msg))
+    }
+    fn warn(&self, msg: &str) {
+        (self.log)(fresa_plugin_api::abi::LOG_WARN, &self.label(msg))
+    }
+    fn label(&self, msg: &str) -> String {
+        match self.cfg.pendant {
+            Some(id) => format!("pendant {id} ({}): {msg}", self.cfg.address),
+            None => format!("pendant {}: {msg}", self.cfg.address),
+        }
+    }
+
+    /// Writes one frame on the live link. False when there is none or the write failed.
+    fn send(&self, frame: &[u8; FRAME_LEN]) -> bool {
+        let mut link = lock(&self.link);
+        match link.as_mut() {
+            Some(s) => match s.write_all(frame) {
+                Ok(()) => true,
+                Err(e) => {
+                    self.warn(&format!("write failed: {e}"));
+                    let _ = s.shutdown(Shutdown::Both);
+                    *link = None;
+                    false
+                }
+            },
+            None => false,
+        }
+    }
+
+    /// Sleeps up to `d`, waking early on shutdown.
+    fn pause(&self, d: Duration) {
+        let (m, cv) = &self.wake;
+        let guard = lock(m);
+        if self.stop.load(Ordering::Relaxed) {
+            return;
+        }
+        let _ = cv.wait_timeout(guard, d);
+    }
+}
+
+/// A running link to one pendant. Dropping it closes the link and joins its thread.
+pub struct Transport {
+    shared: Arc<Shared>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl Transport {
+    pub fn start(cfg: Config, emit: EmitFn, log: LogFn) -> Result<Transport, String> {
+        cfg.check()?;
+        let shared = Arc::new(Shared {
+            cfg,
+            stop: AtomicBool::new(false),
+            cache: Mutex::new(Cache {
+                positions: Frame::Positions(AxisValues::default()).encode(),
+                progress: Frame::Progress(PendantJob::default()).encode(),
+                last_note: None,
+            }),
+            link: Mutex::new(None),
+            connected: AtomicBool::new(false),
+            awaiting: AtomicU64::new(0),
+            wake: (Mutex::new(()), Condvar::new()),
+            emit,
+            log,
+        });
+        let s = shared.clone();
+        let thread = std::thread::Builder::new()
+            .name("mpg-pendant".into())
+            .spawn(move || run(&s))
+            .map_err(|e| format!("cannot start the pendant thread: {e}"))?;
+        Ok(Transport {
+            shared,
+            thread: Some(thread),
+        })
+    }
+
+    pub fn connected(&self) -> bool {
+        self.shared.connected.load(Ordering::Relaxed)
+    }
+
+    pub fn address(&self) -> &str {
+        &self.shared.cfg.address
+    }
+
+    /// Replaces the status cache the pendant's polls are answered from.
+    pub fn set_status(&self, position: AxisValues, job: Option<PendantJob>) {
+        let (pos, n1) = Frame::Positions(position).encode_checked();
+        let (prog, n2) = Frame::Progress(job.unwrap_or_default()).encode_checked();
+        let note = n1.or(n2);
+        let mut c = lock(&self.shared.cache);
+        c.positions = pos;
+        c.progress = prog;
+        // Log a clamp once, not on every status push.
+        if note.is_some() && note != c.last_note {
+            if let Some(n) = &note {
+                self.shared.warn(n);
+            }
+        }
+        c.last_note = note;
+    }
+
+    /// Sends N53 for `upload` if it is the one waiting and the link is up.
+    pub fn confirm_upload(&self, upload: u64) -> bool {
+        if upload == 0
+            || self
+                .shared
+                .awaiting
+                .compare_exchange(upload, 0, Ordering::SeqCst, Ordering::SeqCst)
+                .is_err()
+        {
+            return false;
+        }
+        self.shared.send(&Frame::UploadConfirmed.encode())
+    }
+}
+
+impl Drop for Transport {
+    fn drop(&mut self) {
+        self.shared.stop.store(true, Ordering::Relaxed);
+        if let Some(s) = lock(&self.shared.link).as_ref() {
+            let _ = s.shutdown(Shutdown::Both);
+        }
+        {
+            let _g = lock(&self.shared.wake.0);
+            self.shared.wake.1.notify_all();
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+fn resolve(cfg: &Config) -> Result<Vec<SocketAddr>, String> {
+    let (host, port) = cfg.host_port();
+    let mut addrs: Vec<SocketAddr> = (host.as_str(), port)
+        .to_socket_addrs()
+        .map(|a| a.collect())
+        .unwrap_or_default();
+    if addrs.is_empty() && host.to_ascii_lowercase().ends_with(".local") {
+        addrs = crate::discovery::resolve_mdns(
+            &host,
+            port,
+            Duration::from_millis(cfg.connect_timeout_ms.max(500)),
+        )?;
+    }
+    if addrs.is_empty() {
+        return Err(format!("cannot resolve {host:?}"));
+    }
+    Ok(addrs)
+}
+
+fn connect(cfg: &Config) -> Result<TcpStream, String> {
+    // Re-resolved on every attempt: a pendant that rejoined Wi-Fi may have a new address.
+    let addrs = resolve(cfg)?;
+    let timeout = Duration::from_millis(cfg.connect_timeout_ms);
+    let mut last = String::new();
+    for a in addrs {
+        match TcpStream::connect_timeout(&a, timeout) {
+            Ok(s) => return Ok(s),
+            Err(e) => last = format!("{a}: {e}"),
+        }
+    }
+    Err(last)
+}
+
+fn run(s: &Shared) {
+    let initial = Duration::from_millis(s.cfg.backoff_initial_ms);
+    let max = Duration::from_millis(s.cfg.backoff_max_ms.max(s.cfg.backoff_initial_ms));
+    let mut backoff = initial;
+    let mut failures = 0u32;
+    while !s.stop.load(Ordering::Relaxed) {
+        match connect(&s.cfg) {
+            Ok(stream) => {
+                backoff = initial;
+                failures = 0;
+                match session(s, stream) {
+                    _ if s.stop.load(Ordering::Relaxed) => break,
+                    Ok(reason) => {
+                        s.warn(&format!("lost: {reason}"));
+                        (s.emit)(&PendantEvent::Lost { reason });
+                    }
+                    // Never got as far as `connected`: nothing to report as lost.
+                    Err(e) => s.info(&format!("connection failed at setup: {e}")),
+                }
+            }
+            Err(e) => {
+                failures += 1;
+                // Log the 1st, 2nd, 4th, 8th... failure: an absent pendant is normal.
+                if failures.is_power_of_two() {
+                    s.info(&format!("cannot connect ({failures} tries): {e}"));
+                }
+            }
+        }
+        s.pause(backoff);
+        backoff = (backoff * 2).min(max);
+    }
+}
+
+struct Upload {
+    declared_lines: u64,
+    lines: Vec<String>,
+    bytes: u64,
+    problem: Option<String>,
+    last_data: Instant,
+}
+
+/// Serves one connection until it ends; returns why it ended (Err: it ended before the pendant
+/// was reported connected).
+fn session(s: &Shared, mut stream: TcpStream) -> Result<String, String> {
+    let cfg = &s.cfg;
+    let _ = stream.set_nodelay(true);
+    let heartbeat = Duration::from_millis(cfg.heartbeat_ms);
+    let lost_after = Duration::from_millis(cfg.lost_after_ms);
+    let tick = (heartbeat / 4)
+        .min(lost_after / 4)
+        .clamp(Duration::from_millis(5), Duration::from_millis(50));
+    if let Err(e) = stream.set_read_timeout(Some(tick)) {
+        return Err(format!("cannot set a read timeout: {e}"));
+    }
+    match stream.try_clone() {
+        Ok(w) => *lock(&s.link) = Some(w),
+        Err(e) => return Err(format!("cannot share the socket: {e}")),
+    }
+    let peer = stream
+        .peer_addr()
+        .map(|a| a.to_string())
+        .unwrap_or_else(|_| cfg.address.clone());
+    if !s.send(&Frame::Hello(cfg.dialect).encode()) {
+        *lock(&s.link) = None;
+        return Err("could not send the hello frame".into());
+    }
+    s.connected.store(true, Ordering::Relaxed);
+    s.info(&format!("connected to {peer}"));
+    (s.emit)(&PendantEvent::Connected { address: peer });
+    let mut decoder = Decoder::new();
+    let mut upload: Option<Upload> = None;
+    let mut next_upload_id = 1u64;
+    let mut counter = 0u32;
+    let mut last_rx = Instant::now();
+    let mut next_hb = Instant::now() + heartbeat;
+    let mut buf = vec![0u8; 64 * 1024];
+    let reason = loop {
+        if s.stop.load(Ordering::Relaxed) {
+            break "shutting down".to_string();
+        }
+        match stream.read(&mut buf) {
+            Ok(0) => break "the pendant closed the connection".to_string(),
+            Ok(n) => {
+                last_rx = Instant::now();
+                decoder.push(&buf[..n]);
+                while let Some(d) = decoder.pop() {
+                    handle(s, d, &mut upload, &mut next_upload_id);
+                }
+            }
+            Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {}
+            Err(e) if e.kind() == ErrorKind::Interrupted => continue,
+            Err(e) => break format!("read failed: {e}"),
+        }
+        let now = Instant::now();
+        if now >= next_hb {
+            counter = counter.wrapping_add(1) % 10_000_000;
+            s.send(
+                &Frame::Heartbeat {
+                    dialect: cfg.dialect,
+                    counter,
+                }
+                .encode(),
+            );
+            next_hb = now + heartbeat;
+        }
+        if lock(&s.link).is_none() {
+            break "write failed".to_string();
+        }
+        if now.duration_since(last_rx) > lost_after {
+            break format!("silent for more than {} ms", cfg.lost_after_ms);
+        }
+        if let Some(u) = &upload {
+            if now.duration_since(u.last_data) > Duration::from_millis(cfg.upload_idle_ms) {
+                decoder.abort_upload();
+                upload = None;
+                (s.emit)(&PendantEvent::UploadFailed {
+                    reason: format!(
+                        "no upload data and no N03FIN for {} ms; upload abandoned",
+                        cfg.upload_idle_ms
+                    ),
+                });
+            }
+        }
+    };
+    s.connected.store(false, Ordering::Relaxed);
+    s.awaiting.store(0, Ordering::SeqCst);
+    if let Some(l) = lock(&s.link).take() {
+        let _ = l.shutdown(Shutdown::Both);
+    }
+    if upload.is_some() {
+        (s.emit)(&PendantEvent::UploadFailed {
+            reason: format!("connection ended during the upload: {reason}"),
+        });
+    }
+    Ok(reason)
+}
+
+fn handle(s: &Shared, d: Decoded, upload: &mut Option<Upload>, next_id: &mut u64) {
+    match d {
+        Decoded::Frame(Frame::Request(info)) => {
+            let frame = {
+                let c = lock(&s.cache);
+                match info {
+                    Info::Positions => c.positions,
+                    Info::Job => c.progress,
+                }
+            };
+            s.send(&frame);
+        }
+        Decoded::Frame(Frame::Jog { step, axis, count }) => {
+            (s.emit)(&PendantEvent::Jog { axis, count, step })
+        }
+        Decoded::Frame(Frame::Key(key)) => (s.emit)(&PendantEvent::Key { key }),
+        Decoded::Frame(Frame::UploadStart { lines }) => {
+            // A new START replaces an upload that never finished.
+            s.info(&format!("upload started: {lines} lines declared"));
+            *upload = Some(Upload {
+                declared_lines: lines as u64,
+                lines: Vec::new(),
+                bytes: 0,
+                problem: None,
+                last_data: Instant::now(),
+            });
+        }
+        Decoded::Line(bytes) => {
+            let Some(u) = upload.as_mut() else { return };
+            u.last_data = Instant::now();
+            if u.problem.is_some() {
+                return;
+            }
+            u.bytes += bytes.len() as u64;
+            if u.bytes > s.cfg.max_upload_bytes {
+                u.problem = Some(format!(
+                    "upload is larger than {} bytes",
+                    s.cfg.max_upload_bytes
+                ));
+                return;
+            }
+            match String::from_utf8(bytes) {
+                Ok(line) => u.lines.push(line),
+                Err(e) => {
+                    u.problem = Some(format!(
+                        "line {} is not text: {e} (bytes {:?})",
+                        u.lines.len() + 1,
+                        String::from_utf8_lossy(e.as_bytes())
+                    ))
+                }
+            }
+        }
+        Decoded::Frame(Frame::UploadEnd { chars }) => {
+            let Some(u) = upload.take() else {
+                s.warn("N03FIN without N03START; ignored");
+                return;
+            };
+            match u.problem {
+                Some(reason) => (s.emit)(&PendantEvent::UploadFailed { reason }),
+                None => {
+                    let id = *next_id;
+                    *next_id += 1;
+                    s.awaiting.store(id, Ordering::SeqCst);
+                    s.info(&format!(
+                        "upload received: {} lines, {} characters",
+                        u.lines.len(),
+                        u.bytes
+                    ));
+                    (s.emit)(&PendantEvent::Upload {
+                        upload: id,
+                        lines: u.lines,
+                        declared_lines: u.declared_lines,
+                        declared_chars: chars,
+                    });
+                }
+            }
+        }
+        Decoded::UploadAborted { reason } => {
+            *upload = None;
+            (s.emit)(&PendantEvent::UploadFailed { reason });
+        }
+        Decoded::Skipped { bytes, reason } => {
+            let shown: String = String::from_utf8_lossy(&bytes).chars().take(120).collect();
+            s.warn(&format!(
+                "skipped {} bytes that are not a valid frame ({reason}): {shown:?}",
+                bytes.len()
+            ));
+        }
+        Decoded::Frame(other) => s.warn(&format!(
+            "unexpected frame from a pendant: {other:?}; ignored"
+        )),
+    }
+}

@@ -1,0 +1,293 @@
+use super::auth::Caller;
+use super::error::{ApiError, Json, Path};
+use crate::app::SharedApp;
+use crate::pendants::{self as core, MacroAction};
+use axum::extract::State;
+use axum::http::StatusCode;
+use axum::Extension;
+use serde::Deserialize;
+use serde_json::{json, Value};
+use std::collections::BTreeMap;
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NewPendant {
+    name: String,
+    address: String,
+    #[serde(default)]
+    machine: Option<i64>,
+    #[serde(default)]
+    dialect: Option<String>,
+    #[serde(default)]
+    config: Option<Value>,
+    #[serde(default)]
+    macros: Option<BTreeMap<String, Option<Value>>>,
+}
+
+/// `{"M1": action|null, ...}` -> slots; names the bad key or action.
+fn parse_macros(
+    m: &BTreeMap<String, Option<Value>>,
+) -> Result<Vec<(u8, Option<MacroAction>)>, ApiError> {
+    let mut out = Vec::new();
+    for (k, v) in m {
+        let slot = match k.as_str() {
+            "M1" => 1,
+            "M2" => 2,
+            "M3" => 3,
+            "M4" => 4,
+            other => {
+                return Err(ApiError::unprocessable(
+                    "invalid_field",
+                    format!("field `macros`: {other:?} is not a macro key (M1, M2, M3, M4)"),
+                ))
+            }
+        };
+        let action = match v {
+            None | Some(Value::Null) => None,
+            Some(v) => Some(
+                serde_json::from_value::<MacroAction>(v.clone()).map_err(|e| {
+                    ApiError::unprocessable(
+                        "invalid_field",
+                        format!("field `macros.{k}`: {e} (types: command, jog)"),
+                    )
+                })?,
+            ),
+        };
+        if let Some(MacroAction::Jog { distance, .. }) = &action {
+            if !distance.is_finite() || *distance == 0.0 {
+                return Err(ApiError::unprocessable(
+                    "invalid_field",
+                    format!("field `macros.{k}.distance` must be a non-zero number"),
+                ));
+            }
+        }
+        out.push((slot, action));
+    }
+    Ok(out)
+}
+
+async fn check_machine(app: &SharedApp, machine: Option<i64>) -> Result<(), ApiError> {
+    if let Some(id) = machine {
+        if app.machines.get(id).await.is_none() {
+            return Err(ApiError::unprocessable(
+                "unknown_machine",
+                format!("field `machine`: no machine with id {id}"),
+            ));
+        }
+    }
+    Ok(())
+}
+
+pub async fn create(
+    State(app): State<SharedApp>,
+    Extension(caller): Extension<Caller>,
+    Json(req): Json<NewPendant>,
+) -> Result<(StatusCode, Json<Value>), ApiError> {
+    let name = req.name.trim();
+    if name.is_empty() {
+        return Err(ApiError::unprocessable(
+            "invalid_field",
+            "field `name` must not be empty",
+        ));
+    }
+    let (host, port) = split_address(&req.address);
+    if host.is_empty() || port == 0 {
+        return Err(ApiError::unprocessable(
+            "invalid_field",
+            format!("field `address`: {:?} is not host:port (e.g. 192.168.1.40:8001 or MPG000001.local)", req.address),
+        ));
+    }
+    let dialect = req.dialect.unwrap_or_else(|| "firmware".into());
+    if !matches!(dialect.as_str(), "firmware" | "document") {
+        return Err(ApiError::unprocessable(
+            "invalid_field",
+            format!("field `dialect`: {dialect:?} is not firmware or document"),
+        ));
+    }
+    let config = req.config.unwrap_or_else(|| json!({}));
+    if !config.is_object() {
+        return Err(ApiError::unprocessable(
+            "invalid_field",
+            "field `config` must be a JSON object",
+        ));
+    }
+    if let Some(v) = config.get("stop_program_on_lost") {
+        if !v.is_boolean() {
+            return Err(ApiError::unprocessable(
+                "invalid_field",
+                "field `config.stop_program_on_lost` must be true or false",
+            ));
+        }
+    }
+    check_machine(&app, req.machine).await?;
+    let macros: Vec<(u8, MacroAction)> = match &req.macros {
+        Some(m) => parse_macros(m)?
+            .into_iter()
+            .filter_map(|(s, a)| a.map(|a| (s, a)))
+            .collect(),
+        None => Vec::new(),
+    };
+    let id = match app
+        .store
+        .insert_pendant(
+            name,
+            req.address.trim(),
+            &dialect,
+            req.machine,
+            &config,
+            &macros,
+        )
+        .await
+    {
+        Ok(id) => id,
+        Err(sqlx::Error::Database(d)) if d.is_unique_violation() => {
+            return Err(ApiError::conflict(
+                "name_taken",
+                format!("a pendant named {name:?} already exists"),
+            ))
+        }
+        Err(e) => return Err(e.into()),
+    };
+    let row = app
+        .store
+        .pendant(id)
+        .await?
+        .ok_or_else(|| ApiError::internal("pendant vanished"))?;
+    // The transport judges its config before the pendant is kept; that instance is the one used.
+    let created = match core::create_instance(&app, &row).await {
+        Ok(c) => c,
+        Err(e) => {
+            let _ = app.store.delete_pendant(id).await;
+            return Err(ApiError::unprocessable(
+                "invalid_config",
+                format!("field `config` rejected by {}: {e}", core::TRANSPORT_PLUGIN),
+            ));
+        }
+    };
+    core::attach(&app, row, Ok(created)).await;
+    app.bus
+        .record_or_log(
+            "pendant.created",
+            req.machine,
+            Some(&caller.name),
+            json!({"pendant": id, "name": name, "address": req.address, "machine": req.machine}),
+        )
+        .await;
+    Ok((StatusCode::CREATED, Json(json!({"id": id}))))
+}
+
+/// Same rule as the transport plugin: `host:port`, or `host` for port 8001.
+fn split_address(address: &str) -> (String, u16) {
+    let a = address.trim();
+    if let Ok(sa) = a.parse::<std::net::SocketAddr>() {
+        return (sa.ip().to_string(), sa.port());
+    }
+    match a.rsplit_once(':') {
+        Some((h, p)) if !h.contains(':') => (h.to_string(), p.parse().unwrap_or(0)),
+        _ => (a.to_string(), 8001),
+    }
+}
+
+pub async fn list(State(app): State<SharedApp>) -> Json<Vec<Value>> {
+    Json(
+        app.pendants
+            .all()
+            .await
+            .iter()
+            .map(|p| core::pendant_json(p))
+            .collect(),
+    )
+}
+
+async fn pendant(app: &SharedApp, id: i64) -> Result<std::sync::Arc<core::Pendant>, ApiError> {
+    app.pendants
+        .get(id)
+        .await
+        .ok_or_else(|| ApiError::not_found("unknown_pendant", format!("no pendant with id {id}")))
+}
+
+pub async fn get_one(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+) -> Result<Json<Value>, ApiError> {
+    let p = pendant(&app, id).await?;
+    Ok(Json(core::pendant_json(&p)))
+}
+
+/// `null` and absent differ for `machine`: absent keeps the binding, `null` unbinds.
+fn double_option<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<Option<i64>>, D::Error> {
+    Option::<i64>::deserialize(d).map(Some)
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PatchPendant {
+    #[serde(default, deserialize_with = "double_option")]
+    machine: Option<Option<i64>>,
+    #[serde(default)]
+    macros: Option<BTreeMap<String, Option<Value>>>,
+}
+
+pub async fn patch(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Extension(caller): Extension<Caller>,
+    Json(req): Json<PatchPendant>,
+) -> Result<Json<Value>, ApiError> {
+    let p = pendant(&app, id).await?;
+    let macros = match &req.macros {
+        Some(m) => parse_macros(m)?,
+        None => Vec::new(),
+    };
+    if let Some(machine) = req.machine {
+        check_machine(&app, machine).await?;
+        app.store.set_pendant_machine(id, machine).await?;
+        p.set_machine(machine);
+        app.bus
+            .record_or_log(
+                "pendant.bound",
+                machine,
+                Some(&caller.name),
+                json!({"pendant": id, "machine": machine}),
+            )
+            .await;
+    }
+    for (slot, action) in macros {
+        app.store
+            .set_pendant_macro(id, slot, action.as_ref())
+            .await?;
+        app.bus
+            .record_or_log(
+                "pendant.macro",
+                p.row().machine_id,
+                Some(&caller.name),
+                json!({"pendant": id, "key": format!("M{slot}"), "action": action}),
+            )
+            .await;
+        p.set_macro(slot, action);
+    }
+    Ok(Json(core::pendant_json(&p)))
+}
+
+pub async fn delete(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Extension(caller): Extension<Caller>,
+) -> Result<StatusCode, ApiError> {
+    pendant(&app, id).await?;
+    app.pendants.remove(id).await;
+    app.store.delete_pendant(id).await?;
+    app.bus
+        .record_or_log(
+            "pendant.deleted",
+            None,
+            Some(&caller.name),
+            json!({"pendant": id}),
+        )
+        .await;
+    Ok(StatusCode::NO_CONTENT)
+}
+
+pub async fn discovered(State(app): State<SharedApp>) -> Result<Json<Value>, ApiError> {
+    Ok(Json(app.pendants.discovered(&app).await?))
+}

@@ -1,0 +1,573 @@
+//! MPG pendants end to end: the real `fresa` server, the real `mpg-pendant` transport plugin,
+//! the real `mpg-pendant-sim` binary playing the handwheel, and the sim machine.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fresa_tests::{bin_dir, corpus, wait_for, Server, SseEvent};
+use serde_json::{json, Value};
+use std::io::{BufRead, BufReader, Write};
+use std::process::{Child, ChildStdin, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+const T: Duration = Duration::from_secs(60);
+
+/// A running `mpg-pendant-sim`, driven through its stdin; its stdout lines are collected.
+struct PendantSim {
+    child: Child,
+    stdin: ChildStdin,
+    rx: mpsc::Receiver<String>,
+    /// Every line printed so far.
+    seen: Vec<String>,
+    addr: String,
+}
+
+impl PendantSim {
+    fn start() -> PendantSim {
+        let mut child = Command::new(bin_dir().join("mpg-pendant-sim"))
+            .args(["--listen", "127.0.0.1:0", "--quiet-polls"])
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn()
+            .expect("start mpg-pendant-sim");
+        let stdin = child.stdin.take().unwrap();
+        let out = child.stdout.take().unwrap();
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            for l in BufReader::new(out).lines() {
+                let Ok(l) = l else { return };
+                if tx.send(l).is_err() {
+                    return;
+                }
+            }
+        });
+        let first = rx.recv_timeout(T).expect("sim prints where it listens");
+        let addr = first
+            .strip_prefix("listening on ")
+            .expect(&first)
+            .to_string();
+        PendantSim {
+            child,
+            stdin,
+            rx,
+            seen: vec![first],
+            addr,
+        }
+    }
+
+    /// Waits for a printed line matching `pred` (also among lines already printed after `from`).
+    #[track_caller]
+    fn wait_line_from(&mut self, from: usize, what: &str, pred: impl Fn(&str) -> bool) -> usize {
+        let deadline = Instant::now() + T;
+        loop {
+            if let Some(i) = self.seen[from..].iter().position(|l| pred(l)) {
+                return from + i;
+            }
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.rx.recv_timeout(left) {
+                Ok(l) => self.seen.push(l),
+                Err(_) => panic!("sim never printed {what}; saw {:?}", self.seen),
+            }
+        }
+    }
+
+    /// Runs one command and waits for its `ok`.
+    #[track_caller]
+    fn cmd(&mut self, line: &str) {
+        let from = self.seen.len();
+        writeln!(self.stdin, "{line}").unwrap();
+        self.stdin.flush().unwrap();
+        let i = self.wait_line_from(from, &format!("ok {line}"), |l| {
+            l == format!("ok {line}") || l.starts_with(&format!("error {line}"))
+        });
+        assert!(self.seen[i].starts_with("ok "), "{}", self.seen[i]);
+    }
+
+    fn received(&self, prefix: &str) -> usize {
+        self.seen
+            .iter()
+            .filter(|l| l.starts_with(&format!("recv {prefix}")))
+            .count()
+    }
+}
+
+impl Drop for PendantSim {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn add_pendant(s: &Server, name: &str, addr: &str, machine: Option<i64>, config: Value) -> i64 {
+    s.post(
+        "/api/v1/pendants",
+        &json!({"name": name, "address": addr, "machine": machine, "dialect": "firmware", "config": config}),
+    )
+    .expect(201)["id"]
+        .as_i64()
+        .unwrap()
+}
+
+fn wait_connected(s: &Server, id: i64, connected: bool) {
+    wait_for(T, &format!("pendant {id} connected={connected}"), || {
+        let p = s.get(&format!("/api/v1/pendants/{id}")).expect(200);
+        (p["connected"] == connected).then_some(())
+    });
+}
+
+fn work(s: &Server, m: i64) -> [f64; 4] {
+    let st = s.status(m);
+    let w = &st["work_position"];
+    ["x", "y", "z", "a"].map(|k| w[k].as_f64().unwrap())
+}
+
+#[track_caller]
+fn wait_work(s: &Server, m: i64, what: &str, pred: impl Fn([f64; 4]) -> bool) -> [f64; 4] {
+    let st = s.wait_status(m, T, what, |st| {
+        st["state"] == "idle"
+            && pred(["x", "y", "z", "a"].map(|k| st["work_position"][k].as_f64().unwrap()))
+    });
+    ["x", "y", "z", "a"].map(|k| st["work_position"][k].as_f64().unwrap())
+}
+
+fn close(a: f64, b: f64) -> bool {
+    (a - b).abs() < 1e-9
+}
+
+/// Waits for the persisted event matching `pred`, replaying the log from the start.
+#[track_caller]
+fn wait_event(s: &Server, what: &str, pred: impl Fn(&SseEvent) -> bool) -> SseEvent {
+    let stream = s.events("", Some(0));
+    stream.until(T, what, |e| pred(e)).pop().unwrap()
+}
+
+#[test]
+fn wheel_keys_macros_and_the_lcd_drive_the_bound_machine() {
+    let s = Server::start();
+    let m = s.sim("mill", 0.0).id;
+    let mut sim = PendantSim::start();
+    let p = add_pendant(&s, "wheel", &sim.addr, Some(m), json!({}));
+    wait_connected(&s, p, true);
+    // The hello went out in the firmware dialect.
+    sim.wait_line_from(0, "the hello frame", |l| l.starts_with("recv N04Conected"));
+
+    // Wheel: exactly count x step on the selected axis.
+    sim.cmd("jog X 250 0.01");
+    wait_work(&s, m, "x = 2.5", |w| close(w[0], 2.5));
+    sim.cmd("jog Y -3 1");
+    let w = wait_work(&s, m, "y = -3", |w| close(w[1], -3.0));
+    assert!(close(w[0], 2.5), "{w:?}");
+    // The LCD's N0451 poll is answered from the cache the core pushes.
+    sim.wait_line_from(0, "positions on the LCD", |l| {
+        l == "recv N51E+00002.5000x-00003.0000y+00000.0000z+00000.0000aF"
+    });
+
+    // Touch plate "Set cero": small Z steps down, then ZeroZ.
+    for _ in 0..5 {
+        sim.cmd("jog Z -100 0.0001");
+    }
+    wait_work(&s, m, "z = -0.05", |w| close(w[2], -0.05));
+    sim.cmd("key ZeroZ");
+    wait_work(&s, m, "work z zeroed", |w| close(w[2], 0.0));
+    let st = s.status(m);
+    assert!(
+        close(st["machine_position"]["z"].as_f64().unwrap(), -0.05),
+        "{st}"
+    );
+
+    // Zero all, then move and go home (work zero).
+    sim.cmd("key Zero");
+    wait_work(&s, m, "all zero", |w| w.iter().all(|v| close(*v, 0.0)));
+    sim.cmd("jog X 10 0.1");
+    wait_work(&s, m, "x = 1", |w| close(w[0], 1.0));
+    sim.cmd("key HOME");
+    wait_work(&s, m, "back at work zero", |w| {
+        w.iter().all(|v| close(*v, 0.0))
+    });
+    for k in ["ZeroX", "ZeroY", "ZeroA"] {
+        sim.cmd(&format!("key {k}"));
+    }
+
+    // Macros: M1 configured through the API, M2 left unassigned.
+    s.send(
+        s.req(reqwest::Method::PATCH, &format!("/api/v1/pendants/{p}"))
+            .json(&json!({"macros": {"M1": {"type": "jog", "axis": "A", "distance": 2.0}}})),
+    )
+    .expect(200);
+    assert_eq!(
+        s.get(&format!("/api/v1/pendants/{p}")).expect(200)["macros"]["M1"]["axis"],
+        "A"
+    );
+    sim.cmd("key M1");
+    wait_work(&s, m, "a = 2 from M1", |w| close(w[3], 2.0));
+    sim.cmd("key M2");
+    let refused = wait_event(&s, "M2 refused", |e| {
+        e.event == "pendant.refused" && e.data["data"]["code"] == "macro_unassigned"
+    });
+    assert_eq!(refused.data["actor"], format!("pendant:{p}"));
+
+    // Rebind to a slower machine for the program keys: Start runs the newest job, Pause holds
+    // it, Start resumes it, Stop ends it (4000 mm at 600 mm/min, time scale 0.05: ~20 s).
+    let slow = s.sim("slow", 0.05).id;
+    s.send(
+        s.req(reqwest::Method::PATCH, &format!("/api/v1/pendants/{p}"))
+            .json(&json!({"machine": slow})),
+    )
+    .expect(200);
+    let job = s.upload(slow, "long", fresa_tests::back_and_forth(4000, 1.0, 600.0))["id"]
+        .as_i64()
+        .unwrap();
+    sim.cmd("key Rewind");
+    sim.cmd("key Start");
+    let started = wait_event(&s, "job started by the pendant", |e| {
+        e.event == "job.state" && e.job() == Some(job) && e.state() == Some("running")
+    });
+    assert_eq!(started.data["actor"], format!("pendant:{p}"));
+    sim.cmd("key Pause");
+    s.wait_job_state(job, "paused", T);
+    sim.cmd("key Start");
+    s.wait_job_state(job, "running", T);
+    sim.cmd("key Stop");
+    s.wait_job_state(job, "cancelled", T);
+    sim.cmd("key Reset");
+
+    // Every action is in the audit log under the pendant's id.
+    let actor = format!("pendant:{p}");
+    let stream = s.events("", Some(0));
+    let seen = stream.until(T, "the reset command", |e| {
+        e.event == "machine.command" && e.data["data"]["command"] == "reset"
+    });
+    let by_pendant: Vec<&SseEvent> = seen.iter().filter(|e| e.data["actor"] == actor).collect();
+    let jogs = by_pendant
+        .iter()
+        .filter(|e| e.event == "machine.jog")
+        .count();
+    assert_eq!(jogs, 2 + 5 + 1 + 1, "wheel jogs and the M1 jog");
+    let commands: Vec<String> = by_pendant
+        .iter()
+        .filter(|e| e.event == "machine.command")
+        .map(|e| {
+            let d = &e.data["data"];
+            format!(
+                "{}{}",
+                d["command"].as_str().unwrap(),
+                d["axis"]
+                    .as_str()
+                    .map(|a| format!(" {a}"))
+                    .unwrap_or_default()
+            )
+        })
+        .collect();
+    assert_eq!(
+        commands,
+        [
+            "zero Z",
+            "zero",
+            "go_to_zero",
+            "zero X",
+            "zero Y",
+            "zero A",
+            "stop",
+            "reset"
+        ]
+    );
+    let job_states: Vec<&str> = by_pendant
+        .iter()
+        .filter(|e| e.event == "job.state")
+        .map(|e| e.state().unwrap())
+        .collect();
+    assert_eq!(
+        job_states,
+        ["running", "paused", "running"],
+        "start, pause, resume"
+    );
+    assert!(by_pendant.iter().any(|e| e.event == "pendant.rewind"));
+    assert!(by_pendant.iter().any(|e| e.event == "pendant.connected"));
+}
+
+#[test]
+fn jogs_over_the_limit_unbound_pendants_and_the_document_dialect_move_nothing() {
+    let s = Server::start();
+    let m = s.sim_with("mill", 0.0, json!({"max_jog_mm": 5.0})).id;
+    let mut sim = PendantSim::start();
+    let p = s
+        .post(
+            "/api/v1/pendants",
+            &json!({"name": "w", "address": sim.addr, "machine": m, "dialect": "document",
+                    "config": {"heartbeat_ms": 50}}),
+        )
+        .expect(201)["id"]
+        .as_i64()
+        .unwrap();
+    wait_connected(&s, p, true);
+    sim.wait_line_from(0, "the document hello", |l| l.starts_with("recv N54"));
+    sim.wait_line_from(0, "a document heartbeat", |l| l.starts_with("recv N55Vivo"));
+
+    // 600 x 0.01 = 6 mm > 5 mm: refused, not clamped.
+    sim.cmd("jog X 600 0.01");
+    let e = wait_event(&s, "jog refused", |e| e.event == "pendant.refused");
+    assert_eq!(e.data["data"]["code"], "jog_too_far", "{e:?}");
+    assert!(
+        e.data["data"]["reason"].as_str().unwrap().contains("5 mm"),
+        "{e:?}"
+    );
+    // A following allowed jog proves the refused one never moved.
+    sim.cmd("jog X 100 0.01");
+    let w = wait_work(&s, m, "x = 1", |w| close(w[0], 1.0));
+    assert!(close(w[0], 1.0), "{w:?}");
+
+    // Unbind: the wheel moves nothing.
+    s.send(
+        s.req(reqwest::Method::PATCH, &format!("/api/v1/pendants/{p}"))
+            .json(&json!({"machine": null})),
+    )
+    .expect(200);
+    assert_eq!(
+        s.get("/api/v1/pendants").expect(200)[0]["machine"],
+        Value::Null
+    );
+    sim.cmd("jog X 100 0.01");
+    sim.cmd("key Zero");
+    let e = wait_event(&s, "unbound refusal", |e| {
+        e.event == "pendant.refused"
+            && e.data["data"]["code"] == "not_bound"
+            && e.data["data"]["input"]["key"] == "zero"
+    });
+    assert_eq!(e.data["actor"], format!("pendant:{p}"));
+    assert!(close(work(&s, m)[0], 1.0));
+
+    // Bad API input is named.
+    let msg = s
+        .post(
+            "/api/v1/pendants",
+            &json!({"name": "x", "address": "h:1", "dialect": "klingon"}),
+        )
+        .expect_error(422, "invalid_field");
+    assert!(msg.contains("dialect"), "{msg}");
+    let msg = s
+        .post(
+            "/api/v1/pendants",
+            &json!({"name": "x", "address": "h:1", "config": {"heartbeat": 5}}),
+        )
+        .expect_error(422, "invalid_config");
+    assert!(msg.contains("heartbeat"), "{msg}");
+    let msg = s
+        .post(
+            "/api/v1/pendants",
+            &json!({"name": "x", "address": "h:1", "machine": 999}),
+        )
+        .expect_error(422, "unknown_machine");
+    assert!(msg.contains("999"), "{msg}");
+    assert_eq!(
+        s.get("/api/v1/pendants")
+            .expect(200)
+            .as_array()
+            .unwrap()
+            .len(),
+        1
+    );
+
+    // Deleting a pendant closes its link.
+    let before = sim.seen.len();
+    s.send(s.req(reqwest::Method::DELETE, &format!("/api/v1/pendants/{p}")))
+        .expect(204);
+    sim.wait_line_from(before, "the link closed", |l| l.starts_with("disconnected"));
+    assert!(s
+        .get("/api/v1/pendants")
+        .expect(200)
+        .as_array()
+        .unwrap()
+        .is_empty());
+    s.get(&format!("/api/v1/pendants/{p}"))
+        .expect_error(404, "unknown_pendant");
+}
+
+fn normalised(text: &str) -> String {
+    let mut t = text.replace("\r\n", "\n");
+    if !t.ends_with('\n') {
+        t.push('\n');
+    }
+    t
+}
+
+#[test]
+fn a_40k_line_upload_becomes_a_job_identical_to_the_file_and_then_n53() {
+    let s = Server::start();
+    let m = s.sim("mill", 0.0).id;
+    let mut sim = PendantSim::start();
+    let p = add_pendant(&s, "wheel", &sim.addr, Some(m), json!({}));
+    wait_connected(&s, p, true);
+    let file = corpus("cncjs-tball-pocket.gcode");
+    // No gaps (a test cannot wait 40 minutes): lines end with \n so reads may merge them.
+    sim.cmd(&format!("upload {} gap=0 end=lf", file.display()));
+    sim.wait_line_from(0, "N53", |l| {
+        l == "recv N53Confirm:Gcode-load*******************************F"
+    });
+    let jobs = s.get(&format!("/api/v1/jobs?machine={m}")).expect(200);
+    let jobs = jobs.as_array().unwrap();
+    assert_eq!(jobs.len(), 1, "{jobs:?}");
+    assert_eq!(jobs[0]["source"], format!("pendant:{p}"));
+    let id = jobs[0]["id"].as_i64().unwrap();
+    let stored = s.get(&format!("/api/v1/jobs/{id}/gcode")).text;
+    let original = std::fs::read_to_string(&file).unwrap();
+    assert!(
+        stored == normalised(&original),
+        "stored program differs from the file"
+    );
+    assert_eq!(jobs[0]["line_count"], original.lines().count() as i64);
+    assert_eq!(
+        jobs[0]["sha256"],
+        fresa_tests::sha256_hex(stored.as_bytes())
+    );
+}
+
+#[test]
+fn firmware_paced_upload_with_n_lines_and_count_mismatches() {
+    let s = Server::start();
+    let m = s.sim("mill", 0.0).id;
+    let mut sim = PendantSim::start();
+    let p = add_pendant(&s, "wheel", &sim.addr, Some(m), json!({}));
+    wait_connected(&s, p, true);
+    let dir = tempfile::tempdir().unwrap();
+    let prog = dir.path().join("p.nc");
+    let text = "G21 G90\nN10 G1 X5 F300\nN20 G1 Y5\nN0451 G0 Z1\nM2\n";
+    std::fs::write(&prog, text).unwrap();
+
+    // Wrong line count, then wrong character count: no job, no N53, an event saying why.
+    sim.cmd(&format!("upload {} gap=0 end=lf lines+=1", prog.display()));
+    let e = wait_event(&s, "line count rejection", |e| {
+        e.event == "pendant.upload_rejected"
+    });
+    assert_eq!(e.data["data"]["code"], "line_count_mismatch", "{e:?}");
+    sim.cmd(&format!("upload {} gap=0 end=lf chars+=3", prog.display()));
+    let e = wait_event(&s, "char count rejection", |e| {
+        e.event == "pendant.upload_rejected" && e.data["data"]["code"] == "char_count_mismatch"
+    });
+    assert!(
+        e.data["data"]["reason"]
+            .as_str()
+            .unwrap()
+            .contains("declared"),
+        "{e:?}"
+    );
+    s.assert_no_jobs();
+    assert_eq!(sim.received("N53"), 0);
+
+    // Like the firmware: one send per line, no newline, lines starting with N. The end of a read
+    // is the end of a line; gaps a bit above the firmware's 50-70 ms keep a loaded test machine
+    // from merging two sends into one read.
+    sim.cmd(&format!("upload {} gap=120-150 end=none", prog.display()));
+    sim.wait_line_from(0, "N53", |l| l.starts_with("recv N53Confirm"));
+    assert_eq!(sim.received("N53"), 1);
+    let jobs = s.get("/api/v1/jobs").expect(200);
+    let id = jobs[0]["id"].as_i64().unwrap();
+    assert_eq!(s.get(&format!("/api/v1/jobs/{id}/gcode")).text, text);
+}
+
+#[test]
+fn a_dropped_link_reconnects_and_a_lost_pendant_stops_its_jog() {
+    let s = Server::start();
+    // Real time: a 40 mm jog at 1000 mm/min takes 2.4 s, long enough to lose the pendant mid-way.
+    let m = s.sim("mill", 1.0).id;
+    let mut sim = PendantSim::start();
+    let p = add_pendant(
+        &s,
+        "wheel",
+        &sim.addr,
+        Some(m),
+        json!({"backoff_max_ms": 200}),
+    );
+    wait_connected(&s, p, true);
+
+    // The server notices a dropped link and reconnects by itself.
+    let first = sim.wait_line_from(0, "the first connection", |l| l.starts_with("connected"));
+    sim.cmd("drop");
+    sim.wait_line_from(first + 1, "a second connection", |l| {
+        l.starts_with("connected")
+    });
+    wait_event(&s, "lost event", |e| {
+        e.event == "pendant.lost" && e.data["data"]["pendant"] == p
+    });
+    wait_connected(&s, p, true);
+    sim.cmd("jog X 1 0.1");
+    wait_work(&s, m, "x = 0.1 after reconnect", |w| close(w[0], 0.1));
+
+    // Lose the pendant mid-jog: the jog it started is stopped.
+    sim.cmd("jog X 400 0.1");
+    s.wait_machine_state(m, "jogging", T);
+    drop(sim);
+    let lost = wait_event(&s, "lost with stop", |e| {
+        e.event == "pendant.lost" && e.data["data"]["stopped"] == true
+    });
+    assert_eq!(lost.data["actor"], format!("pendant:{p}"));
+    let w = wait_work(&s, m, "stopped", |_| true);
+    assert!(w[0] > 0.1 && w[0] < 40.0, "the jog was not stopped: {w:?}");
+    wait_connected(&s, p, false);
+}
+
+#[test]
+fn a_silent_pendant_is_declared_lost() {
+    let s = Server::start();
+    let m = s.sim("mill", 0.0).id;
+    let mut sim = PendantSim::start();
+    let p = add_pendant(
+        &s,
+        "wheel",
+        &sim.addr,
+        Some(m),
+        json!({"lost_after_ms": 300}),
+    );
+    wait_connected(&s, p, true);
+    sim.cmd("poll 0");
+    let e = wait_event(&s, "silence", |e| e.event == "pendant.lost");
+    assert!(
+        e.data["data"]["reason"]
+            .as_str()
+            .unwrap()
+            .contains("silent"),
+        "{e:?}"
+    );
+}
+
+#[test]
+fn fifty_pendants_on_one_machine_at_once() {
+    let s = Server::start();
+    let m = s.sim("mill", 0.0).id;
+    let mut sims: Vec<PendantSim> = (0..50).map(|_| PendantSim::start()).collect();
+    let ids: Vec<i64> = sims
+        .iter()
+        .enumerate()
+        .map(|(i, sim)| add_pendant(&s, &format!("p{i}"), &sim.addr, Some(m), json!({})))
+        .collect();
+    for id in &ids {
+        wait_connected(&s, *id, true);
+    }
+    for sim in sims.iter_mut() {
+        sim.cmd("jog Y 1 0.01");
+    }
+    wait_work(&s, m, "y = 50 x 0.01", |w| close(w[1], 0.5));
+    // Every pendant's LCD shows it.
+    for sim in sims.iter_mut() {
+        sim.cmd("poll 20");
+    }
+    let list = s.get("/api/v1/pendants").expect(200);
+    assert_eq!(list.as_array().unwrap().len(), 50);
+    assert!(list
+        .as_array()
+        .unwrap()
+        .iter()
+        .all(|p| p["connected"] == true && p["machine"] == m));
+}
+
+#[test]
+fn the_demo_starts_a_simulated_pendant_bound_to_the_demo_machine() {
+    let s = Server::start_demo();
+    let machine = s.get("/api/v1/machines").expect(200)[0]["id"]
+        .as_i64()
+        .unwrap();
+    let list = s.get("/api/v1/pendants").expect(200);
+    assert_eq!(list[0]["name"], "demo-pendant", "{list}");
+    assert_eq!(list[0]["machine"], machine);
+    let id = list[0]["id"].as_i64().unwrap();
+    wait_connected(&s, id, true);
+}
