@@ -425,3 +425,49 @@ fn an_agent_that_never_answers_or_is_absent_gives_offline_not_a_hang() {
     }
     drop(silent);
 }
+
+#[test]
+fn mdi_lines_restore_the_modal_state_and_outputs_switch_but_do_not_toggle() {
+    let agent = Agent::start("127.0.0.1:0");
+    let mut mach = agent.client();
+    let s = Server::start();
+    let m = machine(&s, "mach3", &agent);
+    reset_to_idle(&s, m);
+
+    // Mach3 in G90 G1 F300: an incremental rapid MDI line moves and all three come back.
+    mach3(
+        &mut mach,
+        vec![Call::Code {
+            line: "G90 G1 F300".into(),
+        }],
+    );
+    s.post(
+        &format!("/api/v1/machines/{m}/mdi"),
+        &json!({"line": "G91 G0 X2 Y-1"}),
+    )
+    .expect(200);
+    wait_idle_at(&s, m, 2.0, -1.0);
+    assert!(!led(&mut mach, 48), "G90 restored");
+    assert_eq!(dro(&mut mach, 819), 1.0, "G1 restored");
+    assert_eq!(dro(&mut mach, 818), 300.0, "F300 restored");
+
+    // Coolant by the flood buttons, spindle by M3/M5; neither can be toggled blind.
+    for (name, on) in [("coolant", true), ("spindle", true), ("spindle", false)] {
+        let r = command(
+            &s,
+            m,
+            json!({"command": "set_output", "name": name, "on": on}),
+        );
+        assert_eq!(r["result"], json!({"output": name, "on": on}), "{r}");
+    }
+    let e = s
+        .post(
+            &format!("/api/v1/machines/{m}/commands"),
+            &json!({"command": "toggle_output", "name": "spindle"}),
+        )
+        .expect_error(422, "backend_rejected");
+    assert!(e.contains("unsupported"), "{e}");
+    // The spindle's MDI also left the modal state alone.
+    assert!(!led(&mut mach, 48), "still G90");
+    assert_eq!(dro(&mut mach, 818), 300.0, "still F300");
+}

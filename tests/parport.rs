@@ -103,10 +103,25 @@ fn runs_a_program_with_line_reports_then_jogs_zeroes_and_lifts() {
     let e = s
         .post(
             &format!("/api/v1/machines/{m}/commands"),
-            &json!({"command": "set_output", "name": "spindle", "on": true}),
+            &json!({"command": "set_output", "name": "vacuum", "on": true}),
         )
         .expect_error(422, "invalid_command");
-    assert!(e.contains("set_output") || e.contains("spindle"), "{e}");
+    assert!(e.contains("vacuum"), "{e}");
+    // Spindle is a known output name, but this machine has none.
+    let e = s
+        .post(
+            &format!("/api/v1/machines/{m}/commands"),
+            &json!({"command": "toggle_output", "name": "spindle"}),
+        )
+        .expect_error(422, "backend_rejected");
+    assert!(e.contains("unsupported") && e.contains("spindle"), "{e}");
+    let r = s
+        .post(
+            &format!("/api/v1/machines/{m}/commands"),
+            &json!({"command": "toggle_output", "name": "z_lift"}),
+        )
+        .expect(200);
+    assert_eq!(r["result"]["z_lift"], true, "{r}");
 }
 
 #[test]

@@ -571,3 +571,160 @@ fn the_demo_starts_a_simulated_pendant_bound_to_the_demo_machine() {
     let id = list[0]["id"].as_i64().unwrap();
     wait_connected(&s, id, true);
 }
+
+fn patch_pendant(s: &Server, p: i64, body: Value) -> fresa_tests::Resp {
+    s.send(
+        s.req(reqwest::Method::PATCH, &format!("/api/v1/pendants/{p}"))
+            .json(&body),
+    )
+}
+
+#[test]
+fn macros_toggle_the_spindle_and_run_mdi_lines_and_bad_ones_are_refused() {
+    let s = Server::start();
+    let m = s.sim("mill", 0.0).id;
+    let mut sim = PendantSim::start();
+    let p = add_pendant(&s, "wheel", &sim.addr, Some(m), json!({}));
+    wait_connected(&s, p, true);
+    patch_pendant(
+        &s,
+        p,
+        json!({"macros": {
+            "M1": {"type": "toggle", "output": "spindle"},
+            "M2": {"type": "mdi", "line": "G91 G1 X2 Z-1 F600"},
+            "M3": {"type": "mdi", "line": "G0 X5"},
+        }}),
+    )
+    .expect(200);
+    let actor = format!("pendant:{p}");
+
+    // M1 twice: the spindle goes on, then back off.
+    sim.cmd("key M1");
+    sim.cmd("key M1");
+    let stream = s.events("", Some(0));
+    let mut toggles = Vec::new();
+    stream.until(T, "two spindle toggles", |e| {
+        if e.event == "machine.command" && e.data["data"]["command"] == "toggle_output" {
+            assert_eq!(e.data["actor"], actor, "{e:?}");
+            assert_eq!(e.data["data"]["name"], "spindle", "{e:?}");
+            toggles.push(e.data["data"]["on"].as_bool().unwrap());
+        }
+        toggles.len() == 2
+    });
+    assert_eq!(toggles, [true, false]);
+
+    // M2 moves incrementally; M3 is absolute again (the G91 of M2 did not stay behind).
+    sim.cmd("key M2");
+    wait_work(&s, m, "x = 2, z = -1 from M2", |w| {
+        close(w[0], 2.0) && close(w[2], -1.0)
+    });
+    sim.cmd("key M3");
+    let w = wait_work(&s, m, "x = 5 from M3", |w| close(w[0], 5.0));
+    assert!(close(w[2], -1.0) && close(w[1], 0.0), "{w:?}");
+    let mdi = wait_event(&s, "the MDI line in the audit log", |e| {
+        e.event == "machine.mdi" && e.data["data"]["line"] == "G0 X5"
+    });
+    assert_eq!(mdi.data["actor"], actor);
+
+    // Bad macros are refused naming slot and field; nothing of that request is applied.
+    for (bad, field) in [
+        (json!({"type": "mdi", "line": "G1 X("}), "macros.M4.line"),
+        (
+            json!({"type": "mdi", "line": "G0 X1\nG0 X2"}),
+            "macros.M4.line",
+        ),
+        (json!({"type": "mdi", "line": " "}), "macros.M4.line"),
+        (json!({"type": "toggle", "output": "vacuum"}), "macros.M4"),
+        (json!({"type": "toggle"}), "macros.M4"),
+    ] {
+        let msg = patch_pendant(
+            &s,
+            p,
+            json!({"macros": {"M1": {"type": "toggle", "output": "coolant"}, "M4": bad}}),
+        )
+        .expect_error(422, "invalid_field");
+        assert!(msg.contains(field), "{bad}: {msg}");
+    }
+    let macros = &s.get(&format!("/api/v1/pendants/{p}")).expect(200)["macros"];
+    assert_eq!(macros["M1"]["output"], "spindle", "{macros}");
+    assert_eq!(macros["M4"], Value::Null, "{macros}");
+
+    // The same MDI path over HTTP, with the same check.
+    let msg = s
+        .post(
+            &format!("/api/v1/machines/{m}/mdi"),
+            &json!({"line": "G1 X("}),
+        )
+        .expect_error(422, "invalid_gcode");
+    assert!(msg.contains("column"), "{msg}");
+    s.post(
+        &format!("/api/v1/machines/{m}/mdi"),
+        &json!({"line": "G0 Y1"}),
+    )
+    .expect(200);
+    wait_work(&s, m, "y = 1 from HTTP MDI", |w| close(w[1], 1.0));
+}
+
+#[test]
+fn a_pendant_on_a_machine_in_alarm_moves_nothing_but_may_reset_it() {
+    let s = Server::start();
+    let m = s
+        .sim_with(
+            "alarmed",
+            0.0,
+            json!({"config": {"time_scale": 0, "alarm_at_connect": "limit switch X+"}}),
+        )
+        .id;
+    s.wait_machine_state(m, "alarm", T);
+    let job = s.upload(m, "short", fresa_tests::back_and_forth(4, 1.0, 600.0))["id"]
+        .as_i64()
+        .unwrap();
+    let mut sim = PendantSim::start();
+    let p = add_pendant(&s, "wheel", &sim.addr, Some(m), json!({}));
+    wait_connected(&s, p, true);
+    patch_pendant(
+        &s,
+        p,
+        json!({"macros": {"M1": {"type": "mdi", "line": "G0 X3"}}}),
+    )
+    .expect(200);
+
+    sim.cmd("jog X 100 0.01");
+    sim.cmd("key Start");
+    sim.cmd("key M1");
+    let actor = format!("pendant:{p}");
+    let stream = s.events("", Some(0));
+    let mut refused = Vec::new();
+    stream.until(T, "three refusals", |e| {
+        if e.event == "pendant.refused" {
+            assert_eq!(e.data["actor"], actor, "{e:?}");
+            assert_eq!(e.data["data"]["code"], "machine_alarm", "{e:?}");
+            assert!(
+                e.data["data"]["reason"]
+                    .as_str()
+                    .unwrap()
+                    .contains("limit switch X+"),
+                "{e:?}"
+            );
+            refused.push(e.data["data"]["input"].clone());
+        }
+        refused.len() == 3
+    });
+    assert_eq!(refused[0]["jog"]["axis"], "X", "{refused:?}");
+    assert_eq!(refused[1]["key"], "start", "{refused:?}");
+    assert_eq!(refused[2]["key"], "m1", "{refused:?}");
+    let st = s.status(m);
+    assert_eq!(st["state"], "alarm", "{st}");
+    assert!(work(&s, m).iter().all(|v| close(*v, 0.0)), "{st}");
+    assert_eq!(s.job(job)["state"], "ready", "the job never started");
+
+    // Reset is allowed in alarm and clears it; then the wheel moves the machine.
+    sim.cmd("key Reset");
+    let reset = wait_event(&s, "reset by the pendant", |e| {
+        e.event == "machine.command" && e.data["data"]["command"] == "reset"
+    });
+    assert_eq!(reset.data["actor"], actor);
+    s.wait_machine_state(m, "idle", T);
+    sim.cmd("jog X 100 0.01");
+    wait_work(&s, m, "x = 1 after reset", |w| close(w[0], 1.0));
+}

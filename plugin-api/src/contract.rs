@@ -219,6 +219,12 @@ pub enum Command {
         name: OutputName,
         on: bool,
     },
+    // --- pendant macro additions (issue 4) ---
+    /// Flip a named digital output, e.g. `{"command":"toggle_output","name":"spindle"}`.
+    /// Answer: `{"output": name, "on": bool}` (the new state) where the backend knows it.
+    ToggleOutput {
+        name: OutputName,
+    },
 }
 
 /// Digital outputs a backend may expose to `Command::SetOutput`.
@@ -227,6 +233,22 @@ pub enum Command {
 pub enum OutputName {
     /// The tool lift (Z up/down) of a machine whose Z is not interpolated.
     ZLift,
+    // --- pendant macro additions (issue 4) ---
+    /// Spindle on (clockwise) / off.
+    Spindle,
+    /// Flood coolant on / off.
+    Coolant,
+}
+
+impl OutputName {
+    /// The output's wire name (`"z_lift"`, `"spindle"`, `"coolant"`), for messages.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            OutputName::ZLift => "z_lift",
+            OutputName::Spindle => "spindle",
+            OutputName::Coolant => "coolant",
+        }
+    }
 }
 
 impl Command {
@@ -294,6 +316,12 @@ pub enum Request {
     /// "body": "..."}`. Errors: `unknown_artifact` (this backend has none of that name),
     /// `not_available` (not in the current configuration).
     GetArtifact { name: String },
+    // --- pendant macro additions (issue 4) ---
+    /// Execute one MDI line (no newline), e.g. `{"op":"mdi","line":"G91 G0 Z5"}`. The backend
+    /// validates it before any motion and leaves the controller's modal state (distance mode,
+    /// motion mode, feed, work offset) as it found it. Answer: `{}`. Errors: `invalid_gcode`,
+    /// `unsupported` (the backend cannot run MDI, or not this kind of line).
+    Mdi { line: String },
 }
 
 /// Work offsets G54..G59, in the order of `WorkOffset::ALL`.
@@ -505,9 +533,26 @@ mod tests {
             }
         );
         assert!(serde_json::from_value::<Command>(
-            json!({"command":"set_output","name":"coolant","on":true})
+            json!({"command":"set_output","name":"vacuum","on":true})
         )
         .is_err());
+        let t: Command =
+            serde_json::from_value(json!({"command":"toggle_output","name":"spindle"})).unwrap();
+        assert_eq!(
+            t,
+            Command::ToggleOutput {
+                name: OutputName::Spindle
+            }
+        );
+        assert_eq!(
+            serde_json::to_value(OutputName::Coolant).unwrap(),
+            json!(OutputName::Coolant.as_str())
+        );
+        let mdi = serde_json::to_value(Request::Mdi {
+            line: "G0 Z5".into(),
+        })
+        .unwrap();
+        assert_eq!(mdi, json!({"op":"mdi","line":"G0 Z5"}));
         let e = Event::LineReport {
             run: 2,
             line: 5,

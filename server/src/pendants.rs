@@ -9,7 +9,7 @@ use crate::app::App;
 use crate::machines::Machine;
 use crate::store::{now_ms, Store};
 use fresa_plugin_api::contract::{
-    Axis, Command, MachineState, PendantEvent, PendantJob, PendantKey, PendantRequest,
+    Axis, Command, MachineState, OutputName, PendantEvent, PendantJob, PendantKey, PendantRequest,
 };
 use fresa_plugin_api::host::{HostSink, Instance};
 use serde::{Deserialize, Serialize};
@@ -55,6 +55,11 @@ pub enum MacroAction {
     },
     /// A bounded jog, e.g. `{"type":"jog","axis":"Z","distance":5}`.
     Jog { axis: Axis, distance: f64 },
+    /// Flip an output, e.g. `{"type":"toggle","output":"spindle"}` (or `coolant`, `z_lift`).
+    Toggle { output: OutputName },
+    /// One MDI line, e.g. `{"type":"mdi","line":"G91 G0 Z5"}`; the backend leaves the modal
+    /// state as it found it.
+    Mdi { line: String },
 }
 
 /// Settings the core reads from a pendant's `config` (the rest goes to the transport plugin).
@@ -821,6 +826,18 @@ async fn run_macro(
         MacroAction::Jog { axis, distance } => {
             app.pendants.last_mover_set(m.id, p.id);
             crate::api::machines::jog_machine(app, m, axis, distance, None, actor).await
+        }
+        MacroAction::Toggle { output } => crate::api::machines::command_machine(
+            app,
+            m,
+            Command::ToggleOutput { name: output },
+            actor,
+        )
+        .await
+        .map(|_| ()),
+        MacroAction::Mdi { line } => {
+            app.pendants.last_mover_set(m.id, p.id);
+            crate::api::machines::mdi_machine(app, m, &line, actor).await
         }
     }
 }

@@ -263,6 +263,10 @@ impl KawasakiMachine {
                 }
             },
             Request::GetArtifact { name } => self.artifact(&name),
+            Request::Mdi { .. } => Err(PluginError::new(
+                "unsupported",
+                "kawasaki-as streams whole programs only: no MDI",
+            )),
             Request::Shutdown => {
                 self.cut();
                 self.join();
@@ -301,10 +305,12 @@ impl KawasakiMachine {
                 "the robot's part zero is taught on its pendant and reported when a job starts; \
                      home, zero, go-to-zero and work offsets are not available",
             )),
-            Command::SetOutput { name, .. } => Err(PluginError::new(
-                "unsupported",
-                format!("kawasaki-as has no output {name:?}"),
-            )),
+            Command::SetOutput { name, .. } | Command::ToggleOutput { name } => {
+                Err(PluginError::new(
+                    "unsupported",
+                    format!("kawasaki-as has no output {:?}", name.as_str()),
+                ))
+            }
         }
     }
 

@@ -9,8 +9,8 @@ use crate::config::Config;
 use crate::mach3::{Call, ErrorKind};
 use crate::protocol::{CallResult, PROGRAM_CHUNK_BYTES};
 use fresa_plugin_api::contract::{
-    Axis, AxisValues, Command, Event, MachineState, MachineStatus, OffsetTable, ProgramLoaded,
-    Request, RunAction, RunOutcome, WorkOffset,
+    Axis, AxisValues, Command, Event, MachineState, MachineStatus, OffsetTable, OutputName,
+    ProgramLoaded, Request, RunAction, RunOutcome, WorkOffset,
 };
 use fresa_plugin_api::PluginError;
 use serde_json::{json, Value};
@@ -443,6 +443,29 @@ impl Inner {
             )));
         }
         self.require("jog", &[MachineState::Idle, MachineState::Jogging])?;
+        let restore = self.modal_restore("jog")?;
+        self.mdi_then_restore(
+            format!("G91 G1 {}{distance} F{feed}", axis.letter()),
+            restore,
+        )
+    }
+
+    /// One operator MDI line, followed by the line that puts back the modal state it found.
+    fn mdi(&self, line: &str) -> Result<Value, PluginError> {
+        if line.trim().is_empty() || line.contains(['\n', '\r']) {
+            return Err(PluginError::new(
+                "invalid_gcode",
+                format!("MDI takes exactly one non-empty line, got {line:?}"),
+            ));
+        }
+        self.require("run MDI", &[MachineState::Idle])?;
+        let restore = self.modal_restore("run MDI")?;
+        self.mdi_then_restore(line.to_string(), restore)
+    }
+
+    /// Reads distance mode, motion mode and feed; refuses while a program runs or in reset.
+    /// Returns the MDI line that restores them.
+    fn modal_restore(&self, what: &str) -> Result<String, PluginError> {
         let c = &self.cfg.codes;
         let modal = self.exec(
             vec![
@@ -463,12 +486,15 @@ impl Inner {
             false,
         )?;
         if modal[3].as_bool().unwrap_or(true) {
-            return Err(PluginError::new("busy", "cannot jog: a program is running"));
+            return Err(PluginError::new(
+                "busy",
+                format!("cannot {what}: a program is running"),
+            ));
         }
         if modal[4].as_bool().unwrap_or(true) {
             return Err(PluginError::new(
                 "alarm",
-                "cannot jog: Mach3 is in reset (e-stop); send reset first",
+                format!("cannot {what}: Mach3 is in reset (e-stop); send reset first"),
             ));
         }
         let mut restore = String::from(if modal[0].as_bool().unwrap_or(false) {
@@ -486,12 +512,14 @@ impl Inner {
         if old_feed > 0.0 {
             restore.push_str(&format!(" F{old_feed}"));
         }
+        Ok(restore)
+    }
+
+    fn mdi_then_restore(&self, line: String, restore: String) -> Result<Value, PluginError> {
         let results = self
             .batch(
                 vec![
-                    Call::Code {
-                        line: format!("G91 G1 {}{distance} F{feed}", axis.letter()),
-                    },
+                    Call::Code { line },
                     // Same batch: runs right after the move is queued, even if it failed.
                     Call::Code { line: restore },
                 ],
@@ -784,10 +812,36 @@ impl Inner {
                 self.poll();
                 Ok(json!({}))
             }
-            // Mach3's outputs belong to its own screen set and macros; none is mapped yet.
-            Command::SetOutput { name, .. } => Err(PluginError::new(
+            // Flood has OEM buttons; the spindle is switched by MDI M3/M5 (Mach3's own).
+            Command::SetOutput {
+                name: OutputName::Coolant,
+                on,
+            } => {
+                press(codes.get(if on { Code::FloodOn } else { Code::FloodOff }))?;
+                Ok(json!({"output": OutputName::Coolant, "on": on}))
+            }
+            Command::SetOutput {
+                name: OutputName::Spindle,
+                on,
+            } => {
+                self.mdi(if on { "M3" } else { "M5" })?;
+                Ok(json!({"output": OutputName::Spindle, "on": on}))
+            }
+            // No code in the table reads back whether spindle or flood is on, so a toggle
+            // would be a guess; the Z lift belongs to the screen set's macros.
+            Command::SetOutput {
+                name: OutputName::ZLift,
+                ..
+            }
+            | Command::ToggleOutput { .. } => Err(PluginError::new(
                 "unsupported",
-                format!("mach3-oem has no output {name:?} mapped"),
+                format!(
+                    "mach3-oem cannot {}: use set_output with on true/false for spindle or coolant",
+                    match c {
+                        Command::ToggleOutput { name } => format!("toggle {:?}", name.as_str()),
+                        _ => "switch \"z_lift\"".to_string(),
+                    }
+                ),
             )),
         }
     }
@@ -798,6 +852,7 @@ impl Inner {
                 "unknown_artifact",
                 format!("mach3-oem has no artifact {name:?}"),
             )),
+            Request::Mdi { line } => self.mdi(&line),
             Request::Connect => {
                 self.poll();
                 self.wake.notify_all();

@@ -45,6 +45,8 @@ pub enum Code {
     PausedLed,
     MovingLed,
     IncrementalLed,
+    FloodOn,
+    FloodOff,
 }
 
 /// `(role, config name, kind, default code, meaning)`.
@@ -161,6 +163,8 @@ pub const TABLE: &[(Code, &str, Kind, i16, &str)] = &[
         48,
         "G91 (incremental) active",
     ),
+    (Code::FloodOn, "flood_on", Kind::Button, 224, "Flood ON"),
+    (Code::FloodOff, "flood_off", Kind::Button, 225, "Flood OFF"),
 ];
 
 /// The codes of one machine: the defaults with its config overrides applied.

@@ -853,6 +853,25 @@ impl Core {
                 sh.lift_request = Some(on);
                 Ok(json!({ "z_lift": on }))
             }),
+            Command::ToggleOutput {
+                name: OutputName::ZLift,
+            } => self.with(|sh, _| {
+                sh.require_no_alarm("switch the Z lift")?;
+                sh.require_still("switch the Z lift")?;
+                let on = !sh.lift;
+                sh.lift = on;
+                sh.lift_request = Some(on);
+                Ok(json!({ "z_lift": on, "output": OutputName::ZLift, "on": on }))
+            }),
+            Command::SetOutput { name, .. } | Command::ToggleOutput { name } => {
+                Err(PluginError::new(
+                    "unsupported",
+                    format!(
+                        "parport-stepper has no output {:?} (only \"z_lift\")",
+                        name.as_str()
+                    ),
+                ))
+            }
         }
     }
 
@@ -988,6 +1007,10 @@ impl Core {
                 self.shutdown();
                 Ok(json!({}))
             }
+            Request::Mdi { .. } => Err(PluginError::new(
+                "unsupported",
+                "parport-stepper runs whole programs only: no MDI",
+            )),
         }
     }
 }

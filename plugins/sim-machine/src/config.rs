@@ -21,6 +21,9 @@ pub struct Config {
     pub status_interval: Duration,
     /// Soft limits per axis (machine coordinates), `None` = unlimited.
     pub travel: [Option<(f64, f64)>; 4],
+    /// `connect` enters alarm with this message instead of idle (as a controller that needs an
+    /// unlock after power-up does); `reset` clears it. For tests of alarm handling.
+    pub alarm_at_connect: Option<String>,
 }
 
 impl Default for Config {
@@ -32,6 +35,7 @@ impl Default for Config {
             execution_log: None,
             status_interval: Duration::from_millis(100),
             travel: [None; 4],
+            alarm_at_connect: None,
         }
     }
 }
@@ -131,10 +135,22 @@ impl Config {
                     cfg.status_interval = Duration::from_millis(ms);
                 }
                 "travel" => cfg.travel = travel(v)?,
+                "alarm_at_connect" => match v {
+                    Value::String(s) if !s.trim().is_empty() => {
+                        cfg.alarm_at_connect = Some(s.clone())
+                    }
+                    Value::Null => cfg.alarm_at_connect = None,
+                    _ => {
+                        return Err(invalid(format!(
+                            "`alarm_at_connect` must be a non-empty message string, got {v}"
+                        )))
+                    }
+                },
                 other => {
                     return Err(invalid(format!(
                         "unknown config key `{other}` (known: time_scale, rapid_mm_min, \
-                         jog_feed_mm_min, execution_log, status_interval_ms, travel)"
+                         jog_feed_mm_min, execution_log, status_interval_ms, travel, \
+                         alarm_at_connect)"
                     )))
                 }
             }
@@ -205,6 +221,7 @@ mod tests {
             (json!({"travel": {"b": [0, 1]}}), "travel.b"),
             (json!({"travel": {"x": [1]}}), "travel.x"),
             (json!({"travel": {"x": [2, 1]}}), "travel.x"),
+            (json!({"alarm_at_connect": true}), "alarm_at_connect"),
         ] {
             let e = Config::from_json(&cfg).unwrap_err();
             assert_eq!(e.code, "invalid_config");

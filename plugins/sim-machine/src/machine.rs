@@ -5,8 +5,8 @@
 use crate::config::Config;
 use crate::program::{self, Plan, Step};
 use fresa_plugin_api::contract::{
-    Axis, AxisValues, Command, Event, MachineState, MachineStatus, OffsetTable, ProgramLoaded,
-    Request, RunAction, RunOutcome, WorkOffset,
+    Axis, AxisValues, Command, Event, MachineState, MachineStatus, OffsetTable, OutputName,
+    ProgramLoaded, Request, RunAction, RunOutcome, WorkOffset,
 };
 use fresa_plugin_api::exec_log::ExecLog;
 use fresa_plugin_api::PluginError;
@@ -60,6 +60,8 @@ enum Job {
         feed: f64,
     },
     GoToZero,
+    /// One MDI line: straight moves to these machine targets, each at its feed.
+    Mdi(Vec<([f64; 4], f64)>),
     Program(Loaded),
 }
 
@@ -87,6 +89,8 @@ struct Shared {
     abort: bool,
     shutdown: bool,
     last_status: Option<Instant>,
+    spindle: bool,
+    coolant: bool,
 }
 
 /// Why a job ended early.
@@ -317,6 +321,13 @@ impl Core {
                 self.move_to([zero[0], zero[1], safe_z, zero[3]], rapid)?;
                 self.move_to(zero, rapid)
             }
+            Job::Mdi(moves) => {
+                // An MDI line's feed is not left behind as the programmed feed.
+                let feed = self.lock().feed;
+                let result = moves.iter().try_for_each(|&(to, f)| self.move_to(to, f));
+                self.lock().feed = feed;
+                result
+            }
             Job::Program(l) => self.run_program(l),
         }
     }
@@ -475,7 +486,14 @@ impl Core {
         let st = self.with(|sh, ev| {
             if sh.state == MachineState::Offline {
                 sh.reason = None;
-                sh.set_state(MachineState::Idle, ev);
+                match &self.cfg.alarm_at_connect {
+                    Some(m) => {
+                        sh.alarm = Some(m.clone());
+                        ev.push(Event::Alarm { message: m.clone() });
+                        sh.set_state(MachineState::Alarm, ev);
+                    }
+                    None => sh.set_state(MachineState::Idle, ev),
+                }
             }
             sh.status()
         });
@@ -636,6 +654,9 @@ impl Core {
             Command::Reset => {
                 self.stop();
                 self.with(|sh, ev| {
+                    // As a controller's reset does: spindle and coolant off.
+                    sh.spindle = false;
+                    sh.coolant = false;
                     if sh.state == MachineState::Alarm {
                         sh.alarm = None;
                         sh.set_state(MachineState::Idle, ev);
@@ -677,10 +698,8 @@ impl Core {
                 sh.set_state(MachineState::Jogging, ev);
                 Ok(json!({}))
             }),
-            Command::SetOutput { name, .. } => Err(PluginError::new(
-                "unsupported",
-                format!("sim-machine has no output {name:?}"),
-            )),
+            Command::SetOutput { name, on } => self.set_output(name, Some(on)),
+            Command::ToggleOutput { name } => self.set_output(name, None),
             Command::SelectOffset { offset } => self.with(|sh, ev| {
                 sh.require_still("select an offset")?;
                 sh.active = offset;
@@ -688,6 +707,100 @@ impl Core {
                 Ok(json!({}))
             }),
         }
+    }
+
+    /// Switches spindle or coolant (`None` = toggle). Switching on is refused in alarm;
+    /// switching off never is. Answers the new state.
+    fn set_output(&self, name: OutputName, on: Option<bool>) -> Result<Value, PluginError> {
+        self.with(|sh, _| {
+            sh.require_online()?;
+            let current = match name {
+                OutputName::Spindle => sh.spindle,
+                OutputName::Coolant => sh.coolant,
+                OutputName::ZLift => {
+                    return Err(PluginError::new(
+                        "unsupported",
+                        format!("sim-machine has no output {:?}", name.as_str()),
+                    ))
+                }
+            };
+            let new = on.unwrap_or(!current);
+            if new && !current {
+                sh.require_no_alarm(&format!("switch the {} on", name.as_str()))?;
+            }
+            if name == OutputName::Spindle {
+                sh.spindle = new;
+            } else {
+                sh.coolant = new;
+            }
+            Ok(json!({"output": name, "on": new}))
+        })
+    }
+
+    /// One MDI line: interpreted alone from the current work position (so G91/G90, F and
+    /// motion mode in it last for this line only), every move checked against `travel`
+    /// before any starts, then run like a jog (state `jogging`, stop/feed hold end it).
+    fn mdi(&self, line: &str) -> Result<Value, PluginError> {
+        if line.contains(['\n', '\r']) {
+            return Err(PluginError::new(
+                "invalid_gcode",
+                "MDI takes exactly one line (no line breaks)",
+            ));
+        }
+        let (work, offsets, active) = {
+            let sh = self.lock();
+            sh.require_online()?;
+            sh.require_no_alarm("run MDI")?;
+            sh.require_still("run MDI")?;
+            (sh.status().work_position.to_array(), sh.offsets, sh.active)
+        };
+        let plan = program::plan(
+            line,
+            [work[0], work[1], work[2]],
+            offsets.map(|o| [o[0], o[1], o[2]]),
+        )
+        .map_err(|e| PluginError::new("invalid_gcode", format!("MDI {line:?}: {e}")))?;
+        let a = self.lock().pos[3];
+        let mut moves = Vec::new();
+        for (_, step) in &plan.steps {
+            match step {
+                Step::Move { to, feed } => {
+                    let target = program::machine_target(*to, &offsets[active.index()], a);
+                    self.cfg.check_travel(target).map_err(|m| {
+                        PluginError::new("out_of_travel", format!("MDI {line:?} refused: {m}"))
+                    })?;
+                    moves.push((target, feed.unwrap_or(self.cfg.rapid_mm_min)));
+                }
+                other => {
+                    return Err(PluginError::new(
+                        "unsupported",
+                        format!(
+                            "sim-machine MDI runs moves only; {line:?} has {}",
+                            match other {
+                                Step::Dwell(_) => "a dwell",
+                                Step::Pause => "a program pause",
+                                _ => "a work offset change",
+                            }
+                        ),
+                    ))
+                }
+            }
+        }
+        self.with(|sh, ev| {
+            sh.require_no_alarm("run MDI")?;
+            sh.require_still("run MDI")?;
+            if sh.offsets != offsets || sh.active != active {
+                return Err(PluginError::new(
+                    "busy",
+                    "the work offsets changed while the MDI line was checked; send it again",
+                ));
+            }
+            if !moves.is_empty() {
+                sh.queue.push_back(Job::Mdi(moves));
+                sh.set_state(MachineState::Jogging, ev);
+            }
+            Ok(json!({}))
+        })
     }
 
     fn set_offset(&self, offset: WorkOffset, values: AxisValues) -> Result<Value, PluginError> {
@@ -825,6 +938,7 @@ impl Core {
                 "unknown_artifact",
                 format!("sim-machine has no artifact {name:?}"),
             )),
+            Request::Mdi { line } => self.mdi(&line),
         }
     }
 }
@@ -857,6 +971,8 @@ impl SimMachine {
                 abort: false,
                 shutdown: false,
                 last_status: None,
+                spindle: false,
+                coolant: false,
             }),
             cv: Condvar::new(),
             emit_order: Mutex::new(()),

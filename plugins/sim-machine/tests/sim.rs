@@ -677,3 +677,82 @@ fn works_through_the_c_abi() {
         "offline"
     );
 }
+
+#[test]
+fn spindle_and_coolant_switch_and_toggle() {
+    let rig = machine(INSTANT());
+    let toggle =
+        |name: &str| rig.call(json!({"op":"command","command":"toggle_output","name":name}));
+    assert_eq!(toggle("spindle"), json!({"output":"spindle","on":true}));
+    assert_eq!(toggle("spindle"), json!({"output":"spindle","on":false}));
+    assert_eq!(toggle("coolant"), json!({"output":"coolant","on":true}));
+    let off = rig.call(json!({"op":"command","command":"set_output","name":"coolant","on":false}));
+    assert_eq!(off, json!({"output":"coolant","on":false}));
+    let e = rig
+        .m
+        .request(json!({"op":"command","command":"toggle_output","name":"z_lift"}))
+        .unwrap_err();
+    assert_eq!(e.code, "unsupported");
+    assert!(e.message.contains("z_lift"), "{}", e.message);
+    // Reset switches both off, as a controller's reset does.
+    toggle("spindle");
+    rig.call(json!({"op":"command","command":"reset"}));
+    assert_eq!(toggle("spindle")["on"], true);
+}
+
+#[test]
+fn mdi_moves_as_the_line_says_and_keeps_no_modal_state() {
+    let rig = machine(json!({"time_scale": 0, "travel": {"z": [-50, 10]}}));
+    rig.call(json!({"op":"jog","axis":"X","distance":4.0}));
+    rig.wait_idle();
+    // G91 applies to this line only: the next line is absolute again.
+    rig.call(json!({"op":"mdi","line":"G91 G1 X1 Z-2 F600"}));
+    rig.wait_idle();
+    assert_eq!(
+        rig.status().machine_position.to_array(),
+        [5.0, 0.0, -2.0, 0.0]
+    );
+    rig.call(json!({"op":"mdi","line":"G0 Z5"}));
+    rig.wait_idle();
+    let st = rig.status();
+    assert_eq!(st.machine_position.to_array(), [5.0, 0.0, 5.0, 0.0]);
+    assert_eq!(
+        st.feed, 1000.0,
+        "the feed from before the MDI lines (the jog's) is back"
+    );
+
+    for (line, code) in [
+        ("G1 X1 Q", "invalid_gcode"),
+        ("G0 Z5\nG0 Z6", "invalid_gcode"),
+        ("G4 P1", "unsupported"),
+        ("G0 Z20", "out_of_travel"),
+    ] {
+        let e = rig.m.request(json!({"op":"mdi","line":line})).unwrap_err();
+        assert_eq!(e.code, code, "{line}: {}", e.message);
+    }
+    assert_eq!(
+        rig.status().machine_position.to_array(),
+        [5.0, 0.0, 5.0, 0.0]
+    );
+}
+
+#[test]
+fn alarm_at_connect_refuses_motion_until_reset() {
+    let rig = machine(json!({"time_scale": 0, "alarm_at_connect": "limit switch X+"}));
+    let st = rig.status();
+    assert_eq!(st.state, MachineState::Alarm);
+    assert_eq!(st.alarm.as_deref(), Some("limit switch X+"));
+    for req in [
+        json!({"op":"jog","axis":"X","distance":1.0}),
+        json!({"op":"mdi","line":"G0 X1"}),
+        json!({"op":"command","command":"toggle_output","name":"spindle"}),
+    ] {
+        let e = rig.m.request(req.clone()).unwrap_err();
+        assert_eq!(e.code, "alarm", "{req}");
+    }
+    rig.call(json!({"op":"command","command":"reset"}));
+    assert_eq!(rig.status().state, MachineState::Idle);
+    rig.call(json!({"op":"jog","axis":"X","distance":1.0}));
+    rig.wait_idle();
+    assert_eq!(rig.status().machine_position.x, 1.0);
+}

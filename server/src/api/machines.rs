@@ -250,6 +250,79 @@ pub(crate) async fn jog_machine(
     Ok(())
 }
 
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MdiReq {
+    line: String,
+}
+
+pub async fn mdi(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Extension(caller): Extension<Caller>,
+    Json(req): Json<MdiReq>,
+) -> Result<Json<Value>, ApiError> {
+    let m = machine(&app, id).await?;
+    check_mdi_line(&req.line)
+        .map_err(|e| ApiError::unprocessable("invalid_gcode", format!("field `line`: {e}")))?;
+    mdi_machine(&app, &m, &req.line, &caller.name).await?;
+    Ok(Json(json!({"ok": true})))
+}
+
+/// Longest MDI line accepted, bytes.
+pub(crate) const MAX_MDI_LINE: usize = 256;
+
+/// One non-empty G-code line the interpreter accepts (what the backend will check again).
+pub(crate) fn check_mdi_line(line: &str) -> Result<(), String> {
+    if line.trim().is_empty() {
+        return Err("an MDI line must not be empty".into());
+    }
+    if line.contains(['\n', '\r']) {
+        return Err("an MDI line must be one line (no line breaks)".into());
+    }
+    if line.len() > MAX_MDI_LINE {
+        return Err(format!(
+            "an MDI line is at most {MAX_MDI_LINE} bytes, got {}",
+            line.len()
+        ));
+    }
+    let interp = fresa_gcode::Interpreter::new(line.as_bytes(), fresa_gcode::Config::default());
+    for motion in interp {
+        motion.map_err(|e| format!("{line:?}: column {}: {}", e.column, e.message))?;
+    }
+    Ok(())
+}
+
+/// Sends one MDI line (already checked with `check_mdi_line`) and records it. Refused while a
+/// job runs. Shared by the HTTP API and pendant macros.
+pub(crate) async fn mdi_machine(
+    app: &App,
+    m: &Machine,
+    line: &str,
+    actor: &str,
+) -> Result<(), ApiError> {
+    if m.current_run().is_some() {
+        return Err(ApiError::conflict(
+            "machine_busy",
+            "a job is running on this machine; pause or cancel it before MDI",
+        ));
+    }
+    m.call(&Request::Mdi {
+        line: line.to_string(),
+    })
+    .await
+    .map_err(ApiError::from_backend)?;
+    app.bus
+        .record_or_log(
+            "machine.mdi",
+            Some(m.id),
+            Some(actor),
+            json!({"line": line}),
+        )
+        .await;
+    Ok(())
+}
+
 pub async fn command(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
@@ -258,7 +331,7 @@ pub async fn command(
 ) -> Result<Json<Value>, ApiError> {
     let m = machine(&app, id).await?;
     let cmd: Command = serde_json::from_value(raw)
-        .map_err(|e| ApiError::unprocessable("invalid_command", format!("{e} (commands: cycle_start, feed_hold, resume, stop, reset, home, zero, go_to_zero, select_offset, set_output)")))?;
+        .map_err(|e| ApiError::unprocessable("invalid_command", format!("{e} (commands: cycle_start, feed_hold, resume, stop, reset, home, zero, go_to_zero, select_offset, set_output, toggle_output)")))?;
     let answer = command_machine(&app, &m, cmd, &caller.name).await?;
     Ok(Json(json!({"ok": true, "result": answer})))
 }
@@ -279,8 +352,18 @@ pub(crate) async fn command_machine(
     if matches!(cmd, Command::Zero { .. } | Command::SelectOffset { .. }) {
         persist_backend_offsets(app, m).await?;
     }
+    let mut recorded = json!(cmd);
+    // An output's new state (as the backend reports it) belongs in the audit log.
+    if matches!(
+        cmd,
+        Command::SetOutput { .. } | Command::ToggleOutput { .. }
+    ) {
+        if let Some(on) = answer.get("on").and_then(Value::as_bool) {
+            recorded["on"] = json!(on);
+        }
+    }
     app.bus
-        .record_or_log("machine.command", Some(m.id), Some(actor), json!(cmd))
+        .record_or_log("machine.command", Some(m.id), Some(actor), recorded)
         .await;
     let _ = m.refresh_status(Request::Status).await;
     Ok(answer)

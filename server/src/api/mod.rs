@@ -22,6 +22,7 @@ pub fn router(app: SharedApp) -> Router {
         .route("/machines/{id}/status", get(machines::status))
         .route("/machines/{id}/jog", post(machines::jog))
         .route("/machines/{id}/commands", post(machines::command))
+        .route("/machines/{id}/mdi", post(machines::mdi))
         .route("/machines/{id}/offsets", get(machines::offsets))
         .route("/machines/{id}/offsets/{name}", put(machines::set_offset))
         .route(

@@ -48,18 +48,29 @@ fn parse_macros(
                 serde_json::from_value::<MacroAction>(v.clone()).map_err(|e| {
                     ApiError::unprocessable(
                         "invalid_field",
-                        format!("field `macros.{k}`: {e} (types: command, jog)"),
+                        format!("field `macros.{k}`: {e} (types: command, jog, toggle, mdi)"),
                     )
                 })?,
             ),
         };
-        if let Some(MacroAction::Jog { distance, .. }) = &action {
-            if !distance.is_finite() || *distance == 0.0 {
+        match &action {
+            Some(MacroAction::Jog { distance, .. })
+                if !distance.is_finite() || *distance == 0.0 =>
+            {
                 return Err(ApiError::unprocessable(
                     "invalid_field",
                     format!("field `macros.{k}.distance` must be a non-zero number"),
                 ));
             }
+            Some(MacroAction::Mdi { line }) => {
+                crate::api::machines::check_mdi_line(line).map_err(|e| {
+                    ApiError::unprocessable(
+                        "invalid_field",
+                        format!("field `macros.{k}.line`: {e}"),
+                    )
+                })?;
+            }
+            _ => {}
         }
         out.push((slot, action));
     }
