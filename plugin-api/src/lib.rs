@@ -3,10 +3,12 @@
 //! * [`abi`]: the raw `repr(C)` contract, mirrored by `include/fresa_plugin.h`.
 //! * [`contract`]: the JSON requests, responses and events of a machine backend.
 //! * [`plugin`]: for plugin authors in Rust: the [`Plugin`] trait and [`export_plugin!`].
+//! * [`config_fields`]: for Rust plugins: config values read with errors naming the key.
 //! * [`exec_log`]: for Rust machine backends: the execution log behind idempotent resume.
 //! * [`host`]: for the server: load a library, check it, create and call instances.
 
 pub mod abi;
+pub mod config_fields;
 pub mod contract;
 mod error;
 pub mod exec_log;

@@ -2,6 +2,7 @@
 
 use crate::convert::{Envelope, Mapping};
 use fresa_gcode::Unsupported;
+use fresa_plugin_api::config_fields::{invalid, millis, number, positive};
 use fresa_plugin_api::PluginError;
 use serde_json::Value;
 use std::path::PathBuf;
@@ -102,35 +103,6 @@ impl Default for Config {
 const KNOWN: &str = "address, protocol, mapping, rapid_mm_s, cut_min_mm_s, cut_max_mm_s, \
                      envelope, machine_zero, arc_tolerance_mm, window, unsupported, \
                      connect_timeout_ms, handshake_timeout_ms, reply_timeout_ms, journal";
-
-pub(crate) fn invalid(message: impl Into<String>) -> PluginError {
-    PluginError::new("invalid_config", message)
-}
-
-fn number(key: &str, v: &Value) -> Result<f64, PluginError> {
-    match v.as_f64() {
-        Some(n) if n.is_finite() => Ok(n),
-        _ => Err(invalid(format!("`{key}` must be a number, got {v}"))),
-    }
-}
-
-fn positive(key: &str, v: &Value) -> Result<f64, PluginError> {
-    let n = number(key, v)?;
-    if n > 0.0 {
-        Ok(n)
-    } else {
-        Err(invalid(format!("`{key}` must be greater than 0, got {n}")))
-    }
-}
-
-fn millis(key: &str, v: &Value) -> Result<Duration, PluginError> {
-    match v.as_u64() {
-        Some(ms) if ms > 0 => Ok(Duration::from_millis(ms)),
-        _ => Err(invalid(format!(
-            "`{key}` must be a whole number of milliseconds greater than 0, got {v}"
-        ))),
-    }
-}
 
 fn triple(key: &str, v: &Value) -> Result<[f64; 3], PluginError> {
     let a = v

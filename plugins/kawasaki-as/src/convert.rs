@@ -1,8 +1,9 @@
 //! G-code -> robot commands: interpretation with `fresa-gcode` (arcs linearised by tolerance),
 //! axis mapping, feed (mm/min) -> clamped SPEED (mm/s), and the envelope check of every point.
 
-use crate::config::{invalid, Speeds};
+use crate::config::Speeds;
 use fresa_gcode::{linearise, GcodeError, Interpreter, Motion, Unsupported};
+use fresa_plugin_api::config_fields::invalid;
 use fresa_plugin_api::PluginError;
 use serde_json::Value;
 

@@ -4,6 +4,7 @@ use crate::coils::{CoilMap, Excitation};
 use crate::pins;
 use crate::planner::{AxisLimits, Machine};
 use crate::port::ScriptedInput;
+use fresa_plugin_api::config_fields::{boolean, invalid, non_negative, number, object, positive};
 use fresa_plugin_api::PluginError;
 use serde_json::{Map, Value};
 use std::path::PathBuf;
@@ -58,45 +59,6 @@ pub struct Config {
     pub execution_log: Option<PathBuf>,
     pub status_interval: Duration,
     pub sim_inputs: Vec<ScriptedInput>,
-}
-
-fn invalid(message: impl Into<String>) -> PluginError {
-    PluginError::new("invalid_config", message)
-}
-
-fn number(key: &str, v: &Value) -> Result<f64, PluginError> {
-    match v.as_f64() {
-        Some(n) if n.is_finite() => Ok(n),
-        _ => Err(invalid(format!("`{key}` must be a number, got {v}"))),
-    }
-}
-
-fn positive(key: &str, v: &Value) -> Result<f64, PluginError> {
-    let n = number(key, v)?;
-    if n > 0.0 {
-        Ok(n)
-    } else {
-        Err(invalid(format!("`{key}` must be greater than 0, got {n}")))
-    }
-}
-
-fn non_negative(key: &str, v: &Value) -> Result<f64, PluginError> {
-    let n = number(key, v)?;
-    if n >= 0.0 {
-        Ok(n)
-    } else {
-        Err(invalid(format!("`{key}` must be 0 or more, got {n}")))
-    }
-}
-
-fn boolean(key: &str, v: &Value) -> Result<bool, PluginError> {
-    v.as_bool()
-        .ok_or_else(|| invalid(format!("`{key}` must be true or false, got {v}")))
-}
-
-fn object<'a>(key: &str, v: &'a Value) -> Result<&'a Map<String, Value>, PluginError> {
-    v.as_object()
-        .ok_or_else(|| invalid(format!("`{key}` must be an object, got {v}")))
 }
 
 fn pin_number(key: &str, v: &Value) -> Result<u8, PluginError> {

@@ -1,5 +1,6 @@
 //! The plugin's JSON configuration. Parsed by hand so every error names the offending key.
 
+use fresa_plugin_api::config_fields::{invalid, number, positive};
 use fresa_plugin_api::contract::Axis;
 use fresa_plugin_api::PluginError;
 use serde_json::Value;
@@ -37,26 +38,6 @@ impl Default for Config {
             travel: [None; 4],
             alarm_at_connect: None,
         }
-    }
-}
-
-fn invalid(message: impl Into<String>) -> PluginError {
-    PluginError::new("invalid_config", message)
-}
-
-fn number(key: &str, v: &Value) -> Result<f64, PluginError> {
-    match v.as_f64() {
-        Some(n) if n.is_finite() => Ok(n),
-        _ => Err(invalid(format!("`{key}` must be a number, got {v}"))),
-    }
-}
-
-fn positive(key: &str, v: &Value) -> Result<f64, PluginError> {
-    let n = number(key, v)?;
-    if n > 0.0 {
-        Ok(n)
-    } else {
-        Err(invalid(format!("`{key}` must be greater than 0, got {n}")))
     }
 }
 
