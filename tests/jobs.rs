@@ -252,3 +252,19 @@ fn cancel_stops_the_job_and_a_new_start_runs_it_again_from_the_top() {
         .collect();
     assert_eq!(after, log, "the cancelled run did not continue");
 }
+
+/// A client that starts the next job the moment the last one reads `completed` is not refused
+/// as `machine_busy` because the machine's cached status still says `running`.
+#[test]
+fn the_next_job_starts_as_soon_as_the_last_one_completed() {
+    let s = Server::start();
+    let m = s.sim("m", 0.0);
+    let id = s.upload(m.id, "short", back_and_forth(20, 1.0, 600.0))["id"]
+        .as_i64()
+        .unwrap();
+    for round in 0..10 {
+        let r = s.job_action(id, "start");
+        assert_eq!(r.status, 200, "round {round}: {}", r.body);
+        s.wait_job_state(id, "completed", T);
+    }
+}

@@ -501,16 +501,30 @@ async fn launch(
     Ok(app.store.run(run.id).await?.unwrap_or(run))
 }
 
+/// The machine's state if it is busy. The cached status can lag the backend's events (a run
+/// ended, the `idle` status is still on its way), so a busy cache is checked with a fresh
+/// status before a client that reacted at once to `run_ended` is refused.
+async fn busy_state(machine: &Machine) -> Option<fresa_plugin_api::contract::MachineState> {
+    let cached = machine.status().state;
+    if !cached.is_busy() {
+        return None;
+    }
+    let state = match machine.refresh_status(Request::Status).await {
+        Ok(fresh) => fresh.state,
+        Err(_) => cached,
+    };
+    state.is_busy().then_some(state)
+}
+
 pub async fn start(app: &App, job_id: i64, actor: &str) -> Result<RunRow, ApiError> {
     let (job, machine) = load_job(app, job_id).await?;
-    let status = machine.status();
-    if status.state.is_busy() {
+    if let Some(state) = busy_state(&machine).await {
         return Err(ApiError::conflict(
             "machine_busy",
             format!(
                 "machine {} is {}; wait for it to be idle",
                 machine.id,
-                json!(status.state).as_str().unwrap_or("busy")
+                state.as_str()
             ),
         ));
     }
@@ -566,8 +580,11 @@ pub async fn resume(
             transition(app, &run, &["paused"], "running", actor).await
         }
         "interrupted" | "failed" => {
-            if machine.status().state.is_busy() {
-                return Err(ApiError::conflict("machine_busy", format!("machine {} is busy", machine.id)));
+            if let Some(state) = busy_state(&machine).await {
+                return Err(ApiError::conflict(
+                    "machine_busy",
+                    format!("machine {} is {}", machine.id, state.as_str()),
+                ));
             }
             let reopened = match app.store.reopen_run(run.id, machine.id).await? {
                 Ok(r) => r,
