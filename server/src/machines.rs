@@ -68,7 +68,9 @@ impl HostSink for Sink {
     }
     fn log(&self, level: u32, message: &str) {
         use fresa_plugin_api::abi::*;
-        let id = self.machine_id.load(Ordering::Relaxed);
+        // No machine id yet while the backend is created to check a new machine's config: the
+        // field is left out then rather than logged as a misleading `machine=0`.
+        let id = Some(self.machine_id.load(Ordering::Relaxed)).filter(|&id| id != 0);
         match level {
             LOG_ERROR => tracing::error!(machine = id, "{message}"),
             LOG_WARN => tracing::warn!(machine = id, "{message}"),
