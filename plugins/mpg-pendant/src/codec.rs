@@ -298,8 +298,10 @@ impl Frame {
             b"02" => {
                 let head = text.split('*').next().unwrap_or("");
                 let tail = text.rsplit('*').next().unwrap_or("");
-                let middle = &text[head.len()..text.len() - tail.len()];
-                if head.is_empty() || head != tail || !middle.bytes().all(|c| c == b'*') {
+                // Without any '*' head and tail are the whole text and overlap: no middle.
+                let middle = text.get(head.len()..text.len().saturating_sub(tail.len()));
+                let padded = middle.is_some_and(|m| m.bytes().all(|c| c == b'*'));
+                if head.is_empty() || head != tail || !padded {
                     return Err(format!(
                         "action: expected the same word at both ends, got {head:?} and {tail:?}"
                     ));

@@ -236,6 +236,19 @@ fn malformed_frames_are_skipped_with_a_reason() {
     assert_eq!(frames_only(out), vec![Frame::Key(PendantKey::Stop)]);
 }
 
+/// Found by the re-encode proptest: an action frame with no '*' padding used to panic on an
+/// overlapping slice (the whole transport thread with it) instead of being skipped.
+#[test]
+fn an_action_frame_without_padding_is_an_error_not_a_panic() {
+    let text = "::q+.&0+f0+#:4+d....++:+.:y.+9+9:~9+.i+9.f.0+h9.:";
+    let b = frame(&format!("N02{text}F"));
+    let e = Frame::parse(&b).unwrap_err();
+    assert!(e.contains("action"), "{e}");
+    // The same word with no padding between its two copies is refused too.
+    let b = frame(&format!("N02{}F", "STOP".repeat(12) + "S"));
+    assert!(Frame::parse(&b).is_err());
+}
+
 #[test]
 fn upload_lines_starting_with_n_are_lines_not_frames() {
     // Firmware style: one read per line, no newline.
