@@ -358,6 +358,10 @@ fn jogs_over_the_limit_unbound_pendants_and_the_document_dialect_move_nothing() 
         )
         .expect_error(422, "unknown_machine");
     assert!(msg.contains("999"), "{msg}");
+    let msg = s
+        .post("/api/v1/pendants", &json!({"name": "w", "address": "h:1"}))
+        .expect_error(409, "name_taken");
+    assert!(msg.contains("pendant named \"w\""), "{msg}");
     assert_eq!(
         s.get("/api/v1/pendants")
             .expect(200)

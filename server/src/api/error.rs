@@ -80,6 +80,20 @@ impl From<sqlx::Error> for ApiError {
     }
 }
 
+impl ApiError {
+    /// A failed insert of a named thing: a clash with an existing name is the caller's 409
+    /// `name_taken`; anything else is a database error.
+    pub fn insert_failed(e: sqlx::Error, what: &str, name: &str) -> ApiError {
+        match e {
+            sqlx::Error::Database(d) if d.is_unique_violation() => ApiError::conflict(
+                "name_taken",
+                format!("a {what} named {name:?} already exists"),
+            ),
+            other => other.into(),
+        }
+    }
+}
+
 impl From<JsonRejection> for ApiError {
     fn from(r: JsonRejection) -> Self {
         let status = match &r {

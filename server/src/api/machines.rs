@@ -111,20 +111,11 @@ pub async fn create(
             format!("field `config` rejected by {}: {e}", req.backend),
         )
     })?;
-    let id = match app
+    let id = app
         .store
         .insert_machine(name, &req.backend, &config, max_jog, max_feed)
         .await
-    {
-        Ok(id) => id,
-        Err(sqlx::Error::Database(d)) if d.is_unique_violation() => {
-            return Err(ApiError::conflict(
-                "name_taken",
-                format!("a machine named {name:?} already exists"),
-            ))
-        }
-        Err(e) => return Err(e.into()),
-    };
+        .map_err(|e| ApiError::insert_failed(e, "machine", name))?;
     let row = app
         .store
         .machine(id)

@@ -138,7 +138,7 @@ pub async fn create(
             .collect(),
         None => Vec::new(),
     };
-    let id = match app
+    let id = app
         .store
         .insert_pendant(
             name,
@@ -149,16 +149,7 @@ pub async fn create(
             &macros,
         )
         .await
-    {
-        Ok(id) => id,
-        Err(sqlx::Error::Database(d)) if d.is_unique_violation() => {
-            return Err(ApiError::conflict(
-                "name_taken",
-                format!("a pendant named {name:?} already exists"),
-            ))
-        }
-        Err(e) => return Err(e.into()),
-    };
+        .map_err(|e| ApiError::insert_failed(e, "pendant", name))?;
     let row = app
         .store
         .pendant(id)
