@@ -324,6 +324,15 @@ pub enum Request {
     Mdi { line: String },
 }
 
+impl Request {
+    /// Decodes a request from the host; a malformed or unknown one is an `invalid_request` error
+    /// that says what serde found wrong.
+    pub fn from_json(request: serde_json::Value) -> Result<Request, crate::PluginError> {
+        serde_json::from_value(request)
+            .map_err(|e| crate::PluginError::invalid(format!("invalid request: {e}")))
+    }
+}
+
 /// Work offsets G54..G59, in the order of `WorkOffset::ALL`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 pub struct OffsetTable {
@@ -490,6 +499,19 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
     use serde_json::json;
+
+    #[test]
+    fn a_malformed_request_is_an_invalid_request_naming_the_problem() {
+        let e = Request::from_json(json!({"op": "fly"})).unwrap_err();
+        assert_eq!(e.code, "invalid_request");
+        assert!(e.message.contains("fly"), "{e}");
+        let e = Request::from_json(json!({"op": "jog", "axis": "Q", "distance": 1})).unwrap_err();
+        assert!(e.message.contains('Q'), "{e}");
+        assert_eq!(
+            Request::from_json(json!({"op": "status"})).unwrap(),
+            Request::Status
+        );
+    }
 
     #[test]
     fn state_names_are_the_wire_names() {

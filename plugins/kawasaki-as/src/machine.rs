@@ -225,8 +225,7 @@ impl KawasakiMachine {
 
     /// Handles one JSON request of the backend contract.
     pub fn request(&self, request: Value) -> Result<Value, PluginError> {
-        let request: Request = serde_json::from_value(request)
-            .map_err(|e| PluginError::invalid(format!("unknown or malformed request: {e}")))?;
+        let request = Request::from_json(request)?;
         let core = &self.core;
         match request {
             Request::Connect => {

@@ -969,8 +969,7 @@ impl Mach3Backend {
     }
 
     pub fn request(&self, request: Value) -> Result<Value, PluginError> {
-        let request: Request = serde_json::from_value(request)
-            .map_err(|e| PluginError::invalid(format!("invalid request: {e}")))?;
+        let request = Request::from_json(request)?;
         self.inner.handle(request)
     }
 }

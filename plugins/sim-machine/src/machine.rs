@@ -993,8 +993,7 @@ impl SimMachine {
 
     /// Handles one JSON request (see `fresa_plugin_api::contract::Request`).
     pub fn request(&self, request: Value) -> Result<Value, PluginError> {
-        let request: Request = serde_json::from_value(request)
-            .map_err(|e| PluginError::invalid(format!("invalid request: {e}")))?;
+        let request = Request::from_json(request)?;
         self.core.handle(request)
     }
 
