@@ -518,37 +518,36 @@ impl KawasakiMachine {
     }
 
     fn pause(&self, strict: bool) -> Result<Value, PluginError> {
-        self.core.with(|sh, ev| {
-            if sh.state == MachineState::Running {
-                sh.pause = true;
-                sh.set_state(MachineState::Paused, ev);
-                Ok(json!({}))
-            } else if strict && sh.run.is_none() {
-                Err(PluginError::new(
-                    "not_running",
-                    "no program is running: nothing to pause",
-                ))
-            } else {
-                Ok(json!({}))
-            }
-        })
+        self.hold(true, strict)
     }
 
     fn resume(&self, strict: bool) -> Result<Value, PluginError> {
+        self.hold(false, strict)
+    }
+
+    /// Pause (`hold`) or resume the run: stop or restart sending. `strict` (run control, not the
+    /// feed-hold button) refuses when no program is loaded; otherwise a no-op is fine.
+    fn hold(&self, hold: bool, strict: bool) -> Result<Value, PluginError> {
+        let (from, to, what) = if hold {
+            (MachineState::Running, MachineState::Paused, "pause")
+        } else {
+            (MachineState::Paused, MachineState::Running, "resume")
+        };
         let r = self.core.with(|sh, ev| {
-            if sh.state == MachineState::Paused {
-                sh.pause = false;
-                sh.set_state(MachineState::Running, ev);
+            if sh.state == from {
+                sh.pause = hold;
+                sh.set_state(to, ev);
                 Ok(json!({}))
             } else if strict && sh.run.is_none() {
                 Err(PluginError::new(
                     "not_running",
-                    "no program is running: nothing to resume",
+                    format!("no program is running: nothing to {what}"),
                 ))
             } else {
                 Ok(json!({}))
             }
         });
+        // Wakes the sender after a resume (harmless after a pause).
         self.core.cv.notify_all();
         r
     }
