@@ -362,6 +362,10 @@ fn jogs_over_the_limit_unbound_pendants_and_the_document_dialect_move_nothing() 
         .post("/api/v1/pendants", &json!({"name": "w", "address": "h:1"}))
         .expect_error(409, "name_taken");
     assert!(msg.contains("pendant named \"w\""), "{msg}");
+    let msg = s
+        .post("/api/v1/pendants", &json!({"name": "  ", "address": "h:1"}))
+        .expect_error(422, "invalid_field");
+    assert!(msg.contains("`name`"), "{msg}");
     assert_eq!(
         s.get("/api/v1/pendants")
             .expect(200)

@@ -81,6 +81,18 @@ impl From<sqlx::Error> for ApiError {
 }
 
 impl ApiError {
+    /// The `name` field of something being created, trimmed; empty is refused naming the field.
+    pub fn required_name(name: &str) -> Result<&str, ApiError> {
+        let name = name.trim();
+        if name.is_empty() {
+            return Err(ApiError::unprocessable(
+                "invalid_field",
+                "field `name` must not be empty",
+            ));
+        }
+        Ok(name)
+    }
+
     /// A failed insert of a named thing: a clash with an existing name is the caller's 409
     /// `name_taken`; anything else is a database error.
     pub fn insert_failed(e: sqlx::Error, what: &str, name: &str) -> ApiError {

@@ -64,13 +64,7 @@ pub async fn create(
     Extension(caller): Extension<Caller>,
     Json(req): Json<NewMachine>,
 ) -> Result<(StatusCode, Json<Value>), ApiError> {
-    let name = req.name.trim();
-    if name.is_empty() {
-        return Err(ApiError::unprocessable(
-            "invalid_field",
-            "field `name` must not be empty",
-        ));
-    }
+    let name = ApiError::required_name(&req.name)?;
     let config = req.config.unwrap_or_else(|| json!({}));
     if !config.is_object() {
         return Err(ApiError::unprocessable(

@@ -94,13 +94,7 @@ pub async fn create(
     Extension(caller): Extension<Caller>,
     Json(req): Json<NewPendant>,
 ) -> Result<(StatusCode, Json<Value>), ApiError> {
-    let name = req.name.trim();
-    if name.is_empty() {
-        return Err(ApiError::unprocessable(
-            "invalid_field",
-            "field `name` must not be empty",
-        ));
-    }
+    let name = ApiError::required_name(&req.name)?;
     let (host, port) = split_address(&req.address);
     if host.is_empty() || port == 0 {
         return Err(ApiError::unprocessable(
