@@ -113,6 +113,9 @@ pub enum MachineState {
     Paused,
     /// Latched fault (e-stop, limit, reset needed); `MachineStatus::alarm` says which.
     Alarm,
+    /// Set by the host only, never by a backend: a call into the backend has overrun its
+    /// timeout and not returned; `MachineStatus::reason` says which.
+    Unresponsive,
 }
 
 impl MachineState {
@@ -126,6 +129,7 @@ impl MachineState {
             MachineState::Running => "running",
             MachineState::Paused => "paused",
             MachineState::Alarm => "alarm",
+            MachineState::Unresponsive => "unresponsive",
         }
     }
 

@@ -260,16 +260,16 @@ pub async fn token(cmd: TokenCmd) -> Res {
             data_dir,
             config,
         } => {
-            let settings = crate::config::Settings::resolve(crate::config::Overrides {
+            let settings = fresa_core::config::Settings::resolve(fresa_core::config::Overrides {
                 data_dir,
                 config,
                 ..Default::default()
             })?;
             std::fs::create_dir_all(&settings.data_dir)?;
-            let store = crate::store::Store::open(&settings.db_path()).await?;
-            let secret = crate::api::auth::new_secret();
+            let store = fresa_core::store::Store::open(&settings.db_path()).await?;
+            let secret = fresa_http::auth::new_secret();
             store
-                .insert_token(&name, &role, &crate::api::auth::hash_token(&secret))
+                .insert_token(&name, &role, &fresa_http::auth::hash_token(&secret))
                 .await?;
             eprintln!(
                 "token {name:?} ({role}) created in {}; it is shown only now:",

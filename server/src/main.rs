@@ -1,17 +1,9 @@
 //! `fresa`: the daemon (`fresa serve`) and its command-line client.
 
-mod api;
-mod app;
 mod client;
-mod config;
-mod demo;
-mod events;
-mod jobs;
-mod machines;
-mod pendants;
-mod plugins;
 mod serve;
-mod store;
+
+use fresa_core::config;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -30,7 +22,7 @@ struct Cli {
 #[derive(Subcommand)]
 enum Cmd {
     /// Run the daemon.
-    Serve(config::Overrides),
+    Serve(ServeArgs),
     /// Machines on a running server.
     Machine {
         #[command(flatten)]
@@ -57,6 +49,39 @@ enum Cmd {
     },
 }
 
+/// Command-line/environment values for `fresa serve` (clap merges them: CLI beats env).
+#[derive(Debug, Default, Clone, clap::Args)]
+struct ServeArgs {
+    /// Address to listen on; port 0 picks a free one (the log says which).
+    #[arg(long, env = "FRESA_LISTEN")]
+    listen: Option<String>,
+    #[arg(long, env = "FRESA_DATA_DIR")]
+    data_dir: Option<std::path::PathBuf>,
+    #[arg(long, env = "FRESA_CONFIG")]
+    config: Option<std::path::PathBuf>,
+    /// Extra plugin directory, searched before the defaults (repeatable).
+    #[arg(long = "plugin-dir", env = "FRESA_PLUGIN_DIR")]
+    plugin_dirs: Vec<std::path::PathBuf>,
+    #[arg(long, env = "FRESA_MAX_UPLOAD_BYTES")]
+    max_upload_bytes: Option<u64>,
+    /// Create a simulated machine named "demo" (real-time motion) if there is none.
+    #[arg(long)]
+    demo: bool,
+}
+
+impl From<ServeArgs> for config::Overrides {
+    fn from(a: ServeArgs) -> Self {
+        config::Overrides {
+            listen: a.listen,
+            data_dir: a.data_dir,
+            config: a.config,
+            plugin_dirs: a.plugin_dirs,
+            max_upload_bytes: a.max_upload_bytes,
+            demo: a.demo,
+        }
+    }
+}
+
 fn init_logging(default: &str) {
     let filter = tracing_subscriber::EnvFilter::try_from_env("FRESA_LOG")
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
@@ -78,8 +103,8 @@ fn main() -> ExitCode {
     };
     let result: Result<(), Box<dyn std::error::Error>> = rt.block_on(async move {
         match cli.command {
-            Cmd::Serve(overrides) => {
-                let settings = config::Settings::resolve(overrides)?;
+            Cmd::Serve(args) => {
+                let settings = config::Settings::resolve(args.into())?;
                 init_logging(
                     settings
                         .log
@@ -94,6 +119,9 @@ fn main() -> ExitCode {
             Cmd::Gcode { command } => client::gcode(command),
         }
     });
+    // A backend call that never returns holds its machine's call thread; those are plain OS
+    // threads and do not keep the process alive, and nothing else may: exit promptly.
+    rt.shutdown_timeout(std::time::Duration::from_secs(1));
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

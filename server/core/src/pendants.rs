@@ -4,9 +4,10 @@
 //! action in the event log as `pendant:<id>`, and pushes the status cache the plugin answers the
 //! pendant's polls from.
 
-use crate::api::error::ApiError;
 use crate::app::App;
-use crate::machines::Machine;
+use crate::error::{Error, ErrorKind};
+use crate::machine::Machine;
+use crate::store::RunState;
 use crate::store::{now_ms, Store};
 use fresa_plugin_api::contract::{
     Axis, Command, MachineState, OutputName, PendantEvent, PendantJob, PendantKey, PendantRequest,
@@ -288,14 +289,14 @@ impl Pendants {
     /// Pendants announced on the LAN by mDNS, each marked with the configured pendant (if any)
     /// that uses its address. The browser starts on the first call, so a fresh list fills in
     /// over the next second or two.
-    pub async fn discovered(&self, app: &App) -> Result<Value, ApiError> {
+    pub async fn discovered(&self, app: &App) -> Result<Value, Error> {
         let inst = {
             let mut d = self.discovery.lock().await;
             match d.as_ref() {
                 Some(i) => i.clone(),
                 None => {
                     let lib = app.plugins.get(TRANSPORT_PLUGIN).ok_or_else(|| {
-                        ApiError::conflict(
+                        Error::conflict(
                             "plugin_missing",
                             format!("no plugin named {TRANSPORT_PLUGIN:?} is loaded"),
                         )
@@ -307,13 +308,9 @@ impl Pendants {
                         lib.create(&json!({"discover": true}), sink)
                     })
                     .await
-                    .map_err(|e| ApiError::internal(e.to_string()))?
+                    .map_err(|e| Error::internal(e.to_string()))?
                     .map_err(|e| {
-                        ApiError::new(
-                            axum::http::StatusCode::SERVICE_UNAVAILABLE,
-                            "mdns_unavailable",
-                            e.to_string(),
-                        )
+                        Error::new(ErrorKind::Unavailable, "mdns_unavailable", e.to_string())
                     })?;
                     let i = Arc::new(i);
                     *d = Some(i.clone());
@@ -324,8 +321,8 @@ impl Pendants {
         let req = json!(PendantRequest::Discovered);
         let mut v = tokio::task::spawn_blocking(move || inst.call(&req))
             .await
-            .map_err(|e| ApiError::internal(e.to_string()))?
-            .map_err(|e| ApiError::internal(e.to_string()))?;
+            .map_err(|e| Error::internal(e.to_string()))?
+            .map_err(|e| Error::internal(e.to_string()))?;
         let configured: Vec<(String, i64)> = self
             .all()
             .await
@@ -584,9 +581,7 @@ async fn handle(app: &Arc<App>, p: &Arc<Pendant>, ev: PendantEvent) {
             };
             let distance = count as f64 * step;
             app.pendants.last_mover_set(m.id, p.id);
-            if let Err(e) =
-                crate::api::machines::jog_machine(app, &m, axis, distance, None, &p.actor()).await
-            {
+            if let Err(e) = m.jog(axis, distance, None, &p.actor()).await {
                 refuse(app, p, Some(m.id), input, e.code, &e.message).await;
             }
         }
@@ -660,24 +655,18 @@ async fn stop_motion_of_lost(app: &Arc<App>, p: &Pendant) -> bool {
         return false;
     };
     let mut stopped = false;
-    if app.pendants.last_mover_take_if(m.id, p.id) && m.current_run().is_none() {
+    if app.pendants.last_mover_take_if(m.id, p.id) && m.run().is_none() {
         // Only motion from a jog or go-to-zero; a Stop while idle is harmless.
-        match m
-            .call(&fresa_plugin_api::contract::Request::Command(Command::Stop))
-            .await
-        {
+        match m.command(Command::Stop, &p.actor()).await {
             Ok(_) => stopped = true,
             Err(e) => {
                 tracing::error!(pendant = p.id, machine = m.id, error = %e, "could not stop motion of a lost pendant")
             }
         }
-        let _ = m
-            .refresh_status(fresa_plugin_api::contract::Request::Status)
-            .await;
     }
     let started = *lock(&p.started_run);
     if p.stop_program_on_lost() {
-        if let (Some(cur), Some(run)) = (m.current_run(), started) {
+        if let (Some(cur), Some(run)) = (m.run(), started) {
             if cur.run_id == run {
                 match crate::jobs::pause(app, cur.job_id, &p.actor()).await {
                     Ok(_) => stopped = true,
@@ -736,15 +725,11 @@ async fn key_pressed(app: &Arc<App>, p: &Arc<Pendant>, key: PendantKey) {
         }
         _ => None,
     };
-    let result: Result<(), ApiError> = match (command, key) {
-        (Some(c), _) => crate::api::machines::command_machine(app, &m, c, &actor)
-            .await
-            .map(|_| ()),
-        (None, PendantKey::Pause) => match m.current_run() {
+    let result: Result<(), Error> = match (command, key) {
+        (Some(c), _) => m.command(c, &actor).await.map(|_| ()),
+        (None, PendantKey::Pause) => match m.run() {
             Some(r) => crate::jobs::pause(app, r.job_id, &actor).await.map(|_| ()),
-            None => crate::api::machines::command_machine(app, &m, Command::FeedHold, &actor)
-                .await
-                .map(|_| ()),
+            None => m.command(Command::FeedHold, &actor).await.map(|_| ()),
         },
         (None, PendantKey::Start) => start_key(app, p, &m, &actor).await,
         (None, PendantKey::Rewind) => {
@@ -767,16 +752,15 @@ async fn key_pressed(app: &Arc<App>, p: &Arc<Pendant>, key: PendantKey) {
 }
 
 /// Start: resume a paused run, otherwise start the machine's newest job.
-async fn start_key(app: &Arc<App>, p: &Pendant, m: &Machine, actor: &str) -> Result<(), ApiError> {
-    if let Some(r) = m.current_run() {
-        let run = app.store.run(r.run_id).await?;
-        if run.map(|r| r.state) == Some("paused".into()) {
+async fn start_key(app: &Arc<App>, p: &Pendant, m: &Machine, actor: &str) -> Result<(), Error> {
+    if let Some(r) = m.run() {
+        if r.state == RunState::Paused {
             // Never confirms a changed part zero: that decision belongs to the operator at the API.
             return crate::jobs::resume(app, r.job_id, actor, false)
                 .await
                 .map(|_| ());
         }
-        return Err(ApiError::conflict(
+        return Err(Error::conflict(
             "machine_busy",
             format!("machine {} is already running job {}", m.id, r.job_id),
         ));
@@ -788,7 +772,7 @@ async fn start_key(app: &Arc<App>, p: &Pendant, m: &Machine, actor: &str) -> Res
         .into_iter()
         .next()
         .ok_or_else(|| {
-            ApiError::conflict("no_job", format!("machine {} has no job to start", m.id))
+            Error::conflict("no_job", format!("machine {} has no job to start", m.id))
         })?;
     let run = crate::jobs::start(app, job.id, actor).await?;
     *lock(&p.started_run) = Some(run.id);
@@ -801,7 +785,7 @@ async fn run_macro(
     m: &Machine,
     key: PendantKey,
     actor: &str,
-) -> Result<(), ApiError> {
+) -> Result<(), Error> {
     let slot = match key {
         PendantKey::M1 => 1,
         PendantKey::M2 => 2,
@@ -809,7 +793,7 @@ async fn run_macro(
         _ => 4,
     };
     let action = p.macros()[slot - 1].clone().ok_or_else(|| {
-        ApiError::conflict(
+        Error::conflict(
             "macro_unassigned",
             format!("M{slot} has no action configured for pendant {}", p.id),
         )
@@ -819,25 +803,19 @@ async fn run_macro(
             if matches!(command, Command::GoToZero | Command::Home { .. }) {
                 app.pendants.last_mover_set(m.id, p.id);
             }
-            crate::api::machines::command_machine(app, m, command, actor)
-                .await
-                .map(|_| ())
+            m.command(command, actor).await.map(|_| ())
         }
         MacroAction::Jog { axis, distance } => {
             app.pendants.last_mover_set(m.id, p.id);
-            crate::api::machines::jog_machine(app, m, axis, distance, None, actor).await
+            m.jog(axis, distance, None, actor).await
         }
-        MacroAction::Toggle { output } => crate::api::machines::command_machine(
-            app,
-            m,
-            Command::ToggleOutput { name: output },
-            actor,
-        )
-        .await
-        .map(|_| ()),
+        MacroAction::Toggle { output } => m
+            .command(Command::ToggleOutput { name: output }, actor)
+            .await
+            .map(|_| ()),
         MacroAction::Mdi { line } => {
             app.pendants.last_mover_set(m.id, p.id);
-            crate::api::machines::mdi_machine(app, m, &line, actor).await
+            m.mdi(&line, actor).await
         }
     }
 }
@@ -965,7 +943,7 @@ async fn status_loop(app: Arc<App>, p: Arc<Pendant>) {
         let (position, job) = match &m {
             Some(m) => {
                 let st = m.status();
-                let job = match m.current_run() {
+                let job = match m.run() {
                     Some(r) => {
                         if run_seen.map(|s| s.0) != Some(r.run_id) {
                             let eta = app
@@ -980,7 +958,7 @@ async fn status_loop(app: Arc<App>, p: Arc<Pendant>) {
                                 .unwrap_or(0.0);
                             run_seen = Some((r.run_id, Instant::now(), eta.max(0.0) as u64));
                         }
-                        let line = m.acked_line_of(r.run_id);
+                        let line = r.line;
                         let (_, since, eta) = run_seen.unwrap_or((0, Instant::now(), 0));
                         Some(PendantJob {
                             elapsed_s: since.elapsed().as_secs(),

@@ -1,11 +1,10 @@
 //! JSON errors: `{"code": "...", "message": "..."}` with a stable code and a message that names
 //! the offending field, value or G-code line.
 
-use crate::machines::BackendError;
 use axum::extract::rejection::{JsonRejection, PathRejection, QueryRejection};
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
-use fresa_plugin_api::host::CallError;
+use fresa_core::{Error, ErrorKind};
 
 #[derive(Debug)]
 pub struct ApiError {
@@ -37,38 +36,26 @@ impl ApiError {
     pub fn internal(m: impl Into<String>) -> Self {
         Self::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", m)
     }
+}
 
-    /// Maps a backend failure: the plugin's own rejection is the client's problem (422), a
-    /// missing or hung backend is the server's (503/504).
-    pub fn from_backend(e: BackendError) -> Self {
-        match e {
-            BackendError::Unavailable(m) => {
-                Self::new(StatusCode::SERVICE_UNAVAILABLE, "machine_offline", m)
-            }
-            BackendError::Timeout(d) => Self::new(
-                StatusCode::GATEWAY_TIMEOUT,
-                "backend_timeout",
-                format!("machine backend did not answer within {d:?}"),
-            ),
-            // The controller's part zero moved since the run started: the operator must decide.
-            BackendError::Call(CallError::Plugin(p)) if p.code == "part_zero_changed" => {
-                Self::new(StatusCode::CONFLICT, "part_zero_changed", p.message)
-            }
-            BackendError::Call(CallError::Plugin(p)) => {
-                let status = if p.code == "busy" {
-                    StatusCode::CONFLICT
-                } else {
-                    StatusCode::UNPROCESSABLE_ENTITY
-                };
-                ApiError {
-                    status,
-                    code: "backend_rejected",
-                    message: format!("{}: {}", p.code, p.message),
-                }
-            }
-            BackendError::Call(other) => {
-                Self::new(StatusCode::BAD_GATEWAY, "backend_error", other.to_string())
-            }
+/// The core's errors keep their code and message; their kind picks the status.
+impl From<Error> for ApiError {
+    fn from(e: Error) -> Self {
+        let status = match e.kind {
+            ErrorKind::BadRequest => StatusCode::BAD_REQUEST,
+            ErrorKind::Invalid => StatusCode::UNPROCESSABLE_ENTITY,
+            ErrorKind::NotFound => StatusCode::NOT_FOUND,
+            ErrorKind::Conflict => StatusCode::CONFLICT,
+            ErrorKind::TooLarge => StatusCode::PAYLOAD_TOO_LARGE,
+            ErrorKind::Unavailable => StatusCode::SERVICE_UNAVAILABLE,
+            ErrorKind::Timeout => StatusCode::GATEWAY_TIMEOUT,
+            ErrorKind::Backend => StatusCode::BAD_GATEWAY,
+            ErrorKind::Internal => StatusCode::INTERNAL_SERVER_ERROR,
+        };
+        ApiError {
+            status,
+            code: e.code,
+            message: e.message,
         }
     }
 }
@@ -77,32 +64,6 @@ impl From<sqlx::Error> for ApiError {
     fn from(e: sqlx::Error) -> Self {
         tracing::error!(error = %e, "database error");
         ApiError::internal(format!("database error: {e}"))
-    }
-}
-
-impl ApiError {
-    /// The `name` field of something being created, trimmed; empty is refused naming the field.
-    pub fn required_name(name: &str) -> Result<&str, ApiError> {
-        let name = name.trim();
-        if name.is_empty() {
-            return Err(ApiError::unprocessable(
-                "invalid_field",
-                "field `name` must not be empty",
-            ));
-        }
-        Ok(name)
-    }
-
-    /// A failed insert of a named thing: a clash with an existing name is the caller's 409
-    /// `name_taken`; anything else is a database error.
-    pub fn insert_failed(e: sqlx::Error, what: &str, name: &str) -> ApiError {
-        match e {
-            sqlx::Error::Database(d) if d.is_unique_violation() => ApiError::conflict(
-                "name_taken",
-                format!("a {what} named {name:?} already exists"),
-            ),
-            other => other.into(),
-        }
     }
 }
 

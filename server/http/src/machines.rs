@@ -1,13 +1,11 @@
 use super::auth::Caller;
 use super::error::{ApiError, Json, Path};
-use crate::app::{App, SharedApp};
-use crate::machines::Machine;
 use axum::extract::State;
 use axum::http::StatusCode;
 use axum::Extension;
-use fresa_plugin_api::contract::{
-    Axis, AxisValues, Command, MachineStatus, OffsetTable, Request, WorkOffset,
-};
+use fresa_core::machine::{limits, Machine};
+use fresa_core::SharedApp;
+use fresa_plugin_api::contract::{Axis, AxisValues, Command, MachineStatus, WorkOffset};
 use serde::Deserialize;
 use serde_json::{json, Value};
 use std::sync::Arc;
@@ -64,7 +62,7 @@ pub async fn create(
     Extension(caller): Extension<Caller>,
     Json(req): Json<NewMachine>,
 ) -> Result<(StatusCode, Json<Value>), ApiError> {
-    let name = ApiError::required_name(&req.name)?;
+    let name = fresa_core::Error::required_name(&req.name)?;
     let config = req.config.unwrap_or_else(|| json!({}));
     if !config.is_object() {
         return Err(ApiError::unprocessable(
@@ -72,16 +70,16 @@ pub async fn create(
             "field `config` must be a JSON object",
         ));
     }
-    let max_jog = req.max_jog_mm.unwrap_or(50.0);
-    let max_feed = req.max_feed_mm_min.unwrap_or(5000.0);
-    for (field, v) in [("max_jog_mm", max_jog), ("max_feed_mm_min", max_feed)] {
-        if !(v.is_finite() && v > 0.0) {
-            return Err(ApiError::unprocessable(
-                "invalid_field",
-                format!("field `{field}` must be a positive number, got {v}"),
-            ));
-        }
-    }
+    let max_jog = limits::check_configured(
+        "max_jog_mm",
+        req.max_jog_mm.unwrap_or(50.0),
+        limits::MAX_JOG_MM,
+    )?;
+    let max_feed = limits::check_configured(
+        "max_feed_mm_min",
+        req.max_feed_mm_min.unwrap_or(5000.0),
+        limits::MAX_FEED_MM_MIN,
+    )?;
     let Some(lib) = app.plugins.get(&req.backend) else {
         return Err(ApiError::unprocessable(
             "unknown_backend",
@@ -109,7 +107,7 @@ pub async fn create(
         .store
         .insert_machine(name, &req.backend, &config, max_jog, max_feed)
         .await
-        .map_err(|e| ApiError::insert_failed(e, "machine", name))?;
+        .map_err(|e| fresa_core::Error::insert_failed(e, "machine", name))?;
     let row = app
         .store
         .machine(id)
@@ -121,8 +119,8 @@ pub async fn create(
         app.store.clone(),
         app.bus.clone(),
         &app.machine_options(),
-    );
-    crate::machines::restore_state(&m, &app.store).await;
+    )
+    .await;
     app.machines.insert(m).await;
     app.bus
         .record_or_log(
@@ -145,9 +143,7 @@ pub async fn status(
 
 fn status_json(m: &Machine, s: MachineStatus) -> Value {
     let mut v = json!(s);
-    let job = m
-        .current_run()
-        .map(|r| crate::machines::progress_json(&r, m.acked_line_of(r.run_id)));
+    let job = m.run().map(|r| r.progress_json());
     if let Some(o) = v.as_object_mut() {
         o.insert("machine".into(), json!(m.id));
         o.insert("job".into(), job.unwrap_or(Value::Null));
@@ -171,68 +167,9 @@ pub async fn jog(
     Json(req): Json<JogReq>,
 ) -> Result<Json<Value>, ApiError> {
     let m = machine(&app, id).await?;
-    jog_machine(&app, &m, req.axis, req.distance, req.feed, &caller.name).await?;
+    m.jog(req.axis, req.distance, req.feed, &caller.name)
+        .await?;
     Ok(Json(json!({"ok": true})))
-}
-
-/// Bounds-checks and sends one jog, and records it. Shared by the HTTP API and pendants.
-pub(crate) async fn jog_machine(
-    app: &App,
-    m: &Machine,
-    axis: Axis,
-    distance: f64,
-    feed: Option<f64>,
-    actor: &str,
-) -> Result<(), ApiError> {
-    let row = m.row();
-    if !distance.is_finite() || distance == 0.0 {
-        return Err(ApiError::unprocessable(
-            "invalid_field",
-            format!("field `distance` must be a non-zero number, got {distance}"),
-        ));
-    }
-    if distance.abs() > row.max_jog_mm {
-        return Err(ApiError::unprocessable(
-            "jog_too_far",
-            format!(
-                "field `distance`: {distance} mm exceeds this machine's jog limit of {} mm per request",
-                row.max_jog_mm
-            ),
-        ));
-    }
-    if let Some(f) = feed {
-        if !(f.is_finite() && f > 0.0 && f <= row.max_feed_mm_min) {
-            return Err(ApiError::unprocessable(
-                "feed_out_of_range",
-                format!(
-                    "field `feed`: {f} mm/min is outside 0..{} mm/min",
-                    row.max_feed_mm_min
-                ),
-            ));
-        }
-    }
-    if m.current_run().is_some() {
-        return Err(ApiError::conflict(
-            "machine_busy",
-            "a job is running on this machine; pause or cancel it before jogging",
-        ));
-    }
-    m.call(&Request::Jog {
-        axis,
-        distance,
-        feed,
-    })
-    .await
-    .map_err(ApiError::from_backend)?;
-    app.bus
-        .record_or_log(
-            "machine.jog",
-            Some(m.id),
-            Some(actor),
-            json!({"axis": axis, "distance": distance, "feed": feed}),
-        )
-        .await;
-    Ok(())
 }
 
 #[derive(Deserialize)]
@@ -248,64 +185,8 @@ pub async fn mdi(
     Json(req): Json<MdiReq>,
 ) -> Result<Json<Value>, ApiError> {
     let m = machine(&app, id).await?;
-    check_mdi_line(&req.line)
-        .map_err(|e| ApiError::unprocessable("invalid_gcode", format!("field `line`: {e}")))?;
-    mdi_machine(&app, &m, &req.line, &caller.name).await?;
+    m.mdi(&req.line, &caller.name).await?;
     Ok(Json(json!({"ok": true})))
-}
-
-/// Longest MDI line accepted, bytes.
-pub(crate) const MAX_MDI_LINE: usize = 256;
-
-/// One non-empty G-code line the interpreter accepts (what the backend will check again).
-pub(crate) fn check_mdi_line(line: &str) -> Result<(), String> {
-    if line.trim().is_empty() {
-        return Err("an MDI line must not be empty".into());
-    }
-    if line.contains(['\n', '\r']) {
-        return Err("an MDI line must be one line (no line breaks)".into());
-    }
-    if line.len() > MAX_MDI_LINE {
-        return Err(format!(
-            "an MDI line is at most {MAX_MDI_LINE} bytes, got {}",
-            line.len()
-        ));
-    }
-    let interp = fresa_gcode::Interpreter::new(line.as_bytes(), fresa_gcode::Config::default());
-    for motion in interp {
-        motion.map_err(|e| format!("{line:?}: column {}: {}", e.column, e.message))?;
-    }
-    Ok(())
-}
-
-/// Sends one MDI line (already checked with `check_mdi_line`) and records it. Refused while a
-/// job runs. Shared by the HTTP API and pendant macros.
-pub(crate) async fn mdi_machine(
-    app: &App,
-    m: &Machine,
-    line: &str,
-    actor: &str,
-) -> Result<(), ApiError> {
-    if m.current_run().is_some() {
-        return Err(ApiError::conflict(
-            "machine_busy",
-            "a job is running on this machine; pause or cancel it before MDI",
-        ));
-    }
-    m.call(&Request::Mdi {
-        line: line.to_string(),
-    })
-    .await
-    .map_err(ApiError::from_backend)?;
-    app.bus
-        .record_or_log(
-            "machine.mdi",
-            Some(m.id),
-            Some(actor),
-            json!({"line": line}),
-        )
-        .await;
-    Ok(())
 }
 
 pub async fn command(
@@ -317,65 +198,8 @@ pub async fn command(
     let m = machine(&app, id).await?;
     let cmd: Command = serde_json::from_value(raw)
         .map_err(|e| ApiError::unprocessable("invalid_command", format!("{e} (commands: cycle_start, feed_hold, resume, stop, reset, home, zero, go_to_zero, select_offset, set_output, toggle_output)")))?;
-    let answer = command_machine(&app, &m, cmd, &caller.name).await?;
+    let answer = m.command(cmd, &caller.name).await?;
     Ok(Json(json!({"ok": true, "result": answer})))
-}
-
-/// Sends one immediate command, persists offsets it changed, and records it. Shared by the HTTP
-/// API and pendants.
-pub(crate) async fn command_machine(
-    app: &App,
-    m: &Machine,
-    cmd: Command,
-    actor: &str,
-) -> Result<Value, ApiError> {
-    let answer = m
-        .call(&Request::Command(cmd))
-        .await
-        .map_err(ApiError::from_backend)?;
-    // Commands that change offsets: persist what the backend now has.
-    if matches!(cmd, Command::Zero { .. } | Command::SelectOffset { .. }) {
-        persist_backend_offsets(app, m).await?;
-    }
-    let mut recorded = json!(cmd);
-    // An output's new state (as the backend reports it) belongs in the audit log.
-    if matches!(
-        cmd,
-        Command::SetOutput { .. } | Command::ToggleOutput { .. }
-    ) {
-        if let Some(on) = answer.get("on").and_then(Value::as_bool) {
-            recorded["on"] = json!(on);
-        }
-    }
-    app.bus
-        .record_or_log("machine.command", Some(m.id), Some(actor), recorded)
-        .await;
-    let _ = m.refresh_status(Request::Status).await;
-    Ok(answer)
-}
-
-async fn persist_backend_offsets(app: &App, m: &Machine) -> Result<OffsetTable, ApiError> {
-    let v = m
-        .call(&Request::GetOffsets)
-        .await
-        .map_err(ApiError::from_backend)?;
-    let table: OffsetTable = serde_json::from_value(v).map_err(|e| {
-        ApiError::new(
-            StatusCode::BAD_GATEWAY,
-            "backend_error",
-            format!("offsets have an unexpected shape: {e}"),
-        )
-    })?;
-    app.store.set_offsets(m.id, &table.offsets).await?;
-    app.store.set_active_offset(m.id, table.active).await?;
-    if let Some(mut row) = app.store.machine(m.id).await? {
-        row.active_offset = table.active.name().to_string();
-        m.set_row(row);
-    }
-    app.bus
-        .record_or_log("machine.offsets", Some(m.id), None, json!(table))
-        .await;
-    Ok(table)
 }
 
 pub async fn offsets(
@@ -443,25 +267,7 @@ pub async fn set_offset(
             values.set(axis, v);
         }
     }
-    if m.status().state.is_busy() {
-        return Err(ApiError::conflict(
-            "machine_busy",
-            "offsets cannot change while the machine moves",
-        ));
-    }
-    m.call(&Request::SetOffset { offset, values })
-        .await
-        .map_err(ApiError::from_backend)?;
-    app.store.set_offsets(id, &[(offset, values)]).await?;
-    app.bus
-        .record_or_log(
-            "machine.offsets",
-            Some(id),
-            Some(&caller.name),
-            json!({"offset": offset, "values": values}),
-        )
-        .await;
-    let _ = m.refresh_status(Request::Status).await;
+    m.set_offset(offset, values, &caller.name).await?;
     Ok(Json(json!({"offset": offset, "values": values})))
 }
 
@@ -493,12 +299,7 @@ pub async fn record_part_zero(
     };
     let at = match req.position {
         Some(p) => p,
-        None => {
-            m.refresh_status(Request::Status)
-                .await
-                .map_err(ApiError::from_backend)?
-                .machine_position
-        }
+        None => m.refresh_status().await?.machine_position,
     };
     let source = req.source.unwrap_or_else(|| "api".into());
     let row = app
@@ -539,29 +340,9 @@ async fn artifact(
     name: &str,
 ) -> Result<axum::response::Response, ApiError> {
     use axum::response::IntoResponse;
-    use fresa_plugin_api::host::CallError;
     let m = machine(app, id).await?;
     let backend = m.row().backend;
-    let answer = m
-        .call(&Request::GetArtifact {
-            name: name.to_string(),
-        })
-        .await
-        .map_err(|e| match e {
-            crate::machines::BackendError::Call(CallError::Plugin(p))
-                if p.code == "not_available" =>
-            {
-                ApiError::conflict("not_available", format!("machine {id}: {}", p.message))
-            }
-            crate::machines::BackendError::Call(CallError::Plugin(p)) => ApiError::not_found(
-                "no_artifact",
-                format!(
-                    "machine {id} (backend {backend}) has no {name}: {}",
-                    p.message
-                ),
-            ),
-            other => ApiError::from_backend(other),
-        })?;
+    let answer = m.artifact(name).await?;
     let body = answer["body"]
         .as_str()
         .ok_or_else(|| {

@@ -1,10 +1,10 @@
 use super::auth::Caller;
 use super::error::{ApiError, Json, Path};
-use crate::app::SharedApp;
-use crate::pendants::{self as core, MacroAction};
 use axum::extract::State;
 use axum::http::StatusCode;
 use axum::Extension;
+use fresa_core::pendants::{self as core, MacroAction};
+use fresa_core::SharedApp;
 use serde::Deserialize;
 use serde_json::{json, Value};
 use std::collections::BTreeMap;
@@ -63,7 +63,7 @@ fn parse_macros(
                 ));
             }
             Some(MacroAction::Mdi { line }) => {
-                crate::api::machines::check_mdi_line(line).map_err(|e| {
+                fresa_core::machine::limits::check_mdi_line(line).map_err(|e| {
                     ApiError::unprocessable(
                         "invalid_field",
                         format!("field `macros.{k}.line`: {e}"),
@@ -94,7 +94,7 @@ pub async fn create(
     Extension(caller): Extension<Caller>,
     Json(req): Json<NewPendant>,
 ) -> Result<(StatusCode, Json<Value>), ApiError> {
-    let name = ApiError::required_name(&req.name)?;
+    let name = fresa_core::Error::required_name(&req.name)?;
     let (host, port) = split_address(&req.address);
     if host.is_empty() || port == 0 {
         return Err(ApiError::unprocessable(
@@ -143,7 +143,7 @@ pub async fn create(
             &macros,
         )
         .await
-        .map_err(|e| ApiError::insert_failed(e, "pendant", name))?;
+        .map_err(|e| fresa_core::Error::insert_failed(e, "pendant", name))?;
     let row = app
         .store
         .pendant(id)

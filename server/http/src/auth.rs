@@ -2,11 +2,11 @@
 //! trusted); on any other bind every request needs one. A token given anyway is always checked.
 
 use super::error::ApiError;
-use crate::app::SharedApp;
 use axum::extract::{Request, State};
 use axum::http::{Method, StatusCode};
 use axum::middleware::Next;
 use axum::response::Response;
+use fresa_core::SharedApp;
 use sha2::{Digest, Sha256};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]

@@ -3,11 +3,11 @@
 //! behind gets an explicit `resync` event, then the persisted events it missed.
 
 use super::error::{ApiError, Query};
-use crate::app::SharedApp;
-use crate::events::BusEvent;
 use axum::extract::State;
 use axum::http::HeaderMap;
 use axum::response::sse::{Event, KeepAlive, Sse};
+use fresa_core::events::BusEvent;
+use fresa_core::SharedApp;
 use futures_util::Stream;
 use serde::Deserialize;
 use std::convert::Infallible;
@@ -125,7 +125,7 @@ pub async fn stream(
 
 /// Sends persisted events after `*after`, page by page. Returns false if the client went away.
 async fn replay(
-    store: &crate::store::Store,
+    store: &fresa_core::store::Store,
     matcher: &Matcher,
     after: &mut i64,
     tx: &tokio::sync::mpsc::Sender<Event>,

@@ -7,13 +7,13 @@ mod jobs;
 pub(crate) mod machines;
 mod pendants;
 
-use crate::app::SharedApp;
 use axum::extract::{DefaultBodyLimit, State};
 use axum::http::StatusCode;
 use axum::response::IntoResponse;
 use axum::routing::{get, post, put};
 use axum::Router;
 use error::Json;
+use fresa_core::SharedApp;
 
 pub fn router(app: SharedApp) -> Router {
     let api = Router::new()

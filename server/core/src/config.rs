@@ -17,28 +17,22 @@ pub struct FileConfig {
     pub max_upload_bytes: Option<u64>,
     pub status_rate_hz: Option<f64>,
     pub plugin_call_timeout_ms: Option<u64>,
+    /// Accepted so older config files still load; calls into one backend are now ordered by its
+    /// machine's task (one at a time, plus the urgent lane), so the value is not used.
     pub plugin_max_concurrent_calls: Option<usize>,
     pub sse_keepalive_secs: Option<u64>,
+    pub shutdown_grace_secs: Option<u64>,
     pub log: Option<String>,
 }
 
-/// Command-line/environment values for `fresa serve` (clap merges them: CLI beats env).
-#[derive(Debug, Default, Clone, clap::Args)]
+/// Command-line/environment values for `fresa serve` (the binary parses them: CLI beats env).
+#[derive(Debug, Default, Clone)]
 pub struct Overrides {
-    /// Address to listen on; port 0 picks a free one (the log says which).
-    #[arg(long, env = "FRESA_LISTEN")]
     pub listen: Option<String>,
-    #[arg(long, env = "FRESA_DATA_DIR")]
     pub data_dir: Option<PathBuf>,
-    #[arg(long, env = "FRESA_CONFIG")]
     pub config: Option<PathBuf>,
-    /// Extra plugin directory, searched before the defaults (repeatable).
-    #[arg(long = "plugin-dir", env = "FRESA_PLUGIN_DIR")]
     pub plugin_dirs: Vec<PathBuf>,
-    #[arg(long, env = "FRESA_MAX_UPLOAD_BYTES")]
     pub max_upload_bytes: Option<u64>,
-    /// Create a simulated machine named "demo" (real-time motion) if there is none.
-    #[arg(long)]
     pub demo: bool,
 }
 
@@ -50,8 +44,9 @@ pub struct Settings {
     pub max_upload_bytes: u64,
     pub status_interval: Duration,
     pub plugin_call_timeout: Duration,
-    pub plugin_max_concurrent_calls: usize,
     pub sse_keepalive: Duration,
+    /// How long open connections may drain on shutdown, after motion has stopped.
+    pub shutdown_grace: Duration,
     pub demo: bool,
     pub config_file: Option<PathBuf>,
     pub log: Option<String>,
@@ -151,11 +146,20 @@ impl Settings {
                 "status_rate_hz must be between 0 and 1000, got {rate}"
             )));
         }
-        let max_calls = file.plugin_max_concurrent_calls.unwrap_or(4);
-        if max_calls == 0 {
-            return Err(ConfigError::Invalid(
-                "plugin_max_concurrent_calls must be at least 1".into(),
-            ));
+        if file.plugin_max_concurrent_calls.is_some() {
+            tracing::warn!("plugin_max_concurrent_calls is no longer used: each machine's calls are ordered by its task");
+        }
+        let timeout_ms = file.plugin_call_timeout_ms.unwrap_or(10_000);
+        if !(1..=600_000).contains(&timeout_ms) {
+            return Err(ConfigError::Invalid(format!(
+                "plugin_call_timeout_ms must be between 1 and 600000, got {timeout_ms}"
+            )));
+        }
+        let grace = file.shutdown_grace_secs.unwrap_or(5);
+        if grace > 60 {
+            return Err(ConfigError::Invalid(format!(
+                "shutdown_grace_secs must be at most 60 (systemd stops waiting at 90 s), got {grace}"
+            )));
         }
         Ok(Settings {
             listen,
@@ -166,11 +170,9 @@ impl Settings {
                 .or(file.max_upload_bytes)
                 .unwrap_or(1 << 30),
             status_interval: Duration::from_secs_f64(1.0 / rate),
-            plugin_call_timeout: Duration::from_millis(
-                file.plugin_call_timeout_ms.unwrap_or(10_000),
-            ),
-            plugin_max_concurrent_calls: max_calls,
+            plugin_call_timeout: Duration::from_millis(timeout_ms),
             sse_keepalive: Duration::from_secs(file.sse_keepalive_secs.unwrap_or(15)),
+            shutdown_grace: Duration::from_secs(grace),
             demo: o.demo,
             config_file,
             log: file.log,

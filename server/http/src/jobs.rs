@@ -1,12 +1,12 @@
 use super::auth::Caller;
 use super::error::{ApiError, Json, Path, Query};
-use crate::app::SharedApp;
-use crate::jobs::{self as core, PendingProgram};
 use axum::body::Body;
 use axum::extract::{FromRequest, Multipart, Request, State};
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Extension;
+use fresa_core::jobs::{self as core, PendingProgram};
+use fresa_core::SharedApp;
 use futures_util::StreamExt;
 use serde::Deserialize;
 use serde_json::{json, Value};
@@ -33,7 +33,7 @@ pub async fn list(
         .list_jobs(p.machine, p.limit.unwrap_or(100).clamp(1, 1000))
         .await?;
     let ids: Vec<i64> = jobs.iter().map(|j| j.id).collect();
-    let runs: std::collections::HashMap<i64, crate::store::RunRow> = app
+    let runs: std::collections::HashMap<i64, fresa_core::store::RunRow> = app
         .store
         .latest_runs(&ids)
         .await?

@@ -1,9 +1,11 @@
 //! The server's shared state and its start-up sequence.
 
 use crate::config::Settings;
+use crate::datadir::{DataDirLock, LockError};
 use crate::events::EventBus;
-use crate::machines::{Machine, MachineOptions, Machines};
+use crate::machine::{Machine, MachineOptions, Machines};
 use crate::plugins::Registry;
+use crate::store::RunRow;
 use crate::store::Store;
 use std::sync::Arc;
 use tokio_util::sync::CancellationToken;
@@ -19,6 +21,8 @@ pub struct App {
     pub shutdown: CancellationToken,
     /// Whether requests must carry a token (any non-loopback bind).
     pub auth_required: bool,
+    /// Held while the process lives: one server per data directory.
+    _lock: DataDirLock,
 }
 
 pub type SharedApp = Arc<App>;
@@ -40,14 +44,16 @@ pub enum StartError {
          Create one first with `fresa token create --role admin --name NAME`"
     )]
     NoTokens(std::net::SocketAddr),
+    #[error("{0}")]
+    Locked(#[from] LockError),
 }
 
 impl App {
     pub fn machine_options(&self) -> MachineOptions {
         MachineOptions {
             timeout: self.settings.plugin_call_timeout,
-            max_concurrent_calls: self.settings.plugin_max_concurrent_calls,
             status_interval: self.settings.status_interval,
+            programs_dir: self.settings.programs_dir(),
         }
     }
 
@@ -58,6 +64,8 @@ impl App {
             path: settings.programs_dir(),
             source,
         })?;
+        // Before the store is touched: a second server must not mark the first one's runs.
+        let lock = DataDirLock::acquire(&settings.data_dir)?;
         let db = settings.db_path();
         let store = Store::open(&db).await.map_err(|source| StartError::Store {
             path: db.clone(),
@@ -96,6 +104,7 @@ impl App {
             pendants: Default::default(),
             shutdown: CancellationToken::new(),
             auth_required,
+            _lock: lock,
         });
         for run in store
             .interrupt_active_runs()
@@ -112,13 +121,7 @@ impl App {
                 "run was interrupted by a restart; resume it with POST /api/v1/jobs/{}/resume",
                 run.job_id
             );
-            bus.record_or_log(
-                "job.state",
-                Some(run.machine_id),
-                None,
-                serde_json::json!({"job": run.job_id, "run": run.id, "state": "interrupted", "line": run.last_line, "message": run.message}),
-            )
-            .await;
+            record_interrupted(&bus, &run).await;
         }
         if app.settings.demo {
             crate::demo::ensure_demo_machine(&app).await;
@@ -140,8 +143,8 @@ impl App {
                 store.clone(),
                 bus.clone(),
                 &app.machine_options(),
-            );
-            crate::machines::restore_state(&m, &store).await;
+            )
+            .await;
             if let Some(reason) = m.unavailable_reason() {
                 tracing::error!(machine = m.id, reason, "machine offline");
             }
@@ -154,12 +157,17 @@ impl App {
         Ok(app)
     }
 
-    /// Marks active runs interrupted so they can be resumed, then stops motion on every machine.
-    /// In that order: a backend reports a run it stops on shutdown as cancelled, and that report
-    /// must find the run already interrupted (so it is ignored), not turn it into a cancelled one.
-    pub async fn stop(&self) {
-        self.shutdown.cancel();
-        self.pendants.stop_all().await;
+    /// Stops all motion and marks active runs interrupted (resumable), before anything else
+    /// of shutdown: no new motion is started from the moment this begins, whatever requests are
+    /// still open or queued. Bounded: a backend that does not answer its urgent shutdown call
+    /// within `limit` is left behind (it is logged), so the process can still exit.
+    pub async fn stop_motion(&self, limit: std::time::Duration) {
+        let machines = self.machines.all().await;
+        for m in &machines {
+            m.close_gate();
+        }
+        // Runs first: a backend reports a run it stops on shutdown as cancelled, and that
+        // report must find the run already interrupted (so it is ignored).
         match self.store.interrupt_active_runs().await {
             Ok(rows) => {
                 for r in rows {
@@ -168,22 +176,42 @@ impl App {
                         last_line = r.last_line,
                         "run interrupted by shutdown"
                     );
-                    self.bus
-                        .record_or_log(
-                            "job.state",
-                            Some(r.machine_id),
-                            None,
-                            serde_json::json!({"job": r.job_id, "run": r.id, "state": "interrupted", "line": r.last_line, "message": r.message}),
-                        )
-                        .await;
+                    record_interrupted(&self.bus, &r).await;
                 }
             }
             Err(e) => tracing::error!(error = %e, "could not mark runs interrupted"),
         }
-        for m in self.machines.all().await {
-            if let Err(e) = m.call(&fresa_plugin_api::contract::Request::Shutdown).await {
-                tracing::warn!(machine = m.id, error = %e, "shutdown call failed");
+        let stops = machines.iter().map(|m| async move {
+            match tokio::time::timeout(limit, m.shutdown_backend()).await {
+                Ok(Ok(())) => {}
+                Ok(Err(e)) => tracing::warn!(machine = m.id, error = %e, "shutdown call failed"),
+                Err(_) => tracing::error!(
+                    machine = m.id,
+                    "backend did not confirm its stop within {limit:?}"
+                ),
             }
+        });
+        futures_util::future::join_all(stops).await;
+    }
+
+    /// The rest of shutdown, once motion is stopped: pendants and SSE streams.
+    pub async fn stop_rest(&self, limit: std::time::Duration) {
+        self.shutdown.cancel();
+        if tokio::time::timeout(limit, self.pendants.stop_all())
+            .await
+            .is_err()
+        {
+            tracing::warn!("pendant transports did not stop within {limit:?}");
         }
     }
+}
+
+async fn record_interrupted(bus: &EventBus, run: &RunRow) {
+    bus.record_or_log(
+        "job.state",
+        Some(run.machine_id),
+        None,
+        serde_json::json!({"job": run.job_id, "run": run.id, "state": "interrupted", "line": run.last_line, "message": run.message}),
+    )
+    .await;
 }

@@ -2,15 +2,14 @@
 //! through their state machine: running <-> paused -> completed | failed | cancelled, and
 //! interrupted (by a restart) -> running again on resume, from the next unacknowledged line.
 
-use crate::api::error::ApiError;
 use crate::app::App;
-use crate::events::EventBus;
-use crate::machines::{CurrentRun, Machine};
-use crate::store::{JobRow, NewJob, RunRow, Store};
-use fresa_plugin_api::contract::{AxisValues, ProgramLoaded, Request, RunAction};
+use crate::error::{Error, ErrorKind, Result};
+use crate::machine::Machine;
+use crate::store::{JobRow, NewJob, RunRow};
 use serde_json::json;
 use sha2::{Digest, Sha256};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use tokio::io::AsyncWriteExt;
 
 /// Checks a program stream as it arrives: UTF-8, no binary bytes, counts lines. Tracks the
@@ -37,7 +36,7 @@ impl Default for ProgramChecker {
 }
 
 impl ProgramChecker {
-    pub fn feed(&mut self, chunk: &[u8]) -> Result<(), ApiError> {
+    pub fn feed(&mut self, chunk: &[u8]) -> Result<()> {
         self.bytes += chunk.len() as u64;
         let mut data = std::mem::take(&mut self.pending);
         data.extend_from_slice(chunk);
@@ -48,7 +47,7 @@ impl ProgramChecker {
                 if e.error_len().is_some() {
                     // Count what was valid so the position points at the bad byte.
                     self.advance(std::str::from_utf8(ok).unwrap_or(""))?;
-                    return Err(ApiError::unprocessable(
+                    return Err(Error::invalid(
                         "not_utf8",
                         format!(
                             "program is not UTF-8 text: invalid byte 0x{:02x} at line {}, column {}",
@@ -67,7 +66,7 @@ impl ProgramChecker {
         Ok(())
     }
 
-    fn advance(&mut self, text: &str) -> Result<(), ApiError> {
+    fn advance(&mut self, text: &str) -> Result<()> {
         for c in text.chars() {
             match c {
                 '\n' => {
@@ -76,7 +75,7 @@ impl ProgramChecker {
                 }
                 '\r' | '\t' => self.column += 1,
                 c if c.is_control() => {
-                    return Err(ApiError::unprocessable(
+                    return Err(Error::invalid(
                         "binary_program",
                         format!(
                         "program looks binary: control character U+{:04X} at line {}, column {}",
@@ -91,9 +90,9 @@ impl ProgramChecker {
     }
 
     /// Final checks; returns the number of lines.
-    pub fn finish(&self) -> Result<u64, ApiError> {
+    pub fn finish(&self) -> Result<u64> {
         if !self.pending.is_empty() {
-            return Err(ApiError::unprocessable(
+            return Err(Error::invalid(
                 "not_utf8",
                 format!(
                     "program ends in the middle of a UTF-8 character at line {}",
@@ -102,7 +101,7 @@ impl ProgramChecker {
             ));
         }
         if self.bytes == 0 {
-            return Err(ApiError::bad_request(
+            return Err(Error::bad_request(
                 "empty_program",
                 "the program is empty (0 bytes)",
             ));
@@ -127,11 +126,11 @@ pub struct PendingProgram {
 }
 
 impl PendingProgram {
-    pub async fn create(programs_dir: &Path, limit: u64) -> Result<Self, ApiError> {
+    pub async fn create(programs_dir: &Path, limit: u64) -> Result<Self> {
         let tmp = programs_dir.join(format!(".upload-{}.tmp", rand::random::<u64>()));
         let file = tokio::fs::File::create(&tmp)
             .await
-            .map_err(|e| ApiError::internal(format!("cannot create {}: {e}", tmp.display())))?;
+            .map_err(|e| Error::internal(format!("cannot create {}: {e}", tmp.display())))?;
         Ok(PendingProgram {
             tmp: Some(tmp),
             file,
@@ -141,10 +140,10 @@ impl PendingProgram {
         })
     }
 
-    pub async fn write(&mut self, chunk: &[u8]) -> Result<(), ApiError> {
+    pub async fn write(&mut self, chunk: &[u8]) -> Result<()> {
         if self.checker.bytes + chunk.len() as u64 > self.limit {
-            return Err(ApiError::new(
-                axum::http::StatusCode::PAYLOAD_TOO_LARGE,
+            return Err(Error::new(
+                ErrorKind::TooLarge,
                 "too_large",
                 format!(
                     "program is larger than the upload limit of {} bytes",
@@ -157,19 +156,16 @@ impl PendingProgram {
         self.file
             .write_all(chunk)
             .await
-            .map_err(|e| ApiError::internal(format!("cannot write program: {e}")))
+            .map_err(|e| Error::internal(format!("cannot write program: {e}")))
     }
 
     /// Finishes the file: flushes it to disk and returns (temp path, sha256, lines, bytes).
-    pub async fn finish(
-        mut self,
-        expected_sha256: Option<&str>,
-    ) -> Result<StoredProgram, ApiError> {
+    pub async fn finish(mut self, expected_sha256: Option<&str>) -> Result<StoredProgram> {
         let lines = self.checker.finish()?;
         let sha = hex::encode(self.hasher.clone().finalize());
         if let Some(expected) = expected_sha256 {
             if !expected.eq_ignore_ascii_case(&sha) {
-                return Err(ApiError::unprocessable(
+                return Err(Error::invalid(
                     "sha256_mismatch",
                     format!(
                         "sha256 of the received program is {sha}, but the client said {expected}"
@@ -180,11 +176,11 @@ impl PendingProgram {
         self.file
             .sync_all()
             .await
-            .map_err(|e| ApiError::internal(format!("cannot flush program: {e}")))?;
+            .map_err(|e| Error::internal(format!("cannot flush program: {e}")))?;
         let tmp = self
             .tmp
             .take()
-            .ok_or_else(|| ApiError::internal("upload finished twice"))?;
+            .ok_or_else(|| Error::internal("upload finished twice"))?;
         Ok(StoredProgram {
             tmp: Some(tmp),
             sha256: sha,
@@ -217,19 +213,19 @@ impl StoredProgram {
 
     /// Moves the file to its content-addressed name. Returns whether this upload created it
     /// (so a failed DB insert can remove it again without touching a file other jobs use).
-    pub fn place(mut self, programs_dir: &Path) -> Result<(PathBuf, bool), ApiError> {
+    pub fn place(mut self, programs_dir: &Path) -> Result<(PathBuf, bool)> {
         let dest = program_path(programs_dir, &self.sha256);
         let tmp = self
             .tmp
             .take()
-            .ok_or_else(|| ApiError::internal("program placed twice"))?;
+            .ok_or_else(|| Error::internal("program placed twice"))?;
         if dest.exists() {
             let _ = std::fs::remove_file(&tmp);
             return Ok((dest, false));
         }
         std::fs::rename(&tmp, &dest).map_err(|e| {
             let _ = std::fs::remove_file(&tmp);
-            ApiError::internal(format!("cannot store program as {}: {e}", dest.display()))
+            Error::internal(format!("cannot store program as {}: {e}", dest.display()))
         })?;
         Ok((dest, true))
     }
@@ -266,7 +262,7 @@ pub async fn store_program(
     name: Option<String>,
     source: &str,
     actor: &str,
-) -> Result<CreatedJob, ApiError> {
+) -> Result<CreatedJob> {
     let analysis = analyse(&program, unsupported_policy(app, machine_id).await?).await?;
     let name = name
         .filter(|n| !n.trim().is_empty())
@@ -315,10 +311,7 @@ pub async fn store_program(
 
 /// A machine whose config says `"unsupported": "skip_with_warning"` gets its programs analysed
 /// with that policy (its backend converts them the same way); every other machine: errors.
-async fn unsupported_policy(
-    app: &App,
-    machine_id: i64,
-) -> Result<fresa_gcode::Unsupported, ApiError> {
+async fn unsupported_policy(app: &App, machine_id: i64) -> Result<fresa_gcode::Unsupported> {
     let row = app.store.machine(machine_id).await?;
     let skip = row.is_some_and(|r| r.config_json()["unsupported"] == "skip_with_warning");
     Ok(if skip {
@@ -333,10 +326,10 @@ async fn unsupported_policy(
 async fn analyse(
     program: &StoredProgram,
     unsupported: fresa_gcode::Unsupported,
-) -> Result<Option<serde_json::Value>, ApiError> {
+) -> Result<Option<serde_json::Value>> {
     let path = program
         .temp_path()
-        .ok_or_else(|| ApiError::internal("program file already moved"))?
+        .ok_or_else(|| Error::internal("program file already moved"))?
         .to_path_buf();
     let result = tokio::task::spawn_blocking(move || {
         let file = std::fs::File::open(&path)?;
@@ -346,11 +339,11 @@ async fn analyse(
         Ok::<_, std::io::Error>(fresa_gcode::analyse(reader, &opts))
     })
     .await
-    .map_err(|e| ApiError::internal(format!("analysis failed: {e}")))?
-    .map_err(|e| ApiError::internal(format!("cannot read the stored program: {e}")))?;
+    .map_err(|e| Error::internal(format!("analysis failed: {e}")))?
+    .map_err(|e| Error::internal(format!("cannot read the stored program: {e}")))?;
     match result {
         Ok(a) => Ok(Some(json!(a))),
-        Err(e) => Err(ApiError::unprocessable(
+        Err(e) => Err(Error::invalid(
             "invalid_gcode",
             format!("G-code error at {e}"),
         )),
@@ -382,42 +375,14 @@ pub fn job_json(job: &JobRow, run: Option<&RunRow>) -> serde_json::Value {
     })
 }
 
-fn run_event(run: &RunRow) -> serde_json::Value {
-    json!({"job": run.job_id, "run": run.id, "state": run.state, "line": run.last_line, "message": run.message})
-}
-
-/// Moves a run to a terminal state from a backend report. Late or duplicate reports are ignored.
-pub async fn finish_run(
-    machine: &Machine,
-    store: &Store,
-    bus: &EventBus,
-    run_id: i64,
-    to: &str,
-    message: Option<&str>,
-) {
-    match store
-        .transition_run(run_id, &["running", "paused", "queued"], to, message)
-        .await
-    {
-        Ok(Some(row)) => {
-            if machine.current_run().map(|c| c.run_id) == Some(run_id) {
-                machine.set_current_run(None);
-            }
-            bus.record_or_log("job.state", Some(row.machine_id), None, run_event(&row))
-                .await;
-        }
-        Ok(None) => {}
-        Err(e) => tracing::error!(run = run_id, error = %e, "could not record end of run"),
-    }
-}
-
-async fn load_job(app: &App, job_id: i64) -> Result<(JobRow, std::sync::Arc<Machine>), ApiError> {
-    let job =
-        app.store.job(job_id).await?.ok_or_else(|| {
-            ApiError::not_found("unknown_job", format!("no job with id {job_id}"))
-        })?;
+async fn load_job(app: &App, job_id: i64) -> Result<(JobRow, Arc<Machine>)> {
+    let job = app
+        .store
+        .job(job_id)
+        .await?
+        .ok_or_else(|| Error::not_found("unknown_job", format!("no job with id {job_id}")))?;
     let machine = app.machines.get(job.machine_id).await.ok_or_else(|| {
-        ApiError::conflict(
+        Error::conflict(
             "machine_unavailable",
             format!("machine {} of job {job_id} is not loaded", job.machine_id),
         )
@@ -425,143 +390,16 @@ async fn load_job(app: &App, job_id: i64) -> Result<(JobRow, std::sync::Arc<Mach
     Ok((job, machine))
 }
 
-/// Loads the program into the backend from `start_line` and starts it. On failure the run is
-/// marked failed with the backend's reason.
-async fn launch(
-    app: &App,
-    machine: &Machine,
-    job: &JobRow,
-    run: RunRow,
-    start_line: u32,
-    actor: &str,
-    expected_part_zero: Option<AxisValues>,
-) -> Result<RunRow, ApiError> {
-    let path = program_path(&app.settings.programs_dir(), &job.sha256);
-    machine.set_current_run(Some(CurrentRun {
-        run_id: run.id,
-        job_id: job.id,
-        total_lines: job.line_count,
-    }));
-    let load = machine
-        .call(&Request::LoadProgram {
-            run: run.id,
-            path: path.to_string_lossy().into_owned(),
-            start_line,
-            expected_part_zero,
-        })
-        .await;
-    let started = match load {
-        Ok(v) => {
-            let loaded: Option<ProgramLoaded> = serde_json::from_value(v).ok();
-            if let Some(l) = &loaded {
-                if l.start_line != start_line {
-                    tracing::info!(
-                        run = run.id,
-                        asked = start_line,
-                        actual = l.start_line,
-                        "backend resumed later: it had already executed earlier lines"
-                    );
-                }
-            }
-            // Announce `running` before the backend can finish the run, so the audit log never
-            // shows `completed` without the `running` before it.
-            app.bus
-                .record_or_log(
-                    "job.state",
-                    Some(run.machine_id),
-                    Some(actor),
-                    run_event(&run),
-                )
-                .await;
-            machine
-                .call(&Request::Run {
-                    action: RunAction::Start,
-                })
-                .await
-        }
-        Err(e) => Err(e),
-    };
-    let answer = match started {
-        Ok(a) => a,
-        Err(e) => {
-            machine.set_current_run(None);
-            let msg = e.to_string();
-            finish_run(machine, &app.store, &app.bus, run.id, "failed", Some(&msg)).await;
-            return Err(ApiError::from_backend(e));
-        }
-    };
-    // A controller that reports its own part zero: the run keeps the one it (re)started with,
-    // for the check on the next resume.
-    if let Some(zero) = answer
-        .get("part_zero")
-        .and_then(|z| serde_json::from_value::<AxisValues>(z.clone()).ok())
-    {
-        app.store.set_run_part_zero(run.id, zero).await?;
-    }
-    Ok(app.store.run(run.id).await?.unwrap_or(run))
-}
+// Run control is the machine's: these find the job's machine and ask its task.
 
-/// The machine's state if it is busy. The cached status can lag the backend's events (a run
-/// ended, the `idle` status is still on its way), so a busy cache is checked with a fresh
-/// status before a client that reacted at once to `run_ended` is refused.
-async fn busy_state(machine: &Machine) -> Option<fresa_plugin_api::contract::MachineState> {
-    let cached = machine.status().state;
-    if !cached.is_busy() {
-        return None;
-    }
-    let state = match machine.refresh_status(Request::Status).await {
-        Ok(fresh) => fresh.state,
-        Err(_) => cached,
-    };
-    state.is_busy().then_some(state)
-}
-
-pub async fn start(app: &App, job_id: i64, actor: &str) -> Result<RunRow, ApiError> {
+pub async fn start(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
     let (job, machine) = load_job(app, job_id).await?;
-    if let Some(state) = busy_state(&machine).await {
-        return Err(ApiError::conflict(
-            "machine_busy",
-            format!(
-                "machine {} is {}; wait for it to be idle",
-                machine.id,
-                state.as_str()
-            ),
-        ));
-    }
-    if let Some(reason) = machine.unavailable_reason() {
-        return Err(ApiError::conflict("machine_offline", reason.to_string()));
-    }
-    let run = match app.store.start_run(job.id, machine.id).await? {
-        Ok(r) => r,
-        Err(busy) => {
-            return Err(ApiError::conflict(
-                "machine_busy",
-                format!(
-                    "machine {} is running job {} (run {}, {})",
-                    machine.id, busy.job_id, busy.id, busy.state
-                ),
-            ))
-        }
-    };
-    launch(app, &machine, &job, run, 1, actor, None).await
+    machine.start_job(job, actor).await
 }
 
-pub async fn pause(app: &App, job_id: i64, actor: &str) -> Result<RunRow, ApiError> {
+pub async fn pause(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
     let (_, machine) = load_job(app, job_id).await?;
-    let run = latest(app, job_id).await?;
-    if run.state != "running" {
-        return Err(ApiError::conflict(
-            "not_running",
-            format!("job {job_id} is {}, not running", run.state),
-        ));
-    }
-    machine
-        .call(&Request::Run {
-            action: RunAction::Pause,
-        })
-        .await
-        .map_err(ApiError::from_backend)?;
-    transition(app, &run, &["running"], "paused", actor).await
+    machine.pause_job(job_id, actor).await
 }
 
 /// `confirm_part_zero`: the operator accepts whatever part zero the controller reports now,
@@ -571,112 +409,14 @@ pub async fn resume(
     job_id: i64,
     actor: &str,
     confirm_part_zero: bool,
-) -> Result<RunRow, ApiError> {
+) -> Result<RunRow> {
     let (job, machine) = load_job(app, job_id).await?;
-    let run = latest(app, job_id).await?;
-    match run.state.as_str() {
-        "paused" => {
-            machine.call(&Request::Run { action: RunAction::Resume }).await.map_err(ApiError::from_backend)?;
-            transition(app, &run, &["paused"], "running", actor).await
-        }
-        "interrupted" | "failed" => {
-            if let Some(state) = busy_state(&machine).await {
-                return Err(ApiError::conflict(
-                    "machine_busy",
-                    format!("machine {} is {}", machine.id, state.as_str()),
-                ));
-            }
-            let reopened = match app.store.reopen_run(run.id, machine.id).await? {
-                Ok(r) => r,
-                Err(busy) => {
-                    return Err(ApiError::conflict(
-                        "machine_busy",
-                        format!("machine {} is running job {} (run {})", machine.id, busy.job_id, busy.id),
-                    ))
-                }
-            };
-            let next = u32::try_from(reopened.last_line + 1).unwrap_or(u32::MAX);
-            if reopened.last_line >= job.line_count {
-                // Everything was acknowledged before the interruption: nothing left to run.
-                finish_run(&machine, &app.store, &app.bus, run.id, "completed", None).await;
-                return Ok(app.store.run(run.id).await?.unwrap_or(reopened));
-            }
-            let expected = if confirm_part_zero {
-                None
-            } else {
-                app.store.run_part_zero(run.id).await?
-            };
-            launch(app, &machine, &job, reopened, next, actor, expected).await
-        }
-        other => Err(ApiError::conflict(
-            "not_resumable",
-            format!("job {job_id} is {other}; only paused, interrupted or failed jobs can be resumed (start it again for a new run)"),
-        )),
-    }
+    machine.resume_job(job, actor, confirm_part_zero).await
 }
 
-pub async fn cancel(app: &App, job_id: i64, actor: &str) -> Result<RunRow, ApiError> {
+pub async fn cancel(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
     let (_, machine) = load_job(app, job_id).await?;
-    let run = latest(app, job_id).await?;
-    match run.state.as_str() {
-        "running" | "paused" | "queued" => {
-            machine
-                .call(&Request::Run {
-                    action: RunAction::Cancel,
-                })
-                .await
-                .map_err(ApiError::from_backend)?;
-            machine.set_current_run(None);
-            transition(
-                app,
-                &run,
-                &["running", "paused", "queued"],
-                "cancelled",
-                actor,
-            )
-            .await
-        }
-        "interrupted" | "failed" => {
-            transition(app, &run, &["interrupted", "failed"], "cancelled", actor).await
-        }
-        other => Err(ApiError::conflict(
-            "not_cancellable",
-            format!("job {job_id} is already {other}"),
-        )),
-    }
-}
-
-async fn latest(app: &App, job_id: i64) -> Result<RunRow, ApiError> {
-    app.store.latest_run(job_id).await?.ok_or_else(|| {
-        ApiError::conflict(
-            "not_started",
-            format!("job {job_id} has never been started"),
-        )
-    })
-}
-
-async fn transition(
-    app: &App,
-    run: &RunRow,
-    from: &[&str],
-    to: &str,
-    actor: &str,
-) -> Result<RunRow, ApiError> {
-    match app.store.transition_run(run.id, from, to, None).await? {
-        Some(row) => {
-            app.bus
-                .record_or_log(
-                    "job.state",
-                    Some(row.machine_id),
-                    Some(actor),
-                    run_event(&row),
-                )
-                .await;
-            Ok(row)
-        }
-        // The backend finished the run meanwhile; report what it is now.
-        None => Ok(app.store.run(run.id).await?.unwrap_or_else(|| run.clone())),
-    }
+    machine.cancel_job(job_id, actor).await
 }
 
 #[cfg(test)]

@@ -1,0 +1,132 @@
+//! The core's errors. Each carries a stable `code` (the API's error code, part of the public
+//! contract) and a message that names the offending field, value or G-code line; `kind` says what
+//! sort of failure it is, so an outer layer can map it (the HTTP layer maps kinds to statuses)
+//! without the core knowing about HTTP.
+
+use crate::machine::BackendError;
+use fresa_plugin_api::host::CallError;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ErrorKind {
+    /// The request itself is malformed (empty body, bad query).
+    BadRequest,
+    /// Well-formed but refused: a field, a G-code line, a limit.
+    Invalid,
+    NotFound,
+    /// The current state forbids it (busy machine, finished job, name taken).
+    Conflict,
+    /// Larger than a configured limit.
+    TooLarge,
+    /// The machine cannot take calls now (offline, unresponsive, shutting down).
+    Unavailable,
+    /// The backend did not answer in time.
+    Timeout,
+    /// The backend answered something unusable.
+    Backend,
+    Internal,
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("{message}")]
+pub struct Error {
+    pub kind: ErrorKind,
+    pub code: &'static str,
+    pub message: String,
+}
+
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+impl Error {
+    pub fn new(kind: ErrorKind, code: &'static str, message: impl Into<String>) -> Self {
+        Error {
+            kind,
+            code,
+            message: message.into(),
+        }
+    }
+    pub fn bad_request(code: &'static str, m: impl Into<String>) -> Self {
+        Self::new(ErrorKind::BadRequest, code, m)
+    }
+    pub fn invalid(code: &'static str, m: impl Into<String>) -> Self {
+        Self::new(ErrorKind::Invalid, code, m)
+    }
+    pub fn not_found(code: &'static str, m: impl Into<String>) -> Self {
+        Self::new(ErrorKind::NotFound, code, m)
+    }
+    pub fn conflict(code: &'static str, m: impl Into<String>) -> Self {
+        Self::new(ErrorKind::Conflict, code, m)
+    }
+    pub fn internal(m: impl Into<String>) -> Self {
+        Self::new(ErrorKind::Internal, "internal", m)
+    }
+
+    /// The `name` field of something being created, trimmed; empty is refused naming the field.
+    pub fn required_name(name: &str) -> Result<&str> {
+        let name = name.trim();
+        if name.is_empty() {
+            return Err(Error::invalid(
+                "invalid_field",
+                "field `name` must not be empty",
+            ));
+        }
+        Ok(name)
+    }
+
+    /// A failed insert of a named thing: a clash with an existing name is `name_taken`;
+    /// anything else is a database error.
+    pub fn insert_failed(e: sqlx::Error, what: &str, name: &str) -> Error {
+        match e {
+            sqlx::Error::Database(d) if d.is_unique_violation() => Error::conflict(
+                "name_taken",
+                format!("a {what} named {name:?} already exists"),
+            ),
+            other => other.into(),
+        }
+    }
+}
+
+impl From<sqlx::Error> for Error {
+    fn from(e: sqlx::Error) -> Self {
+        tracing::error!(error = %e, "database error");
+        Error::internal(format!("database error: {e}"))
+    }
+}
+
+/// A backend failure: the plugin's own rejection is the caller's problem, a missing, hung or
+/// unresponsive backend is the server's.
+impl From<BackendError> for Error {
+    fn from(e: BackendError) -> Self {
+        match e {
+            BackendError::Unavailable(m) => {
+                Error::new(ErrorKind::Unavailable, "machine_offline", m)
+            }
+            BackendError::Unresponsive(m) => {
+                Error::new(ErrorKind::Unavailable, "machine_unresponsive", m)
+            }
+            BackendError::Timeout(d) => Error::new(
+                ErrorKind::Timeout,
+                "backend_timeout",
+                format!("machine backend did not answer within {d:?}"),
+            ),
+            // The controller's part zero moved since the run started: the operator must decide.
+            BackendError::Call(CallError::Plugin(p)) if p.code == "part_zero_changed" => {
+                Error::conflict("part_zero_changed", p.message)
+            }
+            BackendError::Call(CallError::Plugin(p)) => {
+                let kind = if p.code == "busy" {
+                    ErrorKind::Conflict
+                } else {
+                    ErrorKind::Invalid
+                };
+                Error::new(
+                    kind,
+                    "backend_rejected",
+                    format!("{}: {}", p.code, p.message),
+                )
+            }
+            BackendError::Call(other) => {
+                Error::new(ErrorKind::Backend, "backend_error", other.to_string())
+            }
+        }
+    }
+}

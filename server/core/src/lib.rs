@@ -1,0 +1,24 @@
+//! Fresa's core: everything the server knows and does, with no HTTP in it.
+//!
+//! * [`store`]: the SQLite database, one module per concern.
+//! * [`machine`]: a task per machine that owns its run lifecycle, and the lanes its backend
+//!   calls travel on.
+//! * [`jobs`]: from an uploaded program to a job; run control goes to the job's machine.
+//! * [`pendants`]: handwheel pendants; their keys call the same functions the HTTP layer does.
+//! * [`events`]: the event bus and audit log. [`plugins`]: the plugin registry.
+//! * [`app`]: the whole, its start-up and its shutdown. [`error`]: the core's errors.
+
+pub mod app;
+pub mod config;
+pub mod datadir;
+pub mod demo;
+pub mod error;
+pub mod events;
+pub mod jobs;
+pub mod machine;
+pub mod pendants;
+pub mod plugins;
+pub mod store;
+
+pub use app::{App, SharedApp};
+pub use error::{Error, ErrorKind, Result};

@@ -1,0 +1,837 @@
+//! The machine's task: the only code that changes a machine's run, its row and its published
+//! status. Requests arrive on one channel and backend events on another; queued backend events
+//! are always handled before the next request, so a request sees the run as the backend last
+//! reported it. Each request is answered once what it asked for is true (recorded in the store
+//! and, for motion, acknowledged by the backend).
+
+use super::lanes::{BackendError, Lanes};
+use super::{Gate, Msg, RunView};
+use crate::error::{Error, Result};
+use crate::events::EventBus;
+use crate::store::{JobRow, MachineRow, RunRow, RunState, Store};
+use fresa_plugin_api::contract::{
+    AxisValues, Command, Event, MachineState, MachineStatus, OffsetTable, OutputName,
+    ProgramLoaded, Request, RunAction, RunOutcome, WorkOffset,
+};
+use serde_json::{json, Value};
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+use tokio::sync::{mpsc, watch};
+
+pub(super) struct Task {
+    pub id: i64,
+    pub lanes: Option<Arc<Lanes>>,
+    pub unavailable: Option<String>,
+    pub store: Store,
+    pub bus: EventBus,
+    pub programs_dir: PathBuf,
+    pub status: watch::Sender<MachineStatus>,
+    pub row: watch::Sender<MachineRow>,
+    pub run: watch::Sender<Option<RunView>>,
+    pub gate: Arc<Gate>,
+    /// Highest acknowledged line per run, not yet written.
+    pub acks: HashMap<i64, u32>,
+}
+
+const ACTIVE: &[RunState] = &[RunState::Running, RunState::Paused, RunState::Queued];
+
+fn run_event(run: &RunRow) -> Value {
+    json!({"job": run.job_id, "run": run.id, "state": run.state, "line": run.last_line, "message": run.message})
+}
+
+impl Task {
+    pub async fn run(
+        mut self,
+        mut requests: mpsc::UnboundedReceiver<Msg>,
+        mut events: Option<mpsc::UnboundedReceiver<Value>>,
+    ) {
+        let mut batch = Vec::new();
+        loop {
+            let next_events = async {
+                match events.as_mut() {
+                    Some(rx) => rx.recv_many(&mut batch, 1024).await,
+                    None => std::future::pending().await,
+                }
+            };
+            tokio::select! {
+                biased;
+                n = next_events => {
+                    if n == 0 {
+                        events = None;
+                        continue;
+                    }
+                    let drained: Vec<Value> = std::mem::take(&mut batch);
+                    self.handle_events(drained).await;
+                }
+                msg = requests.recv() => {
+                    let Some(msg) = msg else { return };
+                    self.drain_events(&mut events).await;
+                    self.handle(msg).await;
+                }
+            }
+        }
+    }
+
+    async fn drain_events(&mut self, events: &mut Option<mpsc::UnboundedReceiver<Value>>) {
+        let Some(rx) = events.as_mut() else { return };
+        let mut pending = Vec::new();
+        while let Ok(e) = rx.try_recv() {
+            pending.push(e);
+        }
+        if !pending.is_empty() {
+            self.handle_events(pending).await;
+        }
+    }
+
+    async fn handle(&mut self, msg: Msg) {
+        match msg {
+            Msg::Restore { reply } => {
+                self.restore().await;
+                let _ = reply.send(());
+            }
+            Msg::Jog {
+                axis,
+                distance,
+                feed,
+                actor,
+                ticket,
+                reply,
+            } => {
+                let r = async {
+                    self.refuse_during_run("jogging")?;
+                    self.gate.check(ticket)?;
+                    self.call(&Request::Jog {
+                        axis,
+                        distance,
+                        feed,
+                    })
+                    .await?;
+                    self.record(
+                        "machine.jog",
+                        &actor,
+                        json!({"axis": axis, "distance": distance, "feed": feed}),
+                    )
+                    .await;
+                    Ok(())
+                }
+                .await;
+                let _ = reply.send(r);
+            }
+            Msg::Mdi {
+                line,
+                actor,
+                ticket,
+                reply,
+            } => {
+                let r = async {
+                    self.refuse_during_run("MDI")?;
+                    self.gate.check(ticket)?;
+                    self.call(&Request::Mdi { line: line.clone() }).await?;
+                    self.record("machine.mdi", &actor, json!({"line": line}))
+                        .await;
+                    Ok(())
+                }
+                .await;
+                let _ = reply.send(r);
+            }
+            Msg::Command {
+                command,
+                actor,
+                ticket,
+                reply,
+            } => {
+                let r = self.command(command, &actor, ticket).await;
+                let _ = reply.send(r);
+            }
+            Msg::SetOffset {
+                offset,
+                values,
+                actor,
+                reply,
+            } => {
+                let r = self.set_offset(offset, values, &actor).await;
+                let _ = reply.send(r);
+            }
+            Msg::RefreshStatus { reply } => {
+                let _ = reply.send(self.refresh_status().await);
+            }
+            Msg::Artifact { name, reply } => {
+                let r = self.artifact(name).await;
+                let _ = reply.send(r);
+            }
+            Msg::Start {
+                job,
+                actor,
+                ticket,
+                reply,
+            } => {
+                let r = self.start(&job, &actor, ticket).await;
+                let _ = reply.send(r);
+            }
+            Msg::Pause {
+                job_id,
+                actor,
+                reply,
+            } => {
+                let r = self.pause(job_id, &actor).await;
+                let _ = reply.send(r);
+            }
+            Msg::Resume {
+                job,
+                actor,
+                confirm_part_zero,
+                ticket,
+                reply,
+            } => {
+                let r = self.resume(&job, &actor, confirm_part_zero, ticket).await;
+                let _ = reply.send(r);
+            }
+            Msg::Cancel {
+                job_id,
+                actor,
+                reply,
+            } => {
+                let r = self.cancel(job_id, &actor).await;
+                let _ = reply.send(r);
+            }
+            Msg::Sync { reply } => {
+                let _ = reply.send(());
+            }
+        }
+    }
+
+    // ---- backend calls ----
+
+    async fn call(&self, request: &Request) -> Result<Value> {
+        Ok(self.call_raw(request).await?)
+    }
+
+    async fn call_raw(&self, request: &Request) -> Result<Value, BackendError> {
+        let lanes = self.lanes.as_ref().ok_or_else(|| {
+            BackendError::Unavailable(self.unavailable.clone().unwrap_or_default())
+        })?;
+        lanes.call(request).await
+    }
+
+    /// A file the backend generates (e.g. a robot's AS program). Its refusals have their own
+    /// codes: not in this configuration (`not_available`), or no such artifact.
+    async fn artifact(&self, name: String) -> Result<Value> {
+        use fresa_plugin_api::host::CallError;
+        let backend = self.row.borrow().backend.clone();
+        let id = self.id;
+        self.call_raw(&Request::GetArtifact { name: name.clone() })
+            .await
+            .map_err(|e| match e {
+                BackendError::Call(CallError::Plugin(p)) if p.code == "not_available" => {
+                    Error::conflict("not_available", format!("machine {id}: {}", p.message))
+                }
+                BackendError::Call(CallError::Plugin(p)) => Error::not_found(
+                    "no_artifact",
+                    format!(
+                        "machine {id} (backend {backend}) has no {name}: {}",
+                        p.message
+                    ),
+                ),
+                other => other.into(),
+            })
+    }
+
+    async fn refresh_status(&self) -> Result<MachineStatus> {
+        let v = self.call(&Request::Status).await?;
+        let s: MachineStatus = serde_json::from_value(v).map_err(|e| {
+            Error::new(
+                crate::error::ErrorKind::Backend,
+                "backend_error",
+                format!("status has an unexpected shape: {e}"),
+            )
+        })?;
+        self.status.send_replace(s.clone());
+        Ok(s)
+    }
+
+    async fn record(&self, kind: &str, actor: &str, data: Value) {
+        self.bus
+            .record_or_log(kind, Some(self.id), Some(actor), data)
+            .await;
+    }
+
+    /// Brings a freshly started backend to the state the store remembers. Offsets: the store
+    /// is the source of truth; it is written into the backend here, and every change made
+    /// through Fresa goes to the backend first and then to the store, in the same request.
+    async fn restore(&mut self) {
+        if self.lanes.is_none() {
+            return;
+        }
+        match self.call(&Request::Connect).await.and_then(|v| {
+            serde_json::from_value::<MachineStatus>(v)
+                .map_err(|e| Error::internal(format!("status has an unexpected shape: {e}")))
+        }) {
+            Ok(s) => {
+                self.status.send_replace(s);
+            }
+            Err(e) => {
+                tracing::warn!(machine = self.id, error = %e, "connect failed");
+                self.status.send_modify(|s| {
+                    s.state = MachineState::Offline;
+                    s.reason = Some(e.message.clone());
+                });
+                return;
+            }
+        }
+        if let Ok(offsets) = self.store.offsets(self.id).await {
+            for (offset, values) in offsets {
+                if let Err(e) = self.call(&Request::SetOffset { offset, values }).await {
+                    tracing::warn!(machine = self.id, offset = offset.name(), error = %e, "could not restore work offset");
+                }
+            }
+        }
+        let active = self.row.borrow().active_offset.clone();
+        if let Some(o) = WorkOffset::parse(&active) {
+            let _ = self
+                .call(&Request::Command(Command::SelectOffset { offset: o }))
+                .await;
+        }
+        let _ = self.refresh_status().await;
+    }
+
+    // ---- immediate commands ----
+
+    fn refuse_during_run(&self, what: &str) -> Result<()> {
+        if self.run.borrow().is_some() {
+            return Err(Error::conflict(
+                "machine_busy",
+                format!("a job is running on this machine; pause or cancel it before {what}"),
+            ));
+        }
+        Ok(())
+    }
+
+    async fn command(&mut self, command: Command, actor: &str, ticket: u64) -> Result<Value> {
+        let starts_motion = matches!(
+            command,
+            Command::CycleStart | Command::Resume | Command::Home { .. } | Command::GoToZero
+        );
+        if starts_motion {
+            self.gate.check(ticket)?;
+        }
+        // Spindle and coolant belong to the program while it cuts; the operator may change them
+        // once the run is held.
+        if let Command::SetOutput { name, .. } | Command::ToggleOutput { name } = command {
+            let cutting = self
+                .run
+                .borrow()
+                .is_some_and(|r| r.state == RunState::Running);
+            if cutting && matches!(name, OutputName::Spindle | OutputName::Coolant) {
+                return Err(Error::conflict(
+                    "machine_busy",
+                    format!(
+                        "the {} cannot be switched while a job is cutting; pause the job first",
+                        name.as_str()
+                    ),
+                ));
+            }
+        }
+        let answer = self.call(&Request::Command(command)).await?;
+        // Commands that change offsets: the backend computed them; persist what it now has.
+        if matches!(command, Command::Zero { .. } | Command::SelectOffset { .. }) {
+            self.persist_backend_offsets().await?;
+        }
+        let mut recorded = json!(command);
+        // An output's new state (as the backend reports it) belongs in the audit log.
+        if matches!(
+            command,
+            Command::SetOutput { .. } | Command::ToggleOutput { .. }
+        ) {
+            if let Some(on) = answer.get("on").and_then(Value::as_bool) {
+                recorded["on"] = json!(on);
+            }
+        }
+        self.record("machine.command", actor, recorded).await;
+        let _ = self.refresh_status().await;
+        Ok(answer)
+    }
+
+    async fn persist_backend_offsets(&mut self) -> Result<OffsetTable> {
+        let v = self.call(&Request::GetOffsets).await?;
+        let table: OffsetTable = serde_json::from_value(v).map_err(|e| {
+            Error::new(
+                crate::error::ErrorKind::Backend,
+                "backend_error",
+                format!("offsets have an unexpected shape: {e}"),
+            )
+        })?;
+        self.store.set_offsets(self.id, &table.offsets).await?;
+        self.store.set_active_offset(self.id, table.active).await?;
+        self.row
+            .send_modify(|r| r.active_offset = table.active.name().to_string());
+        self.bus
+            .record_or_log("machine.offsets", Some(self.id), None, json!(table))
+            .await;
+        Ok(table)
+    }
+
+    async fn set_offset(
+        &mut self,
+        offset: WorkOffset,
+        values: AxisValues,
+        actor: &str,
+    ) -> Result<()> {
+        if self.status.borrow().state.is_busy() {
+            return Err(Error::conflict(
+                "machine_busy",
+                "offsets cannot change while the machine moves",
+            ));
+        }
+        self.call(&Request::SetOffset { offset, values }).await?;
+        self.store.set_offsets(self.id, &[(offset, values)]).await?;
+        self.record(
+            "machine.offsets",
+            actor,
+            json!({"offset": offset, "values": values}),
+        )
+        .await;
+        let _ = self.refresh_status().await;
+        Ok(())
+    }
+
+    // ---- runs ----
+
+    fn publish_run(&self, run: Option<RunView>) {
+        self.run.send_replace(run);
+    }
+
+    /// Moves a run in the store (compare-and-set on its state) and records the change.
+    async fn transition(
+        &self,
+        run_id: i64,
+        from: &[RunState],
+        to: RunState,
+        message: Option<&str>,
+        actor: Option<&str>,
+    ) -> Result<Option<RunRow>> {
+        let row = self.store.transition_run(run_id, from, to, message).await?;
+        if let Some(row) = &row {
+            if self.run.borrow().is_some_and(|r| r.run_id == run_id) {
+                if row.state.is_active() {
+                    self.run.send_modify(|r| {
+                        if let Some(r) = r {
+                            r.state = row.state;
+                        }
+                    });
+                } else {
+                    self.publish_run(None);
+                }
+            }
+            self.bus
+                .record_or_log("job.state", Some(self.id), actor, run_event(row))
+                .await;
+        }
+        Ok(row)
+    }
+
+    /// Ends a run from a backend report. Late or duplicate reports are ignored.
+    async fn finish_run(&self, run_id: i64, to: RunState, message: Option<&str>) {
+        if let Err(e) = self.transition(run_id, ACTIVE, to, message, None).await {
+            tracing::error!(machine = self.id, run = run_id, error = %e, "could not record end of run");
+        }
+    }
+
+    /// The machine's state if it is busy. The cached status can lag the backend's events, so
+    /// a busy cache is checked with a fresh status before refusing.
+    async fn busy_state(&self) -> Option<MachineState> {
+        let cached = self.status.borrow().state;
+        if !cached.is_busy() {
+            return None;
+        }
+        let state = match self.refresh_status().await {
+            Ok(fresh) => fresh.state,
+            Err(_) => cached,
+        };
+        state.is_busy().then_some(state)
+    }
+
+    fn busy_with_run(&self) -> Option<Error> {
+        self.run.borrow().map(|r| {
+            Error::conflict(
+                "machine_busy",
+                format!(
+                    "machine {} is running job {} (run {}, {})",
+                    self.id, r.job_id, r.run_id, r.state
+                ),
+            )
+        })
+    }
+
+    async fn start(&mut self, job: &JobRow, actor: &str, ticket: u64) -> Result<RunRow> {
+        if let Some(e) = self.busy_with_run() {
+            return Err(e);
+        }
+        if let Some(state) = self.busy_state().await {
+            return Err(Error::conflict(
+                "machine_busy",
+                format!(
+                    "machine {} is {}; wait for it to be idle",
+                    self.id,
+                    state.as_str()
+                ),
+            ));
+        }
+        if let Some(reason) = &self.unavailable {
+            return Err(Error::conflict("machine_offline", reason.clone()));
+        }
+        self.gate.check(ticket)?;
+        let run = match self.store.start_run(job.id, self.id).await? {
+            Ok(r) => r,
+            Err(busy) => {
+                return Err(Error::conflict(
+                    "machine_busy",
+                    format!(
+                        "machine {} is running job {} (run {}, {})",
+                        self.id, busy.job_id, busy.id, busy.state
+                    ),
+                ))
+            }
+        };
+        self.launch(job, run, 1, actor, None, ticket).await
+    }
+
+    /// Loads the program into the backend from `start_line` and starts it. On failure the run
+    /// is marked failed with the backend's reason (or cancelled when a stop overtook it).
+    async fn launch(
+        &mut self,
+        job: &JobRow,
+        run: RunRow,
+        start_line: u32,
+        actor: &str,
+        expected_part_zero: Option<AxisValues>,
+        ticket: u64,
+    ) -> Result<RunRow> {
+        let path = crate::jobs::program_path(&self.programs_dir, &job.sha256);
+        self.publish_run(Some(RunView {
+            run_id: run.id,
+            job_id: job.id,
+            total_lines: job.line_count,
+            state: RunState::Running,
+            line: run.last_line,
+        }));
+        let started = async {
+            let v = self
+                .call(&Request::LoadProgram {
+                    run: run.id,
+                    path: path.to_string_lossy().into_owned(),
+                    start_line,
+                    expected_part_zero,
+                })
+                .await?;
+            if let Ok(l) = serde_json::from_value::<ProgramLoaded>(v) {
+                if l.start_line != start_line {
+                    tracing::info!(
+                        run = run.id,
+                        asked = start_line,
+                        actual = l.start_line,
+                        "backend resumed later: it had already executed earlier lines"
+                    );
+                }
+            }
+            // A stop that arrived while the program loaded wins: nothing moves.
+            self.gate.check(ticket)?;
+            // Announce `running` before the backend can finish the run, so the audit log never
+            // shows `completed` without the `running` before it.
+            self.record("job.state", actor, run_event(&run)).await;
+            self.call(&Request::Run {
+                action: RunAction::Start,
+            })
+            .await
+        }
+        .await;
+        let answer = match started {
+            Ok(a) => a,
+            Err(e) => {
+                let to = if e.code == "stopped" || e.code == "shutting_down" {
+                    RunState::Cancelled
+                } else {
+                    RunState::Failed
+                };
+                self.finish_run(run.id, to, Some(&e.message)).await;
+                self.publish_run(None);
+                return Err(e);
+            }
+        };
+        // A controller that reports its own part zero: the run keeps the one it (re)started
+        // with, for the check on the next resume.
+        if let Some(zero) = answer
+            .get("part_zero")
+            .and_then(|z| serde_json::from_value::<AxisValues>(z.clone()).ok())
+        {
+            self.store.set_run_part_zero(run.id, zero).await?;
+        }
+        Ok(self.store.run(run.id).await?.unwrap_or(run))
+    }
+
+    async fn latest(&self, job_id: i64) -> Result<RunRow> {
+        self.store.latest_run(job_id).await?.ok_or_else(|| {
+            Error::conflict(
+                "not_started",
+                format!("job {job_id} has never been started"),
+            )
+        })
+    }
+
+    /// Moves a run and returns it; when the compare-and-set lost (the backend finished the run
+    /// meanwhile) returns the run as it is now.
+    async fn transition_or_current(
+        &self,
+        run: &RunRow,
+        from: &[RunState],
+        to: RunState,
+        actor: &str,
+    ) -> Result<RunRow> {
+        match self.transition(run.id, from, to, None, Some(actor)).await? {
+            Some(row) => Ok(row),
+            None => Ok(self.store.run(run.id).await?.unwrap_or_else(|| run.clone())),
+        }
+    }
+
+    async fn pause(&mut self, job_id: i64, actor: &str) -> Result<RunRow> {
+        let run = self.latest(job_id).await?;
+        if run.state != RunState::Running {
+            return Err(Error::conflict(
+                "not_running",
+                format!("job {job_id} is {}, not running", run.state),
+            ));
+        }
+        self.call(&Request::Run {
+            action: RunAction::Pause,
+        })
+        .await?;
+        self.transition_or_current(&run, &[RunState::Running], RunState::Paused, actor)
+            .await
+    }
+
+    async fn resume(
+        &mut self,
+        job: &JobRow,
+        actor: &str,
+        confirm_part_zero: bool,
+        ticket: u64,
+    ) -> Result<RunRow> {
+        let job_id = job.id;
+        let run = self.latest(job_id).await?;
+        match run.state {
+            RunState::Paused => {
+                self.gate.check(ticket)?;
+                self.call(&Request::Run {
+                    action: RunAction::Resume,
+                })
+                .await?;
+                self.transition_or_current(&run, &[RunState::Paused], RunState::Running, actor)
+                    .await
+            }
+            RunState::Interrupted | RunState::Failed => {
+                if let Some(e) = self.busy_with_run() {
+                    return Err(e);
+                }
+                if let Some(state) = self.busy_state().await {
+                    return Err(Error::conflict(
+                        "machine_busy",
+                        format!("machine {} is {}", self.id, state.as_str()),
+                    ));
+                }
+                self.gate.check(ticket)?;
+                let reopened = match self.store.reopen_run(run.id, self.id).await? {
+                    Ok(r) => r,
+                    Err(busy) => {
+                        return Err(Error::conflict(
+                            "machine_busy",
+                            format!(
+                                "machine {} is running job {} (run {})",
+                                self.id, busy.job_id, busy.id
+                            ),
+                        ))
+                    }
+                };
+                let next = u32::try_from(reopened.last_line + 1).unwrap_or(u32::MAX);
+                if reopened.last_line >= job.line_count {
+                    // Everything was acknowledged before the interruption: nothing left to run.
+                    self.finish_run(run.id, RunState::Completed, None).await;
+                    return Ok(self.store.run(run.id).await?.unwrap_or(reopened));
+                }
+                let expected = if confirm_part_zero {
+                    None
+                } else {
+                    self.store.run_part_zero(run.id).await?
+                };
+                self.launch(job, reopened, next, actor, expected, ticket)
+                    .await
+            }
+            other => Err(Error::conflict(
+                "not_resumable",
+                format!("job {job_id} is {other}; only paused, interrupted or failed jobs can be resumed (start it again for a new run)"),
+            )),
+        }
+    }
+
+    async fn cancel(&mut self, job_id: i64, actor: &str) -> Result<RunRow> {
+        let run = self.latest(job_id).await?;
+        match run.state {
+            RunState::Running | RunState::Paused | RunState::Queued => {
+                // The backend answers only once motion has stopped; only then is the run
+                // cancelled.
+                self.call(&Request::Run {
+                    action: RunAction::Cancel,
+                })
+                .await?;
+                self.transition_or_current(&run, ACTIVE, RunState::Cancelled, actor)
+                    .await
+            }
+            RunState::Interrupted | RunState::Failed => {
+                self.transition_or_current(
+                    &run,
+                    &[RunState::Interrupted, RunState::Failed],
+                    RunState::Cancelled,
+                    actor,
+                )
+                .await
+            }
+            other => Err(Error::conflict(
+                "not_cancellable",
+                format!("job {job_id} is already {other}"),
+            )),
+        }
+    }
+
+    // ---- backend events ----
+
+    /// Persists what the backend reports. Line acknowledgements are coalesced: only the highest
+    /// line per run in a batch is written, in one transaction.
+    async fn handle_events(&mut self, batch: Vec<Value>) {
+        for raw in batch {
+            let event: Event = match serde_json::from_value(raw.clone()) {
+                Ok(e) => e,
+                Err(e) => {
+                    tracing::warn!(machine = self.id, error = %e, event = %raw, "unknown backend event; ignored");
+                    continue;
+                }
+            };
+            match event {
+                Event::Status(s) => {
+                    self.status.send_replace(s);
+                }
+                Event::LineAcknowledged { run, line } => {
+                    let e = self.acks.entry(run).or_insert(line);
+                    *e = (*e).max(line);
+                }
+                Event::StateChanged { from, to } => {
+                    self.status.send_modify(|s| s.state = to);
+                    self.bus.transient(
+                        "machine.state",
+                        Some(self.id),
+                        json!({"from": from, "to": to}),
+                    );
+                }
+                Event::Alarm { message } => {
+                    self.bus
+                        .record_or_log(
+                            "machine.alarm",
+                            Some(self.id),
+                            None,
+                            json!({ "message": message }),
+                        )
+                        .await;
+                }
+                Event::RunEnded {
+                    run,
+                    outcome,
+                    message,
+                } => {
+                    self.flush_acks().await;
+                    let to = match outcome {
+                        RunOutcome::Completed => RunState::Completed,
+                        RunOutcome::Failed => RunState::Failed,
+                        RunOutcome::Cancelled => RunState::Cancelled,
+                    };
+                    self.finish_run(run, to, message.as_deref()).await;
+                }
+                Event::LineReport {
+                    run,
+                    line,
+                    max_deviation_mm,
+                    percent,
+                    remaining_s,
+                } => {
+                    // Transient like job.progress: one per line is too many for the audit log.
+                    let job = self
+                        .run
+                        .borrow()
+                        .filter(|c| c.run_id == run)
+                        .map(|c| c.job_id);
+                    self.bus.transient(
+                        "job.line_report",
+                        Some(self.id),
+                        json!({"job": job, "run": run, "line": line,
+                               "max_deviation_mm": max_deviation_mm,
+                               "percent": percent, "remaining_s": remaining_s}),
+                    );
+                }
+                Event::PartZeroReported { values, run } => {
+                    self.record_reported_part_zero(values, run).await;
+                }
+            }
+        }
+        self.flush_acks().await;
+    }
+
+    async fn flush_acks(&mut self) {
+        for (run, line) in std::mem::take(&mut self.acks) {
+            if let Err(e) = self.store.ack_line(run, line as i64).await {
+                tracing::error!(machine = self.id, run, line, error = %e, "could not persist acknowledged line");
+                continue;
+            }
+            self.run.send_if_modified(|r| match r {
+                Some(r) if r.run_id == run && r.line < line as i64 => {
+                    r.line = line as i64;
+                    true
+                }
+                _ => false,
+            });
+        }
+    }
+
+    /// A controller's own part zero joins the history (source `robot`) when it differs from
+    /// the latest record, so repeated reports of the same zero do not flood it.
+    async fn record_reported_part_zero(&self, values: AxisValues, run: Option<i64>) {
+        const SAME_MM: f64 = 1e-6;
+        match self.store.latest_part_zero(self.id).await {
+            Ok(Some(last))
+                if last.source == "robot"
+                    && [
+                        last.x - values.x,
+                        last.y - values.y,
+                        last.z - values.z,
+                        last.a - values.a,
+                    ]
+                    .iter()
+                    .all(|d| d.abs() <= SAME_MM) =>
+            {
+                return;
+            }
+            Ok(_) => {}
+            Err(e) => {
+                tracing::error!(machine = self.id, error = %e, "could not read the part-zero history");
+                return;
+            }
+        }
+        let note = run.map(|r| format!("reported by the controller at the start of run {r}"));
+        match self
+            .store
+            .insert_part_zero(self.id, values, "robot", "robot", note.as_deref())
+            .await
+        {
+            Ok(row) => self.record("machine.part_zero", "robot", json!(row)).await,
+            Err(e) => {
+                tracing::error!(machine = self.id, error = %e, "could not store the reported part zero")
+            }
+        }
+    }
+}

@@ -1,0 +1,159 @@
+//! The two lanes every call into a backend instance travels on: an ordinary lane (everything the
+//! machine's task sends, one call at a time) and an urgent lane (stop, feed hold, reset,
+//! shutdown) that never waits behind it. Each lane is one dedicated OS thread, so a plugin that
+//! hangs holds at most those two threads: a call that overruns its timeout marks the machine
+//! unresponsive and further ordinary calls are refused at once, instead of piling up threads
+//! behind the hung one. The mark clears when the hung call finally returns.
+
+use fresa_plugin_api::contract::Request;
+use fresa_plugin_api::host::{CallError, Instance};
+use serde_json::Value;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc as std_mpsc;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::sync::oneshot;
+
+/// Why a call into a backend failed.
+#[derive(Debug, thiserror::Error)]
+pub enum BackendError {
+    #[error("machine backend is not available: {0}")]
+    Unavailable(String),
+    #[error("machine backend is unresponsive: {0}")]
+    Unresponsive(String),
+    #[error("machine backend did not answer within {0:?}")]
+    Timeout(Duration),
+    #[error("{0}")]
+    Call(#[from] CallError),
+}
+
+type Job = Box<dyn FnOnce() + Send>;
+
+/// Which lane a request travels on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Lane {
+    Ordinary,
+    Urgent,
+}
+
+impl Lane {
+    /// Urgent requests stop or hold motion; they must overtake everything else.
+    pub fn of(request: &Request) -> Lane {
+        use fresa_plugin_api::contract::RunAction;
+        match request {
+            Request::Command(c) if c.is_urgent() => Lane::Urgent,
+            Request::Shutdown
+            | Request::Run {
+                action: RunAction::Cancel | RunAction::Pause,
+            } => Lane::Urgent,
+            _ => Lane::Ordinary,
+        }
+    }
+}
+
+struct Worker {
+    tx: Mutex<std_mpsc::Sender<Job>>,
+    /// What the overdue call on this lane is, while one is.
+    overdue: Arc<Mutex<Option<String>>>,
+}
+
+impl Worker {
+    fn spawn(name: String) -> std::io::Result<Worker> {
+        let (tx, rx) = std_mpsc::channel::<Job>();
+        std::thread::Builder::new().name(name).spawn(move || {
+            while let Ok(job) = rx.recv() {
+                job();
+            }
+        })?;
+        Ok(Worker {
+            tx: Mutex::new(tx),
+            overdue: Arc::new(Mutex::new(None)),
+        })
+    }
+
+    fn overdue(&self) -> Option<String> {
+        self.overdue.lock().ok().and_then(|o| o.clone())
+    }
+}
+
+pub struct Lanes {
+    instance: Arc<Instance>,
+    ordinary: Worker,
+    urgent: Worker,
+    timeout: Duration,
+}
+
+impl Lanes {
+    pub fn new(instance: Instance, machine_id: i64, timeout: Duration) -> std::io::Result<Lanes> {
+        Ok(Lanes {
+            instance: Arc::new(instance),
+            ordinary: Worker::spawn(format!("machine-{machine_id}"))?,
+            urgent: Worker::spawn(format!("machine-{machine_id}-urgent"))?,
+            timeout,
+        })
+    }
+
+    /// Why the machine is unresponsive: a call on either lane has overrun its timeout and not
+    /// returned yet.
+    pub fn unresponsive(&self) -> Option<String> {
+        self.ordinary.overdue().or_else(|| self.urgent.overdue())
+    }
+
+    /// Calls the backend on the request's lane and waits at most the call timeout.
+    pub async fn call(&self, request: &Request) -> Result<Value, BackendError> {
+        let lane = Lane::of(request);
+        let worker = match lane {
+            Lane::Ordinary => &self.ordinary,
+            Lane::Urgent => &self.urgent,
+        };
+        // A hung call occupies the lane: anything queued behind it would hang too.
+        if let Some(what) = worker.overdue() {
+            return Err(BackendError::Unresponsive(what));
+        }
+        let req = serde_json::to_value(request).map_err(|e| CallError::Protocol(e.to_string()))?;
+        let op = req
+            .get("op")
+            .and_then(Value::as_str)
+            .unwrap_or("call")
+            .to_string();
+        let (tx, rx) = oneshot::channel();
+        let instance = self.instance.clone();
+        let overdue = worker.overdue.clone();
+        let done = Arc::new(AtomicBool::new(false));
+        let job_done = done.clone();
+        let job: Job = Box::new(move || {
+            let result = instance.call(&req);
+            // Done and un-marked under one lock, so the timeout below cannot mark a call that
+            // has already returned.
+            if let Ok(mut o) = overdue.lock() {
+                job_done.store(true, Ordering::SeqCst);
+                *o = None;
+            }
+            let _ = tx.send(result);
+        });
+        worker
+            .tx
+            .lock()
+            .map_err(|_| BackendError::Unavailable("machine lane is poisoned".into()))?
+            .send(job)
+            .map_err(|_| BackendError::Unavailable("machine lane has stopped".into()))?;
+        match tokio::time::timeout(self.timeout, rx).await {
+            Ok(Ok(result)) => Ok(result?),
+            Ok(Err(_)) => Err(BackendError::Call(CallError::Panic(
+                "the backend call was dropped".into(),
+            ))),
+            Err(_) => {
+                let what = format!(
+                    "backend call `{op}` has not returned after {:?} (the plugin seems hung)",
+                    self.timeout
+                );
+                if let Ok(mut o) = worker.overdue.lock() {
+                    if !done.load(Ordering::SeqCst) {
+                        *o = Some(what);
+                    }
+                }
+                Err(BackendError::Timeout(self.timeout))
+            }
+        }
+    }
+}

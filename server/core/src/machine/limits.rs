@@ -1,0 +1,123 @@
+//! Limits the server enforces before anything reaches a backend: configured limits that are
+//! sane, jogs inside them, MDI lines that parse and stay within any machine's reach. Travel
+//! (per-axis soft limits) is the backend's to check, with one function for jogs, MDI and
+//! programs (`fresa_plugin_api`'s backend kit); these bounds hold even where none is configured.
+
+use crate::error::{Error, Result};
+use crate::store::MachineRow;
+
+/// Largest `max_jog_mm` a machine may be configured with: one jog request is a hand move.
+pub const MAX_JOG_MM: f64 = 1000.0;
+/// Largest `max_feed_mm_min`: well above any spindle machine's rapid rate.
+pub const MAX_FEED_MM_MIN: f64 = 100_000.0;
+/// No machine's work envelope reaches further from its origin than this (mm); a coordinate
+/// beyond it is a typo or an attack (`G0 X1e30`), refused before any backend sees it.
+pub const MAX_COORDINATE_MM: f64 = 1_000_000.0;
+/// Longest MDI line accepted, bytes.
+pub const MAX_MDI_LINE: usize = 256;
+
+/// A configured limit: finite, positive and at most `max`, or an error naming the field.
+pub fn check_configured(field: &str, value: f64, max: f64) -> Result<f64> {
+    if !(value.is_finite() && value > 0.0 && value <= max) {
+        return Err(Error::invalid(
+            "invalid_field",
+            format!("field `{field}` must be a positive number of at most {max}, got {value}"),
+        ));
+    }
+    Ok(value)
+}
+
+/// One jog against the machine's configured limits.
+pub fn check_jog(row: &MachineRow, distance: f64, feed: Option<f64>) -> Result<()> {
+    if !distance.is_finite() || distance == 0.0 {
+        return Err(Error::invalid(
+            "invalid_field",
+            format!("field `distance` must be a non-zero number, got {distance}"),
+        ));
+    }
+    if distance.abs() > row.max_jog_mm {
+        return Err(Error::invalid(
+            "jog_too_far",
+            format!(
+                "field `distance`: {distance} mm exceeds this machine's jog limit of {} mm per request",
+                row.max_jog_mm
+            ),
+        ));
+    }
+    if let Some(f) = feed {
+        if !(f.is_finite() && f > 0.0 && f <= row.max_feed_mm_min) {
+            return Err(Error::invalid(
+                "feed_out_of_range",
+                format!(
+                    "field `feed`: {f} mm/min is outside 0..{} mm/min",
+                    row.max_feed_mm_min
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// One non-empty G-code line the interpreter accepts (what the backend will check again), with
+/// every target coordinate within [`MAX_COORDINATE_MM`].
+pub fn check_mdi_line(line: &str) -> std::result::Result<(), String> {
+    use fresa_gcode::Motion;
+    if line.trim().is_empty() {
+        return Err("an MDI line must not be empty".into());
+    }
+    if line.contains(['\n', '\r']) {
+        return Err("an MDI line must be one line (no line breaks)".into());
+    }
+    if line.len() > MAX_MDI_LINE {
+        return Err(format!(
+            "an MDI line is at most {MAX_MDI_LINE} bytes, got {}",
+            line.len()
+        ));
+    }
+    let interp = fresa_gcode::Interpreter::new(line.as_bytes(), fresa_gcode::Config::default());
+    for motion in interp {
+        let motion = motion.map_err(|e| format!("{line:?}: column {}: {}", e.column, e.message))?;
+        let to = match &motion {
+            Motion::Rapid { to, .. } | Motion::Linear { to, .. } | Motion::Arc { to, .. } => to,
+            _ => continue,
+        };
+        for (axis, v) in ["X", "Y", "Z"].iter().zip(to) {
+            if !(v.is_finite() && v.abs() <= MAX_COORDINATE_MM) {
+                return Err(format!(
+                    "{line:?}: {axis}={v} is beyond any machine's travel (at most {MAX_COORDINATE_MM} mm from the origin)"
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn huge_and_non_finite_limits_are_refused() {
+        for v in [1e308, f64::NAN, f64::INFINITY, 0.0, -1.0, 1000.5] {
+            assert!(
+                check_configured("max_jog_mm", v, MAX_JOG_MM).is_err(),
+                "{v}"
+            );
+        }
+        assert_eq!(
+            check_configured("max_jog_mm", 1000.0, MAX_JOG_MM).ok(),
+            Some(1000.0)
+        );
+    }
+
+    #[test]
+    fn mdi_coordinates_beyond_reach_are_refused_naming_the_axis() {
+        let e = check_mdi_line("G0 X1e30").err().unwrap_or_default();
+        assert!(e.contains("X="), "{e}");
+        let e = check_mdi_line("G91 G1 Y-2000000 F100")
+            .err()
+            .unwrap_or_default();
+        assert!(e.contains("Y="), "{e}");
+        assert!(check_mdi_line("G0 X100 Y-50 Z5").is_ok());
+    }
+}

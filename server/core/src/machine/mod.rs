@@ -1,0 +1,576 @@
+//! Live machines. Each machine is one task (see [`actor`]) that owns its run lifecycle: the
+//! current run and its state, the acknowledged line, the machine row, and the order in which
+//! calls reach the backend. Everyone else holds a [`Machine`] handle: it reads what the task
+//! publishes (status, row, run) and sends it messages that are answered only once the change
+//! they ask for is true. Stop, feed hold and reset skip the task's queue (see [`lanes`]).
+
+mod actor;
+mod lanes;
+pub mod limits;
+
+pub use lanes::{BackendError, Lane};
+
+use crate::error::{Error, Result};
+use crate::events::EventBus;
+use crate::store::{JobRow, MachineRow, RunRow, RunState, Store};
+use fresa_plugin_api::contract::{
+    Axis, AxisValues, Command, MachineState, MachineStatus, Request, WorkOffset,
+};
+use fresa_plugin_api::host::{HostSink, Instance, PluginLibrary};
+use serde_json::{json, Value};
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::sync::{mpsc, oneshot, watch, RwLock};
+
+pub struct MachineOptions {
+    pub timeout: Duration,
+    pub status_interval: Duration,
+    pub programs_dir: PathBuf,
+}
+
+/// The current run as everyone but the machine's task sees it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RunView {
+    pub run_id: i64,
+    pub job_id: i64,
+    pub total_lines: i64,
+    pub state: RunState,
+    /// Last acknowledged line.
+    pub line: i64,
+}
+
+impl RunView {
+    pub fn progress_json(&self) -> Value {
+        let percent = if self.total_lines > 0 {
+            (self.line as f64 / self.total_lines as f64 * 100.0).min(100.0)
+        } else {
+            0.0
+        };
+        json!({"job": self.job_id, "run": self.run_id, "line": self.line,
+               "total_lines": self.total_lines, "percent": (percent * 10.0).round() / 10.0})
+    }
+}
+
+/// Lets stop and feed hold overtake requests already queued for the task: each motion request
+/// carries the epoch it was sent in, and the task refuses to start motion for a request that a
+/// stop has overtaken. Shutdown closes the gate for good.
+#[derive(Default)]
+pub(crate) struct Gate {
+    epoch: AtomicU64,
+    closed: AtomicBool,
+}
+
+impl Gate {
+    pub(crate) fn ticket(&self) -> u64 {
+        self.epoch.load(Ordering::SeqCst)
+    }
+    fn overtake(&self) {
+        self.epoch.fetch_add(1, Ordering::SeqCst);
+    }
+    fn close(&self) {
+        self.closed.store(true, Ordering::SeqCst);
+        self.overtake();
+    }
+    /// Ok while nothing stopped the machine since `ticket` was taken.
+    pub(crate) fn check(&self, ticket: u64) -> Result<()> {
+        if self.closed.load(Ordering::SeqCst) {
+            return Err(Error::new(
+                crate::error::ErrorKind::Unavailable,
+                "shutting_down",
+                "the server is shutting down; no new motion is started",
+            ));
+        }
+        if self.epoch.load(Ordering::SeqCst) != ticket {
+            return Err(Error::conflict(
+                "stopped",
+                "a stop or feed hold arrived while this request waited; it was not carried out",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// A backend instance created but not yet attached to a machine.
+pub struct Prepared {
+    instance: Instance,
+    events: mpsc::UnboundedReceiver<Value>,
+    machine_id: Arc<AtomicI64>,
+}
+
+struct Sink {
+    tx: mpsc::UnboundedSender<Value>,
+    /// Set once the machine row exists; 0 while the config is being checked.
+    machine_id: Arc<AtomicI64>,
+}
+
+impl HostSink for Sink {
+    fn event(&self, event: Value) {
+        // Unbounded on purpose: a plugin thread must never block on the host, and every
+        // line acknowledgement matters. The task drains in batches.
+        let _ = self.tx.send(event);
+    }
+    fn log(&self, level: u32, message: &str) {
+        use fresa_plugin_api::abi::*;
+        // No machine id yet while the backend is created to check a new machine's config: the
+        // field is left out then rather than logged as a misleading `machine=0`.
+        let id = Some(self.machine_id.load(Ordering::Relaxed)).filter(|&id| id != 0);
+        match level {
+            LOG_ERROR => tracing::error!(machine = id, "{message}"),
+            LOG_WARN => tracing::warn!(machine = id, "{message}"),
+            LOG_INFO => tracing::info!(machine = id, "{message}"),
+            LOG_DEBUG => tracing::debug!(machine = id, "{message}"),
+            _ => tracing::trace!(machine = id, "{message}"),
+        }
+    }
+}
+
+type Reply<T> = oneshot::Sender<Result<T>>;
+
+/// What the task is asked to do. Motion requests carry the gate ticket taken when they were
+/// sent.
+pub(crate) enum Msg {
+    Restore {
+        reply: oneshot::Sender<()>,
+    },
+    Jog {
+        axis: Axis,
+        distance: f64,
+        feed: Option<f64>,
+        actor: String,
+        ticket: u64,
+        reply: Reply<()>,
+    },
+    Mdi {
+        line: String,
+        actor: String,
+        ticket: u64,
+        reply: Reply<()>,
+    },
+    Command {
+        command: Command,
+        actor: String,
+        ticket: u64,
+        reply: Reply<Value>,
+    },
+    SetOffset {
+        offset: WorkOffset,
+        values: AxisValues,
+        actor: String,
+        reply: Reply<()>,
+    },
+    RefreshStatus {
+        reply: Reply<MachineStatus>,
+    },
+    Artifact {
+        name: String,
+        reply: Reply<Value>,
+    },
+    Start {
+        job: JobRow,
+        actor: String,
+        ticket: u64,
+        reply: Reply<RunRow>,
+    },
+    Pause {
+        job_id: i64,
+        actor: String,
+        reply: Reply<RunRow>,
+    },
+    Resume {
+        job: JobRow,
+        actor: String,
+        confirm_part_zero: bool,
+        ticket: u64,
+        reply: Reply<RunRow>,
+    },
+    Cancel {
+        job_id: i64,
+        actor: String,
+        reply: Reply<RunRow>,
+    },
+    /// Answered once everything sent before it, and every backend event queued, is handled.
+    Sync {
+        reply: oneshot::Sender<()>,
+    },
+}
+
+/// A handle on a live machine. Cheap to share; the state behind it belongs to the task.
+pub struct Machine {
+    pub id: i64,
+    tx: mpsc::UnboundedSender<Msg>,
+    lanes: Option<Arc<lanes::Lanes>>,
+    /// Why the backend is missing (plugin not found, config rejected).
+    unavailable: Option<String>,
+    status: watch::Receiver<MachineStatus>,
+    row: watch::Receiver<MachineRow>,
+    run: watch::Receiver<Option<RunView>>,
+    gate: Arc<Gate>,
+    bus: EventBus,
+    timeout: Duration,
+}
+
+impl Machine {
+    /// Creates a backend instance from `config`, off the async runtime. Its events queue until
+    /// [`Machine::start`] takes it, so the instance a config was checked with is the one kept
+    /// (a real controller is not connected twice).
+    pub async fn prepare(library: &PluginLibrary, config: Value) -> Result<Prepared, String> {
+        let (tx, rx) = mpsc::unbounded_channel();
+        let machine_id = Arc::new(AtomicI64::new(0));
+        let sink = Arc::new(Sink {
+            tx,
+            machine_id: machine_id.clone(),
+        });
+        let lib = library.clone();
+        match tokio::task::spawn_blocking(move || lib.create(&config, sink)).await {
+            Ok(Ok(instance)) => Ok(Prepared {
+                instance,
+                events: rx,
+                machine_id,
+            }),
+            Ok(Err(e)) => Err(e.to_string()),
+            Err(e) => Err(format!("backend create failed: {e}")),
+        }
+    }
+
+    /// Starts the machine's task for `row` and brings the backend to the state the store
+    /// remembers (connect, offsets, active offset). Never fails: a machine whose backend could
+    /// not be created is kept, offline with the reason, so the operator sees it and can fix it.
+    pub async fn start(
+        row: MachineRow,
+        backend: Result<Prepared, String>,
+        store: Store,
+        bus: EventBus,
+        opts: &MachineOptions,
+    ) -> Arc<Machine> {
+        let (lanes, events, unavailable) = match backend {
+            Ok(p) => {
+                p.machine_id.store(row.id, Ordering::Relaxed);
+                match lanes::Lanes::new(p.instance, row.id, opts.timeout) {
+                    Ok(l) => (Some(Arc::new(l)), Some(p.events), None),
+                    Err(e) => (
+                        None,
+                        None,
+                        Some(format!("cannot start the call thread: {e}")),
+                    ),
+                }
+            }
+            Err(reason) => (None, None, Some(reason)),
+        };
+        let status = MachineStatus {
+            state: MachineState::Offline,
+            reason: unavailable.clone(),
+            ..Default::default()
+        };
+        let (status_tx, status_rx) = watch::channel(status);
+        let (row_tx, row_rx) = watch::channel(row.clone());
+        let (run_tx, run_rx) = watch::channel(None);
+        let (tx, rx) = mpsc::unbounded_channel();
+        let gate = Arc::new(Gate::default());
+        let m = Arc::new(Machine {
+            id: row.id,
+            tx,
+            lanes: lanes.clone(),
+            unavailable: unavailable.clone(),
+            status: status_rx,
+            row: row_rx,
+            run: run_rx,
+            gate: gate.clone(),
+            bus: bus.clone(),
+            timeout: opts.timeout,
+        });
+        let task = actor::Task {
+            id: row.id,
+            lanes,
+            unavailable,
+            store,
+            bus: bus.clone(),
+            programs_dir: opts.programs_dir.clone(),
+            status: status_tx,
+            row: row_tx,
+            run: run_tx,
+            gate,
+            acks: HashMap::new(),
+        };
+        tokio::spawn(task.run(rx, events));
+        tokio::spawn(status_loop(m.clone(), bus, opts.status_interval));
+        let (reply, done) = oneshot::channel();
+        if m.tx.send(Msg::Restore { reply }).is_ok() {
+            let _ = done.await;
+        }
+        m
+    }
+
+    pub fn row(&self) -> MachineRow {
+        self.row.borrow().clone()
+    }
+
+    /// The last status the backend reported; `unresponsive` (with the reason) while a call into
+    /// it is overdue.
+    pub fn status(&self) -> MachineStatus {
+        let mut s = self.status.borrow().clone();
+        if let Some(why) = self.unresponsive() {
+            s.state = MachineState::Unresponsive;
+            s.reason = Some(why);
+        }
+        s
+    }
+
+    pub fn unresponsive(&self) -> Option<String> {
+        self.lanes.as_ref().and_then(|l| l.unresponsive())
+    }
+
+    pub fn unavailable_reason(&self) -> Option<&str> {
+        self.unavailable.as_deref()
+    }
+
+    /// The current run, if any.
+    pub fn run(&self) -> Option<RunView> {
+        *self.run.borrow()
+    }
+
+    pub fn subscribe_status(&self) -> watch::Receiver<MachineStatus> {
+        self.status.clone()
+    }
+
+    pub fn subscribe_run(&self) -> watch::Receiver<Option<RunView>> {
+        self.run.clone()
+    }
+
+    async fn ask<T>(&self, make: impl FnOnce(Reply<T>) -> Msg) -> Result<T> {
+        let (reply, answer) = oneshot::channel();
+        self.tx
+            .send(make(reply))
+            .map_err(|_| Error::internal(format!("machine {} has stopped", self.id)))?;
+        answer
+            .await
+            .map_err(|_| Error::internal(format!("machine {} dropped the request", self.id)))?
+    }
+
+    /// Bounds-checks one jog against the machine's limits, sends it and records it.
+    pub async fn jog(
+        &self,
+        axis: Axis,
+        distance: f64,
+        feed: Option<f64>,
+        actor: &str,
+    ) -> Result<()> {
+        limits::check_jog(&self.row(), distance, feed)?;
+        let ticket = self.gate.ticket();
+        self.ask(|reply| Msg::Jog {
+            axis,
+            distance,
+            feed,
+            actor: actor.into(),
+            ticket,
+            reply,
+        })
+        .await
+    }
+
+    /// One MDI line: checked like a program line, refused while a job runs.
+    pub async fn mdi(&self, line: &str, actor: &str) -> Result<()> {
+        limits::check_mdi_line(line)
+            .map_err(|e| Error::invalid("invalid_gcode", format!("field `line`: {e}")))?;
+        let ticket = self.gate.ticket();
+        self.ask(|reply| Msg::Mdi {
+            line: line.into(),
+            actor: actor.into(),
+            ticket,
+            reply,
+        })
+        .await
+    }
+
+    /// One immediate command. Stop, feed hold and reset go straight to the backend's urgent
+    /// lane (they overtake everything queued, and whatever motion request was waiting is not
+    /// carried out); the rest are ordered by the task.
+    pub async fn command(&self, command: Command, actor: &str) -> Result<Value> {
+        if !command.is_urgent() {
+            let ticket = self.gate.ticket();
+            return self
+                .ask(|reply| Msg::Command {
+                    command,
+                    actor: actor.into(),
+                    ticket,
+                    reply,
+                })
+                .await;
+        }
+        if matches!(command, Command::Stop | Command::FeedHold) {
+            self.gate.overtake();
+        }
+        let answer = self.urgent(&Request::Command(command)).await?;
+        self.bus
+            .record_or_log(
+                "machine.command",
+                Some(self.id),
+                Some(actor),
+                json!(command),
+            )
+            .await;
+        // The backend reports the run it stopped before it answers; let the task record that
+        // (and refresh the status) before the caller hears "stopped". Bounded: a task stuck
+        // in a hung call must not hold up the answer to a stop that already happened.
+        let (reply, done) = oneshot::channel();
+        if self.tx.send(Msg::RefreshStatus { reply }).is_ok() {
+            let _ = tokio::time::timeout(self.timeout, done).await;
+        }
+        Ok(answer)
+    }
+
+    /// A call on the urgent lane, outside the task.
+    async fn urgent(&self, request: &Request) -> Result<Value> {
+        let lanes = self.lanes.as_ref().ok_or_else(|| {
+            Error::from(BackendError::Unavailable(
+                self.unavailable.clone().unwrap_or_default(),
+            ))
+        })?;
+        Ok(lanes.call(request).await?)
+    }
+
+    pub async fn set_offset(
+        &self,
+        offset: WorkOffset,
+        values: AxisValues,
+        actor: &str,
+    ) -> Result<()> {
+        self.ask(|reply| Msg::SetOffset {
+            offset,
+            values,
+            actor: actor.into(),
+            reply,
+        })
+        .await
+    }
+
+    /// A fresh status from the backend.
+    pub async fn refresh_status(&self) -> Result<MachineStatus> {
+        self.ask(|reply| Msg::RefreshStatus { reply }).await
+    }
+
+    pub async fn artifact(&self, name: &str) -> Result<Value> {
+        self.ask(|reply| Msg::Artifact {
+            name: name.into(),
+            reply,
+        })
+        .await
+    }
+
+    pub async fn start_job(&self, job: JobRow, actor: &str) -> Result<RunRow> {
+        let ticket = self.gate.ticket();
+        self.ask(|reply| Msg::Start {
+            job,
+            actor: actor.into(),
+            ticket,
+            reply,
+        })
+        .await
+    }
+
+    pub async fn pause_job(&self, job_id: i64, actor: &str) -> Result<RunRow> {
+        self.ask(|reply| Msg::Pause {
+            job_id,
+            actor: actor.into(),
+            reply,
+        })
+        .await
+    }
+
+    /// `confirm_part_zero`: the operator accepts whatever part zero the controller reports
+    /// now, instead of requiring the one the run started with.
+    pub async fn resume_job(
+        &self,
+        job: JobRow,
+        actor: &str,
+        confirm_part_zero: bool,
+    ) -> Result<RunRow> {
+        let ticket = self.gate.ticket();
+        self.ask(|reply| Msg::Resume {
+            job,
+            actor: actor.into(),
+            confirm_part_zero,
+            ticket,
+            reply,
+        })
+        .await
+    }
+
+    pub async fn cancel_job(&self, job_id: i64, actor: &str) -> Result<RunRow> {
+        self.ask(|reply| Msg::Cancel {
+            job_id,
+            actor: actor.into(),
+            reply,
+        })
+        .await
+    }
+
+    /// Waits until everything sent to the task so far is handled.
+    pub async fn sync(&self) {
+        let (reply, done) = oneshot::channel();
+        if self.tx.send(Msg::Sync { reply }).is_ok() {
+            let _ = done.await;
+        }
+    }
+
+    /// Shutdown, step one: no new motion from now on, whatever is queued.
+    pub fn close_gate(&self) {
+        self.gate.close();
+    }
+
+    /// Shutdown, step two: tell the backend to stop motion and close its links, on the urgent
+    /// lane (it does not wait for the task or for a hung ordinary call).
+    pub async fn shutdown_backend(&self) -> Result<()> {
+        self.urgent(&Request::Shutdown).await.map(|_| ())
+    }
+}
+
+/// Publishes status and job progress at most once per interval, and only when they changed.
+/// Read-only: it changes nothing the task owns.
+async fn status_loop(machine: Arc<Machine>, bus: EventBus, interval: Duration) {
+    let mut last_sent: Option<MachineStatus> = None;
+    let mut last_progress: Option<(i64, i64)> = None;
+    let mut tick = tokio::time::interval(interval);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tick.tick().await;
+        if machine.tx.is_closed() {
+            return;
+        }
+        let current = machine.status();
+        if last_sent.as_ref() != Some(&current) {
+            bus.transient("status", Some(machine.id), json!(current));
+            last_sent = Some(current);
+        }
+        let run = machine.run();
+        let progress = run.map(|r| (r.run_id, r.line));
+        if progress != last_progress {
+            if let Some(r) = run {
+                bus.transient("job.progress", Some(machine.id), r.progress_json());
+            }
+            last_progress = progress;
+        }
+    }
+}
+
+/// All live machines, by id.
+#[derive(Default)]
+pub struct Machines {
+    map: RwLock<HashMap<i64, Arc<Machine>>>,
+}
+
+impl Machines {
+    pub async fn insert(&self, m: Arc<Machine>) {
+        self.map.write().await.insert(m.id, m);
+    }
+    pub async fn get(&self, id: i64) -> Option<Arc<Machine>> {
+        self.map.read().await.get(&id).cloned()
+    }
+    pub async fn all(&self) -> Vec<Arc<Machine>> {
+        let mut v: Vec<_> = self.map.read().await.values().cloned().collect();
+        v.sort_by_key(|m| m.id);
+        v
+    }
+}

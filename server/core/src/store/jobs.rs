@@ -1,0 +1,321 @@
+//! Jobs and their runs.
+
+use super::{now_ms, Result, Store};
+use serde::Serialize;
+use sqlx::FromRow;
+
+#[derive(Debug, Clone, Serialize, FromRow)]
+pub struct JobRow {
+    pub id: i64,
+    pub name: String,
+    pub machine_id: i64,
+    pub sha256: String,
+    pub size_bytes: i64,
+    pub line_count: i64,
+    #[serde(skip)]
+    pub analysis: Option<String>,
+    pub source: String,
+    pub created_at: i64,
+}
+
+#[derive(Debug, Clone, Serialize, FromRow)]
+pub struct RunRow {
+    pub id: i64,
+    pub job_id: i64,
+    pub machine_id: i64,
+    pub state: RunState,
+    pub last_line: i64,
+    pub message: Option<String>,
+    pub created_at: i64,
+    pub started_at: Option<i64>,
+    pub ended_at: Option<i64>,
+    pub updated_at: i64,
+}
+
+/// A run's state. The database keeps it as the lowercase name; only the machine's task moves a
+/// live run between states (see `machine::actor`), and `can_move_to` is the state machine.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, serde::Deserialize, sqlx::Type)]
+#[serde(rename_all = "lowercase")]
+#[sqlx(type_name = "TEXT", rename_all = "lowercase")]
+pub enum RunState {
+    Queued,
+    Running,
+    Paused,
+    Completed,
+    Failed,
+    Cancelled,
+    Interrupted,
+}
+
+impl RunState {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            RunState::Queued => "queued",
+            RunState::Running => "running",
+            RunState::Paused => "paused",
+            RunState::Completed => "completed",
+            RunState::Failed => "failed",
+            RunState::Cancelled => "cancelled",
+            RunState::Interrupted => "interrupted",
+        }
+    }
+
+    /// The run still owns its machine.
+    pub fn is_active(self) -> bool {
+        matches!(
+            self,
+            RunState::Queued | RunState::Running | RunState::Paused
+        )
+    }
+
+    /// Nothing follows these (a new run is a new row).
+    pub fn is_final(self) -> bool {
+        matches!(self, RunState::Completed | RunState::Cancelled)
+    }
+
+    /// The run state machine: running <-> paused -> completed | failed | cancelled |
+    /// interrupted; failed | interrupted -> running (resume) | cancelled.
+    pub fn can_move_to(self, to: RunState) -> bool {
+        use RunState::*;
+        match (self, to) {
+            (Queued, Running) => true,
+            (Running, Paused) | (Paused, Running) => true,
+            (Queued | Running | Paused, Completed | Failed | Cancelled | Interrupted) => true,
+            (Failed | Interrupted, Running | Cancelled) => true,
+            // Nothing left to run after an interruption at the last line.
+            (Interrupted, Completed) => true,
+            _ => false,
+        }
+    }
+}
+
+impl std::fmt::Display for RunState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// Run states that still own the machine, as SQL.
+const ACTIVE_RUN_STATES: &str = "('queued','running','paused')";
+
+pub struct NewJob<'a> {
+    pub name: &'a str,
+    pub machine_id: i64,
+    pub sha256: &'a str,
+    pub size_bytes: i64,
+    pub line_count: i64,
+    pub analysis: Option<String>,
+    pub source: &'a str,
+}
+
+impl Store {
+    // ---- jobs and runs ----
+
+    pub async fn insert_job(&self, job: NewJob<'_>) -> Result<i64> {
+        let mut tx = self.begin().await?;
+        let id = sqlx::query_scalar(
+            "INSERT INTO jobs (name, machine_id, sha256, size_bytes, line_count, analysis, source, created_at)
+             VALUES (?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
+        )
+        .bind(job.name)
+        .bind(job.machine_id)
+        .bind(job.sha256)
+        .bind(job.size_bytes)
+        .bind(job.line_count)
+        .bind(job.analysis)
+        .bind(job.source)
+        .bind(now_ms())
+        .fetch_one(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(id)
+    }
+
+    pub async fn job(&self, id: i64) -> Result<Option<JobRow>> {
+        sqlx::query_as("SELECT * FROM jobs WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await
+    }
+
+    pub async fn list_jobs(&self, machine_id: Option<i64>, limit: i64) -> Result<Vec<JobRow>> {
+        sqlx::query_as(
+            "SELECT * FROM jobs WHERE (?1 IS NULL OR machine_id = ?1) ORDER BY id DESC LIMIT ?2",
+        )
+        .bind(machine_id)
+        .bind(limit)
+        .fetch_all(&self.pool)
+        .await
+    }
+
+    /// Creates a run in state `running`, unless the machine already has an active run
+    /// (checked inside the same transaction, so two concurrent starts cannot both win).
+    pub async fn start_run(
+        &self,
+        job_id: i64,
+        machine_id: i64,
+    ) -> Result<std::result::Result<RunRow, RunRow>> {
+        let mut tx = self.begin().await?;
+        if let Some(b) = active_run_except(&mut tx, machine_id, None).await? {
+            return Ok(Err(b));
+        }
+        let now = now_ms();
+        let row: RunRow = sqlx::query_as(
+            "INSERT INTO job_runs (job_id, machine_id, state, created_at, started_at, updated_at)
+             VALUES (?, ?, 'running', ?, ?, ?) RETURNING *",
+        )
+        .bind(job_id)
+        .bind(machine_id)
+        .bind(now)
+        .bind(now)
+        .bind(now)
+        .fetch_one(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(Ok(row))
+    }
+
+    /// Moves a run to `to` only if it is currently in one of `from` (a compare-and-set, so a
+    /// late event cannot resurrect a finished run). Returns the updated row if it moved.
+    pub async fn transition_run(
+        &self,
+        run_id: i64,
+        from: &[RunState],
+        to: RunState,
+        message: Option<&str>,
+    ) -> Result<Option<RunRow>> {
+        let mut tx = self.begin().await?;
+        let current: Option<RunRow> = sqlx::query_as("SELECT * FROM job_runs WHERE id = ?")
+            .bind(run_id)
+            .fetch_optional(&mut *tx)
+            .await?;
+        let Some(current) = current else {
+            return Ok(None);
+        };
+        if !from.contains(&current.state) || !current.state.can_move_to(to) {
+            return Ok(None);
+        }
+        let now = now_ms();
+        let terminal = !to.is_active();
+        let row: RunRow = sqlx::query_as(
+            "UPDATE job_runs SET state = ?, message = ?, updated_at = ?,
+               ended_at = CASE WHEN ? THEN ? ELSE NULL END
+             WHERE id = ? RETURNING *",
+        )
+        .bind(to)
+        .bind(message)
+        .bind(now)
+        .bind(terminal)
+        .bind(now)
+        .bind(run_id)
+        .fetch_one(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(Some(row))
+    }
+
+    /// Records the last acknowledged line; never moves backwards.
+    pub async fn ack_line(&self, run_id: i64, line: i64) -> Result<()> {
+        let mut tx = self.begin().await?;
+        sqlx::query(
+            "UPDATE job_runs SET last_line = MAX(last_line, ?), updated_at = ? WHERE id = ?",
+        )
+        .bind(line)
+        .bind(now_ms())
+        .bind(run_id)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await
+    }
+
+    pub async fn run(&self, id: i64) -> Result<Option<RunRow>> {
+        sqlx::query_as("SELECT * FROM job_runs WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await
+    }
+
+    pub async fn latest_run(&self, job_id: i64) -> Result<Option<RunRow>> {
+        sqlx::query_as("SELECT * FROM job_runs WHERE job_id = ? ORDER BY id DESC LIMIT 1")
+            .bind(job_id)
+            .fetch_optional(&self.pool)
+            .await
+    }
+
+    /// The latest run of each of `job_ids`, in one query (for job lists).
+    pub async fn latest_runs(&self, job_ids: &[i64]) -> Result<Vec<RunRow>> {
+        if job_ids.is_empty() {
+            return Ok(Vec::new());
+        }
+        let ids = serde_json::to_string(job_ids).unwrap_or_else(|_| "[]".into());
+        sqlx::query_as(
+            "SELECT * FROM job_runs WHERE id IN (SELECT MAX(id) FROM job_runs
+               WHERE job_id IN (SELECT value FROM json_each(?)) GROUP BY job_id)",
+        )
+        .bind(ids)
+        .fetch_all(&self.pool)
+        .await
+    }
+
+    /// At start-up nothing can be running: every run that was active when the previous process
+    /// died becomes `interrupted`, keeping its last acknowledged line for a resume.
+    pub async fn interrupt_active_runs(&self) -> Result<Vec<RunRow>> {
+        let mut tx = self.begin().await?;
+        let rows: Vec<RunRow> = sqlx::query_as(&format!(
+            "UPDATE job_runs SET state = 'interrupted', updated_at = ?1, ended_at = ?1,
+               message = 'server stopped while the run was ' || state
+             WHERE state IN {ACTIVE_RUN_STATES} RETURNING *"
+        ))
+        .bind(now_ms())
+        .fetch_all(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(rows)
+    }
+
+    /// Puts an interrupted or paused-by-restart run back to `running` for a resume.
+    pub async fn reopen_run(
+        &self,
+        run_id: i64,
+        machine_id: i64,
+    ) -> Result<std::result::Result<RunRow, RunRow>> {
+        let mut tx = self.begin().await?;
+        if let Some(b) = active_run_except(&mut tx, machine_id, Some(run_id)).await? {
+            return Ok(Err(b));
+        }
+        let row: RunRow = sqlx::query_as(
+            "UPDATE job_runs SET state = 'running', message = NULL, ended_at = NULL, updated_at = ?
+             WHERE id = ? RETURNING *",
+        )
+        .bind(now_ms())
+        .bind(run_id)
+        .fetch_one(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(Ok(row))
+    }
+
+    /// Number of job runs per state, for `/metrics`.
+    pub async fn run_state_counts(&self) -> Result<Vec<(String, i64)>> {
+        sqlx::query_as("SELECT state, COUNT(*) FROM job_runs GROUP BY state ORDER BY state")
+            .fetch_all(&self.pool)
+            .await
+    }
+}
+
+/// The run that owns `machine_id` (queued, running or paused), other than `except`. Called
+/// inside the write transaction that is about to make a run active, so two starts cannot race.
+async fn active_run_except(
+    tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
+    machine_id: i64,
+    except: Option<i64>,
+) -> Result<Option<RunRow>> {
+    sqlx::query_as(&format!(
+        "SELECT * FROM job_runs WHERE machine_id = ?1 AND (?2 IS NULL OR id != ?2)
+           AND state IN {ACTIVE_RUN_STATES} LIMIT 1"
+    ))
+    .bind(machine_id)
+    .bind(except)
+    .fetch_optional(&mut **tx)
+    .await
+}
