@@ -20,10 +20,20 @@ pub struct PluginLoadFailure {
     pub error: String,
 }
 
+/// A shared library in a plugin directory that was not loaded, and why not.
+#[derive(Debug, Clone, Serialize)]
+pub struct PluginSkipped {
+    pub path: PathBuf,
+    pub reason: String,
+}
+
 #[derive(Default)]
 pub struct Registry {
     libraries: BTreeMap<String, PluginLibrary>,
+    /// Files named like plugins that failed to load (bad ABI, missing symbol, ...).
     pub failures: Vec<PluginLoadFailure>,
+    /// Other libraries in the plugin directories, not loaded: wrong name, or shadowed.
+    pub skipped: Vec<PluginSkipped>,
 }
 
 fn kinds(bits: u32) -> Vec<&'static str> {
@@ -43,8 +53,20 @@ fn looks_like_plugin(path: &Path) -> bool {
     let Some(name) = path.file_name().and_then(|n| n.to_str()) else {
         return false;
     };
-    let prefix = format!("{}fresa_", std::env::consts::DLL_PREFIX);
-    name.starts_with(&prefix) && name.ends_with(std::env::consts::DLL_SUFFIX)
+    name.starts_with(&plugin_prefix()) && name.ends_with(std::env::consts::DLL_SUFFIX)
+}
+
+fn plugin_prefix() -> String {
+    format!("{}fresa_", std::env::consts::DLL_PREFIX)
+}
+
+/// Any shared library, plugin or not (so the ones we skip can be listed).
+fn is_library(path: &Path) -> bool {
+    path.is_file()
+        && path
+            .file_name()
+            .and_then(|n| n.to_str())
+            .is_some_and(|n| n.ends_with(std::env::consts::DLL_SUFFIX))
 }
 
 impl Registry {
@@ -58,14 +80,34 @@ impl Registry {
             };
             let mut files: Vec<PathBuf> = entries
                 .filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| looks_like_plugin(p))
+                .filter(|p| is_library(p))
                 .collect();
             files.sort();
             for path in files {
+                if !looks_like_plugin(&path) {
+                    tracing::info!(path = %path.display(), "library skipped: not named like a plugin");
+                    reg.skipped.push(PluginSkipped {
+                        reason: format!(
+                            "not named like a plugin: plugin files are {}<name>{}",
+                            plugin_prefix(),
+                            std::env::consts::DLL_SUFFIX
+                        ),
+                        path,
+                    });
+                    continue;
+                }
                 match PluginLibrary::load(&path) {
                     Ok(lib) => {
-                        if reg.libraries.contains_key(lib.name()) {
-                            tracing::debug!(path = %path.display(), name = lib.name(), "plugin shadowed by an earlier directory");
+                        if let Some(first) = reg.libraries.get(lib.name()) {
+                            tracing::info!(path = %path.display(), name = lib.name(), "plugin shadowed by an earlier directory");
+                            reg.skipped.push(PluginSkipped {
+                                reason: format!(
+                                    "plugin {:?} is already loaded from {} (an earlier directory wins)",
+                                    lib.name(),
+                                    first.path().display()
+                                ),
+                                path: path.clone(),
+                            });
                             continue;
                         }
                         tracing::info!(name = lib.name(), version = lib.version(), path = %path.display(), "plugin loaded");

@@ -3,9 +3,10 @@
 
 use super::error::ApiError;
 use axum::extract::{Request, State};
-use axum::http::{Method, StatusCode};
+use axum::http::StatusCode;
 use axum::middleware::Next;
 use axum::response::Response;
+use axum::routing::MethodRouter;
 use fresa_core::SharedApp;
 use sha2::{Digest, Sha256};
 
@@ -49,19 +50,6 @@ pub fn hash_token(secret: &str) -> String {
 pub fn new_secret() -> String {
     let bytes: [u8; 24] = rand::random();
     format!("fresa_{}", hex::encode(bytes))
-}
-
-/// The role a request needs: reading is for viewers, moving machines and jobs for operators,
-/// configuring machines and plugins for admins.
-fn required_role(method: &Method, path: &str) -> Role {
-    if method == Method::GET || method == Method::HEAD {
-        return Role::Viewer;
-    }
-    if path == "/api/v1/machines" || path.starts_with("/api/v1/pendants") && method != Method::PATCH
-    {
-        return Role::Admin;
-    }
-    Role::Operator
 }
 
 fn bearer(req: &Request) -> Option<String> {
@@ -110,26 +98,32 @@ pub async fn middleware(
                 role: Role::Admin,
             },
         };
-    // This middleware runs inside `nest("/api/v1", ..)`, which strips the prefix from the URI:
-    // judge the full path, as `required_role` expects.
-    let path = req
-        .extensions()
-        .get::<axum::extract::OriginalUri>()
-        .map(|u| u.path().to_string())
-        .unwrap_or_else(|| req.uri().path().to_string());
-    let need = required_role(req.method(), &path);
-    if caller.role < need {
-        return Err(ApiError::new(
-            StatusCode::FORBIDDEN,
-            "forbidden",
-            format!(
-                "token {:?} has role {}; this request needs {}",
-                caller.name,
-                caller.role.name(),
-                need.name()
-            ),
-        ));
-    }
     req.extensions_mut().insert(caller);
     Ok(next.run(req).await)
+}
+
+/// A route's handler that needs at least `role`; the role is declared where the route is
+/// (see `router`), and checked after [`middleware`] has said who is calling.
+pub fn needs(role: Role, handler: MethodRouter<SharedApp>) -> MethodRouter<SharedApp> {
+    handler.route_layer(axum::middleware::from_fn(
+        move |req: Request, next: Next| async move {
+            let caller = req.extensions().get::<Caller>().cloned();
+            match caller {
+                Some(c) if c.role >= role => Ok(next.run(req).await),
+                Some(c) => Err(ApiError::new(
+                    StatusCode::FORBIDDEN,
+                    "forbidden",
+                    format!(
+                        "token {:?} has role {}; this request needs {}",
+                        c.name,
+                        c.role.name(),
+                        role.name()
+                    ),
+                )),
+                None => Err(ApiError::internal(
+                    "route has no caller: auth layer missing",
+                )),
+            }
+        },
+    ))
 }

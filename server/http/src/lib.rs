@@ -10,46 +10,78 @@ mod pendants;
 use axum::extract::{DefaultBodyLimit, State};
 use axum::http::StatusCode;
 use axum::response::IntoResponse;
-use axum::routing::{get, post, put};
+use axum::routing::{delete, get, patch, post, put};
 use axum::Router;
 use error::Json;
 use fresa_core::SharedApp;
 
+/// Every route with the role it needs: reading is for viewers, moving machines and jobs for
+/// operators, configuring machines, pendants and plugins for admins.
 pub fn router(app: SharedApp) -> Router {
+    use auth::needs;
+    use auth::Role::{Admin, Operator, Viewer};
     let api = Router::new()
-        .route("/machines", get(machines::list).post(machines::create))
-        .route("/machines/{id}", get(machines::get_one))
-        .route("/machines/{id}/status", get(machines::status))
-        .route("/machines/{id}/jog", post(machines::jog))
-        .route("/machines/{id}/commands", post(machines::command))
-        .route("/machines/{id}/mdi", post(machines::mdi))
-        .route("/machines/{id}/offsets", get(machines::offsets))
-        .route("/machines/{id}/offsets/{name}", put(machines::set_offset))
+        .route(
+            "/machines",
+            needs(Viewer, get(machines::list)).merge(needs(Admin, post(machines::create))),
+        )
+        .route("/machines/{id}", needs(Viewer, get(machines::get_one)))
+        .route(
+            "/machines/{id}/status",
+            needs(Viewer, get(machines::status)),
+        )
+        .route("/machines/{id}/jog", needs(Operator, post(machines::jog)))
+        .route(
+            "/machines/{id}/commands",
+            needs(Operator, post(machines::command)),
+        )
+        .route("/machines/{id}/mdi", needs(Operator, post(machines::mdi)))
+        .route(
+            "/machines/{id}/offsets",
+            needs(Viewer, get(machines::offsets)),
+        )
+        .route(
+            "/machines/{id}/offsets/{name}",
+            needs(Operator, put(machines::set_offset)),
+        )
         .route(
             "/machines/{id}/part-zero",
-            get(machines::part_zeros).post(machines::record_part_zero),
+            needs(Viewer, get(machines::part_zeros))
+                .merge(needs(Operator, post(machines::record_part_zero))),
         )
-        .route("/machines/{id}/as-program", get(machines::as_program))
+        .route(
+            "/machines/{id}/as-program",
+            needs(Viewer, get(machines::as_program)),
+        )
         .route(
             "/jobs",
-            get(jobs::list)
-                .post(jobs::upload)
+            needs(Viewer, get(jobs::list)).merge(needs(
+                Operator,
                 // Uploads are streamed to disk under our own limit (`max_upload_bytes`).
-                .layer(DefaultBodyLimit::disable()),
+                post(jobs::upload).layer(DefaultBodyLimit::disable()),
+            )),
         )
-        .route("/jobs/{id}", get(jobs::get_one))
-        .route("/jobs/{id}/gcode", get(jobs::gcode))
-        .route("/jobs/{id}/{action}", post(jobs::control))
-        .route("/pendants", get(pendants::list).post(pendants::create))
-        .route("/pendants/discovered", get(pendants::discovered))
+        .route("/jobs/{id}", needs(Viewer, get(jobs::get_one)))
+        .route("/jobs/{id}/gcode", needs(Viewer, get(jobs::gcode)))
+        .route("/jobs/{id}/{action}", needs(Operator, post(jobs::control)))
+        .route(
+            "/pendants",
+            needs(Viewer, get(pendants::list)).merge(needs(Admin, post(pendants::create))),
+        )
+        .route(
+            "/pendants/discovered",
+            needs(Viewer, get(pendants::discovered)),
+        )
         .route(
             "/pendants/{id}",
-            get(pendants::get_one)
-                .patch(pendants::patch)
-                .delete(pendants::delete),
+            needs(Viewer, get(pendants::get_one))
+                // Binding a pendant to a machine is an operator's job; creating or deleting
+                // one is an admin's.
+                .merge(needs(Operator, patch(pendants::patch)))
+                .merge(needs(Admin, delete(pendants::delete))),
         )
-        .route("/plugins", get(plugins))
-        .route("/events", get(events::stream))
+        .route("/plugins", needs(Viewer, get(plugins)))
+        .route("/events", needs(Viewer, get(events::stream)))
         .layer(axum::middleware::from_fn_with_state(
             app.clone(),
             auth::middleware,
@@ -59,7 +91,7 @@ pub fn router(app: SharedApp) -> Router {
         .route("/healthz", get(healthz))
         .route(
             "/metrics",
-            get(metrics).layer(axum::middleware::from_fn_with_state(
+            needs(Viewer, get(metrics)).layer(axum::middleware::from_fn_with_state(
                 app.clone(),
                 auth::middleware,
             )),
@@ -69,17 +101,32 @@ pub fn router(app: SharedApp) -> Router {
         .with_state(app)
 }
 
+/// `ok`; `degraded` (still 200: the other machines work) naming machines whose backend stopped
+/// answering; 503 when the database does not answer.
 async fn healthz(State(app): State<SharedApp>) -> impl IntoResponse {
-    match app.store.ping().await {
-        Ok(()) => (
-            StatusCode::OK,
-            axum::Json(serde_json::json!({"status": "ok"})),
-        ),
-        Err(e) => (
+    if let Err(e) = app.store.ping().await {
+        return (
             StatusCode::SERVICE_UNAVAILABLE,
             axum::Json(serde_json::json!({"status": "unavailable", "message": e.to_string()})),
-        ),
+        );
     }
+    let unresponsive: Vec<i64> = app
+        .machines
+        .all()
+        .await
+        .iter()
+        .filter(|m| m.unresponsive().is_some())
+        .map(|m| m.id)
+        .collect();
+    let status = if unresponsive.is_empty() {
+        "ok"
+    } else {
+        "degraded"
+    };
+    (
+        StatusCode::OK,
+        axum::Json(serde_json::json!({"status": status, "unresponsive_machines": unresponsive})),
+    )
 }
 
 /// Prometheus text format. Read-only and cheap: gauges from memory plus one grouped query.
@@ -136,6 +183,7 @@ async fn plugins(State(app): State<SharedApp>) -> Json<serde_json::Value> {
     Json(serde_json::json!({
         "plugins": app.plugins.infos(),
         "failures": app.plugins.failures,
+        "skipped": app.plugins.skipped,
         "abi": format!("{}.{}", fresa_plugin_api::abi::ABI_MAJOR, fresa_plugin_api::abi::ABI_MINOR),
     }))
 }
