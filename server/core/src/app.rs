@@ -1,11 +1,12 @@
-//! The server's shared state and its start-up sequence.
+//! The server's shared state: one `App` per process, shared by the HTTP layer and the pendants.
+//! Its start-up and shutdown are in `startup`.
 
 use crate::config::Settings;
-use crate::datadir::{DataDirLock, LockError};
+use crate::datadir::DataDirLock;
 use crate::events::EventBus;
-use crate::machine::{Machine, MachineOptions, Machines};
+use crate::machine::{MachineOptions, Machines};
+use crate::pendants::registry::Pendants;
 use crate::plugins::Registry;
-use crate::store::RunRow;
 use crate::store::Store;
 use std::sync::Arc;
 use tokio_util::sync::CancellationToken;
@@ -16,37 +17,16 @@ pub struct App {
     pub bus: EventBus,
     pub plugins: Registry,
     pub machines: Machines,
-    pub pendants: crate::pendants::Pendants,
+    pub pendants: Pendants,
     /// Cancelled on shutdown: ends SSE streams and background loops.
     pub shutdown: CancellationToken,
     /// Whether requests must carry a token (any non-loopback bind).
     pub auth_required: bool,
     /// Held while the process lives: one server per data directory.
-    _lock: DataDirLock,
+    pub(crate) _lock: DataDirLock,
 }
 
 pub type SharedApp = Arc<App>;
-
-#[derive(Debug, thiserror::Error)]
-pub enum StartError {
-    #[error("cannot create data directory {path}: {source}")]
-    DataDir {
-        path: std::path::PathBuf,
-        source: std::io::Error,
-    },
-    #[error("cannot open database {path}: {source}")]
-    Store {
-        path: std::path::PathBuf,
-        source: sqlx::Error,
-    },
-    #[error(
-        "refusing to listen on {0}: it is not a loopback address and no API token exists. \
-         Create one first with `fresa token create --role admin --name NAME`"
-    )]
-    NoTokens(std::net::SocketAddr),
-    #[error("{0}")]
-    Locked(#[from] LockError),
-}
 
 impl App {
     pub fn machine_options(&self) -> MachineOptions {
@@ -56,162 +36,4 @@ impl App {
             programs_dir: self.settings.programs_dir(),
         }
     }
-
-    /// Opens the store, loads plugins, marks runs the last process left active as interrupted and
-    /// starts a backend instance for every machine.
-    pub async fn start(settings: Settings) -> Result<SharedApp, StartError> {
-        std::fs::create_dir_all(settings.programs_dir()).map_err(|source| StartError::DataDir {
-            path: settings.programs_dir(),
-            source,
-        })?;
-        // Before the store is touched: a second server must not mark the first one's runs.
-        let lock = DataDirLock::acquire(&settings.data_dir)?;
-        let db = settings.db_path();
-        let store = Store::open(&db).await.map_err(|source| StartError::Store {
-            path: db.clone(),
-            source,
-        })?;
-        tracing::info!(database = %db.display(), "store ready");
-        let auth_required = !settings.loopback_only();
-        if auth_required {
-            let n = store
-                .token_count()
-                .await
-                .map_err(|source| StartError::Store {
-                    path: db.clone(),
-                    source,
-                })?;
-            if n == 0 {
-                return Err(StartError::NoTokens(settings.listen));
-            }
-        }
-        let plugins = Registry::load(&settings.plugin_dirs);
-        if plugins.names().is_empty() {
-            tracing::warn!(
-                dirs = ?settings.plugin_dirs,
-                "no plugins found; build them with `cargo build --workspace` or pass --plugin-dir"
-            );
-        } else {
-            tracing::info!(plugins = ?plugins.names(), "plugins loaded");
-        }
-        let bus = EventBus::new(store.clone(), 4096);
-        let app = Arc::new(App {
-            settings,
-            store: store.clone(),
-            bus: bus.clone(),
-            plugins,
-            machines: Machines::default(),
-            pendants: Default::default(),
-            shutdown: CancellationToken::new(),
-            auth_required,
-            _lock: lock,
-        });
-        for run in store
-            .interrupt_active_runs()
-            .await
-            .map_err(|source| StartError::Store {
-                path: db.clone(),
-                source,
-            })?
-        {
-            tracing::warn!(
-                run = run.id,
-                job = run.job_id,
-                last_line = run.last_line,
-                "run was interrupted by a restart; resume it with POST /api/v1/jobs/{}/resume",
-                run.job_id
-            );
-            record_interrupted(&bus, &run).await;
-        }
-        if app.settings.demo {
-            crate::demo::ensure_demo_machine(&app).await;
-        }
-        let rows = store
-            .list_machines()
-            .await
-            .map_err(|source| StartError::Store { path: db, source })?;
-        for row in rows {
-            let backend = match app.plugins.get(&row.backend) {
-                Some(lib) => Machine::prepare(lib, row.config_json())
-                    .await
-                    .map_err(|e| format!("backend rejected its config: {e}")),
-                None => Err(format!("no plugin named {:?} is loaded", row.backend)),
-            };
-            let m = Machine::start(
-                row,
-                backend,
-                store.clone(),
-                bus.clone(),
-                &app.machine_options(),
-            )
-            .await;
-            if let Some(reason) = m.unavailable_reason() {
-                tracing::error!(machine = m.id, reason, "machine offline");
-            }
-            app.machines.insert(m).await;
-        }
-        if app.settings.demo {
-            crate::demo::ensure_demo_pendant(&app).await;
-        }
-        crate::pendants::start_all(&app).await;
-        Ok(app)
-    }
-
-    /// Stops all motion and marks active runs interrupted (resumable), before anything else
-    /// of shutdown: no new motion is started from the moment this begins, whatever requests are
-    /// still open or queued. Bounded: a backend that does not answer its urgent shutdown call
-    /// within `limit` is left behind (it is logged), so the process can still exit.
-    pub async fn stop_motion(&self, limit: std::time::Duration) {
-        let machines = self.machines.all().await;
-        for m in &machines {
-            m.close_gate();
-        }
-        // Runs first: a backend reports a run it stops on shutdown as cancelled, and that
-        // report must find the run already interrupted (so it is ignored).
-        match self.store.interrupt_active_runs().await {
-            Ok(rows) => {
-                for r in rows {
-                    tracing::info!(
-                        run = r.id,
-                        last_line = r.last_line,
-                        "run interrupted by shutdown"
-                    );
-                    record_interrupted(&self.bus, &r).await;
-                }
-            }
-            Err(e) => tracing::error!(error = %e, "could not mark runs interrupted"),
-        }
-        let stops = machines.iter().map(|m| async move {
-            match tokio::time::timeout(limit, m.shutdown_backend()).await {
-                Ok(Ok(())) => {}
-                Ok(Err(e)) => tracing::warn!(machine = m.id, error = %e, "shutdown call failed"),
-                Err(_) => tracing::error!(
-                    machine = m.id,
-                    "backend did not confirm its stop within {limit:?}"
-                ),
-            }
-        });
-        futures_util::future::join_all(stops).await;
-    }
-
-    /// The rest of shutdown, once motion is stopped: pendants and SSE streams.
-    pub async fn stop_rest(&self, limit: std::time::Duration) {
-        self.shutdown.cancel();
-        if tokio::time::timeout(limit, self.pendants.stop_all())
-            .await
-            .is_err()
-        {
-            tracing::warn!("pendant transports did not stop within {limit:?}");
-        }
-    }
-}
-
-async fn record_interrupted(bus: &EventBus, run: &RunRow) {
-    bus.record_or_log(
-        "job.state",
-        Some(run.machine_id),
-        None,
-        serde_json::json!({"job": run.job_id, "run": run.id, "state": "interrupted", "line": run.last_line, "message": run.message}),
-    )
-    .await;
 }

@@ -3,9 +3,6 @@
 //! sort of failure it is, so an outer layer can map it (the HTTP layer maps kinds to statuses)
 //! without the core knowing about HTTP.
 
-use crate::machine::BackendError;
-use fresa_plugin_api::host::CallError;
-
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ErrorKind {
     /// The request itself is malformed (empty body, bad query).
@@ -89,44 +86,5 @@ impl From<sqlx::Error> for Error {
     fn from(e: sqlx::Error) -> Self {
         tracing::error!(error = %e, "database error");
         Error::internal(format!("database error: {e}"))
-    }
-}
-
-/// A backend failure: the plugin's own rejection is the caller's problem, a missing, hung or
-/// unresponsive backend is the server's.
-impl From<BackendError> for Error {
-    fn from(e: BackendError) -> Self {
-        match e {
-            BackendError::Unavailable(m) => {
-                Error::new(ErrorKind::Unavailable, "machine_offline", m)
-            }
-            BackendError::Unresponsive(m) => {
-                Error::new(ErrorKind::Unavailable, "machine_unresponsive", m)
-            }
-            BackendError::Timeout(d) => Error::new(
-                ErrorKind::Timeout,
-                "backend_timeout",
-                format!("machine backend did not answer within {d:?}"),
-            ),
-            // The controller's part zero moved since the run started: the operator must decide.
-            BackendError::Call(CallError::Plugin(p)) if p.code == "part_zero_changed" => {
-                Error::conflict("part_zero_changed", p.message)
-            }
-            BackendError::Call(CallError::Plugin(p)) => {
-                let kind = if p.code == "busy" {
-                    ErrorKind::Conflict
-                } else {
-                    ErrorKind::Invalid
-                };
-                Error::new(
-                    kind,
-                    "backend_rejected",
-                    format!("{}: {}", p.code, p.message),
-                )
-            }
-            BackendError::Call(other) => {
-                Error::new(ErrorKind::Backend, "backend_error", other.to_string())
-            }
-        }
     }
 }

@@ -3,10 +3,11 @@
 //! * [`store`]: the SQLite database, one module per concern.
 //! * [`machine`]: a task per machine that owns its run lifecycle, and the lanes its backend
 //!   calls travel on.
-//! * [`jobs`]: from an uploaded program to a job; run control goes to the job's machine.
+//! * [`programs`]: uploaded programs on disk. [`jobs`]: from a program to a job; run control
+//!   goes to the job's machine.
 //! * [`pendants`]: handwheel pendants; their keys call the same functions the HTTP layer does.
 //! * [`events`]: the event bus and audit log. [`plugins`]: the plugin registry.
-//! * [`app`]: the whole, its start-up and its shutdown. [`error`]: the core's errors.
+//! * [`app`]: the whole; `startup`: its start-up and shutdown. [`error`]: the core's errors.
 
 pub mod app;
 pub mod config;
@@ -18,7 +19,10 @@ pub mod jobs;
 pub mod machine;
 pub mod pendants;
 pub mod plugins;
+pub mod programs;
+mod startup;
 pub mod store;
 
 pub use app::{App, SharedApp};
 pub use error::{Error, ErrorKind, Result};
+pub use startup::StartError;

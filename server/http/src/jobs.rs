@@ -5,7 +5,8 @@ use axum::extract::{FromRequest, Multipart, Request, State};
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Extension;
-use fresa_core::jobs::{self as core, PendingProgram};
+use fresa_core::jobs as core;
+use fresa_core::programs::{self, PendingProgram};
 use fresa_core::SharedApp;
 use futures_util::StreamExt;
 use serde::Deserialize;
@@ -69,7 +70,7 @@ pub async fn gcode(
         .job(id)
         .await?
         .ok_or_else(|| ApiError::not_found("unknown_job", format!("no job with id {id}")))?;
-    let path = core::program_path(&app.settings.programs_dir(), &job.sha256);
+    let path = programs::program_path(&app.settings.programs_dir(), &job.sha256);
     let file = tokio::fs::File::open(&path).await.map_err(|e| {
         ApiError::internal(format!("program file {} is missing: {e}", path.display()))
     })?;

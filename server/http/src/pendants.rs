@@ -3,7 +3,8 @@ use super::error::{ApiError, Json, Path};
 use axum::extract::State;
 use axum::http::StatusCode;
 use axum::Extension;
-use fresa_core::pendants::{self as core, MacroAction};
+use fresa_core::pendants as core;
+use fresa_core::store::MacroAction;
 use fresa_core::SharedApp;
 use serde::Deserialize;
 use serde_json::{json, Value};
@@ -285,5 +286,5 @@ pub async fn delete(
 }
 
 pub async fn discovered(State(app): State<SharedApp>) -> Result<Json<Value>, ApiError> {
-    Ok(Json(app.pendants.discovered(&app).await?))
+    Ok(Json(core::discovered(&app).await?))
 }

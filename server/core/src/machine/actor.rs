@@ -100,12 +100,14 @@ impl Task {
             } => {
                 let r = async {
                     self.refuse_during_run("jogging")?;
-                    self.gate.check(ticket)?;
-                    self.call(&Request::Jog {
-                        axis,
-                        distance,
-                        feed,
-                    })
+                    self.motion(
+                        ticket,
+                        &Request::Jog {
+                            axis,
+                            distance,
+                            feed,
+                        },
+                    )
                     .await?;
                     self.record(
                         "machine.jog",
@@ -126,8 +128,8 @@ impl Task {
             } => {
                 let r = async {
                     self.refuse_during_run("MDI")?;
-                    self.gate.check(ticket)?;
-                    self.call(&Request::Mdi { line: line.clone() }).await?;
+                    self.motion(ticket, &Request::Mdi { line: line.clone() })
+                        .await?;
                     self.record("machine.mdi", &actor, json!({"line": line}))
                         .await;
                     Ok(())
@@ -205,6 +207,25 @@ impl Task {
 
     async fn call(&self, request: &Request) -> Result<Value> {
         Ok(self.call_raw(request).await?)
+    }
+
+    /// A call that starts motion, fenced by the gate on both sides: refused if a stop came
+    /// after the request was sent, and stopped again at once if a stop reached the backend
+    /// while this call was on its way (the two lanes race inside the backend).
+    async fn motion(&self, ticket: u64, request: &Request) -> Result<Value> {
+        self.gate.check(ticket)?;
+        let answer = self.call(request).await?;
+        if let Err(e) = self.gate.check(ticket) {
+            tracing::info!(
+                machine = self.id,
+                "a stop overtook a motion request; stopping again"
+            );
+            if let Err(stop) = self.call(&Request::Command(Command::Stop)).await {
+                tracing::error!(machine = self.id, error = %stop, "could not repeat the stop");
+            }
+            return Err(e);
+        }
+        Ok(answer)
     }
 
     async fn call_raw(&self, request: &Request) -> Result<Value, BackendError> {
@@ -312,9 +333,7 @@ impl Task {
             command,
             Command::CycleStart | Command::Resume | Command::Home { .. } | Command::GoToZero
         );
-        if starts_motion {
-            self.gate.check(ticket)?;
-        }
+
         // Spindle and coolant belong to the program while it cuts; the operator may change them
         // once the run is held.
         if let Command::SetOutput { name, .. } | Command::ToggleOutput { name } = command {
@@ -332,7 +351,11 @@ impl Task {
                 ));
             }
         }
-        let answer = self.call(&Request::Command(command)).await?;
+        let answer = if starts_motion {
+            self.motion(ticket, &Request::Command(command)).await?
+        } else {
+            self.call(&Request::Command(command)).await?
+        };
         // Commands that change offsets: the backend computed them; persist what it now has.
         if matches!(command, Command::Zero { .. } | Command::SelectOffset { .. }) {
             self.persist_backend_offsets().await?;
@@ -507,7 +530,7 @@ impl Task {
         expected_part_zero: Option<AxisValues>,
         ticket: u64,
     ) -> Result<RunRow> {
-        let path = crate::jobs::program_path(&self.programs_dir, &job.sha256);
+        let path = crate::programs::program_path(&self.programs_dir, &job.sha256);
         self.publish_run(Some(RunView {
             run_id: run.id,
             job_id: job.id,
@@ -539,9 +562,12 @@ impl Task {
             // Announce `running` before the backend can finish the run, so the audit log never
             // shows `completed` without the `running` before it.
             self.record("job.state", actor, run_event(&run)).await;
-            self.call(&Request::Run {
-                action: RunAction::Start,
-            })
+            self.motion(
+                ticket,
+                &Request::Run {
+                    action: RunAction::Start,
+                },
+            )
             .await
         }
         .await;
@@ -620,10 +646,12 @@ impl Task {
         let run = self.latest(job_id).await?;
         match run.state {
             RunState::Paused => {
-                self.gate.check(ticket)?;
-                self.call(&Request::Run {
-                    action: RunAction::Resume,
-                })
+                self.motion(
+                    ticket,
+                    &Request::Run {
+                        action: RunAction::Resume,
+                    },
+                )
                 .await?;
                 self.transition_or_current(&run, &[RunState::Paused], RunState::Running, actor)
                     .await

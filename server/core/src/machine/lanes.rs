@@ -5,6 +5,7 @@
 //! unresponsive and further ordinary calls are refused at once, instead of piling up threads
 //! behind the hung one. The mark clears when the hung call finally returns.
 
+use crate::error::{Error, ErrorKind};
 use fresa_plugin_api::contract::Request;
 use fresa_plugin_api::host::{CallError, Instance};
 use serde_json::Value;
@@ -153,6 +154,45 @@ impl Lanes {
                     }
                 }
                 Err(BackendError::Timeout(self.timeout))
+            }
+        }
+    }
+}
+
+/// A backend failure: the plugin's own rejection is the caller's problem, a missing, hung or
+/// unresponsive backend is the server's.
+impl From<BackendError> for Error {
+    fn from(e: BackendError) -> Self {
+        match e {
+            BackendError::Unavailable(m) => {
+                Error::new(ErrorKind::Unavailable, "machine_offline", m)
+            }
+            BackendError::Unresponsive(m) => {
+                Error::new(ErrorKind::Unavailable, "machine_unresponsive", m)
+            }
+            BackendError::Timeout(d) => Error::new(
+                ErrorKind::Timeout,
+                "backend_timeout",
+                format!("machine backend did not answer within {d:?}"),
+            ),
+            // The controller's part zero moved since the run started: the operator must decide.
+            BackendError::Call(CallError::Plugin(p)) if p.code == "part_zero_changed" => {
+                Error::conflict("part_zero_changed", p.message)
+            }
+            BackendError::Call(CallError::Plugin(p)) => {
+                let kind = if p.code == "busy" {
+                    ErrorKind::Conflict
+                } else {
+                    ErrorKind::Invalid
+                };
+                Error::new(
+                    kind,
+                    "backend_rejected",
+                    format!("{}: {}", p.code, p.message),
+                )
+            }
+            BackendError::Call(other) => {
+                Error::new(ErrorKind::Backend, "backend_error", other.to_string())
             }
         }
     }

@@ -24,6 +24,7 @@ pub struct Store {
 mod events;
 mod jobs;
 mod machines;
+mod pendants;
 #[cfg(test)]
 mod tests;
 mod tokens;
@@ -31,6 +32,7 @@ mod tokens;
 pub use events::EventRow;
 pub use jobs::{JobRow, NewJob, RunRow, RunState};
 pub use machines::{MachineRow, PartZeroRow};
+pub use pendants::{MacroAction, PendantRow};
 pub use tokens::TokenRow;
 
 impl Store {

@@ -7,19 +7,16 @@
 use crate::app::App;
 use crate::error::{Error, ErrorKind};
 use crate::machine::Machine;
-use crate::store::RunState;
-use crate::store::{now_ms, Store};
+use crate::store::{MacroAction, PendantRow, RunState};
 use fresa_plugin_api::contract::{
-    Axis, Command, MachineState, OutputName, PendantEvent, PendantJob, PendantKey, PendantRequest,
+    Axis, Command, MachineState, PendantEvent, PendantJob, PendantKey, PendantRequest,
 };
-use fresa_plugin_api::host::{HostSink, Instance};
-use serde::{Deserialize, Serialize};
+use fresa_plugin_api::host::Instance;
 use serde_json::{json, Value};
-use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex as StdMutex};
 use std::time::{Duration, Instant};
-use tokio::sync::{mpsc, RwLock};
+use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 
 /// The plugin that speaks the MPG pendants' protocol.
@@ -27,366 +24,74 @@ pub const TRANSPORT_PLUGIN: &str = "mpg-pendant";
 /// How often the status cache is refreshed (only changes are pushed).
 const STATUS_PUSH: Duration = Duration::from_millis(50);
 
-#[derive(Debug, Clone, Serialize, sqlx::FromRow)]
-pub struct PendantRow {
-    pub id: i64,
-    pub name: String,
-    pub address: String,
-    pub dialect: String,
-    pub machine_id: Option<i64>,
-    #[serde(skip)]
-    pub config: String,
-    pub created_at: i64,
-}
-
-impl PendantRow {
-    pub fn config_json(&self) -> Value {
-        serde_json::from_str(&self.config).unwrap_or_else(|_| json!({}))
-    }
-}
-
-/// What a macro key (M1..M4) does. Stored as JSON in `pendant_macros.action`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
-pub enum MacroAction {
-    /// Any immediate machine command, e.g. `{"type":"command","command":"feed_hold"}`.
-    Command {
-        #[serde(flatten)]
-        command: Command,
-    },
-    /// A bounded jog, e.g. `{"type":"jog","axis":"Z","distance":5}`.
-    Jog { axis: Axis, distance: f64 },
-    /// Flip an output, e.g. `{"type":"toggle","output":"spindle"}` (or `coolant`, `z_lift`).
-    Toggle { output: OutputName },
-    /// One MDI line, e.g. `{"type":"mdi","line":"G91 G0 Z5"}`; the backend leaves the modal
-    /// state as it found it.
-    Mdi { line: String },
-}
-
 /// Settings the core reads from a pendant's `config` (the rest goes to the transport plugin).
 const CORE_KEYS: [&str; 1] = ["stop_program_on_lost"];
 
-// ---- store ----
+pub mod registry;
+use registry::{lock, Sink};
+pub use registry::{Pendant, Pendants};
 
-impl Store {
-    pub async fn insert_pendant(
-        &self,
-        name: &str,
-        address: &str,
-        dialect: &str,
-        machine: Option<i64>,
-        config: &Value,
-        macros: &[(u8, MacroAction)],
-    ) -> crate::store::Result<i64> {
-        let mut tx = self.begin().await?;
-        let now = now_ms();
-        let id: i64 = sqlx::query_scalar(
-            "INSERT INTO pendants (name, address, dialect, machine_id, config, created_at)
-             VALUES (?, ?, ?, ?, ?, ?) RETURNING id",
-        )
-        .bind(name)
-        .bind(address)
-        .bind(dialect)
-        .bind(machine)
-        .bind(config.to_string())
-        .bind(now)
-        .fetch_one(&mut *tx)
-        .await?;
-        for (slot, action) in macros {
-            sqlx::query("INSERT INTO pendant_macros (pendant_id, slot, action, updated_at) VALUES (?, ?, ?, ?)")
-                .bind(id)
-                .bind(*slot as i64)
-                .bind(json!(action).to_string())
-                .bind(now)
-                .execute(&mut *tx)
-                .await?;
-        }
-        tx.commit().await?;
-        Ok(id)
-    }
-
-    pub async fn list_pendants(&self) -> crate::store::Result<Vec<PendantRow>> {
-        sqlx::query_as("SELECT id, name, address, dialect, machine_id, config, created_at FROM pendants ORDER BY id")
-            .fetch_all(self.pool())
-            .await
-    }
-
-    pub async fn pendant(&self, id: i64) -> crate::store::Result<Option<PendantRow>> {
-        sqlx::query_as("SELECT id, name, address, dialect, machine_id, config, created_at FROM pendants WHERE id = ?")
-            .bind(id)
-            .fetch_optional(self.pool())
-            .await
-    }
-
-    pub async fn set_pendant_machine(
-        &self,
-        id: i64,
-        machine: Option<i64>,
-    ) -> crate::store::Result<()> {
-        let mut tx = self.begin().await?;
-        sqlx::query("UPDATE pendants SET machine_id = ? WHERE id = ?")
-            .bind(machine)
-            .bind(id)
-            .execute(&mut *tx)
-            .await?;
-        tx.commit().await
-    }
-
-    pub async fn set_pendant_address(
-        &self,
-        id: i64,
-        address: &str,
-        machine: Option<i64>,
-    ) -> crate::store::Result<()> {
-        let mut tx = self.begin().await?;
-        sqlx::query("UPDATE pendants SET address = ?, machine_id = ? WHERE id = ?")
-            .bind(address)
-            .bind(machine)
-            .bind(id)
-            .execute(&mut *tx)
-            .await?;
-        tx.commit().await
-    }
-
-    /// Sets (Some) or clears (None) one macro slot.
-    pub async fn set_pendant_macro(
-        &self,
-        id: i64,
-        slot: u8,
-        action: Option<&MacroAction>,
-    ) -> crate::store::Result<()> {
-        let mut tx = self.begin().await?;
-        match action {
-            Some(a) => {
-                sqlx::query(
-                    "INSERT INTO pendant_macros (pendant_id, slot, action, updated_at) VALUES (?, ?, ?, ?)
-                     ON CONFLICT (pendant_id, slot) DO UPDATE SET action = excluded.action, updated_at = excluded.updated_at",
-                )
-                .bind(id)
-                .bind(slot as i64)
-                .bind(json!(a).to_string())
-                .bind(now_ms())
-                .execute(&mut *tx)
-                .await?;
-            }
+/// Pendants announced on the LAN by mDNS, each marked with the configured pendant (if any)
+/// that uses its address. The browser starts on the first call, so a fresh list fills in
+/// over the next second or two.
+pub async fn discovered(app: &App) -> Result<Value, Error> {
+    let inst = {
+        let mut d = app.pendants.discovery.lock().await;
+        match d.as_ref() {
+            Some(i) => i.clone(),
             None => {
-                sqlx::query("DELETE FROM pendant_macros WHERE pendant_id = ? AND slot = ?")
-                    .bind(id)
-                    .bind(slot as i64)
-                    .execute(&mut *tx)
-                    .await?;
+                let lib = app.plugins.get(TRANSPORT_PLUGIN).ok_or_else(|| {
+                    Error::conflict(
+                        "plugin_missing",
+                        format!("no plugin named {TRANSPORT_PLUGIN:?} is loaded"),
+                    )
+                })?;
+                let (tx, _) = mpsc::unbounded_channel();
+                let sink = Arc::new(Sink { tx, id: 0 });
+                let lib = lib.clone();
+                let i = tokio::task::spawn_blocking(move || {
+                    lib.create(&json!({"discover": true}), sink)
+                })
+                .await
+                .map_err(|e| Error::internal(e.to_string()))?
+                .map_err(|e| {
+                    Error::new(ErrorKind::Unavailable, "mdns_unavailable", e.to_string())
+                })?;
+                let i = Arc::new(i);
+                *d = Some(i.clone());
+                i
             }
         }
-        tx.commit().await
-    }
-
-    pub async fn pendant_macros(&self, id: i64) -> crate::store::Result<[Option<MacroAction>; 4]> {
-        let rows: Vec<(i64, String)> =
-            sqlx::query_as("SELECT slot, action FROM pendant_macros WHERE pendant_id = ?")
-                .bind(id)
-                .fetch_all(self.pool())
-                .await?;
-        let mut out: [Option<MacroAction>; 4] = Default::default();
-        for (slot, action) in rows {
-            if let (Some(cell), Ok(a)) = (
-                out.get_mut((slot - 1) as usize),
-                serde_json::from_str::<MacroAction>(&action),
-            ) {
-                *cell = Some(a);
-            }
-        }
-        Ok(out)
-    }
-
-    pub async fn delete_pendant(&self, id: i64) -> crate::store::Result<bool> {
-        let mut tx = self.begin().await?;
-        sqlx::query("DELETE FROM pendant_macros WHERE pendant_id = ?")
-            .bind(id)
-            .execute(&mut *tx)
-            .await?;
-        let n = sqlx::query("DELETE FROM pendants WHERE id = ?")
-            .bind(id)
-            .execute(&mut *tx)
-            .await?
-            .rows_affected();
-        tx.commit().await?;
-        Ok(n > 0)
-    }
-}
-
-// ---- live pendants ----
-
-pub struct Pendant {
-    pub id: i64,
-    row: StdMutex<PendantRow>,
-    instance: StdMutex<Option<Arc<Instance>>>,
-    /// Why there is no instance (plugin missing, config rejected).
-    pub unavailable: Option<String>,
-    connected: AtomicBool,
-    macros: StdMutex<[Option<MacroAction>; 4]>,
-    /// Run this pendant started (Start key), for the lost-pendant policy.
-    started_run: StdMutex<Option<i64>>,
-    stop: CancellationToken,
-}
-
-fn lock<T>(m: &StdMutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}
-
-impl Pendant {
-    pub fn row(&self) -> PendantRow {
-        lock(&self.row).clone()
-    }
-    pub fn connected(&self) -> bool {
-        self.connected.load(Ordering::Relaxed)
-    }
-    pub fn macros(&self) -> [Option<MacroAction>; 4] {
-        lock(&self.macros).clone()
-    }
-    pub fn set_macro(&self, slot: u8, action: Option<MacroAction>) {
-        if let Some(cell) = lock(&self.macros).get_mut(slot as usize - 1) {
-            *cell = action;
+    };
+    let req = json!(PendantRequest::Discovered);
+    let mut v = tokio::task::spawn_blocking(move || inst.call(&req))
+        .await
+        .map_err(|e| Error::internal(e.to_string()))?
+        .map_err(|e| Error::internal(e.to_string()))?;
+    let configured: Vec<(String, i64)> = app
+        .pendants
+        .all()
+        .await
+        .iter()
+        .map(|p| {
+            let r = p.row();
+            (r.address.to_ascii_lowercase(), r.id)
+        })
+        .collect();
+    if let Some(list) = v["pendants"].as_array_mut() {
+        for f in list {
+            let addr = f["address"]
+                .as_str()
+                .unwrap_or_default()
+                .to_ascii_lowercase();
+            let id = configured
+                .iter()
+                .find(|(a, _)| *a == addr)
+                .map(|(_, id)| *id);
+            f["pendant"] = json!(id);
         }
     }
-    pub fn set_machine(&self, machine: Option<i64>) {
-        lock(&self.row).machine_id = machine;
-    }
-    fn actor(&self) -> String {
-        format!("pendant:{}", self.id)
-    }
-    fn instance(&self) -> Option<Arc<Instance>> {
-        lock(&self.instance).clone()
-    }
-    fn stop_program_on_lost(&self) -> bool {
-        self.row().config_json()["stop_program_on_lost"].as_bool() == Some(true)
-    }
-}
-
-#[derive(Default)]
-pub struct Pendants {
-    map: RwLock<HashMap<i64, Arc<Pendant>>>,
-    /// Per machine, the pendant that last started motion on it (jog, go to zero).
-    last_mover: StdMutex<HashMap<i64, i64>>,
-    /// The mDNS browser, started on the first request for the discovered list.
-    discovery: tokio::sync::Mutex<Option<Arc<Instance>>>,
-}
-
-impl Pendants {
-    pub async fn get(&self, id: i64) -> Option<Arc<Pendant>> {
-        self.map.read().await.get(&id).cloned()
-    }
-    pub async fn all(&self) -> Vec<Arc<Pendant>> {
-        let mut v: Vec<_> = self.map.read().await.values().cloned().collect();
-        v.sort_by_key(|p| p.id);
-        v
-    }
-    /// Stops and forgets a pendant: its link is closed.
-    pub async fn remove(&self, id: i64) {
-        if let Some(p) = self.map.write().await.remove(&id) {
-            shut(&p).await;
-        }
-    }
-    /// Pendants announced on the LAN by mDNS, each marked with the configured pendant (if any)
-    /// that uses its address. The browser starts on the first call, so a fresh list fills in
-    /// over the next second or two.
-    pub async fn discovered(&self, app: &App) -> Result<Value, Error> {
-        let inst = {
-            let mut d = self.discovery.lock().await;
-            match d.as_ref() {
-                Some(i) => i.clone(),
-                None => {
-                    let lib = app.plugins.get(TRANSPORT_PLUGIN).ok_or_else(|| {
-                        Error::conflict(
-                            "plugin_missing",
-                            format!("no plugin named {TRANSPORT_PLUGIN:?} is loaded"),
-                        )
-                    })?;
-                    let (tx, _) = mpsc::unbounded_channel();
-                    let sink = Arc::new(Sink { tx, id: 0 });
-                    let lib = lib.clone();
-                    let i = tokio::task::spawn_blocking(move || {
-                        lib.create(&json!({"discover": true}), sink)
-                    })
-                    .await
-                    .map_err(|e| Error::internal(e.to_string()))?
-                    .map_err(|e| {
-                        Error::new(ErrorKind::Unavailable, "mdns_unavailable", e.to_string())
-                    })?;
-                    let i = Arc::new(i);
-                    *d = Some(i.clone());
-                    i
-                }
-            }
-        };
-        let req = json!(PendantRequest::Discovered);
-        let mut v = tokio::task::spawn_blocking(move || inst.call(&req))
-            .await
-            .map_err(|e| Error::internal(e.to_string()))?
-            .map_err(|e| Error::internal(e.to_string()))?;
-        let configured: Vec<(String, i64)> = self
-            .all()
-            .await
-            .iter()
-            .map(|p| {
-                let r = p.row();
-                (r.address.to_ascii_lowercase(), r.id)
-            })
-            .collect();
-        if let Some(list) = v["pendants"].as_array_mut() {
-            for f in list {
-                let addr = f["address"]
-                    .as_str()
-                    .unwrap_or_default()
-                    .to_ascii_lowercase();
-                let id = configured
-                    .iter()
-                    .find(|(a, _)| *a == addr)
-                    .map(|(_, id)| *id);
-                f["pendant"] = json!(id);
-            }
-        }
-        Ok(v)
-    }
-
-    pub async fn stop_all(&self) {
-        if let Some(d) = self.discovery.lock().await.take() {
-            let _ = tokio::task::spawn_blocking(move || drop(d)).await;
-        }
-        let all: Vec<_> = self.map.write().await.drain().map(|(_, p)| p).collect();
-        for p in all {
-            shut(&p).await;
-        }
-    }
-}
-
-async fn shut(p: &Pendant) {
-    p.stop.cancel();
-    let inst = lock(&p.instance).take();
-    // Dropping the instance joins the transport thread: not on the async runtime.
-    if let Some(i) = inst {
-        let _ = tokio::task::spawn_blocking(move || drop(i)).await;
-    }
-}
-
-struct Sink {
-    tx: mpsc::UnboundedSender<Value>,
-    id: i64,
-}
-
-impl HostSink for Sink {
-    fn event(&self, event: Value) {
-        let _ = self.tx.send(event);
-    }
-    fn log(&self, level: u32, message: &str) {
-        use fresa_plugin_api::abi::*;
-        let id = self.id;
-        match level {
-            LOG_ERROR => tracing::error!(pendant = id, "{message}"),
-            LOG_WARN => tracing::warn!(pendant = id, "{message}"),
-            LOG_INFO => tracing::info!(pendant = id, "{message}"),
-            _ => tracing::debug!(pendant = id, "{message}"),
-        }
-    }
+    Ok(v)
 }
 
 /// The transport config: the pendant's `config` minus the core's keys, plus address and dialect.
@@ -602,21 +307,6 @@ async fn handle(app: &Arc<App>, p: &Arc<Pendant>, ev: PendantEvent) {
                     json!({"pendant": p.id, "reason": reason}),
                 )
                 .await;
-        }
-    }
-}
-
-impl Pendants {
-    fn last_mover_set(&self, machine: i64, pendant: i64) {
-        lock(&self.last_mover).insert(machine, pendant);
-    }
-    fn last_mover_take_if(&self, machine: i64, pendant: i64) -> bool {
-        let mut m = lock(&self.last_mover);
-        if m.get(&machine) == Some(&pendant) {
-            m.remove(&machine);
-            true
-        } else {
-            false
         }
     }
 }
@@ -868,7 +558,7 @@ async fn receive_upload(
     }
     let machine_id = row.machine_id.unwrap_or_default();
     let stored = async {
-        let mut pending = crate::jobs::PendingProgram::create(
+        let mut pending = crate::programs::PendingProgram::create(
             &app.settings.programs_dir(),
             app.settings.max_upload_bytes,
         )

@@ -1,0 +1,138 @@
+//! The live pendants, by id: each one's row, plugin instance, macros and link state. Only the
+//! data; what a pendant's input does is in the parent module.
+
+use crate::store::{MacroAction, PendantRow};
+use fresa_plugin_api::host::{HostSink, Instance};
+use serde_json::Value;
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex as StdMutex};
+use tokio::sync::{mpsc, RwLock};
+use tokio_util::sync::CancellationToken;
+
+pub struct Pendant {
+    pub id: i64,
+    pub(super) row: StdMutex<PendantRow>,
+    pub(super) instance: StdMutex<Option<Arc<Instance>>>,
+    /// Why there is no instance (plugin missing, config rejected).
+    pub unavailable: Option<String>,
+    pub(super) connected: AtomicBool,
+    pub(super) macros: StdMutex<[Option<MacroAction>; 4]>,
+    /// Run this pendant started (Start key), for the lost-pendant policy.
+    pub(super) started_run: StdMutex<Option<i64>>,
+    pub(super) stop: CancellationToken,
+}
+
+pub(super) fn lock<T>(m: &StdMutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl Pendant {
+    pub fn row(&self) -> PendantRow {
+        lock(&self.row).clone()
+    }
+    pub fn connected(&self) -> bool {
+        self.connected.load(Ordering::Relaxed)
+    }
+    pub fn macros(&self) -> [Option<MacroAction>; 4] {
+        lock(&self.macros).clone()
+    }
+    pub fn set_macro(&self, slot: u8, action: Option<MacroAction>) {
+        if let Some(cell) = lock(&self.macros).get_mut(slot as usize - 1) {
+            *cell = action;
+        }
+    }
+    pub fn set_machine(&self, machine: Option<i64>) {
+        lock(&self.row).machine_id = machine;
+    }
+    pub(super) fn actor(&self) -> String {
+        format!("pendant:{}", self.id)
+    }
+    pub(super) fn instance(&self) -> Option<Arc<Instance>> {
+        lock(&self.instance).clone()
+    }
+    pub(super) fn stop_program_on_lost(&self) -> bool {
+        self.row().config_json()["stop_program_on_lost"].as_bool() == Some(true)
+    }
+}
+
+#[derive(Default)]
+pub struct Pendants {
+    pub(super) map: RwLock<HashMap<i64, Arc<Pendant>>>,
+    /// Per machine, the pendant that last started motion on it (jog, go to zero).
+    pub(super) last_mover: StdMutex<HashMap<i64, i64>>,
+    /// The mDNS browser, started on the first request for the discovered list.
+    pub(super) discovery: tokio::sync::Mutex<Option<Arc<Instance>>>,
+}
+
+impl Pendants {
+    pub async fn get(&self, id: i64) -> Option<Arc<Pendant>> {
+        self.map.read().await.get(&id).cloned()
+    }
+    pub async fn all(&self) -> Vec<Arc<Pendant>> {
+        let mut v: Vec<_> = self.map.read().await.values().cloned().collect();
+        v.sort_by_key(|p| p.id);
+        v
+    }
+    /// Stops and forgets a pendant: its link is closed.
+    pub async fn remove(&self, id: i64) {
+        if let Some(p) = self.map.write().await.remove(&id) {
+            shut(&p).await;
+        }
+    }
+
+    pub async fn stop_all(&self) {
+        if let Some(d) = self.discovery.lock().await.take() {
+            let _ = tokio::task::spawn_blocking(move || drop(d)).await;
+        }
+        let all: Vec<_> = self.map.write().await.drain().map(|(_, p)| p).collect();
+        for p in all {
+            shut(&p).await;
+        }
+    }
+}
+
+impl Pendants {
+    pub(super) fn last_mover_set(&self, machine: i64, pendant: i64) {
+        lock(&self.last_mover).insert(machine, pendant);
+    }
+    pub(super) fn last_mover_take_if(&self, machine: i64, pendant: i64) -> bool {
+        let mut m = lock(&self.last_mover);
+        if m.get(&machine) == Some(&pendant) {
+            m.remove(&machine);
+            true
+        } else {
+            false
+        }
+    }
+}
+
+pub(super) async fn shut(p: &Pendant) {
+    p.stop.cancel();
+    let inst = lock(&p.instance).take();
+    // Dropping the instance joins the transport thread: not on the async runtime.
+    if let Some(i) = inst {
+        let _ = tokio::task::spawn_blocking(move || drop(i)).await;
+    }
+}
+
+pub(super) struct Sink {
+    pub(super) tx: mpsc::UnboundedSender<Value>,
+    pub(super) id: i64,
+}
+
+impl HostSink for Sink {
+    fn event(&self, event: Value) {
+        let _ = self.tx.send(event);
+    }
+    fn log(&self, level: u32, message: &str) {
+        use fresa_plugin_api::abi::*;
+        let id = self.id;
+        match level {
+            LOG_ERROR => tracing::error!(pendant = id, "{message}"),
+            LOG_WARN => tracing::warn!(pendant = id, "{message}"),
+            LOG_INFO => tracing::info!(pendant = id, "{message}"),
+            _ => tracing::debug!(pendant = id, "{message}"),
+        }
+    }
+}

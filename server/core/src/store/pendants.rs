@@ -1,0 +1,184 @@
+//! Pendants and their M1..M4 macros.
+
+use super::{now_ms, Result, Store};
+use fresa_plugin_api::contract::{Axis, Command, OutputName};
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+
+#[derive(Debug, Clone, Serialize, sqlx::FromRow)]
+pub struct PendantRow {
+    pub id: i64,
+    pub name: String,
+    pub address: String,
+    pub dialect: String,
+    pub machine_id: Option<i64>,
+    #[serde(skip)]
+    pub config: String,
+    pub created_at: i64,
+}
+
+impl PendantRow {
+    pub fn config_json(&self) -> Value {
+        serde_json::from_str(&self.config).unwrap_or_else(|_| json!({}))
+    }
+}
+
+/// What a macro key (M1..M4) does. Stored as JSON in `pendant_macros.action`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum MacroAction {
+    /// Any immediate machine command, e.g. `{"type":"command","command":"feed_hold"}`.
+    Command {
+        #[serde(flatten)]
+        command: Command,
+    },
+    /// A bounded jog, e.g. `{"type":"jog","axis":"Z","distance":5}`.
+    Jog { axis: Axis, distance: f64 },
+    /// Flip an output, e.g. `{"type":"toggle","output":"spindle"}` (or `coolant`, `z_lift`).
+    Toggle { output: OutputName },
+    /// One MDI line, e.g. `{"type":"mdi","line":"G91 G0 Z5"}`; the backend leaves the modal
+    /// state as it found it.
+    Mdi { line: String },
+}
+
+impl Store {
+    pub async fn insert_pendant(
+        &self,
+        name: &str,
+        address: &str,
+        dialect: &str,
+        machine: Option<i64>,
+        config: &Value,
+        macros: &[(u8, MacroAction)],
+    ) -> Result<i64> {
+        let mut tx = self.begin().await?;
+        let now = now_ms();
+        let id: i64 = sqlx::query_scalar(
+            "INSERT INTO pendants (name, address, dialect, machine_id, config, created_at)
+             VALUES (?, ?, ?, ?, ?, ?) RETURNING id",
+        )
+        .bind(name)
+        .bind(address)
+        .bind(dialect)
+        .bind(machine)
+        .bind(config.to_string())
+        .bind(now)
+        .fetch_one(&mut *tx)
+        .await?;
+        for (slot, action) in macros {
+            sqlx::query("INSERT INTO pendant_macros (pendant_id, slot, action, updated_at) VALUES (?, ?, ?, ?)")
+                .bind(id)
+                .bind(*slot as i64)
+                .bind(json!(action).to_string())
+                .bind(now)
+                .execute(&mut *tx)
+                .await?;
+        }
+        tx.commit().await?;
+        Ok(id)
+    }
+
+    pub async fn list_pendants(&self) -> Result<Vec<PendantRow>> {
+        sqlx::query_as("SELECT id, name, address, dialect, machine_id, config, created_at FROM pendants ORDER BY id")
+            .fetch_all(self.pool())
+            .await
+    }
+
+    pub async fn pendant(&self, id: i64) -> Result<Option<PendantRow>> {
+        sqlx::query_as("SELECT id, name, address, dialect, machine_id, config, created_at FROM pendants WHERE id = ?")
+            .bind(id)
+            .fetch_optional(self.pool())
+            .await
+    }
+
+    pub async fn set_pendant_machine(&self, id: i64, machine: Option<i64>) -> Result<()> {
+        let mut tx = self.begin().await?;
+        sqlx::query("UPDATE pendants SET machine_id = ? WHERE id = ?")
+            .bind(machine)
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await
+    }
+
+    pub async fn set_pendant_address(
+        &self,
+        id: i64,
+        address: &str,
+        machine: Option<i64>,
+    ) -> Result<()> {
+        let mut tx = self.begin().await?;
+        sqlx::query("UPDATE pendants SET address = ?, machine_id = ? WHERE id = ?")
+            .bind(address)
+            .bind(machine)
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await
+    }
+
+    /// Sets (Some) or clears (None) one macro slot.
+    pub async fn set_pendant_macro(
+        &self,
+        id: i64,
+        slot: u8,
+        action: Option<&MacroAction>,
+    ) -> Result<()> {
+        let mut tx = self.begin().await?;
+        match action {
+            Some(a) => {
+                sqlx::query(
+                    "INSERT INTO pendant_macros (pendant_id, slot, action, updated_at) VALUES (?, ?, ?, ?)
+                     ON CONFLICT (pendant_id, slot) DO UPDATE SET action = excluded.action, updated_at = excluded.updated_at",
+                )
+                .bind(id)
+                .bind(slot as i64)
+                .bind(json!(a).to_string())
+                .bind(now_ms())
+                .execute(&mut *tx)
+                .await?;
+            }
+            None => {
+                sqlx::query("DELETE FROM pendant_macros WHERE pendant_id = ? AND slot = ?")
+                    .bind(id)
+                    .bind(slot as i64)
+                    .execute(&mut *tx)
+                    .await?;
+            }
+        }
+        tx.commit().await
+    }
+
+    pub async fn pendant_macros(&self, id: i64) -> Result<[Option<MacroAction>; 4]> {
+        let rows: Vec<(i64, String)> =
+            sqlx::query_as("SELECT slot, action FROM pendant_macros WHERE pendant_id = ?")
+                .bind(id)
+                .fetch_all(self.pool())
+                .await?;
+        let mut out: [Option<MacroAction>; 4] = Default::default();
+        for (slot, action) in rows {
+            if let (Some(cell), Ok(a)) = (
+                out.get_mut((slot - 1) as usize),
+                serde_json::from_str::<MacroAction>(&action),
+            ) {
+                *cell = Some(a);
+            }
+        }
+        Ok(out)
+    }
+
+    pub async fn delete_pendant(&self, id: i64) -> Result<bool> {
+        let mut tx = self.begin().await?;
+        sqlx::query("DELETE FROM pendant_macros WHERE pendant_id = ?")
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
+        let n = sqlx::query("DELETE FROM pendants WHERE id = ?")
+            .bind(id)
+            .execute(&mut *tx)
+            .await?
+            .rows_affected();
+        tx.commit().await?;
+        Ok(n > 0)
+    }
+}
