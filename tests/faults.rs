@@ -58,18 +58,18 @@ fn assert_unresponsive(v: &Value, what: &str) {
     );
 }
 
-/// The hang plugin, built once per test process into a directory that lives as long as it.
+/// The hang plugin, built once per test process into a directory of its own under Cargo's
+/// scratch directory for integration tests (so nothing is left in /tmp).
 fn hang_plugin_dir() -> &'static Path {
-    static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
-        let dir = tempfile::Builder::new()
-            .prefix("fresa-hang-plugin-")
-            .tempdir()
-            .expect("temp dir");
-        build_hang_plugin(dir.path());
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR"))
+            .join("fresa-hang-plugin")
+            .join(std::process::id().to_string());
+        std::fs::create_dir_all(&dir).expect("create the plugin directory");
+        build_hang_plugin(&dir);
         dir
     })
-    .path()
 }
 
 /// A server with the hang plugin and a 500 ms plugin call timeout, a `hang` machine H and a
