@@ -151,9 +151,10 @@ fn six_random_clients_leave_legal_run_histories_and_at_most_one_active_run() {
     let logged = m.executed().len();
     let x0 = s.status(m.id)["machine_position"]["x"].as_f64().unwrap();
     s.jog(m.id, "X", 2.0).expect(200);
+    // `x0` may lag the last 0.5 mm chaos jog by a status event; more than 1.4 mm along X and
+    // idle can only be the end of this jog.
     s.wait_status(m.id, T, "the 2 mm jog done and idle", |st| {
-        st["state"] == "idle"
-            && (st["machine_position"]["x"].as_f64().unwrap() - (x0 + 2.0)).abs() < 1e-6
+        st["state"] == "idle" && st["machine_position"]["x"].as_f64().unwrap() - x0 > 1.4
     });
     assert_eq!(
         m.executed().len(),
