@@ -168,6 +168,8 @@ pub struct Opts {
     pub listen: String,
     pub demo: bool,
     pub max_upload_bytes: Option<u64>,
+    /// Plugin directories searched before the workspace's own (`--plugin-dir`, in this order).
+    pub extra_plugin_dirs: Vec<PathBuf>,
 }
 
 impl Default for Opts {
@@ -176,6 +178,7 @@ impl Default for Opts {
             listen: "127.0.0.1:0".into(),
             demo: false,
             max_upload_bytes: None,
+            extra_plugin_dirs: Vec::new(),
         }
     }
 }
@@ -278,8 +281,11 @@ impl Server {
             .arg("--data-dir")
             .arg(self.data_dir())
             .arg("--config")
-            .arg(self.config_file())
-            .arg("--plugin-dir")
+            .arg(self.config_file());
+        for dir in &self.opts.extra_plugin_dirs {
+            cmd.arg("--plugin-dir").arg(dir);
+        }
+        cmd.arg("--plugin-dir")
             .arg(bin_dir())
             .env("FRESA_LOG", "info,tower_http=warn,sqlx=warn")
             .stdout(Stdio::null())
@@ -387,6 +393,55 @@ impl Server {
                 let _ = c.kill();
                 let _ = c.wait();
                 panic!("server did not exit after SIGTERM:\n{}", self.log());
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+
+    /// The server process's id, while it runs.
+    pub fn pid(&self) -> Option<u32> {
+        self.child.as_ref().map(Child::id)
+    }
+
+    /// Replaces the config file (`fresa.toml`); takes effect at the next start.
+    pub fn write_config(&self, toml: &str) {
+        std::fs::write(self.config_file(), toml).expect("write fresa.toml");
+    }
+
+    /// Sends SIGTERM and returns at once (see [`Server::wait_exit`]).
+    pub fn send_sigterm(&self) {
+        let pid = self.pid().expect("server running");
+        let ok = Command::new("kill")
+            .arg("-TERM")
+            .arg(pid.to_string())
+            .status()
+            .expect("run kill")
+            .success();
+        assert!(ok, "kill -TERM {pid} failed");
+    }
+
+    /// Whether the server process has exited (reaping it if so), without waiting.
+    pub fn try_exit_status(&mut self) -> Option<std::process::ExitStatus> {
+        let status = self.child.as_mut()?.try_wait().expect("try_wait")?;
+        self.child = None;
+        Some(status)
+    }
+
+    /// Waits (polling) until the process exits and returns its status. On timeout it is killed
+    /// and the test fails naming `what`, with the server's log.
+    #[track_caller]
+    pub fn wait_exit(&mut self, timeout: Duration, what: &str) -> std::process::ExitStatus {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Some(s) = self.try_exit_status() {
+                return s;
+            }
+            if Instant::now() >= deadline {
+                self.kill();
+                panic!(
+                    "server did not exit within {timeout:?} ({what}); killed it. Log:\n{}",
+                    self.log()
+                );
             }
             std::thread::sleep(Duration::from_millis(10));
         }
@@ -513,6 +568,71 @@ impl Server {
             );
             std::thread::sleep(Duration::from_millis(10));
         }
+    }
+
+    /// `POST /api/v1/machines/{id}/commands` with `{"command": command, ...extra}`.
+    pub fn command(&self, machine: i64, command: &str, extra: Value) -> Resp {
+        let mut body = json!({ "command": command });
+        if let (Some(b), Some(e)) = (body.as_object_mut(), extra.as_object()) {
+            for (k, v) in e {
+                b.insert(k.clone(), v.clone());
+            }
+        }
+        self.post(&format!("/api/v1/machines/{machine}/commands"), &body)
+    }
+
+    /// `POST /api/v1/machines/{id}/jog` of `distance` mm along `axis` at the default feed.
+    pub fn jog(&self, machine: i64, axis: &str, distance: f64) -> Resp {
+        self.post(
+            &format!("/api/v1/machines/{machine}/jog"),
+            &json!({"axis": axis, "distance": distance}),
+        )
+    }
+
+    /// `POST /api/v1/machines/{id}/mdi` with one line.
+    pub fn mdi(&self, machine: i64, line: &str) -> Resp {
+        self.post(
+            &format!("/api/v1/machines/{machine}/mdi"),
+            &json!({ "line": line }),
+        )
+    }
+
+    /// Waits until a line of the server's log contains `needle`; returns that line.
+    #[track_caller]
+    pub fn wait_log(&self, timeout: Duration, needle: &str) -> String {
+        wait_for(
+            timeout,
+            &format!("a log line containing {needle:?}"),
+            || {
+                self.log
+                    .lock()
+                    .unwrap()
+                    .iter()
+                    .find(|l| l.contains(needle))
+                    .cloned()
+            },
+        )
+    }
+
+    /// Uploads a program and starts it; returns `(job, run)`.
+    #[track_caller]
+    pub fn upload_and_start(&self, machine: i64, name: &str, program: &str) -> (i64, i64) {
+        let job = self.upload(machine, name, program)["id"]
+            .as_i64()
+            .expect("job id");
+        let run = self.job_action(job, "start").expect(200)["run"]["id"]
+            .as_i64()
+            .expect("run id");
+        (job, run)
+    }
+
+    /// Names of the `.upload-*.tmp` files (uploads in progress or left behind) in
+    /// `DATA_DIR/programs`.
+    pub fn upload_temp_files(&self) -> Vec<String> {
+        self.program_files()
+            .into_iter()
+            .filter(|n| n.starts_with(".upload-") && n.ends_with(".tmp"))
+            .collect()
     }
 
     /// Uploads a program as raw body; asserts 201.
@@ -646,6 +766,80 @@ impl Sim {
     pub fn executed(&self) -> Vec<(i64, i64)> {
         read_exec_log(&self.log)
     }
+
+    /// The lines of `run` in the execution log, in the order they were logged.
+    pub fn lines_of(&self, run: i64) -> Vec<i64> {
+        self.executed()
+            .into_iter()
+            .filter(|(r, _)| *r == run)
+            .map(|(_, l)| l)
+            .collect()
+    }
+
+    /// How many lines of `run` the execution log holds.
+    pub fn count_of(&self, run: i64) -> usize {
+        self.lines_of(run).len()
+    }
+}
+
+/// The number of threads of process `pid` (`Threads:` in `/proc/PID/status`).
+pub fn thread_count(pid: u32) -> usize {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .unwrap_or_else(|e| panic!("cannot read /proc/{pid}/status: {e}"));
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("Threads:"))
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no Threads: line in /proc/{pid}/status"))
+}
+
+/// A small deterministic pseudo-random generator (xorshift64*), so a failing randomised test
+/// can be replayed from the seed it prints.
+#[derive(Debug, Clone)]
+pub struct Rng(u64);
+
+impl Rng {
+    pub fn new(seed: u64) -> Rng {
+        Rng(seed.max(1))
+    }
+
+    /// A seed from the clock (printed by the tests that use it).
+    pub fn clock_seed() -> u64 {
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos() as u64)
+            .unwrap_or(1)
+    }
+
+    pub fn next_u64(&mut self) -> u64 {
+        let mut x = self.0;
+        x ^= x >> 12;
+        x ^= x << 25;
+        x ^= x >> 27;
+        self.0 = x;
+        x.wrapping_mul(0x2545_F491_4F6C_DD1D)
+    }
+
+    /// A number in `0..n` (`n` > 0).
+    pub fn below(&mut self, n: u64) -> u64 {
+        self.next_u64() % n
+    }
+}
+
+/// Whether a run in `from` may next be in `to`, per the job-run state machine: running <->
+/// paused; running|paused -> completed|failed|cancelled|interrupted; failed|interrupted ->
+/// running (resume) or cancelled. Nothing follows completed or cancelled.
+pub fn legal_run_transition(from: &str, to: &str) -> bool {
+    matches!(
+        (from, to),
+        ("running", "paused")
+            | ("paused", "running")
+            | (
+                "running" | "paused",
+                "completed" | "failed" | "cancelled" | "interrupted"
+            )
+            | ("failed" | "interrupted", "running" | "cancelled")
+    )
 }
 
 pub fn read_exec_log(path: &Path) -> Vec<(i64, i64)> {

@@ -1,0 +1,192 @@
+//! Process lifecycle (issue 11): SIGTERM stops motion before anything else, even while a slow
+//! upload keeps a request open, and the run comes back `interrupted` and resumable; a second
+//! server on the same data directory refuses to start and leaves the first one alone.
+
+#![cfg(unix)]
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fresa_tests::{assert_every_line_once, back_and_forth, bin_dir, fresa_cmd, wait_for, Server};
+use std::io::Write;
+use std::net::TcpStream;
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+
+const T: Duration = Duration::from_secs(30);
+/// How long a server may take to exit after SIGTERM, or a refused second server to give up.
+const EXIT: Duration = Duration::from_secs(20);
+
+/// 300 lines of 1 mm at 600 mm/min: 100 ms a line in real time, 30 s in all.
+fn long_program() -> String {
+    back_and_forth(300, 1.0, 600.0)
+}
+
+/// Index of the first log line containing `needle`.
+fn first_line(log: &[&str], needle: &str) -> Option<usize> {
+    log.iter().position(|l| l.contains(needle))
+}
+
+#[test]
+fn sigterm_stops_motion_first_and_exits_with_a_slow_upload_open_then_the_run_resumes() {
+    let mut s = Server::start();
+    let m = s.sim("m", 1.0);
+    let (job, run) = s.upload_and_start(m.id, "long", &long_program());
+    wait_for(T, "3 lines executed", || {
+        (m.count_of(run) >= 3).then_some(())
+    });
+
+    // A slow client: the headers of a 10 MB upload and a few bytes of it, then nothing.
+    let port: u16 = s.base.rsplit(':').next().unwrap().parse().unwrap();
+    let mut slow = TcpStream::connect(("127.0.0.1", port)).expect("connect");
+    write!(
+        slow,
+        "POST /api/v1/jobs?machine={}&name=slow HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\
+         Content-Type: text/plain\r\nContent-Length: 10000000\r\n\r\nG21 G90\nG0 X1\n",
+        m.id
+    )
+    .expect("send the upload's head");
+    slow.flush().unwrap();
+    // The server is receiving it once its temporary file exists.
+    wait_for(T, "the slow upload's temporary file", || {
+        (!s.upload_temp_files().is_empty()).then_some(())
+    });
+
+    s.send_sigterm();
+    // Watch for `motion stopped` while waiting for the exit, to read the log length then.
+    let deadline = Instant::now() + EXIT;
+    let mut at_stop = None;
+    let status = loop {
+        if at_stop.is_none() && s.log().contains("motion stopped") {
+            at_stop = Some(m.count_of(run));
+        }
+        if let Some(st) = s.try_exit_status() {
+            break st;
+        }
+        if Instant::now() >= deadline {
+            s.kill();
+            panic!(
+                "server did not exit within {EXIT:?} of SIGTERM with a slow upload open:\n{}",
+                s.log()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    };
+    assert!(status.success(), "exit status {status}:\n{}", s.log());
+    // The stderr reader may still be catching up with the last lines.
+    s.wait_log(T, "draining connections");
+    let log = s.log();
+    let lines: Vec<&str> = log.lines().collect();
+    let stopped = first_line(&lines, "motion stopped")
+        .unwrap_or_else(|| panic!("no `motion stopped` in the log:\n{log}"));
+    let draining = first_line(&lines, "draining connections").unwrap();
+    assert!(
+        stopped < draining,
+        "`motion stopped` (log line {stopped}) must come before `draining connections` \
+         (log line {draining}):\n{log}"
+    );
+    let at_stop = at_stop.unwrap_or_else(|| m.count_of(run));
+    let logged = m.count_of(run);
+    assert!(
+        logged <= at_stop + 1,
+        "run {run}: {at_stop} lines logged when `motion stopped` was logged, {logged} at exit"
+    );
+    drop(slow);
+
+    // Back on the same data directory: interrupted, resumable from the next line, and the
+    // aborted upload left no temporary file.
+    s.spawn()
+        .unwrap_or_else(|e| panic!("server did not restart: {e}"));
+    let j = s.job(job);
+    assert_eq!(j["state"], "interrupted", "{j}");
+    assert_eq!(j["run"]["id"], run, "{j}");
+    assert_eq!(
+        s.upload_temp_files(),
+        Vec::<String>::new(),
+        "upload temporary files left in {}",
+        s.programs_dir().display()
+    );
+    assert_every_line_once(&m.executed(), run, logged as i64);
+    let answer = s.job_action(job, "resume").expect(200);
+    assert_eq!(answer["state"], "running", "{answer}");
+    assert_eq!(s.job(job)["state"], "running");
+    wait_for(T, "the resumed run to execute 2 more lines", || {
+        (m.count_of(run) >= logged + 2).then_some(())
+    });
+    s.job_action(job, "cancel").expect(200);
+    s.wait_machine_state(m.id, "idle", T);
+    // From the next line on: no line twice, none skipped.
+    assert_every_line_once(&m.executed(), run, m.count_of(run) as i64);
+}
+
+/// Kills a child process when dropped (a second server that did not exit as it should).
+struct KillOnDrop(std::process::Child);
+
+impl Drop for KillOnDrop {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+#[test]
+fn a_second_server_on_the_same_data_dir_exits_naming_the_first_and_leaves_it_running() {
+    let s = Server::start();
+    let m = s.sim("m", 1.0);
+    let (job, run) = s.upload_and_start(m.id, "long", &long_program());
+    wait_for(T, "2 lines executed", || {
+        (m.count_of(run) >= 2).then_some(())
+    });
+    let first_pid = s.pid().unwrap();
+
+    let err_path = s.root().join("second-server.stderr");
+    let err_file = std::fs::File::create(&err_path).expect("create stderr file");
+    let child = fresa_cmd()
+        .arg("serve")
+        .args(["--listen", "127.0.0.1:0"])
+        .arg("--data-dir")
+        .arg(s.data_dir())
+        .arg("--config")
+        .arg(s.config_file())
+        .arg("--plugin-dir")
+        .arg(bin_dir())
+        .env("FRESA_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(err_file)
+        .spawn()
+        .expect("spawn the second server");
+    let mut second = KillOnDrop(child);
+    let deadline = Instant::now() + EXIT;
+    let status = loop {
+        if let Some(st) = second.0.try_wait().expect("try_wait") {
+            break st;
+        }
+        if Instant::now() >= deadline {
+            let _ = second.0.kill();
+            let _ = second.0.wait();
+            panic!(
+                "a second server on the same data dir was still running after {EXIT:?}:\n{}",
+                std::fs::read_to_string(&err_path).unwrap_or_default()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    let stderr = std::fs::read_to_string(&err_path).unwrap_or_default();
+    assert!(
+        !status.success(),
+        "second server exited {status}:\n{stderr}"
+    );
+    assert!(
+        stderr.contains("in use") && stderr.contains(&first_pid.to_string()),
+        "the refusal must say the data dir is in use and by pid {first_pid}:\n{stderr}"
+    );
+
+    // The first server's live run is untouched: still running, still executing.
+    let j = s.job(job);
+    assert_eq!(j["state"], "running", "{j}");
+    assert_eq!(j["run"]["id"], run, "{j}");
+    let now = m.count_of(run);
+    wait_for(T, "the first server's run to keep executing", || {
+        (m.count_of(run) > now).then_some(())
+    });
+    assert_eq!(s.status(m.id)["state"], "running");
+    s.get("/healthz").expect(200);
+}
