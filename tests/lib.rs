@@ -828,7 +828,8 @@ impl Rng {
 
 /// Whether a run in `from` may next be in `to`, per the job-run state machine: running <->
 /// paused; running|paused -> completed|failed|cancelled|interrupted; failed|interrupted ->
-/// running (resume) or cancelled. Nothing follows completed or cancelled.
+/// running (resume), cancelled, or completed (nothing left to run). Nothing follows completed or
+/// cancelled.
 pub fn legal_run_transition(from: &str, to: &str) -> bool {
     matches!(
         (from, to),
@@ -839,6 +840,8 @@ pub fn legal_run_transition(from: &str, to: &str) -> bool {
                 "completed" | "failed" | "cancelled" | "interrupted"
             )
             | ("failed" | "interrupted", "running" | "cancelled")
+            // A resume that finds every line already acknowledged.
+            | ("failed" | "interrupted", "completed")
     )
 }
 

@@ -51,7 +51,8 @@ pub async fn run(settings: Settings) -> Result<(), Box<dyn std::error::Error>> {
     tracing::info!("shutting down: stopping all motion");
     app.stop_motion(limit).await;
     let grace = app.settings.shutdown_grace;
-    tracing::info!("motion stopped; draining connections for at most {grace:?}");
+    tracing::info!("motion stopped");
+    tracing::info!("draining connections for at most {grace:?}");
     drain.cancel();
     app.stop_rest(limit).await;
     if !server.is_finished() && tokio::time::timeout(grace, &mut server).await.is_err() {

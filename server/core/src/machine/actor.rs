@@ -538,6 +538,9 @@ impl Task {
             state: RunState::Running,
             line: run.last_line,
         }));
+        // The store says `running` from here on, and so does the audit log, before the backend
+        // can finish or fail the run (so it never shows `completed` or `failed` without it).
+        self.record("job.state", actor, run_event(&run)).await;
         let started = async {
             let v = self
                 .call(&Request::LoadProgram {
@@ -559,9 +562,6 @@ impl Task {
             }
             // A stop that arrived while the program loaded wins: nothing moves.
             self.gate.check(ticket)?;
-            // Announce `running` before the backend can finish the run, so the audit log never
-            // shows `completed` without the `running` before it.
-            self.record("job.state", actor, run_event(&run)).await;
             self.motion(
                 ticket,
                 &Request::Run {
@@ -666,6 +666,17 @@ impl Task {
                         format!("machine {} is {}", self.id, state.as_str()),
                     ));
                 }
+                if run.last_line >= job.line_count {
+                    // Everything was acknowledged before the interruption: nothing left to run.
+                    return self
+                        .transition_or_current(
+                            &run,
+                            &[RunState::Interrupted, RunState::Failed],
+                            RunState::Completed,
+                            actor,
+                        )
+                        .await;
+                }
                 self.gate.check(ticket)?;
                 let reopened = match self.store.reopen_run(run.id, self.id).await? {
                     Ok(r) => r,
@@ -680,11 +691,6 @@ impl Task {
                     }
                 };
                 let next = u32::try_from(reopened.last_line + 1).unwrap_or(u32::MAX);
-                if reopened.last_line >= job.line_count {
-                    // Everything was acknowledged before the interruption: nothing left to run.
-                    self.finish_run(run.id, RunState::Completed, None).await;
-                    return Ok(self.store.run(run.id).await?.unwrap_or(reopened));
-                }
                 let expected = if confirm_part_zero {
                     None
                 } else {

@@ -74,7 +74,8 @@ impl RunState {
     }
 
     /// The run state machine: running <-> paused -> completed | failed | cancelled |
-    /// interrupted; failed | interrupted -> running (resume) | cancelled.
+    /// interrupted; failed | interrupted -> running (resume) | cancelled | completed (a resume
+    /// with every line already acknowledged).
     pub fn can_move_to(self, to: RunState) -> bool {
         use RunState::*;
         match (self, to) {
@@ -82,8 +83,8 @@ impl RunState {
             (Running, Paused) | (Paused, Running) => true,
             (Queued | Running | Paused, Completed | Failed | Cancelled | Interrupted) => true,
             (Failed | Interrupted, Running | Cancelled) => true,
-            // Nothing left to run after an interruption at the last line.
-            (Interrupted, Completed) => true,
+            // A resume that finds every line already acknowledged: nothing left to run.
+            (Interrupted | Failed, Completed) => true,
             _ => false,
         }
     }
