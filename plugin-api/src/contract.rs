@@ -113,6 +113,9 @@ pub enum MachineState {
     Paused,
     /// Latched fault (e-stop, limit, reset needed); `MachineStatus::alarm` says which.
     Alarm,
+    /// The backend stopped answering calls. Set only by the host, never by a backend: what
+    /// the machine does is unknown, so it is not reported as busy or idle.
+    Unresponsive,
 }
 
 impl MachineState {
@@ -126,6 +129,7 @@ impl MachineState {
             MachineState::Running => "running",
             MachineState::Paused => "paused",
             MachineState::Alarm => "alarm",
+            MachineState::Unresponsive => "unresponsive",
         }
     }
 
@@ -331,6 +335,29 @@ impl Request {
         serde_json::from_value(request)
             .map_err(|e| crate::PluginError::invalid(format!("invalid request: {e}")))
     }
+
+    /// [`Request::from_json`] straight from the bytes of a call, with no `Value` in between.
+    pub fn from_slice(request: &[u8]) -> Result<Request, crate::PluginError> {
+        serde_json::from_slice(request)
+            .map_err(|e| crate::PluginError::invalid(format!("invalid request: {e}")))
+    }
+}
+
+/// Answer to `run` and `command cycle_start`: `{}`, or `{"part_zero": ...}` from a backend
+/// whose controller reports its part zero when a run starts (the host stores it with the run).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct RunAnswer {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub part_zero: Option<AxisValues>,
+}
+
+/// Answer to `get_artifact`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Artifact {
+    pub content_type: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub file_name: Option<String>,
+    pub body: String,
 }
 
 /// Work offsets G54..G59, in the order of `WorkOffset::ALL`.
@@ -516,9 +543,34 @@ mod tests {
     #[test]
     fn state_names_are_the_wire_names() {
         use MachineState::*;
-        for s in [Offline, Idle, Jogging, Homing, Running, Paused, Alarm] {
+        for s in [
+            Offline,
+            Idle,
+            Jogging,
+            Homing,
+            Running,
+            Paused,
+            Alarm,
+            Unresponsive,
+        ] {
             assert_eq!(serde_json::to_value(s).unwrap(), json!(s.as_str()));
         }
+        assert_eq!(Unresponsive.as_str(), "unresponsive");
+        assert!(!Unresponsive.is_busy());
+    }
+
+    #[test]
+    fn requests_decode_from_bytes_like_from_values() {
+        let bytes = br#"{"op":"jog","axis":"X","distance":1.5}"#;
+        let v: serde_json::Value = serde_json::from_slice(bytes).unwrap();
+        assert_eq!(
+            Request::from_slice(bytes).unwrap(),
+            Request::from_json(v).unwrap()
+        );
+        assert_eq!(
+            Request::from_slice(b"{").unwrap_err().code,
+            "invalid_request"
+        );
     }
 
     #[test]

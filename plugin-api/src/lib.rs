@@ -2,12 +2,17 @@
 //!
 //! * [`abi`]: the raw `repr(C)` contract, mirrored by `include/fresa_plugin.h`.
 //! * [`contract`]: the JSON requests, responses and events of a machine backend.
-//! * [`plugin`]: for plugin authors in Rust: the [`Plugin`] trait and [`export_plugin!`].
+//! * [`backend`]: for machine backends in Rust: the typed [`MachineBackend`] trait and
+//!   [`export_machine_backend!`] (request decoding and dispatch done once).
+//! * [`kit`]: for Rust backends that plan motion locally: the shared state machine, run
+//!   bookkeeping, offsets, execution log use and event emission.
+//! * [`plugin`]: the lower-level [`Plugin`] trait and [`export_plugin!`] (any plugin kind).
 //! * [`config_fields`]: for Rust plugins: config values read with errors naming the key.
 //! * [`exec_log`]: for Rust machine backends: the execution log behind idempotent resume.
 //! * [`host`]: for the server: load a library, check it, create and call instances.
 
 pub mod abi;
+pub mod backend;
 pub mod config_fields;
 pub mod contract;
 mod error;
@@ -15,6 +20,7 @@ pub mod exec_log;
 pub mod host;
 pub mod plugin;
 
+pub use backend::MachineBackend;
 pub use error::PluginError;
 pub use plugin::{Host, Plugin};
 
