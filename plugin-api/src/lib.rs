@@ -18,6 +18,7 @@ pub mod contract;
 mod error;
 pub mod exec_log;
 pub mod host;
+pub mod kit;
 pub mod plugin;
 
 pub use backend::MachineBackend;
