@@ -101,6 +101,13 @@ pub trait MachineBackend: Send + Sync + Sized + 'static {
         let _ = line;
         Err(PluginError::unsupported("mdi"))
     }
+
+    // ----- provided -----
+
+    /// Handles one JSON request in process (tests, tools); the ABI path uses bytes.
+    fn request(&self, request: serde_json::Value) -> Result<serde_json::Value, PluginError> {
+        handle_json(self, request)
+    }
 }
 
 /// What a dispatched request answers, serialised once into the call's answer bytes.

@@ -119,6 +119,34 @@ pub fn check_start_line(start_line: u32, lines: u32) -> Result<(), PluginError> 
     Ok(())
 }
 
+/// The motion thread of a machine; [`MotionThread::join`] waits for it (after
+/// [`Kit::end_motion_thread`]).
+#[derive(Debug)]
+pub struct MotionThread(Mutex<Option<std::thread::JoinHandle<()>>>);
+
+impl MotionThread {
+    /// Starts `body` on a thread named `name`.
+    pub fn spawn(
+        name: &str,
+        body: impl FnOnce() + Send + 'static,
+    ) -> Result<MotionThread, PluginError> {
+        let handle = std::thread::Builder::new()
+            .name(name.into())
+            .spawn(body)
+            .map_err(|e| {
+                PluginError::new("internal", format!("cannot start the {name} thread: {e}"))
+            })?;
+        Ok(MotionThread(Mutex::new(Some(handle))))
+    }
+
+    pub fn join(&self) {
+        let handle = self.0.lock().unwrap_or_else(|e| e.into_inner()).take();
+        if let Some(h) = handle {
+            let _ = h.join();
+        }
+    }
+}
+
 /// What the kit needs to know of a backend's configuration.
 #[derive(Debug, Clone)]
 pub struct KitConfig {
@@ -135,14 +163,28 @@ pub struct Loaded<P> {
     pub start_line: u32,
 }
 
+/// One incremental jog.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Jog {
+    pub axis: Axis,
+    pub distance: f64,
+    /// mm/min
+    pub feed: f64,
+}
+
+impl Jog {
+    /// Where the jog ends when it starts at machine position `from`.
+    pub fn target(&self, from: [f64; 4]) -> [f64; 4] {
+        let mut to = from;
+        to[self.axis.index()] += self.distance;
+        to
+    }
+}
+
 /// Work for the motion thread.
 #[derive(Debug)]
 pub enum Job<P> {
-    Jog {
-        axis: Axis,
-        distance: f64,
-        feed: f64,
-    },
+    Jog(Jog),
     /// Z up to a safe height, then XY/A, then Z down, to the active work zero.
     GoToZero,
     /// One MDI line: straight moves to these machine targets, each at its feed.
@@ -240,6 +282,19 @@ impl<P, X> State<P, X> {
             self.state = to;
             self.push_status(ev);
         }
+    }
+
+    /// The waypoints of go-to-zero from here: Z up to a safe height (the higher of here and
+    /// work zero), then X/Y/A over, then Z down to work zero.
+    pub fn go_to_zero_path(&self) -> [[f64; 4]; 3] {
+        let zero = self.offsets[self.active.index()];
+        let pos = self.pos;
+        let safe_z = pos[2].max(zero[2]);
+        [
+            [pos[0], pos[1], safe_z, pos[3]],
+            [zero[0], zero[1], safe_z, zero[3]],
+            zero,
+        ]
     }
 
     /// Latches an alarm: queued work is dropped.
@@ -433,6 +488,15 @@ impl<P, X> Kit<P, X> {
         }
     }
 
+    /// [`Kit::note_held`] for a motion thread that does not hold the lock; cheap when the
+    /// hold was confirmed already (call it every tick while held).
+    pub fn confirm_held(&self) {
+        if !self.held.load(Ordering::SeqCst) {
+            let mut sh = self.lock();
+            self.note_held(&mut sh);
+        }
+    }
+
     /// Blocks the motion thread before a new program line while the machine is paused;
     /// `Aborted` on stop. For motion threads that may block (not a tick loop).
     pub fn line_gate(&self) -> Result<(), Interrupted> {
@@ -589,16 +653,16 @@ impl<P, X> Kit<P, X> {
                     format!("{MAX_QUEUED_JOGS} jogs are already queued"),
                 ));
             }
-            let mut target = sh.end;
-            target[axis.index()] += distance;
-            check_travel(&self.cfg.travel, target)
-                .map_err(|m| PluginError::new("out_of_travel", format!("jog refused: {m}")))?;
-            sh.end = target;
-            sh.queue.push_back(Job::Jog {
+            let jog = Jog {
                 axis,
                 distance,
                 feed,
-            });
+            };
+            let target = jog.target(sh.end);
+            check_travel(&self.cfg.travel, target)
+                .map_err(|m| PluginError::new("out_of_travel", format!("jog refused: {m}")))?;
+            sh.end = target;
+            sh.queue.push_back(Job::Jog(jog));
             sh.set_state(MachineState::Jogging, ev);
             Ok(())
         })
@@ -784,15 +848,13 @@ impl<P, X> Kit<P, X> {
         self.with(|sh, ev| {
             sh.require_no_alarm("go to zero")?;
             sh.require_still("go to zero")?;
-            let zero = sh.offsets[sh.active.index()];
-            let mut waypoint = sh.pos;
-            waypoint[2] = waypoint[2].max(zero[2]);
-            for p in [waypoint, [zero[0], zero[1], waypoint[2], zero[3]], zero] {
+            let path = sh.go_to_zero_path();
+            for p in path {
                 check_travel(&self.cfg.travel, p).map_err(|m| {
                     PluginError::new("out_of_travel", format!("go to zero refused: {m}"))
                 })?;
             }
-            sh.end = zero;
+            sh.end = path[2];
             sh.queue.push_back(Job::GoToZero);
             sh.set_state(MachineState::Jogging, ev);
             Ok(())
@@ -889,6 +951,41 @@ impl<P, X> Kit<P, X> {
         Ok(last.map_or(start_line, |l| start_line.max(l.saturating_add(1))))
     }
 
+    /// Installs a planned program of `lines` lines, to start at `start` (from
+    /// [`Kit::logged_start`]); `asked` is the start line the host asked for.
+    pub fn install_plan(
+        &self,
+        run: i64,
+        plan: P,
+        lines: u32,
+        asked: u32,
+        start: u32,
+    ) -> Result<crate::contract::ProgramLoaded, PluginError> {
+        check_start_line(asked, lines)?;
+        let start_line = start.min(lines.saturating_add(1));
+        self.install(Loaded {
+            run,
+            plan,
+            start_line,
+        })?;
+        Ok(crate::contract::ProgramLoaded { lines, start_line })
+    }
+
+    /// `run` requests: start, pause, resume (strict) and cancel (a stop).
+    pub fn run(
+        &self,
+        action: crate::contract::RunAction,
+    ) -> Result<crate::contract::RunAnswer, PluginError> {
+        use crate::contract::RunAction;
+        match action {
+            RunAction::Start => self.cycle_start()?,
+            RunAction::Pause => self.pause(true)?,
+            RunAction::Resume => self.resume(true)?,
+            RunAction::Cancel => self.stop()?,
+        }
+        Ok(Default::default())
+    }
+
     /// Makes `loaded` the program the next cycle start runs; one loaded earlier and never
     /// started is replaced (its run ends as cancelled).
     pub fn install(&self, loaded: Loaded<P>) -> Result<(), PluginError> {
@@ -940,4 +1037,63 @@ mod tests {
         let e = travel_from_json(&json!({"x": [2, 1]}), &Axis::ALL).unwrap_err();
         assert!(e.message.contains("travel.x"), "{e}");
     }
+}
+
+/// The [`crate::MachineBackend`] methods a kit-based backend answers straight from its kit,
+/// for use inside `impl MachineBackend for T` where `T` has `fn kit(&self) -> &Kit<P, X>`:
+/// status, run, cycle start, feed hold, resume, stop, shutdown, jog, zero, go to zero,
+/// offsets. The backend writes the rest (create, connect, load_program, reset, home...).
+#[macro_export]
+macro_rules! kit_backend_methods {
+    () => {
+        fn status(&self) -> Result<$crate::contract::MachineStatus, $crate::PluginError> {
+            Ok(self.kit().status())
+        }
+        fn run(
+            &self,
+            action: $crate::contract::RunAction,
+        ) -> Result<$crate::contract::RunAnswer, $crate::PluginError> {
+            self.kit().run(action)
+        }
+        fn cycle_start(&self) -> Result<$crate::contract::RunAnswer, $crate::PluginError> {
+            self.kit().cycle_start().map(|()| Default::default())
+        }
+        fn feed_hold(&self) -> Result<(), $crate::PluginError> {
+            self.kit().pause(false)
+        }
+        fn resume(&self) -> Result<(), $crate::PluginError> {
+            self.kit().resume(false)
+        }
+        fn stop(&self) -> Result<(), $crate::PluginError> {
+            self.kit().stop()
+        }
+        fn shutdown(&self) -> Result<(), $crate::PluginError> {
+            self.kit().shutdown()
+        }
+        fn zero(
+            &self,
+            axis: Option<$crate::contract::Axis>,
+        ) -> Result<Option<$crate::contract::OffsetTable>, $crate::PluginError> {
+            self.kit().zero(axis).map(Some)
+        }
+        fn go_to_zero(&self) -> Result<(), $crate::PluginError> {
+            self.kit().go_to_zero()
+        }
+        fn select_offset(
+            &self,
+            offset: $crate::contract::WorkOffset,
+        ) -> Result<(), $crate::PluginError> {
+            self.kit().select_offset(offset)
+        }
+        fn get_offsets(&self) -> Result<$crate::contract::OffsetTable, $crate::PluginError> {
+            Ok(self.kit().get_offsets())
+        }
+        fn set_offset(
+            &self,
+            offset: $crate::contract::WorkOffset,
+            values: $crate::contract::AxisValues,
+        ) -> Result<(), $crate::PluginError> {
+            self.kit().set_offset(offset, values)
+        }
+    };
 }

@@ -216,11 +216,6 @@ impl KawasakiMachine {
         &self.core.cfg
     }
 
-    /// Handles one JSON request of the backend contract (in-process callers and tests).
-    pub fn request(&self, request: Value) -> Result<Value, PluginError> {
-        fresa_plugin_api::backend::handle_json(self, request)
-    }
-
     fn status_now(&self) -> MachineStatus {
         self.core.lock().status(&self.core.cfg)
     }

@@ -872,11 +872,6 @@ impl Mach3Backend {
             poller: Mutex::new(Some(poller)),
         })
     }
-
-    /// Handles one JSON request (in-process callers and tests).
-    pub fn request(&self, request: Value) -> Result<Value, PluginError> {
-        fresa_plugin_api::backend::handle_json(self, request)
-    }
 }
 
 impl MachineBackend for Mach3Backend {

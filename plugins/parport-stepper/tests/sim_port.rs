@@ -8,6 +8,7 @@ use fresa_parport_stepper::pins;
 use fresa_parport_stepper::port::{Register, Write};
 use fresa_parport_stepper::{Config, Stepper, Timing};
 use fresa_plugin_api::contract::Event;
+use fresa_plugin_api::MachineBackend;
 use serde_json::{json, Value};
 use std::io::Write as _;
 use std::sync::{Arc, Mutex};

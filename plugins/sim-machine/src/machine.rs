@@ -5,18 +5,14 @@
 
 use crate::config::Config;
 use crate::program::{self, Plan, Step};
-use fresa_plugin_api::backend::{self, LoadProgram, MachineBackend};
-use fresa_plugin_api::contract::{
-    Axis, AxisValues, MachineState, MachineStatus, OffsetTable, OutputName, ProgramLoaded, Request,
-    RunAction, RunAnswer, WorkOffset,
-};
+use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
+use fresa_plugin_api::contract::{Axis, MachineState, MachineStatus, OutputName, ProgramLoaded};
 use fresa_plugin_api::exec_log::ExecLog;
-use fresa_plugin_api::kit::{self, Interrupted, Job, KitConfig, Loaded};
+use fresa_plugin_api::kit::{self, Interrupted, Job, KitConfig, Loaded, MotionThread};
 use fresa_plugin_api::{Host, PluginError};
 use serde_json::{json, Value};
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::sync::{Arc, Mutex, MutexGuard};
-use std::thread::JoinHandle;
+use std::sync::{Arc, MutexGuard};
 use std::time::{Duration, Instant};
 
 pub use fresa_plugin_api::kit::EventSink;
@@ -37,7 +33,7 @@ type State = kit::State<Plan, Outputs>;
 /// A simulated 4-axis machine. Thread-safe; dropping it stops motion and joins its thread.
 pub struct SimMachine {
     core: Arc<Core>,
-    worker: Mutex<Option<JoinHandle<()>>>,
+    worker: MotionThread,
 }
 
 struct Core {
@@ -75,26 +71,15 @@ impl Core {
 
     fn run_job(&self, job: Job<Plan>) -> Result<(), Interrupted> {
         match job {
-            Job::Jog {
-                axis,
-                distance,
-                feed,
-            } => {
-                let mut target = self.kit.lock().pos;
-                target[axis.index()] += distance;
+            Job::Jog(jog) => {
+                let target = jog.target(self.kit.lock().pos);
                 self.check(target)?;
-                self.move_to(target, feed)
+                self.move_to(target, jog.feed)
             }
             Job::GoToZero => {
-                let (pos, zero) = {
-                    let sh = self.kit.lock();
-                    (sh.pos, sh.offsets[sh.active.index()])
-                };
-                let rapid = self.cfg.rapid_mm_min;
-                let safe_z = pos[2].max(zero[2]);
-                self.move_to([pos[0], pos[1], safe_z, pos[3]], rapid)?;
-                self.move_to([zero[0], zero[1], safe_z, zero[3]], rapid)?;
-                self.move_to(zero, rapid)
+                let path = self.kit.lock().go_to_zero_path();
+                path.into_iter()
+                    .try_for_each(|p| self.move_to(p, self.cfg.rapid_mm_min))
             }
             Job::Mdi(moves) => {
                 // An MDI line's feed is not left behind as the programmed feed.
@@ -258,26 +243,8 @@ impl SimMachine {
             kit: Kit::new(kit_cfg, sink, log, Outputs::default()),
         });
         let worker_core = Arc::clone(&core);
-        let worker = std::thread::Builder::new()
-            .name("sim-machine motion".into())
-            .spawn(move || worker_core.worker())
-            .map_err(|e| {
-                PluginError::new("internal", format!("cannot start the motion thread: {e}"))
-            })?;
-        Ok(SimMachine {
-            core,
-            worker: Mutex::new(Some(worker)),
-        })
-    }
-
-    /// Handles one JSON request (see `fresa_plugin_api::contract::Request`).
-    pub fn request(&self, request: Value) -> Result<Value, PluginError> {
-        backend::handle_json(self, request)
-    }
-
-    /// The typed form of [`SimMachine::request`].
-    pub fn handle(&self, request: Request) -> Result<Value, PluginError> {
-        PluginError::encode(&backend::dispatch(self, request)?)
+        let worker = MotionThread::spawn("sim-machine motion", move || worker_core.worker())?;
+        Ok(SimMachine { core, worker })
     }
 
     fn kit(&self) -> &Kit {
@@ -314,6 +281,8 @@ impl SimMachine {
 }
 
 impl MachineBackend for SimMachine {
+    fresa_plugin_api::kit_backend_methods!();
+
     fn create(host: Host, config: Value) -> Result<Self, PluginError> {
         SimMachine::new(&config, Arc::new(move |event| host.emit(event)))
     }
@@ -322,10 +291,6 @@ impl MachineBackend for SimMachine {
         Ok(self
             .kit()
             .connect(self.core.cfg.alarm_at_connect.as_deref()))
-    }
-
-    fn status(&self) -> Result<MachineStatus, PluginError> {
-        Ok(self.kit().status())
     }
 
     // The simulated machine has no part zero of its own to compare.
@@ -349,41 +314,8 @@ impl MachineBackend for SimMachine {
             .map_err(|e| PluginError::new("invalid_program", e.to_string()))?;
         plan.check_moves(&offsets, active, a, |p| self.core.cfg.check_travel(p))
             .map_err(|m| PluginError::new("out_of_travel", m))?;
-        kit::check_start_line(p.start_line, plan.lines)?;
         let lines = plan.lines;
-        let start_line = start.min(lines.saturating_add(1));
-        kit.install(Loaded {
-            run: p.run,
-            plan,
-            start_line,
-        })?;
-        Ok(ProgramLoaded { lines, start_line })
-    }
-
-    fn run(&self, action: RunAction) -> Result<RunAnswer, PluginError> {
-        match action {
-            RunAction::Start => self.kit().cycle_start()?,
-            RunAction::Pause => self.kit().pause(true)?,
-            RunAction::Resume => self.kit().resume(true)?,
-            RunAction::Cancel => self.kit().stop()?,
-        }
-        Ok(RunAnswer::default())
-    }
-
-    fn cycle_start(&self) -> Result<RunAnswer, PluginError> {
-        self.kit().cycle_start().map(|()| RunAnswer::default())
-    }
-
-    fn feed_hold(&self) -> Result<(), PluginError> {
-        self.kit().pause(false)
-    }
-
-    fn resume(&self) -> Result<(), PluginError> {
-        self.kit().resume(false)
-    }
-
-    fn stop(&self) -> Result<(), PluginError> {
-        self.kit().stop()
+        kit.install_plan(p.run, plan, lines, p.start_line, start)
     }
 
     fn reset(&self) -> Result<(), PluginError> {
@@ -392,10 +324,6 @@ impl MachineBackend for SimMachine {
             sh.extra = Outputs::default();
             Ok(())
         })
-    }
-
-    fn shutdown(&self) -> Result<(), PluginError> {
-        self.kit().shutdown()
     }
 
     fn jog(&self, axis: Axis, distance: f64, feed: Option<f64>) -> Result<(), PluginError> {
@@ -409,32 +337,12 @@ impl MachineBackend for SimMachine {
         })
     }
 
-    fn zero(&self, axis: Option<Axis>) -> Result<Option<OffsetTable>, PluginError> {
-        self.kit().zero(axis).map(Some)
-    }
-
-    fn go_to_zero(&self) -> Result<(), PluginError> {
-        self.kit().go_to_zero()
-    }
-
-    fn select_offset(&self, offset: WorkOffset) -> Result<(), PluginError> {
-        self.kit().select_offset(offset)
-    }
-
     fn set_output(&self, name: OutputName, on: bool) -> Result<Value, PluginError> {
         self.output(name, Some(on))
     }
 
     fn toggle_output(&self, name: OutputName) -> Result<Value, PluginError> {
         self.output(name, None)
-    }
-
-    fn get_offsets(&self) -> Result<OffsetTable, PluginError> {
-        Ok(self.kit().get_offsets())
-    }
-
-    fn set_offset(&self, offset: WorkOffset, values: AxisValues) -> Result<(), PluginError> {
-        self.kit().set_offset(offset, values)
     }
 
     /// One MDI line: interpreted alone from the current work position (so G91/G90, F and
@@ -497,9 +405,6 @@ impl MachineBackend for SimMachine {
 impl Drop for SimMachine {
     fn drop(&mut self) {
         self.core.kit.end_motion_thread();
-        let handle = self.worker.lock().unwrap_or_else(|e| e.into_inner()).take();
-        if let Some(h) = handle {
-            let _ = h.join();
-        }
+        self.worker.join();
     }
 }

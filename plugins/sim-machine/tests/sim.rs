@@ -3,6 +3,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fresa_plugin_api::contract::{Event, MachineState, MachineStatus, OffsetTable, RunOutcome};
+use fresa_plugin_api::MachineBackend;
 use fresa_sim_machine::SimMachine;
 use serde_json::{json, Value};
 use std::path::PathBuf;
