@@ -675,6 +675,17 @@ fn works_through_the_c_abi() {
     }
     let st = instance.call(&json!({"op":"status"})).unwrap();
     assert_eq!(st["machine_position"]["y"], 7.0);
+    // The typed host calls: the request serialised straight to the call's bytes.
+    use fresa_plugin_api::contract::Request;
+    assert_eq!(instance.call_request(&Request::Status).unwrap(), st);
+    let typed: MachineStatus = instance.request(&Request::Status).unwrap();
+    assert_eq!(typed.machine_position.y, 7.0);
+    let e = instance
+        .call_request(&Request::Mdi {
+            line: "G4 P1".into(),
+        })
+        .unwrap_err();
+    assert!(e.to_string().contains("unsupported"), "{e}");
     instance.call(&json!({"op":"shutdown"})).unwrap();
     assert_eq!(
         instance.call(&json!({"op":"status"})).unwrap()["state"],
