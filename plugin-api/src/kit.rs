@@ -1006,39 +1006,6 @@ impl<P, X> Kit<P, X> {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    #![allow(clippy::unwrap_used)]
-    use super::*;
-    use serde_json::json;
-
-    #[test]
-    fn travel_refuses_huge_and_non_finite_targets_without_limits() {
-        let none = [None; 4];
-        assert!(check_travel(&none, [1e5, 0.0, 0.0, 0.0]).is_ok());
-        for bad in [1e308, f64::INFINITY, f64::NAN, -2e6] {
-            let e = check_travel(&none, [0.0, bad, 0.0, 0.0]).unwrap_err();
-            assert!(
-                e.contains("outside the travel") && e.starts_with("Y="),
-                "{e}"
-            );
-        }
-        let x = [Some((0.0, 10.0)), None, None, None];
-        assert!(check_travel(&x, [10.0, 0.0, 0.0, 0.0]).is_ok());
-        assert!(check_travel(&x, [10.1, 0.0, 0.0, 0.0]).is_err());
-    }
-
-    #[test]
-    fn travel_config_names_the_axes_it_takes() {
-        let t = travel_from_json(&json!({"x": [-1, 2], "Z": [-3, 0]}), &Axis::ALL).unwrap();
-        assert_eq!(t, [Some((-1.0, 2.0)), None, Some((-3.0, 0.0)), None]);
-        let e = travel_from_json(&json!({"z": [0, 1]}), &[Axis::X, Axis::Y]).unwrap_err();
-        assert!(e.message.contains("expected x or y"), "{e}");
-        let e = travel_from_json(&json!({"x": [2, 1]}), &Axis::ALL).unwrap_err();
-        assert!(e.message.contains("travel.x"), "{e}");
-    }
-}
-
 /// The [`crate::MachineBackend`] methods a kit-based backend answers straight from its kit,
 /// for use inside `impl MachineBackend for T` where `T` has `fn kit(&self) -> &Kit<P, X>`:
 /// status, run, cycle start, feed hold, resume, stop, shutdown, jog, zero, go to zero,
@@ -1096,4 +1063,37 @@ macro_rules! kit_backend_methods {
             self.kit().set_offset(offset, values)
         }
     };
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn travel_refuses_huge_and_non_finite_targets_without_limits() {
+        let none = [None; 4];
+        assert!(check_travel(&none, [1e5, 0.0, 0.0, 0.0]).is_ok());
+        for bad in [1e308, f64::INFINITY, f64::NAN, -2e6] {
+            let e = check_travel(&none, [0.0, bad, 0.0, 0.0]).unwrap_err();
+            assert!(
+                e.contains("outside the travel") && e.starts_with("Y="),
+                "{e}"
+            );
+        }
+        let x = [Some((0.0, 10.0)), None, None, None];
+        assert!(check_travel(&x, [10.0, 0.0, 0.0, 0.0]).is_ok());
+        assert!(check_travel(&x, [10.1, 0.0, 0.0, 0.0]).is_err());
+    }
+
+    #[test]
+    fn travel_config_names_the_axes_it_takes() {
+        let t = travel_from_json(&json!({"x": [-1, 2], "Z": [-3, 0]}), &Axis::ALL).unwrap();
+        assert_eq!(t, [Some((-1.0, 2.0)), None, Some((-3.0, 0.0)), None]);
+        let e = travel_from_json(&json!({"z": [0, 1]}), &[Axis::X, Axis::Y]).unwrap_err();
+        assert!(e.message.contains("expected x or y"), "{e}");
+        let e = travel_from_json(&json!({"x": [2, 1]}), &Axis::ALL).unwrap_err();
+        assert!(e.message.contains("travel.x"), "{e}");
+    }
 }
