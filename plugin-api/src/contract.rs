@@ -119,6 +119,17 @@ pub enum MachineState {
 }
 
 impl MachineState {
+    pub const ALL: [MachineState; 8] = [
+        MachineState::Offline,
+        MachineState::Idle,
+        MachineState::Jogging,
+        MachineState::Homing,
+        MachineState::Running,
+        MachineState::Paused,
+        MachineState::Alarm,
+        MachineState::Unresponsive,
+    ];
+
     /// The state's wire name (`"idle"`, `"running"`, ...), for messages and logs.
     pub fn as_str(self) -> &'static str {
         match self {
@@ -542,21 +553,25 @@ mod tests {
 
     #[test]
     fn state_names_are_the_wire_names() {
-        use MachineState::*;
-        for s in [
-            Offline,
-            Idle,
-            Jogging,
-            Homing,
-            Running,
-            Paused,
-            Alarm,
-            Unresponsive,
-        ] {
+        for s in MachineState::ALL {
             assert_eq!(serde_json::to_value(s).unwrap(), json!(s.as_str()));
         }
-        assert_eq!(Unresponsive.as_str(), "unresponsive");
-        assert!(!Unresponsive.is_busy());
+        // The names the server and clients already know must never change.
+        let names = MachineState::ALL.map(MachineState::as_str);
+        assert_eq!(
+            names,
+            [
+                "offline",
+                "idle",
+                "jogging",
+                "homing",
+                "running",
+                "paused",
+                "alarm",
+                "unresponsive"
+            ]
+        );
+        assert!(!MachineState::Unresponsive.is_busy());
     }
 
     #[test]

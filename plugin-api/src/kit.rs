@@ -688,22 +688,7 @@ impl<P, X> Kit<P, X> {
         // Set under the lock: a motion thread waiting on the condition variable sees it.
         self.abort.store(true, Ordering::SeqCst);
         self.release(sh, ev);
-        let deadline = Instant::now() + STOP_CONFIRM;
-        let mut sh = self.lock();
-        while sh.busy {
-            let now = Instant::now();
-            if now >= deadline {
-                return Err(PluginError::new(
-                    "stop_unconfirmed",
-                    format!(
-                        "the motion thread did not confirm the stop within {} s",
-                        STOP_CONFIRM.as_secs()
-                    ),
-                ));
-            }
-            sh = self.wait_timeout(sh, deadline - now);
-        }
-        drop(sh);
+        self.confirmed("stop", |sh| !sh.busy)?;
         // finish_job took `emit_order` before releasing the lock: once we get it, its
         // events (the run's end) have been emitted.
         drop(self.emit_order.lock().unwrap_or_else(|e| e.into_inner()));
@@ -730,15 +715,27 @@ impl<P, X> Kit<P, X> {
         if jogging {
             return self.stop();
         }
+        self.confirmed("hold", |sh| {
+            !sh.busy || sh.state != MachineState::Paused || self.held.load(Ordering::SeqCst)
+        })
+    }
+
+    /// Waits (at most [`STOP_CONFIRM`]) until `done` holds; `stop_unconfirmed` naming `what`
+    /// otherwise.
+    fn confirmed(
+        &self,
+        what: &str,
+        done: impl Fn(&State<P, X>) -> bool,
+    ) -> Result<(), PluginError> {
         let deadline = Instant::now() + STOP_CONFIRM;
         let mut sh = self.lock();
-        while sh.busy && sh.state == MachineState::Paused && !self.held.load(Ordering::SeqCst) {
+        while !done(&sh) {
             let now = Instant::now();
             if now >= deadline {
                 return Err(PluginError::new(
                     "stop_unconfirmed",
                     format!(
-                        "the motion thread did not confirm the hold within {} s",
+                        "the motion thread did not confirm the {what} within {} s",
                         STOP_CONFIRM.as_secs()
                     ),
                 ));

@@ -44,3 +44,15 @@ pub fn library_file_name(crate_lib_name: &str) -> String {
         std::env::consts::DLL_SUFFIX
     )
 }
+
+/// For tests and benches of a plugin crate: its library as cargo built it beside the running
+/// executable (`target/<profile>/deps`, or one level up after `cargo build`).
+pub fn built_library(crate_lib_name: &str) -> Option<std::path::PathBuf> {
+    let exe = std::env::current_exe().ok()?;
+    let deps = exe.parent()?;
+    let name = library_file_name(crate_lib_name);
+    [Some(deps.join(&name)), deps.parent().map(|d| d.join(&name))]
+        .into_iter()
+        .flatten()
+        .find(|p| p.exists())
+}

@@ -18,14 +18,8 @@ impl HostSink for Quiet {
 }
 
 fn instance() -> Instance {
-    // Bench binaries live in target/<profile>/deps; the cdylib is there or one level up.
-    let exe = std::env::current_exe().unwrap();
-    let deps = exe.parent().unwrap();
-    let name = fresa_plugin_api::library_file_name("fresa_sim_machine");
-    let lib = [deps.join(&name), deps.parent().unwrap().join(&name)]
-        .into_iter()
-        .find(|p| p.exists())
-        .unwrap_or_else(|| panic!("{name} not found in {} or its parent", deps.display()));
+    let lib = fresa_plugin_api::built_library("fresa_sim_machine")
+        .expect("libfresa_sim_machine not built beside the bench");
     let library = PluginLibrary::load(&lib).unwrap();
     let instance = library
         .create(&json!({"time_scale": 0}), Arc::new(Quiet))

@@ -641,15 +641,9 @@ fn works_through_the_c_abi() {
         }
         fn log(&self, _level: u32, _message: &str) {}
     }
-    // Integration tests live in target/<profile>/deps. `cargo test` leaves this package's
-    // cdylib beside them; `cargo build` puts it one level up.
-    let exe = std::env::current_exe().unwrap();
-    let deps = exe.parent().unwrap();
-    let name = fresa_plugin_api::library_file_name("fresa_sim_machine");
-    let lib = [deps.join(&name), deps.parent().unwrap().join(&name)]
-        .into_iter()
-        .find(|p| p.exists())
-        .unwrap_or_else(|| panic!("{name} not found in {} or its parent", deps.display()));
+    // `cargo test` leaves this package's cdylib beside the test binary.
+    let lib = fresa_plugin_api::built_library("fresa_sim_machine")
+        .expect("libfresa_sim_machine not built beside the test");
     let library = PluginLibrary::load(&lib).unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(library.name(), "sim-machine");
 
