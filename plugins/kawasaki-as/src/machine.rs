@@ -885,6 +885,15 @@ impl Core {
     }
 }
 
+/// Why home, zero, go-to-zero and work offsets are refused, for the operator.
+fn taught_on_pendant() -> PluginError {
+    PluginError::new(
+        "unsupported",
+        "the robot's part zero is taught on its pendant and reported when a job starts; \
+         home, zero, go-to-zero and work offsets are not available",
+    )
+}
+
 impl MachineBackend for KawasakiMachine {
     fn create(host: Host, config: Value) -> Result<Self, PluginError> {
         KawasakiMachine::new(
@@ -962,9 +971,24 @@ impl MachineBackend for KawasakiMachine {
         ))
     }
 
+    fn home(&self, _axis: Option<Axis>) -> Result<(), PluginError> {
+        Err(taught_on_pendant())
+    }
+
+    fn zero(&self, _axis: Option<Axis>) -> Result<Option<OffsetTable>, PluginError> {
+        Err(taught_on_pendant())
+    }
+
+    fn go_to_zero(&self) -> Result<(), PluginError> {
+        Err(taught_on_pendant())
+    }
+
+    fn select_offset(&self, _offset: WorkOffset) -> Result<(), PluginError> {
+        Err(taught_on_pendant())
+    }
+
     // The robot works relative to the part zero taught on its pendant; G54..G59 are kept by
-    // the server but do not move it. Home, zero, go-to-zero, outputs and MDI keep the trait's
-    // `unsupported` answers.
+    // the server but do not move it. Outputs and MDI keep the trait's `unsupported` answers.
     fn get_offsets(&self) -> Result<OffsetTable, PluginError> {
         Ok(OffsetTable::default())
     }
