@@ -558,13 +558,10 @@ fn stop_cancel_and_hold_answer_only_once_no_new_line_starts() {
             assert!(ended, "run_ended not emitted before {action} answered");
         }
         idle();
-        let at_idle = logged(run);
-        assert!(
-            at_idle <= at_answer + 1,
-            "{action}: {at_answer} lines at the answer, {at_idle} at idle"
-        );
+        let late = logged(run) - at_answer;
+        assert!(late <= 1, "{action}: {late} lines logged after the answer");
     }
-    assert!(most > 0, "no request landed after a line was executed");
+    assert_ne!(most, 0, "every request landed before the first line ended");
 }
 
 #[test]
