@@ -113,12 +113,23 @@ pub enum MachineState {
     Paused,
     /// Latched fault (e-stop, limit, reset needed); `MachineStatus::alarm` says which.
     Alarm,
-    /// Set by the host only, never by a backend: a call into the backend has overrun its
-    /// timeout and not returned; `MachineStatus::reason` says which.
+    /// The backend stopped answering calls. Set only by the host, never by a backend: what
+    /// the machine does is unknown, so it is not reported as busy or idle.
     Unresponsive,
 }
 
 impl MachineState {
+    pub const ALL: [MachineState; 8] = [
+        MachineState::Offline,
+        MachineState::Idle,
+        MachineState::Jogging,
+        MachineState::Homing,
+        MachineState::Running,
+        MachineState::Paused,
+        MachineState::Alarm,
+        MachineState::Unresponsive,
+    ];
+
     /// The state's wire name (`"idle"`, `"running"`, ...), for messages and logs.
     pub fn as_str(self) -> &'static str {
         match self {
@@ -335,6 +346,29 @@ impl Request {
         serde_json::from_value(request)
             .map_err(|e| crate::PluginError::invalid(format!("invalid request: {e}")))
     }
+
+    /// [`Request::from_json`] straight from the bytes of a call, with no `Value` in between.
+    pub fn from_slice(request: &[u8]) -> Result<Request, crate::PluginError> {
+        serde_json::from_slice(request)
+            .map_err(|e| crate::PluginError::invalid(format!("invalid request: {e}")))
+    }
+}
+
+/// Answer to `run` and `command cycle_start`: `{}`, or `{"part_zero": ...}` from a backend
+/// whose controller reports its part zero when a run starts (the host stores it with the run).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct RunAnswer {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub part_zero: Option<AxisValues>,
+}
+
+/// Answer to `get_artifact`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Artifact {
+    pub content_type: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub file_name: Option<String>,
+    pub body: String,
 }
 
 /// Work offsets G54..G59, in the order of `WorkOffset::ALL`.
@@ -519,10 +553,39 @@ mod tests {
 
     #[test]
     fn state_names_are_the_wire_names() {
-        use MachineState::*;
-        for s in [Offline, Idle, Jogging, Homing, Running, Paused, Alarm] {
+        for s in MachineState::ALL {
             assert_eq!(serde_json::to_value(s).unwrap(), json!(s.as_str()));
         }
+        // The names the server and clients already know must never change.
+        let names = MachineState::ALL.map(MachineState::as_str);
+        assert_eq!(
+            names,
+            [
+                "offline",
+                "idle",
+                "jogging",
+                "homing",
+                "running",
+                "paused",
+                "alarm",
+                "unresponsive"
+            ]
+        );
+        assert!(!MachineState::Unresponsive.is_busy());
+    }
+
+    #[test]
+    fn requests_decode_from_bytes_like_from_values() {
+        let bytes = br#"{"op":"jog","axis":"X","distance":1.5}"#;
+        let v: serde_json::Value = serde_json::from_slice(bytes).unwrap();
+        assert_eq!(
+            Request::from_slice(bytes).unwrap(),
+            Request::from_json(v).unwrap()
+        );
+        assert_eq!(
+            Request::from_slice(b"{").unwrap_err().code,
+            "invalid_request"
+        );
     }
 
     #[test]

@@ -27,4 +27,12 @@ impl PluginError {
     pub fn invalid(message: impl Into<String>) -> Self {
         PluginError::new("invalid_request", message)
     }
+
+    /// The backend does not implement this contract operation (`op` names it, e.g. `mdi`).
+    pub fn unsupported(op: &str) -> Self {
+        PluginError::new(
+            "unsupported",
+            format!("this machine backend does not support `{op}`"),
+        )
+    }
 }

@@ -3,6 +3,7 @@
 //! (idempotent resume, see the README). Shared by the Rust backends.
 
 use crate::PluginError;
+use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 use std::fs::{File, OpenOptions};
 use std::io::{BufRead, BufReader, Write};
@@ -23,6 +24,11 @@ pub struct ExecLog {
 
 impl ExecLog {
     pub fn open(path: &Path) -> Result<ExecLog, PluginError> {
+        ExecLog::open_as(path, "execution_log")
+    }
+
+    /// Opens a log whose path came from config key `key` (named in the error).
+    pub fn open_as(path: &Path, key: &str) -> Result<ExecLog, PluginError> {
         let file = OpenOptions::new()
             .create(true)
             .append(true)
@@ -30,10 +36,7 @@ impl ExecLog {
             .map_err(|e| {
                 PluginError::new(
                     "invalid_config",
-                    format!(
-                        "`execution_log`: cannot open {} for appending: {e}",
-                        path.display()
-                    ),
+                    format!("`{key}`: cannot open {} for appending: {e}", path.display()),
                 )
             })?;
         Ok(ExecLog {
@@ -45,35 +48,45 @@ impl ExecLog {
     /// Appends one entry and flushes it to the operating system (one `write` call, so a torn
     /// entry can only be the last line, which [`ExecLog::last_line`] skips).
     pub fn append(&mut self, run: i64, line: u32) -> Result<(), String> {
-        let text = format!("{{\"run\":{run},\"line\":{line}}}\n");
+        self.append_entry(&Entry { run, line })
+    }
+
+    /// Appends any one-line JSON record (backends with their own record shape).
+    pub fn append_entry<T: Serialize>(&mut self, entry: &T) -> Result<(), String> {
+        let mut text = serde_json::to_vec(entry)
+            .map_err(|e| format!("cannot encode an execution log entry: {e}"))?;
+        text.push(b'\n');
         self.file
-            .write_all(text.as_bytes())
+            .write_all(&text)
             .and_then(|()| self.file.flush())
             .map_err(|e| format!("cannot write execution log {}: {e}", self.path.display()))
     }
 
-    /// The highest line logged for `run`, if any. Lines that are not entries are skipped.
-    pub fn last_line(&self, run: i64) -> Result<Option<u32>, PluginError> {
-        let file = File::open(&self.path).map_err(|e| {
+    /// Every line that decodes as a `T`, in order; other lines (torn, foreign) are skipped.
+    pub fn entries<T: DeserializeOwned>(&self) -> Result<Vec<T>, PluginError> {
+        let io = |e: std::io::Error| {
             PluginError::new(
                 "io",
                 format!("cannot read execution log {}: {e}", self.path.display()),
             )
-        })?;
-        let mut last = None;
+        };
+        let file = File::open(&self.path).map_err(io)?;
+        let mut out = Vec::new();
         for text in BufReader::new(file).lines() {
-            let text = text.map_err(|e| {
-                PluginError::new(
-                    "io",
-                    format!("cannot read execution log {}: {e}", self.path.display()),
-                )
-            })?;
-            if let Ok(entry) = serde_json::from_str::<Entry>(&text) {
-                if entry.run == run {
-                    last = last.max(Some(entry.line));
-                }
+            if let Ok(entry) = serde_json::from_str::<T>(&text.map_err(io)?) {
+                out.push(entry);
             }
         }
-        Ok(last)
+        Ok(out)
+    }
+
+    /// The highest line logged for `run`, if any. Lines that are not entries are skipped.
+    pub fn last_line(&self, run: i64) -> Result<Option<u32>, PluginError> {
+        Ok(self
+            .entries::<Entry>()?
+            .into_iter()
+            .filter(|e| e.run == run)
+            .map(|e| e.line)
+            .max())
     }
 }

@@ -373,34 +373,58 @@ impl Instance {
         &self.library
     }
 
-    /// Sends one JSON request and waits for the answer. Blocks: call from a blocking thread.
-    pub fn call(&self, request: &serde_json::Value) -> Result<serde_json::Value, CallError> {
-        let req = serde_json::to_vec(request).map_err(|e| CallError::Protocol(e.to_string()))?;
+    /// Sends one request already encoded as JSON bytes; answers the plugin's answer bytes.
+    /// Blocks: call from a blocking thread.
+    pub fn call_bytes(&self, request: &[u8]) -> Result<Vec<u8>, CallError> {
         let mut out = FrBuf::EMPTY;
         // SAFETY: instance is live (we own it); buffers are valid for the call.
-        let status =
-            unsafe { (self.library.descriptor.call)(self.ptr, req.as_ptr(), req.len(), &mut out) };
+        let status = unsafe {
+            (self.library.descriptor.call)(self.ptr, request.as_ptr(), request.len(), &mut out)
+        };
         let bytes = self.library.take(out);
         if status != abi::STATUS_OK {
             return Err(decode_error(status, &bytes));
         }
-        if bytes.is_empty() {
-            return Ok(serde_json::Value::Object(Default::default()));
-        }
-        serde_json::from_slice(&bytes)
-            .map_err(|e| CallError::Protocol(format!("response is not JSON: {e}")))
+        Ok(bytes)
     }
 
-    /// Typed convenience over [`Instance::call`].
+    /// Sends one JSON request and waits for the answer. Blocks: call from a blocking thread.
+    /// For machine backends prefer [`Instance::call_request`], which skips the `Value` step.
+    pub fn call(&self, request: &serde_json::Value) -> Result<serde_json::Value, CallError> {
+        let req = serde_json::to_vec(request).map_err(|e| CallError::Protocol(e.to_string()))?;
+        decode_answer(&self.call_bytes(&req)?)
+    }
+
+    /// Sends one machine-backend request, serialised straight to the call's bytes. Blocks.
+    pub fn call_request(
+        &self,
+        request: &crate::contract::Request,
+    ) -> Result<serde_json::Value, CallError> {
+        let req = serde_json::to_vec(request).map_err(|e| CallError::Protocol(e.to_string()))?;
+        decode_answer(&self.call_bytes(&req)?)
+    }
+
+    /// Typed convenience: the answer decoded straight into `T` (e.g. `MachineStatus`).
     pub fn request<T: serde::de::DeserializeOwned>(
         &self,
         request: &crate::contract::Request,
     ) -> Result<T, CallError> {
-        let req = serde_json::to_value(request).map_err(|e| CallError::Protocol(e.to_string()))?;
-        let v = self.call(&req)?;
-        serde_json::from_value(v)
+        let req = serde_json::to_vec(request).map_err(|e| CallError::Protocol(e.to_string()))?;
+        let bytes = self.call_bytes(&req)?;
+        // An empty answer means `{}` (the ABI allows a plugin to return nothing).
+        let bytes: &[u8] = if bytes.is_empty() { b"{}" } else { &bytes };
+        serde_json::from_slice(bytes)
             .map_err(|e| CallError::Protocol(format!("unexpected response shape: {e}")))
     }
+}
+
+/// An answer's bytes as JSON; an empty answer is `{}`.
+fn decode_answer(bytes: &[u8]) -> Result<serde_json::Value, CallError> {
+    if bytes.is_empty() {
+        return Ok(serde_json::Value::Object(Default::default()));
+    }
+    serde_json::from_slice(bytes)
+        .map_err(|e| CallError::Protocol(format!("response is not JSON: {e}")))
 }
 
 impl Drop for Instance {

@@ -2,19 +2,26 @@
 //!
 //! * [`abi`]: the raw `repr(C)` contract, mirrored by `include/fresa_plugin.h`.
 //! * [`contract`]: the JSON requests, responses and events of a machine backend.
-//! * [`plugin`]: for plugin authors in Rust: the [`Plugin`] trait and [`export_plugin!`].
+//! * [`backend`]: for machine backends in Rust: the typed [`MachineBackend`] trait and
+//!   [`export_machine_backend!`] (request decoding and dispatch done once).
+//! * [`kit`]: for Rust backends that plan motion locally: the shared state machine, run
+//!   bookkeeping, offsets, execution log use and event emission.
+//! * [`plugin`]: the lower-level [`Plugin`] trait and [`export_plugin!`] (any plugin kind).
 //! * [`config_fields`]: for Rust plugins: config values read with errors naming the key.
 //! * [`exec_log`]: for Rust machine backends: the execution log behind idempotent resume.
 //! * [`host`]: for the server: load a library, check it, create and call instances.
 
 pub mod abi;
+pub mod backend;
 pub mod config_fields;
 pub mod contract;
 mod error;
 pub mod exec_log;
 pub mod host;
+pub mod kit;
 pub mod plugin;
 
+pub use backend::MachineBackend;
 pub use error::PluginError;
 pub use plugin::{Host, Plugin};
 
@@ -36,4 +43,16 @@ pub fn library_file_name(crate_lib_name: &str) -> String {
         crate_lib_name,
         std::env::consts::DLL_SUFFIX
     )
+}
+
+/// For tests and benches of a plugin crate: its library as cargo built it beside the running
+/// executable (`target/<profile>/deps`, or one level up after `cargo build`).
+pub fn built_library(crate_lib_name: &str) -> Option<std::path::PathBuf> {
+    let exe = std::env::current_exe().ok()?;
+    let deps = exe.parent()?;
+    let name = library_file_name(crate_lib_name);
+    [Some(deps.join(&name)), deps.parent().map(|d| d.join(&name))]
+        .into_iter()
+        .flatten()
+        .find(|p| p.exists())
 }

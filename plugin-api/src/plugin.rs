@@ -51,6 +51,18 @@ impl Host {
 pub trait Plugin: Send + Sync + Sized + 'static {
     fn create(host: Host, config: serde_json::Value) -> Result<Self, PluginError>;
     fn call(&self, request: serde_json::Value) -> Result<serde_json::Value, PluginError>;
+
+    /// The call as the ABI carries it: request bytes in, answer bytes out. The default goes
+    /// through [`Plugin::call`]; a plugin with typed requests overrides it to decode the bytes
+    /// straight into its request type (see [`crate::backend`]).
+    fn call_bytes(&self, request: &[u8]) -> Result<Vec<u8>, PluginError> {
+        let value: serde_json::Value = serde_json::from_slice(request).map_err(|e| {
+            PluginError::new("invalid_request", format!("request is not JSON: {e}"))
+        })?;
+        let answer = self.call(value)?;
+        serde_json::to_vec(&answer)
+            .map_err(|e| PluginError::new("internal", format!("cannot encode answer: {e}")))
+    }
 }
 
 fn into_buf(bytes: Vec<u8>) -> FrBuf {
@@ -140,17 +152,9 @@ pub unsafe extern "C" fn call<P: Plugin>(
     // SAFETY: per the contract, instance is a live `P` and the request bytes are readable.
     let plugin = unsafe { &*(instance as *const P) };
     let req = unsafe { bytes(request, request_len) };
-    let result = catch_unwind(AssertUnwindSafe(|| {
-        let value: serde_json::Value = serde_json::from_slice(req).map_err(|e| {
-            PluginError::new("invalid_request", format!("request is not JSON: {e}"))
-        })?;
-        plugin.call(value)
-    }));
+    let result = catch_unwind(AssertUnwindSafe(|| plugin.call_bytes(req)));
     let (status, buf) = match result {
-        Ok(Ok(v)) => (
-            abi::STATUS_OK,
-            into_buf(serde_json::to_vec(&v).unwrap_or_else(|_| b"null".to_vec())),
-        ),
+        Ok(Ok(bytes)) => (abi::STATUS_OK, into_buf(bytes)),
         Ok(Err(e)) => (abi::STATUS_ERROR, error_buf(&e)),
         Err(p) => (
             abi::STATUS_PANIC,

@@ -21,25 +21,4 @@ pub mod sim;
 pub use config::{Config, Protocol};
 pub use machine::{EventSink, KawasakiMachine, LogSink};
 
-use fresa_plugin_api::{Host, Plugin, PluginError};
-use std::sync::Arc;
-
-impl Plugin for KawasakiMachine {
-    fn create(host: Host, config: serde_json::Value) -> Result<Self, PluginError> {
-        KawasakiMachine::new(
-            &config,
-            Arc::new(move |event| host.emit(event)),
-            Arc::new(move |message| host.warn(message)),
-        )
-    }
-
-    fn call(&self, request: serde_json::Value) -> Result<serde_json::Value, PluginError> {
-        self.request(request)
-    }
-}
-
-fresa_plugin_api::export_plugin!(
-    KawasakiMachine,
-    name = "kawasaki-as",
-    kinds = fresa_plugin_api::abi::KIND_MACHINE_BACKEND
-);
+fresa_plugin_api::export_machine_backend!(KawasakiMachine, name = "kawasaki-as");

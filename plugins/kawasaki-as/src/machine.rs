@@ -9,15 +9,16 @@ use crate::codec::{V1Cmd, V1Msg};
 use crate::config::{Config, Protocol};
 use crate::convert::{Cmd, Convert, Plan};
 use crate::link::{self, LegacyLink, LinkError, V1Link};
+use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
 use fresa_plugin_api::contract::{
-    AxisValues, Command, Event, MachineState, MachineStatus, OffsetTable, ProgramLoaded, Request,
-    RunAction, RunOutcome,
+    Artifact, Axis, AxisValues, Event, MachineState, MachineStatus, OffsetTable, ProgramLoaded,
+    RunAction, RunAnswer, RunOutcome, WorkOffset,
 };
-use fresa_plugin_api::PluginError;
-use serde_json::{json, Value};
+use fresa_plugin_api::exec_log::ExecLog;
+use fresa_plugin_api::{Host, PluginError};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
 use std::collections::{HashMap, VecDeque};
-use std::fs::{File, OpenOptions};
-use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
@@ -115,53 +116,45 @@ impl Shared {
 
 /// legacy: `{"tag":"<run>-<program hash>","done":N}` per acknowledged command, so a resume
 /// after a crash of the server starts at the exact next motion. Keyed by run id and program
-/// content, so a journal shared by mistake cannot match another program.
+/// content, so a journal shared by mistake cannot match another program. Kept in the shared
+/// execution log file machinery, with its own record shape.
 struct Journal {
-    path: PathBuf,
-    file: File,
+    log: ExecLog,
     tag: String,
+}
+
+#[derive(Serialize, Deserialize)]
+struct JournalEntry {
+    tag: String,
+    done: u64,
 }
 
 impl Journal {
     fn open(path: &Path, tag: &str) -> Result<Journal, PluginError> {
-        let file = OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(path)
-            .map_err(|e| {
-                PluginError::new(
-                    "invalid_config",
-                    format!(
-                        "`journal`: cannot open {} for appending: {e}",
-                        path.display()
-                    ),
-                )
-            })?;
         Ok(Journal {
-            path: path.to_path_buf(),
-            file,
+            log: ExecLog::open_as(path, "journal")?,
             tag: tag.to_string(),
         })
     }
 
     fn record(&mut self, done: usize) -> Result<(), String> {
-        let text = format!("{{\"tag\":\"{}\",\"done\":{done}}}\n", self.tag);
-        self.file
-            .write_all(text.as_bytes())
-            .map_err(|e| format!("cannot write journal {}: {e}", self.path.display()))
+        self.log.append_entry(&JournalEntry {
+            tag: self.tag.clone(),
+            done: done as u64,
+        })
     }
 
+    /// Commands done for this tag; an unreadable journal counts as none done.
     fn done(&self) -> usize {
-        let Ok(f) = File::open(&self.path) else {
-            return 0;
-        };
-        BufReader::new(f)
-            .lines()
-            .map_while(Result::ok)
-            .filter_map(|l| serde_json::from_str::<Value>(&l).ok())
-            .filter(|v| v["tag"].as_str() == Some(self.tag.as_str()))
-            .filter_map(|v| v["done"].as_u64())
-            .max()
+        self.log
+            .entries::<JournalEntry>()
+            .map(|es| {
+                es.into_iter()
+                    .filter(|e| e.tag == self.tag)
+                    .map(|e| e.done)
+                    .max()
+                    .unwrap_or(0)
+            })
             .unwrap_or(0) as usize
     }
 }
@@ -223,104 +216,28 @@ impl KawasakiMachine {
         &self.core.cfg
     }
 
-    /// Handles one JSON request of the backend contract.
-    pub fn request(&self, request: Value) -> Result<Value, PluginError> {
-        let request = Request::from_json(request)?;
-        let core = &self.core;
-        match request {
-            Request::Connect => {
-                core.with(|sh, ev| {
-                    if sh.state == MachineState::Offline {
-                        sh.set_state(MachineState::Idle, ev);
-                    }
-                });
-                PluginError::encode(&core.lock().status(&core.cfg))
-            }
-            Request::Status => PluginError::encode(&core.lock().status(&core.cfg)),
-            Request::Jog { .. } => Err(PluginError::new(
-                "unsupported",
-                "the robot is jogged with its teach pendant, not through this server",
-            )),
-            Request::GetOffsets => PluginError::encode(&OffsetTable::default()),
-            // The robot works relative to the part zero taught on the pendant; G54..G59 are
-            // kept by the server but do not move it.
-            Request::SetOffset { .. } => Ok(json!({})),
-            Request::Command(c) => self.command(c),
-            Request::LoadProgram {
-                run,
-                path,
-                start_line,
-                expected_part_zero,
-            } => self.load(run, &path, start_line, expected_part_zero),
-            Request::Run { action } => match action {
-                RunAction::Start => self.start(),
-                RunAction::Pause => self.pause(true),
-                RunAction::Resume => self.resume(true),
-                RunAction::Cancel => {
-                    self.cancel();
-                    Ok(json!({}))
-                }
-            },
-            Request::GetArtifact { name } => self.artifact(&name),
-            Request::Mdi { .. } => Err(PluginError::new(
-                "unsupported",
-                "kawasaki-as streams whole programs only: no MDI",
-            )),
-            Request::Shutdown => {
-                self.cut();
-                self.join();
-                core.with(|sh, ev| sh.set_state(MachineState::Offline, ev));
-                Ok(json!({}))
-            }
-        }
+    fn status_now(&self) -> MachineStatus {
+        self.core.lock().status(&self.core.cfg)
     }
 
-    fn command(&self, c: Command) -> Result<Value, PluginError> {
-        match c {
-            Command::CycleStart => {
-                if self.core.lock().state == MachineState::Paused {
-                    self.resume(false)
-                } else {
-                    self.start()
-                }
+    /// Stop and reset are the same here: cancel the run, clear the alarm.
+    fn stop_and_clear(&self) {
+        self.cancel();
+        self.core.with(|sh, ev| {
+            sh.alarm = None;
+            if sh.state == MachineState::Alarm {
+                sh.set_state(MachineState::Idle, ev);
             }
-            Command::FeedHold => self.pause(false),
-            Command::Resume => self.resume(false),
-            Command::Stop | Command::Reset => {
-                self.cancel();
-                self.core.with(|sh, ev| {
-                    sh.alarm = None;
-                    if sh.state == MachineState::Alarm {
-                        sh.set_state(MachineState::Idle, ev);
-                    }
-                });
-                Ok(json!({}))
-            }
-            Command::Home { .. }
-            | Command::Zero { .. }
-            | Command::GoToZero
-            | Command::SelectOffset { .. } => Err(PluginError::new(
-                "unsupported",
-                "the robot's part zero is taught on its pendant and reported when a job starts; \
-                     home, zero, go-to-zero and work offsets are not available",
-            )),
-            Command::SetOutput { name, .. } | Command::ToggleOutput { name } => {
-                Err(PluginError::new(
-                    "unsupported",
-                    format!("kawasaki-as has no output {:?}", name.as_str()),
-                ))
-            }
-        }
+        });
     }
-
-    fn artifact(&self, name: &str) -> Result<Value, PluginError> {
+    fn artifact(&self, name: &str) -> Result<Artifact, PluginError> {
         match name {
             "as-program" => match self.core.cfg.protocol {
-                Protocol::FresaV1 => Ok(json!({
-                    "content_type": "text/plain; charset=utf-8",
-                    "file_name": "FRESA_V1.pg",
-                    "body": crate::as_program::generate(&self.core.cfg),
-                })),
+                Protocol::FresaV1 => Ok(Artifact {
+                    content_type: "text/plain; charset=utf-8".into(),
+                    file_name: Some("FRESA_V1.pg".into()),
+                    body: crate::as_program::generate(&self.core.cfg),
+                }),
                 Protocol::Legacy => Err(PluginError::new(
                     "not_available",
                     "this machine uses protocol `legacy`: load the seed's FRESADORA program on the controller \
@@ -340,7 +257,7 @@ impl KawasakiMachine {
         path: &str,
         start_line: u32,
         expected_zero: Option<AxisValues>,
-    ) -> Result<Value, PluginError> {
+    ) -> Result<ProgramLoaded, PluginError> {
         if self.core.lock().busy {
             return Err(PluginError::new("busy", "a run is in progress"));
         }
@@ -403,19 +320,19 @@ impl KawasakiMachine {
                 journal,
             });
         });
-        PluginError::encode(&ProgramLoaded {
+        Ok(ProgramLoaded {
             lines,
             start_line: actual_line.min(lines.max(1)),
         })
     }
 
     /// Connects, checks part zero and envelope, starts the robot program and the stream.
-    fn start(&self) -> Result<Value, PluginError> {
+    fn start(&self) -> Result<RunAnswer, PluginError> {
         let core = self.core.clone();
         let loaded = {
             let mut sh = core.lock();
             if sh.busy {
-                return Ok(json!({}));
+                return Ok(RunAnswer::default());
             }
             sh.loaded.take().ok_or_else(|| {
                 PluginError::new(
@@ -514,20 +431,27 @@ impl KawasakiMachine {
                 PluginError::new("internal", format!("cannot start the run thread: {e}"))
             })?;
         *self.worker.lock().unwrap_or_else(|e| e.into_inner()) = Some(handle);
-        Ok(json!({"part_zero": {"x": zero[0], "y": zero[1], "z": zero[2], "a": 0.0}}))
+        Ok(RunAnswer {
+            part_zero: Some(AxisValues {
+                x: zero[0],
+                y: zero[1],
+                z: zero[2],
+                a: 0.0,
+            }),
+        })
     }
 
-    fn pause(&self, strict: bool) -> Result<Value, PluginError> {
+    fn pause(&self, strict: bool) -> Result<(), PluginError> {
         self.hold(true, strict)
     }
 
-    fn resume(&self, strict: bool) -> Result<Value, PluginError> {
+    fn resume(&self, strict: bool) -> Result<(), PluginError> {
         self.hold(false, strict)
     }
 
     /// Pause (`hold`) or resume the run: stop or restart sending. `strict` (run control, not the
     /// feed-hold button) refuses when no program is loaded; otherwise a no-op is fine.
-    fn hold(&self, hold: bool, strict: bool) -> Result<Value, PluginError> {
+    fn hold(&self, hold: bool, strict: bool) -> Result<(), PluginError> {
         let (from, to, what) = if hold {
             (MachineState::Running, MachineState::Paused, "pause")
         } else {
@@ -537,14 +461,14 @@ impl KawasakiMachine {
             if sh.state == from {
                 sh.pause = hold;
                 sh.set_state(to, ev);
-                Ok(json!({}))
+                Ok(())
             } else if strict && sh.run.is_none() {
                 Err(PluginError::new(
                     "not_running",
                     format!("no program is running: nothing to {what}"),
                 ))
             } else {
-                Ok(json!({}))
+                Ok(())
             }
         });
         // Wakes the sender after a resume (harmless after a pause).
@@ -958,5 +882,122 @@ impl Core {
 
     fn warn(&self, message: &str) {
         (self.log)(message);
+    }
+}
+
+/// Why home, zero, go-to-zero and work offsets are refused, for the operator.
+fn taught_on_pendant() -> PluginError {
+    PluginError::new(
+        "unsupported",
+        "the robot's part zero is taught on its pendant and reported when a job starts; \
+         home, zero, go-to-zero and work offsets are not available",
+    )
+}
+
+impl MachineBackend for KawasakiMachine {
+    fn create(host: Host, config: Value) -> Result<Self, PluginError> {
+        KawasakiMachine::new(
+            &config,
+            Arc::new(move |event| host.emit(event)),
+            Arc::new(move |message| host.warn(message)),
+        )
+    }
+
+    fn connect(&self) -> Result<MachineStatus, PluginError> {
+        self.core.with(|sh, ev| {
+            if sh.state == MachineState::Offline {
+                sh.set_state(MachineState::Idle, ev);
+            }
+        });
+        Ok(self.status_now())
+    }
+
+    fn status(&self) -> Result<MachineStatus, PluginError> {
+        Ok(self.status_now())
+    }
+
+    fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {
+        self.load(p.run, &p.path, p.start_line, p.expected_part_zero)
+    }
+
+    fn run(&self, action: RunAction) -> Result<RunAnswer, PluginError> {
+        match action {
+            RunAction::Start => return self.start(),
+            RunAction::Pause => self.pause(true)?,
+            RunAction::Resume => self.resume(true)?,
+            RunAction::Cancel => self.cancel(),
+        }
+        Ok(RunAnswer::default())
+    }
+
+    fn cycle_start(&self) -> Result<RunAnswer, PluginError> {
+        if self.core.lock().state == MachineState::Paused {
+            self.resume(false).map(|()| RunAnswer::default())
+        } else {
+            self.start()
+        }
+    }
+
+    fn feed_hold(&self) -> Result<(), PluginError> {
+        self.pause(false)
+    }
+
+    fn resume(&self) -> Result<(), PluginError> {
+        KawasakiMachine::resume(self, false)
+    }
+
+    fn stop(&self) -> Result<(), PluginError> {
+        self.stop_and_clear();
+        Ok(())
+    }
+
+    fn reset(&self) -> Result<(), PluginError> {
+        self.stop_and_clear();
+        Ok(())
+    }
+
+    fn shutdown(&self) -> Result<(), PluginError> {
+        self.cut();
+        self.join();
+        self.core
+            .with(|sh, ev| sh.set_state(MachineState::Offline, ev));
+        Ok(())
+    }
+
+    fn jog(&self, _axis: Axis, _distance: f64, _feed: Option<f64>) -> Result<(), PluginError> {
+        Err(PluginError::new(
+            "unsupported",
+            "the robot is jogged with its teach pendant, not through this server",
+        ))
+    }
+
+    fn home(&self, _axis: Option<Axis>) -> Result<(), PluginError> {
+        Err(taught_on_pendant())
+    }
+
+    fn zero(&self, _axis: Option<Axis>) -> Result<Option<OffsetTable>, PluginError> {
+        Err(taught_on_pendant())
+    }
+
+    fn go_to_zero(&self) -> Result<(), PluginError> {
+        Err(taught_on_pendant())
+    }
+
+    fn select_offset(&self, _offset: WorkOffset) -> Result<(), PluginError> {
+        Err(taught_on_pendant())
+    }
+
+    // The robot works relative to the part zero taught on its pendant; G54..G59 are kept by
+    // the server but do not move it. Outputs and MDI keep the trait's `unsupported` answers.
+    fn get_offsets(&self) -> Result<OffsetTable, PluginError> {
+        Ok(OffsetTable::default())
+    }
+
+    fn set_offset(&self, _offset: WorkOffset, _values: AxisValues) -> Result<(), PluginError> {
+        Ok(())
+    }
+
+    fn get_artifact(&self, name: &str) -> Result<Artifact, PluginError> {
+        self.artifact(name)
     }
 }

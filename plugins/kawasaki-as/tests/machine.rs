@@ -5,6 +5,7 @@
 use fresa_kawasaki_as::sim::{self, SimConfig};
 use fresa_kawasaki_as::{KawasakiMachine, Protocol};
 use fresa_plugin_api::contract::{Event, MachineState, RunOutcome};
+use fresa_plugin_api::MachineBackend;
 use serde_json::{json, Value};
 use std::net::TcpListener;
 use std::sync::{mpsc, Arc};

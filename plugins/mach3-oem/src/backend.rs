@@ -8,11 +8,12 @@ use crate::codes::Code;
 use crate::config::Config;
 use crate::mach3::{Call, ErrorKind};
 use crate::protocol::{CallResult, PROGRAM_CHUNK_BYTES};
+use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
 use fresa_plugin_api::contract::{
-    Axis, AxisValues, Command, Event, MachineState, MachineStatus, OffsetTable, OutputName,
-    ProgramLoaded, Request, RunAction, RunOutcome, WorkOffset,
+    Axis, AxisValues, Event, MachineState, MachineStatus, OffsetTable, OutputName, ProgramLoaded,
+    RunAction, RunAnswer, RunOutcome, WorkOffset,
 };
-use fresa_plugin_api::PluginError;
+use fresa_plugin_api::{Host, PluginError};
 use serde_json::{json, Value};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
@@ -403,11 +404,11 @@ impl Inner {
 
     // ----- requests -----
 
-    fn status(&self) -> Result<Value, PluginError> {
+    fn status(&self) -> MachineStatus {
         if !self.lock().polled {
             self.poll();
         }
-        PluginError::encode(&self.lock().status)
+        self.lock().status.clone()
     }
 
     fn require(&self, what: &str, allowed: &[MachineState]) -> Result<MachineStatus, PluginError> {
@@ -651,7 +652,12 @@ impl Inner {
         Ok(json!({}))
     }
 
-    fn load_program(&self, run: i64, path: &str, start_line: u32) -> Result<Value, PluginError> {
+    fn load_program(
+        &self,
+        run: i64,
+        path: &str,
+        start_line: u32,
+    ) -> Result<ProgramLoaded, PluginError> {
         if start_line == 0 {
             return Err(PluginError::invalid(
                 "start_line is 1-based: 0 is not a line",
@@ -722,7 +728,7 @@ impl Inner {
                 }]);
             }
         }
-        PluginError::encode(&ProgramLoaded { lines, start_line })
+        Ok(ProgramLoaded { lines, start_line })
     }
 
     fn start(&self) -> Result<Value, PluginError> {
@@ -761,158 +767,57 @@ impl Inner {
         Ok(json!({}))
     }
 
-    fn command(&self, c: Command) -> Result<Value, PluginError> {
-        let codes = &self.cfg.codes;
-        let press = |code: i16| -> Result<Value, PluginError> {
-            self.exec(vec![Call::DoOemButton { code }], false)?;
-            self.poll();
-            Ok(json!({}))
-        };
-        match c {
-            Command::CycleStart => self.start(),
-            Command::FeedHold => {
-                self.button(Code::FeedHold, true)?;
-                self.poll();
-                Ok(json!({}))
-            }
-            Command::Resume => press(codes.get(Code::Resume)),
-            Command::Stop => {
-                self.stop()?;
-                self.poll();
-                Ok(json!({}))
-            }
-            Command::Reset => self.reset(),
-            Command::Home { axis } => {
-                self.require("home", &[MachineState::Idle])?;
-                press(match axis {
-                    Some(a) => codes.axis(Code::RefX, a.index()),
-                    None => codes.get(Code::HomeAll),
-                })
-            }
-            Command::Zero { axis } => {
-                self.require("zero", &[MachineState::Idle])?;
-                press(match axis {
-                    Some(a) => codes.axis(Code::ZeroX, a.index()),
-                    None => codes.get(Code::ZeroAll),
-                })?;
-                Ok(json!({ "offsets": PluginError::encode(&self.offsets()?)? }))
-            }
-            Command::GoToZero => {
-                self.require("go to zero", &[MachineState::Idle])?;
-                press(codes.get(Code::GoToZero))
-            }
-            Command::SelectOffset { offset } => {
-                self.require("select an offset", &[MachineState::Idle])?;
-                self.exec(
-                    vec![Call::Code {
-                        line: offset.name().to_string(),
-                    }],
-                    false,
-                )?;
-                self.poll();
-                Ok(json!({}))
-            }
-            // Flood has OEM buttons; the spindle is switched by MDI M3/M5 (Mach3's own).
-            Command::SetOutput {
-                name: OutputName::Coolant,
-                on,
-            } => {
-                press(codes.get(if on { Code::FloodOn } else { Code::FloodOff }))?;
-                Ok(json!({"output": OutputName::Coolant, "on": on}))
-            }
-            Command::SetOutput {
-                name: OutputName::Spindle,
-                on,
-            } => {
-                self.mdi(if on { "M3" } else { "M5" })?;
-                Ok(json!({"output": OutputName::Spindle, "on": on}))
-            }
-            // No code in the table reads back whether spindle or flood is on, so a toggle
-            // would be a guess; the Z lift belongs to the screen set's macros.
-            Command::SetOutput {
-                name: OutputName::ZLift,
-                ..
-            }
-            | Command::ToggleOutput { .. } => Err(PluginError::new(
-                "unsupported",
-                format!(
-                    "mach3-oem cannot {}: use set_output with on true/false for spindle or coolant",
-                    match c {
-                        Command::ToggleOutput { name } => format!("toggle {:?}", name.as_str()),
-                        _ => "switch \"z_lift\"".to_string(),
-                    }
-                ),
-            )),
-        }
+    /// Presses an OEM button and refreshes the status.
+    fn press(&self, code: i16) -> Result<(), PluginError> {
+        self.exec(vec![Call::DoOemButton { code }], false)?;
+        self.poll();
+        Ok(())
     }
 
-    fn handle(&self, request: Request) -> Result<Value, PluginError> {
-        match request {
-            Request::GetArtifact { name } => Err(PluginError::new(
-                "unknown_artifact",
-                format!("mach3-oem has no artifact {name:?}"),
-            )),
-            Request::Mdi { line } => self.mdi(&line),
-            Request::Connect => {
-                self.poll();
-                self.wake.notify_all();
-                PluginError::encode(&self.lock().status)
-            }
-            Request::Status => self.status(),
-            Request::Jog {
-                axis,
-                distance,
-                feed,
-            } => self.jog(axis, distance, feed),
-            Request::Command(c) => self.command(c),
-            Request::GetOffsets => PluginError::encode(&self.offsets()?),
-            Request::SetOffset { offset, values } => self.set_offset(offset, values),
-            Request::LoadProgram {
-                run,
-                path,
-                start_line,
-                ..
-            } => self.load_program(run, &path, start_line),
-            Request::Run { action } => match action {
-                RunAction::Start => self.start(),
-                RunAction::Pause => self.command(Command::FeedHold),
-                RunAction::Resume => self.command(Command::Resume),
-                RunAction::Cancel => {
-                    let pending = self.lock().loaded.take();
-                    if let Some(l) = pending {
-                        self.emit(vec![Event::RunEnded {
-                            run: l.run,
-                            outcome: RunOutcome::Cancelled,
-                            message: Some("cancelled before it started".into()),
-                        }]);
-                    }
-                    if self.lock().run.is_some() {
-                        self.stop()?;
-                        self.poll();
-                    }
-                    Ok(json!({}))
-                }
-            },
-            Request::Shutdown => {
-                let moving = self.lock().status.state.is_busy();
-                if moving {
-                    // Best effort: the server is going away and motion must not outlive it.
-                    let _ = self.stop();
-                }
-                {
-                    let mut sh = self.lock();
-                    sh.shutdown = true;
-                    sh.status = offline("shut down".into());
-                }
-                self.wake.notify_all();
-                self.link
-                    .lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .client
-                    .disconnect();
-                Ok(json!({}))
-            }
+    /// Cancels the run: a loaded, unstarted one ends at once; a running one is stopped.
+    fn cancel(&self) -> Result<(), PluginError> {
+        let pending = self.lock().loaded.take();
+        if let Some(l) = pending {
+            self.emit(vec![Event::RunEnded {
+                run: l.run,
+                outcome: RunOutcome::Cancelled,
+                message: Some("cancelled before it started".into()),
+            }]);
         }
+        if self.lock().run.is_some() {
+            self.stop()?;
+            self.poll();
+        }
+        Ok(())
+    }
+
+    fn feed_hold(&self) -> Result<(), PluginError> {
+        self.button(Code::FeedHold, true)?;
+        self.poll();
+        Ok(())
+    }
+
+    fn resume(&self) -> Result<(), PluginError> {
+        self.press(self.cfg.codes.get(Code::Resume))
+    }
+
+    fn shutdown(&self) {
+        let moving = self.lock().status.state.is_busy();
+        if moving {
+            // Best effort: the server is going away and motion must not outlive it.
+            let _ = self.stop();
+        }
+        {
+            let mut sh = self.lock();
+            sh.shutdown = true;
+            sh.status = offline("shut down".into());
+        }
+        self.wake.notify_all();
+        self.link
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .client
+            .disconnect();
     }
 }
 
@@ -967,10 +872,145 @@ impl Mach3Backend {
             poller: Mutex::new(Some(poller)),
         })
     }
+}
 
-    pub fn request(&self, request: Value) -> Result<Value, PluginError> {
-        let request = Request::from_json(request)?;
-        self.inner.handle(request)
+impl MachineBackend for Mach3Backend {
+    fn create(host: Host, config: Value) -> Result<Self, PluginError> {
+        Mach3Backend::new(&config, Arc::new(move |event| host.emit(event)))
+    }
+
+    fn connect(&self) -> Result<MachineStatus, PluginError> {
+        self.inner.poll();
+        self.inner.wake.notify_all();
+        Ok(self.inner.lock().status.clone())
+    }
+
+    fn status(&self) -> Result<MachineStatus, PluginError> {
+        Ok(self.inner.status())
+    }
+
+    fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {
+        self.inner.load_program(p.run, &p.path, p.start_line)
+    }
+
+    fn run(&self, action: RunAction) -> Result<RunAnswer, PluginError> {
+        match action {
+            RunAction::Start => self.inner.start().map(drop)?,
+            RunAction::Pause => self.inner.feed_hold()?,
+            RunAction::Resume => self.inner.resume()?,
+            RunAction::Cancel => self.inner.cancel()?,
+        }
+        Ok(RunAnswer::default())
+    }
+
+    fn feed_hold(&self) -> Result<(), PluginError> {
+        self.inner.feed_hold()
+    }
+
+    fn resume(&self) -> Result<(), PluginError> {
+        self.inner.resume()
+    }
+
+    fn stop(&self) -> Result<(), PluginError> {
+        self.inner.stop()?;
+        self.inner.poll();
+        Ok(())
+    }
+
+    fn reset(&self) -> Result<(), PluginError> {
+        self.inner.reset().map(drop)
+    }
+
+    fn shutdown(&self) -> Result<(), PluginError> {
+        self.inner.shutdown();
+        Ok(())
+    }
+
+    fn jog(&self, axis: Axis, distance: f64, feed: Option<f64>) -> Result<(), PluginError> {
+        self.inner.jog(axis, distance, feed).map(drop)
+    }
+
+    fn home(&self, axis: Option<Axis>) -> Result<(), PluginError> {
+        let inner = &self.inner;
+        inner.require("home", &[MachineState::Idle])?;
+        inner.press(match axis {
+            Some(a) => inner.cfg.codes.axis(Code::RefX, a.index()),
+            None => inner.cfg.codes.get(Code::HomeAll),
+        })
+    }
+
+    fn zero(&self, axis: Option<Axis>) -> Result<Option<OffsetTable>, PluginError> {
+        let inner = &self.inner;
+        inner.require("zero", &[MachineState::Idle])?;
+        inner.press(match axis {
+            Some(a) => inner.cfg.codes.axis(Code::ZeroX, a.index()),
+            None => inner.cfg.codes.get(Code::ZeroAll),
+        })?;
+        inner.offsets().map(Some)
+    }
+
+    fn go_to_zero(&self) -> Result<(), PluginError> {
+        self.inner.require("go to zero", &[MachineState::Idle])?;
+        self.inner.press(self.inner.cfg.codes.get(Code::GoToZero))
+    }
+
+    fn select_offset(&self, offset: WorkOffset) -> Result<(), PluginError> {
+        self.inner
+            .require("select an offset", &[MachineState::Idle])?;
+        self.inner.exec(
+            vec![Call::Code {
+                line: offset.name().to_string(),
+            }],
+            false,
+        )?;
+        self.inner.poll();
+        Ok(())
+    }
+
+    fn set_output(&self, name: OutputName, on: bool) -> Result<Value, PluginError> {
+        let codes = &self.inner.cfg.codes;
+        match name {
+            // Flood has OEM buttons; the spindle is switched by MDI M3/M5 (Mach3's own).
+            OutputName::Coolant => {
+                self.inner
+                    .press(codes.get(if on { Code::FloodOn } else { Code::FloodOff }))?;
+            }
+            OutputName::Spindle => {
+                self.inner.mdi(if on { "M3" } else { "M5" })?;
+            }
+            // The Z lift belongs to the screen set's macros.
+            OutputName::ZLift => {
+                return Err(PluginError::new(
+                    "unsupported",
+                    "mach3-oem cannot switch \"z_lift\": use set_output with on true/false for spindle or coolant",
+                ))
+            }
+        }
+        Ok(json!({"output": name, "on": on}))
+    }
+
+    /// No code in the table reads back whether spindle or flood is on, so a toggle would be a
+    /// guess.
+    fn toggle_output(&self, name: OutputName) -> Result<Value, PluginError> {
+        Err(PluginError::new(
+            "unsupported",
+            format!(
+                "mach3-oem cannot toggle {:?}: use set_output with on true/false for spindle or coolant",
+                name.as_str()
+            ),
+        ))
+    }
+
+    fn get_offsets(&self) -> Result<OffsetTable, PluginError> {
+        self.inner.offsets()
+    }
+
+    fn set_offset(&self, offset: WorkOffset, values: AxisValues) -> Result<(), PluginError> {
+        self.inner.set_offset(offset, values).map(drop)
+    }
+
+    fn mdi(&self, line: &str) -> Result<(), PluginError> {
+        self.inner.mdi(line).map(drop)
     }
 }
 

@@ -21,22 +21,4 @@ pub mod mach3;
 pub mod protocol;
 pub mod sim;
 
-use backend::Mach3Backend;
-use fresa_plugin_api::{Host, Plugin, PluginError};
-use std::sync::Arc;
-
-impl Plugin for Mach3Backend {
-    fn create(host: Host, config: serde_json::Value) -> Result<Self, PluginError> {
-        Mach3Backend::new(&config, Arc::new(move |event| host.emit(event)))
-    }
-
-    fn call(&self, request: serde_json::Value) -> Result<serde_json::Value, PluginError> {
-        self.request(request)
-    }
-}
-
-fresa_plugin_api::export_plugin!(
-    Mach3Backend,
-    name = "mach3-oem",
-    kinds = fresa_plugin_api::abi::KIND_MACHINE_BACKEND
-);
+fresa_plugin_api::export_machine_backend!(backend::Mach3Backend, name = "mach3-oem");

@@ -5,6 +5,7 @@ use crate::pins;
 use crate::planner::{AxisLimits, Machine};
 use crate::port::ScriptedInput;
 use fresa_plugin_api::config_fields::{boolean, invalid, non_negative, number, object, positive};
+use fresa_plugin_api::contract::Axis;
 use fresa_plugin_api::PluginError;
 use serde_json::{Map, Value};
 use std::path::PathBuf;
@@ -134,32 +135,8 @@ fn axis(name: &str, v: Option<&Value>, default_bits: [u8; 4]) -> Result<AxisConf
 }
 
 fn travel(v: &Value) -> Result<[Option<(f64, f64)>; 2], PluginError> {
-    let mut out = [None; 2];
-    for (key, range) in object("travel", v)? {
-        let i = match key.as_str() {
-            "x" => 0,
-            "y" => 1,
-            _ => {
-                return Err(invalid(format!(
-                    "unknown key `travel.{key}` (expected x or y)"
-                )))
-            }
-        };
-        let pair = range.as_array().filter(|a| a.len() == 2).ok_or_else(|| {
-            invalid(format!(
-                "`travel.{key}` must be [min, max] in mm, got {range}"
-            ))
-        })?;
-        let name = format!("travel.{key}");
-        let (min, max) = (number(&name, &pair[0])?, number(&name, &pair[1])?);
-        if min > max {
-            return Err(invalid(format!(
-                "`travel.{key}`: min {min} is greater than max {max}"
-            )));
-        }
-        out[i] = Some((min, max));
-    }
-    Ok(out)
+    let t = fresa_plugin_api::kit::travel_from_json(v, &[Axis::X, Axis::Y])?;
+    Ok([t[0], t[1]])
 }
 
 fn inputs(v: &Value) -> Result<Vec<Input>, PluginError> {

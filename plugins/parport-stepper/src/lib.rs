@@ -16,29 +16,4 @@ pub mod port;
 pub use config::Config;
 pub use machine::{EventSink, LogLevel, LogSink, Stepper, Timing};
 
-use fresa_plugin_api::{Host, Plugin, PluginError};
-use std::sync::Arc;
-
-impl Plugin for Stepper {
-    fn create(host: Host, config: serde_json::Value) -> Result<Self, PluginError> {
-        Stepper::new(
-            &config,
-            Arc::new(move |event| host.emit(event)),
-            Arc::new(move |level, message| match level {
-                LogLevel::Info => host.info(message),
-                LogLevel::Warn => host.warn(message),
-            }),
-            Timing::Real,
-        )
-    }
-
-    fn call(&self, request: serde_json::Value) -> Result<serde_json::Value, PluginError> {
-        self.request(request)
-    }
-}
-
-fresa_plugin_api::export_plugin!(
-    Stepper,
-    name = "parport-stepper",
-    kinds = fresa_plugin_api::abi::KIND_MACHINE_BACKEND
-);
+fresa_plugin_api::export_machine_backend!(Stepper, name = "parport-stepper");

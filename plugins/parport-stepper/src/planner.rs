@@ -453,18 +453,13 @@ impl<'a> Builder<'a> {
         self.tick += ticks;
     }
 
-    fn check_travel(&self, machine_xy: [f64; 2]) -> Result<(), String> {
-        for (i, v) in machine_xy.iter().enumerate() {
-            if let Some((min, max)) = self.machine.travel[i] {
-                if *v < min || *v > max {
-                    return Err(format!(
-                        "{} {v:.3} mm is outside the travel [{min}, {max}] (machine coordinates)",
-                        ['X', 'Y'][i]
-                    ));
-                }
-            }
-        }
-        Ok(())
+    /// The kit's soft-limit check (shared with jogs): also refuses non-finite or huge targets.
+    fn check_travel(&self, machine_xy: [f64; 2], z: f64) -> Result<(), String> {
+        let [x, y] = self.machine.travel;
+        fresa_plugin_api::kit::check_travel(
+            &[x, y, None, None],
+            [machine_xy[0], machine_xy[1], z, 0.0],
+        )
     }
 
     fn set_lift(&mut self, line: u32, on: bool, z: f64) {
@@ -490,7 +485,7 @@ impl<'a> Builder<'a> {
         z: f64,
         feed_mm_min: Option<f64>,
     ) -> Result<(), String> {
-        self.check_travel(to)?;
+        self.check_travel(to, z)?;
         let lift = z - self.offset[2] > self.machine.lift_above_mm;
         if lift {
             self.set_lift(line, true, z);
@@ -914,7 +909,7 @@ mod tests {
         let mut m = machine();
         m.travel = [Some((0.0, 50.0)), None];
         let e = plan_program(&m, "G0 X10\nG0 X60\n", &start(), 1).unwrap_err();
-        assert!(e.starts_with("line 2: X 60.000"), "{e}");
+        assert!(e.starts_with("line 2: X=60.0000"), "{e}");
         let e = plan_program(&m, "G0 X10\nG1 X20\n", &start(), 1).unwrap_err();
         assert!(e.contains("line 2"), "{e}");
     }

@@ -8,6 +8,7 @@ use fresa_parport_stepper::pins;
 use fresa_parport_stepper::port::{Register, Write};
 use fresa_parport_stepper::{Config, Stepper, Timing};
 use fresa_plugin_api::contract::Event;
+use fresa_plugin_api::MachineBackend;
 use serde_json::{json, Value};
 use std::io::Write as _;
 use std::sync::{Arc, Mutex};
@@ -480,4 +481,98 @@ fn e_stop_alarms_while_active_and_reset_waits_for_its_release() {
         r.m.request(json!({"op":"status"})).unwrap()["state"],
         "alarm"
     );
+}
+
+/// In real ticks: once cancel, stop, pause or feed hold has answered, no program line starts
+/// any more (at most the one in flight is logged); a stopped run's end was emitted before the
+/// answer. Holds answer once the timeline has ramped to a stop.
+#[test]
+fn stop_cancel_and_hold_answer_only_once_no_new_line_starts() {
+    let dir = tempfile_dir::Dir::new("stops");
+    let log = dir.0.join("exec.log");
+    let r = rig_timed(
+        "stops",
+        json!({"port":"sim","tick_hz":5000,"spin_us":0,"realtime_priority":false,
+               "execution_log": log,
+               "axes":{"x":{"steps_per_mm":20,"max_rate":1000,"start_rate":50,"accel":20000},
+                       "y":{"steps_per_mm":20,"max_rate":1000,"start_rate":50,"accel":20000}}}),
+        Timing::Real,
+    );
+    let path = r._dir.0.join("p.nc");
+    let text: String = (1..=400)
+        .map(|i| format!("G1 X{} F60000\n(comment)\n", (i % 2) as f64 * 0.5))
+        .collect();
+    std::fs::write(&path, text).unwrap();
+    let logged = |run: i64| {
+        std::fs::read_to_string(&log)
+            .unwrap_or_default()
+            .lines()
+            .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+            .filter(|v| v["run"] == run)
+            .count()
+    };
+    let idle = || {
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            let st = r.m.request(json!({"op":"status"})).unwrap();
+            if st["state"] == "idle" && st.get("run").is_none() {
+                return;
+            }
+            assert!(Instant::now() < deadline, "never idle: {st}");
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    };
+    let mut most = 0;
+    for (run, delay_ms, action) in [
+        (1, 0, json!({"op":"run","action":"cancel"})),
+        (2, 40, json!({"op":"run","action":"cancel"})),
+        (3, 60, json!({"op":"command","command":"stop"})),
+        (4, 50, json!({"op":"run","action":"pause"})),
+        (5, 70, json!({"op":"command","command":"feed_hold"})),
+    ] {
+        r.m.request(json!({"op":"load_program","run":run,"path":path,"start_line":1}))
+            .unwrap();
+        r.events.lock().unwrap().clear();
+        r.m.request(json!({"op":"run","action":"start"})).unwrap();
+        // The delay is the stimulus (where in the run the request lands), not a wait.
+        std::thread::sleep(Duration::from_millis(delay_ms));
+        r.m.request(action.clone()).unwrap();
+        let at_answer = logged(run);
+        most = most.max(at_answer);
+        let holds = action["action"] == "pause" || action["command"] == "feed_hold";
+        if holds {
+            std::thread::sleep(Duration::from_millis(30));
+            assert_eq!(
+                logged(run),
+                at_answer,
+                "{action}: a line started while held"
+            );
+            r.m.request(json!({"op":"run","action":"cancel"})).unwrap();
+        } else {
+            let ended = r
+                .events
+                .lock()
+                .unwrap()
+                .iter()
+                .any(|e| matches!(e, Event::RunEnded { run: r, .. } if *r == run));
+            assert!(ended, "run_ended not emitted before {action} answered");
+        }
+        idle();
+        let late = logged(run) - at_answer;
+        assert!(late <= 1, "{action}: {late} lines logged after the answer");
+    }
+    assert_ne!(most, 0, "every request landed before the first line ended");
+}
+
+#[test]
+fn huge_jog_targets_are_refused_without_travel() {
+    let r = rig("huge", sim(json!({})));
+    for d in [1e308, -2e6] {
+        let e =
+            r.m.request(json!({"op":"jog","axis":"X","distance":d}))
+                .unwrap_err();
+        assert_eq!(e.code, "out_of_travel", "{e}");
+    }
+    r.m.request(json!({"op":"jog","axis":"Y","distance":1.0}))
+        .unwrap();
 }

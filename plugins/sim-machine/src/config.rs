@@ -2,6 +2,7 @@
 
 use fresa_plugin_api::config_fields::{invalid, number, positive};
 use fresa_plugin_api::contract::Axis;
+use fresa_plugin_api::kit;
 use fresa_plugin_api::PluginError;
 use serde_json::Value;
 use std::path::PathBuf;
@@ -39,39 +40,6 @@ impl Default for Config {
             alarm_at_connect: None,
         }
     }
-}
-
-fn travel(v: &Value) -> Result<[Option<(f64, f64)>; 4], PluginError> {
-    let obj = v.as_object().ok_or_else(|| {
-        invalid(format!(
-            "`travel` must be an object like {{\"x\":[min,max],\"z\":[min,max]}}, got {v}"
-        ))
-    })?;
-    let mut out = [None; 4];
-    for (key, range) in obj {
-        let axis = Axis::ALL
-            .into_iter()
-            .find(|a| a.letter().to_string().eq_ignore_ascii_case(key))
-            .ok_or_else(|| {
-                invalid(format!(
-                    "unknown key `travel.{key}` (expected x, y, z or a)"
-                ))
-            })?;
-        let pair = range.as_array().filter(|a| a.len() == 2).ok_or_else(|| {
-            invalid(format!(
-                "`travel.{key}` must be [min, max] in mm, got {range}"
-            ))
-        })?;
-        let name = format!("travel.{key}");
-        let (min, max) = (number(&name, &pair[0])?, number(&name, &pair[1])?);
-        if min > max {
-            return Err(invalid(format!(
-                "`travel.{key}`: min {min} is greater than max {max}"
-            )));
-        }
-        out[axis.index()] = Some((min, max));
-    }
-    Ok(out)
 }
 
 impl Config {
@@ -115,7 +83,7 @@ impl Config {
                     })?;
                     cfg.status_interval = Duration::from_millis(ms);
                 }
-                "travel" => cfg.travel = travel(v)?,
+                "travel" => cfg.travel = kit::travel_from_json(v, &Axis::ALL)?,
                 "alarm_at_connect" => match v {
                     Value::String(s) if !s.trim().is_empty() => {
                         cfg.alarm_at_connect = Some(s.clone())
@@ -139,21 +107,10 @@ impl Config {
         Ok(cfg)
     }
 
-    /// The first axis of `pos` (machine coordinates) outside the soft limits, as a message.
+    /// The first axis of `pos` (machine coordinates) outside the soft limits, as a message
+    /// (the kit's check, shared by every backend).
     pub fn check_travel(&self, pos: [f64; 4]) -> Result<(), String> {
-        for axis in Axis::ALL {
-            if let Some((min, max)) = self.travel[axis.index()] {
-                let v = pos[axis.index()];
-                // A hair of tolerance so arc chords ending exactly on a limit are accepted.
-                if v < min - 1e-9 || v > max + 1e-9 {
-                    return Err(format!(
-                        "{}={v:.4} is outside the travel [{min}, {max}] (machine coordinates)",
-                        axis.letter()
-                    ));
-                }
-            }
-        }
-        Ok(())
+        kit::check_travel(&self.travel, pos)
     }
 
     /// Seconds a move of `distance_mm` at `feed_mm_min` takes, scaled.

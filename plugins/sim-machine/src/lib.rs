@@ -11,21 +11,4 @@ mod program;
 pub use config::Config;
 pub use machine::{EventSink, SimMachine};
 
-use fresa_plugin_api::{Host, Plugin, PluginError};
-use std::sync::Arc;
-
-impl Plugin for SimMachine {
-    fn create(host: Host, config: serde_json::Value) -> Result<Self, PluginError> {
-        SimMachine::new(&config, Arc::new(move |event| host.emit(event)))
-    }
-
-    fn call(&self, request: serde_json::Value) -> Result<serde_json::Value, PluginError> {
-        self.request(request)
-    }
-}
-
-fresa_plugin_api::export_plugin!(
-    SimMachine,
-    name = "sim-machine",
-    kinds = fresa_plugin_api::abi::KIND_MACHINE_BACKEND
-);
+fresa_plugin_api::export_machine_backend!(SimMachine, name = "sim-machine");

@@ -3,6 +3,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fresa_plugin_api::contract::{Event, MachineState, MachineStatus, OffsetTable, RunOutcome};
+use fresa_plugin_api::MachineBackend;
 use fresa_sim_machine::SimMachine;
 use serde_json::{json, Value};
 use std::path::PathBuf;
@@ -640,15 +641,9 @@ fn works_through_the_c_abi() {
         }
         fn log(&self, _level: u32, _message: &str) {}
     }
-    // Integration tests live in target/<profile>/deps. `cargo test` leaves this package's
-    // cdylib beside them; `cargo build` puts it one level up.
-    let exe = std::env::current_exe().unwrap();
-    let deps = exe.parent().unwrap();
-    let name = fresa_plugin_api::library_file_name("fresa_sim_machine");
-    let lib = [deps.join(&name), deps.parent().unwrap().join(&name)]
-        .into_iter()
-        .find(|p| p.exists())
-        .unwrap_or_else(|| panic!("{name} not found in {} or its parent", deps.display()));
+    // `cargo test` leaves this package's cdylib beside the test binary.
+    let lib = fresa_plugin_api::built_library("fresa_sim_machine")
+        .expect("libfresa_sim_machine not built beside the test");
     let library = PluginLibrary::load(&lib).unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(library.name(), "sim-machine");
 
@@ -674,6 +669,17 @@ fn works_through_the_c_abi() {
     }
     let st = instance.call(&json!({"op":"status"})).unwrap();
     assert_eq!(st["machine_position"]["y"], 7.0);
+    // The typed host calls: the request serialised straight to the call's bytes.
+    use fresa_plugin_api::contract::Request;
+    assert_eq!(instance.call_request(&Request::Status).unwrap(), st);
+    let typed: MachineStatus = instance.request(&Request::Status).unwrap();
+    assert_eq!(typed.machine_position.y, 7.0);
+    let e = instance
+        .call_request(&Request::Mdi {
+            line: "G4 P1".into(),
+        })
+        .unwrap_err();
+    assert!(e.to_string().contains("unsupported"), "{e}");
     instance.call(&json!({"op":"shutdown"})).unwrap();
     assert_eq!(
         instance.call(&json!({"op":"status"})).unwrap()["state"],
@@ -758,4 +764,123 @@ fn alarm_at_connect_refuses_motion_until_reset() {
     rig.call(json!({"op":"jog","axis":"X","distance":1.0}));
     rig.wait_idle();
     assert_eq!(rig.status().machine_position.x, 1.0);
+}
+
+/// Lines of `run` in the execution log at `log`.
+fn logged(log: &std::path::Path, run: i64) -> usize {
+    std::fs::read_to_string(log)
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+        .filter(|v| v["run"] == run)
+        .count()
+}
+
+/// Polls `status` until nothing moves and no run is in progress.
+fn wait_motion_idle(rig: &Rig) {
+    let deadline = Instant::now() + GUARD;
+    loop {
+        let st = rig.status();
+        if st.state == MachineState::Idle && st.run.is_none() {
+            return;
+        }
+        assert!(Instant::now() < deadline, "never idle: {st:?}");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+}
+
+/// In real time: once `run cancel`, `run pause`, `command stop` or `command feed_hold` has
+/// answered, no program line starts any more (at most the one in flight is logged), and a
+/// stopped run's end was emitted before the answer.
+#[test]
+fn stop_cancel_and_hold_answer_only_once_no_new_line_starts() {
+    let log = temp_path("exec.log");
+    let rig = machine(json!({"time_scale": 1.0, "execution_log": log}));
+    // ~1 ms moves between lines without motion (which must not slip through a hold either).
+    let text: String = (1..=3000)
+        .map(|i| format!("G1 X{} F60000\n(comment)\n", i % 2))
+        .collect();
+    let path = program(&text);
+    let actions = [
+        json!({"op":"run","action":"cancel"}),
+        json!({"op":"command","command":"stop"}),
+        json!({"op":"run","action":"pause"}),
+        json!({"op":"command","command":"feed_hold"}),
+    ];
+    let mut run = 100;
+    let mut most = 0;
+    for delay_us in [0, 200, 1000, 3000, 7000] {
+        for action in &actions {
+            run += 1;
+            rig.call(json!({"op":"load_program","run":run,"path":path,"start_line":1}));
+            while rig.rx.try_recv().is_ok() {}
+            rig.call(json!({"op":"run","action":"start"}));
+            // The delay is the stimulus (where in the run the request lands), not a wait.
+            std::thread::sleep(Duration::from_micros(delay_us));
+            rig.call(action.clone());
+            let at_answer = logged(&log, run);
+            most = most.max(at_answer);
+            let holds = action["action"] == "pause" || action["command"] == "feed_hold";
+            if holds {
+                assert_eq!(rig.status().state, MachineState::Paused, "{action}");
+                // Held: give the motion thread ample time to (wrongly) go on.
+                std::thread::sleep(Duration::from_millis(20));
+                assert!(
+                    logged(&log, run) <= at_answer + 1,
+                    "{action} after {delay_us} us"
+                );
+                rig.call(json!({"op":"run","action":"cancel"}));
+            } else {
+                let ended = std::iter::from_fn(|| rig.rx.try_recv().ok()).any(|e| {
+                    matches!(e, Event::RunEnded { run: r, outcome: RunOutcome::Cancelled, .. }
+                        if r == run)
+                });
+                assert!(ended, "run_ended not emitted before {action} answered");
+            }
+            wait_motion_idle(&rig);
+            let at_idle = logged(&log, run);
+            assert!(
+                at_idle <= at_answer + 1,
+                "{action} after {delay_us} us: {at_answer} lines at the answer, {at_idle} at idle"
+            );
+        }
+    }
+    // The later requests landed mid-run, not before the first line.
+    assert!(most > 0, "no request landed after a line was executed");
+}
+
+#[test]
+fn huge_or_overflowing_targets_are_refused_without_travel() {
+    let rig = machine(INSTANT());
+    for (req, what) in [
+        (json!({"op":"jog","axis":"X","distance":1e308}), "jog"),
+        (json!({"op":"jog","axis":"A","distance":-2e6}), "jog"),
+        (json!({"op":"mdi","line":"G0 X99999999999"}), "MDI"),
+        (json!({"op":"mdi","line":"G1 Y2000000 F100"}), "MDI"),
+    ] {
+        let e = rig.m.request(req.clone()).unwrap_err();
+        assert_eq!(e.code, "out_of_travel", "{req}: {e}");
+        assert!(e.message.contains(what), "{e}");
+    }
+    // Two jogs that are each in range but overflow together: the second is refused.
+    rig.call(json!({"op":"jog","axis":"Y","distance":900000.0,"feed":1e9}));
+    let e = rig
+        .m
+        .request(json!({"op":"jog","axis":"Y","distance":900000.0}))
+        .unwrap_err();
+    assert_eq!(e.code, "out_of_travel");
+    rig.wait_idle();
+    let path = program("G0 Z-5\nG0 X10000000\n");
+    let e = rig
+        .m
+        .request(json!({"op":"load_program","run":1,"path":path,"start_line":1}))
+        .unwrap_err();
+    assert_eq!(e.code, "out_of_travel");
+    // The motion thread is alive: a normal jog still completes.
+    rig.call(json!({"op":"jog","axis":"X","distance":1.0}));
+    rig.wait_idle();
+    assert_eq!(
+        rig.status().machine_position.to_array(),
+        [1.0, 900000.0, 0.0, 0.0]
+    );
 }

@@ -1,0 +1,1096 @@
+//! The state handling shared by machine backends that plan and time motion themselves
+//! (sim-machine, parport-stepper): one state machine (offline, idle, jogging, running, paused,
+//! alarm), the job queue a motion thread works off, run bookkeeping, work offsets, execution
+//! log use, line acknowledgements, event emission in order, and the soft-limit check every
+//! motion passes. A backend keeps only what moves: its motion thread and its planner.
+//!
+//! Threads: request threads call the [`Kit`] request methods; one motion thread per machine
+//! takes [`Job`]s ([`Kit::take_job`]), executes them, and reports with [`Kit::finish_job`].
+//! Stop, cancel and hold answer only once the motion thread confirmed (see the README).
+
+use crate::config_fields::{invalid, number, object};
+use crate::contract::{
+    Axis, AxisValues, Event, MachineState, MachineStatus, OffsetTable, RunOutcome, WorkOffset,
+};
+use crate::exec_log::ExecLog;
+use crate::PluginError;
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+/// Receives every event the machine emits, from any thread, in order.
+pub type EventSink = Arc<dyn Fn(&Event) + Send + Sync>;
+/// Events collected under the state lock, emitted once it is released.
+pub type Events = Vec<Event>;
+/// Soft limits per axis (X Y Z A), machine coordinates, `None` = unlimited.
+pub type Travel = [Option<(f64, f64)>; 4];
+
+/// Jog requests queued behind the running one at most.
+pub const MAX_QUEUED_JOGS: usize = 64;
+/// How long stop and hold wait for the motion thread to confirm.
+pub const STOP_CONFIRM: Duration = Duration::from_secs(5);
+/// No machine coordinate is ever larger than this (mm), configured travel or not: bigger or
+/// non-finite targets are input errors, and would overflow motion timing.
+pub const MAX_COORDINATE_MM: f64 = 1e6;
+
+/// The soft-limit check of every jog, MDI, go-to-zero and program move: each coordinate must
+/// be finite, within ±[`MAX_COORDINATE_MM`], and within the configured travel.
+pub fn check_travel(travel: &Travel, pos: [f64; 4]) -> Result<(), String> {
+    for axis in Axis::ALL {
+        let v = pos[axis.index()];
+        if !v.is_finite() || v.abs() > MAX_COORDINATE_MM {
+            return Err(format!(
+                "{}={v} is outside the travel any machine has (at most {MAX_COORDINATE_MM} mm from 0)",
+                axis.letter()
+            ));
+        }
+        if let Some((min, max)) = travel[axis.index()] {
+            // A hair of tolerance so arc chords ending exactly on a limit are accepted.
+            if v < min - 1e-9 || v > max + 1e-9 {
+                return Err(format!(
+                    "{}={v:.4} is outside the travel [{min}, {max}] (machine coordinates)",
+                    axis.letter()
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Parses a `travel` config object like `{"x":[min,max],"z":[min,max]}`; only `axes` may be
+/// limited.
+pub fn travel_from_json(v: &serde_json::Value, axes: &[Axis]) -> Result<Travel, PluginError> {
+    let mut out = [None; 4];
+    for (key, range) in object("travel", v)? {
+        let axis = axes
+            .iter()
+            .find(|a| a.letter().to_string().eq_ignore_ascii_case(key))
+            .ok_or_else(|| {
+                let names: Vec<String> = axes
+                    .iter()
+                    .map(|a| a.letter().to_ascii_lowercase().to_string())
+                    .collect();
+                let expected = match names.split_last() {
+                    Some((last, [])) => last.clone(),
+                    Some((last, rest)) => format!("{} or {last}", rest.join(", ")),
+                    None => "none".into(),
+                };
+                invalid(format!("unknown key `travel.{key}` (expected {expected})"))
+            })?;
+        let pair = range.as_array().filter(|a| a.len() == 2).ok_or_else(|| {
+            invalid(format!(
+                "`travel.{key}` must be [min, max] in mm, got {range}"
+            ))
+        })?;
+        let name = format!("travel.{key}");
+        let (min, max) = (number(&name, &pair[0])?, number(&name, &pair[1])?);
+        if min > max {
+            return Err(invalid(format!(
+                "`travel.{key}`: min {min} is greater than max {max}"
+            )));
+        }
+        out[axis.index()] = Some((min, max));
+    }
+    Ok(out)
+}
+
+/// The program file as UTF-8 text; errors say which line is not.
+pub fn read_program(path: &str) -> Result<String, PluginError> {
+    let bytes = std::fs::read(path)
+        .map_err(|e| PluginError::new("program_unreadable", format!("cannot read {path}: {e}")))?;
+    String::from_utf8(bytes).map_err(|e| {
+        let valid = &e.as_bytes()[..e.utf8_error().valid_up_to()];
+        let line = valid.iter().filter(|b| **b == b'\n').count() + 1;
+        PluginError::new(
+            "invalid_program",
+            format!("line {line}: {path} is not UTF-8 text"),
+        )
+    })
+}
+
+/// Refuses a start line past the program's end (one past the last line is a finished run).
+pub fn check_start_line(start_line: u32, lines: u32) -> Result<(), PluginError> {
+    if start_line > lines.saturating_add(1) {
+        return Err(PluginError::invalid(format!(
+            "start_line {start_line} is past the end of the program ({lines} lines)"
+        )));
+    }
+    Ok(())
+}
+
+/// The motion thread of a machine; [`MotionThread::join`] waits for it (after
+/// [`Kit::end_motion_thread`]).
+#[derive(Debug)]
+pub struct MotionThread(Mutex<Option<std::thread::JoinHandle<()>>>);
+
+impl MotionThread {
+    /// Starts `body` on a thread named `name`.
+    pub fn spawn(
+        name: &str,
+        body: impl FnOnce() + Send + 'static,
+    ) -> Result<MotionThread, PluginError> {
+        let handle = std::thread::Builder::new()
+            .name(name.into())
+            .spawn(body)
+            .map_err(|e| {
+                PluginError::new("internal", format!("cannot start the {name} thread: {e}"))
+            })?;
+        Ok(MotionThread(Mutex::new(Some(handle))))
+    }
+
+    pub fn join(&self) {
+        let handle = self.0.lock().unwrap_or_else(|e| e.into_inner()).take();
+        if let Some(h) = handle {
+            let _ = h.join();
+        }
+    }
+}
+
+/// What the kit needs to know of a backend's configuration.
+#[derive(Debug, Clone)]
+pub struct KitConfig {
+    /// Default jog feed, mm/min.
+    pub jog_feed_mm_min: f64,
+    pub travel: Travel,
+}
+
+/// A program loaded with `load_program`, planned by the backend (`P`).
+#[derive(Debug)]
+pub struct Loaded<P> {
+    pub run: i64,
+    pub plan: P,
+    pub start_line: u32,
+}
+
+/// One incremental jog.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Jog {
+    pub axis: Axis,
+    pub distance: f64,
+    /// mm/min
+    pub feed: f64,
+}
+
+impl Jog {
+    /// Where the jog ends when it starts at machine position `from`.
+    pub fn target(&self, from: [f64; 4]) -> [f64; 4] {
+        let mut to = from;
+        to[self.axis.index()] += self.distance;
+        to
+    }
+}
+
+/// Work for the motion thread.
+#[derive(Debug)]
+pub enum Job<P> {
+    Jog(Jog),
+    /// Z up to a safe height, then XY/A, then Z down, to the active work zero.
+    GoToZero,
+    /// One MDI line: straight moves to these machine targets, each at its feed.
+    Mdi(Vec<([f64; 4], f64)>),
+    Program(Loaded<P>),
+}
+
+impl<P> Job<P> {
+    /// The run a program job executes.
+    pub fn run(&self) -> Option<i64> {
+        match self {
+            Job::Program(l) => Some(l.run),
+            _ => None,
+        }
+    }
+}
+
+/// Why a job ended early.
+#[derive(Debug)]
+pub enum Interrupted {
+    /// Stop, cancel or shutdown.
+    Aborted,
+    /// A latched fault: the machine goes to alarm.
+    Alarm(String),
+    /// The run failed (e.g. the execution log could not be written); no alarm.
+    Failed(String),
+}
+
+/// The machine state, behind the kit's lock. `X` is the backend's own part.
+#[derive(Debug)]
+pub struct State<P, X> {
+    pub state: MachineState,
+    pub reason: Option<String>,
+    pub alarm: Option<String>,
+    /// Machine position, mm (A in degrees). Backends whose truth is elsewhere (step counts)
+    /// keep it in step.
+    pub pos: [f64; 4],
+    /// Machine position where all queued motion ends (bounds jogs queued behind jogs).
+    pub end: [f64; 4],
+    /// Machine origin of G54..G59.
+    pub offsets: [[f64; 4]; 6],
+    pub active: WorkOffset,
+    pub feed: f64,
+    pub run: Option<i64>,
+    pub line: Option<u32>,
+    /// Loaded with `load_program`, not started yet.
+    pub program: Option<Loaded<P>>,
+    pub queue: VecDeque<Job<P>>,
+    /// The motion thread is executing a job.
+    pub busy: bool,
+    pub shutdown: bool,
+    /// When the last status event was queued (for rate limiting by the motion thread).
+    pub last_status: Option<Instant>,
+    pub extra: X,
+}
+
+impl<P, X> State<P, X> {
+    pub fn status(&self) -> MachineStatus {
+        let off = self.offsets[self.active.index()];
+        MachineStatus {
+            state: self.state,
+            machine_position: AxisValues::from_array(self.pos),
+            work_position: AxisValues::from_array(std::array::from_fn(|i| self.pos[i] - off[i])),
+            feed: self.feed,
+            feed_override: 100.0,
+            active_offset: self.active,
+            run: self.run,
+            line: self.line,
+            alarm: self.alarm.clone(),
+            reason: self.reason.clone(),
+        }
+    }
+
+    pub fn offset_table(&self) -> OffsetTable {
+        OffsetTable {
+            active: self.active,
+            offsets: WorkOffset::ALL
+                .into_iter()
+                .map(|o| (o, AxisValues::from_array(self.offsets[o.index()])))
+                .collect(),
+        }
+    }
+
+    pub fn push_status(&mut self, ev: &mut Events) {
+        ev.push(Event::Status(self.status()));
+        self.last_status = Some(Instant::now());
+    }
+
+    pub fn set_state(&mut self, to: MachineState, ev: &mut Events) {
+        if self.state != to {
+            ev.push(Event::StateChanged {
+                from: self.state,
+                to,
+            });
+            self.state = to;
+            self.push_status(ev);
+        }
+    }
+
+    /// The waypoints of go-to-zero from here: Z up to a safe height (the higher of here and
+    /// work zero), then X/Y/A over, then Z down to work zero.
+    pub fn go_to_zero_path(&self) -> [[f64; 4]; 3] {
+        let zero = self.offsets[self.active.index()];
+        let pos = self.pos;
+        let safe_z = pos[2].max(zero[2]);
+        [
+            [pos[0], pos[1], safe_z, pos[3]],
+            [zero[0], zero[1], safe_z, zero[3]],
+            zero,
+        ]
+    }
+
+    /// Latches an alarm: queued work is dropped.
+    pub fn raise_alarm(&mut self, message: String, ev: &mut Events) {
+        self.queue.clear();
+        self.alarm = Some(message.clone());
+        ev.push(Event::Alarm { message });
+        self.set_state(MachineState::Alarm, ev);
+    }
+
+    pub fn require_online(&self) -> Result<(), PluginError> {
+        if self.state == MachineState::Offline {
+            return Err(PluginError::new(
+                "offline",
+                "the machine is not connected: send `connect` first",
+            ));
+        }
+        Ok(())
+    }
+
+    /// Refuses while anything moves or a run is in progress (offsets, homing, loading).
+    pub fn require_still(&self, what: &str) -> Result<(), PluginError> {
+        self.require_online()?;
+        if self.state.is_busy() || self.busy {
+            return Err(PluginError::new(
+                "busy",
+                format!("cannot {what} while the machine is {}", self.state.as_str()),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Refuses new motion while in alarm.
+    pub fn require_no_alarm(&self, what: &str) -> Result<(), PluginError> {
+        if self.state == MachineState::Alarm {
+            return Err(PluginError::new(
+                "alarm",
+                format!(
+                    "cannot {what}: the machine is in alarm ({}); send reset first",
+                    self.alarm.as_deref().unwrap_or("no reason given")
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Drops queued jobs and the loaded program; runs among them end as cancelled.
+    fn cancel_pending(&mut self, ev: &mut Events) {
+        let loaded = self.program.take();
+        let queued = self.queue.drain(..).filter_map(|j| match j {
+            Job::Program(l) => Some(l),
+            _ => None,
+        });
+        for l in loaded.into_iter().chain(queued).collect::<Vec<_>>() {
+            if self.run == Some(l.run) && !self.busy {
+                self.run = None;
+                self.line = None;
+            }
+            ev.push(Event::RunEnded {
+                run: l.run,
+                outcome: RunOutcome::Cancelled,
+                message: Some("stopped before it started".into()),
+            });
+        }
+    }
+}
+
+/// The shared part of a locally planned machine. `P` is the backend's program plan, `X` its
+/// own state (kept under the same lock).
+pub struct Kit<P, X> {
+    pub cfg: KitConfig,
+    sink: EventSink,
+    shared: Mutex<State<P, X>>,
+    /// Signalled on every change the motion thread or a waiting request may care about.
+    pub cv: Condvar,
+    /// Held while emitting, taken before the state lock is released, so events leave in the
+    /// order the state changed (and a waiter can wait for emission to finish).
+    emit_order: Mutex<()>,
+    log: Option<Mutex<ExecLog>>,
+    /// Abort the job in progress (stop); motion threads read it every slice or tick.
+    abort: AtomicBool,
+    /// Feed hold / pause requested; motion threads read it every slice or tick.
+    hold: AtomicBool,
+    /// The motion thread confirmed it holds (no new motion until resumed).
+    held: AtomicBool,
+}
+
+impl<P, X> Kit<P, X> {
+    /// A machine that starts offline ("not connected yet").
+    pub fn new(cfg: KitConfig, sink: EventSink, log: Option<ExecLog>, extra: X) -> Kit<P, X> {
+        Kit {
+            cfg,
+            sink,
+            shared: Mutex::new(State {
+                state: MachineState::Offline,
+                reason: Some("not connected yet".into()),
+                alarm: None,
+                pos: [0.0; 4],
+                end: [0.0; 4],
+                offsets: [[0.0; 4]; 6],
+                active: WorkOffset::G54,
+                feed: 0.0,
+                run: None,
+                line: None,
+                program: None,
+                queue: VecDeque::new(),
+                busy: false,
+                shutdown: false,
+                last_status: None,
+                extra,
+            }),
+            cv: Condvar::new(),
+            emit_order: Mutex::new(()),
+            log: log.map(Mutex::new),
+            abort: AtomicBool::new(false),
+            hold: AtomicBool::new(false),
+            held: AtomicBool::new(false),
+        }
+    }
+
+    pub fn lock(&self) -> MutexGuard<'_, State<P, X>> {
+        self.shared.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Releases the state lock, then emits `events` (in order with every other emitter).
+    pub fn release(&self, guard: MutexGuard<'_, State<P, X>>, events: Events) {
+        self.cv.notify_all();
+        if events.is_empty() {
+            drop(guard);
+            return;
+        }
+        let order = self.emit_order.lock().unwrap_or_else(|e| e.into_inner());
+        drop(guard);
+        for e in &events {
+            (self.sink)(e);
+        }
+        drop(order);
+    }
+
+    /// Runs `f` under the state lock and emits what it produced.
+    pub fn with<R>(&self, f: impl FnOnce(&mut State<P, X>, &mut Events) -> R) -> R {
+        let mut guard = self.lock();
+        let mut ev = Vec::new();
+        let r = f(&mut guard, &mut ev);
+        self.release(guard, ev);
+        r
+    }
+
+    /// Waits on the condition variable for at most `timeout`.
+    pub fn wait_timeout<'a>(
+        &'a self,
+        guard: MutexGuard<'a, State<P, X>>,
+        timeout: Duration,
+    ) -> MutexGuard<'a, State<P, X>> {
+        self.cv
+            .wait_timeout(guard, timeout)
+            .map(|(g, _)| g)
+            .unwrap_or_else(|e| e.into_inner().0)
+    }
+
+    pub fn wait<'a>(&'a self, guard: MutexGuard<'a, State<P, X>>) -> MutexGuard<'a, State<P, X>> {
+        self.cv.wait(guard).unwrap_or_else(|e| e.into_inner())
+    }
+
+    // ----- motion thread -----
+
+    /// Stop or shutdown asked the job in progress to end.
+    pub fn aborted(&self) -> bool {
+        self.abort.load(Ordering::SeqCst)
+    }
+
+    /// Feed hold or pause is asked for.
+    pub fn hold_requested(&self) -> bool {
+        self.hold.load(Ordering::SeqCst)
+    }
+
+    /// A program pause (M0) reached by the motion thread: hold now, confirmed at once.
+    pub fn program_pause(&self, sh: &mut State<P, X>, ev: &mut Events) {
+        self.hold.store(true, Ordering::SeqCst);
+        if sh.state == MachineState::Running {
+            sh.set_state(MachineState::Paused, ev);
+        }
+        self.note_held(sh);
+    }
+
+    /// The motion thread holds (starts nothing new until resumed). Called under the lock
+    /// (`sh` proves it), so a waiting `pause` cannot miss the wake-up.
+    pub fn note_held(&self, _sh: &mut State<P, X>) {
+        if !self.held.swap(true, Ordering::SeqCst) {
+            self.cv.notify_all();
+        }
+    }
+
+    /// [`Kit::note_held`] for a motion thread that does not hold the lock; cheap when the
+    /// hold was confirmed already (call it every tick while held).
+    pub fn confirm_held(&self) {
+        if !self.held.load(Ordering::SeqCst) {
+            let mut sh = self.lock();
+            self.note_held(&mut sh);
+        }
+    }
+
+    /// Blocks the motion thread before a new program line while the machine is paused;
+    /// `Aborted` on stop. For motion threads that may block (not a tick loop).
+    pub fn line_gate(&self) -> Result<(), Interrupted> {
+        let mut sh = self.lock();
+        loop {
+            if self.aborted() || sh.shutdown {
+                return Err(Interrupted::Aborted);
+            }
+            if sh.state != MachineState::Paused {
+                return Ok(());
+            }
+            self.note_held(&mut sh);
+            sh = self.wait(sh);
+        }
+    }
+
+    /// Takes the next job, if any, and marks the motion thread busy.
+    pub fn take_job(&self, sh: &mut State<P, X>) -> Option<Job<P>> {
+        let job = sh.queue.pop_front()?;
+        sh.busy = true;
+        Some(job)
+    }
+
+    /// Blocks until there is a job (and takes it) or the machine shuts down (`None`).
+    pub fn wait_for_job(&self) -> Option<Job<P>> {
+        let mut sh = self.lock();
+        loop {
+            if sh.shutdown {
+                return None;
+            }
+            if let Some(job) = self.take_job(&mut sh) {
+                return Some(job);
+            }
+            sh = self.wait(sh);
+        }
+    }
+
+    /// The job of run `run` (if a program) ended with `result`: `update` applies what the
+    /// motion thread knows (final position...), then the run ends (event) and the machine goes
+    /// to alarm or idle. A waiting stop returns only after these events were emitted.
+    pub fn finish_job(
+        &self,
+        run: Option<i64>,
+        result: Result<(), Interrupted>,
+        update: impl FnOnce(&mut State<P, X>),
+    ) {
+        let mut sh = self.lock();
+        let mut ev = Vec::new();
+        sh.busy = false;
+        update(&mut sh);
+        self.hold.store(false, Ordering::SeqCst);
+        self.held.store(false, Ordering::SeqCst);
+        self.abort.store(false, Ordering::SeqCst);
+        sh.end = sh.pos;
+        if let Some(run) = run {
+            let (outcome, message) = match &result {
+                Ok(()) => (RunOutcome::Completed, None),
+                Err(Interrupted::Aborted) => (RunOutcome::Cancelled, None),
+                Err(Interrupted::Alarm(m) | Interrupted::Failed(m)) => {
+                    (RunOutcome::Failed, Some(m.clone()))
+                }
+            };
+            sh.run = None;
+            sh.line = None;
+            ev.push(Event::RunEnded {
+                run,
+                outcome,
+                message,
+            });
+        }
+        match result {
+            Err(Interrupted::Alarm(m)) => sh.raise_alarm(m, &mut ev),
+            _ if sh.queue.is_empty() && sh.state != MachineState::Offline => {
+                if sh.state == MachineState::Idle {
+                    sh.push_status(&mut ev);
+                } else {
+                    sh.set_state(MachineState::Idle, &mut ev);
+                }
+            }
+            _ => sh.push_status(&mut ev),
+        }
+        self.release(sh, ev);
+    }
+
+    /// Program lines `lines` of `run` are executed: each is logged, then acknowledged, after
+    /// `before` (e.g. a line report). Nothing is emitted if the log cannot be written.
+    pub fn lines_done(
+        &self,
+        run: i64,
+        lines: std::ops::RangeInclusive<u32>,
+        before: Events,
+    ) -> Result<(), Interrupted> {
+        let mut ev = before;
+        for line in lines {
+            if let Some(log) = &self.log {
+                log.lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .append(run, line)
+                    .map_err(Interrupted::Failed)?;
+            }
+            ev.push(Event::LineAcknowledged { run, line });
+        }
+        let sh = self.lock();
+        self.release(sh, ev);
+        Ok(())
+    }
+
+    // ----- requests -----
+
+    pub fn status(&self) -> MachineStatus {
+        self.lock().status()
+    }
+
+    /// Goes online (idle, or alarm `alarm_at_connect`); idempotent.
+    pub fn connect(&self, alarm_at_connect: Option<&str>) -> MachineStatus {
+        self.with(|sh, ev| {
+            if sh.state == MachineState::Offline {
+                sh.reason = None;
+                match alarm_at_connect {
+                    Some(m) => sh.raise_alarm(m.to_string(), ev),
+                    None => sh.set_state(MachineState::Idle, ev),
+                }
+            }
+            sh.status()
+        })
+    }
+
+    /// Queues a jog after checking its end (behind the motion already queued) against the
+    /// travel.
+    pub fn jog(&self, axis: Axis, distance: f64, feed: Option<f64>) -> Result<(), PluginError> {
+        if !distance.is_finite() {
+            return Err(PluginError::invalid(format!(
+                "jog distance must be a finite number, got {distance}"
+            )));
+        }
+        let feed = feed.unwrap_or(self.cfg.jog_feed_mm_min);
+        if !(feed.is_finite() && feed > 0.0) {
+            return Err(PluginError::invalid(format!(
+                "jog feed must be greater than 0 mm/min, got {feed}"
+            )));
+        }
+        self.with(|sh, ev| {
+            sh.require_online()?;
+            sh.require_no_alarm("jog")?;
+            if !matches!(sh.state, MachineState::Idle | MachineState::Jogging) {
+                return Err(PluginError::new(
+                    "busy",
+                    format!("cannot jog while the machine is {}", sh.state.as_str()),
+                ));
+            }
+            if sh.queue.len() >= MAX_QUEUED_JOGS {
+                return Err(PluginError::new(
+                    "busy",
+                    format!("{MAX_QUEUED_JOGS} jogs are already queued"),
+                ));
+            }
+            let jog = Jog {
+                axis,
+                distance,
+                feed,
+            };
+            let target = jog.target(sh.end);
+            check_travel(&self.cfg.travel, target)
+                .map_err(|m| PluginError::new("out_of_travel", format!("jog refused: {m}")))?;
+            sh.end = target;
+            sh.queue.push_back(Job::Jog(jog));
+            sh.set_state(MachineState::Jogging, ev);
+            Ok(())
+        })
+    }
+
+    /// Aborts all motion and the program. Answers once the motion thread confirmed and the
+    /// run's end was emitted; `stop_unconfirmed` if it did not confirm in time.
+    pub fn stop(&self) -> Result<(), PluginError> {
+        let mut sh = self.lock();
+        let mut ev = Vec::new();
+        sh.cancel_pending(&mut ev);
+        if !sh.busy {
+            if matches!(
+                sh.state,
+                MachineState::Jogging | MachineState::Running | MachineState::Paused
+            ) {
+                sh.set_state(MachineState::Idle, &mut ev);
+            }
+            self.hold.store(false, Ordering::SeqCst);
+            self.release(sh, ev);
+            return Ok(());
+        }
+        // Set under the lock: a motion thread waiting on the condition variable sees it.
+        self.abort.store(true, Ordering::SeqCst);
+        self.release(sh, ev);
+        self.confirmed("stop", |sh| !sh.busy)?;
+        // finish_job took `emit_order` before releasing the lock: once we get it, its
+        // events (the run's end) have been emitted.
+        drop(self.emit_order.lock().unwrap_or_else(|e| e.into_inner()));
+        Ok(())
+    }
+
+    /// Pauses a running program (`run pause`, strict) or holds whatever moves (feed hold):
+    /// answers once the motion thread confirmed it holds. A jog is not resumable: feed hold
+    /// ends it where it is.
+    pub fn pause(&self, strict: bool) -> Result<(), PluginError> {
+        let jogging = self.with(|sh, ev| match sh.state {
+            MachineState::Running => {
+                self.hold.store(true, Ordering::SeqCst);
+                sh.set_state(MachineState::Paused, ev);
+                Ok(false)
+            }
+            MachineState::Jogging if !strict => Ok(true),
+            _ if strict && sh.run.is_none() => Err(PluginError::new(
+                "not_running",
+                "no program is running: nothing to pause",
+            )),
+            _ => Ok(false),
+        })?;
+        if jogging {
+            return self.stop();
+        }
+        self.confirmed("hold", |sh| {
+            !sh.busy || sh.state != MachineState::Paused || self.held.load(Ordering::SeqCst)
+        })
+    }
+
+    /// Waits (at most [`STOP_CONFIRM`]) until `done` holds; `stop_unconfirmed` naming `what`
+    /// otherwise.
+    fn confirmed(
+        &self,
+        what: &str,
+        done: impl Fn(&State<P, X>) -> bool,
+    ) -> Result<(), PluginError> {
+        let deadline = Instant::now() + STOP_CONFIRM;
+        let mut sh = self.lock();
+        while !done(&sh) {
+            let now = Instant::now();
+            if now >= deadline {
+                return Err(PluginError::new(
+                    "stop_unconfirmed",
+                    format!(
+                        "the motion thread did not confirm the {what} within {} s",
+                        STOP_CONFIRM.as_secs()
+                    ),
+                ));
+            }
+            sh = self.wait_timeout(sh, deadline - now);
+        }
+        Ok(())
+    }
+
+    /// Resumes a paused program; `strict` (run control) refuses when no run is in progress.
+    pub fn resume(&self, strict: bool) -> Result<(), PluginError> {
+        self.with(|sh, ev| match sh.state {
+            MachineState::Paused => {
+                self.resume_locked(sh, ev);
+                Ok(())
+            }
+            _ if strict && sh.run.is_none() => Err(PluginError::new(
+                "not_running",
+                "no program is running: nothing to resume",
+            )),
+            _ => Ok(()),
+        })
+    }
+
+    fn resume_locked(&self, sh: &mut State<P, X>, ev: &mut Events) {
+        self.held.store(false, Ordering::SeqCst);
+        self.hold.store(false, Ordering::SeqCst);
+        sh.set_state(MachineState::Running, ev);
+    }
+
+    /// Starts the loaded program, or resumes a paused one.
+    pub fn cycle_start(&self) -> Result<(), PluginError> {
+        self.with(|sh, ev| {
+            sh.require_online()?;
+            sh.require_no_alarm("start")?;
+            match sh.state {
+                MachineState::Paused => {
+                    self.resume_locked(sh, ev);
+                    return Ok(());
+                }
+                MachineState::Running => return Ok(()),
+                _ => {}
+            }
+            sh.require_still("start a program")?;
+            let loaded = sh.program.take().ok_or_else(|| {
+                PluginError::new(
+                    "no_program",
+                    "no program is loaded: send load_program first",
+                )
+            })?;
+            sh.run = Some(loaded.run);
+            sh.line = Some(loaded.start_line);
+            sh.queue.push_back(Job::Program(loaded));
+            sh.set_state(MachineState::Running, ev);
+            Ok(())
+        })
+    }
+
+    /// Stops, then `reset` (the backend's part: outputs off, refusals) and clears the alarm.
+    pub fn reset(
+        &self,
+        reset: impl FnOnce(&mut State<P, X>) -> Result<(), PluginError>,
+    ) -> Result<(), PluginError> {
+        self.stop()?;
+        self.with(|sh, ev| {
+            reset(sh)?;
+            if sh.state == MachineState::Alarm {
+                sh.alarm = None;
+                sh.set_state(MachineState::Idle, ev);
+            }
+            Ok(())
+        })
+    }
+
+    /// Homing without switches: `set` declares the current position of `axis` (all when
+    /// `None`) machine zero, in the backend's terms.
+    pub fn home(
+        &self,
+        axis: Option<Axis>,
+        set: impl FnOnce(&mut State<P, X>, Option<Axis>),
+    ) -> Result<(), PluginError> {
+        self.with(|sh, ev| {
+            sh.require_still("home")?;
+            set(sh, axis);
+            sh.end = sh.pos;
+            sh.push_status(ev);
+            Ok(())
+        })
+    }
+
+    /// Sets the active work offset so the work position of `axis` (or all) becomes zero.
+    pub fn zero(&self, axis: Option<Axis>) -> Result<OffsetTable, PluginError> {
+        self.with(|sh, ev| {
+            sh.require_still("zero")?;
+            let (pos, i) = (sh.pos, sh.active.index());
+            match axis {
+                Some(a) => sh.offsets[i][a.index()] = pos[a.index()],
+                None => sh.offsets[i] = pos,
+            }
+            sh.push_status(ev);
+            Ok(sh.offset_table())
+        })
+    }
+
+    /// Queues the move to work zero after checking each of its waypoints against the travel.
+    pub fn go_to_zero(&self) -> Result<(), PluginError> {
+        self.with(|sh, ev| {
+            sh.require_no_alarm("go to zero")?;
+            sh.require_still("go to zero")?;
+            let path = sh.go_to_zero_path();
+            for p in path {
+                check_travel(&self.cfg.travel, p).map_err(|m| {
+                    PluginError::new("out_of_travel", format!("go to zero refused: {m}"))
+                })?;
+            }
+            sh.end = path[2];
+            sh.queue.push_back(Job::GoToZero);
+            sh.set_state(MachineState::Jogging, ev);
+            Ok(())
+        })
+    }
+
+    pub fn select_offset(&self, offset: WorkOffset) -> Result<(), PluginError> {
+        self.with(|sh, ev| {
+            sh.require_still("select an offset")?;
+            sh.active = offset;
+            sh.push_status(ev);
+            Ok(())
+        })
+    }
+
+    pub fn get_offsets(&self) -> OffsetTable {
+        self.lock().offset_table()
+    }
+
+    pub fn set_offset(&self, offset: WorkOffset, values: AxisValues) -> Result<(), PluginError> {
+        if values.to_array().iter().any(|v| !v.is_finite()) {
+            return Err(PluginError::invalid("offset values must be finite numbers"));
+        }
+        self.with(|sh, ev| {
+            sh.require_still("change offsets")?;
+            sh.offsets[offset.index()] = values.to_array();
+            if offset == sh.active {
+                sh.push_status(ev);
+            }
+            Ok(())
+        })
+    }
+
+    /// Queues one MDI line's moves (already checked against the travel), unless the offsets
+    /// changed since the caller planned it from `offsets`/`active`.
+    pub fn queue_mdi(
+        &self,
+        moves: Vec<([f64; 4], f64)>,
+        offsets: [[f64; 4]; 6],
+        active: WorkOffset,
+    ) -> Result<(), PluginError> {
+        self.with(|sh, ev| {
+            sh.require_no_alarm("run MDI")?;
+            sh.require_still("run MDI")?;
+            if sh.offsets != offsets || sh.active != active {
+                return Err(PluginError::new(
+                    "busy",
+                    "the work offsets changed while the MDI line was checked; send it again",
+                ));
+            }
+            if let Some((last, _)) = moves.last() {
+                sh.end = *last;
+                sh.queue.push_back(Job::Mdi(moves));
+                sh.set_state(MachineState::Jogging, ev);
+            }
+            Ok(())
+        })
+    }
+
+    /// Stops and goes offline ("shut down").
+    pub fn shutdown(&self) -> Result<(), PluginError> {
+        let stopped = self.stop();
+        self.with(|sh, ev| {
+            sh.reason = Some("shut down".into());
+            sh.alarm = None;
+            sh.set_state(MachineState::Offline, ev);
+        });
+        stopped
+    }
+
+    /// For `Drop`: the motion thread ends its job and returns.
+    pub fn end_motion_thread(&self) {
+        self.with(|sh, _| {
+            sh.shutdown = true;
+            self.abort.store(true, Ordering::SeqCst);
+        });
+    }
+
+    /// The line a run starts from: `start_line`, or later when the execution log shows lines
+    /// of this run already executed (idempotent resume).
+    pub fn logged_start(&self, run: i64, start_line: u32) -> Result<u32, PluginError> {
+        if start_line == 0 {
+            return Err(PluginError::invalid(
+                "start_line is 1-based: 0 is not a line",
+            ));
+        }
+        let last = match &self.log {
+            Some(log) => log
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .last_line(run)?,
+            None => None,
+        };
+        Ok(last.map_or(start_line, |l| start_line.max(l.saturating_add(1))))
+    }
+
+    /// Installs a planned program of `lines` lines, to start at `start` (from
+    /// [`Kit::logged_start`]); `asked` is the start line the host asked for.
+    pub fn install_plan(
+        &self,
+        run: i64,
+        plan: P,
+        lines: u32,
+        asked: u32,
+        start: u32,
+    ) -> Result<crate::contract::ProgramLoaded, PluginError> {
+        check_start_line(asked, lines)?;
+        let start_line = start.min(lines.saturating_add(1));
+        self.install(Loaded {
+            run,
+            plan,
+            start_line,
+        })?;
+        Ok(crate::contract::ProgramLoaded { lines, start_line })
+    }
+
+    /// `run` requests: start, pause, resume (strict) and cancel (a stop).
+    pub fn run(
+        &self,
+        action: crate::contract::RunAction,
+    ) -> Result<crate::contract::RunAnswer, PluginError> {
+        use crate::contract::RunAction;
+        match action {
+            RunAction::Start => self.cycle_start()?,
+            RunAction::Pause => self.pause(true)?,
+            RunAction::Resume => self.resume(true)?,
+            RunAction::Cancel => self.stop()?,
+        }
+        Ok(Default::default())
+    }
+
+    /// Makes `loaded` the program the next cycle start runs; one loaded earlier and never
+    /// started is replaced (its run ends as cancelled).
+    pub fn install(&self, loaded: Loaded<P>) -> Result<(), PluginError> {
+        self.with(|sh, ev| {
+            sh.require_still("load a program")?;
+            if let Some(old) = sh.program.take() {
+                if old.run != loaded.run {
+                    ev.push(Event::RunEnded {
+                        run: old.run,
+                        outcome: RunOutcome::Cancelled,
+                        message: Some(format!("replaced by run {} before it started", loaded.run)),
+                    });
+                }
+            }
+            sh.program = Some(loaded);
+            Ok(())
+        })
+    }
+}
+
+/// The [`crate::MachineBackend`] methods a kit-based backend answers straight from its kit,
+/// for use inside `impl MachineBackend for T` where `T` has `fn kit(&self) -> &Kit<P, X>`:
+/// status, run, cycle start, feed hold, resume, stop, shutdown, jog, zero, go to zero,
+/// offsets. The backend writes the rest (create, connect, load_program, reset, home...).
+#[macro_export]
+macro_rules! kit_backend_methods {
+    () => {
+        fn status(&self) -> Result<$crate::contract::MachineStatus, $crate::PluginError> {
+            Ok(self.kit().status())
+        }
+        fn run(
+            &self,
+            action: $crate::contract::RunAction,
+        ) -> Result<$crate::contract::RunAnswer, $crate::PluginError> {
+            self.kit().run(action)
+        }
+        fn cycle_start(&self) -> Result<$crate::contract::RunAnswer, $crate::PluginError> {
+            self.kit().cycle_start().map(|()| Default::default())
+        }
+        fn feed_hold(&self) -> Result<(), $crate::PluginError> {
+            self.kit().pause(false)
+        }
+        fn resume(&self) -> Result<(), $crate::PluginError> {
+            self.kit().resume(false)
+        }
+        fn stop(&self) -> Result<(), $crate::PluginError> {
+            self.kit().stop()
+        }
+        fn shutdown(&self) -> Result<(), $crate::PluginError> {
+            self.kit().shutdown()
+        }
+        fn zero(
+            &self,
+            axis: Option<$crate::contract::Axis>,
+        ) -> Result<Option<$crate::contract::OffsetTable>, $crate::PluginError> {
+            self.kit().zero(axis).map(Some)
+        }
+        fn go_to_zero(&self) -> Result<(), $crate::PluginError> {
+            self.kit().go_to_zero()
+        }
+        fn select_offset(
+            &self,
+            offset: $crate::contract::WorkOffset,
+        ) -> Result<(), $crate::PluginError> {
+            self.kit().select_offset(offset)
+        }
+        fn get_offsets(&self) -> Result<$crate::contract::OffsetTable, $crate::PluginError> {
+            Ok(self.kit().get_offsets())
+        }
+        fn set_offset(
+            &self,
+            offset: $crate::contract::WorkOffset,
+            values: $crate::contract::AxisValues,
+        ) -> Result<(), $crate::PluginError> {
+            self.kit().set_offset(offset, values)
+        }
+    };
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn travel_refuses_huge_and_non_finite_targets_without_limits() {
+        let none = [None; 4];
+        assert!(check_travel(&none, [1e5, 0.0, 0.0, 0.0]).is_ok());
+        for bad in [1e308, f64::INFINITY, f64::NAN, -2e6] {
+            let e = check_travel(&none, [0.0, bad, 0.0, 0.0]).unwrap_err();
+            assert!(
+                e.contains("outside the travel") && e.starts_with("Y="),
+                "{e}"
+            );
+        }
+        let x = [Some((0.0, 10.0)), None, None, None];
+        assert!(check_travel(&x, [10.0, 0.0, 0.0, 0.0]).is_ok());
+        assert!(check_travel(&x, [10.1, 0.0, 0.0, 0.0]).is_err());
+    }
+
+    #[test]
+    fn travel_config_names_the_axes_it_takes() {
+        let t = travel_from_json(&json!({"x": [-1, 2], "Z": [-3, 0]}), &Axis::ALL).unwrap();
+        assert_eq!(t, [Some((-1.0, 2.0)), None, Some((-3.0, 0.0)), None]);
+        let e = travel_from_json(&json!({"z": [0, 1]}), &[Axis::X, Axis::Y]).unwrap_err();
+        assert!(e.message.contains("expected x or y"), "{e}");
+        let e = travel_from_json(&json!({"x": [2, 1]}), &Axis::ALL).unwrap_err();
+        assert!(e.message.contains("travel.x"), "{e}");
+    }
+}
