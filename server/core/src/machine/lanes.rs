@@ -77,6 +77,20 @@ impl Worker {
     }
 }
 
+/// The request's `op` name, for messages.
+fn request_name(request: &Request) -> String {
+    match request {
+        Request::Command(c) => serde_json::to_value(c)
+            .ok()
+            .and_then(|v| v.get("command").and_then(Value::as_str).map(str::to_string))
+            .unwrap_or_else(|| "command".into()),
+        other => serde_json::to_value(other)
+            .ok()
+            .and_then(|v| v.get("op").and_then(Value::as_str).map(str::to_string))
+            .unwrap_or_else(|| "call".into()),
+    }
+}
+
 pub struct Lanes {
     instance: Arc<Instance>,
     ordinary: Worker,
@@ -111,19 +125,14 @@ impl Lanes {
         if let Some(what) = worker.overdue() {
             return Err(BackendError::Unresponsive(what));
         }
-        let req = serde_json::to_value(request).map_err(|e| CallError::Protocol(e.to_string()))?;
-        let op = req
-            .get("op")
-            .and_then(Value::as_str)
-            .unwrap_or("call")
-            .to_string();
+        let req = request.clone();
         let (tx, rx) = oneshot::channel();
         let instance = self.instance.clone();
         let overdue = worker.overdue.clone();
         let done = Arc::new(AtomicBool::new(false));
         let job_done = done.clone();
         let job: Job = Box::new(move || {
-            let result = instance.call(&req);
+            let result = instance.call_request(&req);
             // Done and un-marked under one lock, so the timeout below cannot mark a call that
             // has already returned.
             if let Ok(mut o) = overdue.lock() {
@@ -145,7 +154,8 @@ impl Lanes {
             ))),
             Err(_) => {
                 let what = format!(
-                    "backend call `{op}` has not returned after {:?} (the plugin seems hung)",
+                    "backend call `{}` has not returned after {:?} (the plugin seems hung)",
+                    request_name(request),
                     self.timeout
                 );
                 if let Ok(mut o) = worker.overdue.lock() {
