@@ -170,6 +170,8 @@ pub struct Opts {
     pub max_upload_bytes: Option<u64>,
     /// Plugin directories searched before the workspace's own (`--plugin-dir`, in this order).
     pub extra_plugin_dirs: Vec<PathBuf>,
+    /// `FRESA_LOG` for the server (default `info,tower_http=warn,sqlx=warn`).
+    pub log: Option<String>,
 }
 
 impl Default for Opts {
@@ -179,6 +181,7 @@ impl Default for Opts {
             demo: false,
             max_upload_bytes: None,
             extra_plugin_dirs: Vec::new(),
+            log: None,
         }
     }
 }
@@ -287,7 +290,13 @@ impl Server {
         }
         cmd.arg("--plugin-dir")
             .arg(bin_dir())
-            .env("FRESA_LOG", "info,tower_http=warn,sqlx=warn")
+            .env(
+                "FRESA_LOG",
+                self.opts
+                    .log
+                    .as_deref()
+                    .unwrap_or("info,tower_http=warn,sqlx=warn"),
+            )
             .stdout(Stdio::null())
             .stderr(Stdio::piped());
         if self.opts.demo {
@@ -517,7 +526,8 @@ impl Server {
     /// A sim-machine; `extra` is merged into the machine body (e.g. `max_jog_mm`).
     #[track_caller]
     pub fn sim_with(&self, name: &str, time_scale: f64, extra: Value) -> Sim {
-        let log = self.root().join(format!("exec-{name}.log"));
+        // Backend files must live in the data directory (the server refuses others).
+        let log = self.data_dir().join(format!("exec-{name}.log"));
         let mut body = json!({
             "name": name,
             "backend": "sim-machine",

@@ -86,7 +86,7 @@ fn travel_machine(s: &Server) -> Sim {
         1.0,
         json!({"config": {
             "time_scale": 1.0,
-            "execution_log": s.root().join("exec-m.log"),
+            "execution_log": s.data_dir().join("exec-m.log"),
             "travel": {"x": [-10, 300], "y": [-10, 200], "z": [-100, 0]},
         }}),
     )

@@ -17,7 +17,7 @@ fn parport_machine(s: &Server, name: &str, extra: Value) -> i64 {
         "tick_hz": 5000,
         "spin_us": 0,
         "realtime_priority": false,
-        "execution_log": s.root().join(format!("exec-{name}.log")),
+        "execution_log": s.data_dir().join(format!("exec-{name}.log")),
         "axes": {
             "x": {"steps_per_mm": 20, "max_rate": 2000, "accel": 40000},
             "y": {"steps_per_mm": 20, "max_rate": 2000, "accel": 40000}
@@ -177,7 +177,7 @@ fn pause_resume_and_resume_after_a_crash_run_every_line_once() {
             "y": {"steps_per_mm": 20, "max_rate": 2000, "start_rate": 1000, "accel": 40000}
         }}),
     );
-    let log = s.root().join("exec-crashy.log");
+    let log = s.data_dir().join("exec-crashy.log");
     s.wait_machine_state(m, "idle", T);
     // 200 lines of 1 mm (20 steps) at 3000 mm/min: about 25 ms a line.
     let job = s.upload(m, "slow.nc", back_and_forth(LINES as usize, 1.0, 3000.0))["id"]

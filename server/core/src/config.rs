@@ -23,6 +23,12 @@ pub struct FileConfig {
     pub sse_keepalive_secs: Option<u64>,
     pub shutdown_grace_secs: Option<u64>,
     pub log: Option<String>,
+    /// Host names (or `name:port`) besides the listen address and `localhost` that requests may
+    /// be addressed to, e.g. the name a reverse proxy or the shop's DNS gives this server.
+    pub allowed_hosts: Option<Vec<String>>,
+    /// Origins (`http://tablet.lan:8080`) of other sites' pages allowed to call the API from a
+    /// browser; none by default.
+    pub cors_origins: Option<Vec<String>>,
 }
 
 /// Command-line/environment values for `fresa serve` (the binary parses them: CLI beats env).
@@ -50,6 +56,8 @@ pub struct Settings {
     pub demo: bool,
     pub config_file: Option<PathBuf>,
     pub log: Option<String>,
+    pub allowed_hosts: Vec<String>,
+    pub cors_origins: Vec<String>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -69,6 +77,23 @@ pub enum ConfigError {
     Invalid(String),
     #[error("no data directory: set --data-dir or FRESA_DATA_DIR (no home directory found)")]
     NoDataDir,
+}
+
+/// `cors_origins` entries must be origins (`scheme://host[:port]`), not patterns.
+fn cors_origins(list: Vec<String>) -> Result<Vec<String>, ConfigError> {
+    for o in &list {
+        let ok = (o.starts_with("http://") || o.starts_with("https://"))
+            && !o.contains('*')
+            && o.split("://")
+                .nth(1)
+                .is_some_and(|r| !r.is_empty() && !r.contains('/'));
+        if !ok {
+            return Err(ConfigError::Invalid(format!(
+                "cors_origins: {o:?} is not an origin like \"http://tablet.lan:8080\" (no paths, no wildcards)"
+            )));
+        }
+    }
+    Ok(list)
 }
 
 /// Where the config file is looked for when `--config` is not given.
@@ -176,6 +201,8 @@ impl Settings {
             demo: o.demo,
             config_file,
             log: file.log,
+            allowed_hosts: file.allowed_hosts.unwrap_or_default(),
+            cors_origins: cors_origins(file.cors_origins.unwrap_or_default())?,
         })
     }
 

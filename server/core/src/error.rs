@@ -33,6 +33,9 @@ pub struct Error {
 
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
+/// Longest name of a machine, pendant, job or token, in characters.
+pub const MAX_NAME_CHARS: usize = 100;
+
 impl Error {
     pub fn new(kind: ErrorKind, code: &'static str, message: impl Into<String>) -> Self {
         Error {
@@ -59,11 +62,36 @@ impl Error {
 
     /// The `name` field of something being created, trimmed; empty is refused naming the field.
     pub fn required_name(name: &str) -> Result<&str> {
-        let name = name.trim();
+        let name = Self::valid_name("name", name)?;
         if name.is_empty() {
             return Err(Error::invalid(
                 "invalid_field",
                 "field `name` must not be empty",
+            ));
+        }
+        Ok(name)
+    }
+
+    /// A name as people read it in lists, logs and `/metrics`: trimmed, at most
+    /// [`MAX_NAME_CHARS`] characters, no control characters (a NUL or a newline would corrupt
+    /// every place it is shown).
+    pub fn valid_name<'a>(field: &str, name: &'a str) -> Result<&'a str> {
+        let name = name.trim();
+        let chars = name.chars().count();
+        if chars > MAX_NAME_CHARS {
+            return Err(Error::invalid(
+                "invalid_field",
+                format!("field `{field}` is at most {MAX_NAME_CHARS} characters, got {chars}"),
+            ));
+        }
+        if let Some((i, c)) = name.chars().enumerate().find(|(_, c)| c.is_control()) {
+            return Err(Error::invalid(
+                "invalid_field",
+                format!(
+                    "field `{field}` must not contain control characters: U+{:04X} at character {}",
+                    c as u32,
+                    i + 1
+                ),
             ));
         }
         Ok(name)
@@ -86,5 +114,21 @@ impl From<sqlx::Error> for Error {
     fn from(e: sqlx::Error) -> Self {
         tracing::error!(error = %e, "database error");
         Error::internal(format!("database error: {e}"))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_are_bounded_and_free_of_control_characters() {
+        assert_eq!(Error::required_name("  mill 1 ").ok(), Some("mill 1"));
+        assert!(Error::required_name("   ").is_err());
+        let long = "x".repeat(MAX_NAME_CHARS + 1);
+        assert!(Error::required_name(&long).is_err_and(|e| e.message.contains("at most")));
+        assert!(Error::required_name("a\0b").is_err_and(|e| e.message.contains("U+0000")));
+        assert!(Error::required_name("a\nb").is_err());
+        assert!(Error::required_name("fresadora ñ").is_ok());
     }
 }

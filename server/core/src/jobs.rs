@@ -30,10 +30,15 @@ pub async fn store_program(
     source: &str,
     actor: &str,
 ) -> Result<CreatedJob> {
+    let name = match name
+        .as_deref()
+        .map(|n| Error::valid_name("name", n))
+        .transpose()?
+    {
+        Some(n) if !n.is_empty() => n.to_string(),
+        _ => format!("program-{}", &program.sha256[..12]),
+    };
     let analysis = analyse(&program, unsupported_policy(app, machine_id).await?).await?;
-    let name = name
-        .filter(|n| !n.trim().is_empty())
-        .unwrap_or_else(|| format!("program-{}", &program.sha256[..12]));
     let sha = program.sha256.clone();
     let (lines, bytes) = (program.lines, program.bytes);
     let dir = app.settings.programs_dir();

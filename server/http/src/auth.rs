@@ -52,19 +52,60 @@ pub fn new_secret() -> String {
     format!("fresa_{}", hex::encode(bytes))
 }
 
-fn bearer(req: &Request) -> Option<String> {
+/// The token of a request. `?access_token=` is accepted on `GET /api/v1/events` only, because
+/// a browser's EventSource cannot send headers; anywhere else a secret in the URL (which ends up
+/// in logs, proxies and browser history) is refused.
+fn bearer(req: &Request) -> Result<Option<String>, ApiError> {
     if let Some(v) = req.headers().get(axum::http::header::AUTHORIZATION) {
-        return v
+        return Ok(v
             .to_str()
             .ok()
             .and_then(|s| s.strip_prefix("Bearer "))
-            .map(|s| s.trim().to_string());
+            .map(|s| s.trim().to_string()));
     }
-    // EventSource cannot set headers, so SSE clients may pass ?access_token=.
-    req.uri().query().and_then(|q| {
+    let Some(token) = query_token(req.uri()) else {
+        return Ok(None);
+    };
+    let path = req
+        .extensions()
+        .get::<axum::extract::OriginalUri>()
+        .map(|u| u.path().to_string())
+        .unwrap_or_else(|| req.uri().path().to_string());
+    if req.method() == axum::http::Method::GET && path == "/api/v1/events" {
+        Ok(Some(token))
+    } else {
+        Err(ApiError::bad_request(
+            "token_in_query",
+            "`access_token` in the URL is accepted only on GET /api/v1/events; send `Authorization: Bearer <token>`",
+        ))
+    }
+}
+
+fn query_token(uri: &axum::http::Uri) -> Option<String> {
+    uri.query().and_then(|q| {
         q.split('&')
             .find_map(|kv| kv.strip_prefix("access_token=").map(str::to_string))
     })
+}
+
+/// The URI as it may be logged: the value of any `access_token` replaced.
+pub fn redacted_uri(uri: &axum::http::Uri) -> String {
+    match uri.query() {
+        Some(q) if q.contains("access_token=") => {
+            let q: Vec<String> = q
+                .split('&')
+                .map(|kv| {
+                    if kv.starts_with("access_token=") {
+                        "access_token=REDACTED".to_string()
+                    } else {
+                        kv.to_string()
+                    }
+                })
+                .collect();
+            format!("{}?{}", uri.path(), q.join("&"))
+        }
+        _ => uri.to_string(),
+    }
 }
 
 pub async fn middleware(
@@ -73,7 +114,7 @@ pub async fn middleware(
     next: Next,
 ) -> Result<Response, ApiError> {
     let caller =
-        match bearer(&req) {
+        match bearer(&req)? {
             Some(secret) => match app.store.token_by_hash(&hash_token(&secret)).await? {
                 Some(t) => Caller {
                     name: t.name,

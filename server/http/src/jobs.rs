@@ -112,6 +112,13 @@ pub async fn upload(
         {
             match field.name().unwrap_or("") {
                 "file" => {
+                    // Two programs in one form would be stored joined as one.
+                    if got_file {
+                        return Err(ApiError::bad_request(
+                            "invalid_multipart",
+                            "the form has more than one `file` part; upload one program per request",
+                        ));
+                    }
                     file_name = field.file_name().map(str::to_string);
                     while let Some(chunk) = field
                         .chunk()

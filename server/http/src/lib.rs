@@ -3,6 +3,7 @@
 pub mod auth;
 pub mod error;
 mod events;
+mod guard;
 mod jobs;
 pub(crate) mod machines;
 mod pendants;
@@ -97,8 +98,55 @@ pub fn router(app: SharedApp) -> Router {
             )),
         )
         .fallback(not_found)
-        .layer(tower_http::trace::TraceLayer::new_for_http())
+        .method_not_allowed_fallback(method_not_allowed)
+        .layer(axum::middleware::from_fn_with_state(
+            app.clone(),
+            guard::middleware,
+        ))
+        .layer(cors(&app.settings.cors_origins))
+        .layer(
+            tower_http::trace::TraceLayer::new_for_http().make_span_with(
+                |req: &axum::http::Request<_>| {
+                    // The URI without secrets: an `access_token` in the query is not logged.
+                    tracing::debug_span!(
+                        "request",
+                        method = %req.method(),
+                        uri = %auth::redacted_uri(req.uri()),
+                        version = ?req.version(),
+                    )
+                },
+            ),
+        )
         .with_state(app)
+}
+
+/// Deny-by-default CORS: only the configured origins get CORS headers (and preflights).
+fn cors(origins: &[String]) -> tower_http::cors::CorsLayer {
+    use axum::http::{header, HeaderValue, Method};
+    use tower_http::cors::{AllowOrigin, CorsLayer};
+    let list: Vec<HeaderValue> = origins.iter().filter_map(|o| o.parse().ok()).collect();
+    CorsLayer::new()
+        .allow_origin(AllowOrigin::list(list))
+        .allow_methods([
+            Method::GET,
+            Method::POST,
+            Method::PUT,
+            Method::PATCH,
+            Method::DELETE,
+        ])
+        .allow_headers([
+            header::AUTHORIZATION,
+            header::CONTENT_TYPE,
+            header::HeaderName::from_static("last-event-id"),
+        ])
+}
+
+async fn method_not_allowed(method: axum::http::Method, uri: axum::http::Uri) -> error::ApiError {
+    error::ApiError::new(
+        StatusCode::METHOD_NOT_ALLOWED,
+        "method_not_allowed",
+        format!("{method} is not allowed on {}", uri.path()),
+    )
 }
 
 /// `ok`; `degraded` (still 200: the other machines work) naming machines whose backend stopped

@@ -63,7 +63,7 @@ pub async fn create(
     Json(req): Json<NewMachine>,
 ) -> Result<(StatusCode, Json<Value>), ApiError> {
     let name = fresa_core::Error::required_name(&req.name)?;
-    let config = req.config.unwrap_or_else(|| json!({}));
+    let mut config = req.config.unwrap_or_else(|| json!({}));
     if !config.is_object() {
         return Err(ApiError::unprocessable(
             "invalid_field",
@@ -96,6 +96,7 @@ pub async fn create(
             format!("a machine named {name:?} already exists"),
         ));
     }
+    limits::confine_backend_files(&mut config, &app.settings.data_dir)?;
     // The plugin judges the config before anything is stored; that instance is the one kept.
     let backend = Machine::prepare(lib, config.clone()).await.map_err(|e| {
         ApiError::unprocessable(
@@ -196,8 +197,23 @@ pub async fn command(
     Json(raw): Json<Value>,
 ) -> Result<Json<Value>, ApiError> {
     let m = machine(&app, id).await?;
-    let cmd: Command = serde_json::from_value(raw)
+    let cmd: Command = serde_json::from_value(raw.clone())
         .map_err(|e| ApiError::unprocessable("invalid_command", format!("{e} (commands: cycle_start, feed_hold, resume, stop, reset, home, zero, go_to_zero, select_offset, set_output, toggle_output)")))?;
+    // Like every other body: a field the command does not have is an error, not ignored (a
+    // misspelt `axis` must not zero every axis).
+    let known = serde_json::to_value(cmd).unwrap_or_default();
+    if let (Some(given), Some(known)) = (raw.as_object(), known.as_object()) {
+        if let Some(extra) = given.keys().find(|k| !known.contains_key(*k)) {
+            return Err(ApiError::unprocessable(
+                "invalid_command",
+                format!(
+                    "unknown field `{extra}` for command {:?} (its fields: {})",
+                    known["command"].as_str().unwrap_or_default(),
+                    known.keys().cloned().collect::<Vec<_>>().join(", ")
+                ),
+            ));
+        }
+    }
     let answer = m.command(cmd, &caller.name).await?;
     Ok(Json(json!({"ok": true, "result": answer})))
 }

@@ -173,15 +173,66 @@ pub async fn create(
     Ok((StatusCode::CREATED, Json(json!({"id": id}))))
 }
 
-/// Same rule as the transport plugin: `host:port`, or `host` for port 8001.
+/// Same rule as the transport plugin: `host:port`, or `host` for port 8001; the host must be an
+/// IP address or a DNS name (`MPG000001.local`). Anything else gives an empty host.
 fn split_address(address: &str) -> (String, u16) {
     let a = address.trim();
     if let Ok(sa) = a.parse::<std::net::SocketAddr>() {
         return (sa.ip().to_string(), sa.port());
     }
-    match a.rsplit_once(':') {
-        Some((h, p)) if !h.contains(':') => (h.to_string(), p.parse().unwrap_or(0)),
-        _ => (a.to_string(), 8001),
+    if let Ok(ip) = a.parse::<std::net::IpAddr>() {
+        return (ip.to_string(), 8001);
+    }
+    let (host, port) = match a.rsplit_once(':') {
+        Some((h, p)) => (h, p.parse().unwrap_or(0)),
+        None => (a, 8001),
+    };
+    if is_dns_name(host) {
+        (host.to_string(), port)
+    } else {
+        (String::new(), port)
+    }
+}
+
+/// RFC 1123 host name: dot-separated labels of letters, digits and inner hyphens.
+fn is_dns_name(host: &str) -> bool {
+    let host = host.strip_suffix('.').unwrap_or(host);
+    !host.is_empty()
+        && host.len() <= 253
+        && host.split('.').all(|label| {
+            !label.is_empty()
+                && label.len() <= 63
+                && !label.starts_with('-')
+                && !label.ends_with('-')
+                && label
+                    .bytes()
+                    .all(|b| b.is_ascii_alphanumeric() || b == b'-')
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::split_address;
+
+    #[test]
+    fn pendant_addresses_are_parsed() {
+        assert_eq!(
+            split_address("192.168.1.40:8001"),
+            ("192.168.1.40".into(), 8001)
+        );
+        assert_eq!(
+            split_address("MPG000001.local"),
+            ("MPG000001.local".into(), 8001)
+        );
+        assert_eq!(split_address("[::1]:9000"), ("::1".into(), 9000));
+        assert_eq!(split_address("fe80::1"), ("fe80::1".into(), 8001));
+        for bad in ["::::", "a b:1", "-x.local", "x..y", "host:", "", "é.local"] {
+            let (host, port) = split_address(bad);
+            assert!(
+                host.is_empty() || port == 0,
+                "{bad:?} accepted as {host}:{port}"
+            );
+        }
     }
 }
 

@@ -5,6 +5,7 @@
 
 use crate::error::{Error, Result};
 use crate::store::MachineRow;
+use std::path::Path;
 
 /// Largest `max_jog_mm` a machine may be configured with: one jog request is a hand move.
 pub const MAX_JOG_MM: f64 = 1000.0;
@@ -25,6 +26,49 @@ pub fn check_configured(field: &str, value: f64, max: f64) -> Result<f64> {
         ));
     }
     Ok(value)
+}
+
+/// Config keys whose value is a file a backend writes (its execution log or journal).
+pub const BACKEND_FILE_KEYS: [&str; 2] = ["execution_log", "journal"];
+
+/// Files a backend writes stay inside the data directory: whoever may add a machine must not
+/// make the server append to any file it can reach. A relative name is placed in the data
+/// directory; the config is rewritten with the full path the backend gets.
+pub fn confine_backend_files(config: &mut serde_json::Value, data_dir: &Path) -> Result<()> {
+    use std::path::Component;
+    let Some(obj) = config.as_object_mut() else {
+        return Ok(());
+    };
+    for key in BACKEND_FILE_KEYS {
+        let Some(v) = obj.get(key) else { continue };
+        let Some(given) = v.as_str() else {
+            // Not a path: the backend names its own type error.
+            continue;
+        };
+        let path = Path::new(given);
+        let outside = || {
+            Error::invalid(
+                "invalid_field",
+                format!(
+                    "field `config.{key}`: {given:?} is outside the data directory {}; backend files live there (give a file name, e.g. \"{key}-mill.log\")",
+                    data_dir.display()
+                ),
+            )
+        };
+        if path.components().any(|c| matches!(c, Component::ParentDir)) {
+            return Err(outside());
+        }
+        let full = if path.is_absolute() {
+            path.to_path_buf()
+        } else {
+            data_dir.join(path)
+        };
+        if !full.starts_with(data_dir) {
+            return Err(outside());
+        }
+        obj.insert(key.into(), serde_json::json!(full));
+    }
+    Ok(())
 }
 
 /// One jog against the machine's configured limits.
@@ -108,6 +152,29 @@ mod tests {
             check_configured("max_jog_mm", 1000.0, MAX_JOG_MM).ok(),
             Some(1000.0)
         );
+    }
+
+    #[test]
+    fn backend_files_stay_in_the_data_directory() {
+        let dir = Path::new("/var/lib/fresa");
+        let mut c = serde_json::json!({"execution_log": "mill.log", "time_scale": 1.0});
+        assert!(confine_backend_files(&mut c, dir).is_ok());
+        assert_eq!(c["execution_log"], "/var/lib/fresa/mill.log");
+        let mut c = serde_json::json!({"execution_log": "/var/lib/fresa/logs/a.log"});
+        assert!(confine_backend_files(&mut c, dir).is_ok());
+        for bad in [
+            "/etc/passwd",
+            "../x.log",
+            "/var/lib/fresa/../../etc/x",
+            "/var/lib/fresa2/x",
+        ] {
+            let mut c = serde_json::json!({"journal": bad});
+            let e = confine_backend_files(&mut c, dir)
+                .err()
+                .map(|e| e.message)
+                .unwrap_or_default();
+            assert!(e.contains("config.journal"), "{bad}: {e}");
+        }
     }
 
     #[test]

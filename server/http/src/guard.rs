@@ -1,0 +1,207 @@
+//! Cross-site and DNS-rebinding protection, on every bind. A browser lets any web page send
+//! simple requests (a POST with `text/plain`) to a loopback server, which trusts loopback callers
+//! without a token; and a DNS-rebinding page reaches it under a name of its own. So:
+//!
+//! * `Host` must name this server: an IP literal of the listen address (any IP literal when
+//!   bound to every address), `localhost`, or a name listed in `allowed_hosts`;
+//! * a state-changing request (not GET/HEAD/OPTIONS) that carries an `Origin` other than the
+//!   server's own, or one listed in `cors_origins`, is refused, and so is one a browser marks
+//!   `Sec-Fetch-Site: cross-site`. Requests without these headers (curl, scripts, the CLI) are
+//!   not browsers' and pass.
+//!
+//! CORS stays deny-by-default: only origins in `cors_origins` get CORS headers (see `router`).
+
+use crate::error::ApiError;
+use axum::extract::{Request, State};
+use axum::http::{header, HeaderMap, Method, StatusCode};
+use axum::middleware::Next;
+use axum::response::Response;
+use fresa_core::config::Settings;
+use fresa_core::SharedApp;
+use std::net::IpAddr;
+
+pub async fn middleware(
+    State(app): State<SharedApp>,
+    req: Request,
+    next: Next,
+) -> Result<Response, ApiError> {
+    check(&app.settings, req.method(), req.headers())?;
+    Ok(next.run(req).await)
+}
+
+fn check(settings: &Settings, method: &Method, headers: &HeaderMap) -> Result<(), ApiError> {
+    let host = headers.get(header::HOST).and_then(|h| h.to_str().ok());
+    if let Some(host) = host {
+        if !host_allowed(settings, host) {
+            return Err(ApiError::new(
+                StatusCode::FORBIDDEN,
+                "host_not_allowed",
+                format!(
+                    "Host {host:?} does not name this server; add it to `allowed_hosts` in the config if it does"
+                ),
+            ));
+        }
+    }
+    if matches!(*method, Method::GET | Method::HEAD | Method::OPTIONS) {
+        return Ok(());
+    }
+    if let Some(origin) = headers.get(header::ORIGIN) {
+        let origin = origin.to_str().unwrap_or("(not text)");
+        if !origin_allowed(settings, origin, host) {
+            return Err(ApiError::new(
+                StatusCode::FORBIDDEN,
+                "cross_origin",
+                format!(
+                    "a {method} from origin {origin:?} is refused: only this server's own pages, or origins listed in `cors_origins`, may change anything"
+                ),
+            ));
+        }
+        return Ok(());
+    }
+    if headers
+        .get("sec-fetch-site")
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.eq_ignore_ascii_case("cross-site"))
+    {
+        return Err(ApiError::new(
+            StatusCode::FORBIDDEN,
+            "cross_origin",
+            format!("a cross-site {method} is refused"),
+        ));
+    }
+    Ok(())
+}
+
+/// Splits `name[:port]` / `[v6]:port`.
+fn host_name(host: &str) -> &str {
+    let host = host.trim();
+    if let Some(rest) = host.strip_prefix('[') {
+        return rest.split(']').next().unwrap_or("");
+    }
+    match host.rsplit_once(':') {
+        Some((name, port)) if port.bytes().all(|b| b.is_ascii_digit()) && !name.contains(':') => {
+            name
+        }
+        _ => host,
+    }
+}
+
+fn host_allowed(settings: &Settings, host: &str) -> bool {
+    let name = host_name(host);
+    if settings
+        .allowed_hosts
+        .iter()
+        .any(|a| a.eq_ignore_ascii_case(host.trim()) || a.eq_ignore_ascii_case(name))
+    {
+        return true;
+    }
+    if name.eq_ignore_ascii_case("localhost") {
+        return true;
+    }
+    // An IP literal cannot be rebound by DNS: it is this server if it is the listen address,
+    // a loopback one, or any address when the server listens on all of them.
+    match name.parse::<IpAddr>() {
+        Ok(ip) => {
+            let listen = settings.listen.ip();
+            ip.is_loopback() || listen.is_unspecified() || ip == listen
+        }
+        Err(_) => false,
+    }
+}
+
+fn origin_allowed(settings: &Settings, origin: &str, host: Option<&str>) -> bool {
+    let origin = origin.trim_end_matches('/');
+    if settings
+        .cors_origins
+        .iter()
+        .any(|o| o.trim_end_matches('/').eq_ignore_ascii_case(origin))
+    {
+        return true;
+    }
+    // Same origin: the page was served by this server, under the name the request uses.
+    let Some(host) = host else { return false };
+    ["http://", "https://"].iter().any(|scheme| {
+        origin
+            .strip_prefix(scheme)
+            .is_some_and(|rest| rest.eq_ignore_ascii_case(host.trim()))
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    fn settings(listen: &str, allowed: &[&str], cors: &[&str]) -> Settings {
+        let mut s = Settings::resolve(fresa_core::config::Overrides {
+            data_dir: Some(std::env::temp_dir()),
+            listen: Some(listen.into()),
+            ..Default::default()
+        })
+        .unwrap();
+        s.allowed_hosts = allowed.iter().map(|a| a.to_string()).collect();
+        s.cors_origins = cors.iter().map(|a| a.to_string()).collect();
+        s
+    }
+
+    fn headers(pairs: &[(&'static str, &str)]) -> HeaderMap {
+        let mut h = HeaderMap::new();
+        for (k, v) in pairs {
+            h.insert(*k, v.parse().unwrap());
+        }
+        h
+    }
+
+    #[test]
+    fn hosts() {
+        let s = settings("127.0.0.1:7878", &["fresa.shop.lan"], &[]);
+        for ok in [
+            "127.0.0.1:7878",
+            "localhost:7878",
+            "[::1]:7878",
+            "FRESA.shop.lan:80",
+            "fresa.shop.lan",
+        ] {
+            assert!(host_allowed(&s, ok), "{ok}");
+        }
+        for bad in [
+            "evil.example",
+            "evil.example:7878",
+            "192.168.1.5:7878",
+            "localhost.evil.example",
+        ] {
+            assert!(!host_allowed(&s, bad), "{bad}");
+        }
+        let any = settings("0.0.0.0:7878", &[], &[]);
+        assert!(host_allowed(&any, "192.168.1.5:7878"));
+        assert!(!host_allowed(&any, "evil.example:7878"));
+    }
+
+    #[test]
+    fn origins_on_state_changing_requests() {
+        let s = settings("127.0.0.1:7878", &[], &["http://tablet.lan:8080"]);
+        let post = Method::POST;
+        let h = |o: &str| headers(&[("host", "127.0.0.1:7878"), ("origin", o)]);
+        assert!(check(&s, &post, &h("http://127.0.0.1:7878")).is_ok());
+        assert!(check(&s, &post, &h("http://tablet.lan:8080")).is_ok());
+        assert_eq!(
+            check(&s, &post, &h("http://evil.example"))
+                .unwrap_err()
+                .code,
+            "cross_origin"
+        );
+        assert_eq!(
+            check(&s, &post, &h("null")).unwrap_err().code,
+            "cross_origin"
+        );
+        assert!(check(&s, &Method::GET, &h("http://evil.example")).is_ok());
+        let fetch = headers(&[("host", "127.0.0.1:7878"), ("sec-fetch-site", "cross-site")]);
+        assert_eq!(check(&s, &post, &fetch).unwrap_err().code, "cross_origin");
+        assert!(check(&s, &post, &headers(&[("host", "127.0.0.1:7878")])).is_ok());
+        let rebound = headers(&[("host", "evil.example:7878")]);
+        assert_eq!(
+            check(&s, &Method::GET, &rebound).unwrap_err().code,
+            "host_not_allowed"
+        );
+    }
+}

@@ -1,0 +1,254 @@
+//! Hostile web pages and loose inputs (issue 12): a browser page on another origin, or one
+//! reaching the server under a rebound DNS name, changes nothing; secrets stay out of URLs and
+//! logs; names, addresses, command fields, multipart forms and backend file paths are checked.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fresa_tests::serde_json::{json, Value};
+use fresa_tests::{Opts, Server};
+use reqwest::Method;
+
+const PROGRAM: &str = "G21 G90\nG0 X1 Y1\nG1 X2 F300\n";
+
+fn port(s: &Server) -> u16 {
+    s.base.rsplit(':').next().unwrap().parse().unwrap()
+}
+
+#[test]
+fn a_page_on_another_origin_can_neither_upload_nor_start_a_job() {
+    let s = Server::start();
+    let m = s.sim("m", 0.0).id;
+    let evil = "http://evil.example";
+    let upload = s.send(
+        s.req(Method::POST, &format!("/api/v1/jobs?machine={m}&name=x"))
+            .header("content-type", "text/plain")
+            .header("origin", evil)
+            .body(PROGRAM),
+    );
+    let msg = upload.expect_error(403, "cross_origin");
+    assert!(msg.contains("evil.example"), "{msg}");
+    s.assert_no_jobs();
+    assert!(s.upload_temp_files().is_empty());
+
+    // A job stored by a legitimate client cannot be started, paused or cancelled from the page.
+    let job = s.upload(m, "ok", PROGRAM)["id"].as_i64().unwrap();
+    for action in ["start", "pause", "resume", "cancel"] {
+        s.send(
+            s.req(Method::POST, &format!("/api/v1/jobs/{job}/{action}"))
+                .header("origin", evil),
+        )
+        .expect_error(403, "cross_origin");
+    }
+    s.send(
+        s.req(Method::POST, &format!("/api/v1/machines/{m}/part-zero"))
+            .header("origin", "null"),
+    )
+    .expect_error(403, "cross_origin");
+    // A browser that only says the request is cross-site is refused too.
+    s.send(
+        s.req(Method::POST, &format!("/api/v1/jobs/{job}/start"))
+            .header("sec-fetch-site", "cross-site"),
+    )
+    .expect_error(403, "cross_origin");
+    assert_eq!(s.job(job)["state"], "ready", "the job never ran");
+
+    // Reading is not a change, and the server's own pages (same origin) may act.
+    s.send(s.req(Method::GET, "/api/v1/jobs").header("origin", evil))
+        .expect(200);
+    let own = format!("http://127.0.0.1:{}", port(&s));
+    s.send(
+        s.req(Method::POST, &format!("/api/v1/jobs/{job}/start"))
+            .header("origin", own),
+    )
+    .expect(200);
+    // And so may curl, which sends no Origin.
+    s.wait_job_state(job, "completed", std::time::Duration::from_secs(30));
+}
+
+#[test]
+fn a_rebound_host_name_reaches_nothing_unless_it_is_allowed() {
+    let s = Server::unstarted(Opts::default());
+    s.write_config(
+        "allowed_hosts = [\"fresa.shop.lan\"]\ncors_origins = [\"http://tablet.lan:8080\"]\n",
+    );
+    let mut s = s;
+    s.spawn().unwrap();
+    let p = port(&s);
+    for host in [format!("evil.example:{p}"), "evil.example".to_string()] {
+        let msg = s
+            .send(s.req(Method::GET, "/api/v1/machines").header("host", &host))
+            .expect_error(403, "host_not_allowed");
+        assert!(msg.contains("allowed_hosts"), "{msg}");
+    }
+    for host in [
+        format!("localhost:{p}"),
+        format!("127.0.0.1:{p}"),
+        format!("fresa.shop.lan:{p}"),
+    ] {
+        s.send(s.req(Method::GET, "/api/v1/machines").header("host", &host))
+            .expect(200);
+    }
+    // CORS: deny by default, the listed origin gets its headers (and a preflight answer).
+    let pre = |origin: &str| {
+        s.req(Method::OPTIONS, "/api/v1/machines")
+            .header("origin", origin)
+            .header("access-control-request-method", "POST")
+            .send()
+            .unwrap()
+    };
+    let allowed = pre("http://tablet.lan:8080");
+    assert_eq!(
+        allowed
+            .headers()
+            .get("access-control-allow-origin")
+            .and_then(|v| v.to_str().ok()),
+        Some("http://tablet.lan:8080")
+    );
+    let denied = pre("http://evil.example");
+    assert!(denied
+        .headers()
+        .get("access-control-allow-origin")
+        .is_none());
+    // The listed origin may also change things.
+    s.send(
+        s.req(Method::POST, "/api/v1/machines")
+            .header("origin", "http://tablet.lan:8080")
+            .json(&json!({"name": "t", "backend": "sim-machine"})),
+    )
+    .expect(201);
+}
+
+#[test]
+fn tokens_in_urls_are_refused_outside_the_event_stream_and_never_logged() {
+    let mut s = Server::unstarted(Opts {
+        log: Some("debug".into()),
+        ..Opts::default()
+    });
+    let secret = s.create_token("admin", "alice");
+    s.spawn().unwrap();
+    let msg = s
+        .send(
+            s.req(
+                Method::POST,
+                &format!("/api/v1/machines?access_token={secret}"),
+            )
+            .json(&json!({"name": "m", "backend": "sim-machine"})),
+        )
+        .expect_error(400, "token_in_query");
+    assert!(msg.contains("/api/v1/events"), "{msg}");
+    s.send(s.req(
+        Method::GET,
+        &format!("/api/v1/machines?access_token={secret}"),
+    ))
+    .expect_error(400, "token_in_query");
+    // The event stream (EventSource cannot send headers) takes it.
+    let events = s.events(&format!("access_token={secret}"), Some(0));
+    drop(events);
+    // A header token too, to see it is not logged either.
+    s.send(s.req(Method::GET, "/api/v1/plugins").bearer_auth(&secret))
+        .expect(200);
+    s.wait_log(std::time::Duration::from_secs(10), "access_token=REDACTED");
+    let log = s.log();
+    assert!(
+        !log.contains(&secret),
+        "the secret appears in the debug log:\n{log}"
+    );
+}
+
+#[test]
+fn loose_inputs_are_refused_naming_what_is_wrong() {
+    let s = Server::start();
+    let m = s.sim("m", 0.0).id;
+    // Names: bounded, no control characters.
+    let long = "x".repeat(101);
+    let msg = s
+        .post(
+            "/api/v1/machines",
+            &json!({"name": long, "backend": "sim-machine"}),
+        )
+        .expect_error(422, "invalid_field");
+    assert!(msg.contains("at most 100"), "{msg}");
+    let msg = s
+        .post(
+            "/api/v1/machines",
+            &json!({"name": "a\u{0}b", "backend": "sim-machine"}),
+        )
+        .expect_error(422, "invalid_field");
+    assert!(msg.contains("U+0000"), "{msg}");
+    let msg = s
+        .post_bytes(&format!("/api/v1/jobs?machine={m}&name=a%0Ab"), PROGRAM)
+        .expect_error(422, "invalid_field");
+    assert!(msg.contains("control"), "{msg}");
+    s.assert_no_jobs();
+    let metrics = s.get("/metrics").text;
+    assert!(!metrics.contains('\0'));
+
+    // Pendant addresses are parsed.
+    for bad in ["::::", "a b:8001", "-x.local"] {
+        let msg = s
+            .post("/api/v1/pendants", &json!({"name": "p", "address": bad}))
+            .expect_error(422, "invalid_field");
+        assert!(msg.contains("address"), "{bad}: {msg}");
+    }
+
+    // A command with a field it does not have is refused, like every other body.
+    let msg = s
+        .post(
+            &format!("/api/v1/machines/{m}/commands"),
+            &json!({"command": "zero", "axsi": "X"}),
+        )
+        .expect_error(422, "invalid_command");
+    assert!(msg.contains("axsi"), "{msg}");
+    s.post(
+        &format!("/api/v1/machines/{m}/commands"),
+        &json!({"command": "zero", "axis": "X"}),
+    )
+    .expect(200);
+
+    // Two programs in one form are not stored joined.
+    let form = reqwest::blocking::multipart::Form::new()
+        .text("machine", m.to_string())
+        .part(
+            "file",
+            reqwest::blocking::multipart::Part::text(PROGRAM).file_name("a.nc"),
+        )
+        .part(
+            "file",
+            reqwest::blocking::multipart::Part::text(PROGRAM).file_name("b.nc"),
+        );
+    let msg = s
+        .send(s.req(Method::POST, "/api/v1/jobs").multipart(form))
+        .expect_error(400, "invalid_multipart");
+    assert!(msg.contains("more than one"), "{msg}");
+    s.assert_no_jobs();
+    assert!(s.upload_temp_files().is_empty());
+
+    // Wrong method: a JSON error, not an empty body.
+    let r = s.send(s.req(Method::DELETE, "/api/v1/machines"));
+    assert_eq!(r.status, 405, "{}", r.text);
+    assert_eq!(r.body["code"], "method_not_allowed", "{}", r.text);
+
+    // Backend files stay in the data directory.
+    for bad in ["/etc/fresa-test-owned.log", "../escape.log"] {
+        let msg = s
+            .post(
+                "/api/v1/machines",
+                &json!({"name": "evil", "backend": "sim-machine",
+                        "config": {"execution_log": bad}}),
+            )
+            .expect_error(422, "invalid_field");
+        assert!(msg.contains("config.execution_log"), "{msg}");
+    }
+    assert!(!std::path::Path::new("/etc/fresa-test-owned.log").exists());
+    let id = s.create_machine(&json!({"name": "ok", "backend": "sim-machine",
+                                      "config": {"execution_log": "ok.log"}}));
+    let machine: Value = s.get(&format!("/api/v1/machines/{id}")).expect(200);
+    let path = machine["config"]["execution_log"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    assert!(
+        std::path::Path::new(&path).starts_with(s.data_dir()),
+        "{path}"
+    );
+}
