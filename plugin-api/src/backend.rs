@@ -223,9 +223,10 @@ impl<B: MachineBackend> Plugin for Exported<B> {
 
 /// Exports the `fresa_plugin_v1` descriptor of a machine backend (kind `machine_backend`).
 ///
-/// ```ignore
+/// ```text
 /// fresa_plugin_api::export_machine_backend!(MyMachine, name = "my-machine");
 /// ```
+/// (Not a doctest: the export needs a `cdylib` crate; `plugins/sim-machine` is a full example.)
 #[macro_export]
 macro_rules! export_machine_backend {
     ($ty:ty, name = $name:literal) => {

@@ -190,10 +190,11 @@ pub unsafe extern "C" fn free(buf: FrBuf) {
 
 /// Exports the `fresa_plugin_v1` descriptor for a [`Plugin`] type.
 ///
-/// ```ignore
+/// ```text
 /// fresa_plugin_api::export_plugin!(MyMachine, name = "my-machine",
 ///     kinds = fresa_plugin_api::abi::KIND_MACHINE_BACKEND);
 /// ```
+/// (Not a doctest: the export needs a `cdylib` crate; `plugins/mpg-pendant` is a full example.)
 /// The version is the plugin crate's `CARGO_PKG_VERSION`.
 #[macro_export]
 macro_rules! export_plugin {

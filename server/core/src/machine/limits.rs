@@ -50,7 +50,7 @@ pub fn confine_backend_files(config: &mut serde_json::Value, data_dir: &Path) ->
             Error::invalid(
                 "invalid_field",
                 format!(
-                    "field `config.{key}`: {given:?} is outside the data directory {}; backend files live there (give a file name, e.g. \"{key}-mill.log\")",
+                    "field `config.{key}`: {given:?} is outside the data directory {}; backend files live there (give a file name, e.g. \"mill.log\")",
                     data_dir.display()
                 ),
             )
