@@ -228,6 +228,28 @@ fn loose_inputs_are_refused_naming_what_is_wrong() {
     assert_eq!(r.status, 405, "{}", r.text);
     assert_eq!(r.body["code"], "method_not_allowed", "{}", r.text);
 
+    // Too long a URL, too large a JSON body: JSON errors too.
+    let r = s.get(&format!("/api/v1/machines?x={}", "a".repeat(9000)));
+    assert_eq!(
+        (r.status, r.body["code"].as_str()),
+        (414, Some("uri_too_long")),
+        "{}",
+        r.text
+    );
+    // One byte over axum's default 2 MiB JSON limit: the whole body is sent (so the answer is
+    // not lost to a connection closed under a client still writing).
+    let r = s.send(
+        s.req(Method::POST, "/api/v1/machines")
+            .header("content-type", "application/json")
+            .body(vec![b' '; (2 << 20) + 1]),
+    );
+    assert_eq!(
+        (r.status, r.body["code"].as_str()),
+        (413, Some("too_large")),
+        "{}",
+        r.text
+    );
+
     // Backend files stay in the data directory.
     for bad in ["/etc/fresa-test-owned.log", "../escape.log"] {
         let msg = s

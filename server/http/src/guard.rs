@@ -29,6 +29,22 @@ pub async fn middleware(
     Ok(next.run(req).await)
 }
 
+/// Longest request target (path and query) answered; longer ones get a JSON 414 here (beyond
+/// hyper's own buffer limit hyper answers itself, without a body).
+pub const MAX_URI_BYTES: usize = 8192;
+
+pub async fn uri_length(req: Request, next: Next) -> Result<Response, ApiError> {
+    let len = req.uri().path_and_query().map_or(0, |p| p.as_str().len());
+    if len > MAX_URI_BYTES {
+        return Err(ApiError::new(
+            StatusCode::URI_TOO_LONG,
+            "uri_too_long",
+            format!("the request target is {len} bytes; at most {MAX_URI_BYTES} are accepted"),
+        ));
+    }
+    Ok(next.run(req).await)
+}
+
 fn check(settings: &Settings, method: &Method, headers: &HeaderMap) -> Result<(), ApiError> {
     let host = headers.get(header::HOST).and_then(|h| h.to_str().ok());
     if let Some(host) = host {

@@ -103,6 +103,7 @@ pub fn router(app: SharedApp) -> Router {
             app.clone(),
             guard::middleware,
         ))
+        .layer(axum::middleware::from_fn(guard::uri_length))
         .layer(cors(&app.settings.cors_origins))
         .layer(
             tower_http::trace::TraceLayer::new_for_http().make_span_with(
