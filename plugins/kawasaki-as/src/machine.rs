@@ -41,6 +41,9 @@ pub struct KawasakiMachine {
     worker: Mutex<Option<JoinHandle<()>>>,
 }
 
+/// How long a cancel or stop waits for the robot to finish the moves already sent.
+const END_WAIT: Duration = Duration::from_secs(5);
+
 struct Core {
     cfg: Config,
     convert: Convert,
@@ -84,6 +87,9 @@ struct Shared {
     socket: Option<std::net::TcpStream>,
     /// When the last `status` event left during a run.
     last_status: Option<Instant>,
+    /// Runs ended so far, counted after their `run_ended` event left: a cancel or stop waits
+    /// for this to move so it answers only once the run is over.
+    runs_ended: u64,
 }
 
 impl Shared {
@@ -221,15 +227,17 @@ impl KawasakiMachine {
     }
 
     /// Stop and reset are the same here: cancel the run, clear the alarm.
-    fn stop_and_clear(&self) {
-        self.cancel();
+    fn stop_and_clear(&self) -> Result<(), PluginError> {
+        let ended = self.cancel_and_wait();
         self.core.with(|sh, ev| {
             sh.alarm = None;
             if sh.state == MachineState::Alarm {
                 sh.set_state(MachineState::Idle, ev);
             }
         });
+        ended
     }
+
     fn artifact(&self, name: &str) -> Result<Artifact, PluginError> {
         match name {
             "as-program" => match self.core.cfg.protocol {
@@ -476,6 +484,37 @@ impl KawasakiMachine {
         r
     }
 
+    /// Cancels and waits until the run has ended: no further command is sent, the robot has
+    /// finished the ones it already had (a window of at most `window` short moves), and
+    /// `run_ended` has been emitted. A robot still moving after [`END_WAIT`] gets
+    /// `stop_unconfirmed`: the run then ends, cancelled, when those moves are done.
+    fn cancel_and_wait(&self) -> Result<(), PluginError> {
+        let before = {
+            let sh = self.core.lock();
+            sh.busy.then_some(sh.runs_ended)
+        };
+        self.cancel();
+        let Some(before) = before else { return Ok(()) };
+        let deadline = Instant::now() + END_WAIT;
+        let mut sh = self.core.lock();
+        while sh.runs_ended == before {
+            let now = Instant::now();
+            if now >= deadline {
+                return Err(PluginError::new(
+                    "stop_unconfirmed",
+                    format!(
+                        "the robot is still finishing the moves already sent after {END_WAIT:?}; the run ends, cancelled, when they are done"
+                    ),
+                ));
+            }
+            sh = match self.core.cv.wait_timeout(sh, deadline - now) {
+                Ok((g, _)) => g,
+                Err(e) => e.into_inner().0,
+            };
+        }
+        Ok(())
+    }
+
     /// Stops sending; the run thread sends EXIT once the robot waits for a command.
     fn cancel(&self) {
         self.core.with(|sh, _| {
@@ -686,6 +725,9 @@ impl Core {
                 message,
             });
         });
+        // After `with` has emitted the events: whoever waits for the end sees them sent.
+        self.lock().runs_ended += 1;
+        self.cv.notify_all();
     }
 
     fn stream_legacy(
@@ -925,7 +967,7 @@ impl MachineBackend for KawasakiMachine {
             RunAction::Start => return self.start(),
             RunAction::Pause => self.pause(true)?,
             RunAction::Resume => self.resume(true)?,
-            RunAction::Cancel => self.cancel(),
+            RunAction::Cancel => self.cancel_and_wait()?,
         }
         Ok(RunAnswer::default())
     }
@@ -947,13 +989,11 @@ impl MachineBackend for KawasakiMachine {
     }
 
     fn stop(&self) -> Result<(), PluginError> {
-        self.stop_and_clear();
-        Ok(())
+        self.stop_and_clear()
     }
 
     fn reset(&self) -> Result<(), PluginError> {
-        self.stop_and_clear();
-        Ok(())
+        self.stop_and_clear()
     }
 
     fn shutdown(&self) -> Result<(), PluginError> {

@@ -211,3 +211,61 @@ fn an_unreachable_robot_is_named() {
     assert_eq!(e.code, "robot_unreachable");
     assert!(e.message.contains(&addr.to_string()), "{}", e.message);
 }
+
+/// A cancel answers only once the run is over: nothing more is sent, the robot has finished the
+/// moves it had, and `run_ended` (cancelled) has already been emitted. So the robot's motion
+/// count is final at the answer.
+fn cancel_is_final_when_answered(protocol: Protocol) {
+    // 1 mm moves at 10 mm/s: 0.1 s each, in real time.
+    let r = rig(
+        protocol,
+        SimConfig {
+            time_scale: 1.0,
+            ..SimConfig::default()
+        },
+    );
+    let program: String = (0..200)
+        .map(|i| format!("G1 X{} F600\n", (i % 2) + 1))
+        .collect();
+    r.load(1, &format!("G21 G90\n{program}"));
+    r.call(json!({"op": "run", "action": "start"}));
+    r.until(|e| matches!(e, Event::LineAcknowledged { line, .. } if *line >= 4));
+    r.call(json!({"op": "run", "action": "cancel"}));
+    let at_answer = r.sim.motions();
+    let seen: Vec<Event> = r.rx.try_iter().collect();
+    assert!(
+        seen.iter().any(|e| matches!(
+            e,
+            Event::RunEnded {
+                run: 1,
+                outcome: RunOutcome::Cancelled,
+                ..
+            }
+        )),
+        "run_ended is emitted before the cancel answers: {seen:?}"
+    );
+    assert_eq!(r.m.status().unwrap().state, MachineState::Idle);
+    // A fresh run on the same link proves the robot took nothing more of the old one.
+    r.load(2, "G21 G90\nG0 X0\n");
+    r.call(json!({"op": "run", "action": "start"}));
+    r.until(|e| matches!(e, Event::RunEnded { run: 2, .. }));
+    assert_eq!(
+        r.sim.motions(),
+        at_answer + 1,
+        "only run 2's one move came after the answer"
+    );
+    assert!(
+        at_answer < 200,
+        "the cancel stopped the run early ({at_answer} moves)"
+    );
+}
+
+#[test]
+fn legacy_cancel_is_final_when_answered() {
+    cancel_is_final_when_answered(Protocol::Legacy);
+}
+
+#[test]
+fn fresa_v1_cancel_is_final_when_answered() {
+    cancel_is_final_when_answered(Protocol::FresaV1);
+}
