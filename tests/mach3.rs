@@ -298,10 +298,21 @@ fn a_program_runs_to_completion_with_progress_feed_hold_and_reset_toggles_right(
     s.wait_job(job, T, "progress of the second run", |j| {
         j["state"] == "running" && j["line"].as_i64().unwrap() > 5
     });
-    s.job_action(job, "cancel").expect(200);
-    s.wait_job_state(job, "cancelled", T);
+    // The answer comes once it is true: Mach3 no longer runs the program, and no line
+    // starts after it.
+    let answer = s.job_action(job, "cancel").expect(200);
+    assert_eq!(answer["state"], "cancelled", "{answer}");
+    assert!(
+        !led(&mut mach, 804),
+        "Mach3 stopped before the cancel answered"
+    );
+    let line_at_answer = dro(&mut mach, 816);
     s.wait_machine_state(m, "idle", T);
-    assert!(!led(&mut mach, 804), "Mach3 stopped");
+    assert_eq!(
+        dro(&mut mach, 816),
+        line_at_answer,
+        "no line after the answer"
+    );
 
     // Reset when not in reset must not press Mach3's Reset toggle (that would latch it).
     for _ in 0..2 {

@@ -24,6 +24,8 @@ pub type EventSink = Arc<dyn Fn(&Event) + Send + Sync>;
 /// How long a started run may show no "running" LED before it counts as ended (Mach3 lights it
 /// a moment after cycle start; a very short program may also finish between two polls).
 const START_GRACE: Duration = Duration::from_secs(2);
+/// How long a stop or cancel waits for Mach3 to stop running the program.
+const STOP_WAIT: Duration = Duration::from_secs(5);
 const BACKOFF_MIN: Duration = Duration::from_millis(200);
 const BACKOFF_MAX: Duration = Duration::from_secs(5);
 /// How long reset waits for LED 800 to go out.
@@ -786,9 +788,30 @@ impl Inner {
         }
         if self.lock().run.is_some() {
             self.stop()?;
-            self.poll();
+            self.wait_run_over()?;
         }
         Ok(())
+    }
+
+    /// After a stop: polls Mach3 until it no longer runs the program and the run's `run_ended`
+    /// has been emitted, so a cancel or stop is never answered while Mach3 still cuts. Mach3
+    /// still moving after [`STOP_WAIT`] answers `stop_unconfirmed`.
+    fn wait_run_over(&self) -> Result<(), PluginError> {
+        let deadline = Instant::now() + STOP_WAIT;
+        loop {
+            self.poll();
+            if self.lock().run.is_none() {
+                return Ok(());
+            }
+            if Instant::now() >= deadline {
+                return Err(PluginError::new(
+                    "stop_unconfirmed",
+                    format!("Mach3 still reports the program running {STOP_WAIT:?} after Stop"),
+                ));
+            }
+            // Polling the controller, at about the status rate.
+            std::thread::sleep(Duration::from_millis(20));
+        }
     }
 
     fn feed_hold(&self) -> Result<(), PluginError> {
@@ -913,8 +936,7 @@ impl MachineBackend for Mach3Backend {
 
     fn stop(&self) -> Result<(), PluginError> {
         self.inner.stop()?;
-        self.inner.poll();
-        Ok(())
+        self.inner.wait_run_over()
     }
 
     fn reset(&self) -> Result<(), PluginError> {
