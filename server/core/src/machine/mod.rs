@@ -416,7 +416,8 @@ impl Machine {
         // in a hung call must not hold up the answer to a stop that already happened.
         let (reply, done) = oneshot::channel();
         if self.tx.send(Msg::RefreshStatus { reply }).is_ok() {
-            let _ = tokio::time::timeout(self.timeout, done).await;
+            let bound = self.timeout.min(Duration::from_secs(2));
+            let _ = tokio::time::timeout(bound, done).await;
         }
         Ok(answer)
     }
