@@ -62,6 +62,9 @@ impl App {
             source,
         })?;
         tracing::info!(database = %db.display(), "store ready");
+        // Once before serving, so a log that grew while the retention was looser (or during a
+        // long downtime) is cut back before anyone replays it.
+        crate::events::prune_and_log(&store, &settings.event_retention).await;
         let auth_required = !settings.loopback_only();
         if auth_required {
             let n = store
@@ -85,6 +88,12 @@ impl App {
             tracing::info!(plugins = ?plugins.names(), "plugins loaded");
         }
         let bus = EventBus::new(store.clone(), 4096);
+        let shutdown = CancellationToken::new();
+        crate::events::spawn_pruner(
+            store.clone(),
+            settings.event_retention.clone(),
+            shutdown.clone(),
+        );
         let app = Arc::new(App {
             settings,
             store: store.clone(),
@@ -92,7 +101,7 @@ impl App {
             plugins,
             machines: Machines::default(),
             pendants: Default::default(),
-            shutdown: CancellationToken::new(),
+            shutdown,
             auth_required,
             _lock: lock,
         });

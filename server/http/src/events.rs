@@ -1,6 +1,7 @@
 //! `GET /api/v1/events`: Server-Sent Events. Persisted events carry their id and are replayed
 //! after `Last-Event-ID`; transient ones (status, progress) are live only. A client that falls
-//! behind gets an explicit `resync` event, then the persisted events it missed.
+//! behind gets an explicit `resync` event, then the persisted events it missed; so does one
+//! whose `Last-Event-ID` is older than what retention has deleted, then what remains.
 
 use super::error::{ApiError, Query};
 use axum::extract::State;
@@ -92,8 +93,12 @@ pub async fn stream(
     let keepalive = app.settings.sse_keepalive;
     let s = async_stream(move |tx| async move {
         let mut sent_up_to = last_id.unwrap_or(0);
-        if last_id.is_some() && !replay(&store, &matcher, &mut sent_up_to, &tx).await {
-            return;
+        if let Some(after) = last_id {
+            if !resync_if_pruned(&store, after, &tx).await
+                || !replay(&store, &matcher, &mut sent_up_to, &tx).await
+            {
+                return;
+            }
         }
         loop {
             tokio::select! {
@@ -121,6 +126,35 @@ pub async fn stream(
         }
     });
     Ok(Sse::new(s).keep_alive(KeepAlive::new().interval(keepalive)))
+}
+
+/// Retention deleted events after `after`: the replay has a gap, so the client is told to
+/// resync (reload its state) before it gets what remains. Returns false if the client went
+/// away.
+async fn resync_if_pruned(
+    store: &fresa_core::store::Store,
+    after: i64,
+    tx: &tokio::sync::mpsc::Sender<Event>,
+) -> bool {
+    let pruned = match store.events_pruned_through().await {
+        Ok(p) => p,
+        Err(e) => {
+            tracing::error!(error = %e, "cannot read the event retention mark");
+            return true;
+        }
+    };
+    if after >= pruned {
+        return true;
+    }
+    let ev = Event::default().event("resync").data(
+        serde_json::json!({
+            "reason": "events after this id were deleted by retention",
+            "after": after,
+            "pruned_through": pruned,
+        })
+        .to_string(),
+    );
+    tx.send(ev).await.is_ok()
 }
 
 /// Sends persisted events after `*after`, page by page. Returns false if the client went away.

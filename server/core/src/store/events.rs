@@ -1,4 +1,4 @@
-//! The append-only event (audit) log.
+//! The event (audit) log: appended by the bus, pruned by retention in bounded batches.
 
 use super::{now_ms, Result, Store};
 use sqlx::FromRow;
@@ -46,4 +46,91 @@ impl Store {
             .fetch_all(&self.pool)
             .await
     }
+
+    /// The highest event id retention has deleted (0: none). A replay from an earlier id has
+    /// a gap.
+    pub async fn events_pruned_through(&self) -> Result<i64> {
+        sqlx::query_scalar("SELECT pruned_through FROM event_retention WHERE id = 1")
+            .fetch_optional(&self.pool)
+            .await
+            .map(Option::unwrap_or_default)
+    }
+
+    /// The id of the newest routine event (type not in `audit_types`) that is beyond the
+    /// newest `keep` of them: routine events up to it are past the count limit.
+    pub async fn routine_event_count_cut(
+        &self,
+        audit_types: &[&str],
+        keep: u64,
+    ) -> Result<Option<i64>> {
+        let sql = format!(
+            "SELECT id FROM events WHERE type NOT IN ({}) ORDER BY id DESC LIMIT 1 OFFSET ?",
+            placeholders(audit_types.len())
+        );
+        let mut q = sqlx::query_scalar(&sql);
+        for t in audit_types {
+            q = q.bind(*t);
+        }
+        q.bind(i64::try_from(keep).unwrap_or(i64::MAX))
+            .fetch_optional(&self.pool)
+            .await
+    }
+
+    /// Deletes at most `batch` of the oldest events that retention allows to go: routine
+    /// events created before `routine_before` (ms) or with id <= `routine_cut`, audit events
+    /// created before `audit_before`. One short write transaction; returns how many went.
+    pub async fn prune_events_batch(
+        &self,
+        audit_types: &[&str],
+        routine_before: i64,
+        routine_cut: Option<i64>,
+        audit_before: i64,
+        batch: u32,
+    ) -> Result<u64> {
+        let list = placeholders(audit_types.len());
+        let sql = format!(
+            "DELETE FROM events WHERE id IN (
+                SELECT id FROM events
+                 WHERE (type NOT IN ({list}) AND (created_at < ? OR id <= ?))
+                    OR (type IN ({list}) AND created_at < ?)
+                 ORDER BY id LIMIT ?)
+             RETURNING id"
+        );
+        let mut q = sqlx::query_scalar::<_, i64>(&sql);
+        for t in audit_types {
+            q = q.bind(*t);
+        }
+        q = q.bind(routine_before).bind(routine_cut.unwrap_or(0));
+        for t in audit_types {
+            q = q.bind(*t);
+        }
+        q = q.bind(audit_before).bind(batch);
+        let mut tx = self.begin().await?;
+        let ids = q.fetch_all(&mut *tx).await?;
+        if let Some(max) = ids.iter().max() {
+            sqlx::query(
+                "UPDATE event_retention SET pruned_through = MAX(pruned_through, ?) WHERE id = 1",
+            )
+            .bind(max)
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
+        Ok(ids.len() as u64)
+    }
+
+    /// How many events the log holds (for the log line after a prune).
+    pub async fn event_count(&self) -> Result<i64> {
+        sqlx::query_scalar("SELECT COUNT(*) FROM events")
+            .fetch_one(&self.pool)
+            .await
+    }
+}
+
+/// `?,?,?` for an `IN (...)` list; an empty list matches no type.
+fn placeholders(n: usize) -> String {
+    if n == 0 {
+        return "''".into();
+    }
+    vec!["?"; n].join(",")
 }
