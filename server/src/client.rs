@@ -74,9 +74,10 @@ pub enum TokenCmd {
         role: String,
         #[arg(long, default_value = "cli")]
         name: String,
-        /// The token stops working this many days from now (default: never).
-        #[arg(long, value_parser = clap::value_parser!(u32).range(1..=36500))]
-        expires_in_days: Option<u32>,
+        /// The token stops working this many days from now (default: never); fractions are
+        /// allowed (0.5 = 12 hours).
+        #[arg(long, value_parser = parse_days)]
+        expires_in_days: Option<f64>,
         #[command(flatten)]
         data: DataArgs,
     },
@@ -285,6 +286,15 @@ pub async fn job(server: ServerArgs, cmd: JobCmd) -> Res {
     Ok(())
 }
 
+fn parse_days(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(d) if d.is_finite() && d > 0.0 && d <= 36_500.0 => Ok(d),
+        _ => Err(format!(
+            "expected a number of days above 0 and at most 36500, got {s:?}"
+        )),
+    }
+}
+
 async fn open_store(
     settings: &fresa_core::config::Settings,
 ) -> Result<fresa_core::store::Store, Box<dyn std::error::Error>> {
@@ -307,8 +317,8 @@ pub async fn token(cmd: TokenCmd) -> Res {
             let settings = data.settings()?;
             let store = open_store(&settings).await?;
             let secret = fresa_http::auth::new_secret();
-            let expires_at =
-                expires_in_days.map(|d| fresa_core::store::now_ms() + i64::from(d) * 86_400_000);
+            let expires_at = expires_in_days
+                .map(|d| fresa_core::store::now_ms() + (d * 86_400_000.0).round() as i64);
             store
                 .insert_token(
                     &name,
