@@ -101,6 +101,13 @@ fn a_backup_taken_while_running_restores_the_jobs() {
         output_text(&again)
     );
 
+    // The old server goes on after the backup; a client has seen its newest event.
+    s.jog(m.id, "X", 1.0).expect(200);
+    let seen = s
+        .events("", Some(0))
+        .until(T, "machine.jog", |e| e.event == "machine.jog");
+    let client_last = seen.last().and_then(|e| e.id).unwrap();
+
     // Restore on another data dir: the backup as fresa.db, the programs copied.
     let mut r = Server::unstarted(Opts::default());
     std::fs::create_dir_all(r.programs_dir()).unwrap();
@@ -119,6 +126,18 @@ fn a_backup_taken_while_running_restores_the_jobs() {
     };
     assert_eq!(key(&restored), key(&jobs), "{restored}");
     assert_eq!(r.job(done)["state"], "completed");
+    // That client's id is beyond the restored log: it is told to resync and then gets the
+    // new events, although they reuse ids it has seen.
+    let stream = r.events("", Some(client_last));
+    let first = stream.next(T).expect("resync");
+    assert_eq!(first.event, "resync", "{first:?}");
+    let restored_last = first.data["last_event_id"].as_i64().unwrap();
+    assert!(restored_last < client_last, "{first:?}");
+    r.post_empty(&format!("/api/v1/machines/{}/part-zero", m.id))
+        .expect(201);
+    let got = stream.until(T, "machine.part_zero", |e| e.event == "machine.part_zero");
+    assert_eq!(got.last().unwrap().id, Some(restored_last + 1), "{got:?}");
+
     // The restored job can still run: its program is there.
     r.job_action(waiting, "start").expect(200);
     r.wait_job_state(waiting, "completed", T);

@@ -94,9 +94,11 @@ pub async fn stream(
     let s = async_stream(move |tx| async move {
         let mut sent_up_to = last_id.unwrap_or(0);
         if let Some(after) = last_id {
-            if !resync_if_pruned(&store, after, &tx).await
-                || !replay(&store, &matcher, &mut sent_up_to, &tx).await
-            {
+            match resync_if_gap(&store, after, &tx).await {
+                Some(start) => sent_up_to = start,
+                None => return,
+            }
+            if !replay(&store, &matcher, &mut sent_up_to, &tx).await {
                 return;
             }
         }
@@ -128,33 +130,52 @@ pub async fn stream(
     Ok(Sse::new(s).keep_alive(KeepAlive::new().interval(keepalive)))
 }
 
-/// Retention deleted events after `after`: the replay has a gap, so the client is told to
-/// resync (reload its state) before it gets what remains. Returns false if the client went
-/// away.
-async fn resync_if_pruned(
+/// Sends `resync` when a replay after `after` cannot be complete, and returns where the replay
+/// starts (None: the client went away). Two gaps: retention deleted events after `after` (the
+/// client gets what remains after it), or `after` is beyond every id this log has given (the
+/// store was restored from a backup: new events reuse those ids, so the client starts from the
+/// log's end instead of skipping them).
+async fn resync_if_gap(
     store: &fresa_core::store::Store,
     after: i64,
     tx: &tokio::sync::mpsc::Sender<Event>,
-) -> bool {
-    let pruned = match store.events_pruned_through().await {
-        Ok(p) => p,
+) -> Option<i64> {
+    let marks = async {
+        Ok::<_, sqlx::Error>((
+            store.events_pruned_through().await?,
+            store.last_event_id().await?,
+        ))
+    };
+    let (pruned, last) = match marks.await {
+        Ok(m) => m,
         Err(e) => {
-            tracing::error!(error = %e, "cannot read the event retention mark");
-            return true;
+            tracing::error!(error = %e, "cannot read the event log's bounds for a replay");
+            return Some(after);
         }
     };
-    if after >= pruned {
-        return true;
-    }
-    let ev = Event::default().event("resync").data(
-        serde_json::json!({
-            "reason": "events after this id were deleted by retention",
-            "after": after,
-            "pruned_through": pruned,
-        })
-        .to_string(),
-    );
-    tx.send(ev).await.is_ok()
+    let (data, start) = if after > last {
+        (
+            serde_json::json!({
+                "reason": "this id is newer than the event log (restored from a backup?)",
+                "after": after,
+                "last_event_id": last,
+            }),
+            last,
+        )
+    } else if after < pruned {
+        (
+            serde_json::json!({
+                "reason": "events after this id were deleted by retention",
+                "after": after,
+                "pruned_through": pruned,
+            }),
+            after,
+        )
+    } else {
+        return Some(after);
+    };
+    let ev = Event::default().event("resync").data(data.to_string());
+    tx.send(ev).await.ok().map(|()| start)
 }
 
 /// Sends persisted events after `*after`, page by page. Returns false if the client went away.

@@ -119,6 +119,16 @@ impl Store {
         Ok(ids.len() as u64)
     }
 
+    /// The highest id ever given to an event (deleted or not): AUTOINCREMENT never reuses one,
+    /// so a client holding a higher id saw another log (the store was restored from a backup).
+    pub async fn last_event_id(&self) -> Result<i64> {
+        sqlx::query_scalar(
+            "SELECT COALESCE((SELECT seq FROM sqlite_sequence WHERE name = 'events'), 0)",
+        )
+        .fetch_one(&self.pool)
+        .await
+    }
+
     /// How many events the log holds (for the log line after a prune).
     pub async fn event_count(&self) -> Result<i64> {
         sqlx::query_scalar("SELECT COUNT(*) FROM events")
