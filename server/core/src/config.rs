@@ -75,7 +75,7 @@ impl Default for EventRetention {
             routine_days: 30,
             routine_count: 100_000,
             audit_days: 730,
-            prune_interval: Duration::from_secs(300),
+            prune_interval: Duration::from_secs(60),
         }
     }
 }

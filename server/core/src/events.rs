@@ -136,7 +136,7 @@ pub const AUDIT_EVENT_TYPES: &[&str] = &[
 
 /// Rows per delete: one short write transaction each, so machine tasks and uploads waiting
 /// for the write lock get it between batches.
-const PRUNE_BATCH: u32 = 2000;
+const PRUNE_BATCH: u32 = 1000;
 const DAY_MS: i64 = 86_400_000;
 
 /// Deletes what `policy` no longer keeps. Returns how many events went.

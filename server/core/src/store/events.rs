@@ -78,7 +78,7 @@ impl Store {
 
     /// Deletes at most `batch` of the oldest events that retention allows to go: routine
     /// events created before `routine_before` (ms) or with id <= `routine_cut`, audit events
-    /// created before `audit_before`. One short write transaction; returns how many went.
+    /// created before `audit_before`. Returns how many went.
     pub async fn prune_events_batch(
         &self,
         audit_types: &[&str],
@@ -88,35 +88,53 @@ impl Store {
         batch: u32,
     ) -> Result<u64> {
         let list = placeholders(audit_types.len());
-        let sql = format!(
-            "DELETE FROM events WHERE id IN (
-                SELECT id FROM events
-                 WHERE (type NOT IN ({list}) AND (created_at < ? OR id <= ?))
-                    OR (type IN ({list}) AND created_at < ?)
-                 ORDER BY id LIMIT ?)
-             RETURNING id"
+        let cond = format!(
+            "((type NOT IN ({list}) AND (created_at < ? OR id <= ?))
+               OR (type IN ({list}) AND created_at < ?))"
         );
-        let mut q = sqlx::query_scalar::<_, i64>(&sql);
-        for t in audit_types {
-            q = q.bind(*t);
+        macro_rules! bind_cond {
+            ($q:expr) => {{
+                let mut q = $q;
+                for t in audit_types {
+                    q = q.bind(*t);
+                }
+                q = q.bind(routine_before).bind(routine_cut.unwrap_or(0));
+                for t in audit_types {
+                    q = q.bind(*t);
+                }
+                q.bind(audit_before)
+            }};
         }
-        q = q.bind(routine_before).bind(routine_cut.unwrap_or(0));
-        for t in audit_types {
-            q = q.bind(*t);
-        }
-        q = q.bind(audit_before).bind(batch);
-        let mut tx = self.begin().await?;
-        let ids = q.fetch_all(&mut *tx).await?;
-        if let Some(max) = ids.iter().max() {
-            sqlx::query(
-                "UPDATE event_retention SET pruned_through = MAX(pruned_through, ?) WHERE id = 1",
-            )
-            .bind(max)
-            .execute(&mut *tx)
+        // Find the batch with a plain read (WAL readers take no lock), so the write below
+        // only scans up to its last id, however much of the log is kept. NOT INDEXED: walk in
+        // id order and stop at `batch` matches; the planner would otherwise collect every
+        // match of the OR through the created_at index and sort them, each batch.
+        let find = format!(
+            "SELECT MAX(id) FROM (SELECT id FROM events NOT INDEXED WHERE {cond} ORDER BY id LIMIT ?)"
+        );
+        let upto: Option<i64> = bind_cond!(sqlx::query_scalar(&find))
+            .bind(batch)
+            .fetch_one(&self.pool)
             .await?;
-        }
+        let Some(upto) = upto else {
+            return Ok(0);
+        };
+        // The condition is fixed for the pass and newer events have higher ids: this deletes
+        // exactly the batch found above.
+        let delete = format!("DELETE FROM events NOT INDEXED WHERE id <= ? AND {cond}");
+        let mut tx = self.begin().await?;
+        let n = bind_cond!(sqlx::query(&delete).bind(upto))
+            .execute(&mut *tx)
+            .await?
+            .rows_affected();
+        sqlx::query(
+            "UPDATE event_retention SET pruned_through = MAX(pruned_through, ?) WHERE id = 1",
+        )
+        .bind(upto)
+        .execute(&mut *tx)
+        .await?;
         tx.commit().await?;
-        Ok(ids.len() as u64)
+        Ok(n)
     }
 
     /// The highest id ever given to an event (deleted or not): AUTOINCREMENT never reuses one,
