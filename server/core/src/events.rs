@@ -139,8 +139,14 @@ pub const AUDIT_EVENT_TYPES: &[&str] = &[
 const PRUNE_BATCH: u32 = 1000;
 const DAY_MS: i64 = 86_400_000;
 
-/// Deletes what `policy` no longer keeps. Returns how many events went.
-pub async fn prune(store: &Store, policy: &EventRetention) -> Result<u64, sqlx::Error> {
+/// Deletes what `policy` no longer keeps. Returns how many events went. With a `budget`, stops
+/// after the batch that overruns it (the next pass goes on).
+pub async fn prune(
+    store: &Store,
+    policy: &EventRetention,
+    budget: Option<std::time::Duration>,
+) -> Result<u64, sqlx::Error> {
+    let started = std::time::Instant::now();
     let now = now_ms();
     let routine_before = now - i64::from(policy.routine_days) * DAY_MS;
     let audit_before = now - i64::from(policy.audit_days) * DAY_MS;
@@ -160,7 +166,7 @@ pub async fn prune(store: &Store, policy: &EventRetention) -> Result<u64, sqlx::
             )
             .await?;
         total += n;
-        if n < u64::from(PRUNE_BATCH) {
+        if n < u64::from(PRUNE_BATCH) || budget.is_some_and(|b| started.elapsed() >= b) {
             return Ok(total);
         }
         // Let queued writers take the lock before the next batch.
@@ -169,8 +175,12 @@ pub async fn prune(store: &Store, policy: &EventRetention) -> Result<u64, sqlx::
 }
 
 /// [`prune`], logging the result instead of returning it.
-pub async fn prune_and_log(store: &Store, policy: &EventRetention) {
-    match prune(store, policy).await {
+pub async fn prune_and_log(
+    store: &Store,
+    policy: &EventRetention,
+    budget: Option<std::time::Duration>,
+) {
+    match prune(store, policy, budget).await {
         Ok(0) => {}
         Ok(n) => {
             let left = store.event_count().await.unwrap_or(-1);
@@ -192,7 +202,7 @@ pub fn spawn_pruner(
                 _ = stop.cancelled() => return,
                 _ = tokio::time::sleep(policy.prune_interval) => {}
             }
-            prune_and_log(&store, &policy).await;
+            prune_and_log(&store, &policy, None).await;
         }
     })
 }
@@ -233,7 +243,7 @@ mod tests {
             ..EventRetention::default()
         };
         assert_eq!(store.events_pruned_through().await.unwrap(), 0);
-        assert_eq!(prune(&store, &policy).await.unwrap(), 7);
+        assert_eq!(prune(&store, &policy, None).await.unwrap(), 7);
         let left: Vec<i64> = store
             .events_after(0, 100)
             .await
@@ -247,7 +257,7 @@ mod tests {
         assert_eq!(left, want);
         assert_eq!(store.events_pruned_through().await.unwrap(), jogs[6]);
         // A second pass has nothing left to do and keeps the mark.
-        assert_eq!(prune(&store, &policy).await.unwrap(), 0);
+        assert_eq!(prune(&store, &policy, None).await.unwrap(), 0);
         assert_eq!(store.events_pruned_through().await.unwrap(), jogs[6]);
         std::fs::remove_dir_all(dir).ok();
     }

@@ -62,9 +62,15 @@ impl App {
             source,
         })?;
         tracing::info!(database = %db.display(), "store ready");
-        // Once before serving, so a log that grew while the retention was looser (or during a
-        // long downtime) is cut back before anyone replays it.
-        crate::events::prune_and_log(&store, &settings.event_retention).await;
+        // Once before serving, so a log that grew while the retention was looser is cut back
+        // before anyone replays it; bounded, so a huge backlog cannot hold up the start (the
+        // background passes finish it).
+        crate::events::prune_and_log(
+            &store,
+            &settings.event_retention,
+            Some(std::time::Duration::from_secs(10)),
+        )
+        .await;
         let auth_required = !settings.loopback_only();
         if auth_required {
             let n = store
