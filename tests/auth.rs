@@ -169,3 +169,150 @@ fn a_loopback_server_needs_no_token_but_checks_one_given() {
     s.token = None;
     s.sim("m", 0.0);
 }
+
+/// `fresa token ARGS... --data-dir --config` on this server's data directory.
+fn token_cli(s: &Server, args: &[&str]) -> std::process::Output {
+    fresa_tests::fresa_cmd()
+        .arg("token")
+        .args(args)
+        .arg("--data-dir")
+        .arg(s.data_dir())
+        .arg("--config")
+        .arg(s.config_file())
+        .output()
+        .expect("run fresa token")
+}
+
+#[test]
+fn tokens_are_listed_without_secrets_and_names_are_unique() {
+    let s = Server::unstarted(network_opts());
+    let admin = s.create_token("admin", "alice");
+    let out = token_cli(&s, &["create", "--role", "viewer", "--name", "alice"]);
+    assert!(!out.status.success(), "{}", output_text(&out));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("\"alice\" exists") && err.contains("token revoke"),
+        "{err}"
+    );
+    let out = token_cli(
+        &s,
+        &[
+            "create",
+            "--role",
+            "viewer",
+            "--name",
+            "kiosk",
+            "--expires-in-days",
+            "30",
+        ],
+    );
+    assert!(out.status.success(), "{}", output_text(&out));
+    let kiosk = String::from_utf8_lossy(&out.stdout).trim().to_string();
+
+    let out = token_cli(&s, &["list"]);
+    assert!(out.status.success(), "{}", output_text(&out));
+    let list = String::from_utf8_lossy(&out.stdout).to_string();
+    let row = |name: &str| {
+        list.lines()
+            .find(|l| l.starts_with(name))
+            .unwrap_or_else(|| panic!("no {name} in\n{list}"))
+            .to_string()
+    };
+    assert!(list.starts_with("NAME"), "{list}");
+    assert!(
+        row("alice").contains("admin") && row("alice").contains("never"),
+        "{list}"
+    );
+    // kiosk: viewer, an expiry date (not "never"), never used.
+    let k = row("kiosk");
+    assert!(k.contains("viewer"), "{list}");
+    assert_eq!(k.matches("never").count(), 1, "{list}");
+    assert!(
+        !list.contains(&admin) && !list.contains(&kiosk),
+        "secrets listed:\n{list}"
+    );
+    assert_eq!(list.lines().count(), 3, "{list}");
+}
+
+#[test]
+fn a_revoked_token_stops_working_at_once() {
+    let mut s = Server::unstarted(network_opts());
+    let admin = s.create_token("admin", "alice");
+    let ops = s.create_token("operator", "olga");
+    s.spawn().unwrap();
+    s.token = Some(ops.clone());
+    s.get("/api/v1/machines").expect(200);
+
+    let out = token_cli(&s, &["revoke", "olga"]);
+    assert!(out.status.success(), "{}", output_text(&out));
+    s.get("/api/v1/machines").expect_error(401, "invalid_token");
+    // Others are untouched; revoking again names what is missing.
+    s.token = Some(admin);
+    s.get("/api/v1/machines").expect(200);
+    let out = token_cli(&s, &["revoke", "olga"]);
+    assert!(!out.status.success(), "{}", output_text(&out));
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("no token named \"olga\""),
+        "{}",
+        output_text(&out)
+    );
+    // The list shows when a token was last used.
+    let out = token_cli(&s, &["list"]);
+    let list = String::from_utf8_lossy(&out.stdout).to_string();
+    let alice = list.lines().find(|l| l.starts_with("alice")).unwrap();
+    assert!(!alice.ends_with("never"), "last use not recorded:\n{list}");
+    assert!(!list.contains("olga"), "{list}");
+}
+
+#[test]
+fn an_expired_token_gets_invalid_token() {
+    let mut s = Server::unstarted(network_opts());
+    let admin = s.create_token("admin", "alice");
+    // 0.00002 days is under two seconds.
+    let out = token_cli(
+        &s,
+        &[
+            "create",
+            "--role",
+            "admin",
+            "--name",
+            "brief",
+            "--expires-in-days",
+            "0.00002",
+        ],
+    );
+    assert!(out.status.success(), "{}", output_text(&out));
+    let brief = String::from_utf8_lossy(&out.stdout).trim().to_string();
+    s.spawn().unwrap();
+    s.token = Some(brief);
+    fresa_tests::wait_for(T, "the short-lived token to expire", || {
+        let r = s.get("/api/v1/machines");
+        (r.status == 401).then_some(r)
+    })
+    .expect_error(401, "invalid_token");
+    let out = token_cli(&s, &["list"]);
+    let list = String::from_utf8_lossy(&out.stdout).to_string();
+    let row = list.lines().find(|l| l.starts_with("brief")).unwrap();
+    assert!(row.contains("(expired)"), "{list}");
+    s.token = Some(admin);
+    s.get("/api/v1/machines").expect(200);
+    // A day count that is not positive is refused by the CLI, naming the value.
+    let out = token_cli(
+        &s,
+        &[
+            "create",
+            "--role",
+            "viewer",
+            "--name",
+            "x",
+            "--expires-in-days",
+            "0",
+        ],
+    );
+    assert!(!out.status.success(), "{}", output_text(&out));
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("\"0\""),
+        "{}",
+        output_text(&out)
+    );
+}

@@ -45,18 +45,52 @@ pub enum JobCmd {
     Watch { id: i64 },
 }
 
+/// Where the database is: the same settings `fresa serve` resolves.
+#[derive(Args)]
+pub struct DataArgs {
+    #[arg(long, env = "FRESA_DATA_DIR")]
+    data_dir: Option<PathBuf>,
+    #[arg(long, env = "FRESA_CONFIG")]
+    config: Option<PathBuf>,
+}
+
+impl DataArgs {
+    fn settings(self) -> Result<fresa_core::config::Settings, Box<dyn std::error::Error>> {
+        Ok(fresa_core::config::Settings::resolve(
+            fresa_core::config::Overrides {
+                data_dir: self.data_dir,
+                config: self.config,
+                ..Default::default()
+            },
+        )?)
+    }
+}
+
 #[derive(Subcommand)]
 pub enum TokenCmd {
-    /// Create a token and print its secret (shown once).
+    /// Create a token and print its secret (shown once). Names are unique.
     Create {
         #[arg(long, value_parser = ["viewer", "operator", "admin"])]
         role: String,
         #[arg(long, default_value = "cli")]
         name: String,
-        #[arg(long, env = "FRESA_DATA_DIR")]
-        data_dir: Option<PathBuf>,
-        #[arg(long, env = "FRESA_CONFIG")]
-        config: Option<PathBuf>,
+        /// The token stops working this many days from now (default: never); fractions are
+        /// allowed (0.5 = 12 hours).
+        #[arg(long, value_parser = parse_days)]
+        expires_in_days: Option<f64>,
+        #[command(flatten)]
+        data: DataArgs,
+    },
+    /// List tokens: name, role, created, expires, last used (UTC). Secrets are never shown.
+    List {
+        #[command(flatten)]
+        data: DataArgs,
+    },
+    /// Revoke a token by name: it stops working at once, also for a running server.
+    Revoke {
+        name: String,
+        #[command(flatten)]
+        data: DataArgs,
     },
 }
 
@@ -252,32 +286,114 @@ pub async fn job(server: ServerArgs, cmd: JobCmd) -> Res {
     Ok(())
 }
 
+fn parse_days(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(d) if d.is_finite() && d > 0.0 && d <= 36_500.0 => Ok(d),
+        _ => Err(format!(
+            "expected a number of days above 0 and at most 36500, got {s:?}"
+        )),
+    }
+}
+
+async fn open_store(
+    settings: &fresa_core::config::Settings,
+) -> Result<fresa_core::store::Store, Box<dyn std::error::Error>> {
+    std::fs::create_dir_all(&settings.data_dir)
+        .map_err(|e| format!("cannot create {}: {e}", settings.data_dir.display()))?;
+    let db = settings.db_path();
+    fresa_core::store::Store::open(&db)
+        .await
+        .map_err(|e| format!("cannot open database {}: {e}", db.display()).into())
+}
+
 pub async fn token(cmd: TokenCmd) -> Res {
     match cmd {
         TokenCmd::Create {
             role,
             name,
-            data_dir,
-            config,
+            expires_in_days,
+            data,
         } => {
-            let settings = fresa_core::config::Settings::resolve(fresa_core::config::Overrides {
-                data_dir,
-                config,
-                ..Default::default()
-            })?;
-            std::fs::create_dir_all(&settings.data_dir)?;
-            let store = fresa_core::store::Store::open(&settings.db_path()).await?;
+            let settings = data.settings()?;
+            let store = open_store(&settings).await?;
             let secret = fresa_http::auth::new_secret();
+            let expires_at = expires_in_days
+                .map(|d| fresa_core::store::now_ms() + (d * 86_400_000.0).round() as i64);
             store
-                .insert_token(&name, &role, &fresa_http::auth::hash_token(&secret))
-                .await?;
+                .insert_token(
+                    &name,
+                    &role,
+                    &fresa_http::auth::hash_token(&secret),
+                    expires_at,
+                )
+                .await
+                .map_err(|e| {
+                    if fresa_core::store::is_unique_violation(&e) {
+                        format!(
+                            "a token named {name:?} exists; choose another name, or revoke it \
+                             first with `fresa token revoke {name}`"
+                        )
+                    } else {
+                        format!("cannot store the token: {e}")
+                    }
+                })?;
+            let until = match expires_in_days {
+                Some(d) => format!(", expires in {d} day(s)"),
+                None => String::new(),
+            };
             eprintln!(
-                "token {name:?} ({role}) created in {}; it is shown only now:",
+                "token {name:?} ({role}{until}) created in {}; it is shown only now:",
                 settings.db_path().display()
             );
             println!("{secret}");
         }
+        TokenCmd::List { data } => {
+            let store = open_store(&data.settings()?).await?;
+            println!(
+                "{:<24} {:<9} {:<17} {:<26} LAST USED",
+                "NAME", "ROLE", "CREATED", "EXPIRES"
+            );
+            for t in store.list_tokens().await? {
+                let expires = match (&t.expires, t.expired) {
+                    (None, _) => "never".to_string(),
+                    (Some(e), true) => format!("{e} (expired)"),
+                    (Some(e), false) => e.clone(),
+                };
+                println!(
+                    "{:<24} {:<9} {:<17} {:<26} {}",
+                    t.name,
+                    t.role,
+                    t.created,
+                    expires,
+                    t.last_used.as_deref().unwrap_or("never")
+                );
+            }
+        }
+        TokenCmd::Revoke { name, data } => {
+            let store = open_store(&data.settings()?).await?;
+            if !store.revoke_token(&name).await? {
+                return Err(format!(
+                    "no token named {name:?} (`fresa token list` shows the names)"
+                )
+                .into());
+            }
+            eprintln!("token {name:?} revoked");
+        }
     }
+    Ok(())
+}
+
+/// `fresa backup FILE`: an online copy of the database, safe while the server runs.
+pub async fn backup(file: PathBuf, data: DataArgs) -> Res {
+    let settings = data.settings()?;
+    let db = settings.db_path();
+    let bytes = fresa_core::store::backup_database(&db, &file).await?;
+    eprintln!(
+        "backed up {} to {} ({bytes} bytes); programs are in {} (copy them too)",
+        db.display(),
+        file.display(),
+        settings.programs_dir().display()
+    );
     Ok(())
 }
 

@@ -47,6 +47,12 @@ enum Cmd {
         #[command(subcommand)]
         command: client::TokenCmd,
     },
+    /// Copy the database to FILE (which must not exist), also while the server runs.
+    Backup {
+        file: std::path::PathBuf,
+        #[command(flatten)]
+        data: client::DataArgs,
+    },
 }
 
 /// Command-line/environment values for `fresa serve` (clap merges them: CLI beats env).
@@ -116,6 +122,7 @@ fn main() -> ExitCode {
             Cmd::Machine { server, command } => client::machine(server, command).await,
             Cmd::Job { server, command } => client::job(server, command).await,
             Cmd::Token { command } => client::token(command).await,
+            Cmd::Backup { file, data } => client::backup(file, data).await,
             Cmd::Gcode { command } => client::gcode(command),
         }
     });

@@ -22,6 +22,10 @@ pub struct FileConfig {
     pub plugin_max_concurrent_calls: Option<usize>,
     pub sse_keepalive_secs: Option<u64>,
     pub shutdown_grace_secs: Option<u64>,
+    pub event_retention_days: Option<u32>,
+    pub event_retention_count: Option<u64>,
+    pub audit_retention_days: Option<u32>,
+    pub event_prune_interval_secs: Option<u64>,
     pub log: Option<String>,
     /// Host names (or `name:port`) besides the listen address and `localhost` that requests may
     /// be addressed to, e.g. the name a reverse proxy or the shop's DNS gives this server.
@@ -53,11 +57,35 @@ pub struct Settings {
     pub sse_keepalive: Duration,
     /// How long open connections may drain on shutdown, after motion has stopped.
     pub shutdown_grace: Duration,
+    pub event_retention: EventRetention,
     pub demo: bool,
     pub config_file: Option<PathBuf>,
     pub log: Option<String>,
     pub allowed_hosts: Vec<String>,
     pub cors_origins: Vec<String>,
+}
+
+/// How long the event log keeps what. Routine events (jogs, commands, MDI, pendant traffic:
+/// the high-volume ones) go after `routine_days` or beyond the newest `routine_count`; the
+/// audit events (see `events::AUDIT_EVENT_TYPES`) are kept `audit_days`, whatever the count.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct EventRetention {
+    pub routine_days: u32,
+    pub routine_count: u64,
+    pub audit_days: u32,
+    /// How often the background pass runs (it also runs once at start-up).
+    pub prune_interval: Duration,
+}
+
+impl Default for EventRetention {
+    fn default() -> Self {
+        EventRetention {
+            routine_days: 30,
+            routine_count: 100_000,
+            audit_days: 730,
+            prune_interval: Duration::from_secs(60),
+        }
+    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -134,6 +162,47 @@ fn read_file(path: &Path) -> Result<FileConfig, ConfigError> {
     })
 }
 
+fn retention(file: &FileConfig) -> Result<EventRetention, ConfigError> {
+    let d = EventRetention::default();
+    let routine_days = file.event_retention_days.unwrap_or(d.routine_days);
+    let routine_count = file.event_retention_count.unwrap_or(d.routine_count);
+    // Unset, the audit is kept at least as long as the routine events.
+    let audit_days = file
+        .audit_retention_days
+        .unwrap_or(d.audit_days.max(routine_days));
+    let interval = file
+        .event_prune_interval_secs
+        .unwrap_or(d.prune_interval.as_secs());
+    if !(1..=36_500).contains(&routine_days) {
+        return Err(ConfigError::Invalid(format!(
+            "event_retention_days must be between 1 and 36500, got {routine_days}"
+        )));
+    }
+    if !(1..=1_000_000_000).contains(&routine_count) {
+        return Err(ConfigError::Invalid(format!(
+            "event_retention_count must be between 1 and 1000000000, got {routine_count}"
+        )));
+    }
+    // The audit trail is what retention must never lose before the routine traffic.
+    if !(routine_days..=36_500).contains(&audit_days) {
+        return Err(ConfigError::Invalid(format!(
+            "audit_retention_days must be between event_retention_days ({routine_days}) and \
+             36500, got {audit_days}"
+        )));
+    }
+    if !(1..=86_400).contains(&interval) {
+        return Err(ConfigError::Invalid(format!(
+            "event_prune_interval_secs must be between 1 and 86400, got {interval}"
+        )));
+    }
+    Ok(EventRetention {
+        routine_days,
+        routine_count,
+        audit_days,
+        prune_interval: Duration::from_secs(interval),
+    })
+}
+
 impl Settings {
     pub fn resolve(o: Overrides) -> Result<Settings, ConfigError> {
         let (file, config_file) = match &o.config {
@@ -146,6 +215,7 @@ impl Settings {
                 None => (FileConfig::default(), None),
             },
         };
+        let event_retention = retention(&file)?;
         let listen_str = o
             .listen
             .or(file.listen)
@@ -198,6 +268,7 @@ impl Settings {
             plugin_call_timeout: Duration::from_millis(timeout_ms),
             sse_keepalive: Duration::from_secs(file.sse_keepalive_secs.unwrap_or(15)),
             shutdown_grace: Duration::from_secs(grace),
+            event_retention,
             demo: o.demo,
             config_file,
             log: file.log,
@@ -268,6 +339,41 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("localhost") && e.contains("ADDR:PORT"), "{e}");
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn retention_defaults_and_bounds() {
+        let dir = std::env::temp_dir().join(format!("fresa-cfg3-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let f = dir.join("f.toml");
+        let resolve = |toml: &str| {
+            std::fs::write(&f, toml).unwrap();
+            Settings::resolve(Overrides {
+                config: Some(f.clone()),
+                data_dir: Some(dir.clone()),
+                ..Default::default()
+            })
+        };
+        assert_eq!(
+            resolve("").unwrap().event_retention,
+            EventRetention::default()
+        );
+        let r = resolve("event_retention_count = 5\nevent_prune_interval_secs = 1\n")
+            .unwrap()
+            .event_retention;
+        assert_eq!((r.routine_count, r.prune_interval.as_secs()), (5, 1));
+        let e = resolve("event_retention_days = 90\naudit_retention_days = 30\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("audit_retention_days") && e.contains("30"),
+            "{e}"
+        );
+        let e = resolve("event_retention_count = 0\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("event_retention_count"), "{e}");
         std::fs::remove_dir_all(dir).ok();
     }
 }

@@ -2,6 +2,7 @@
 //! id from the `events` table and can be replayed with `Last-Event-ID`; transient events
 //! (status, job progress) are only fanned out, since the next one supersedes them.
 
+use crate::config::EventRetention;
 use crate::store::{now_ms, EventRow, Store};
 use serde::Serialize;
 use std::sync::Arc;
@@ -110,5 +111,154 @@ impl EventBus {
     /// Live event-stream subscribers (SSE clients and internal listeners).
     pub fn subscribers(&self) -> usize {
         self.tx.receiver_count()
+    }
+}
+
+// ---- retention ----
+
+/// The audit trail, kept `audit_retention_days`: what was made, run, set or lost. Every other
+/// type (jogs, commands, MDI lines, pendant connects, refusals, rewinds: high-volume traffic)
+/// is routine and also goes beyond `event_retention_count`. A new event type is routine
+/// unless it is added here.
+pub const AUDIT_EVENT_TYPES: &[&str] = &[
+    "job.created",
+    "job.state",
+    "machine.created",
+    "machine.offsets",
+    "machine.part_zero",
+    "machine.alarm",
+    "pendant.created",
+    "pendant.bound",
+    "pendant.macro",
+    "pendant.deleted",
+    "pendant.upload",
+];
+
+/// Rows per delete: one short write transaction each, so machine tasks and uploads waiting
+/// for the write lock get it between batches.
+const PRUNE_BATCH: u32 = 1000;
+const DAY_MS: i64 = 86_400_000;
+
+/// Deletes what `policy` no longer keeps. Returns how many events went. With a `budget`, stops
+/// after the batch that overruns it (the next pass goes on).
+pub async fn prune(
+    store: &Store,
+    policy: &EventRetention,
+    budget: Option<std::time::Duration>,
+) -> Result<u64, sqlx::Error> {
+    let started = std::time::Instant::now();
+    let now = now_ms();
+    let routine_before = now - i64::from(policy.routine_days) * DAY_MS;
+    let audit_before = now - i64::from(policy.audit_days) * DAY_MS;
+    // Fixed for the pass: newer events only move the real cut up, never down.
+    let cut = store
+        .routine_event_count_cut(AUDIT_EVENT_TYPES, policy.routine_count)
+        .await?;
+    let mut total = 0;
+    loop {
+        let n = store
+            .prune_events_batch(
+                AUDIT_EVENT_TYPES,
+                routine_before,
+                cut,
+                audit_before,
+                PRUNE_BATCH,
+            )
+            .await?;
+        total += n;
+        if n < u64::from(PRUNE_BATCH) || budget.is_some_and(|b| started.elapsed() >= b) {
+            return Ok(total);
+        }
+        // Let queued writers take the lock before the next batch.
+        tokio::time::sleep(std::time::Duration::from_millis(5)).await;
+    }
+}
+
+/// [`prune`], logging the result instead of returning it.
+pub async fn prune_and_log(
+    store: &Store,
+    policy: &EventRetention,
+    budget: Option<std::time::Duration>,
+) {
+    match prune(store, policy, budget).await {
+        Ok(0) => {}
+        Ok(n) => {
+            let left = store.event_count().await.unwrap_or(-1);
+            tracing::info!(pruned = n, left, "event log pruned by retention");
+        }
+        Err(e) => tracing::error!(error = %e, "event log retention pass failed"),
+    }
+}
+
+/// Runs [`prune`] every `policy.prune_interval` until `stop` is cancelled.
+pub fn spawn_pruner(
+    store: Store,
+    policy: EventRetention,
+    stop: tokio_util::sync::CancellationToken,
+) -> tokio::task::JoinHandle<()> {
+    tokio::spawn(async move {
+        loop {
+            tokio::select! {
+                _ = stop.cancelled() => return,
+                _ = tokio::time::sleep(policy.prune_interval) => {}
+            }
+            prune_and_log(&store, &policy, None).await;
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[tokio::test]
+    async fn retention_cuts_routine_events_by_count_and_keeps_the_audit() {
+        let dir = std::env::temp_dir().join(format!(
+            "fresa-retention-{}-{}",
+            std::process::id(),
+            rand::random::<u64>()
+        ));
+        std::fs::create_dir_all(&dir).unwrap();
+        let store = Store::open(&dir.join("t.db")).await.unwrap();
+        let bus = EventBus::new(store.clone(), 16);
+        let created = bus
+            .record("machine.created", Some(1), None, serde_json::json!({}))
+            .await
+            .unwrap();
+        let mut jogs = Vec::new();
+        for _ in 0..10 {
+            jogs.push(
+                bus.record("machine.jog", Some(1), None, serde_json::json!({}))
+                    .await
+                    .unwrap(),
+            );
+        }
+        let state = bus
+            .record("job.state", Some(1), None, serde_json::json!({}))
+            .await
+            .unwrap();
+        let policy = EventRetention {
+            routine_count: 3,
+            ..EventRetention::default()
+        };
+        assert_eq!(store.events_pruned_through().await.unwrap(), 0);
+        assert_eq!(prune(&store, &policy, None).await.unwrap(), 7);
+        let left: Vec<i64> = store
+            .events_after(0, 100)
+            .await
+            .unwrap()
+            .iter()
+            .map(|e| e.id)
+            .collect();
+        let mut want = vec![created];
+        want.extend(&jogs[7..]);
+        want.push(state);
+        assert_eq!(left, want);
+        assert_eq!(store.events_pruned_through().await.unwrap(), jogs[6]);
+        // A second pass has nothing left to do and keeps the mark.
+        assert_eq!(prune(&store, &policy, None).await.unwrap(), 0);
+        assert_eq!(store.events_pruned_through().await.unwrap(), jogs[6]);
+        std::fs::remove_dir_all(dir).ok();
     }
 }

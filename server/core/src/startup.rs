@@ -30,6 +30,18 @@ pub enum StartError {
     NoTokens(std::net::SocketAddr),
     #[error("{0}")]
     Locked(#[from] LockError),
+    #[error(
+        "database {db} is empty (0 bytes) but {programs} holds {count} program(s): the store \
+         was lost, and starting would forget every job, offset and token. Restore it: copy \
+         your latest `fresa backup` file over {db}, remove {db}-wal and {db}-shm if present, \
+         and start again (README: Backup and restore). To start with an empty store on \
+         purpose, delete {db} first"
+    )]
+    EmptyDatabase {
+        db: std::path::PathBuf,
+        programs: std::path::PathBuf,
+        count: usize,
+    },
 }
 
 impl App {
@@ -42,12 +54,23 @@ impl App {
         })?;
         // Before the store is touched: a second server must not mark the first one's runs.
         let lock = DataDirLock::acquire(&settings.data_dir)?;
+        remove_upload_leftovers(&settings.programs_dir());
         let db = settings.db_path();
+        refuse_lost_database(&db, &settings.programs_dir())?;
         let store = Store::open(&db).await.map_err(|source| StartError::Store {
             path: db.clone(),
             source,
         })?;
         tracing::info!(database = %db.display(), "store ready");
+        // Once before serving, so a log that grew while the retention was looser is cut back
+        // before anyone replays it; bounded, so a huge backlog cannot hold up the start (the
+        // background passes finish it).
+        crate::events::prune_and_log(
+            &store,
+            &settings.event_retention,
+            Some(std::time::Duration::from_secs(10)),
+        )
+        .await;
         let auth_required = !settings.loopback_only();
         if auth_required {
             let n = store
@@ -71,6 +94,12 @@ impl App {
             tracing::info!(plugins = ?plugins.names(), "plugins loaded");
         }
         let bus = EventBus::new(store.clone(), 4096);
+        let shutdown = CancellationToken::new();
+        crate::events::spawn_pruner(
+            store.clone(),
+            settings.event_retention.clone(),
+            shutdown.clone(),
+        );
         let app = Arc::new(App {
             settings,
             store: store.clone(),
@@ -78,7 +107,7 @@ impl App {
             plugins,
             machines: Machines::default(),
             pendants: Default::default(),
-            shutdown: CancellationToken::new(),
+            shutdown,
             auth_required,
             _lock: lock,
         });
@@ -180,6 +209,72 @@ impl App {
             tracing::warn!("pendant transports did not stop within {limit:?}");
         }
     }
+}
+
+/// Removes `.upload-*.tmp` files a killed process left in `programs/` (a clean shutdown
+/// deletes its own). Only safe under the data-dir lock: no other server is writing there.
+fn remove_upload_leftovers(programs: &std::path::Path) {
+    let entries = match std::fs::read_dir(programs) {
+        Ok(d) => d,
+        Err(e) => {
+            tracing::warn!(dir = %programs.display(), error = %e, "cannot list programs for leftover uploads");
+            return;
+        }
+    };
+    let (mut files, mut bytes) = (0u64, 0u64);
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let name = name.to_string_lossy();
+        if !(name.starts_with(".upload-") && name.ends_with(".tmp")) {
+            continue;
+        }
+        let size = entry.metadata().map(|m| m.len()).unwrap_or(0);
+        match std::fs::remove_file(entry.path()) {
+            Ok(()) => {
+                files += 1;
+                bytes += size;
+            }
+            Err(e) => {
+                tracing::warn!(file = %entry.path().display(), error = %e, "cannot remove leftover upload")
+            }
+        }
+    }
+    if files > 0 {
+        tracing::info!(
+            files,
+            bytes,
+            dir = %programs.display(),
+            "removed {files} unfinished upload(s) ({bytes} bytes) left by an earlier process"
+        );
+    }
+}
+
+/// A zero-length `fresa.db` beside stored programs means the database was lost (truncated,
+/// or a failed copy); opening it would silently start an empty store. A fresh data dir (no
+/// programs) starts normally.
+fn refuse_lost_database(
+    db: &std::path::Path,
+    programs: &std::path::Path,
+) -> Result<(), StartError> {
+    let empty = std::fs::metadata(db).map(|m| m.len() == 0).unwrap_or(false);
+    if !empty {
+        return Ok(());
+    }
+    let count = std::fs::read_dir(programs)
+        .map(|d| {
+            d.flatten()
+                .filter(|e| e.path().extension().is_some_and(|x| x == "nc"))
+                .count()
+        })
+        .unwrap_or(0);
+    if count == 0 {
+        return Ok(());
+    }
+    Err(StartError::EmptyDatabase {
+        db: db.to_path_buf(),
+        programs: programs.to_path_buf(),
+        count,
+    })
 }
 
 async fn record_interrupted(bus: &EventBus, run: &RunRow) {

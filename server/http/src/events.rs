@@ -1,6 +1,7 @@
 //! `GET /api/v1/events`: Server-Sent Events. Persisted events carry their id and are replayed
 //! after `Last-Event-ID`; transient ones (status, progress) are live only. A client that falls
-//! behind gets an explicit `resync` event, then the persisted events it missed.
+//! behind gets an explicit `resync` event, then the persisted events it missed; so does one
+//! whose `Last-Event-ID` is older than what retention has deleted, then what remains.
 
 use super::error::{ApiError, Query};
 use axum::extract::State;
@@ -92,8 +93,23 @@ pub async fn stream(
     let keepalive = app.settings.sse_keepalive;
     let s = async_stream(move |tx| async move {
         let mut sent_up_to = last_id.unwrap_or(0);
-        if last_id.is_some() && !replay(&store, &matcher, &mut sent_up_to, &tx).await {
-            return;
+        if let Some(after) = last_id {
+            let Some((start, resynced)) = resync_if_gap(&store, after, &tx).await else {
+                return;
+            };
+            sent_up_to = start;
+            if !replay(&store, &matcher, &mut sent_up_to, &tx).await {
+                return;
+            }
+            // A retention pass during the replay may have deleted events before the replay
+            // read them: say so (at worst needlessly, if they had been sent already).
+            if !resynced {
+                if let Ok(pruned) = store.events_pruned_through().await {
+                    if pruned > start && !send_resync(&tx, retention_gap(start, pruned)).await {
+                        return;
+                    }
+                }
+            }
         }
         loop {
             tokio::select! {
@@ -121,6 +137,60 @@ pub async fn stream(
         }
     });
     Ok(Sse::new(s).keep_alive(KeepAlive::new().interval(keepalive)))
+}
+
+/// Sends `resync` when a replay after `after` cannot be complete, and returns where the replay
+/// starts and whether `resync` was sent (None: the client went away). Two gaps: retention
+/// deleted events after `after` (the client gets what remains after it), or `after` is beyond
+/// every id this log has given (the store was restored from a backup: new events reuse those
+/// ids, so the client starts from the log's end instead of skipping them).
+async fn resync_if_gap(
+    store: &fresa_core::store::Store,
+    after: i64,
+    tx: &tokio::sync::mpsc::Sender<Event>,
+) -> Option<(i64, bool)> {
+    let marks = async {
+        Ok::<_, sqlx::Error>((
+            store.events_pruned_through().await?,
+            store.last_event_id().await?,
+        ))
+    };
+    let (pruned, last) = match marks.await {
+        Ok(m) => m,
+        Err(e) => {
+            tracing::error!(error = %e, "cannot read the event log's bounds for a replay");
+            return Some((after, false));
+        }
+    };
+    let (data, start) = if after > last {
+        (
+            serde_json::json!({
+                "reason": "this id is newer than the event log (restored from a backup?)",
+                "after": after,
+                "last_event_id": last,
+            }),
+            last,
+        )
+    } else if after < pruned {
+        (retention_gap(after, pruned), after)
+    } else {
+        return Some((after, false));
+    };
+    send_resync(tx, data).await.then_some((start, true))
+}
+
+fn retention_gap(after: i64, pruned: i64) -> serde_json::Value {
+    serde_json::json!({
+        "reason": "events after this id were deleted by retention",
+        "after": after,
+        "pruned_through": pruned,
+    })
+}
+
+/// False if the client went away.
+async fn send_resync(tx: &tokio::sync::mpsc::Sender<Event>, data: serde_json::Value) -> bool {
+    let ev = Event::default().event("resync").data(data.to_string());
+    tx.send(ev).await.is_ok()
 }
 
 /// Sends persisted events after `*after`, page by page. Returns false if the client went away.

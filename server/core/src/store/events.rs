@@ -1,4 +1,4 @@
-//! The append-only event (audit) log.
+//! The event (audit) log: appended by the bus, pruned by retention in bounded batches.
 
 use super::{now_ms, Result, Store};
 use sqlx::FromRow;
@@ -46,4 +46,119 @@ impl Store {
             .fetch_all(&self.pool)
             .await
     }
+
+    /// The highest event id retention has deleted (0: none). A replay from an earlier id has
+    /// a gap.
+    pub async fn events_pruned_through(&self) -> Result<i64> {
+        sqlx::query_scalar("SELECT pruned_through FROM event_retention WHERE id = 1")
+            .fetch_optional(&self.pool)
+            .await
+            .map(Option::unwrap_or_default)
+    }
+
+    /// The id of the newest routine event (type not in `audit_types`) that is beyond the
+    /// newest `keep` of them: routine events up to it are past the count limit.
+    pub async fn routine_event_count_cut(
+        &self,
+        audit_types: &[&str],
+        keep: u64,
+    ) -> Result<Option<i64>> {
+        let sql = format!(
+            "SELECT id FROM events WHERE type NOT IN ({}) ORDER BY id DESC LIMIT 1 OFFSET ?",
+            placeholders(audit_types.len())
+        );
+        let mut q = sqlx::query_scalar(&sql);
+        for t in audit_types {
+            q = q.bind(*t);
+        }
+        q.bind(i64::try_from(keep).unwrap_or(i64::MAX))
+            .fetch_optional(&self.pool)
+            .await
+    }
+
+    /// Deletes at most `batch` of the oldest events that retention allows to go: routine
+    /// events created before `routine_before` (ms) or with id <= `routine_cut`, audit events
+    /// created before `audit_before`. Returns how many went.
+    pub async fn prune_events_batch(
+        &self,
+        audit_types: &[&str],
+        routine_before: i64,
+        routine_cut: Option<i64>,
+        audit_before: i64,
+        batch: u32,
+    ) -> Result<u64> {
+        let list = placeholders(audit_types.len());
+        let cond = format!(
+            "((type NOT IN ({list}) AND (created_at < ? OR id <= ?))
+               OR (type IN ({list}) AND created_at < ?))"
+        );
+        macro_rules! bind_cond {
+            ($q:expr) => {{
+                let mut q = $q;
+                for t in audit_types {
+                    q = q.bind(*t);
+                }
+                q = q.bind(routine_before).bind(routine_cut.unwrap_or(0));
+                for t in audit_types {
+                    q = q.bind(*t);
+                }
+                q.bind(audit_before)
+            }};
+        }
+        // Find the batch with a plain read (WAL readers take no lock), so the write below
+        // only scans up to its last id, however much of the log is kept. NOT INDEXED: walk in
+        // id order and stop at `batch` matches; the planner would otherwise collect every
+        // match of the OR through the created_at index and sort them, each batch.
+        let find = format!(
+            "SELECT MAX(id) FROM (SELECT id FROM events NOT INDEXED WHERE {cond} ORDER BY id LIMIT ?)"
+        );
+        let upto: Option<i64> = bind_cond!(sqlx::query_scalar(&find))
+            .bind(batch)
+            .fetch_one(&self.pool)
+            .await?;
+        let Some(upto) = upto else {
+            return Ok(0);
+        };
+        // The condition is fixed for the pass and newer events have higher ids: this deletes
+        // exactly the batch found above.
+        let delete = format!("DELETE FROM events NOT INDEXED WHERE id <= ? AND {cond}");
+        let mut tx = self.begin().await?;
+        let n = bind_cond!(sqlx::query(&delete).bind(upto))
+            .execute(&mut *tx)
+            .await?
+            .rows_affected();
+        sqlx::query(
+            "UPDATE event_retention SET pruned_through = MAX(pruned_through, ?) WHERE id = 1",
+        )
+        .bind(upto)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(n)
+    }
+
+    /// The highest id ever given to an event (deleted or not): AUTOINCREMENT never reuses one,
+    /// so a client holding a higher id saw another log (the store was restored from a backup).
+    pub async fn last_event_id(&self) -> Result<i64> {
+        sqlx::query_scalar(
+            "SELECT COALESCE((SELECT seq FROM sqlite_sequence WHERE name = 'events'), 0)",
+        )
+        .fetch_one(&self.pool)
+        .await
+    }
+
+    /// How many events the log holds (for the log line after a prune).
+    pub async fn event_count(&self) -> Result<i64> {
+        sqlx::query_scalar("SELECT COUNT(*) FROM events")
+            .fetch_one(&self.pool)
+            .await
+    }
+}
+
+/// `?,?,?` for an `IN (...)` list; an empty list matches no type.
+fn placeholders(n: usize) -> String {
+    if n == 0 {
+        return "''".into();
+    }
+    vec!["?"; n].join(",")
 }

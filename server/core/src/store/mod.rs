@@ -21,6 +21,7 @@ pub struct Store {
     pool: SqlitePool,
 }
 
+mod backup;
 mod events;
 mod jobs;
 mod machines;
@@ -29,11 +30,12 @@ mod pendants;
 mod tests;
 mod tokens;
 
+pub use backup::{backup_database, BackupError};
 pub use events::EventRow;
 pub use jobs::{JobRow, NewJob, RunRow, RunState};
 pub use machines::{MachineRow, PartZeroRow};
 pub use pendants::{MacroAction, PendantRow};
-pub use tokens::TokenRow;
+pub use tokens::{is_unique_violation, TokenInfo, TokenRow};
 
 impl Store {
     /// Opens (creating if needed) the database and applies the migrations in `migrations/`.

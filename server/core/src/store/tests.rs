@@ -137,3 +137,89 @@ fn run_state_machine_never_leaves_a_final_state() {
     assert!(Interrupted.can_move_to(Running));
     assert!(!Running.can_move_to(Queued));
 }
+
+/// Migration 0004 makes token names unique; an older database with repeated names must
+/// still migrate (the later repeats are renamed `NAME#ID`).
+#[tokio::test]
+async fn duplicate_token_names_survive_the_unique_name_migration() {
+    use sqlx::migrate::Migrator;
+    let dir = std::env::temp_dir().join(format!(
+        "fresa-store-mig-{}-{}",
+        std::process::id(),
+        rand::random::<u64>()
+    ));
+    std::fs::create_dir_all(&dir).unwrap();
+    let db = dir.join("old.db");
+    let full = sqlx::migrate!("../../migrations");
+    let old = Migrator {
+        migrations: std::borrow::Cow::Owned(
+            full.migrations
+                .iter()
+                .filter(|m| m.version < 4)
+                .cloned()
+                .collect(),
+        ),
+        ..Migrator::DEFAULT
+    };
+    {
+        let pool = sqlx::SqlitePool::connect_with(
+            sqlx::sqlite::SqliteConnectOptions::new()
+                .filename(&db)
+                .create_if_missing(true),
+        )
+        .await
+        .unwrap();
+        old.run(&pool).await.unwrap();
+        for (name, hash) in [("ana", "h1"), ("ana", "h2"), ("bo", "h3")] {
+            sqlx::query(
+                "INSERT INTO tokens (name, role, hash, created_at) VALUES (?, 'viewer', ?, 0)",
+            )
+            .bind(name)
+            .bind(hash)
+            .execute(&pool)
+            .await
+            .unwrap();
+        }
+        pool.close().await;
+    }
+    let s = Store::open(&db).await.unwrap();
+    let names: Vec<String> = s
+        .list_tokens()
+        .await
+        .unwrap()
+        .into_iter()
+        .map(|t| t.name)
+        .collect();
+    assert_eq!(names, ["ana", "ana#2", "bo"]);
+    // The second "ana" still works under its new name.
+    assert_eq!(s.token_by_hash("h2").await.unwrap().unwrap().name, "ana#2");
+    let e = s
+        .insert_token("bo", "viewer", "h4", None)
+        .await
+        .unwrap_err();
+    assert!(is_unique_violation(&e), "{e}");
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[tokio::test]
+async fn expired_and_revoked_tokens_are_not_found() {
+    let (s, dir) = store().await;
+    s.insert_token("old", "admin", "h-old", Some(now_ms() - 1))
+        .await
+        .unwrap();
+    s.insert_token("new", "admin", "h-new", Some(now_ms() + 60_000))
+        .await
+        .unwrap();
+    assert!(s.token_by_hash("h-old").await.unwrap().is_none());
+    assert!(s.token_by_hash("h-new").await.unwrap().is_some());
+    assert_eq!(s.token_count().await.unwrap(), 1);
+    let listed = s.list_tokens().await.unwrap();
+    assert!(listed.iter().any(|t| t.name == "old" && t.expired));
+    assert!(listed
+        .iter()
+        .any(|t| t.name == "new" && !t.expired && t.last_used.is_some()));
+    assert!(s.revoke_token("new").await.unwrap());
+    assert!(!s.revoke_token("new").await.unwrap());
+    assert!(s.token_by_hash("h-new").await.unwrap().is_none());
+    std::fs::remove_dir_all(dir).ok();
+}

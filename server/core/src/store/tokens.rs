@@ -1,7 +1,11 @@
-//! API tokens (hashed).
+//! API tokens (hashed). A token is valid while its row exists and it has not expired:
+//! revoking deletes the row, so nothing that checks tokens can forget to check revocation.
 
 use super::{now_ms, Result, Store};
 use sqlx::FromRow;
+
+/// Last use is written at most this often per token, so checking a token stays a read.
+const LAST_USED_GRANULARITY_MS: i64 = 60_000;
 
 #[derive(Debug, Clone, FromRow)]
 pub struct TokenRow {
@@ -9,34 +13,108 @@ pub struct TokenRow {
     pub role: String,
 }
 
+/// What `fresa token list` shows: everything but the hash. Times are UTC, `YYYY-MM-DD HH:MM`.
+#[derive(Debug, Clone, FromRow)]
+pub struct TokenInfo {
+    pub name: String,
+    pub role: String,
+    pub created: String,
+    pub expires: Option<String>,
+    pub expired: bool,
+    pub last_used: Option<String>,
+}
+
 impl Store {
     // ---- tokens ----
 
-    pub async fn insert_token(&self, name: &str, role: &str, hash: &str) -> Result<i64> {
+    /// Fails with a unique-constraint error (see [`is_unique_violation`]) if `name` exists.
+    pub async fn insert_token(
+        &self,
+        name: &str,
+        role: &str,
+        hash: &str,
+        expires_at: Option<i64>,
+    ) -> Result<i64> {
         let mut tx = self.begin().await?;
         let id = sqlx::query_scalar(
-            "INSERT INTO tokens (name, role, hash, created_at) VALUES (?, ?, ?, ?) RETURNING id",
+            "INSERT INTO tokens (name, role, hash, created_at, expires_at) VALUES (?, ?, ?, ?, ?) RETURNING id",
         )
         .bind(name)
         .bind(role)
         .bind(hash)
         .bind(now_ms())
+        .bind(expires_at)
         .fetch_one(&mut *tx)
         .await?;
         tx.commit().await?;
         Ok(id)
     }
 
+    /// The token with this hash, if it exists and has not expired. Records its last use (at
+    /// most once a minute).
     pub async fn token_by_hash(&self, hash: &str) -> Result<Option<TokenRow>> {
-        sqlx::query_as("SELECT name, role FROM tokens WHERE hash = ?")
-            .bind(hash)
-            .fetch_optional(&self.pool)
-            .await
+        let now = now_ms();
+        let row: Option<(String, String, Option<i64>)> = sqlx::query_as(
+            "SELECT name, role, last_used_at FROM tokens
+              WHERE hash = ? AND (expires_at IS NULL OR expires_at > ?)",
+        )
+        .bind(hash)
+        .bind(now)
+        .fetch_optional(&self.pool)
+        .await?;
+        let Some((name, role, last_used)) = row else {
+            return Ok(None);
+        };
+        if last_used.is_none_or(|t| now - t >= LAST_USED_GRANULARITY_MS) {
+            // Best effort: a busy database must not turn a valid token into an error.
+            if let Err(e) = sqlx::query("UPDATE tokens SET last_used_at = ? WHERE hash = ?")
+                .bind(now)
+                .bind(hash)
+                .execute(&self.pool)
+                .await
+            {
+                tracing::debug!(error = %e, "could not record a token's last use");
+            }
+        }
+        Ok(Some(TokenRow { name, role }))
     }
 
+    /// Tokens that can still be used (not expired).
     pub async fn token_count(&self) -> Result<i64> {
-        sqlx::query_scalar("SELECT COUNT(*) FROM tokens")
+        sqlx::query_scalar("SELECT COUNT(*) FROM tokens WHERE expires_at IS NULL OR expires_at > ?")
+            .bind(now_ms())
             .fetch_one(&self.pool)
             .await
     }
+
+    pub async fn list_tokens(&self) -> Result<Vec<TokenInfo>> {
+        sqlx::query_as(
+            "SELECT name, role,
+                    strftime('%Y-%m-%d %H:%M', created_at / 1000, 'unixepoch') AS created,
+                    strftime('%Y-%m-%d %H:%M', expires_at / 1000, 'unixepoch') AS expires,
+                    COALESCE(expires_at <= ?, 0) AS expired,
+                    strftime('%Y-%m-%d %H:%M', last_used_at / 1000, 'unixepoch') AS last_used
+               FROM tokens ORDER BY name",
+        )
+        .bind(now_ms())
+        .fetch_all(&self.pool)
+        .await
+    }
+
+    /// Deletes the token named `name`; false if there is none.
+    pub async fn revoke_token(&self, name: &str) -> Result<bool> {
+        let mut tx = self.begin().await?;
+        let n = sqlx::query("DELETE FROM tokens WHERE name = ?")
+            .bind(name)
+            .execute(&mut *tx)
+            .await?
+            .rows_affected();
+        tx.commit().await?;
+        Ok(n > 0)
+    }
+}
+
+/// Whether a store error is a UNIQUE constraint violation (e.g. a token name that exists).
+pub fn is_unique_violation(e: &sqlx::Error) -> bool {
+    matches!(e, sqlx::Error::Database(d) if d.is_unique_violation())
 }
