@@ -144,27 +144,69 @@ pub async fn middleware(
 }
 
 /// A route's handler that needs at least `role`; the role is declared where the route is
-/// (see `router`), and checked after [`middleware`] has said who is calling.
+/// (see `router`), and checked after [`middleware`] has said who is calling. A plain tower layer
+/// rather than `from_fn`: it runs on every request, so it boxes nothing.
 pub fn needs(role: Role, handler: MethodRouter<SharedApp>) -> MethodRouter<SharedApp> {
-    handler.route_layer(axum::middleware::from_fn(
-        move |req: Request, next: Next| async move {
-            let caller = req.extensions().get::<Caller>().cloned();
-            match caller {
-                Some(c) if c.role >= role => Ok(next.run(req).await),
-                Some(c) => Err(ApiError::new(
-                    StatusCode::FORBIDDEN,
-                    "forbidden",
-                    format!(
-                        "token {:?} has role {}; this request needs {}",
-                        c.name,
-                        c.role.name(),
-                        role.name()
-                    ),
-                )),
-                None => Err(ApiError::internal(
-                    "route has no caller: auth layer missing",
-                )),
-            }
-        },
-    ))
+    handler.route_layer(RequireRole(role))
+}
+
+#[derive(Clone, Copy)]
+pub struct RequireRole(Role);
+
+impl<S> tower::Layer<S> for RequireRole {
+    type Service = RoleCheck<S>;
+    fn layer(&self, inner: S) -> RoleCheck<S> {
+        RoleCheck {
+            role: self.0,
+            inner,
+        }
+    }
+}
+
+#[derive(Clone)]
+pub struct RoleCheck<S> {
+    role: Role,
+    inner: S,
+}
+
+impl<S> tower::Service<Request> for RoleCheck<S>
+where
+    S: tower::Service<Request, Response = Response>,
+{
+    type Response = Response;
+    type Error = S::Error;
+    type Future =
+        futures_util::future::Either<S::Future, std::future::Ready<Result<Response, S::Error>>>;
+
+    fn poll_ready(
+        &mut self,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Result<(), Self::Error>> {
+        self.inner.poll_ready(cx)
+    }
+
+    fn call(&mut self, req: Request) -> Self::Future {
+        use axum::response::IntoResponse;
+        use futures_util::future::Either;
+        let refusal = match req.extensions().get::<Caller>() {
+            Some(c) if c.role >= self.role => None,
+            Some(c) => Some(ApiError::new(
+                StatusCode::FORBIDDEN,
+                "forbidden",
+                format!(
+                    "token {:?} has role {}; this request needs {}",
+                    c.name,
+                    c.role.name(),
+                    self.role.name()
+                ),
+            )),
+            None => Some(ApiError::internal(
+                "route has no caller: auth layer missing",
+            )),
+        };
+        match refusal {
+            None => Either::Left(self.inner.call(req)),
+            Some(e) => Either::Right(std::future::ready(Ok(e.into_response()))),
+        }
+    }
 }

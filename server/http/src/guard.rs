@@ -25,6 +25,7 @@ pub async fn middleware(
     req: Request,
     next: Next,
 ) -> Result<Response, ApiError> {
+    uri_length(&req)?;
     check(&app.settings, req.method(), req.headers())?;
     Ok(next.run(req).await)
 }
@@ -33,7 +34,7 @@ pub async fn middleware(
 /// hyper's own buffer limit hyper answers itself, without a body).
 pub const MAX_URI_BYTES: usize = 8192;
 
-pub async fn uri_length(req: Request, next: Next) -> Result<Response, ApiError> {
+fn uri_length(req: &Request) -> Result<(), ApiError> {
     let len = req.uri().path_and_query().map_or(0, |p| p.as_str().len());
     if len > MAX_URI_BYTES {
         return Err(ApiError::new(
@@ -42,7 +43,7 @@ pub async fn uri_length(req: Request, next: Next) -> Result<Response, ApiError> 
             format!("the request target is {len} bytes; at most {MAX_URI_BYTES} are accepted"),
         ));
     }
-    Ok(next.run(req).await)
+    Ok(())
 }
 
 fn check(settings: &Settings, method: &Method, headers: &HeaderMap) -> Result<(), ApiError> {

