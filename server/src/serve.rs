@@ -46,6 +46,7 @@ pub async fn run(settings: Settings) -> Result<(), Box<dyn std::error::Error>> {
     }
     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
     spawn_watchdog(app.clone());
+    warn_if_too_few_files(app.settings.max_connections);
     let drain = tokio_util::sync::CancellationToken::new();
     let limits = ConnLimits::from(&app.settings);
     let mut server = tokio::spawn(accept_loop(listener, router, limits, drain.clone()));
@@ -114,6 +115,36 @@ async fn wait_for_signal() {
         _ = ctrl_c => {}
         _ = term => {}
     }
+}
+
+/// Descriptors the server needs besides client connections (database, plugins, pendants, ...).
+const OTHER_FILES: u64 = 128;
+
+/// Says so at start-up when `max_connections` cannot all be open under the process's soft limit
+/// on open files: the cap would then not prevent EMFILE.
+fn warn_if_too_few_files(max_connections: usize) {
+    #[cfg(target_os = "linux")]
+    {
+        let Ok(limits) = std::fs::read_to_string("/proc/self/limits") else {
+            return;
+        };
+        let soft = limits
+            .lines()
+            .find(|l| l.starts_with("Max open files"))
+            .and_then(|l| l.split_whitespace().nth(3))
+            .and_then(|v| v.parse::<u64>().ok());
+        if let Some(soft) = soft {
+            if max_connections as u64 + OTHER_FILES > soft {
+                tracing::warn!(
+                    "max_connections = {max_connections} plus about {OTHER_FILES} other files \
+                     exceeds the open-file limit of {soft}: raise LimitNOFILE (ulimit -n) or \
+                     lower max_connections"
+                );
+            }
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = (max_connections, OTHER_FILES);
 }
 
 /// The connection settings the accept loop needs.
