@@ -33,9 +33,8 @@ pub async fn run(settings: Settings) -> Result<(), Box<dyn std::error::Error>> {
         tracing::info!(file = %f.display(), "config file read");
     }
     tracing::info!(data_dir = %settings.data_dir.display(), "data directory");
-    let listener = tokio::net::TcpListener::bind(settings.listen)
-        .await
-        .map_err(|e| format!("cannot listen on {}: {e}", settings.listen))?;
+    let listener =
+        bind(settings.listen).map_err(|e| format!("cannot listen on {}: {e}", settings.listen))?;
     let bound = listener.local_addr()?;
     let app = App::start(settings).await?;
     let router = fresa_http::router(app.clone());
@@ -115,6 +114,23 @@ async fn wait_for_signal() {
         _ = ctrl_c => {}
         _ = term => {}
     }
+}
+
+/// Connections the kernel queues for us while we are at `max_connections` (the default, 128, is
+/// soon full; past it new clients' SYNs are dropped and they retry only after seconds).
+const LISTEN_BACKLOG: u32 = 1024;
+
+fn bind(addr: std::net::SocketAddr) -> io::Result<TcpListener> {
+    let socket = if addr.is_ipv4() {
+        tokio::net::TcpSocket::new_v4()?
+    } else {
+        tokio::net::TcpSocket::new_v6()?
+    };
+    // As `TcpListener::bind` does: a restart may bind while old connections are in TIME_WAIT.
+    #[cfg(unix)]
+    socket.set_reuseaddr(true)?;
+    socket.bind(addr)?;
+    socket.listen(LISTEN_BACKLOG)
 }
 
 /// Descriptors the server needs besides client connections (database, plugins, pendants, ...).
