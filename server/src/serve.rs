@@ -6,10 +6,24 @@
 //! is still open after it is dropped. So a slow client cannot keep a machine cutting, and the
 //! process always exits well inside systemd's `TimeoutStopSec` (20 s in the shipped unit).
 
+use axum::body::Body;
+use axum::Router;
 use fresa_core::config::Settings;
 use fresa_core::App;
-use std::future::IntoFuture;
+use hyper::body::Incoming;
+use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
+use hyper_util::server::conn::auto;
+use std::io;
+use std::pin::Pin;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::Arc;
+use std::task::{Context, Poll};
 use std::time::Duration;
+use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+use tokio::time::Instant;
+use tokio_util::sync::CancellationToken;
 
 /// At most this long for the backends to confirm they stopped.
 const STOP_MOTION_LIMIT: Duration = Duration::from_secs(5);
@@ -19,9 +33,8 @@ pub async fn run(settings: Settings) -> Result<(), Box<dyn std::error::Error>> {
         tracing::info!(file = %f.display(), "config file read");
     }
     tracing::info!(data_dir = %settings.data_dir.display(), "data directory");
-    let listener = tokio::net::TcpListener::bind(settings.listen)
-        .await
-        .map_err(|e| format!("cannot listen on {}: {e}", settings.listen))?;
+    let listener =
+        bind(settings.listen).map_err(|e| format!("cannot listen on {}: {e}", settings.listen))?;
     let bound = listener.local_addr()?;
     let app = App::start(settings).await?;
     let router = fresa_http::router(app.clone());
@@ -32,13 +45,10 @@ pub async fn run(settings: Settings) -> Result<(), Box<dyn std::error::Error>> {
     }
     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
     spawn_watchdog(app.clone());
+    warn_if_too_few_files(app.settings.max_connections);
     let drain = tokio_util::sync::CancellationToken::new();
-    let drain_signal = drain.clone();
-    let mut server = tokio::spawn(
-        axum::serve(listener, router)
-            .with_graceful_shutdown(async move { drain_signal.cancelled().await })
-            .into_future(),
-    );
+    let limits = ConnLimits::from(&app.settings);
+    let mut server = tokio::spawn(accept_loop(listener, router, limits, drain.clone()));
     tokio::select! {
         _ = wait_for_signal() => {}
         r = &mut server => {
@@ -55,6 +65,7 @@ pub async fn run(settings: Settings) -> Result<(), Box<dyn std::error::Error>> {
     tracing::info!("draining connections for at most {grace:?}");
     drain.cancel();
     app.stop_rest(limit).await;
+    // The accept loop ends once every connection has closed (or is aborted here).
     if !server.is_finished() && tokio::time::timeout(grace, &mut server).await.is_err() {
         tracing::warn!("connections still open after {grace:?}; closing them");
         server.abort();
@@ -102,5 +113,389 @@ async fn wait_for_signal() {
     tokio::select! {
         _ = ctrl_c => {}
         _ = term => {}
+    }
+}
+
+/// Connections the kernel queues for us while we are at `max_connections` (the default, 128, is
+/// soon full; past it new clients' SYNs are dropped and they retry only after seconds).
+const LISTEN_BACKLOG: u32 = 1024;
+
+fn bind(addr: std::net::SocketAddr) -> io::Result<TcpListener> {
+    let socket = if addr.is_ipv4() {
+        tokio::net::TcpSocket::new_v4()?
+    } else {
+        tokio::net::TcpSocket::new_v6()?
+    };
+    // As `TcpListener::bind` does: a restart may bind while old connections are in TIME_WAIT.
+    #[cfg(unix)]
+    socket.set_reuseaddr(true)?;
+    socket.bind(addr)?;
+    socket.listen(LISTEN_BACKLOG)
+}
+
+/// Descriptors the server needs besides client connections (database, plugins, pendants, ...).
+const OTHER_FILES: u64 = 128;
+
+/// Says so at start-up when `max_connections` cannot all be open under the process's soft limit
+/// on open files: the cap would then not prevent EMFILE.
+fn warn_if_too_few_files(max_connections: usize) {
+    #[cfg(target_os = "linux")]
+    {
+        let Ok(limits) = std::fs::read_to_string("/proc/self/limits") else {
+            return;
+        };
+        let soft = limits
+            .lines()
+            .find(|l| l.starts_with("Max open files"))
+            .and_then(|l| l.split_whitespace().nth(3))
+            .and_then(|v| v.parse::<u64>().ok());
+        if let Some(soft) = soft {
+            if max_connections as u64 + OTHER_FILES > soft {
+                tracing::warn!(
+                    "max_connections = {max_connections} plus about {OTHER_FILES} other files \
+                     exceeds the open-file limit of {soft}: raise LimitNOFILE (ulimit -n) or \
+                     lower max_connections"
+                );
+            }
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = (max_connections, OTHER_FILES);
+}
+
+/// The connection settings the accept loop needs.
+#[derive(Debug, Clone, Copy)]
+struct ConnLimits {
+    header_read_timeout: Duration,
+    idle_timeout: Duration,
+    max_connections: usize,
+}
+
+impl From<&Settings> for ConnLimits {
+    fn from(s: &Settings) -> Self {
+        ConnLimits {
+            header_read_timeout: s.header_read_timeout,
+            idle_timeout: s.idle_timeout,
+            max_connections: s.max_connections,
+        }
+    }
+}
+
+/// Accepts connections until `drain` is cancelled, then waits for the open ones to finish.
+///
+/// Each connection holds a permit; at the cap we stop calling `accept`, so further clients wait
+/// in the kernel's listen backlog (costing us no file descriptor) instead of being accepted and
+/// dropped. This is what keeps `/healthz` answerable under a slowloris flood: a stalled client
+/// is closed by the header or idle timeout and its permit goes to the next one in line.
+async fn accept_loop(
+    listener: TcpListener,
+    router: Router,
+    limits: ConnLimits,
+    drain: CancellationToken,
+) {
+    let max = limits.max_connections;
+    let permits = Arc::new(Semaphore::new(max));
+    // HTTP/1 only (as before): `auto` would otherwise first wait for a 24-byte HTTP/2 preface,
+    // a wait the header read timeout does not cover.
+    let mut builder = auto::Builder::new(TokioExecutor::new()).http1_only();
+    builder
+        .http1()
+        .timer(TokioTimer::new())
+        .header_read_timeout(limits.header_read_timeout);
+    let builder = Arc::new(builder);
+    let mut errors = AcceptErrors::default();
+    let mut permit: Option<OwnedSemaphorePermit> = None;
+    // Under a flood every closed connection frees one permit that is taken again at once; the
+    // cap only counts as cleared once a tenth of it is free, so the log says it once each way.
+    let clear_at = (max / 10).max(1);
+    let mut at_cap = false;
+    loop {
+        if at_cap && permits.available_permits() + usize::from(permit.is_some()) >= clear_at {
+            at_cap = false;
+            tracing::info!("connection limit cleared: accepting connections again");
+        }
+        let p = match permit.take() {
+            Some(p) => p,
+            None => match permits.clone().try_acquire_owned() {
+                Ok(p) => p,
+                Err(_) => {
+                    if !at_cap {
+                        at_cap = true;
+                        tracing::warn!(
+                            "connection limit reached: {max} connections open \
+                             (max_connections); new connections wait in the listen backlog"
+                        );
+                    }
+                    let p = tokio::select! {
+                        p = permits.clone().acquire_owned() => p,
+                        _ = drain.cancelled() => break,
+                    };
+                    // The semaphore is never closed, so this is always a permit.
+                    let Ok(p) = p else { break };
+                    p
+                }
+            },
+        };
+        let accepted = tokio::select! {
+            r = listener.accept() => r,
+            _ = drain.cancelled() => break,
+            // Wakes now and then while at the cap, to say so once it has cleared.
+            _ = tokio::time::sleep(Duration::from_secs(1)), if at_cap => {
+                permit = Some(p);
+                continue;
+            }
+        };
+        match accepted {
+            Ok((stream, _peer)) => {
+                let _ = stream.set_nodelay(true);
+                tokio::spawn(serve_connection(
+                    builder.clone(),
+                    stream,
+                    router.clone(),
+                    limits.idle_timeout,
+                    drain.clone(),
+                    p,
+                ));
+            }
+            Err(e) => {
+                permit = Some(p);
+                errors.log(&e);
+                // Out of descriptors or memory: accepting again at once would fail again and
+                // spin; give the open connections a moment to close. A connection that died
+                // in the backlog is not our problem, so carry on at once.
+                if !matches!(
+                    e.kind(),
+                    io::ErrorKind::ConnectionAborted
+                        | io::ErrorKind::ConnectionReset
+                        | io::ErrorKind::Interrupted
+                ) {
+                    tokio::select! {
+                        _ = tokio::time::sleep(ACCEPT_BACKOFF) => {}
+                        _ = drain.cancelled() => break,
+                    }
+                }
+            }
+        }
+    }
+    // New connections are refused from here on.
+    drop(listener);
+    drop(permit);
+    // Every open connection holds a permit: all of them back means all closed.
+    let _ = permits.acquire_many(max as u32).await;
+}
+
+/// How long to wait before accepting again after an accept error such as EMFILE.
+const ACCEPT_BACKOFF: Duration = Duration::from_millis(100);
+
+/// Logs accept errors at most once a second, counting the ones it left out.
+#[derive(Default)]
+struct AcceptErrors {
+    last: Option<Instant>,
+    suppressed: u64,
+}
+
+impl AcceptErrors {
+    fn log(&mut self, e: &io::Error) {
+        let now = Instant::now();
+        if self
+            .last
+            .is_some_and(|t| now.duration_since(t) < Duration::from_secs(1))
+        {
+            self.suppressed += 1;
+            return;
+        }
+        let more = std::mem::take(&mut self.suppressed);
+        if more > 0 {
+            tracing::error!("accept error: {e} ({more} more in the last second)");
+        } else {
+            tracing::error!("accept error: {e}");
+        }
+        self.last = Some(now);
+    }
+}
+
+/// Serves one connection until it ends, the server drains, or it sits idle: no request in
+/// progress and no bytes moving for `idle` (hyper's header read timeout also closes a kept-alive
+/// connection whose next request head does not arrive in time).
+async fn serve_connection(
+    builder: Arc<auto::Builder<TokioExecutor>>,
+    stream: TcpStream,
+    router: Router,
+    idle: Duration,
+    drain: CancellationToken,
+    _permit: OwnedSemaphorePermit,
+) {
+    let activity = Arc::new(Activity::new());
+    let io = TokioIo::new(Tracked {
+        inner: stream,
+        activity: activity.clone(),
+    });
+    let in_flight = activity.clone();
+    let service = hyper::service::service_fn(move |req: hyper::Request<Incoming>| {
+        let router = router.clone();
+        let guard = InFlight::enter(in_flight.clone());
+        async move {
+            let resp = tower::ServiceExt::oneshot(router, req).await?;
+            Ok::<_, std::convert::Infallible>(resp.map(|inner| Guarded {
+                inner,
+                _guard: guard,
+            }))
+        }
+    });
+    let conn = builder.serve_connection(io, service);
+    tokio::pin!(conn);
+    let mut draining = false;
+    loop {
+        let check = activity.next_idle_check(idle);
+        tokio::select! {
+            r = conn.as_mut() => {
+                if let Err(e) = r {
+                    tracing::debug!("connection ended: {e}");
+                }
+                break;
+            }
+            _ = drain.cancelled(), if !draining => {
+                draining = true;
+                conn.as_mut().graceful_shutdown();
+            }
+            _ = tokio::time::sleep_until(check) => {
+                if activity.is_idle_for(idle) {
+                    tracing::debug!("closing a connection idle for {idle:?}");
+                    break;
+                }
+            }
+        }
+    }
+}
+
+/// When a connection last moved bytes, and how many of its requests are being answered.
+struct Activity {
+    start: Instant,
+    last_ms: AtomicU64,
+    in_flight: AtomicUsize,
+}
+
+impl Activity {
+    fn new() -> Self {
+        Activity {
+            start: Instant::now(),
+            last_ms: AtomicU64::new(0),
+            in_flight: AtomicUsize::new(0),
+        }
+    }
+    fn touch(&self) {
+        let ms = self.start.elapsed().as_millis() as u64;
+        self.last_ms.store(ms, Ordering::Relaxed);
+    }
+    fn last(&self) -> Instant {
+        self.start + Duration::from_millis(self.last_ms.load(Ordering::Relaxed))
+    }
+    fn is_idle_for(&self, idle: Duration) -> bool {
+        self.in_flight.load(Ordering::Relaxed) == 0 && self.last().elapsed() >= idle
+    }
+    /// While a request is being answered (a long upload, an event stream, a slow backend) the
+    /// connection is not idle; look again later.
+    fn next_idle_check(&self, idle: Duration) -> Instant {
+        if self.in_flight.load(Ordering::Relaxed) > 0 {
+            Instant::now() + idle
+        } else {
+            self.last() + idle
+        }
+    }
+}
+
+/// Counts a request as in progress from its head until its response body is dropped.
+struct InFlight(Arc<Activity>);
+
+impl InFlight {
+    fn enter(a: Arc<Activity>) -> Self {
+        a.in_flight.fetch_add(1, Ordering::Relaxed);
+        InFlight(a)
+    }
+}
+
+impl Drop for InFlight {
+    fn drop(&mut self) {
+        self.0.in_flight.fetch_sub(1, Ordering::Relaxed);
+        self.0.touch();
+    }
+}
+
+/// A response body that keeps its request counted as in progress until it is done.
+struct Guarded {
+    inner: Body,
+    _guard: InFlight,
+}
+
+impl http_body::Body for Guarded {
+    type Data = <Body as http_body::Body>::Data;
+    type Error = <Body as http_body::Body>::Error;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<http_body::Frame<Self::Data>, Self::Error>>> {
+        Pin::new(&mut self.inner).poll_frame(cx)
+    }
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+    fn size_hint(&self) -> http_body::SizeHint {
+        self.inner.size_hint()
+    }
+}
+
+/// A socket that records when bytes last moved either way.
+struct Tracked {
+    inner: TcpStream,
+    activity: Arc<Activity>,
+}
+
+impl AsyncRead for Tracked {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<io::Result<()>> {
+        let before = buf.filled().len();
+        let r = Pin::new(&mut self.inner).poll_read(cx, buf);
+        if matches!(r, Poll::Ready(Ok(()))) && buf.filled().len() > before {
+            self.activity.touch();
+        }
+        r
+    }
+}
+
+impl AsyncWrite for Tracked {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<io::Result<usize>> {
+        let r = Pin::new(&mut self.inner).poll_write(cx, buf);
+        if matches!(r, Poll::Ready(Ok(n)) if n > 0) {
+            self.activity.touch();
+        }
+        r
+    }
+    fn poll_write_vectored(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        bufs: &[io::IoSlice<'_>],
+    ) -> Poll<io::Result<usize>> {
+        let r = Pin::new(&mut self.inner).poll_write_vectored(cx, bufs);
+        if matches!(r, Poll::Ready(Ok(n)) if n > 0) {
+            self.activity.touch();
+        }
+        r
+    }
+    fn is_write_vectored(&self) -> bool {
+        self.inner.is_write_vectored()
+    }
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Pin::new(&mut self.inner).poll_flush(cx)
+    }
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Pin::new(&mut self.inner).poll_shutdown(cx)
     }
 }

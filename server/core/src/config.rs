@@ -6,6 +6,13 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:7878";
+pub const DEFAULT_HEADER_READ_TIMEOUT_SECS: u64 = 30;
+pub const DEFAULT_IDLE_TIMEOUT_SECS: u64 = 15;
+pub const DEFAULT_UPLOAD_IDLE_TIMEOUT_SECS: u64 = 60;
+/// Fits under the usual soft limit of 1,024 open files with room for the database, plugins and
+/// pendant links; the systemd unit's `LimitNOFILE` leaves room to raise it.
+pub const DEFAULT_MAX_CONNECTIONS: usize = 512;
+pub const MAX_MAX_CONNECTIONS: usize = 100_000;
 
 /// What the TOML file may contain. Unknown keys are an error so a typo is not silently ignored.
 #[derive(Debug, Default, Deserialize)]
@@ -26,6 +33,10 @@ pub struct FileConfig {
     pub event_retention_count: Option<u64>,
     pub audit_retention_days: Option<u32>,
     pub event_prune_interval_secs: Option<u64>,
+    pub header_read_timeout_secs: Option<u64>,
+    pub idle_timeout_secs: Option<u64>,
+    pub max_connections: Option<usize>,
+    pub upload_idle_timeout_secs: Option<u64>,
     pub log: Option<String>,
     /// Host names (or `name:port`) besides the listen address and `localhost` that requests may
     /// be addressed to, e.g. the name a reverse proxy or the shop's DNS gives this server.
@@ -58,6 +69,15 @@ pub struct Settings {
     /// How long open connections may drain on shutdown, after motion has stopped.
     pub shutdown_grace: Duration,
     pub event_retention: EventRetention,
+    /// How long a client may take to send a request's head (from connecting, or from the end of
+    /// the previous response on a kept-alive connection).
+    pub header_read_timeout: Duration,
+    /// A connection with no request in progress and no bytes moving for this long is closed.
+    pub idle_timeout: Duration,
+    /// Open connections at most; beyond it new ones wait in the kernel's backlog.
+    pub max_connections: usize,
+    /// An upload whose body sends nothing for this long is dropped.
+    pub upload_idle_timeout: Duration,
     pub demo: bool,
     pub config_file: Option<PathBuf>,
     pub log: Option<String>,
@@ -256,6 +276,38 @@ impl Settings {
                 "shutdown_grace_secs must be at most 60 (systemd stops waiting at 90 s), got {grace}"
             )));
         }
+        let secs = |key: &str, v: Option<u64>, default: u64| {
+            let v = v.unwrap_or(default);
+            if (1..=3600).contains(&v) {
+                Ok(Duration::from_secs(v))
+            } else {
+                Err(ConfigError::Invalid(format!(
+                    "{key} must be between 1 and 3600, got {v}"
+                )))
+            }
+        };
+        let header_read_timeout = secs(
+            "header_read_timeout_secs",
+            file.header_read_timeout_secs,
+            DEFAULT_HEADER_READ_TIMEOUT_SECS,
+        )?;
+        let idle_timeout = secs(
+            "idle_timeout_secs",
+            file.idle_timeout_secs,
+            DEFAULT_IDLE_TIMEOUT_SECS,
+        )?;
+        let upload_idle_timeout = secs(
+            "upload_idle_timeout_secs",
+            file.upload_idle_timeout_secs,
+            DEFAULT_UPLOAD_IDLE_TIMEOUT_SECS,
+        )?;
+        let max_connections = file.max_connections.unwrap_or(DEFAULT_MAX_CONNECTIONS);
+        // Bounded by what one semaphore can hand out at once (shutdown waits for all permits).
+        if !(1..=MAX_MAX_CONNECTIONS).contains(&max_connections) {
+            return Err(ConfigError::Invalid(format!(
+                "max_connections must be between 1 and {MAX_MAX_CONNECTIONS}, got {max_connections}"
+            )));
+        }
         Ok(Settings {
             listen,
             data_dir,
@@ -269,6 +321,10 @@ impl Settings {
             sse_keepalive: Duration::from_secs(file.sse_keepalive_secs.unwrap_or(15)),
             shutdown_grace: Duration::from_secs(grace),
             event_retention,
+            header_read_timeout,
+            idle_timeout,
+            max_connections,
+            upload_idle_timeout,
             demo: o.demo,
             config_file,
             log: file.log,
@@ -374,6 +430,39 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("event_retention_count"), "{e}");
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn connection_settings_have_defaults_and_bounds() {
+        let dir = std::env::temp_dir().join(format!("fresa-cfg4-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let f = dir.join("f.toml");
+        let resolve = |toml: &str| {
+            std::fs::write(&f, toml).unwrap();
+            Settings::resolve(Overrides {
+                config: Some(f.clone()),
+                data_dir: Some(dir.clone()),
+                ..Default::default()
+            })
+        };
+        let s = resolve("").unwrap();
+        assert_eq!(s.header_read_timeout, Duration::from_secs(30));
+        assert_eq!(s.idle_timeout, Duration::from_secs(15));
+        assert_eq!(s.max_connections, 512);
+        assert_eq!(s.upload_idle_timeout, Duration::from_secs(60));
+        let s = resolve("header_read_timeout_secs = 2\nmax_connections = 64\n").unwrap();
+        assert_eq!(s.header_read_timeout, Duration::from_secs(2));
+        assert_eq!(s.max_connections, 64);
+        for (toml, key) in [
+            ("header_read_timeout_secs = 0\n", "header_read_timeout_secs"),
+            ("idle_timeout_secs = 4000\n", "idle_timeout_secs"),
+            ("upload_idle_timeout_secs = 0\n", "upload_idle_timeout_secs"),
+            ("max_connections = 0\n", "max_connections"),
+        ] {
+            let e = resolve(toml).unwrap_err().to_string();
+            assert!(e.contains(key), "{toml}: {e}");
+        }
         std::fs::remove_dir_all(dir).ok();
     }
 }

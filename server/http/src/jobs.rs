@@ -97,6 +97,7 @@ pub async fn upload(
         check_machine(&app, params.machine).await?;
     }
     let limit = app.settings.max_upload_bytes;
+    let idle = app.settings.upload_idle_timeout;
     let dir = app.settings.programs_dir();
     let mut pending = PendingProgram::create(&dir, limit).await?;
     let mut file_name = None;
@@ -105,9 +106,8 @@ pub async fn upload(
             .await
             .map_err(|e| ApiError::bad_request("invalid_multipart", e.body_text()))?;
         let mut got_file = false;
-        while let Some(mut field) = mp
-            .next_field()
-            .await
+        while let Some(mut field) = within(idle, mp.next_field())
+            .await?
             .map_err(|e| ApiError::bad_request("invalid_multipart", e.body_text()))?
         {
             match field.name().unwrap_or("") {
@@ -120,9 +120,8 @@ pub async fn upload(
                         ));
                     }
                     file_name = field.file_name().map(str::to_string);
-                    while let Some(chunk) = field
-                        .chunk()
-                        .await
+                    while let Some(chunk) = within(idle, field.chunk())
+                        .await?
                         .map_err(|e| ApiError::bad_request("invalid_multipart", e.body_text()))?
                     {
                         pending.write(&chunk).await?;
@@ -131,9 +130,8 @@ pub async fn upload(
                 }
                 other @ ("machine" | "name" | "sha256") => {
                     let other = other.to_string();
-                    let text = field
-                        .text()
-                        .await
+                    let text = within(idle, field.text())
+                        .await?
                         .map_err(|e| ApiError::bad_request("invalid_multipart", e.body_text()))?;
                     match other.as_str() {
                         "machine" => {
@@ -165,7 +163,7 @@ pub async fn upload(
         check_machine(&app, params.machine).await?;
     } else {
         let mut stream = req.into_body().into_data_stream();
-        while let Some(chunk) = stream.next().await {
+        while let Some(chunk) = within(idle, stream.next()).await? {
             let chunk = chunk.map_err(|e| {
                 ApiError::bad_request("upload_aborted", format!("upload did not complete: {e}"))
             })?;
@@ -190,6 +188,25 @@ pub async fn upload(
         StatusCode::CREATED,
         Json(json!({"id": id, "sha256": sha, "line_count": lines, "analysis": analysis})),
     ))
+}
+
+/// One read of an upload's body, bounded by `upload_idle_timeout_secs`: a client that stops
+/// sending gets a JSON error and its temporary file is removed (when `PendingProgram` drops),
+/// instead of holding a connection and a file open for ever.
+async fn within<T>(
+    idle: std::time::Duration,
+    read: impl std::future::Future<Output = T>,
+) -> Result<T, ApiError> {
+    tokio::time::timeout(idle, read).await.map_err(|_| {
+        ApiError::new(
+            StatusCode::REQUEST_TIMEOUT,
+            "upload_timeout",
+            format!(
+                "the upload sent nothing for {} s (upload_idle_timeout_secs); it was dropped",
+                idle.as_secs()
+            ),
+        )
+    })
 }
 
 async fn check_machine(app: &SharedApp, machine: Option<i64>) -> Result<(), ApiError> {
