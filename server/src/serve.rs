@@ -7,7 +7,6 @@
 //! process always exits well inside systemd's `TimeoutStopSec` (20 s in the shipped unit).
 
 use axum::body::Body;
-use axum::Router;
 use fresa_core::config::Settings;
 use fresa_core::App;
 use hyper::body::Incoming;
@@ -37,7 +36,7 @@ pub async fn run(settings: Settings) -> Result<(), Box<dyn std::error::Error>> {
         bind(settings.listen).map_err(|e| format!("cannot listen on {}: {e}", settings.listen))?;
     let bound = listener.local_addr()?;
     let app = App::start(settings).await?;
-    let router = fresa_http::router(app.clone());
+    let router = fresa_http::service(app.clone());
     // This exact phrase is what scripts and tests wait for.
     tracing::info!("listening on http://{bound}");
     if !app.settings.loopback_only() {
@@ -189,7 +188,7 @@ impl From<&Settings> for ConnLimits {
 /// is closed by the header or idle timeout and its permit goes to the next one in line.
 async fn accept_loop(
     listener: TcpListener,
-    router: Router,
+    router: fresa_http::Service,
     limits: ConnLimits,
     drain: CancellationToken,
 ) {
@@ -320,7 +319,7 @@ impl AcceptErrors {
 async fn serve_connection(
     builder: Arc<auto::Builder<TokioExecutor>>,
     stream: TcpStream,
-    router: Router,
+    router: fresa_http::Service,
     idle: Duration,
     drain: CancellationToken,
     _permit: OwnedSemaphorePermit,
@@ -335,7 +334,7 @@ async fn serve_connection(
         let router = router.clone();
         let guard = InFlight::enter(in_flight.clone());
         async move {
-            let resp = tower::ServiceExt::oneshot(router, req).await?;
+            let resp = tower::ServiceExt::oneshot(router, req.map(axum::body::Body::new)).await?;
             Ok::<_, std::convert::Infallible>(resp.map(|inner| Guarded {
                 inner,
                 _guard: guard,
@@ -345,8 +344,11 @@ async fn serve_connection(
     let conn = builder.serve_connection(io, service);
     tokio::pin!(conn);
     let mut draining = false;
+    // Idle: nothing in progress and no bytes moved during one whole period, so a connection
+    // is closed between `idle` and twice `idle` after it went quiet.
+    let mut check = tokio::time::interval_at(tokio::time::Instant::now() + idle, idle);
+    let mut seen = activity.moves();
     loop {
-        let check = activity.next_idle_check(idle);
         tokio::select! {
             r = conn.as_mut() => {
                 if let Err(e) = r {
@@ -358,49 +360,41 @@ async fn serve_connection(
                 draining = true;
                 conn.as_mut().graceful_shutdown();
             }
-            _ = tokio::time::sleep_until(check) => {
-                if activity.is_idle_for(idle) {
+            _ = check.tick() => {
+                let now = activity.moves();
+                if !activity.in_flight() && now == seen {
                     tracing::debug!("closing a connection idle for {idle:?}");
                     break;
                 }
+                seen = now;
             }
         }
     }
 }
 
-/// When a connection last moved bytes, and how many of its requests are being answered.
+/// Whether a connection moved bytes, and how many of its requests are being answered. Bytes
+/// moving only bump a counter (no clock read per read or write: this is on every request's
+/// path); the idle check compares the counter across one idle period.
 struct Activity {
-    start: Instant,
-    last_ms: AtomicU64,
+    moves: AtomicU64,
     in_flight: AtomicUsize,
 }
 
 impl Activity {
     fn new() -> Self {
         Activity {
-            start: Instant::now(),
-            last_ms: AtomicU64::new(0),
+            moves: AtomicU64::new(0),
             in_flight: AtomicUsize::new(0),
         }
     }
     fn touch(&self) {
-        let ms = self.start.elapsed().as_millis() as u64;
-        self.last_ms.store(ms, Ordering::Relaxed);
+        self.moves.fetch_add(1, Ordering::Relaxed);
     }
-    fn last(&self) -> Instant {
-        self.start + Duration::from_millis(self.last_ms.load(Ordering::Relaxed))
+    fn moves(&self) -> u64 {
+        self.moves.load(Ordering::Relaxed)
     }
-    fn is_idle_for(&self, idle: Duration) -> bool {
-        self.in_flight.load(Ordering::Relaxed) == 0 && self.last().elapsed() >= idle
-    }
-    /// While a request is being answered (a long upload, an event stream, a slow backend) the
-    /// connection is not idle; look again later.
-    fn next_idle_check(&self, idle: Duration) -> Instant {
-        if self.in_flight.load(Ordering::Relaxed) > 0 {
-            Instant::now() + idle
-        } else {
-            self.last() + idle
-        }
+    fn in_flight(&self) -> bool {
+        self.in_flight.load(Ordering::Relaxed) > 0
     }
 }
 

@@ -10,24 +10,59 @@
 //!   not browsers' and pass.
 //!
 //! CORS stays deny-by-default: only origins in `cors_origins` get CORS headers (see `router`).
+//! The guard wraps the whole router once (`fresa_http::service`).
 
 use crate::error::ApiError;
-use axum::extract::{Request, State};
+use axum::extract::Request;
 use axum::http::{header, HeaderMap, Method, StatusCode};
-use axum::middleware::Next;
 use axum::response::Response;
 use fresa_core::config::Settings;
-use fresa_core::SharedApp;
 use std::net::IpAddr;
 
-pub async fn middleware(
-    State(app): State<SharedApp>,
-    req: Request,
-    next: Next,
-) -> Result<Response, ApiError> {
-    uri_length(&req)?;
-    check(&app.settings, req.method(), req.headers())?;
-    Ok(next.run(req).await)
+/// The guard as a plain tower layer (it runs on every request, so it boxes nothing).
+#[derive(Clone)]
+pub struct Guard(pub std::sync::Arc<Settings>);
+
+impl<S> tower::Layer<S> for Guard {
+    type Service = Guarded<S>;
+    fn layer(&self, inner: S) -> Guarded<S> {
+        Guarded {
+            settings: self.0.clone(),
+            inner,
+        }
+    }
+}
+
+#[derive(Clone)]
+pub struct Guarded<S> {
+    settings: std::sync::Arc<Settings>,
+    inner: S,
+}
+
+impl<S> tower::Service<Request> for Guarded<S>
+where
+    S: tower::Service<Request, Response = Response>,
+{
+    type Response = Response;
+    type Error = S::Error;
+    type Future =
+        futures_util::future::Either<S::Future, std::future::Ready<Result<Response, S::Error>>>;
+
+    fn poll_ready(
+        &mut self,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Result<(), Self::Error>> {
+        self.inner.poll_ready(cx)
+    }
+
+    fn call(&mut self, req: Request) -> Self::Future {
+        use axum::response::IntoResponse;
+        use futures_util::future::Either;
+        match uri_length(&req).and_then(|()| check(&self.settings, req.method(), req.headers())) {
+            Ok(()) => Either::Left(self.inner.call(req)),
+            Err(e) => Either::Right(std::future::ready(Ok(e.into_response()))),
+        }
+    }
 }
 
 /// Longest request target (path and query) answered; longer ones get a JSON 414 here (beyond

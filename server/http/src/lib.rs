@@ -98,11 +98,7 @@ pub fn router(app: SharedApp) -> Router {
             )),
         )
         .fallback(not_found)
-        .method_not_allowed_fallback(method_not_allowed)
-        .layer(axum::middleware::from_fn_with_state(
-            app.clone(),
-            guard::middleware,
-        ));
+        .method_not_allowed_fallback(method_not_allowed);
     // CORS only when some origin is allowed: deny-by-default needs no layer at all.
     let router = if app.settings.cors_origins.is_empty() {
         router
@@ -125,6 +121,17 @@ pub fn router(app: SharedApp) -> Router {
         )
         .with_state(app)
 }
+
+/// The whole HTTP service: the router behind the cross-site and rebinding guard. The guard wraps
+/// the router once (not each route), so a request pays for it once.
+pub fn service(app: SharedApp) -> Service {
+    use tower::Layer;
+    let settings = std::sync::Arc::new(app.settings.clone());
+    guard::Guard(settings).layer(router(app))
+}
+
+/// What `service` returns: serve it with hyper (requests with an axum `Body`).
+pub type Service = guard::Guarded<Router>;
 
 /// Deny-by-default CORS: only the configured origins get CORS headers (and preflights).
 fn cors(origins: &[String]) -> tower_http::cors::CorsLayer {
