@@ -770,11 +770,38 @@ fn a_pendant_on_a_machine_in_alarm_moves_nothing_but_may_reset_it() {
     wait_work(&s, m, "x = 1 after reset", |w| close(w[0], 1.0));
 }
 
-/// Lines of a program, `n` of them, each a small move.
-fn program_lines(n: usize) -> Vec<String> {
-    (0..n)
+/// A server with a sim machine and a bound pendant whose simulator prints every poll answer
+/// (so answers can be counted), and a program file of `lines` small moves.
+struct UploadRig {
+    s: Server,
+    m: i64,
+    p: i64,
+    sim: PendantSim,
+    prog: std::path::PathBuf,
+    /// Holds `prog`: bind it (`_dir`, not `_` or `..`) for as long as the file is needed.
+    _dir: tempfile::TempDir,
+}
+
+fn upload_rig(lines: usize) -> UploadRig {
+    let s = Server::start();
+    let m = s.sim("mill", 0.0).id;
+    let sim = PendantSim::start_with(&["--poll-hz", "20"]);
+    let p = add_pendant(&s, "wheel", &sim.addr, Some(m), json!({}));
+    wait_connected(&s, p, true);
+    let dir = tempfile::tempdir().unwrap();
+    let prog = dir.path().join("p.nc");
+    let text: Vec<String> = (0..lines)
         .map(|i| format!("G1 X{} Y{} F600", i % 50, (i * 7) % 40))
-        .collect()
+        .collect();
+    std::fs::write(&prog, text.join("\n")).unwrap();
+    UploadRig {
+        s,
+        m,
+        p,
+        sim,
+        prog,
+        _dir: dir,
+    }
 }
 
 #[test]
@@ -829,15 +856,14 @@ fn firmware_blank_lines_are_counted_but_not_sent_and_the_upload_is_accepted() {
 
 #[test]
 fn stop_in_the_middle_of_an_upload_aborts_it_and_the_next_polls_are_answered() {
-    let s = Server::start();
-    let m = s.sim("mill", 0.0).id;
-    // Not quiet: every N51 answer is printed, so answers can be counted.
-    let mut sim = PendantSim::start_with(&["--poll-hz", "20"]);
-    let p = add_pendant(&s, "wheel", &sim.addr, Some(m), json!({}));
-    wait_connected(&s, p, true);
-    let dir = tempfile::tempdir().unwrap();
-    let prog = dir.path().join("p.nc");
-    std::fs::write(&prog, program_lines(40).join("\n")).unwrap();
+    let UploadRig {
+        s,
+        m,
+        mut sim,
+        prog,
+        _dir,
+        ..
+    } = upload_rig(40);
 
     // STOP after 5 of 40 lines: no N03FIN; the firmware's main loop polls N0451 again.
     sim.cmd(&format!(
@@ -870,14 +896,14 @@ fn stop_in_the_middle_of_an_upload_aborts_it_and_the_next_polls_are_answered() {
 
 #[test]
 fn a_file_over_255_lines_that_the_firmware_re_sends_forever_is_rejected_naming_the_limit() {
-    let s = Server::start();
-    let m = s.sim("mill", 0.0).id;
-    let mut sim = PendantSim::start_with(&["--poll-hz", "20"]);
-    let p = add_pendant(&s, "wheel", &sim.addr, Some(m), json!({}));
-    wait_connected(&s, p, true);
-    let dir = tempfile::tempdir().unwrap();
-    let prog = dir.path().join("long.nc");
-    std::fs::write(&prog, program_lines(300).join("\n")).unwrap();
+    let UploadRig {
+        s,
+        p,
+        mut sim,
+        prog,
+        _dir,
+        ..
+    } = upload_rig(300);
 
     // The 8-bit counter wraps after 255: lines 0..255 again and again, never N03FIN, until the
     // operator gives up and presses STOP (here after 2,000 lines).
