@@ -782,11 +782,11 @@ struct UploadRig {
     _dir: tempfile::TempDir,
 }
 
-fn upload_rig(lines: usize) -> UploadRig {
+fn upload_rig(lines: usize, config: Value) -> UploadRig {
     let s = Server::start();
     let m = s.sim("mill", 0.0).id;
     let sim = PendantSim::start_with(&["--poll-hz", "20"]);
-    let p = add_pendant(&s, "wheel", &sim.addr, Some(m), json!({}));
+    let p = add_pendant(&s, "wheel", &sim.addr, Some(m), config);
     wait_connected(&s, p, true);
     let dir = tempfile::tempdir().unwrap();
     let prog = dir.path().join("p.nc");
@@ -863,7 +863,7 @@ fn stop_in_the_middle_of_an_upload_aborts_it_and_the_next_polls_are_answered() {
         prog,
         _dir,
         ..
-    } = upload_rig(40);
+    } = upload_rig(40, json!({}));
 
     // STOP after 5 of 40 lines: no N03FIN; the firmware's main loop polls N0451 again.
     sim.cmd(&format!(
@@ -903,7 +903,7 @@ fn a_file_over_255_lines_that_the_firmware_re_sends_forever_is_rejected_naming_t
         prog,
         _dir,
         ..
-    } = upload_rig(300);
+    } = upload_rig(300, json!({}));
 
     // The 8-bit counter wraps after 255: lines 0..255 again and again, never N03FIN, until the
     // operator gives up and presses STOP (here after 2,000 lines).
@@ -937,4 +937,33 @@ fn a_file_over_255_lines_that_the_firmware_re_sends_forever_is_rejected_naming_t
     assert_eq!(sim.received("N53"), 0);
     let p = s.get(&format!("/api/v1/pendants/{p}")).expect(200);
     assert_eq!(p["connected"], true);
+}
+
+#[test]
+fn an_upload_without_n03fin_times_out_naming_the_firmware_limit() {
+    let UploadRig {
+        s,
+        mut sim,
+        prog,
+        _dir,
+        ..
+    } = upload_rig(300, json!({"upload_idle_ms": 300}));
+    // A pendant that stops sending mid-upload and does not poll: only the time-out ends it.
+    sim.cmd("poll 0");
+    sim.cmd(&format!(
+        "upload {} gap=0 end=lf stop-after=100",
+        prog.display()
+    ));
+    let e = wait_event(&s, "time-out", |e| e.event == "pendant.upload_rejected");
+    let reason = e.data["data"]["reason"].as_str().unwrap();
+    assert!(
+        reason.contains("no N03FIN for 300 ms after 100 of 300 lines")
+            && reason.contains("8-bit line counter"),
+        "{e:?}"
+    );
+    s.assert_no_jobs();
+    // Back in frame mode: a poll is answered.
+    let from = sim.seen.len();
+    sim.cmd("poll 20");
+    sim.wait_received_since(from, "N51", 1);
 }
