@@ -585,8 +585,11 @@ impl Decoder {
         // in it.
         let mut data = std::mem::take(&mut raw.pending);
         let boundary = if raw.terminated { 0 } else { data.len() };
+        // The held bytes were searched last time: only a frame that reaches into this read can
+        // be new (so a long line arriving in many small reads costs linear time).
+        let scan_from = data.len().saturating_sub(FRAME_LEN - 1);
         data.extend_from_slice(&input);
-        let hit = find_frame_in_upload(&data);
+        let hit = find_frame_in_upload(&data, scan_from);
         let body_end = hit.as_ref().map_or(data.len(), |(i, _)| *i);
         if data[..body_end].contains(&b'\n') {
             raw.terminated = true;
@@ -679,9 +682,8 @@ fn describe(f: &Frame) -> String {
     }
 }
 
-/// The first place in `data` where a frame that ends an upload starts.
-fn find_frame_in_upload(data: &[u8]) -> Option<(usize, Frame)> {
-    let mut from = 0;
+/// The first place in `data`, from `from` on, where a frame that ends an upload starts.
+fn find_frame_in_upload(data: &[u8], mut from: usize) -> Option<(usize, Frame)> {
     while let Some(i) = data[from..]
         .iter()
         .position(|&b| b == b'N')
