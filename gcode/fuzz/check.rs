@@ -34,7 +34,11 @@ pub fn interp(data: &[u8]) {
         assert!(!errored, "the stream went on after an error");
         match r {
             Ok(m) => {
-                assert!(m.line() >= 1 && m.line() >= last_line, "line {} after {last_line}", m.line());
+                assert!(
+                    m.line() >= 1 && m.line() >= last_line,
+                    "line {} after {last_line}",
+                    m.line()
+                );
                 last_line = m.line();
                 check_motion(&m);
             }

@@ -19,7 +19,10 @@ fn the_saved_fuzz_inputs_still_pass() {
         };
         let mut paths: Vec<_> = entries.map(|e| e.unwrap().path()).collect();
         paths.sort();
-        for path in paths.into_iter().filter(|p| p.is_file() && !p.file_name().unwrap().to_string_lossy().starts_with('.')) {
+        for path in paths
+            .into_iter()
+            .filter(|p| p.is_file() && !p.file_name().unwrap().to_string_lossy().starts_with('.'))
+        {
             let data = std::fs::read(&path).unwrap();
             let name = path.display().to_string();
             if let Err(e) = std::panic::catch_unwind(|| check::interp(&data)) {
