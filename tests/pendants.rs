@@ -24,8 +24,13 @@ struct PendantSim {
 
 impl PendantSim {
     fn start() -> PendantSim {
+        Self::start_with(&["--quiet-polls"])
+    }
+
+    fn start_with(args: &[&str]) -> PendantSim {
         let mut child = Command::new(bin_dir().join("mpg-pendant-sim"))
-            .args(["--listen", "127.0.0.1:0", "--quiet-polls"])
+            .args(["--listen", "127.0.0.1:0"])
+            .args(args)
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .spawn()
@@ -84,10 +89,31 @@ impl PendantSim {
     }
 
     fn received(&self, prefix: &str) -> usize {
-        self.seen
+        self.received_since(0, prefix)
+    }
+
+    fn received_since(&self, from: usize, prefix: &str) -> usize {
+        self.seen[from..]
             .iter()
             .filter(|l| l.starts_with(&format!("recv {prefix}")))
             .count()
+    }
+
+    /// Waits until `n` frames starting with `prefix` were received after line `from`.
+    #[track_caller]
+    fn wait_received_since(&mut self, from: usize, prefix: &str, n: usize) {
+        let deadline = Instant::now() + T;
+        while self.received_since(from, prefix) < n {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.rx.recv_timeout(left) {
+                Ok(l) => self.seen.push(l),
+                Err(_) => panic!(
+                    "sim received {} of {n} {prefix} frames after line {from}; saw {:?}",
+                    self.received_since(from, prefix),
+                    &self.seen[from..]
+                ),
+            }
+        }
     }
 }
 
@@ -441,12 +467,19 @@ fn firmware_paced_upload_with_n_lines_and_count_mismatches() {
     let text = "G21 G90\nN10 G1 X5 F300\nN20 G1 Y5\nN0451 G0 Z1\nM2\n";
     std::fs::write(&prog, text).unwrap();
 
-    // Wrong line count, then wrong character count: no job, no N53, an event saying why.
-    sim.cmd(&format!("upload {} gap=0 end=lf lines+=1", prog.display()));
+    // More lines than declared, then a wrong character count: no job, no N53, an event saying
+    // why. (Fewer lines than declared are blank lines the firmware does not send: see below.)
+    sim.cmd(&format!("upload {} gap=0 end=lf lines+=-1", prog.display()));
     let e = wait_event(&s, "line count rejection", |e| {
         e.event == "pendant.upload_rejected"
     });
-    assert_eq!(e.data["data"]["code"], "line_count_mismatch", "{e:?}");
+    assert!(
+        e.data["data"]["reason"]
+            .as_str()
+            .unwrap()
+            .contains("more lines than the 4 its N03START declared"),
+        "{e:?}"
+    );
     sim.cmd(&format!("upload {} gap=0 end=lf chars+=3", prog.display()));
     let e = wait_event(&s, "char count rejection", |e| {
         e.event == "pendant.upload_rejected" && e.data["data"]["code"] == "char_count_mismatch"
@@ -735,4 +768,202 @@ fn a_pendant_on_a_machine_in_alarm_moves_nothing_but_may_reset_it() {
     s.wait_machine_state(m, "idle", T);
     sim.cmd("jog X 100 0.01");
     wait_work(&s, m, "x = 1 after reset", |w| close(w[0], 1.0));
+}
+
+/// A server with a sim machine and a bound pendant whose simulator prints every poll answer
+/// (so answers can be counted), and a program file of `lines` small moves.
+struct UploadRig {
+    s: Server,
+    m: i64,
+    p: i64,
+    sim: PendantSim,
+    prog: std::path::PathBuf,
+    /// Holds `prog`: bind it (`_dir`, not `_` or `..`) for as long as the file is needed.
+    _dir: tempfile::TempDir,
+}
+
+fn upload_rig(lines: usize, config: Value) -> UploadRig {
+    let s = Server::start();
+    let m = s.sim("mill", 0.0).id;
+    let sim = PendantSim::start_with(&["--poll-hz", "20"]);
+    let p = add_pendant(&s, "wheel", &sim.addr, Some(m), config);
+    wait_connected(&s, p, true);
+    let dir = tempfile::tempdir().unwrap();
+    let prog = dir.path().join("p.nc");
+    let text: Vec<String> = (0..lines)
+        .map(|i| format!("G1 X{} Y{} F600", i % 50, (i * 7) % 40))
+        .collect();
+    std::fs::write(&prog, text.join("\n")).unwrap();
+    UploadRig {
+        s,
+        m,
+        p,
+        sim,
+        prog,
+        _dir: dir,
+    }
+}
+
+#[test]
+fn firmware_blank_lines_are_counted_but_not_sent_and_the_upload_is_accepted() {
+    let s = Server::start();
+    let m = s.sim("mill", 0.0).id;
+    let mut sim = PendantSim::start();
+    let p = add_pendant(&s, "wheel", &sim.addr, Some(m), json!({}));
+    wait_connected(&s, p, true);
+    let dir = tempfile::tempdir().unwrap();
+    let prog = dir.path().join("fusion.nc");
+    // Like Fusion 360 output: 3 blank lines among 9.
+    let text = "%\n(T1 D=6 FLAT)\n\nG21 G90\nG0 Z5\n\nG1 X5 F300\n\nM30\n";
+    std::fs::write(&prog, text).unwrap();
+
+    // The firmware: one send per line, nothing at all for a blank line, START declares 9.
+    sim.cmd(&format!(
+        "upload {} gap=120-150 end=none blank=drop",
+        prog.display()
+    ));
+    sim.wait_line_from(0, "N53", |l| l.starts_with("recv N53Confirm"));
+    let e = wait_event(&s, "upload event", |e| e.event == "pendant.upload");
+    assert_eq!(e.data["data"]["declared_lines"], 9, "{e:?}");
+    assert_eq!(e.data["data"]["blank_lines_dropped"], 3, "{e:?}");
+    assert_eq!(e.data["data"]["lines"], 6, "{e:?}");
+    let jobs = s.get("/api/v1/jobs").expect(200);
+    let id = jobs[0]["id"].as_i64().unwrap();
+    let without_blanks: String = text
+        .lines()
+        .filter(|l| !l.is_empty())
+        .map(|l| format!("{l}\n"))
+        .collect();
+    assert_eq!(
+        s.get(&format!("/api/v1/jobs/{id}/gcode")).text,
+        without_blanks
+    );
+
+    // Fewer lines is only accepted with the exact character count.
+    sim.cmd(&format!(
+        "upload {} gap=0 end=lf blank=drop chars+=1",
+        prog.display()
+    ));
+    wait_event(&s, "char count rejection", |e| {
+        e.event == "pendant.upload_rejected" && e.data["data"]["code"] == "char_count_mismatch"
+    });
+    assert_eq!(sim.received("N53"), 1);
+    assert_eq!(
+        s.get("/api/v1/jobs").expect(200).as_array().unwrap().len(),
+        1
+    );
+}
+
+#[test]
+fn stop_in_the_middle_of_an_upload_aborts_it_and_the_next_polls_are_answered() {
+    let UploadRig {
+        s,
+        m,
+        mut sim,
+        prog,
+        _dir,
+        ..
+    } = upload_rig(40, json!({}));
+
+    // STOP after 5 of 40 lines: no N03FIN; the firmware's main loop polls N0451 again.
+    sim.cmd(&format!(
+        "upload {} gap=0 end=lf stop-after=5",
+        prog.display()
+    ));
+    let stopped = sim.wait_line_from(0, "upload-stopped", |l| l == "upload-stopped lines=5");
+    // Every poll is answered: the first five after STOP.
+    sim.wait_received_since(stopped, "N51", 5);
+    let e = wait_event(&s, "abort recorded", |e| {
+        e.event == "pendant.upload_rejected"
+    });
+    let reason = e.data["data"]["reason"].as_str().unwrap();
+    assert!(
+        reason.contains("upload aborted after 5 of 40 lines") && reason.contains("N0451"),
+        "{e:?}"
+    );
+    s.assert_no_jobs();
+
+    // The link is fine: the wheel moves the machine and a whole upload is loaded.
+    sim.cmd("jog X 3 0.1");
+    wait_work(&s, m, "x = 0.3", |w| close(w[0], 0.3));
+    sim.cmd(&format!("upload {} gap=0 end=lf", prog.display()));
+    sim.wait_line_from(stopped, "N53", |l| l.starts_with("recv N53Confirm"));
+    assert_eq!(
+        s.get("/api/v1/jobs").expect(200).as_array().unwrap().len(),
+        1
+    );
+}
+
+#[test]
+fn a_file_over_255_lines_that_the_firmware_re_sends_forever_is_rejected_naming_the_limit() {
+    let UploadRig {
+        s,
+        p,
+        mut sim,
+        prog,
+        _dir,
+        ..
+    } = upload_rig(300, json!({}));
+
+    // The 8-bit counter wraps after 255: lines 0..255 again and again, never N03FIN, until the
+    // operator gives up and presses STOP (here after 2,000 lines).
+    sim.cmd(&format!(
+        "upload {} gap=0 end=lf wrap8 stop-after=2000",
+        prog.display()
+    ));
+    let stopped = sim.wait_line_from(0, "upload-stopped", |l| l == "upload-stopped lines=2000");
+    let e = wait_event(&s, "rejection", |e| e.event == "pendant.upload_rejected");
+    let reason = e.data["data"]["reason"].as_str().unwrap();
+    assert!(
+        reason.contains("more lines than the 300 its N03START declared")
+            && reason.contains("8-bit line counter")
+            && reason.contains("255 lines"),
+        "{e:?}"
+    );
+    // Rejected once, while the pendant was still sending; the abort that followed is not
+    // another rejection.
+    sim.wait_received_since(stopped, "N51", 5);
+    // A jog after it, as a marker: every event of the upload is recorded before it.
+    sim.cmd("jog X 1 0.1");
+    let events = s
+        .events("", Some(0))
+        .until(T, "the jog after the upload", |e| e.event == "machine.jog");
+    let rejected = events
+        .iter()
+        .filter(|e| e.event == "pendant.upload_rejected")
+        .count();
+    assert_eq!(rejected, 1, "{events:?}");
+    s.assert_no_jobs();
+    assert_eq!(sim.received("N53"), 0);
+    let p = s.get(&format!("/api/v1/pendants/{p}")).expect(200);
+    assert_eq!(p["connected"], true);
+}
+
+#[test]
+fn an_upload_without_n03fin_times_out_naming_the_firmware_limit() {
+    let UploadRig {
+        s,
+        mut sim,
+        prog,
+        _dir,
+        ..
+    } = upload_rig(300, json!({"upload_idle_ms": 300}));
+    // A pendant that stops sending mid-upload and does not poll: only the time-out ends it.
+    sim.cmd("poll 0");
+    sim.cmd(&format!(
+        "upload {} gap=0 end=lf stop-after=100",
+        prog.display()
+    ));
+    let e = wait_event(&s, "time-out", |e| e.event == "pendant.upload_rejected");
+    let reason = e.data["data"]["reason"].as_str().unwrap();
+    assert!(
+        reason.contains("no N03FIN for 300 ms after 100 of 300 lines")
+            && reason.contains("8-bit line counter"),
+        "{e:?}"
+    );
+    s.assert_no_jobs();
+    // Back in frame mode: a poll is answered.
+    let from = sim.seen.len();
+    sim.cmd("poll 20");
+    sim.wait_received_since(from, "N51", 1);
 }

@@ -465,10 +465,6 @@ pub struct Decoder {
     out: VecDeque<Decoded>,
 }
 
-fn find(hay: &[u8], needle: &[u8]) -> Option<usize> {
-    hay.windows(needle.len()).position(|w| w == needle)
-}
-
 impl Decoder {
     pub fn new() -> Self {
         Self::default()
@@ -482,6 +478,11 @@ impl Decoder {
     /// Leaves raw-line mode (upload timed out or was cancelled).
     pub fn abort_upload(&mut self) {
         self.raw = None;
+    }
+
+    /// Bytes held back for the next read (a partial frame, or a partial upload line).
+    pub fn buffered(&self) -> usize {
+        self.buf.len() + self.raw.as_ref().map_or(0, |r| r.pending.len())
     }
 
     pub fn pop(&mut self) -> Option<Decoded> {
@@ -574,53 +575,51 @@ impl Decoder {
         }
     }
 
-    /// Handles one read in raw-line mode. Returns the bytes after the FIN frame, if it came.
+    /// Handles one read in raw-line mode. Returns the bytes to decode in frame mode when raw
+    /// mode ended in this read: after a FIN frame, or from a pendant frame that abandoned the
+    /// upload (that frame included, so it is decoded and answered).
     fn push_raw(&mut self, input: Vec<u8>) -> Option<Vec<u8>> {
         let raw = self.raw.as_mut()?;
+        // Firmware style: `pending` is the whole previous read, held back because it ended with
+        // what may be the start of a frame; it is still a line of its own unless a frame starts
+        // in it.
         let mut data = std::mem::take(&mut raw.pending);
+        let boundary = if raw.terminated { 0 } else { data.len() };
+        // The held bytes were searched last time: only a frame that reaches into this read can
+        // be new (so a long line arriving in many small reads costs linear time).
+        let scan_from = data.len().saturating_sub(FRAME_LEN - 1);
         data.extend_from_slice(&input);
-        let fin = {
-            let mut from = 0;
-            let mut found = None;
-            while let Some(i) = find(&data[from..], b"N03FIN").map(|i| i + from) {
-                if data.len() - i >= FRAME_LEN {
-                    let mut cand = [0u8; FRAME_LEN];
-                    cand.copy_from_slice(&data[i..i + FRAME_LEN]);
-                    if let Ok(f @ Frame::UploadEnd { .. }) = Frame::parse(&cand) {
-                        found = Some((i, f));
-                        break;
-                    }
-                }
-                from = i + 1;
-            }
-            found
-        };
-        let body_end = fin.as_ref().map(|(i, _)| *i).unwrap_or(data.len());
-        let body = &data[..body_end];
-        let mut segments: Vec<&[u8]> = body.split(|&b| b == b'\n').collect();
-        let last = segments.pop().unwrap_or(&[]);
-        if !segments.is_empty() {
+        let hit = find_frame_in_upload(&data, scan_from);
+        let body_end = hit.as_ref().map_or(data.len(), |(i, _)| *i);
+        if data[..body_end].contains(&b'\n') {
             raw.terminated = true;
         }
-        let mut lines: Vec<Vec<u8>> = segments.iter().map(|s| strip_cr(s).to_vec()).collect();
+        let mut lines: Vec<Vec<u8>> = Vec::new();
         let mut pending = Vec::new();
-        if fin.is_some() || !raw.terminated {
-            // A partial FIN at the end of a read: keep it for the next read.
-            let split = if fin.is_none() {
-                find(last, b"N03FIN").filter(|j| last.len() - j < FRAME_LEN)
+        if raw.terminated {
+            let mut segments: Vec<&[u8]> = data[..body_end].split(|&b| b == b'\n').collect();
+            let last = segments.pop().unwrap_or(&[]);
+            lines.extend(segments.iter().map(|s| strip_cr(s).to_vec()));
+            if hit.is_some() {
+                // A frame merged with the last line ends that line.
+                if !last.is_empty() {
+                    lines.push(strip_cr(last).to_vec());
+                }
             } else {
-                None
-            };
-            let (line, rest) = match split {
-                Some(j) => (&last[..j], &last[j..]),
-                None => (last, &[][..]),
-            };
-            if !line.is_empty() {
-                lines.push(strip_cr(line).to_vec());
+                pending.extend_from_slice(last);
             }
-            pending.extend_from_slice(rest);
         } else {
-            pending.extend_from_slice(last);
+            // Firmware style: each read is one line.
+            let cut = boundary.min(body_end);
+            if cut > 0 {
+                lines.push(strip_cr(&data[..cut]).to_vec());
+            }
+            let rest = &data[cut..body_end];
+            if hit.is_none() && may_end_in_frame_start(rest) {
+                pending.extend_from_slice(rest);
+            } else if !rest.is_empty() {
+                lines.push(strip_cr(rest).to_vec());
+            }
         }
         for l in lines {
             self.out.push_back(Decoded::Line(l));
@@ -632,11 +631,22 @@ impl Decoder {
             });
             return None;
         }
-        match fin {
-            Some((i, frame)) => {
+        match hit {
+            Some((i, frame @ Frame::UploadEnd { .. })) => {
                 self.raw = None;
                 self.out.push_back(Decoded::Frame(frame));
                 Some(data[i + FRAME_LEN..].to_vec())
+            }
+            Some((i, frame)) => {
+                self.raw = None;
+                self.out.push_back(Decoded::UploadAborted {
+                    reason: format!(
+                        "the pendant sent {} instead of the next line or N03FIN: it abandoned \
+                         the upload (STOP key)",
+                        describe(&frame)
+                    ),
+                });
+                Some(data[i..].to_vec())
             }
             None => {
                 raw.pending = pending;
@@ -644,6 +654,95 @@ impl Decoder {
             }
         }
     }
+}
+
+/// Frames a pendant sends that end raw-line mode: FIN, and the frames of its main loop (a
+/// poll, a key, the wheel, a new START) that show it left its upload routine. Their fields and
+/// `*` padding are checked strictly, so no G-code line is mistaken for one. The server's own
+/// frame types (N05, N5x) are not among them: a pendant never sends them and their payload is
+/// free-form, so a compact G-code line could look like one.
+fn ends_upload(f: &Frame) -> bool {
+    matches!(
+        f,
+        Frame::UploadEnd { .. }
+            | Frame::Request(_)
+            | Frame::Key(_)
+            | Frame::Jog { .. }
+            | Frame::UploadStart { .. }
+    )
+}
+
+fn describe(f: &Frame) -> String {
+    let bytes = f.encode();
+    let text = String::from_utf8_lossy(&bytes);
+    match f {
+        Frame::Request(Info::Positions) => format!("its N0451 poll ({text})"),
+        Frame::Request(Info::Job) => format!("its N0452 poll ({text})"),
+        _ => format!("the frame {text}"),
+    }
+}
+
+/// The first place in `data`, from `from` on, where a frame that ends an upload starts.
+fn find_frame_in_upload(data: &[u8], mut from: usize) -> Option<(usize, Frame)> {
+    while let Some(i) = data[from..]
+        .iter()
+        .position(|&b| b == b'N')
+        .map(|i| i + from)
+    {
+        if data.len() - i < FRAME_LEN {
+            return None;
+        }
+        if data[i + FRAME_LEN - 1] == b'F' {
+            let mut cand = [0u8; FRAME_LEN];
+            cand.copy_from_slice(&data[i..i + FRAME_LEN]);
+            if let Ok(f) = Frame::parse(&cand) {
+                if ends_upload(&f) {
+                    return Some((i, f));
+                }
+            }
+        }
+        from = i + 1;
+    }
+    None
+}
+
+/// Whether `read` ends with a proper prefix (3 bytes or more) of a frame that would end the
+/// upload: then the read is held back until the next one shows whether a frame was split.
+fn may_end_in_frame_start(read: &[u8]) -> bool {
+    let from = read.len().saturating_sub(FRAME_LEN - 1);
+    (from..read.len().saturating_sub(2)).any(|i| read[i] == b'N' && is_frame_prefix(&read[i..]))
+}
+
+/// Whether `p` (shorter than a frame) can be completed into a frame that ends an upload: it is
+/// completed with the rest of each template (every variable field of a template is filled with
+/// a value that is valid whatever precedes it) and parsed.
+fn is_frame_prefix(p: &[u8]) -> bool {
+    use std::sync::OnceLock;
+    static TEMPLATES: OnceLock<Vec<[u8; FRAME_LEN]>> = OnceLock::new();
+    let templates = TEMPLATES.get_or_init(|| {
+        let mut t = vec![
+            Frame::UploadEnd { chars: 0 }.encode(),
+            Frame::UploadStart { lines: 0 }.encode(),
+            Frame::Request(Info::Positions).encode(),
+            Frame::Request(Info::Job).encode(),
+            Frame::Jog {
+                step: 0.0001,
+                axis: Axis::X,
+                count: 1,
+            }
+            .encode(),
+        ];
+        t.extend(KEY_WORDS.iter().map(|(_, k)| Frame::Key(*k).encode()));
+        t
+    });
+    if p.len() >= FRAME_LEN || !p.iter().all(u8::is_ascii_graphic) {
+        return false;
+    }
+    templates.iter().any(|t| {
+        let mut cand = *t;
+        cand[..p.len()].copy_from_slice(p);
+        Frame::parse(&cand).is_ok_and(|f| ends_upload(&f))
+    })
 }
 
 fn strip_cr(s: &[u8]) -> &[u8] {

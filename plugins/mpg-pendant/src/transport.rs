@@ -331,12 +331,48 @@ fn run(s: &Shared) {
     }
 }
 
+/// The published firmware counts lines in an 8-bit variable: files with more lines than this
+/// are re-sent from the start forever, without N03FIN.
+pub const FIRMWARE_MAX_LINES: u64 = 255;
+
 struct Upload {
     declared_lines: u64,
     lines: Vec<String>,
+    /// Lines that arrived, kept or not.
+    received: u64,
     bytes: u64,
     problem: Option<String>,
+    /// The core has already been told this upload failed (the rest of it is discarded).
+    reported: bool,
     last_data: Instant,
+}
+
+impl Upload {
+    fn new(declared_lines: u64) -> Upload {
+        Upload {
+            declared_lines,
+            lines: Vec::new(),
+            received: 0,
+            bytes: 0,
+            problem: None,
+            reported: false,
+            last_data: Instant::now(),
+        }
+    }
+
+    /// Names the firmware's line limit when the declared count is over it.
+    fn firmware_limit_note(&self) -> String {
+        if self.declared_lines > FIRMWARE_MAX_LINES {
+            format!(
+                "; the pendant firmware's 8-bit line counter cannot send files over \
+                 {FIRMWARE_MAX_LINES} lines (this one declared {}): it re-sends the first lines \
+                 forever and never sends N03FIN, so split the file",
+                self.declared_lines
+            )
+        } else {
+            String::new()
+        }
+    }
 }
 
 /// Serves one connection until it ends; returns why it ended (Err: it ended before the pendant
@@ -412,13 +448,19 @@ fn session(s: &Shared, mut stream: TcpStream) -> Result<String, String> {
         if let Some(u) = &upload {
             if now.duration_since(u.last_data) > Duration::from_millis(cfg.upload_idle_ms) {
                 decoder.abort_upload();
+                if !u.reported {
+                    (s.emit)(&PendantEvent::UploadFailed {
+                        reason: format!(
+                            "no upload data and no N03FIN for {} ms after {} of {} lines; upload \
+                             abandoned{}",
+                            cfg.upload_idle_ms,
+                            u.received,
+                            u.declared_lines,
+                            u.firmware_limit_note()
+                        ),
+                    });
+                }
                 upload = None;
-                (s.emit)(&PendantEvent::UploadFailed {
-                    reason: format!(
-                        "no upload data and no N03FIN for {} ms; upload abandoned",
-                        cfg.upload_idle_ms
-                    ),
-                });
             }
         }
     };
@@ -427,7 +469,7 @@ fn session(s: &Shared, mut stream: TcpStream) -> Result<String, String> {
     if let Some(l) = lock(&s.link).take() {
         let _ = l.shutdown(Shutdown::Both);
     }
-    if upload.is_some() {
+    if upload.as_ref().is_some_and(|u| !u.reported) {
         (s.emit)(&PendantEvent::UploadFailed {
             reason: format!("connection ended during the upload: {reason}"),
         });
@@ -454,18 +496,29 @@ fn handle(s: &Shared, d: Decoded, upload: &mut Option<Upload>, next_id: &mut u64
         Decoded::Frame(Frame::UploadStart { lines }) => {
             // A new START replaces an upload that never finished.
             s.info(&format!("upload started: {lines} lines declared"));
-            *upload = Some(Upload {
-                declared_lines: lines as u64,
-                lines: Vec::new(),
-                bytes: 0,
-                problem: None,
-                last_data: Instant::now(),
-            });
+            *upload = Some(Upload::new(u64::from(lines)));
         }
         Decoded::Line(bytes) => {
             let Some(u) = upload.as_mut() else { return };
             u.last_data = Instant::now();
+            u.received += 1;
             if u.problem.is_some() {
+                return;
+            }
+            if u.received > u.declared_lines {
+                // Bounded: nothing more is kept; the rest of the upload is discarded until a
+                // frame, N03FIN or the idle time-out ends raw-line mode.
+                u.lines = Vec::new();
+                let reason = format!(
+                    "the pendant sent more lines than the {} its N03START declared; upload \
+                     rejected{}",
+                    u.declared_lines,
+                    u.firmware_limit_note()
+                );
+                s.warn(&reason);
+                u.problem = Some(reason.clone());
+                u.reported = true;
+                (s.emit)(&PendantEvent::UploadFailed { reason });
                 return;
             }
             u.bytes += bytes.len() as u64;
@@ -492,6 +545,10 @@ fn handle(s: &Shared, d: Decoded, upload: &mut Option<Upload>, next_id: &mut u64
                 s.warn("N03FIN without N03START; ignored");
                 return;
             };
+            if u.reported {
+                s.info("N03FIN of an upload already rejected; ignored");
+                return;
+            }
             match u.problem {
                 Some(reason) => (s.emit)(&PendantEvent::UploadFailed { reason }),
                 None => {
@@ -512,10 +569,18 @@ fn handle(s: &Shared, d: Decoded, upload: &mut Option<Upload>, next_id: &mut u64
                 }
             }
         }
-        Decoded::UploadAborted { reason } => {
-            *upload = None;
-            (s.emit)(&PendantEvent::UploadFailed { reason });
-        }
+        Decoded::UploadAborted { reason } => match upload.take() {
+            Some(u) if u.reported => s.info(&format!("rejected upload ended: {reason}")),
+            Some(u) => {
+                let reason = format!(
+                    "upload aborted after {} of {} lines: {reason}",
+                    u.received, u.declared_lines
+                );
+                s.warn(&reason);
+                (s.emit)(&PendantEvent::UploadFailed { reason });
+            }
+            None => (s.emit)(&PendantEvent::UploadFailed { reason }),
+        },
         Decoded::Skipped { bytes, reason } => {
             let shown: String = String::from_utf8_lossy(&bytes).chars().take(120).collect();
             s.warn(&format!(

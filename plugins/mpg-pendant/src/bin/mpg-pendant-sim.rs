@@ -5,9 +5,17 @@
 //! ```text
 //! jog AXIS COUNT STEP        e.g. `jog X 25 0.01`, `jog Z -100 0.0001` (split into <=9999 detents)
 //! key WORD                   Zero ZeroX ZeroY ZeroZ ZeroA Reset Stop Rewind Start Pause HOME M1..M4
-//! upload PATH [gap=50-70] [end=none|lf] [lines+=N] [chars+=N]
+//! upload PATH [gap=50-70] [end=none|lf] [lines+=N] [chars+=N] [blank=send|drop]
+//!        [stop-after=N] [wrap8]
 //!                            START, each line (one send each, `gap` ms apart), FIN; `end=lf` ends
-//!                            lines with \n (lets gap=0 work); `lines+=`/`chars+=` falsify counts
+//!                            lines with \n (lets gap=0 work); `lines+=`/`chars+=` falsify counts.
+//!                            The published firmware's quirks: `blank=drop` counts blank lines
+//!                            but sends nothing for them (with `end=none` a blank line is a
+//!                            zero-length send, which is nothing on the wire anyway);
+//!                            `stop-after=N` presses STOP after N lines: no FIN, and the main
+//!                            loop's N0451 polls start again; `wrap8` counts lines in a u8, so a
+//!                            file over 255 lines is re-sent from the start forever, without FIN
+//!                            (until `stop-after` or the link ends).
 //! poll HZ                    N0451 polls per second (0 stops); `poll-job HZ` for N0452
 //! raw TEXT                   send TEXT as is
 //! wait-connected             block until a server is connected
@@ -23,7 +31,7 @@ use fresa_mpg_pendant::codec::{parse_key_word, Decoded, Decoder, Frame, Info};
 use fresa_plugin_api::contract::Axis;
 use std::io::{BufRead, Write};
 use std::net::{Shutdown, TcpListener, TcpStream};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::Duration;
 
@@ -54,7 +62,9 @@ struct Sim {
     generation: AtomicU64,
     poll_mhz: AtomicU64,
     poll_job_mhz: AtomicU64,
-    uploading: AtomicBool,
+    /// In the firmware's upload routine: no polls. A lock, not a flag, so no poll is sent
+    /// between START and the end of the upload (the firmware is one loop).
+    uploading: Mutex<bool>,
     quiet_polls: bool,
     out: Mutex<()>,
 }
@@ -91,7 +101,7 @@ fn main() {
         generation: AtomicU64::new(0),
         poll_mhz: AtomicU64::new((args.poll_hz.max(0.0) * 1000.0) as u64),
         poll_job_mhz: AtomicU64::new(0),
-        uploading: AtomicBool::new(false),
+        uploading: Mutex::new(false),
         quiet_polls: args.quiet_polls,
         out: Mutex::new(()),
     });
@@ -219,8 +229,10 @@ fn poll_loop(sim: &Sim, which: u8, info: Info) {
             continue;
         }
         // The firmware's upload routine does not poll.
-        if !sim.uploading.load(Ordering::Relaxed) {
-            let _ = sim.send(&frame);
+        if let Ok(uploading) = sim.uploading.lock() {
+            if !*uploading {
+                let _ = sim.send(&frame);
+            }
         }
         std::thread::sleep(Duration::from_micros(1_000_000_000 / mhz));
     }
@@ -286,58 +298,126 @@ fn command(sim: &Sim, line: &str) -> Result<(), String> {
     }
 }
 
-fn upload(sim: &Sim, path: &str, opts: &[&str]) -> Result<(), String> {
-    let (mut gap_min, mut gap_max, mut lf) = (50u64, 70u64, false);
-    let (mut lines_delta, mut chars_delta) = (0i64, 0i64);
-    for o in opts {
-        let bad = || format!("option {o:?} (gap=MIN-MAX, end=none|lf, lines+=N, chars+=N)");
-        if let Some(v) = o.strip_prefix("gap=") {
+struct UploadOpts {
+    gap_min: u64,
+    gap_max: u64,
+    lf: bool,
+    lines_delta: i64,
+    chars_delta: i64,
+    drop_blank: bool,
+    stop_after: Option<u64>,
+    wrap8: bool,
+}
+
+fn upload_opts(opts: &[&str]) -> Result<UploadOpts, String> {
+    let mut o = UploadOpts {
+        gap_min: 50,
+        gap_max: 70,
+        lf: false,
+        lines_delta: 0,
+        chars_delta: 0,
+        drop_blank: false,
+        stop_after: None,
+        wrap8: false,
+    };
+    for opt in opts {
+        let bad = || {
+            format!(
+                "option {opt:?} (gap=MIN-MAX, end=none|lf, lines+=N, chars+=N, blank=send|drop, \
+                 stop-after=N, wrap8)"
+            )
+        };
+        if let Some(v) = opt.strip_prefix("gap=") {
             let (a, b) = v.split_once('-').unwrap_or((v, v));
-            gap_min = a.parse().map_err(|_| bad())?;
-            gap_max = b.parse().map_err(|_| bad())?;
-        } else if let Some(v) = o.strip_prefix("end=") {
-            lf = match v {
+            o.gap_min = a.parse().map_err(|_| bad())?;
+            o.gap_max = b.parse().map_err(|_| bad())?;
+        } else if let Some(v) = opt.strip_prefix("end=") {
+            o.lf = match v {
                 "lf" => true,
                 "none" => false,
                 _ => return Err(bad()),
             };
-        } else if let Some(v) = o.strip_prefix("lines+=") {
-            lines_delta = v.parse().map_err(|_| bad())?;
-        } else if let Some(v) = o.strip_prefix("chars+=") {
-            chars_delta = v.parse().map_err(|_| bad())?;
+        } else if let Some(v) = opt.strip_prefix("lines+=") {
+            o.lines_delta = v.parse().map_err(|_| bad())?;
+        } else if let Some(v) = opt.strip_prefix("chars+=") {
+            o.chars_delta = v.parse().map_err(|_| bad())?;
+        } else if let Some(v) = opt.strip_prefix("blank=") {
+            o.drop_blank = match v {
+                "drop" => true,
+                "send" => false,
+                _ => return Err(bad()),
+            };
+        } else if let Some(v) = opt.strip_prefix("stop-after=") {
+            o.stop_after = Some(v.parse().map_err(|_| bad())?);
+        } else if *opt == "wrap8" {
+            o.wrap8 = true;
         } else {
             return Err(bad());
         }
     }
+    Ok(o)
+}
+
+fn upload(sim: &Sim, path: &str, opts: &[&str]) -> Result<(), String> {
+    let o = upload_opts(opts)?;
     let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read {path}: {e}"))?;
     let lines: Vec<&str> = text.lines().collect();
     let chars: u64 = lines.iter().map(|l| l.len() as u64).sum();
-    sim.uploading.store(true, Ordering::Relaxed);
+    let mut uploading = sim.uploading.lock().map_err(|_| "poisoned")?;
+    *uploading = true;
+    drop(uploading);
     let result = (|| {
-        let declared = (lines.len() as i64 + lines_delta).max(0) as u32;
+        let declared = (lines.len() as i64 + o.lines_delta).max(0) as u32;
         sim.send(&Frame::UploadStart { lines: declared }.encode())?;
         let mut seed = 0x9e37_79b9_7f4a_7c15u64;
-        for l in &lines {
-            if gap_max > 0 {
+        let mut sent = 0u64;
+        // `Cargar_gcode`: `for (uint8_t j = 1; j < cant_lines + 1; j++)` with `wrap8`.
+        let mut j: u64 = 1;
+        let mut j8: u8 = 1;
+        loop {
+            let (more, index) = if o.wrap8 {
+                (
+                    u64::from(j8) < lines.len() as u64 + 1,
+                    usize::from(j8.wrapping_sub(1)),
+                )
+            } else {
+                (j < lines.len() as u64 + 1, (j - 1) as usize)
+            };
+            if !more || lines.is_empty() {
+                break;
+            }
+            if o.stop_after.is_some_and(|n| sent >= n) {
+                sim.say(&format!("upload-stopped lines={sent}"));
+                return Ok(());
+            }
+            let l = lines.get(index).copied().unwrap_or("");
+            if o.gap_max > 0 {
                 // Spread the gaps like the firmware's loop timing (50-70 ms).
                 seed ^= seed << 13;
                 seed ^= seed >> 7;
                 seed ^= seed << 17;
-                let gap = gap_min + seed % (gap_max.saturating_sub(gap_min) + 1);
+                let gap = o.gap_min + seed % (o.gap_max.saturating_sub(o.gap_min) + 1);
                 std::thread::sleep(Duration::from_millis(gap));
             }
-            if lf {
+            if !(l.is_empty() && o.drop_blank) {
                 let mut b = l.as_bytes().to_vec();
-                b.push(b'\n');
+                if o.lf {
+                    b.push(b'\n');
+                }
                 sim.send(&b)?;
-            } else {
-                sim.send(l.as_bytes())?;
             }
+            sent += 1;
+            j += 1;
+            j8 = j8.wrapping_add(1);
         }
-        if gap_max > 0 {
-            std::thread::sleep(Duration::from_millis(gap_min));
+        if o.stop_after.is_some_and(|n| sent >= n) {
+            sim.say(&format!("upload-stopped lines={sent}"));
+            return Ok(());
         }
-        let declared_chars = (chars as i64 + chars_delta).max(0) as u64;
+        if o.gap_max > 0 {
+            std::thread::sleep(Duration::from_millis(o.gap_min));
+        }
+        let declared_chars = (chars as i64 + o.chars_delta).max(0) as u64;
         sim.send(
             &Frame::UploadEnd {
                 chars: declared_chars,
@@ -347,6 +427,8 @@ fn upload(sim: &Sim, path: &str, opts: &[&str]) -> Result<(), String> {
         sim.say(&format!("upload-sent lines={} chars={chars}", lines.len()));
         Ok(())
     })();
-    sim.uploading.store(false, Ordering::Relaxed);
+    if let Ok(mut u) = sim.uploading.lock() {
+        *u = false;
+    }
     result
 }

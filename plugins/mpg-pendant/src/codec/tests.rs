@@ -249,32 +249,91 @@ fn an_action_frame_without_padding_is_an_error_not_a_panic() {
     assert!(Frame::parse(&b).is_err());
 }
 
-#[test]
-fn upload_lines_starting_with_n_are_lines_not_frames() {
-    // Firmware style: one read per line, no newline.
-    let start = Frame::UploadStart { lines: 3 }.encode();
-    let fin = Frame::UploadEnd { chars: 20 }.encode();
-    let poll = Frame::Request(Info::Positions).encode();
-    let out = decode_all(&[&start, b"N10 G1 X5", b"G0 Z1", &poll[..], &fin, &poll]);
-    let lines: Vec<_> = out
-        .iter()
+fn lines_of(out: &[Decoded]) -> Vec<String> {
+    out.iter()
         .filter_map(|d| match d {
             Decoded::Line(l) => Some(String::from_utf8(l.clone()).unwrap()),
             _ => None,
         })
-        .collect();
-    // A frame-shaped line inside an upload is a line too; only FIN ends raw mode.
+        .collect()
+}
+
+#[test]
+fn upload_lines_starting_with_n_are_lines_not_frames() {
+    // Firmware style: one read per line, no newline. Lines that start with N, even with a
+    // frame's type digits, or that end like the start of a frame, are program text.
+    let start = Frame::UploadStart { lines: 5 }.encode();
+    let fin = Frame::UploadEnd { chars: 20 }.encode();
+    let poll = Frame::Request(Info::Positions).encode();
+    let out = decode_all(&[
+        &start,
+        b"N10 G1 X5",
+        b"N0451G0Z1",
+        b"(SECTION N04",
+        b"N01",
+        b"G0 Z1",
+        &fin,
+        &poll,
+    ]);
     assert_eq!(
-        lines,
-        vec![
-            "N10 G1 X5".to_string(),
-            "G0 Z1".into(),
-            String::from_utf8(poll.to_vec()).unwrap()
-        ]
+        lines_of(&out),
+        ["N10 G1 X5", "N0451G0Z1", "(SECTION N04", "N01", "G0 Z1"]
     );
     let frames = frames_only(out);
     assert_eq!(frames.last(), Some(&Frame::Request(Info::Positions)));
     assert!(frames.contains(&Frame::UploadEnd { chars: 20 }));
+}
+
+#[test]
+fn a_poll_during_an_upload_aborts_it_and_is_decoded() {
+    // The firmware's STOP key leaves its upload loop without N03FIN; its main loop then polls.
+    let start = Frame::UploadStart { lines: 9 }.encode();
+    let poll = Frame::Request(Info::Positions).encode();
+    let key = Frame::Key(PendantKey::Stop).encode();
+    let mut merged = b"G1 X2".to_vec();
+    merged.extend_from_slice(&poll);
+    merged.extend_from_slice(&poll);
+    let cases: Vec<Vec<&[u8]>> = vec![
+        // One poll per read.
+        vec![&start, b"G1 X1", &poll, &poll],
+        // A poll merged with the last line and with the next poll.
+        vec![&start, b"G1 X1", &merged],
+        // A poll split over two reads (firmware style and newline style).
+        vec![&start, b"G1 X1", &poll[..20], &poll[20..], &poll],
+        vec![&start, b"G1 X1\n", &poll[..3], &poll[3..], &poll],
+        // Any key.
+        vec![&start, b"G1 X1", &key, &poll],
+    ];
+    for (n, chunks) in cases.iter().enumerate() {
+        // The last poll decoded as a frame shows raw-line mode ended.
+        let out = decode_all(chunks);
+        let aborted = out
+            .iter()
+            .position(|x| matches!(x, Decoded::UploadAborted { .. }))
+            .unwrap_or_else(|| panic!("case {n}: not aborted: {out:?}"));
+        let lines = lines_of(&out[..aborted]);
+        assert!(lines[0] == "G1 X1", "case {n}: {lines:?}");
+        assert!(
+            lines.iter().all(|l| !l.contains("N04")),
+            "case {n}: {lines:?}"
+        );
+        let after = frames_only(out[aborted..].to_vec());
+        // Every frame sent after the last line is decoded: two in each case.
+        assert_eq!(after.len(), 2, "case {n}: {out:?}");
+        assert_eq!(after[1], Frame::Request(Info::Positions), "case {n}");
+    }
+}
+
+#[test]
+fn a_heartbeat_shaped_line_is_program_text() {
+    // N05/N5x payloads are free-form and a pendant never sends them: no abort.
+    let start = Frame::UploadStart { lines: 1 }.encode();
+    let line = format!("N05G1X1Y2Z3{}F", "0".repeat(41));
+    assert_eq!(line.len(), FRAME_LEN);
+    let mut d = Decoder::new();
+    d.push(&start);
+    d.push(line.as_bytes());
+    assert!(d.in_upload());
 }
 
 #[test]

@@ -510,8 +510,14 @@ async fn run_macro(
     }
 }
 
-/// A finished upload becomes a job through the same path as HTTP uploads, only if both declared
-/// counts match; the pendant gets N53 only after the job row is committed.
+/// A finished upload becomes a job through the same path as HTTP uploads, only if the character
+/// count matches exactly and no more lines arrived than were declared; the pendant gets N53 only
+/// after the job row is committed.
+///
+/// Fewer lines than declared are the published firmware's blank lines: it counts every line for
+/// N03START but sends an empty one as a zero-length send, which puts nothing on the wire. Blank
+/// lines add nothing to the N03FIN character count, so an exact character count still proves
+/// that every non-empty line arrived; the number of blank lines assumed dropped is recorded.
 async fn receive_upload(
     app: &Arc<App>,
     p: &Pendant,
@@ -528,11 +534,11 @@ async fn receive_upload(
             "not_bound",
             "the pendant is not bound to a machine; the upload is dropped".to_string(),
         ))
-    } else if lines.len() as u64 != declared_lines {
+    } else if lines.len() as u64 > declared_lines {
         Some((
             "line_count_mismatch",
             format!(
-                "received {} lines but N03START declared {declared_lines}",
+                "received {} lines but N03START declared only {declared_lines}",
                 lines.len()
             ),
         ))
@@ -555,6 +561,15 @@ async fn receive_upload(
             )
             .await;
         return;
+    }
+    let blank_lines_dropped = declared_lines - lines.len() as u64;
+    if blank_lines_dropped > 0 {
+        tracing::info!(
+            pendant = p.id,
+            blank_lines_dropped,
+            "pendant upload: fewer lines than declared with an exact character count; taken as \
+             blank lines the firmware does not send"
+        );
     }
     let machine_id = row.machine_id.unwrap_or_default();
     let stored = async {
@@ -598,7 +613,7 @@ async fn receive_upload(
                     "pendant.upload",
                     Some(machine_id),
                     Some(&actor),
-                    json!({"pendant": p.id, "job": job.id, "lines": job.lines, "bytes": job.bytes, "sha256": job.sha256, "confirmed": sent}),
+                    json!({"pendant": p.id, "job": job.id, "lines": job.lines, "bytes": job.bytes, "sha256": job.sha256, "confirmed": sent, "declared_lines": declared_lines, "blank_lines_dropped": blank_lines_dropped}),
                 )
                 .await;
         }
