@@ -42,6 +42,9 @@ pub fn legacy_move(rapid: bool, r: [f64; 3]) -> String {
 // ---------------------------------------------------------------- legacy, robot -> PC
 
 /// A message of the seed's robot program.
+/// Smallest SPEED the fresa-v1 wire can carry (it writes 6 decimals).
+pub const MIN_SPEED_MM_S: f64 = 0.000_001;
+
 #[derive(Debug, Clone, PartialEq)]
 pub enum LegacyMsg {
     /// `Esperando inicio`
@@ -222,7 +225,9 @@ impl V1Cmd {
             }),
             "EXIT" => Ok(V1Cmd::Exit),
             "SPEED" => match rest.trim().parse::<f64>() {
-                Ok(v) if v > 0.0 && v.is_finite() => Ok(V1Cmd::Speed { seq, mm_s: v }),
+                // The wire carries 6 decimals: a speed that would encode as 0.000000 is no
+                // speed (the fuzzer found `2E-55` parsed here but not after re-encoding).
+                Ok(v) if v >= MIN_SPEED_MM_S && v.is_finite() => Ok(V1Cmd::Speed { seq, mm_s: v }),
                 _ => Err((seq, format!("bad SPEED value {rest:?}"))),
             },
             "JMOVE" | "LMOVE" => match parse_xyz(rest) {

@@ -100,6 +100,21 @@ impl Default for Config {
     }
 }
 
+/// Slowest speed a config may set, mm/s: far above what the fresa-v1 wire can carry (6
+/// decimals), so a SPEED command never goes out as 0.000000 (a fuzz finding), and slow enough
+/// for any real cut.
+const MIN_CONFIG_SPEED_MM_S: f64 = 0.01;
+
+fn speed(key: &str, v: &Value) -> Result<f64, PluginError> {
+    let n = positive(key, v)?;
+    if n < MIN_CONFIG_SPEED_MM_S {
+        return Err(invalid(format!(
+            "`{key}` must be at least {MIN_CONFIG_SPEED_MM_S} mm/s, got {n}"
+        )));
+    }
+    Ok(n)
+}
+
 const KNOWN: &str = "address, protocol, mapping, rapid_mm_s, cut_min_mm_s, cut_max_mm_s, \
                      envelope, machine_zero, arc_tolerance_mm, window, unsupported, \
                      connect_timeout_ms, handshake_timeout_ms, reply_timeout_ms, journal";
@@ -177,9 +192,9 @@ impl Config {
                     }
                 }
                 "mapping" => cfg.mapping = Mapping::from_json(v)?,
-                "rapid_mm_s" => cfg.speeds.rapid_mm_s = positive(key, v)?,
-                "cut_min_mm_s" => cfg.speeds.cut_min_mm_s = positive(key, v)?,
-                "cut_max_mm_s" => cfg.speeds.cut_max_mm_s = positive(key, v)?,
+                "rapid_mm_s" => cfg.speeds.rapid_mm_s = speed(key, v)?,
+                "cut_min_mm_s" => cfg.speeds.cut_min_mm_s = speed(key, v)?,
+                "cut_max_mm_s" => cfg.speeds.cut_max_mm_s = speed(key, v)?,
                 "envelope" => envelope = Some(v),
                 "machine_zero" => machine_zero = Some(triple(key, v)?),
                 "arc_tolerance_mm" => {
