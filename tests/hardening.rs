@@ -183,6 +183,13 @@ fn loose_inputs_are_refused_naming_what_is_wrong() {
     let metrics = s.get("/metrics").text;
     assert!(!metrics.contains('\0'));
 
+    // A misspelt query parameter is not ignored (the job would get no name, or the wrong one).
+    let msg = s
+        .post_bytes(&format!("/api/v1/jobs?machine={m}&nmae=x"), PROGRAM)
+        .expect_error(400, "invalid_query");
+    assert!(msg.contains("nmae"), "{msg}");
+    s.assert_no_jobs();
+
     // Pendant addresses are parsed.
     for bad in ["::::", "a b:8001", "-x.local"] {
         let msg = s

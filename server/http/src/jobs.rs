@@ -13,6 +13,7 @@ use serde::Deserialize;
 use serde_json::{json, Value};
 
 #[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
 pub struct UploadParams {
     machine: Option<i64>,
     name: Option<String>,
@@ -20,6 +21,7 @@ pub struct UploadParams {
 }
 
 #[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct ListParams {
     machine: Option<i64>,
     limit: Option<i64>,
