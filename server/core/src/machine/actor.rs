@@ -211,21 +211,31 @@ impl Task {
 
     /// A call that starts motion, fenced by the gate on both sides: refused if a stop came
     /// after the request was sent, and stopped again at once if a stop reached the backend
-    /// while this call was on its way (the two lanes race inside the backend).
+    /// while this call was on its way (the two lanes race inside the backend). A call that
+    /// timed out may have started motion nobody will answer for: it is stopped too.
     async fn motion(&self, ticket: u64, request: &Request) -> Result<Value> {
         self.gate.check(ticket)?;
-        let answer = self.call(request).await?;
-        if let Err(e) = self.gate.check(ticket) {
-            tracing::info!(
-                machine = self.id,
-                "a stop overtook a motion request; stopping again"
-            );
-            if let Err(stop) = self.call(&Request::Command(Command::Stop)).await {
-                tracing::error!(machine = self.id, error = %stop, "could not repeat the stop");
+        let answer = match self.call(request).await {
+            Ok(a) => a,
+            Err(e) if e.kind == crate::error::ErrorKind::Timeout => {
+                self.stop_again("a motion request timed out").await;
+                return Err(e);
             }
+            Err(e) => return Err(e),
+        };
+        if let Err(e) = self.gate.check(ticket) {
+            self.stop_again("a stop overtook a motion request").await;
             return Err(e);
         }
         Ok(answer)
+    }
+
+    /// Stop on the urgent lane, for motion the machine may have started behind our back.
+    async fn stop_again(&self, why: &str) {
+        tracing::warn!(machine = self.id, "{why}; stopping the machine");
+        if let Err(stop) = self.call(&Request::Command(Command::Stop)).await {
+            tracing::error!(machine = self.id, error = %stop, "could not stop the machine");
+        }
     }
 
     async fn call_raw(&self, request: &Request) -> Result<Value, BackendError> {
