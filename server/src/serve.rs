@@ -32,6 +32,9 @@ pub async fn run(settings: Settings) -> Result<(), Box<dyn std::error::Error>> {
         tracing::info!(file = %f.display(), "config file read");
     }
     tracing::info!(data_dir = %settings.data_dir.display(), "data directory");
+    for w in &settings.warnings {
+        tracing::warn!("config: {w}");
+    }
     let listener =
         bind(settings.listen).map_err(|e| format!("cannot listen on {}: {e}", settings.listen))?;
     let bound = listener.local_addr()?;

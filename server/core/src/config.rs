@@ -83,6 +83,9 @@ pub struct Settings {
     pub log: Option<String>,
     pub allowed_hosts: Vec<String>,
     pub cors_origins: Vec<String>,
+    /// What the config file says that deserves a word in the log; resolved before logging is
+    /// set up (the log filter comes from the file), so `serve` logs them.
+    pub warnings: Vec<String>,
 }
 
 /// How long the event log keeps what. Routine events (jogs, commands, MDI, pendant traffic:
@@ -182,39 +185,58 @@ fn read_file(path: &Path) -> Result<FileConfig, ConfigError> {
     })
 }
 
+/// `key`'s value (or `default` when unset), refused outside `lo..=hi` naming the key.
+fn bounded<T>(key: &str, value: Option<T>, default: T, lo: T, hi: T) -> Result<T, ConfigError>
+where
+    T: PartialOrd + std::fmt::Display + Copy,
+{
+    let v = value.unwrap_or(default);
+    if lo <= v && v <= hi {
+        Ok(v)
+    } else {
+        Err(ConfigError::Invalid(format!(
+            "{key} must be between {lo} and {hi}, got {v}"
+        )))
+    }
+}
+
 fn retention(file: &FileConfig) -> Result<EventRetention, ConfigError> {
     let d = EventRetention::default();
-    let routine_days = file.event_retention_days.unwrap_or(d.routine_days);
-    let routine_count = file.event_retention_count.unwrap_or(d.routine_count);
-    // Unset, the audit is kept at least as long as the routine events.
-    let audit_days = file
-        .audit_retention_days
-        .unwrap_or(d.audit_days.max(routine_days));
-    let interval = file
-        .event_prune_interval_secs
-        .unwrap_or(d.prune_interval.as_secs());
-    if !(1..=36_500).contains(&routine_days) {
-        return Err(ConfigError::Invalid(format!(
-            "event_retention_days must be between 1 and 36500, got {routine_days}"
-        )));
-    }
-    if !(1..=1_000_000_000).contains(&routine_count) {
-        return Err(ConfigError::Invalid(format!(
-            "event_retention_count must be between 1 and 1000000000, got {routine_count}"
-        )));
-    }
-    // The audit trail is what retention must never lose before the routine traffic.
-    if !(routine_days..=36_500).contains(&audit_days) {
-        return Err(ConfigError::Invalid(format!(
-            "audit_retention_days must be between event_retention_days ({routine_days}) and \
-             36500, got {audit_days}"
-        )));
-    }
-    if !(1..=86_400).contains(&interval) {
-        return Err(ConfigError::Invalid(format!(
-            "event_prune_interval_secs must be between 1 and 86400, got {interval}"
-        )));
-    }
+    let routine_days = bounded(
+        "event_retention_days",
+        file.event_retention_days,
+        d.routine_days,
+        1,
+        36_500,
+    )?;
+    let routine_count = bounded(
+        "event_retention_count",
+        file.event_retention_count,
+        d.routine_count,
+        1,
+        1_000_000_000,
+    )?;
+    // Unset, the audit is kept at least as long as the routine events; set, never shorter: the
+    // audit trail is what retention must never lose before the routine traffic.
+    let audit_days = bounded(
+        "audit_retention_days",
+        file.audit_retention_days,
+        d.audit_days.max(routine_days),
+        routine_days,
+        36_500,
+    )
+    .map_err(|e| {
+        ConfigError::Invalid(format!(
+            "{e} (it may not be shorter than event_retention_days)"
+        ))
+    })?;
+    let interval = bounded(
+        "event_prune_interval_secs",
+        file.event_prune_interval_secs,
+        d.prune_interval.as_secs(),
+        1,
+        86_400,
+    )?;
     Ok(EventRetention {
         routine_days,
         routine_count,
@@ -261,15 +283,21 @@ impl Settings {
                 "status_rate_hz must be between 0 and 1000, got {rate}"
             )));
         }
+        let mut warnings = Vec::new();
         if file.plugin_max_concurrent_calls.is_some() {
-            tracing::warn!("plugin_max_concurrent_calls is no longer used: each machine's calls are ordered by its task");
+            warnings.push(
+                "plugin_max_concurrent_calls is no longer used (each machine's calls are ordered \
+                 by its task); remove it from the config file"
+                    .to_string(),
+            );
         }
-        let timeout_ms = file.plugin_call_timeout_ms.unwrap_or(10_000);
-        if !(1..=600_000).contains(&timeout_ms) {
-            return Err(ConfigError::Invalid(format!(
-                "plugin_call_timeout_ms must be between 1 and 600000, got {timeout_ms}"
-            )));
-        }
+        let timeout_ms = bounded(
+            "plugin_call_timeout_ms",
+            file.plugin_call_timeout_ms,
+            10_000,
+            1,
+            600_000,
+        )?;
         let grace = file.shutdown_grace_secs.unwrap_or(5);
         if grace > 60 {
             return Err(ConfigError::Invalid(format!(
@@ -277,14 +305,7 @@ impl Settings {
             )));
         }
         let secs = |key: &str, v: Option<u64>, default: u64| {
-            let v = v.unwrap_or(default);
-            if (1..=3600).contains(&v) {
-                Ok(Duration::from_secs(v))
-            } else {
-                Err(ConfigError::Invalid(format!(
-                    "{key} must be between 1 and 3600, got {v}"
-                )))
-            }
+            bounded(key, v, default, 1, 3600).map(Duration::from_secs)
         };
         let header_read_timeout = secs(
             "header_read_timeout_secs",
@@ -301,13 +322,14 @@ impl Settings {
             file.upload_idle_timeout_secs,
             DEFAULT_UPLOAD_IDLE_TIMEOUT_SECS,
         )?;
-        let max_connections = file.max_connections.unwrap_or(DEFAULT_MAX_CONNECTIONS);
         // Bounded by what one semaphore can hand out at once (shutdown waits for all permits).
-        if !(1..=MAX_MAX_CONNECTIONS).contains(&max_connections) {
-            return Err(ConfigError::Invalid(format!(
-                "max_connections must be between 1 and {MAX_MAX_CONNECTIONS}, got {max_connections}"
-            )));
-        }
+        let max_connections = bounded(
+            "max_connections",
+            file.max_connections,
+            DEFAULT_MAX_CONNECTIONS,
+            1,
+            MAX_MAX_CONNECTIONS,
+        )?;
         Ok(Settings {
             listen,
             data_dir,
@@ -330,6 +352,7 @@ impl Settings {
             log: file.log,
             allowed_hosts: file.allowed_hosts.unwrap_or_default(),
             cors_origins: cors_origins(file.cors_origins.unwrap_or_default())?,
+            warnings,
         })
     }
 
@@ -398,19 +421,32 @@ mod tests {
         std::fs::remove_dir_all(dir).ok();
     }
 
-    #[test]
-    fn retention_defaults_and_bounds() {
-        let dir = std::env::temp_dir().join(format!("fresa-cfg3-{}", std::process::id()));
+    /// A scratch directory (`tag` keeps parallel tests apart) and a function that resolves the
+    /// settings of a config file with the given TOML in it.
+    fn toml_resolver(
+        tag: &str,
+    ) -> (
+        std::path::PathBuf,
+        impl Fn(&str) -> Result<Settings, ConfigError>,
+    ) {
+        let dir = std::env::temp_dir().join(format!("{tag}-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let f = dir.join("f.toml");
-        let resolve = |toml: &str| {
+        let data_dir = dir.clone();
+        let resolve = move |toml: &str| {
             std::fs::write(&f, toml).unwrap();
             Settings::resolve(Overrides {
                 config: Some(f.clone()),
-                data_dir: Some(dir.clone()),
+                data_dir: Some(data_dir.clone()),
                 ..Default::default()
             })
         };
+        (dir, resolve)
+    }
+
+    #[test]
+    fn retention_defaults_and_bounds() {
+        let (dir, resolve) = toml_resolver("fresa-cfg3");
         assert_eq!(
             resolve("").unwrap().event_retention,
             EventRetention::default()
@@ -435,17 +471,7 @@ mod tests {
 
     #[test]
     fn connection_settings_have_defaults_and_bounds() {
-        let dir = std::env::temp_dir().join(format!("fresa-cfg4-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let f = dir.join("f.toml");
-        let resolve = |toml: &str| {
-            std::fs::write(&f, toml).unwrap();
-            Settings::resolve(Overrides {
-                config: Some(f.clone()),
-                data_dir: Some(dir.clone()),
-                ..Default::default()
-            })
-        };
+        let (dir, resolve) = toml_resolver("fresa-cfg4");
         let s = resolve("").unwrap();
         assert_eq!(s.header_read_timeout, Duration::from_secs(30));
         assert_eq!(s.idle_timeout, Duration::from_secs(15));
