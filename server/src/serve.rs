@@ -338,7 +338,7 @@ async fn serve_connection(
         let guard = InFlight::enter(in_flight.clone());
         async move {
             let resp = tower::ServiceExt::oneshot(router, req.map(axum::body::Body::new)).await?;
-            Ok::<_, std::convert::Infallible>(resp.map(|inner| Guarded {
+            Ok::<_, std::convert::Infallible>(resp.map(|inner| CountedBody {
                 inner,
                 _guard: guard,
             }))
@@ -419,12 +419,12 @@ impl Drop for InFlight {
 }
 
 /// A response body that keeps its request counted as in progress until it is done.
-struct Guarded {
+struct CountedBody {
     inner: Body,
     _guard: InFlight,
 }
 
-impl http_body::Body for Guarded {
+impl http_body::Body for CountedBody {
     type Data = <Body as http_body::Body>::Data;
     type Error = <Body as http_body::Body>::Error;
 

@@ -189,10 +189,14 @@ impl App {
         let stops = machines.iter().map(|m| async move {
             match tokio::time::timeout(limit, m.shutdown_backend()).await {
                 Ok(Ok(())) => {}
-                Ok(Err(e)) => tracing::warn!(machine = m.id, error = %e, "shutdown call failed"),
+                Ok(Err(e)) => tracing::error!(
+                    machine = m.id,
+                    error = %e,
+                    "shutdown call failed: the controller may still be moving; check the machine before leaving it"
+                ),
                 Err(_) => tracing::error!(
                     machine = m.id,
-                    "backend did not confirm its stop within {limit:?}"
+                    "backend did not confirm its stop within {limit:?}: the controller may still be moving; check the machine before leaving it"
                 ),
             }
         });

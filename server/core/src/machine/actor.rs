@@ -269,7 +269,12 @@ impl Task {
     }
 
     async fn refresh_status(&self) -> Result<MachineStatus> {
-        let v = self.call(&Request::Status).await?;
+        self.status_from(&Request::Status).await
+    }
+
+    /// `status` or `connect`: both answer a status, which becomes the published one.
+    async fn status_from(&self, request: &Request) -> Result<MachineStatus> {
+        let v = self.call(request).await?;
         let s: MachineStatus = serde_json::from_value(v).map_err(|e| {
             Error::new(
                 crate::error::ErrorKind::Backend,
@@ -294,13 +299,8 @@ impl Task {
         if self.lanes.is_none() {
             return;
         }
-        match self.call(&Request::Connect).await.and_then(|v| {
-            serde_json::from_value::<MachineStatus>(v)
-                .map_err(|e| Error::internal(format!("status has an unexpected shape: {e}")))
-        }) {
-            Ok(s) => {
-                self.status.send_replace(s);
-            }
+        match self.status_from(&Request::Connect).await {
+            Ok(_) => {}
             Err(e) => {
                 tracing::warn!(machine = self.id, error = %e, "connect failed");
                 self.status.send_modify(|s| {
