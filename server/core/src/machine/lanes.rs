@@ -53,7 +53,7 @@ impl Lane {
 }
 
 struct Worker {
-    tx: Mutex<std_mpsc::Sender<Job>>,
+    tx: std_mpsc::Sender<Job>,
     /// What the overdue call on this lane is, while one is.
     overdue: Arc<Mutex<Option<String>>>,
 }
@@ -67,7 +67,7 @@ impl Worker {
             }
         })?;
         Ok(Worker {
-            tx: Mutex::new(tx),
+            tx,
             overdue: Arc::new(Mutex::new(None)),
         })
     }
@@ -143,8 +143,6 @@ impl Lanes {
         });
         worker
             .tx
-            .lock()
-            .map_err(|_| BackendError::Unavailable("machine lane is poisoned".into()))?
             .send(job)
             .map_err(|_| BackendError::Unavailable("machine lane has stopped".into()))?;
         match tokio::time::timeout(self.timeout, rx).await {
