@@ -93,7 +93,14 @@ fn server_with_hang_machine() -> (Server, i64, i64) {
     );
     let h = s.create_machine(&json!({"name": "H", "backend": "hang"}));
     let sim = s.sim("S", 0.0).id;
-    assert_eq!(s.status(h)["state"], "idle");
+    let st = s.status(h);
+    assert_eq!(st["state"], "idle");
+    // A C plugin written before machine I/O existed: it loads and reports none.
+    assert_eq!(
+        (&st["inputs"], &st["outputs"]),
+        (&json!({}), &json!({})),
+        "{st}"
+    );
     (s, h, sim)
 }
 

@@ -438,7 +438,7 @@ fn an_agent_that_never_answers_or_is_absent_gives_offline_not_a_hang() {
 }
 
 #[test]
-fn mdi_lines_restore_the_modal_state_and_outputs_switch_but_do_not_toggle() {
+fn mdi_lines_restore_the_modal_state_and_outputs_switch() {
     let agent = Agent::start("127.0.0.1:0");
     let mut mach = agent.client();
     let s = Server::start();
@@ -462,7 +462,7 @@ fn mdi_lines_restore_the_modal_state_and_outputs_switch_but_do_not_toggle() {
     assert_eq!(dro(&mut mach, 819), 1.0, "G1 restored");
     assert_eq!(dro(&mut mach, 818), 300.0, "F300 restored");
 
-    // Coolant by the flood buttons, spindle by M3/M5; neither can be toggled blind.
+    // Coolant by the flood buttons, spindle by M3/M5 (toggles: see the read-back test).
     for (name, on) in [("coolant", true), ("spindle", true), ("spindle", false)] {
         let r = command(
             &s,
@@ -474,11 +474,59 @@ fn mdi_lines_restore_the_modal_state_and_outputs_switch_but_do_not_toggle() {
     let e = s
         .post(
             &format!("/api/v1/machines/{m}/commands"),
-            &json!({"command": "toggle_output", "name": "spindle"}),
+            &json!({"command": "toggle_output", "name": "z_lift"}),
         )
         .expect_error(422, "backend_rejected");
     assert!(e.contains("unsupported"), "{e}");
     // The spindle's MDI also left the modal state alone.
     assert!(!led(&mut mach, 48), "still G90");
     assert_eq!(dro(&mut mach, 818), 300.0, "still F300");
+}
+
+/// With Mach3's output LEDs read back, spindle and coolant toggle: each toggle reads the LED,
+/// switches the other way, and the status shows what Mach3 shows.
+#[test]
+fn spindle_and_coolant_toggle_with_read_back_and_show_in_the_status() {
+    let agent = Agent::start("127.0.0.1:0");
+    let mut mach = agent.client();
+    let s = Server::start();
+    let m = machine(&s, "mach3-io", &agent);
+    reset_to_idle(&s, m);
+    let st = s.status(m);
+    assert_eq!(st["inputs"]["estop"], false, "{st}");
+    assert_eq!(st["inputs"]["limit_x_max"], false, "{st}");
+    assert_eq!(st["outputs"]["spindle"], false, "{st}");
+
+    let on = command(
+        &s,
+        m,
+        json!({"command": "toggle_output", "name": "spindle"}),
+    );
+    assert_eq!(on["result"]["on"], true, "{on}");
+    assert!(led(&mut mach, 11), "Mach3's spindle CW LED is lit");
+    s.wait_status(m, T, "spindle on", |st| {
+        st["outputs"]["spindle"] == true && st["outputs"]["spindle_ccw"] == false
+    });
+    let off = command(
+        &s,
+        m,
+        json!({"command": "toggle_output", "name": "spindle"}),
+    );
+    assert_eq!(off["result"]["on"], false, "{off}");
+    assert!(!led(&mut mach, 11));
+    s.wait_status(m, T, "spindle off", |st| st["outputs"]["spindle"] == false);
+
+    // Someone switches flood on at the Mach3 screen: the status shows it, and a toggle turns
+    // it off rather than on.
+    mach3(&mut mach, vec![Call::DoOemButton { code: 224 }]);
+    s.wait_status(m, T, "flood on", |st| {
+        st["outputs"]["coolant_flood"] == true
+    });
+    let t = command(
+        &s,
+        m,
+        json!({"command": "toggle_output", "name": "coolant"}),
+    );
+    assert_eq!(t["result"]["on"], false, "{t}");
+    assert!(!led(&mut mach, 13), "flood LED out");
 }

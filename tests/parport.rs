@@ -1,6 +1,7 @@
 //! The parport-stepper backend end to end through the server's API, on its simulated port:
 //! a program run (with the process monitor's line reports on the event stream), jog, zero, the
-//! Z-lift output, and a limit input that stops the job with an alarm naming the pin.
+//! Z-lift output, and a limit input that stops the job with an alarm naming the input, shown
+//! live as `machine.io` and in the status.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -125,8 +126,9 @@ fn runs_a_program_with_line_reports_then_jogs_zeroes_and_lifts() {
 }
 
 #[test]
-fn a_limit_input_stops_the_job_with_an_alarm_naming_the_pin() {
+fn a_limit_input_stops_the_job_with_an_alarm_naming_the_input_and_shows_on_the_status() {
     let s = Server::start();
+    let io_events = s.events("types=machine", None);
     let m = parport_machine(
         &s,
         "limited",
@@ -135,20 +137,38 @@ fn a_limit_input_stops_the_job_with_an_alarm_naming_the_pin() {
             "sim_inputs": [{"after_writes": 60, "pin": 10, "level": "high"}]
         }),
     );
-    s.wait_machine_state(m, "idle", T);
+    // Both inputs known and released before anything moves.
+    let st = s.wait_status(m, T, "inputs read", |st| {
+        st["state"] == "idle" && st["inputs"] == json!({"limit_x": false, "estop": false})
+    });
+    assert_eq!(st["outputs"]["z_lift"], false, "{st}");
     let job = s.upload(m, "long.nc", "G21 G90\nG1 X40 Y2 F1200\nG1 X0 Y0\n");
     let id = job["id"].as_i64().unwrap();
     s.job_action(id, "start").expect(200);
     let failed = s.wait_job(id, T, "failed", |j| j["state"] == "failed");
+    let alarm = "limit switch limit_x (pin 10)";
     assert!(
-        failed.to_string().contains("limit X (pin 10)"),
+        failed.to_string().contains(alarm),
         "the job names the input: {failed}"
     );
     let st = s.wait_machine_state(m, "alarm", T);
-    assert_eq!(st["alarm"], "limit X (pin 10)", "{st}");
+    assert_eq!(st["alarm"], alarm, "{st}");
     // Stopped early: 60 coil writes is about 3 mm at 20 steps/mm, far from X40.
     let x = axis(&st, "machine_position", "x");
     assert!(x > 0.0 && x < 5.0, "stopped at x={x}");
+    // The change went out live as machine.io, and the alarm is in the audit log with the
+    // input's name.
+    let seen = io_events.until(T, "machine.io with limit_x pressed", |e| {
+        e.event == "machine.io" && e.data["data"]["changed"]["limit_x"] == true
+    });
+    let io = seen.last().unwrap();
+    assert_eq!(io.data["machine"], m, "{io:?}");
+    assert_eq!(io.data["data"]["inputs"]["estop"], false, "{io:?}");
+    let audit = s.events("types=machine.alarm", Some(0));
+    let recorded = audit.until(T, "the persisted alarm", |e| e.event == "machine.alarm");
+    let recorded = &recorded.last().unwrap().data;
+    assert_eq!(recorded["data"]["input"], "limit_x", "{recorded}");
+    assert_eq!(recorded["data"]["message"], alarm, "{recorded}");
     // No motion until reset.
     let e = s
         .post(
@@ -156,7 +176,7 @@ fn a_limit_input_stops_the_job_with_an_alarm_naming_the_pin() {
             &json!({"axis": "X", "distance": -1.0}),
         )
         .expect_error(422, "backend_rejected");
-    assert!(e.contains("in alarm (limit X (pin 10))"), "{e}");
+    assert!(e.contains(&format!("in alarm ({alarm})")), "{e}");
     s.post(
         &format!("/api/v1/machines/{m}/commands"),
         &json!({"command": "reset"}),

@@ -3,6 +3,7 @@
 //! the server share one definition; C plugins read the same shapes from the README.
 
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
 
 /// Axes every machine exposes (absent axes simply never move).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -179,6 +180,70 @@ pub struct MachineStatus {
     /// Why the machine is offline, when it is.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reason: Option<String>,
+    // --- machine I/O additions (issue 18) ---
+    /// The inputs the backend supports, by [`io`] name: `true` active (switch pressed),
+    /// `null` supported but not known right now. A name that is absent is not supported, so
+    /// "unknown" is never shown as "off". Empty from backends that report no inputs (and from
+    /// plugins built before this field existed).
+    #[serde(default)]
+    pub inputs: BTreeMap<String, Option<bool>>,
+    /// The outputs the backend supports, by [`io`] name, with the same rules: booleans for
+    /// switches (`spindle`, `coolant_flood`, ...), numbers where the backend has them
+    /// (`spindle_rpm`).
+    #[serde(default)]
+    pub outputs: BTreeMap<String, Option<IoValue>>,
+}
+
+/// The value of an output: a switch or a number (e.g. spindle rpm).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum IoValue {
+    On(bool),
+    Number(f64),
+}
+
+/// The stable names of machine inputs and outputs in [`MachineStatus`]. Limits are
+/// `limit_<axis>_min` / `limit_<axis>_max` for a switch at one end, `limit_<axis>` for one
+/// switch (or a series chain) covering both ends of an axis, and `limit` for a chain shared by
+/// every axis.
+pub mod io {
+    use super::Axis;
+
+    pub const ESTOP: &str = "estop";
+    pub const PROBE: &str = "probe";
+    pub const DOOR: &str = "door";
+    pub const LIMIT: &str = "limit";
+
+    pub const SPINDLE: &str = "spindle";
+    /// `true` while the spindle turns counter-clockwise (M4); `false` clockwise.
+    pub const SPINDLE_CCW: &str = "spindle_ccw";
+    pub const SPINDLE_RPM: &str = "spindle_rpm";
+    pub const COOLANT_FLOOD: &str = "coolant_flood";
+    pub const COOLANT_MIST: &str = "coolant_mist";
+    pub const Z_LIFT: &str = "z_lift";
+
+    /// `limit_x`, `limit_x_min` (`end` = `Some(false)`), `limit_x_max` (`Some(true)`).
+    pub fn limit(axis: Axis, end: Option<bool>) -> String {
+        let a = axis.letter().to_ascii_lowercase();
+        match end {
+            None => format!("limit_{a}"),
+            Some(false) => format!("limit_{a}_min"),
+            Some(true) => format!("limit_{a}_max"),
+        }
+    }
+
+    /// Whether `name` follows the naming scheme (inputs): `estop`, `probe`, `door`, `limit`,
+    /// `limit_<x|y|z|a>` with an optional `_min` / `_max`.
+    pub fn is_input_name(name: &str) -> bool {
+        if matches!(name, ESTOP | PROBE | DOOR | LIMIT) {
+            return true;
+        }
+        let Some(rest) = name.strip_prefix("limit_") else {
+            return false;
+        };
+        let (axis, end) = rest.split_at(rest.len().min(1));
+        matches!(axis, "x" | "y" | "z" | "a") && matches!(end, "" | "_min" | "_max")
+    }
 }
 
 fn hundred() -> f64 {
@@ -198,6 +263,8 @@ impl Default for MachineStatus {
             line: None,
             alarm: None,
             reason: None,
+            inputs: BTreeMap::new(),
+            outputs: BTreeMap::new(),
         }
     }
 }
@@ -392,16 +459,16 @@ pub enum Event {
     /// The status changed. Backends may emit freely; the host rate-limits what it forwards.
     Status(MachineStatus),
     /// Every motion of `line` of run `run` has been executed.
-    LineAcknowledged {
-        run: i64,
-        line: u32,
-    },
+    LineAcknowledged { run: i64, line: u32 },
     StateChanged {
         from: MachineState,
         to: MachineState,
     },
     Alarm {
         message: String,
+        /// The input that tripped it (an [`io`] name), when an input did.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        input: Option<String>,
     },
     /// Run `run` finished: `completed`, `failed` (with `message`) or `cancelled`.
     RunEnded {

@@ -10,11 +10,12 @@
 
 use crate::config_fields::{invalid, number, object};
 use crate::contract::{
-    Axis, AxisValues, Event, MachineState, MachineStatus, OffsetTable, RunOutcome, WorkOffset,
+    Axis, AxisValues, Event, IoValue, MachineState, MachineStatus, OffsetTable, RunOutcome,
+    WorkOffset,
 };
 use crate::exec_log::ExecLog;
 use crate::PluginError;
-use std::collections::VecDeque;
+use std::collections::{BTreeMap, VecDeque};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
@@ -209,6 +210,9 @@ pub enum Interrupted {
     Aborted,
     /// A latched fault: the machine goes to alarm.
     Alarm(String),
+    /// An input (an [`io`](crate::contract::io) name) tripped: the machine goes to alarm
+    /// and the alarm names the input.
+    Tripped { input: String, message: String },
     /// The run failed (e.g. the execution log could not be written); no alarm.
     Failed(String),
 }
@@ -238,6 +242,10 @@ pub struct State<P, X> {
     pub shutdown: bool,
     /// When the last status event was queued (for rate limiting by the motion thread).
     pub last_status: Option<Instant>,
+    /// Inputs and outputs as reported in the status (see `MachineStatus::inputs`); change
+    /// them with [`State::set_io`] so every change is reported.
+    pub inputs: BTreeMap<String, Option<bool>>,
+    pub outputs: BTreeMap<String, Option<IoValue>>,
     pub extra: X,
 }
 
@@ -255,6 +263,28 @@ impl<P, X> State<P, X> {
             line: self.line,
             alarm: self.alarm.clone(),
             reason: self.reason.clone(),
+            inputs: self.inputs.clone(),
+            outputs: self.outputs.clone(),
+        }
+    }
+
+    /// Sets inputs and outputs; a status event goes out at once when anything changed (an
+    /// operator watches lamps, so I/O changes are not rate limited like positions).
+    pub fn set_io(
+        &mut self,
+        inputs: impl IntoIterator<Item = (String, Option<bool>)>,
+        outputs: impl IntoIterator<Item = (String, Option<IoValue>)>,
+        ev: &mut Events,
+    ) {
+        let mut changed = false;
+        for (name, v) in inputs {
+            changed |= self.inputs.insert(name, v) != Some(v);
+        }
+        for (name, v) in outputs {
+            changed |= self.outputs.insert(name, v) != Some(v);
+        }
+        if changed {
+            self.push_status(ev);
         }
     }
 
@@ -299,9 +329,18 @@ impl<P, X> State<P, X> {
 
     /// Latches an alarm: queued work is dropped.
     pub fn raise_alarm(&mut self, message: String, ev: &mut Events) {
+        self.latch_alarm(message, None, ev);
+    }
+
+    /// Latches an alarm tripped by `input` (an [`io`](crate::contract::io) name).
+    pub fn raise_input_alarm(&mut self, input: String, message: String, ev: &mut Events) {
+        self.latch_alarm(message, Some(input), ev);
+    }
+
+    fn latch_alarm(&mut self, message: String, input: Option<String>, ev: &mut Events) {
         self.queue.clear();
         self.alarm = Some(message.clone());
-        ev.push(Event::Alarm { message });
+        ev.push(Event::Alarm { message, input });
         self.set_state(MachineState::Alarm, ev);
     }
 
@@ -404,6 +443,8 @@ impl<P, X> Kit<P, X> {
                 busy: false,
                 shutdown: false,
                 last_status: None,
+                inputs: BTreeMap::new(),
+                outputs: BTreeMap::new(),
                 extra,
             }),
             cv: Condvar::new(),
@@ -555,9 +596,11 @@ impl<P, X> Kit<P, X> {
             let (outcome, message) = match &result {
                 Ok(()) => (RunOutcome::Completed, None),
                 Err(Interrupted::Aborted) => (RunOutcome::Cancelled, None),
-                Err(Interrupted::Alarm(m) | Interrupted::Failed(m)) => {
-                    (RunOutcome::Failed, Some(m.clone()))
-                }
+                Err(
+                    Interrupted::Alarm(m)
+                    | Interrupted::Failed(m)
+                    | Interrupted::Tripped { message: m, .. },
+                ) => (RunOutcome::Failed, Some(m.clone())),
             };
             sh.run = None;
             sh.line = None;
@@ -569,6 +612,9 @@ impl<P, X> Kit<P, X> {
         }
         match result {
             Err(Interrupted::Alarm(m)) => sh.raise_alarm(m, &mut ev),
+            Err(Interrupted::Tripped { input, message }) => {
+                sh.raise_input_alarm(input, message, &mut ev)
+            }
             _ if sh.queue.is_empty() && sh.state != MachineState::Offline => {
                 if sh.state == MachineState::Idle {
                     sh.push_status(&mut ev);
@@ -805,6 +851,9 @@ impl<P, X> Kit<P, X> {
             if sh.state == MachineState::Alarm {
                 sh.alarm = None;
                 sh.set_state(MachineState::Idle, ev);
+            } else {
+                // What the backend's part switched off shows at once.
+                sh.push_status(ev);
             }
             Ok(())
         })

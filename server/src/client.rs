@@ -26,6 +26,8 @@ pub struct ServerArgs {
 pub enum MachineCmd {
     /// List machines with their state.
     List,
+    /// One machine's status: state, positions, run, and its inputs and outputs.
+    Status { id: i64 },
 }
 
 #[derive(Subcommand)]
@@ -169,8 +171,66 @@ pub async fn machine(server: ServerArgs, cmd: MachineCmd) -> Res {
                 );
             }
         }
+        MachineCmd::Status { id } => {
+            let s = c
+                .send(c.req(
+                    reqwest::Method::GET,
+                    &format!("/api/v1/machines/{id}/status"),
+                ))
+                .await?;
+            print!("{}", status_text(&s));
+        }
     }
     Ok(())
+}
+
+/// `fresa machine status`: what an operator reads at a glance, lamps last.
+fn status_text(s: &serde_json::Value) -> String {
+    let axes = |p: &serde_json::Value| {
+        ["x", "y", "z", "a"]
+            .iter()
+            .map(|a| format!("{}{:.3}", a.to_uppercase(), p[*a].as_f64().unwrap_or(0.0)))
+            .collect::<Vec<_>>()
+            .join(" ")
+    };
+    let mut out = format!("state:    {}", s["state"].as_str().unwrap_or("?"));
+    for why in ["alarm", "reason"] {
+        if let Some(m) = s[why].as_str() {
+            out.push_str(&format!(" ({m})"));
+        }
+    }
+    out.push_str(&format!(
+        "\nwork:     {}  [{}]\nmachine:  {}\nfeed:     {} mm/min ({}%)\n",
+        axes(&s["work_position"]),
+        s["active_offset"].as_str().unwrap_or("?"),
+        axes(&s["machine_position"]),
+        s["feed"].as_f64().unwrap_or(0.0),
+        s["feed_override"].as_f64().unwrap_or(100.0),
+    ));
+    if let Some(run) = s["run"].as_i64() {
+        out.push_str(&format!("run:      {run} at line {}\n", s["line"]));
+    }
+    // A lamp per supported name: ON / off, `?` while unknown; none at all when unsupported.
+    for (label, key) in [("inputs:  ", "inputs"), ("outputs: ", "outputs")] {
+        let lamps: Vec<String> = s[key]
+            .as_object()
+            .into_iter()
+            .flatten()
+            .map(|(name, v)| match v {
+                serde_json::Value::Bool(true) => format!("{name} ON"),
+                serde_json::Value::Bool(false) => format!("{name} off"),
+                serde_json::Value::Null => format!("{name} ?"),
+                other => format!("{name} {other}"),
+            })
+            .collect();
+        let shown = if lamps.is_empty() {
+            "none reported".to_string()
+        } else {
+            lamps.join(", ")
+        };
+        out.push_str(&format!("{label} {shown}\n"));
+    }
+    out
 }
 
 fn is_terminal(state: &str) -> bool {

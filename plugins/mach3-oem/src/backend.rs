@@ -4,17 +4,18 @@
 //! Requests never wait on anything but the agent link, which has a timeout.
 
 use crate::client::{AgentClient, LinkError};
-use crate::codes::Code;
+use crate::codes::{Code, IO_LEDS};
 use crate::config::Config;
 use crate::mach3::{Call, ErrorKind};
 use crate::protocol::{CallResult, PROGRAM_CHUNK_BYTES};
 use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
 use fresa_plugin_api::contract::{
-    Axis, AxisValues, Event, MachineState, MachineStatus, OffsetTable, OutputName, ProgramLoaded,
-    RunAction, RunAnswer, RunOutcome, WorkOffset,
+    io, Axis, AxisValues, Event, IoValue, MachineState, MachineStatus, OffsetTable, OutputName,
+    ProgramLoaded, RunAction, RunAnswer, RunOutcome, WorkOffset,
 };
 use fresa_plugin_api::{Host, PluginError};
 use serde_json::{json, Value};
+use std::collections::BTreeMap;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -84,11 +85,42 @@ pub struct Mach3Backend {
 }
 
 fn offline(reason: String) -> MachineStatus {
+    let (inputs, outputs) = io_maps(None);
     MachineStatus {
         state: MachineState::Offline,
         reason: Some(reason),
+        inputs,
+        outputs,
         ..Default::default()
     }
+}
+
+type Inputs = BTreeMap<String, Option<bool>>;
+type Outputs = BTreeMap<String, Option<IoValue>>;
+
+/// The status's inputs and outputs from the I/O LEDs (`None`: every supported name unknown,
+/// as while Mach3 does not answer). The e-stop input is the reset LED.
+fn io_maps(p: Option<&Poll>) -> (Inputs, Outputs) {
+    let lit = |code: Code| -> Option<bool> {
+        let i = IO_LEDS.iter().position(|(c, _, _)| *c == code)?;
+        p.map(|p| p.io_leds.get(i).copied().unwrap_or(false))
+    };
+    let mut inputs: Inputs = BTreeMap::new();
+    let mut outputs: Outputs = BTreeMap::new();
+    inputs.insert(io::ESTOP.into(), p.map(|p| p.estop));
+    for (code, name, is_output) in IO_LEDS {
+        if !is_output {
+            inputs.insert((*name).into(), lit(*code));
+        }
+    }
+    let cw = lit(Code::SpindleCwLed);
+    let ccw = lit(Code::SpindleCcwLed);
+    let on = |v: Option<bool>| v.map(IoValue::On);
+    outputs.insert(io::SPINDLE.into(), on(cw.zip(ccw).map(|(a, b)| a || b)));
+    outputs.insert(io::SPINDLE_CCW.into(), on(ccw));
+    outputs.insert(io::COOLANT_FLOOD.into(), on(lit(Code::FloodLed)));
+    outputs.insert(io::COOLANT_MIST.into(), on(lit(Code::MistLed)));
+    (inputs, outputs)
 }
 
 fn mach3_error(e: &crate::mach3::Mach3Error) -> PluginError {
@@ -122,6 +154,8 @@ struct Poll {
     running: bool,
     paused: bool,
     moving: bool,
+    /// The LEDs of `IO_LEDS`, in its order.
+    io_leds: Vec<bool>,
 }
 
 impl Inner {
@@ -213,6 +247,9 @@ impl Inner {
         ] {
             calls.push(Call::GetOemLed { code: c.get(code) });
         }
+        for (code, _, _) in IO_LEDS {
+            calls.push(Call::GetOemLed { code: c.get(*code) });
+        }
         calls
     }
 
@@ -245,6 +282,7 @@ impl Inner {
             running: b(13),
             paused: b(14),
             moving: b(15),
+            io_leds: (16..16 + IO_LEDS.len()).map(b).collect(),
         })
     }
 
@@ -282,6 +320,18 @@ impl Inner {
                     to: status.state,
                 },
             );
+            if status.state == MachineState::Alarm && before.state != MachineState::Offline {
+                // Into reset while connected: the audit log records why (and which switch).
+                let input = status
+                    .inputs
+                    .iter()
+                    .find(|(name, v)| name.starts_with(io::LIMIT) && **v == Some(true))
+                    .map(|(name, _)| name.clone());
+                events.push(Event::Alarm {
+                    message: status.alarm.clone().unwrap_or_default(),
+                    input,
+                });
+            }
         }
         if status != before {
             sh.status = status.clone();
@@ -314,6 +364,12 @@ impl Inner {
         } else {
             MachineState::Idle
         };
+        let (inputs, outputs) = io_maps(Some(p));
+        // Mach3 latches reset when a limit switch trips: the alarm names the switch.
+        let limit = inputs
+            .iter()
+            .find(|(name, v)| name.starts_with(io::LIMIT) && **v == Some(true))
+            .map(|(name, _)| name.clone());
         let mut status = MachineStatus {
             state,
             machine_position: AxisValues::from_array(machine),
@@ -323,10 +379,15 @@ impl Inner {
             active_offset: active,
             run: None,
             line: None,
-            alarm: p
-                .estop
-                .then(|| "Mach3 is in reset (e-stop latched): send reset".to_string()),
+            alarm: p.estop.then(|| match &limit {
+                Some(l) => format!(
+                    "Mach3 is in reset: limit switch {l} is active; send reset and jog off it"
+                ),
+                None => "Mach3 is in reset (e-stop latched): send reset".to_string(),
+            }),
             reason: None,
+            inputs,
+            outputs,
         };
         let Some(mut t) = sh.run else {
             return status;
@@ -1011,16 +1072,25 @@ impl MachineBackend for Mach3Backend {
         Ok(json!({"output": name, "on": on}))
     }
 
-    /// No code in the table reads back whether spindle or flood is on, so a toggle would be a
-    /// guess.
+    /// Reads the output's LED(s) back from Mach3, then switches it the other way.
     fn toggle_output(&self, name: OutputName) -> Result<Value, PluginError> {
-        Err(PluginError::new(
-            "unsupported",
-            format!(
-                "mach3-oem cannot toggle {:?}: use set_output with on true/false for spindle or coolant",
-                name.as_str()
-            ),
-        ))
+        let leds: &[Code] = match name {
+            OutputName::Spindle => &[Code::SpindleCwLed, Code::SpindleCcwLed],
+            OutputName::Coolant => &[Code::FloodLed],
+            // set_output explains why there is no z_lift.
+            OutputName::ZLift => return self.set_output(name, true),
+        };
+        let codes = &self.inner.cfg.codes;
+        let lit = self.inner.exec(
+            leds.iter()
+                .map(|c| Call::GetOemLed {
+                    code: codes.get(*c),
+                })
+                .collect(),
+            false,
+        )?;
+        let on = lit.iter().any(|v| v.as_bool().unwrap_or(false));
+        self.set_output(name, !on)
     }
 
     fn get_offsets(&self) -> Result<OffsetTable, PluginError> {

@@ -47,6 +47,19 @@ pub enum Code {
     IncrementalLed,
     FloodOn,
     FloodOff,
+    // --- machine I/O (issue 18) ---
+    MistOn,
+    MistOff,
+    SpindleCwLed,
+    SpindleCcwLed,
+    FloodLed,
+    MistLed,
+    LimitXMaxLed,
+    LimitXMinLed,
+    LimitYMaxLed,
+    LimitYMinLed,
+    LimitZMaxLed,
+    LimitZMinLed,
 }
 
 /// `(role, config name, kind, default code, meaning)`.
@@ -165,6 +178,91 @@ pub const TABLE: &[(Code, &str, Kind, i16, &str)] = &[
     ),
     (Code::FloodOn, "flood_on", Kind::Button, 224, "Flood ON"),
     (Code::FloodOff, "flood_off", Kind::Button, 225, "Flood OFF"),
+    (Code::MistOn, "mist_on", Kind::Button, 226, "Mist ON"),
+    (Code::MistOff, "mist_off", Kind::Button, 227, "Mist OFF"),
+    // The LEDs below carry the machine's I/O lamps. The project's code table has no LED rows
+    // for them, so these defaults follow the OEM LED numbers of Mach3's standard screen sets as
+    // far as we know them, NOT a verified source: check each on the installation (Mach3's
+    // Diagnostics page shows the same lamps) and override any that differ by name.
+    (
+        Code::SpindleCwLed,
+        "led_spindle_cw",
+        Kind::Led,
+        11,
+        "Spindle on, clockwise",
+    ),
+    (
+        Code::SpindleCcwLed,
+        "led_spindle_ccw",
+        Kind::Led,
+        12,
+        "Spindle on, counter-clockwise",
+    ),
+    (
+        Code::FloodLed,
+        "led_flood",
+        Kind::Led,
+        13,
+        "Flood coolant on",
+    ),
+    (Code::MistLed, "led_mist", Kind::Led, 14, "Mist coolant on"),
+    (
+        Code::LimitXMaxLed,
+        "led_limit_x_max",
+        Kind::Led,
+        36,
+        "X++ limit switch active",
+    ),
+    (
+        Code::LimitXMinLed,
+        "led_limit_x_min",
+        Kind::Led,
+        37,
+        "X-- limit switch active",
+    ),
+    (
+        Code::LimitYMaxLed,
+        "led_limit_y_max",
+        Kind::Led,
+        38,
+        "Y++ limit switch active",
+    ),
+    (
+        Code::LimitYMinLed,
+        "led_limit_y_min",
+        Kind::Led,
+        39,
+        "Y-- limit switch active",
+    ),
+    (
+        Code::LimitZMaxLed,
+        "led_limit_z_max",
+        Kind::Led,
+        40,
+        "Z++ limit switch active",
+    ),
+    (
+        Code::LimitZMinLed,
+        "led_limit_z_min",
+        Kind::Led,
+        41,
+        "Z-- limit switch active",
+    ),
+];
+
+/// The LEDs that are the machine's inputs and outputs in its status: (role, status name, is
+/// an output). `spindle` itself is CW or CCW lit; `spindle_ccw` is the CCW LED.
+pub const IO_LEDS: &[(Code, &str, bool)] = &[
+    (Code::SpindleCwLed, "spindle_cw", true),
+    (Code::SpindleCcwLed, "spindle_ccw", true),
+    (Code::FloodLed, "coolant_flood", true),
+    (Code::MistLed, "coolant_mist", true),
+    (Code::LimitXMaxLed, "limit_x_max", false),
+    (Code::LimitXMinLed, "limit_x_min", false),
+    (Code::LimitYMaxLed, "limit_y_max", false),
+    (Code::LimitYMinLed, "limit_y_min", false),
+    (Code::LimitZMaxLed, "limit_z_max", false),
+    (Code::LimitZMinLed, "limit_z_min", false),
 ];
 
 /// The codes of one machine: the defaults with its config overrides applied.

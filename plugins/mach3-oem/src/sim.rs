@@ -59,6 +59,16 @@ mod code {
     pub const LED_REFERENCED_X: i16 = 807;
     pub const LED_MOVING: i16 = 999;
     pub const LED_INCREMENTAL: i16 = 48;
+    pub const FLOOD_ON: i16 = 224;
+    pub const FLOOD_OFF: i16 = 225;
+    pub const MIST_ON: i16 = 226;
+    pub const MIST_OFF: i16 = 227;
+    pub const LED_SPINDLE_CW: i16 = 11;
+    pub const LED_SPINDLE_CCW: i16 = 12;
+    pub const LED_FLOOD: i16 = 13;
+    pub const LED_MIST: i16 = 14;
+    /// X++ limit; X--, Y++, Y--, Z++, Z-- follow.
+    pub const LED_LIMIT_X_MAX: i16 = 36;
 }
 
 /// Simulator settings.
@@ -122,6 +132,12 @@ struct State {
     fro: f64,
     tool: f64,
     estop: bool,
+    /// Spindle: 0 off, 1 clockwise (M3), -1 counter-clockwise (M4).
+    spindle: i8,
+    flood: bool,
+    mist: bool,
+    /// Limit switches X++, X--, Y++, Y--, Z++, Z-- (pressed by tests).
+    limits: [bool; 6],
     referenced: [bool; AXES],
     program: Option<Program>,
     running: bool,
@@ -177,6 +193,15 @@ impl State {
                 || !self.queue.is_empty()
                 || self.jogs.iter().any(|j| *j != 0.0)
                 || self.running)
+    }
+
+    /// Reset latched: motion ends and, as on a real controller, spindle and coolant go off.
+    fn latch_reset(&mut self) {
+        self.estop = true;
+        self.halt();
+        self.spindle = 0;
+        self.flood = false;
+        self.mist = false;
     }
 
     fn halt(&mut self) {
@@ -325,7 +350,7 @@ impl State {
         if code == code::RESET {
             self.estop = !self.estop;
             if self.estop {
-                self.halt();
+                self.latch_reset();
             }
             return;
         }
@@ -338,6 +363,10 @@ impl State {
             code::RESUME => self.paused = false,
             code::STOP => self.halt(),
             code::REWIND if !self.running => self.line = 0,
+            code::FLOOD_ON => self.flood = true,
+            code::FLOOD_OFF => self.flood = false,
+            code::MIST_ON => self.mist = true,
+            code::MIST_OFF => self.mist = false,
             code::ZERO_ALL => self.fixtures[self.fixture] = self.pos,
             c if (code::ZERO_X..code::ZERO_X + AXES as i16).contains(&c) => {
                 let i = (c - code::ZERO_X) as usize;
@@ -395,6 +424,16 @@ impl State {
                     }
                 },
                 'F' => self.feed = value,
+                'M' => match value {
+                    3.0 => self.spindle = 1,
+                    4.0 => self.spindle = -1,
+                    5.0 => self.spindle = 0,
+                    7.0 => self.mist = true,
+                    8.0 => self.flood = true,
+                    9.0 => (self.mist, self.flood) = (false, false),
+                    // Other M codes do not change what the simulator models.
+                    _ => {}
+                },
                 'L' => l = Some(value),
                 'P' => p = Some(value),
                 'X' | 'Y' | 'Z' | 'A' | 'B' | 'C' => {
@@ -559,6 +598,13 @@ impl State {
             code::LED_PAUSED => self.paused,
             code::LED_MOVING => self.moving(),
             code::LED_INCREMENTAL => self.incremental,
+            code::LED_SPINDLE_CW => self.spindle == 1,
+            code::LED_SPINDLE_CCW => self.spindle == -1,
+            code::LED_FLOOD => self.flood,
+            code::LED_MIST => self.mist,
+            c if (code::LED_LIMIT_X_MAX..code::LED_LIMIT_X_MAX + 6).contains(&c) => {
+                self.limits[(c - code::LED_LIMIT_X_MAX) as usize]
+            }
             c if (code::LED_REFERENCED_X..code::LED_REFERENCED_X + AXES as i16).contains(&c) => {
                 self.referenced[(c - code::LED_REFERENCED_X) as usize]
             }
@@ -627,6 +673,10 @@ impl Mach3Sim {
                 fro: 100.0,
                 tool: 0.0,
                 estop: true,
+                spindle: 0,
+                flood: false,
+                mist: false,
+                limits: [false; 6],
                 referenced: [false; AXES],
                 program: None,
                 running: false,
@@ -671,12 +721,23 @@ impl Mach3Sim {
     pub fn set_running(&self, running: bool) {
         let mut st = self.lock();
         if running && st.closed {
-            st.halt();
-            st.estop = true;
+            st.latch_reset();
             st.program = None;
             st.line = 0;
         }
         st.closed = !running;
+    }
+
+    /// Presses (or releases) limit switch `which` (0 X++, 1 X--, 2 Y++, 3 Y--, 4 Z++, 5 Z--):
+    /// its LED lights and, as Mach3 does on a limit, reset latches and motion stops.
+    pub fn press_limit(&self, which: usize, pressed: bool) {
+        let mut st = self.lock();
+        if let Some(l) = st.limits.get_mut(which) {
+            *l = pressed;
+            if pressed {
+                st.latch_reset();
+            }
+        }
     }
 }
 

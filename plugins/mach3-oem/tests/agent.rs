@@ -166,3 +166,44 @@ fn jogs_end_when_the_connection_is_lost_or_goes_quiet() {
     assert!(sim.get_oem_dro(801).unwrap() < 0.0, "Y jogged minus");
     drop(c);
 }
+
+/// A limit switch on Mach3 (its LED lit, reset latched as Mach3 does): the backend reports the
+/// input and goes to alarm with an `alarm` event that names it.
+#[test]
+fn a_limit_led_shows_as_an_input_and_names_the_alarm() {
+    use fresa_mach3_oem::backend::Mach3Backend;
+    use fresa_plugin_api::contract::Event;
+    use fresa_plugin_api::MachineBackend;
+    use std::sync::{Arc, Mutex};
+
+    let (addr, sim, _dir) = start(Duration::from_secs(5));
+    let events = Arc::new(Mutex::new(Vec::<Event>::new()));
+    let sink = events.clone();
+    let backend = Mach3Backend::new(
+        &serde_json::json!({"agent": addr, "secret": SECRET, "poll_hz": 50}),
+        Arc::new(move |e: &Event| sink.lock().unwrap().push(e.clone())),
+    )
+    .unwrap();
+    let status = |b: &Mach3Backend| b.request(serde_json::json!({"op": "status"})).unwrap();
+    backend
+        .request(serde_json::json!({"op": "connect"}))
+        .unwrap();
+    wait_until("idle with all lamps known", || {
+        let st = status(&backend);
+        st["state"] == "idle" && st["inputs"]["limit_x_max"] == false
+    });
+    sim.press_limit(0, true);
+    wait_until("alarm", || status(&backend)["state"] == "alarm");
+    let st = status(&backend);
+    assert_eq!(st["inputs"]["limit_x_max"], true, "{st}");
+    assert_eq!(st["inputs"]["estop"], true, "{st}");
+    assert!(
+        st["alarm"].as_str().unwrap().contains("limit_x_max"),
+        "{st}"
+    );
+    wait_until("the alarm event", || {
+        events.lock().unwrap().iter().any(
+            |e| matches!(e, Event::Alarm { input, .. } if input.as_deref() == Some("limit_x_max")),
+        )
+    });
+}

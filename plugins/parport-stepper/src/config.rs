@@ -5,7 +5,7 @@ use crate::pins;
 use crate::planner::{AxisLimits, Machine};
 use crate::port::ScriptedInput;
 use fresa_plugin_api::config_fields::{boolean, invalid, non_negative, number, object, positive};
-use fresa_plugin_api::contract::Axis;
+use fresa_plugin_api::contract::{io, Axis};
 use fresa_plugin_api::PluginError;
 use serde_json::{Map, Value};
 use std::path::PathBuf;
@@ -22,7 +22,65 @@ pub enum PortSpec {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum InputFunction {
     EStop,
-    Limit(Option<char>),
+    /// A limit switch: of one axis (`Some('X')`) or a chain shared by all, at one end
+    /// (`Some(false)` min, `Some(true)` max) or covering both.
+    Limit(Option<char>, Option<bool>),
+    /// Shown only; never trips (a touch probe, a door switch).
+    Probe,
+    Door,
+}
+
+impl InputFunction {
+    /// Parses a `function` value: `estop`, `probe`, `door`, `limit`, `limit_x`, `limit_x_min`,
+    /// `limit_x_max`, ... for x, y, z.
+    pub fn parse(s: &str) -> Option<InputFunction> {
+        Some(match s {
+            "estop" => InputFunction::EStop,
+            "probe" => InputFunction::Probe,
+            "door" => InputFunction::Door,
+            "limit" => InputFunction::Limit(None, None),
+            _ => {
+                let rest = s.strip_prefix("limit_")?;
+                let (axis, end) = rest.split_at(rest.len().min(1));
+                let axis = match axis {
+                    "x" => 'X',
+                    "y" => 'Y',
+                    "z" => 'Z',
+                    _ => return None,
+                };
+                let end = match end {
+                    "" => None,
+                    "_min" => Some(false),
+                    "_max" => Some(true),
+                    _ => return None,
+                };
+                InputFunction::Limit(Some(axis), end)
+            }
+        })
+    }
+
+    /// The input's name in the machine status (the contract's `io` naming scheme).
+    pub fn io_name(self) -> String {
+        match self {
+            InputFunction::EStop => io::ESTOP.into(),
+            InputFunction::Probe => io::PROBE.into(),
+            InputFunction::Door => io::DOOR.into(),
+            InputFunction::Limit(None, _) => io::LIMIT.into(),
+            InputFunction::Limit(Some(a), end) => {
+                let axis = match a {
+                    'X' => Axis::X,
+                    'Y' => Axis::Y,
+                    _ => Axis::Z,
+                };
+                io::limit(axis, end)
+            }
+        }
+    }
+
+    /// Whether the machine stops when this input becomes active.
+    pub fn trips(self) -> bool {
+        matches!(self, InputFunction::EStop | InputFunction::Limit(..))
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -37,8 +95,16 @@ impl Input {
     pub fn describe(&self) -> String {
         match self.function {
             InputFunction::EStop => format!("e-stop (pin {})", self.pin),
-            InputFunction::Limit(Some(a)) => format!("limit {a} (pin {})", self.pin),
-            InputFunction::Limit(None) => format!("limit (pin {})", self.pin),
+            InputFunction::Limit(..) => {
+                format!(
+                    "limit switch {} (pin {})",
+                    self.function.io_name(),
+                    self.pin
+                )
+            }
+            InputFunction::Probe | InputFunction::Door => {
+                format!("{} (pin {})", self.function.io_name(), self.pin)
+            }
         }
     }
 }
@@ -56,6 +122,9 @@ pub struct Config {
     pub spin: Duration,
     pub realtime_priority: bool,
     pub inputs: Vec<Input>,
+    /// How long an input's new level must hold before the status shows it (switch bounce).
+    /// Trips do not wait for it: a limit or e-stop stops the motors in the tick that reads it.
+    pub input_debounce: Duration,
     pub jog_feed_mm_min: f64,
     pub execution_log: Option<PathBuf>,
     pub status_interval: Duration,
@@ -164,18 +233,11 @@ fn inputs(v: &Value) -> Result<Vec<Input>, PluginError> {
                     pin = Some(p);
                 }
                 "function" => {
-                    function = Some(match v.as_str() {
-                        Some("estop") => InputFunction::EStop,
-                        Some("limit") => InputFunction::Limit(None),
-                        Some("limit_x") => InputFunction::Limit(Some('X')),
-                        Some("limit_y") => InputFunction::Limit(Some('Y')),
-                        Some("limit_z") => InputFunction::Limit(Some('Z')),
-                        _ => {
-                            return Err(invalid(format!(
-                            "`{key}` must be \"estop\", \"limit\", \"limit_x\", \"limit_y\" or \"limit_z\", got {v}"
-                        )))
-                        }
-                    })
+                    function = Some(v.as_str().and_then(InputFunction::parse).ok_or_else(|| {
+                        invalid(format!(
+                            "`{key}` must be \"estop\", \"probe\", \"door\", \"limit\", or \"limit_x\", \"limit_x_min\", \"limit_x_max\" (also for y and z), got {v}"
+                        ))
+                    })?)
                 }
                 "active_low" => active_low = boolean(&key, v)?,
                 _ => return Err(invalid(format!("unknown config key `{key}`"))),
@@ -274,6 +336,7 @@ impl Config {
         let mut status_interval_ms = 100.0;
         let mut travel_xy = [None; 2];
         let mut ins = Vec::new();
+        let mut input_debounce_ms = 5.0;
         let mut sim = Vec::new();
         let mut lift_pin = 1u8;
         let mut lift_invert = false;
@@ -339,6 +402,7 @@ impl Config {
                     }
                 }
                 "inputs" => ins = inputs(v)?,
+                "input_debounce_ms" => input_debounce_ms = non_negative(key, v)?,
                 "sim_inputs" => sim = sim_inputs(v)?,
                 _ => return Err(invalid(format!("unknown config key `{key}`"))),
             }
@@ -387,6 +451,7 @@ impl Config {
             spin: Duration::from_secs_f64(spin_us / 1e6),
             realtime_priority,
             inputs: ins,
+            input_debounce: Duration::from_secs_f64(input_debounce_ms / 1000.0),
             jog_feed_mm_min,
             execution_log,
             status_interval: Duration::from_secs_f64(status_interval_ms / 1000.0),

@@ -2,13 +2,13 @@
 //! thread. Requests change state and queue work; the output thread runs the tick loop,
 //! executes plans, reads the inputs every tick and reports what happened.
 
-use crate::config::{Config, PortSpec};
+use crate::config::{Config, Input, PortSpec};
 use crate::output::{realtime_priority, Output, Pacer};
 use crate::planner::{self, Action, Builder, Plan, Start};
 use crate::port::{Port, SharedSimPort, SimPort};
 use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
 use fresa_plugin_api::contract::{
-    Axis, Event, MachineState, MachineStatus, OutputName, ProgramLoaded,
+    io, Axis, Event, IoValue, MachineState, MachineStatus, OutputName, ProgramLoaded,
 };
 use fresa_plugin_api::exec_log::ExecLog;
 use fresa_plugin_api::kit::{self, Interrupted, Job, KitConfig, MotionThread};
@@ -62,7 +62,7 @@ struct Core {
     kit: Kit,
 }
 
-/// Machine mm from the step counts and the lift's Z.
+/// Machine mm from the step counts and the lift's Z; the lift output as the status shows it.
 fn sync_pos(sh: &mut State, cfg: &Config) {
     sh.pos = [
         sh.extra.steps[0] as f64 / cfg.machine.axes[0].steps_per_mm,
@@ -70,6 +70,16 @@ fn sync_pos(sh: &mut State, cfg: &Config) {
         sh.extra.z,
         0.0,
     ];
+    sh.outputs
+        .insert(io::Z_LIFT.to_string(), Some(IoValue::On(sh.extra.lift)));
+}
+
+/// Why a job stops at an input: the alarm names it.
+fn tripped(input: &Input) -> Interrupted {
+    Interrupted::Tripped {
+        input: input.function.io_name(),
+        message: input.describe(),
+    }
 }
 
 fn start(sh: &State) -> Start {
@@ -91,6 +101,13 @@ impl Core {
     fn alarm_once(&self, sh: &mut State, message: String, ev: &mut Vec<Event>) {
         if sh.state != MachineState::Alarm {
             sh.raise_alarm(message, ev);
+        }
+    }
+
+    /// Shows input levels that changed (debounced) in the status at once.
+    fn show_inputs(&self, out: &mut Output) {
+        if let Some(levels) = out.take_shown_inputs() {
+            self.kit.with(|sh, ev| sh.set_io(levels, [], ev));
         }
     }
 
@@ -137,6 +154,7 @@ impl Core {
                 return;
             }
         };
+        self.show_inputs(out);
         if trip.is_some() {
             out.coils_off();
         }
@@ -144,8 +162,8 @@ impl Core {
         self.kit.with(|sh, ev| {
             sh.extra.estop = estop;
             if let Some(input) = trip {
-                if sh.state != MachineState::Offline {
-                    self.alarm_once(sh, input.describe(), ev);
+                if sh.state != MachineState::Offline && sh.state != MachineState::Alarm {
+                    sh.raise_input_alarm(input.function.io_name(), input.describe(), ev);
                 }
             }
         });
@@ -227,10 +245,11 @@ impl Core {
         loop {
             out.end(true).map_err(port_error)?;
             let trip = out.begin().map_err(port_error)?;
+            self.show_inputs(out);
             if let Some(input) = trip {
                 // No step in this tick: the coils go off in the same write.
                 out.coils_off();
-                return Err(Interrupted::Alarm(input.describe()));
+                return Err(tripped(&input));
             }
             if self.kit.aborted() {
                 return Err(Interrupted::Aborted);
@@ -258,9 +277,11 @@ impl Core {
         let mut line_dev: Option<(u32, f64)> = None;
         let mut last_publish = Instant::now();
         // Tick 0 of the timeline.
-        if let Some(input) = out.begin().map_err(port_error)? {
+        let trip = out.begin().map_err(port_error)?;
+        self.show_inputs(out);
+        if let Some(input) = trip {
             out.coils_off();
-            return Err(Interrupted::Alarm(input.describe()));
+            return Err(tripped(&input));
         }
         for item in &plan.items {
             if let Some((run, _)) = run {
@@ -573,6 +594,17 @@ impl Stepper {
             cfg,
             kit: Kit::new(kit_cfg, sink, exec_log, Drive::default()),
         });
+        // Every configured input is supported, and unknown until the output thread's first read.
+        let unknown: Vec<_> = core
+            .cfg
+            .inputs
+            .iter()
+            .map(|i| (i.function.io_name(), None))
+            .collect();
+        core.kit.with(|sh, ev| {
+            sync_pos(sh, &core.cfg);
+            sh.set_io(unknown, [], ev);
+        });
         let worker_core = Arc::clone(&core);
         let want_rt = core.cfg.realtime_priority && timing == Timing::Real;
         let worker = MotionThread::spawn("parport output", move || {
@@ -611,12 +643,13 @@ impl Stepper {
                 ),
             ));
         }
-        self.kit().with(|sh, _| {
+        self.kit().with(|sh, ev| {
             sh.require_no_alarm("switch the Z lift")?;
             sh.require_still("switch the Z lift")?;
             let on = on.unwrap_or(!sh.extra.lift);
             sh.extra.lift = on;
             sh.extra.lift_request = Some(on);
+            sh.set_io([], [(io::Z_LIFT.to_string(), Some(IoValue::On(on)))], ev);
             Ok(on)
         })
     }

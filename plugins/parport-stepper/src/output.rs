@@ -76,6 +76,14 @@ pub struct Output {
     inputs: Vec<Input>,
     /// Inputs active at the last read (bit per entry of `inputs`).
     active: u32,
+    /// Debounced levels, as the status shows them (bit per entry of `inputs`), and since when
+    /// each input's read level has differed from its shown one.
+    shown: u32,
+    differs_since: Vec<Option<Instant>>,
+    debounce: Duration,
+    /// The shown levels changed since the machine last took them (true at first: the first
+    /// read makes them known).
+    shown_changed: bool,
     /// Global tick counter (never frozen, unlike a plan's timeline).
     pub tick: u64,
     pub pacer: Pacer,
@@ -98,6 +106,10 @@ impl Output {
             lift_invert: cfg.lift_invert,
             inputs: cfg.inputs.clone(),
             active: 0,
+            shown: 0,
+            differs_since: vec![None; cfg.inputs.len()],
+            debounce: cfg.input_debounce,
+            shown_changed: true,
             tick: 0,
             pacer,
         };
@@ -116,13 +128,59 @@ impl Output {
             if pins::input_level(status, input.pin) != input.active_low {
                 active |= 1 << i;
                 let edge = self.active & (1 << i) == 0;
-                if trip.is_none() && (edge || input.function == InputFunction::EStop) {
+                if trip.is_none()
+                    && input.function.trips()
+                    && (edge || input.function == InputFunction::EStop)
+                {
                     trip = Some(*input);
                 }
             }
         }
         self.active = active;
+        self.debounce_shown();
         Ok(trip)
+    }
+
+    /// Moves each input's shown level to its read level once that has held for the debounce
+    /// time. Reads the clock only while some input differs.
+    fn debounce_shown(&mut self) {
+        let differing = self.active ^ self.shown;
+        if differing == 0 {
+            self.differs_since.iter_mut().for_each(|d| *d = None);
+            return;
+        }
+        let now = Instant::now();
+        for (i, since) in self.differs_since.iter_mut().enumerate() {
+            let bit = 1 << i;
+            if differing & bit == 0 {
+                *since = None;
+                continue;
+            }
+            let start = *since.get_or_insert(now);
+            if now.duration_since(start) >= self.debounce {
+                self.shown ^= bit;
+                *since = None;
+                self.shown_changed = true;
+            }
+        }
+    }
+
+    /// The shown input levels by status name, when they changed since the last call. Inputs
+    /// sharing a name (two pins of one limit chain) show active when any of them is.
+    pub fn take_shown_inputs(&mut self) -> Option<Vec<(String, Option<bool>)>> {
+        if !std::mem::take(&mut self.shown_changed) {
+            return None;
+        }
+        let mut levels: Vec<(String, Option<bool>)> = Vec::new();
+        for (i, input) in self.inputs.iter().enumerate() {
+            let on = self.shown & (1 << i) != 0;
+            let name = input.function.io_name();
+            match levels.iter_mut().find(|(n, _)| *n == name) {
+                Some((_, level)) => *level = Some(level.unwrap_or(false) || on),
+                None => levels.push((name, Some(on))),
+            }
+        }
+        Some(levels)
     }
 
     /// An active e-stop input, if any (for refusing reset).

@@ -92,6 +92,19 @@ impl Rig {
         }
     }
 
+    /// Polls the status until `f` holds (I/O shows after the debounce time).
+    fn wait_status(&self, f: impl Fn(&Value) -> bool) -> Value {
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            let st = self.m.request(json!({"op":"status"})).unwrap();
+            if f(&st) {
+                return st;
+            }
+            assert!(Instant::now() < deadline, "status never matched: {st}");
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    }
+
     /// Waits until the loop has switched every coil off, then returns the writes.
     fn writes_after_idle(&self) -> Vec<Write> {
         let port = self.m.sim_port.clone().unwrap();
@@ -278,13 +291,27 @@ fn limit_input_stops_within_one_tick_alarms_and_fails_the_run() {
             outcome, message, ..
         } => {
             assert_eq!(*outcome, fresa_plugin_api::contract::RunOutcome::Failed);
-            assert_eq!(message.as_deref(), Some("limit X (pin 10)"));
+            assert_eq!(message.as_deref(), Some("limit switch limit_x (pin 10)"));
         }
         other => panic!("{other:?}"),
     }
     let st = r.m.request(json!({"op":"status"})).unwrap();
     assert_eq!(st["state"], "alarm");
-    assert_eq!(st["alarm"], "limit X (pin 10)");
+    assert_eq!(st["alarm"], "limit switch limit_x (pin 10)");
+    // The alarm event names the input that tripped it.
+    let alarm = r.wait(|e| matches!(e, Event::Alarm { .. }));
+    assert_eq!(
+        alarm,
+        Event::Alarm {
+            message: "limit switch limit_x (pin 10)".into(),
+            input: Some("limit_x".into())
+        }
+    );
+    // The status shows the switch pressed once it has held for the debounce time, and the
+    // e-stop (active low, held high by the quiet level) released.
+    let st = r.wait_status(|s| s["inputs"]["limit_x"] == true);
+    assert_eq!(st["inputs"]["estop"], false);
+    assert_eq!(st["outputs"]["z_lift"], false);
     let port = r.m.sim_port.clone().unwrap();
     let p = port.lock();
     let limit_seen = p
@@ -462,7 +489,8 @@ fn e_stop_alarms_while_active_and_reset_waits_for_its_release() {
     assert_eq!(
         alarm,
         Event::Alarm {
-            message: "e-stop (pin 15)".into()
+            message: "e-stop (pin 15)".into(),
+            input: Some("estop".into())
         }
     );
     let st = r.m.request(json!({"op":"status"})).unwrap();
@@ -575,4 +603,54 @@ fn huge_jog_targets_are_refused_without_travel() {
     }
     r.m.request(json!({"op":"jog","axis":"Y","distance":1.0}))
         .unwrap();
+}
+
+/// Inputs are reported by name, unknown until the first read, then debounced: a pin that
+/// bounces shorter than `input_debounce_ms` (300 ms here, far above a step period even on a
+/// loaded machine) never shows, one that holds shows (as a status
+/// event), and a probe or door input shows without tripping anything.
+#[test]
+fn inputs_show_debounced_by_name_and_only_limits_and_e_stop_trip() {
+    let r = rig_timed(
+        "io",
+        sim(json!({
+            "inputs":[{"pin":10,"function":"limit_x_max"},{"pin":12,"function":"probe"},
+                      {"pin":13,"function":"door"}],
+            "input_debounce_ms": 300,
+            // Pin 12 (probe) goes active for one write, then for good two writes later.
+            "sim_inputs":[{"after_writes":3,"pin":12,"level":"high"},
+                          {"after_writes":4,"pin":12,"level":"low"},
+                          {"after_writes":6,"pin":12,"level":"high"}],
+            "realtime_priority": false
+        })),
+        Timing::Real,
+    );
+    let st = r.wait_status(|s| s["inputs"]["limit_x_max"] == false);
+    assert_eq!(st["inputs"]["door"], false);
+    assert!(
+        st["inputs"].get("limit_y").is_none(),
+        "unsupported names are absent"
+    );
+    r.m.request(json!({"op":"jog","axis":"Y","distance":2.0,"feed":600}))
+        .unwrap();
+    let st = r.wait_status(|s| s["inputs"]["probe"] == true && s["state"] == "idle");
+    assert_eq!(st["alarm"], Value::Null, "a probe does not trip: {st}");
+    // Every change went out as a status event; the one-write bounce never showed.
+    let shown: Vec<Value> = r
+        .events
+        .lock()
+        .unwrap()
+        .iter()
+        .filter_map(|e| match e {
+            Event::Status(s) => Some(serde_json::to_value(s.inputs["probe"]).unwrap()),
+            _ => None,
+        })
+        .collect();
+    let mut changes = shown.clone();
+    changes.dedup();
+    assert_eq!(
+        changes,
+        vec![Value::Null, json!(false), json!(true)],
+        "{shown:?}"
+    );
 }

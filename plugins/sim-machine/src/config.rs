@@ -1,7 +1,7 @@
 //! The plugin's JSON configuration. Parsed by hand so every error names the offending key.
 
 use fresa_plugin_api::config_fields::{invalid, number, positive};
-use fresa_plugin_api::contract::Axis;
+use fresa_plugin_api::contract::{io, Axis};
 use fresa_plugin_api::kit;
 use fresa_plugin_api::PluginError;
 use serde_json::Value;
@@ -26,6 +26,37 @@ pub struct Config {
     /// `connect` enters alarm with this message instead of idle (as a controller that needs an
     /// unlock after power-up does); `reset` clears it. For tests of alarm handling.
     pub alarm_at_connect: Option<String>,
+    /// Simulated input switches, each active while its axis is at or beyond a position, so a
+    /// test (or a demo user) presses one by moving onto it.
+    pub switches: Vec<Switch>,
+}
+
+/// An input switch at a machine position: active while `axis` is at or above `at` (`above`)
+/// or at or below it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Switch {
+    /// Its input name (`limit_x_max`, `probe`, ...).
+    pub name: String,
+    pub axis: Axis,
+    pub at: f64,
+    pub above: bool,
+}
+
+impl Switch {
+    pub fn active_at(&self, pos: &[f64; 4]) -> bool {
+        let p = pos[self.axis.index()];
+        if self.above {
+            p >= self.at
+        } else {
+            p <= self.at
+        }
+    }
+
+    /// Limits and the e-stop stop the machine when they become active; a probe or door only
+    /// shows.
+    pub fn trips(&self) -> bool {
+        self.name == io::ESTOP || self.name.starts_with(io::LIMIT)
+    }
 }
 
 impl Default for Config {
@@ -38,6 +69,7 @@ impl Default for Config {
             status_interval: Duration::from_millis(100),
             travel: [None; 4],
             alarm_at_connect: None,
+            switches: Vec::new(),
         }
     }
 }
@@ -95,11 +127,12 @@ impl Config {
                         )))
                     }
                 },
+                "switches" => cfg.switches = switches(v)?,
                 other => {
                     return Err(invalid(format!(
                         "unknown config key `{other}` (known: time_scale, rapid_mm_min, \
                          jog_feed_mm_min, execution_log, status_interval_ms, travel, \
-                         alarm_at_connect)"
+                         alarm_at_connect, switches)"
                     )))
                 }
             }
@@ -123,6 +156,72 @@ impl Config {
     }
 }
 
+/// `{"limit_x_max": {"axis": "x", "at_or_above": 95}, "probe": {"axis": "z", "at_or_below": -20}}`
+fn switches(v: &Value) -> Result<Vec<Switch>, PluginError> {
+    let Value::Object(map) = v else {
+        return Err(invalid(format!(
+            "`switches` must be an object like {{\"limit_x_max\": {{\"axis\": \"x\", \"at_or_above\": 95}}}}, got {v}"
+        )));
+    };
+    let mut out = Vec::new();
+    for (name, spec) in map {
+        let key = format!("switches.{name}");
+        if !io::is_input_name(name) {
+            return Err(invalid(format!(
+                "`{key}`: not an input name (estop, probe, door, limit, limit_x, limit_x_min, limit_x_max, ... for x, y, z, a)"
+            )));
+        }
+        let Value::Object(spec) = spec else {
+            return Err(invalid(format!(
+                "`{key}` must be an object with `axis` and `at_or_above` or `at_or_below`, got {spec}"
+            )));
+        };
+        let mut axis = None;
+        let mut at = None;
+        for (k, v) in spec {
+            let field = format!("{key}.{k}");
+            match k.as_str() {
+                "axis" => {
+                    axis = Some(match v.as_str().map(str::to_ascii_lowercase).as_deref() {
+                        Some("x") => Axis::X,
+                        Some("y") => Axis::Y,
+                        Some("z") => Axis::Z,
+                        Some("a") => Axis::A,
+                        _ => {
+                            return Err(invalid(format!(
+                                "`{field}` must be \"x\", \"y\", \"z\" or \"a\", got {v}"
+                            )))
+                        }
+                    })
+                }
+                "at_or_above" | "at_or_below" if at.is_none() => {
+                    at = Some((number(&field, v)?, k == "at_or_above"))
+                }
+                "at_or_above" | "at_or_below" => {
+                    return Err(invalid(format!(
+                        "`{key}`: give one of `at_or_above` and `at_or_below`"
+                    )))
+                }
+                other => {
+                    return Err(invalid(format!(
+                        "`{key}`: unknown key `{other}` (known: axis, at_or_above, at_or_below)"
+                    )))
+                }
+            }
+        }
+        let axis = axis.ok_or_else(|| invalid(format!("`{key}.axis` is required")))?;
+        let (at, above) =
+            at.ok_or_else(|| invalid(format!("`{key}` needs `at_or_above` or `at_or_below`")))?;
+        out.push(Switch {
+            name: name.clone(),
+            axis,
+            at,
+            above,
+        });
+    }
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used, clippy::expect_used)]
@@ -144,6 +243,15 @@ mod tests {
         assert_eq!(c.travel[2], Some((-100.0, 0.0)));
         assert_eq!(c.travel[1], None);
         assert_eq!(c.status_interval, Duration::from_millis(20));
+        let c = Config::from_json(&json!({
+            "switches": {"limit_x_max": {"axis": "X", "at_or_above": 95}, "probe": {"axis": "z", "at_or_below": -20}}
+        }))
+        .unwrap();
+        let max = c.switches.iter().find(|s| s.name == "limit_x_max").unwrap();
+        assert!(max.active_at(&[95.0, 0.0, 0.0, 0.0]) && !max.active_at(&[94.9, 0.0, 0.0, 0.0]));
+        assert!(max.trips());
+        let probe = c.switches.iter().find(|s| s.name == "probe").unwrap();
+        assert!(probe.active_at(&[0.0, 0.0, -20.0, 0.0]) && !probe.trips());
     }
 
     #[test]
@@ -160,6 +268,22 @@ mod tests {
             (json!({"travel": {"x": [1]}}), "travel.x"),
             (json!({"travel": {"x": [2, 1]}}), "travel.x"),
             (json!({"alarm_at_connect": true}), "alarm_at_connect"),
+            (
+                json!({"switches": {"limit_q": {"axis": "x", "at_or_above": 1}}}),
+                "switches.limit_q",
+            ),
+            (
+                json!({"switches": {"probe": {"axis": "b", "at_or_above": 1}}}),
+                "switches.probe.axis",
+            ),
+            (
+                json!({"switches": {"probe": {"axis": "z"}}}),
+                "switches.probe",
+            ),
+            (
+                json!({"switches": {"probe": {"axis": "z", "at_or_above": "x"}}}),
+                "switches.probe.at_or_above",
+            ),
         ] {
             let e = Config::from_json(&cfg).unwrap_err();
             assert_eq!(e.code, "invalid_config");

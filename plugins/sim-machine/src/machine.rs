@@ -6,9 +6,11 @@
 use crate::config::Config;
 use crate::program::{self, Plan, Step};
 use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
-use fresa_plugin_api::contract::{Axis, MachineState, MachineStatus, OutputName, ProgramLoaded};
+use fresa_plugin_api::contract::{
+    io, Axis, IoValue, MachineState, MachineStatus, OutputName, ProgramLoaded,
+};
 use fresa_plugin_api::exec_log::ExecLog;
-use fresa_plugin_api::kit::{self, Interrupted, Job, KitConfig, Loaded, MotionThread};
+use fresa_plugin_api::kit::{self, Events, Interrupted, Job, KitConfig, Loaded, MotionThread};
 use fresa_plugin_api::{Host, PluginError};
 use serde_json::{json, Value};
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -20,15 +22,26 @@ pub use fresa_plugin_api::kit::EventSink;
 /// Longest time the motion thread goes without looking at stop / feed hold.
 const SLICE: Duration = Duration::from_millis(5);
 
-/// What the simulated machine adds to the kit's state: its two outputs.
-#[derive(Debug, Default)]
-struct Outputs {
-    spindle: bool,
-    coolant: bool,
+// The simulated machine keeps nothing beyond the kit's state: its outputs (spindle, flood
+// coolant) and switch inputs are the kit's I/O maps.
+type Kit = kit::Kit<Plan, ()>;
+type State = kit::State<Plan, ()>;
+
+/// The output's name in the status, or why the simulated machine has none of that name.
+fn output_key(name: OutputName) -> Result<&'static str, PluginError> {
+    match name {
+        OutputName::Spindle => Ok(io::SPINDLE),
+        OutputName::Coolant => Ok(io::COOLANT_FLOOD),
+        OutputName::ZLift => Err(PluginError::new(
+            "unsupported",
+            format!("sim-machine has no output {:?}", name.as_str()),
+        )),
+    }
 }
 
-type Kit = kit::Kit<Plan, Outputs>;
-type State = kit::State<Plan, Outputs>;
+fn off_outputs() -> [(String, Option<IoValue>); 2] {
+    [io::SPINDLE, io::COOLANT_FLOOD].map(|k| (k.to_string(), Some(IoValue::On(false))))
+}
 
 /// A simulated 4-axis machine. Thread-safe; dropping it stops motion and joins its thread.
 pub struct SimMachine {
@@ -50,6 +63,28 @@ fn distance(a: &[f64; 4], b: &[f64; 4]) -> f64 {
 }
 
 impl Core {
+    /// Reads the switches at the current position into the status. Answers the limit or
+    /// e-stop that has just become active, if any (a switch that stays pressed trips once,
+    /// so the axis can be jogged off it after a reset).
+    fn sense(&self, sh: &mut State, ev: &mut Events) -> Option<String> {
+        let mut trip = None;
+        let levels: Vec<(String, Option<bool>)> = self
+            .cfg
+            .switches
+            .iter()
+            .map(|sw| {
+                let on = sw.active_at(&sh.pos);
+                let was_on = sh.inputs.get(&sw.name) == Some(&Some(true));
+                if on && !was_on && sw.trips() && trip.is_none() {
+                    trip = Some(sw.name.clone());
+                }
+                (sw.name.clone(), Some(on))
+            })
+            .collect();
+        sh.set_io(levels, [], ev);
+        trip
+    }
+
     // ----- motion thread -----
 
     fn worker(self: Arc<Self>) {
@@ -204,6 +239,25 @@ impl Core {
                 } else {
                     std::array::from_fn(|i| a[i] + (b[i] - a[i]) * frac)
                 };
+                if !self.cfg.switches.is_empty() {
+                    let mut ev = Vec::new();
+                    let trip = self.sense(&mut sh, &mut ev);
+                    if !ev.is_empty() {
+                        self.kit.release(sh, ev);
+                        sh = self.kit.lock();
+                    }
+                    if let Some(input) = trip {
+                        // Motion ends in the slice that reached the switch.
+                        let at = sh.pos;
+                        return Err(Interrupted::Tripped {
+                            message: format!(
+                                "input {input} tripped at X{:.3} Y{:.3} Z{:.3} A{:.3}",
+                                at[0], at[1], at[2], at[3]
+                            ),
+                            input,
+                        });
+                    }
+                }
                 let due = sh
                     .last_status
                     .is_none_or(|t| now.duration_since(t) >= self.cfg.status_interval);
@@ -240,7 +294,11 @@ impl SimMachine {
         };
         let core = Arc::new(Core {
             cfg,
-            kit: Kit::new(kit_cfg, sink, log, Outputs::default()),
+            kit: Kit::new(kit_cfg, sink, log, ()),
+        });
+        core.kit.with(|sh, ev| {
+            sh.set_io([], off_outputs(), ev);
+            core.sense(sh, ev);
         });
         let worker_core = Arc::clone(&core);
         let worker = MotionThread::spawn("sim-machine motion", move || worker_core.worker())?;
@@ -254,27 +312,15 @@ impl SimMachine {
     /// Switches spindle or coolant (`None` = toggle). Switching on is refused in alarm;
     /// switching off never is. Answers the new state.
     fn output(&self, name: OutputName, on: Option<bool>) -> Result<Value, PluginError> {
-        self.kit().with(|sh, _| {
+        let key = output_key(name)?;
+        self.kit().with(|sh, ev| {
             sh.require_online()?;
-            let current = match name {
-                OutputName::Spindle => sh.extra.spindle,
-                OutputName::Coolant => sh.extra.coolant,
-                OutputName::ZLift => {
-                    return Err(PluginError::new(
-                        "unsupported",
-                        format!("sim-machine has no output {:?}", name.as_str()),
-                    ))
-                }
-            };
+            let current = sh.outputs.get(key) == Some(&Some(IoValue::On(true)));
             let new = on.unwrap_or(!current);
             if new && !current {
                 sh.require_no_alarm(&format!("switch the {} on", name.as_str()))?;
             }
-            if name == OutputName::Spindle {
-                sh.extra.spindle = new;
-            } else {
-                sh.extra.coolant = new;
-            }
+            sh.set_io([], [(key.to_string(), Some(IoValue::On(new)))], ev);
             Ok(json!({"output": name, "on": new}))
         })
     }
@@ -320,8 +366,9 @@ impl MachineBackend for SimMachine {
 
     fn reset(&self) -> Result<(), PluginError> {
         self.kit().reset(|sh| {
-            // As a controller's reset does: spindle and coolant off.
-            sh.extra = Outputs::default();
+            // As a controller's reset does: spindle and coolant off. (The status event goes
+            // out with the reset's state change.)
+            sh.outputs.extend(off_outputs());
             Ok(())
         })
     }
@@ -334,7 +381,10 @@ impl MachineBackend for SimMachine {
         self.kit().home(axis, |sh, axis| match axis {
             Some(a) => sh.pos[a.index()] = 0.0,
             None => sh.pos = [0.0; 4],
-        })
+        })?;
+        // Homing declares a new position: the switches read there (no trip, nothing moved).
+        self.kit().with(|sh, ev| self.core.sense(sh, ev));
+        Ok(())
     }
 
     fn set_output(&self, name: OutputName, on: bool) -> Result<Value, PluginError> {

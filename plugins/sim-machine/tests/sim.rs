@@ -2,7 +2,9 @@
 //! Waiting is always on events, with a generous timeout that only guards against hangs.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use fresa_plugin_api::contract::{Event, MachineState, MachineStatus, OffsetTable, RunOutcome};
+use fresa_plugin_api::contract::{
+    Event, IoValue, MachineState, MachineStatus, OffsetTable, RunOutcome,
+};
 use fresa_plugin_api::MachineBackend;
 use fresa_sim_machine::SimMachine;
 use serde_json::{json, Value};
@@ -882,5 +884,68 @@ fn huge_or_overflowing_targets_are_refused_without_travel() {
     assert_eq!(
         rig.status().machine_position.to_array(),
         [1.0, 900000.0, 0.0, 0.0]
+    );
+}
+
+/// Moving onto a limit switch presses it: the status shows it at once, motion ends where the
+/// switch was reached, the alarm names it; after reset the axis jogs off it (a switch that
+/// stays pressed does not trip again) and the lamp goes out. A probe only shows.
+#[test]
+fn switches_press_by_position_trip_named_alarms_and_release() {
+    let rig = machine(json!({
+        "time_scale": 0.05,
+        "switches": {"limit_x_max": {"axis": "x", "at_or_above": 5},
+                     "probe": {"axis": "z", "at_or_below": -2}}
+    }));
+    let st = rig.status();
+    assert_eq!(st.inputs.get("limit_x_max"), Some(&Some(false)));
+    assert_eq!(st.inputs.get("probe"), Some(&Some(false)));
+    assert_eq!(st.inputs.get("estop"), None, "not simulated: not reported");
+    assert_eq!(st.outputs.get("spindle"), Some(&Some(IoValue::On(false))));
+
+    rig.call(json!({"op": "jog", "axis": "X", "distance": 10.0, "feed": 3000}));
+    let seen = rig.until(|e| matches!(e, Event::Alarm { .. }));
+    let pressed = seen
+        .iter()
+        .any(|e| matches!(e, Event::Status(s) if s.inputs.get("limit_x_max") == Some(&Some(true))));
+    assert!(pressed, "a status event showed the switch: {seen:?}");
+    match seen.last() {
+        Some(Event::Alarm { message, input }) => {
+            assert_eq!(input.as_deref(), Some("limit_x_max"));
+            assert!(message.contains("limit_x_max"), "{message}");
+        }
+        other => panic!("{other:?}"),
+    }
+    rig.until_state(MachineState::Alarm);
+    let st = rig.status();
+    let x = st.machine_position.x;
+    assert!(
+        (5.0..10.0).contains(&x),
+        "stopped at the switch, not the target: {x}"
+    );
+    assert_eq!(
+        st.alarm.as_deref().map(|a| a.contains("limit_x_max")),
+        Some(true)
+    );
+
+    rig.call(json!({"op": "command", "command": "reset"}));
+    rig.call(json!({"op": "jog", "axis": "X", "distance": -3.0, "feed": 3000}));
+    rig.wait_idle();
+    let st = rig.status();
+    assert_eq!(st.state, MachineState::Idle, "{st:?}");
+    assert_eq!(st.inputs.get("limit_x_max"), Some(&Some(false)));
+
+    // A probe touching shows, and trips nothing.
+    rig.call(json!({"op": "jog", "axis": "Z", "distance": -3.0, "feed": 3000}));
+    rig.wait_idle();
+    let st = rig.status();
+    assert_eq!(st.inputs.get("probe"), Some(&Some(true)));
+    assert_eq!(st.alarm, None);
+
+    // Outputs show what was switched.
+    rig.call(json!({"op": "command", "command": "toggle_output", "name": "coolant"}));
+    assert_eq!(
+        rig.status().outputs.get("coolant_flood"),
+        Some(&Some(IoValue::On(true)))
     );
 }

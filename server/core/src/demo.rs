@@ -12,9 +12,18 @@ pub async fn ensure_demo_machine(app: &App) {
                 tracing::error!("--demo needs the sim-machine plugin, which is not loaded");
                 return;
             }
+            // Limit switches far out on X and Y, and a touch probe under Z, so the I/O lamps
+            // have something to show (jog onto one to see an input trip).
             let config = serde_json::json!({
                 "time_scale": 1.0,
                 "execution_log": app.settings.data_dir.join("demo-execution.log"),
+                "switches": {
+                    "limit_x_min": {"axis": "x", "at_or_below": -1000},
+                    "limit_x_max": {"axis": "x", "at_or_above": 1000},
+                    "limit_y_min": {"axis": "y", "at_or_below": -1000},
+                    "limit_y_max": {"axis": "y", "at_or_above": 1000},
+                    "probe": {"axis": "z", "at_or_below": -150},
+                },
             });
             match app
                 .store

@@ -199,18 +199,46 @@ async fn metrics(State(app): State<SharedApp>) -> Result<impl IntoResponse, erro
         "# HELP fresa_machine_state 1 for the state each machine is in."
     );
     let _ = writeln!(out, "# TYPE fresa_machine_state gauge");
+    let mut input_lines = String::new();
+    let mut output_lines = String::new();
     for m in app.machines.all().await {
-        let state = serde_json::to_value(m.status().state)
-            .ok()
-            .and_then(|v| v.as_str().map(str::to_string))
-            .unwrap_or_default();
+        let status = m.status();
+        let state = status.state.as_str();
         let name = m.row().name.replace(['\\', '"', '\n'], "_");
         let _ = writeln!(
             out,
             "fresa_machine_state{{machine=\"{}\",name=\"{name}\",state=\"{state}\"}} 1",
             m.id
         );
+        // Known values only: a supported input that is unknown right now has no sample.
+        for (io, value) in &status.inputs {
+            if let Some(on) = value {
+                let _ = writeln!(
+                    input_lines,
+                    "fresa_machine_input{{machine=\"{}\",io=\"{io}\"}} {}",
+                    m.id,
+                    u8::from(*on)
+                );
+            }
+        }
+        for (io, value) in &status.outputs {
+            let v = match value {
+                Some(fresa_plugin_api::contract::IoValue::On(on)) => f64::from(u8::from(*on)),
+                Some(fresa_plugin_api::contract::IoValue::Number(n)) => *n,
+                None => continue,
+            };
+            let _ = writeln!(
+                output_lines,
+                "fresa_machine_output{{machine=\"{}\",io=\"{io}\"}} {v}",
+                m.id
+            );
+        }
     }
+    let _ = writeln!(
+        out,
+        "# HELP fresa_machine_input 1 while a machine input (limit, e-stop, probe, door) is active.\n# TYPE fresa_machine_input gauge\n{input_lines}# HELP fresa_machine_output A machine output: 1/0 for switches, the value for numbers (spindle_rpm).\n# TYPE fresa_machine_output gauge"
+    );
+    out.push_str(&output_lines);
     let _ = writeln!(out, "# HELP fresa_job_runs Job runs by state.");
     let _ = writeln!(out, "# TYPE fresa_job_runs gauge");
     for (state, n) in app.store.run_state_counts().await? {

@@ -282,8 +282,26 @@ impl Task {
                 format!("status has an unexpected shape: {e}"),
             )
         })?;
-        self.status.send_replace(s.clone());
+        self.publish_status(s.clone());
         Ok(s)
+    }
+
+    /// The one place a backend's status becomes the published one: an input or output that
+    /// changed goes out as `machine.io` first (live, every change; the status stream is rate
+    /// limited and would miss a short press).
+    fn publish_status(&self, s: MachineStatus) {
+        let changed = {
+            let before = self.status.borrow();
+            io_changes(&before, &s)
+        };
+        if let Some(changed) = changed {
+            self.bus.transient(
+                "machine.io",
+                Some(self.id),
+                json!({"inputs": s.inputs, "outputs": s.outputs, "changed": changed}),
+            );
+        }
+        self.status.send_replace(s);
     }
 
     async fn record(&self, kind: &str, actor: &str, data: Value) {
@@ -759,9 +777,7 @@ impl Task {
                 }
             };
             match event {
-                Event::Status(s) => {
-                    self.status.send_replace(s);
-                }
+                Event::Status(s) => self.publish_status(s),
                 Event::LineAcknowledged { run, line } => {
                     let e = self.acks.entry(run).or_insert(line);
                     *e = (*e).max(line);
@@ -774,14 +790,13 @@ impl Task {
                         json!({"from": from, "to": to}),
                     );
                 }
-                Event::Alarm { message } => {
+                Event::Alarm { message, input } => {
+                    let data = match input {
+                        Some(input) => json!({ "message": message, "input": input }),
+                        None => json!({ "message": message }),
+                    };
                     self.bus
-                        .record_or_log(
-                            "machine.alarm",
-                            Some(self.id),
-                            None,
-                            json!({ "message": message }),
-                        )
+                        .record_or_log("machine.alarm", Some(self.id), None, data)
                         .await;
                 }
                 Event::RunEnded {
@@ -878,4 +893,27 @@ impl Task {
             }
         }
     }
+}
+
+/// The inputs and outputs whose value differs between two statuses (with their new value;
+/// `null` for one no longer reported), or `None` when nothing changed.
+fn io_changes(before: &MachineStatus, after: &MachineStatus) -> Option<Value> {
+    fn diff<V: PartialEq + serde::Serialize>(
+        before: &std::collections::BTreeMap<String, V>,
+        after: &std::collections::BTreeMap<String, V>,
+        out: &mut serde_json::Map<String, Value>,
+    ) {
+        for (name, v) in after {
+            if before.get(name) != Some(v) {
+                out.insert(name.clone(), json!(v));
+            }
+        }
+        for name in before.keys().filter(|n| !after.contains_key(*n)) {
+            out.insert(name.clone(), Value::Null);
+        }
+    }
+    let mut out = serde_json::Map::new();
+    diff(&before.inputs, &after.inputs, &mut out);
+    diff(&before.outputs, &after.outputs, &mut out);
+    (!out.is_empty()).then_some(Value::Object(out))
 }
