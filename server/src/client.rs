@@ -52,6 +52,8 @@ pub enum JobCmd {
 pub struct DataArgs {
     #[arg(long, env = "FRESA_DATA_DIR")]
     data_dir: Option<PathBuf>,
+    #[arg(long, env = "FRESA_DATABASE_URL")]
+    database_url: Option<String>,
     #[arg(long, env = "FRESA_CONFIG")]
     config: Option<PathBuf>,
 }
@@ -61,6 +63,7 @@ impl DataArgs {
         Ok(fresa_core::config::Settings::resolve(
             fresa_core::config::Overrides {
                 data_dir: self.data_dir,
+                database_url: self.database_url,
                 config: self.config,
                 ..Default::default()
             },
@@ -360,10 +363,10 @@ async fn open_store(
 ) -> Result<fresa_core::store::Store, Box<dyn std::error::Error>> {
     std::fs::create_dir_all(&settings.data_dir)
         .map_err(|e| format!("cannot create {}: {e}", settings.data_dir.display()))?;
-    let db = settings.db_path();
-    fresa_core::store::Store::open(&db)
+    settings
+        .open_store()
         .await
-        .map_err(|e| format!("cannot open database {}: {e}", db.display()).into())
+        .map_err(|e| format!("cannot open database {}: {e}", settings.database_label()).into())
 }
 
 pub async fn token(cmd: TokenCmd) -> Res {
@@ -403,7 +406,7 @@ pub async fn token(cmd: TokenCmd) -> Res {
             };
             eprintln!(
                 "token {name:?} ({role}{until}) created in {}; it is shown only now:",
-                settings.db_path().display()
+                settings.database_label()
             );
             println!("{secret}");
         }
@@ -446,6 +449,14 @@ pub async fn token(cmd: TokenCmd) -> Res {
 /// `fresa backup FILE`: an online copy of the database, safe while the server runs.
 pub async fn backup(file: PathBuf, data: DataArgs) -> Res {
     let settings = data.settings()?;
+    if settings.database_url.is_some() {
+        return Err(format!(
+            "`fresa backup` copies the embedded store in the data directory; this server uses \
+             {} (database_url): back that up with its own tools (pg_dump for PostgreSQL)",
+            settings.database_label()
+        )
+        .into());
+    }
     let db = settings.db_path();
     let bytes = fresa_core::store::backup_database(&db, &file).await?;
     eprintln!(

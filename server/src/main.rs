@@ -63,6 +63,10 @@ struct ServeArgs {
     listen: Option<String>,
     #[arg(long, env = "FRESA_DATA_DIR")]
     data_dir: Option<std::path::PathBuf>,
+    /// `postgres://USER[:PASSWORD]@HOST:PORT/DB` for a store shared by several nodes;
+    /// default: the SQLite file in the data directory.
+    #[arg(long, env = "FRESA_DATABASE_URL")]
+    database_url: Option<String>,
     #[arg(long, env = "FRESA_CONFIG")]
     config: Option<std::path::PathBuf>,
     /// Extra plugin directory, searched before the defaults (repeatable).
@@ -80,6 +84,7 @@ impl From<ServeArgs> for config::Overrides {
         config::Overrides {
             listen: a.listen,
             data_dir: a.data_dir,
+            database_url: a.database_url,
             config: a.config,
             plugin_dirs: a.plugin_dirs,
             max_upload_bytes: a.max_upload_bytes,

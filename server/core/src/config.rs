@@ -20,6 +20,9 @@ pub const MAX_MAX_CONNECTIONS: usize = 100_000;
 pub struct FileConfig {
     pub listen: Option<String>,
     pub data_dir: Option<PathBuf>,
+    /// `postgres://USER[:PASSWORD]@HOST:PORT/DB` to share one store between nodes; default:
+    /// the embedded SQLite file `fresa.db` in the data directory.
+    pub database_url: Option<String>,
     pub plugin_dirs: Option<Vec<PathBuf>>,
     pub max_upload_bytes: Option<u64>,
     pub status_rate_hz: Option<f64>,
@@ -51,6 +54,7 @@ pub struct FileConfig {
 pub struct Overrides {
     pub listen: Option<String>,
     pub data_dir: Option<PathBuf>,
+    pub database_url: Option<String>,
     pub config: Option<PathBuf>,
     pub plugin_dirs: Vec<PathBuf>,
     pub max_upload_bytes: Option<u64>,
@@ -61,6 +65,9 @@ pub struct Overrides {
 pub struct Settings {
     pub listen: SocketAddr,
     pub data_dir: PathBuf,
+    /// The store: `Some` PostgreSQL (or explicit `sqlite://`) URL, `None` the embedded SQLite
+    /// file [`Settings::db_path`].
+    pub database_url: Option<String>,
     pub plugin_dirs: Vec<PathBuf>,
     pub max_upload_bytes: u64,
     pub status_interval: Duration,
@@ -274,6 +281,18 @@ impl Settings {
             .or(file.data_dir)
             .or_else(default_data_dir)
             .ok_or(ConfigError::NoDataDir)?;
+        let database_url = o.database_url.or(file.database_url);
+        if let Some(url) = &database_url {
+            if !["sqlite:", "postgres:", "postgresql:"]
+                .iter()
+                .any(|s| url.starts_with(s))
+            {
+                return Err(ConfigError::Invalid(format!(
+                    "database_url must start with postgres:// (or sqlite://), got {:?}",
+                    crate::store::redact_url(url)
+                )));
+            }
+        }
         let mut plugin_dirs = o.plugin_dirs;
         plugin_dirs.extend(file.plugin_dirs.unwrap_or_default());
         plugin_dirs.extend(default_plugin_dirs());
@@ -333,6 +352,7 @@ impl Settings {
         Ok(Settings {
             listen,
             data_dir,
+            database_url,
             plugin_dirs,
             max_upload_bytes: o
                 .max_upload_bytes
@@ -358,6 +378,22 @@ impl Settings {
 
     pub fn db_path(&self) -> PathBuf {
         self.data_dir.join("fresa.db")
+    }
+
+    /// What the store is, for messages: the URL without its password, or the SQLite file.
+    pub fn database_label(&self) -> String {
+        match &self.database_url {
+            Some(url) => crate::store::redact_url(url),
+            None => self.db_path().display().to_string(),
+        }
+    }
+
+    /// Opens the configured store.
+    pub async fn open_store(&self) -> Result<crate::store::Store, sqlx::Error> {
+        match &self.database_url {
+            Some(url) => crate::store::Store::connect(url).await,
+            None => crate::store::Store::open(&self.db_path()).await,
+        }
     }
     pub fn programs_dir(&self) -> PathBuf {
         self.data_dir.join("programs")

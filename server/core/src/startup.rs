@@ -18,9 +18,9 @@ pub enum StartError {
         path: std::path::PathBuf,
         source: std::io::Error,
     },
-    #[error("cannot open database {path}: {source}")]
+    #[error("cannot open database {database}: {source}")]
     Store {
-        path: std::path::PathBuf,
+        database: String,
         source: sqlx::Error,
     },
     #[error(
@@ -55,13 +55,18 @@ impl App {
         // Before the store is touched: a second server must not mark the first one's runs.
         let lock = DataDirLock::acquire(&settings.data_dir)?;
         remove_upload_leftovers(&settings.programs_dir());
-        let db = settings.db_path();
-        refuse_lost_database(&db, &settings.programs_dir())?;
-        let store = Store::open(&db).await.map_err(|source| StartError::Store {
-            path: db.clone(),
-            source,
-        })?;
-        tracing::info!(database = %db.display(), "store ready");
+        let db = settings.database_label();
+        if settings.database_url.is_none() {
+            refuse_lost_database(&settings.db_path(), &settings.programs_dir())?;
+        }
+        let store = settings
+            .open_store()
+            .await
+            .map_err(|source| StartError::Store {
+                database: db.clone(),
+                source,
+            })?;
+        tracing::info!(database = %db, dialect = store.dialect_name(), "store ready");
         // Once before serving, so a log that grew while the retention was looser is cut back
         // before anyone replays it; bounded, so a huge backlog cannot hold up the start (the
         // background passes finish it).
@@ -77,7 +82,7 @@ impl App {
                 .token_count()
                 .await
                 .map_err(|source| StartError::Store {
-                    path: db.clone(),
+                    database: db.clone(),
                     source,
                 })?;
             if n == 0 {
@@ -115,7 +120,7 @@ impl App {
             .interrupt_active_runs()
             .await
             .map_err(|source| StartError::Store {
-                path: db.clone(),
+                database: db.clone(),
                 source,
             })?
         {
@@ -134,7 +139,10 @@ impl App {
         let rows = store
             .list_machines()
             .await
-            .map_err(|source| StartError::Store { path: db, source })?;
+            .map_err(|source| StartError::Store {
+                database: db,
+                source,
+            })?;
         for row in rows {
             let backend = match app.plugins.get(&row.backend) {
                 Some(lib) => Machine::prepare(lib, row.config_json())

@@ -60,7 +60,7 @@ pub async fn backup_database(db: &Path, dest: &Path) -> Result<u64, BackupError>
         let mut conn = SqliteConnection::connect_with(&opts)
             .await
             .map_err(sqlite)?;
-        sqlx::query("VACUUM INTO ?")
+        sqlx::query("VACUUM INTO $1")
             .bind(partial.to_string_lossy().into_owned())
             .execute(&mut conn)
             .await

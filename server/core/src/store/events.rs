@@ -26,7 +26,7 @@ impl Store {
     ) -> Result<EventRow> {
         let mut tx = self.begin().await?;
         let row: EventRow = sqlx::query_as(
-            "INSERT INTO events (type, machine_id, actor, data, created_at) VALUES (?, ?, ?, ?, ?) RETURNING *",
+            "INSERT INTO events (type, machine_id, actor, data, created_at) VALUES ($1, $2, $3, $4, $5) RETURNING *",
         )
         .bind(kind)
         .bind(machine_id)
@@ -40,7 +40,7 @@ impl Store {
     }
 
     pub async fn events_after(&self, after_id: i64, limit: i64) -> Result<Vec<EventRow>> {
-        sqlx::query_as("SELECT * FROM events WHERE id > ? ORDER BY id LIMIT ?")
+        sqlx::query_as("SELECT * FROM events WHERE id > $1 ORDER BY id LIMIT $2")
             .bind(after_id)
             .bind(limit)
             .fetch_all(&self.pool)
@@ -63,9 +63,11 @@ impl Store {
         audit_types: &[&str],
         keep: u64,
     ) -> Result<Option<i64>> {
+        let n = audit_types.len();
         let sql = format!(
-            "SELECT id FROM events WHERE type NOT IN ({}) ORDER BY id DESC LIMIT 1 OFFSET ?",
-            placeholders(audit_types.len())
+            "SELECT id FROM events WHERE type NOT IN ({}) ORDER BY id DESC LIMIT 1 OFFSET ${}",
+            placeholders(1, n),
+            n + 1
         );
         let mut q = sqlx::query_scalar(&sql);
         for t in audit_types {
@@ -87,10 +89,14 @@ impl Store {
         audit_before: i64,
         batch: u32,
     ) -> Result<u64> {
-        let list = placeholders(audit_types.len());
+        // Parameters: $1 the id bound, then the condition's (the type list twice).
+        let n = audit_types.len();
+        let first = placeholders(2, n);
+        let second = placeholders(n + 4, n);
+        let (before, cut, audit) = (n + 2, n + 3, 2 * n + 4);
         let cond = format!(
-            "((type NOT IN ({list}) AND (created_at < ? OR id <= ?))
-               OR (type IN ({list}) AND created_at < ?))"
+            "((type NOT IN ({first}) AND (created_at < ${before} OR id <= ${cut}))
+               OR (type IN ({second}) AND created_at < ${audit}))"
         );
         macro_rules! bind_cond {
             ($q:expr) => {{
@@ -109,11 +115,12 @@ impl Store {
         // only scans up to its last id, however much of the log is kept. NOT INDEXED: walk in
         // id order and stop at `batch` matches; the planner would otherwise collect every
         // match of the OR through the created_at index and sort them, each batch.
+        // (PostgreSQL has no NOT INDEXED; its planner picks the id order for a LIMIT.)
+        let not_indexed = self.pick("NOT INDEXED", "");
         let find = format!(
-            "SELECT MAX(id) FROM (SELECT id FROM events NOT INDEXED WHERE {cond} ORDER BY id LIMIT ?)"
+            "SELECT MAX(id) FROM (SELECT id FROM events {not_indexed} WHERE {cond} ORDER BY id LIMIT $1) AS batch"
         );
-        let upto: Option<i64> = bind_cond!(sqlx::query_scalar(&find))
-            .bind(batch)
+        let upto: Option<i64> = bind_cond!(sqlx::query_scalar(&find).bind(i64::from(batch)))
             .fetch_one(&self.pool)
             .await?;
         let Some(upto) = upto else {
@@ -121,15 +128,16 @@ impl Store {
         };
         // The condition is fixed for the pass and newer events have higher ids: this deletes
         // exactly the batch found above.
-        let delete = format!("DELETE FROM events NOT INDEXED WHERE id <= ? AND {cond}");
+        let delete = format!("DELETE FROM events {not_indexed} WHERE id <= $1 AND {cond}");
         let mut tx = self.begin().await?;
         let n = bind_cond!(sqlx::query(&delete).bind(upto))
             .execute(&mut *tx)
             .await?
             .rows_affected();
-        sqlx::query(
-            "UPDATE event_retention SET pruned_through = MAX(pruned_through, ?) WHERE id = 1",
-        )
+        sqlx::query(self.pick(
+            "UPDATE event_retention SET pruned_through = MAX(pruned_through, $1) WHERE id = 1",
+            "UPDATE event_retention SET pruned_through = GREATEST(pruned_through, $1) WHERE id = 1",
+        ))
         .bind(upto)
         .execute(&mut *tx)
         .await?;
@@ -140,9 +148,11 @@ impl Store {
     /// The highest id ever given to an event (deleted or not): AUTOINCREMENT never reuses one,
     /// so a client holding a higher id saw another log (the store was restored from a backup).
     pub async fn last_event_id(&self) -> Result<i64> {
-        sqlx::query_scalar(
+        sqlx::query_scalar(self.pick(
             "SELECT COALESCE((SELECT seq FROM sqlite_sequence WHERE name = 'events'), 0)",
-        )
+            // The sequence's last value counts only once it has been used.
+            "SELECT CASE WHEN is_called THEN last_value ELSE 0 END FROM events_id_seq",
+        ))
         .fetch_one(&self.pool)
         .await
     }
@@ -155,10 +165,13 @@ impl Store {
     }
 }
 
-/// `?,?,?` for an `IN (...)` list; an empty list matches no type.
-fn placeholders(n: usize) -> String {
+/// `$first,...` (`n` of them) for an `IN (...)` list; an empty list matches no type.
+fn placeholders(first: usize, n: usize) -> String {
     if n == 0 {
         return "''".into();
     }
-    vec!["?"; n].join(",")
+    (first..first + n)
+        .map(|i| format!("${i}"))
+        .collect::<Vec<_>>()
+        .join(",")
 }

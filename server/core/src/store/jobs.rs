@@ -34,9 +34,8 @@ pub struct RunRow {
 
 /// A run's state. The database keeps it as the lowercase name; only the machine's task moves a
 /// live run between states (see `machine::actor`), and `can_move_to` is the state machine.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, serde::Deserialize, sqlx::Type)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
-#[sqlx(type_name = "TEXT", rename_all = "lowercase")]
 pub enum RunState {
     Queued,
     Running,
@@ -90,6 +89,44 @@ impl RunState {
     }
 }
 
+// Stored as its name (TEXT on both databases).
+impl sqlx::Type<sqlx::Any> for RunState {
+    fn type_info() -> sqlx::any::AnyTypeInfo {
+        <&str as sqlx::Type<sqlx::Any>>::type_info()
+    }
+}
+
+impl<'q> sqlx::Encode<'q, sqlx::Any> for RunState {
+    fn encode_by_ref(
+        &self,
+        buf: &mut <sqlx::Any as sqlx::Database>::ArgumentBuffer<'q>,
+    ) -> std::result::Result<sqlx::encode::IsNull, sqlx::error::BoxDynError> {
+        <&str as sqlx::Encode<'q, sqlx::Any>>::encode_by_ref(&self.as_str(), buf)
+    }
+}
+
+impl<'r> sqlx::Decode<'r, sqlx::Any> for RunState {
+    fn decode(
+        value: sqlx::any::AnyValueRef<'r>,
+    ) -> std::result::Result<Self, sqlx::error::BoxDynError> {
+        let name = <&str as sqlx::Decode<'r, sqlx::Any>>::decode(value)?;
+        ALL_RUN_STATES
+            .into_iter()
+            .find(|s| s.as_str() == name)
+            .ok_or_else(|| format!("unknown run state {name:?} in the database").into())
+    }
+}
+
+const ALL_RUN_STATES: [RunState; 7] = [
+    RunState::Queued,
+    RunState::Running,
+    RunState::Paused,
+    RunState::Completed,
+    RunState::Failed,
+    RunState::Cancelled,
+    RunState::Interrupted,
+];
+
 impl std::fmt::Display for RunState {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(self.as_str())
@@ -116,7 +153,7 @@ impl Store {
         let mut tx = self.begin().await?;
         let id = sqlx::query_scalar(
             "INSERT INTO jobs (name, machine_id, sha256, size_bytes, line_count, analysis, source, created_at)
-             VALUES (?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8) RETURNING id",
         )
         .bind(job.name)
         .bind(job.machine_id)
@@ -133,7 +170,7 @@ impl Store {
     }
 
     pub async fn job(&self, id: i64) -> Result<Option<JobRow>> {
-        sqlx::query_as("SELECT * FROM jobs WHERE id = ?")
+        sqlx::query_as("SELECT * FROM jobs WHERE id = $1")
             .bind(id)
             .fetch_optional(&self.pool)
             .await
@@ -141,7 +178,7 @@ impl Store {
 
     pub async fn list_jobs(&self, machine_id: Option<i64>, limit: i64) -> Result<Vec<JobRow>> {
         sqlx::query_as(
-            "SELECT * FROM jobs WHERE (?1 IS NULL OR machine_id = ?1) ORDER BY id DESC LIMIT ?2",
+            "SELECT * FROM jobs WHERE ($1 IS NULL OR machine_id = $1) ORDER BY id DESC LIMIT $2",
         )
         .bind(machine_id)
         .bind(limit)
@@ -157,13 +194,13 @@ impl Store {
         machine_id: i64,
     ) -> Result<std::result::Result<RunRow, RunRow>> {
         let mut tx = self.begin().await?;
-        if let Some(b) = active_run_except(&mut tx, machine_id, None).await? {
+        if let Some(b) = self.active_run_except(&mut tx, machine_id, None).await? {
             return Ok(Err(b));
         }
         let now = now_ms();
         let row: RunRow = sqlx::query_as(
             "INSERT INTO job_runs (job_id, machine_id, state, created_at, started_at, updated_at)
-             VALUES (?, ?, 'running', ?, ?, ?) RETURNING *",
+             VALUES ($1, $2, 'running', $3, $4, $5) RETURNING *",
         )
         .bind(job_id)
         .bind(machine_id)
@@ -186,10 +223,15 @@ impl Store {
         message: Option<&str>,
     ) -> Result<Option<RunRow>> {
         let mut tx = self.begin().await?;
-        let current: Option<RunRow> = sqlx::query_as("SELECT * FROM job_runs WHERE id = ?")
-            .bind(run_id)
-            .fetch_optional(&mut *tx)
-            .await?;
+        // PostgreSQL: the row stays locked until commit, so a concurrent transition (another
+        // node's) waits and then sees the new state. SQLite's BEGIN IMMEDIATE already excludes it.
+        let current: Option<RunRow> = sqlx::query_as(self.pick(
+            "SELECT * FROM job_runs WHERE id = $1",
+            "SELECT * FROM job_runs WHERE id = $1 FOR UPDATE",
+        ))
+        .bind(run_id)
+        .fetch_optional(&mut *tx)
+        .await?;
         let Some(current) = current else {
             return Ok(None);
         };
@@ -199,9 +241,9 @@ impl Store {
         let now = now_ms();
         let terminal = !to.is_active();
         let row: RunRow = sqlx::query_as(
-            "UPDATE job_runs SET state = ?, message = ?, updated_at = ?,
-               ended_at = CASE WHEN ? THEN ? ELSE NULL END
-             WHERE id = ? RETURNING *",
+            "UPDATE job_runs SET state = $1, message = $2, updated_at = $3,
+               ended_at = CASE WHEN $4 THEN $5 ELSE NULL END
+             WHERE id = $6 RETURNING *",
         )
         .bind(to)
         .bind(message)
@@ -219,7 +261,10 @@ impl Store {
     pub async fn ack_line(&self, run_id: i64, line: i64) -> Result<()> {
         let mut tx = self.begin().await?;
         sqlx::query(
-            "UPDATE job_runs SET last_line = MAX(last_line, ?), updated_at = ? WHERE id = ?",
+            self.pick(
+                "UPDATE job_runs SET last_line = MAX(last_line, $1), updated_at = $2 WHERE id = $3",
+                "UPDATE job_runs SET last_line = GREATEST(last_line, $1), updated_at = $2 WHERE id = $3",
+            ),
         )
         .bind(line)
         .bind(now_ms())
@@ -230,14 +275,14 @@ impl Store {
     }
 
     pub async fn run(&self, id: i64) -> Result<Option<RunRow>> {
-        sqlx::query_as("SELECT * FROM job_runs WHERE id = ?")
+        sqlx::query_as("SELECT * FROM job_runs WHERE id = $1")
             .bind(id)
             .fetch_optional(&self.pool)
             .await
     }
 
     pub async fn latest_run(&self, job_id: i64) -> Result<Option<RunRow>> {
-        sqlx::query_as("SELECT * FROM job_runs WHERE job_id = ? ORDER BY id DESC LIMIT 1")
+        sqlx::query_as("SELECT * FROM job_runs WHERE job_id = $1 ORDER BY id DESC LIMIT 1")
             .bind(job_id)
             .fetch_optional(&self.pool)
             .await
@@ -249,10 +294,13 @@ impl Store {
             return Ok(Vec::new());
         }
         let ids = serde_json::to_string(job_ids).unwrap_or_else(|_| "[]".into());
-        sqlx::query_as(
+        sqlx::query_as(self.pick(
             "SELECT * FROM job_runs WHERE id IN (SELECT MAX(id) FROM job_runs
-               WHERE job_id IN (SELECT value FROM json_each(?)) GROUP BY job_id)",
-        )
+               WHERE job_id IN (SELECT value FROM json_each($1)) GROUP BY job_id)",
+            "SELECT * FROM job_runs WHERE id IN (SELECT MAX(id) FROM job_runs
+               WHERE job_id IN (SELECT value::BIGINT FROM json_array_elements_text($1::JSON))
+               GROUP BY job_id)",
+        ))
         .bind(ids)
         .fetch_all(&self.pool)
         .await
@@ -263,7 +311,7 @@ impl Store {
     pub async fn interrupt_active_runs(&self) -> Result<Vec<RunRow>> {
         let mut tx = self.begin().await?;
         let rows: Vec<RunRow> = sqlx::query_as(&format!(
-            "UPDATE job_runs SET state = 'interrupted', updated_at = ?1, ended_at = ?1,
+            "UPDATE job_runs SET state = 'interrupted', updated_at = $1, ended_at = $1,
                message = 'server stopped while the run was ' || state
              WHERE state IN {ACTIVE_RUN_STATES} RETURNING *"
         ))
@@ -281,12 +329,15 @@ impl Store {
         machine_id: i64,
     ) -> Result<std::result::Result<RunRow, RunRow>> {
         let mut tx = self.begin().await?;
-        if let Some(b) = active_run_except(&mut tx, machine_id, Some(run_id)).await? {
+        if let Some(b) = self
+            .active_run_except(&mut tx, machine_id, Some(run_id))
+            .await?
+        {
             return Ok(Err(b));
         }
         let row: RunRow = sqlx::query_as(
-            "UPDATE job_runs SET state = 'running', message = NULL, ended_at = NULL, updated_at = ?
-             WHERE id = ? RETURNING *",
+            "UPDATE job_runs SET state = 'running', message = NULL, ended_at = NULL, updated_at = $1
+             WHERE id = $2 RETURNING *",
         )
         .bind(now_ms())
         .bind(run_id)
@@ -304,19 +355,30 @@ impl Store {
     }
 }
 
-/// The run that owns `machine_id` (queued, running or paused), other than `except`. Called
-/// inside the write transaction that is about to make a run active, so two starts cannot race.
-async fn active_run_except(
-    tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
-    machine_id: i64,
-    except: Option<i64>,
-) -> Result<Option<RunRow>> {
-    sqlx::query_as(&format!(
-        "SELECT * FROM job_runs WHERE machine_id = ?1 AND (?2 IS NULL OR id != ?2)
-           AND state IN {ACTIVE_RUN_STATES} LIMIT 1"
-    ))
-    .bind(machine_id)
-    .bind(except)
-    .fetch_optional(&mut **tx)
-    .await
+impl Store {
+    /// The run that owns `machine_id` (queued, running or paused), other than `except`. Called
+    /// inside the write transaction that is about to make a run active, so two starts cannot
+    /// race: on SQLite that transaction holds the write lock; on PostgreSQL the machine's row is
+    /// locked first, so a start through another node waits for this one.
+    async fn active_run_except(
+        &self,
+        tx: &mut sqlx::Transaction<'static, sqlx::Any>,
+        machine_id: i64,
+        except: Option<i64>,
+    ) -> Result<Option<RunRow>> {
+        if self.dialect() == super::Dialect::Postgres {
+            sqlx::query("SELECT id FROM machines WHERE id = $1 FOR UPDATE")
+                .bind(machine_id)
+                .execute(&mut **tx)
+                .await?;
+        }
+        sqlx::query_as(&format!(
+            "SELECT * FROM job_runs WHERE machine_id = $1 AND ($2 IS NULL OR id != $2)
+               AND state IN {ACTIVE_RUN_STATES} LIMIT 1"
+        ))
+        .bind(machine_id)
+        .bind(except)
+        .fetch_optional(&mut **tx)
+        .await
+    }
 }

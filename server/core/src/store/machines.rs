@@ -53,7 +53,7 @@ impl Store {
         let now = now_ms();
         let id: i64 = sqlx::query_scalar(
             "INSERT INTO machines (name, backend, config, max_jog_mm, max_feed_mm_min, created_at)
-             VALUES (?, ?, ?, ?, ?, ?) RETURNING id",
+             VALUES ($1, $2, $3, $4, $5, $6) RETURNING id",
         )
         .bind(name)
         .bind(backend)
@@ -64,12 +64,14 @@ impl Store {
         .fetch_one(&mut *tx)
         .await?;
         for o in WorkOffset::ALL {
-            sqlx::query("INSERT INTO work_offsets (machine_id, name, updated_at) VALUES (?, ?, ?)")
-                .bind(id)
-                .bind(o.name())
-                .bind(now)
-                .execute(&mut *tx)
-                .await?;
+            sqlx::query(
+                "INSERT INTO work_offsets (machine_id, name, updated_at) VALUES ($1, $2, $3)",
+            )
+            .bind(id)
+            .bind(o.name())
+            .bind(now)
+            .execute(&mut *tx)
+            .await?;
         }
         tx.commit().await?;
         Ok(id)
@@ -82,14 +84,14 @@ impl Store {
     }
 
     pub async fn machine(&self, id: i64) -> Result<Option<MachineRow>> {
-        sqlx::query_as("SELECT * FROM machines WHERE id = ?")
+        sqlx::query_as("SELECT * FROM machines WHERE id = $1")
             .bind(id)
             .fetch_optional(&self.pool)
             .await
     }
 
     pub async fn machine_by_name(&self, name: &str) -> Result<Option<MachineRow>> {
-        sqlx::query_as("SELECT * FROM machines WHERE name = ?")
+        sqlx::query_as("SELECT * FROM machines WHERE name = $1")
             .bind(name)
             .fetch_optional(&self.pool)
             .await
@@ -97,7 +99,7 @@ impl Store {
 
     pub async fn set_active_offset(&self, machine_id: i64, offset: WorkOffset) -> Result<()> {
         let mut tx = self.begin().await?;
-        sqlx::query("UPDATE machines SET active_offset = ? WHERE id = ?")
+        sqlx::query("UPDATE machines SET active_offset = $1 WHERE id = $2")
             .bind(offset.name())
             .bind(machine_id)
             .execute(&mut *tx)
@@ -109,7 +111,7 @@ impl Store {
 
     pub async fn offsets(&self, machine_id: i64) -> Result<Vec<(WorkOffset, AxisValues)>> {
         let rows: Vec<(String, f64, f64, f64, f64)> = sqlx::query_as(
-            "SELECT name, x, y, z, a FROM work_offsets WHERE machine_id = ? ORDER BY name",
+            "SELECT name, x, y, z, a FROM work_offsets WHERE machine_id = $1 ORDER BY name",
         )
         .bind(machine_id)
         .fetch_all(&self.pool)
@@ -132,7 +134,7 @@ impl Store {
         let now = now_ms();
         for (o, v) in values {
             sqlx::query(
-                "INSERT INTO work_offsets (machine_id, name, x, y, z, a, updated_at) VALUES (?, ?, ?, ?, ?, ?, ?)
+                "INSERT INTO work_offsets (machine_id, name, x, y, z, a, updated_at) VALUES ($1, $2, $3, $4, $5, $6, $7)
                  ON CONFLICT (machine_id, name) DO UPDATE SET x = excluded.x, y = excluded.y,
                  z = excluded.z, a = excluded.a, updated_at = excluded.updated_at",
             )
@@ -162,7 +164,7 @@ impl Store {
         let mut tx = self.begin().await?;
         let row: PartZeroRow = sqlx::query_as(
             "INSERT INTO part_zeros (machine_id, x, y, z, a, source, actor, note, created_at)
-             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING *",
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9) RETURNING *",
         )
         .bind(machine_id)
         .bind(at.x)
@@ -181,7 +183,7 @@ impl Store {
 
     /// The latest part zero recorded for a machine, if any.
     pub async fn latest_part_zero(&self, machine_id: i64) -> Result<Option<PartZeroRow>> {
-        sqlx::query_as("SELECT * FROM part_zeros WHERE machine_id = ? ORDER BY id DESC LIMIT 1")
+        sqlx::query_as("SELECT * FROM part_zeros WHERE machine_id = $1 ORDER BY id DESC LIMIT 1")
             .bind(machine_id)
             .fetch_optional(&self.pool)
             .await
@@ -190,7 +192,7 @@ impl Store {
     /// The part zero the controller reported when `run` started (see migration 0003).
     pub async fn run_part_zero(&self, run_id: i64) -> Result<Option<AxisValues>> {
         let text: Option<Option<String>> =
-            sqlx::query_scalar("SELECT part_zero FROM job_runs WHERE id = ?")
+            sqlx::query_scalar("SELECT part_zero FROM job_runs WHERE id = $1")
                 .bind(run_id)
                 .fetch_optional(&self.pool)
                 .await?;
@@ -199,7 +201,7 @@ impl Store {
 
     pub async fn set_run_part_zero(&self, run_id: i64, at: AxisValues) -> Result<()> {
         let mut tx = self.begin().await?;
-        sqlx::query("UPDATE job_runs SET part_zero = ? WHERE id = ?")
+        sqlx::query("UPDATE job_runs SET part_zero = $1 WHERE id = $2")
             .bind(serde_json::json!(at).to_string())
             .bind(run_id)
             .execute(&mut *tx)
@@ -208,7 +210,7 @@ impl Store {
     }
 
     pub async fn part_zeros(&self, machine_id: i64) -> Result<Vec<PartZeroRow>> {
-        sqlx::query_as("SELECT * FROM part_zeros WHERE machine_id = ? ORDER BY id DESC")
+        sqlx::query_as("SELECT * FROM part_zeros WHERE machine_id = $1 ORDER BY id DESC")
             .bind(machine_id)
             .fetch_all(&self.pool)
             .await

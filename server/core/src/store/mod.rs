@@ -1,8 +1,12 @@
-//! Persistence: one SQLite file in WAL mode. Every write runs in a `BEGIN IMMEDIATE`
-//! transaction so concurrent writers queue on SQLite's lock instead of failing mid-transaction.
+//! Persistence on SQLite (the embedded default: one file in WAL mode) or PostgreSQL (shared by
+//! several nodes), chosen by the database URL. One set of store functions runs on both through
+//! sqlx's `Any` driver: queries use `$N` parameters (both understand them), and the few
+//! statements the two dialects write differently are chosen with [`Store::dialect`]. Every
+//! write runs in a transaction; on SQLite it is `BEGIN IMMEDIATE`, so concurrent writers queue
+//! on SQLite's lock instead of failing mid-transaction.
 
-use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
-use sqlx::SqlitePool;
+use sqlx::any::{AnyConnectOptions, AnyPoolOptions};
+use sqlx::{AnyPool, Executor};
 use std::path::Path;
 use std::str::FromStr;
 use std::time::Duration;
@@ -16,9 +20,17 @@ pub fn now_ms() -> i64 {
         .unwrap_or(0)
 }
 
+/// Which database a store runs on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Dialect {
+    Sqlite,
+    Postgres,
+}
+
 #[derive(Clone)]
 pub struct Store {
-    pool: SqlitePool,
+    pool: AnyPool,
+    dialect: Dialect,
 }
 
 mod backup;
@@ -26,6 +38,8 @@ mod events;
 mod jobs;
 mod machines;
 mod pendants;
+#[cfg(any(test, feature = "test-support"))]
+pub mod test_postgres;
 #[cfg(test)]
 mod tests;
 mod tokens;
@@ -38,22 +52,82 @@ pub use pendants::{MacroAction, PendantRow};
 pub use tokens::{is_unique_violation, TokenInfo, TokenRow};
 
 impl Store {
-    /// Opens (creating if needed) the database and applies the migrations in `migrations/`.
+    /// Opens (creating if needed) the SQLite database at `path` and applies the migrations.
     pub async fn open(path: &Path) -> Result<Store> {
-        let opts = SqliteConnectOptions::from_str(&format!("sqlite://{}", path.display()))?
-            .create_if_missing(true)
-            .journal_mode(SqliteJournalMode::Wal)
-            // NORMAL in WAL mode survives a process crash (kill -9); only an OS crash can lose
-            // the last commits, which is an acceptable price for fast acknowledgements.
-            .synchronous(SqliteSynchronous::Normal)
-            .foreign_keys(true)
-            .busy_timeout(Duration::from_secs(10));
-        let pool = SqlitePoolOptions::new()
-            .max_connections(8)
-            .connect_with(opts)
-            .await?;
-        sqlx::migrate!("../../migrations").run(&pool).await?;
-        Ok(Store { pool })
+        Store::connect(&sqlite_url(path)).await
+    }
+
+    /// Opens `sqlite://PATH` or `postgres://...` and applies that dialect's migrations
+    /// (`migrations/` for SQLite, `migrations/postgres/` for PostgreSQL).
+    pub async fn connect(url: &str) -> Result<Store> {
+        sqlx::any::install_default_drivers();
+        let dialect = if url.starts_with("postgres:") || url.starts_with("postgresql:") {
+            Dialect::Postgres
+        } else if url.starts_with("sqlite:") {
+            Dialect::Sqlite
+        } else {
+            return Err(sqlx::Error::Configuration(
+                format!("unsupported database URL {:?}: use sqlite://PATH or postgres://USER@HOST:PORT/DB", redact_url(url)).into(),
+            ));
+        };
+        let opts = AnyConnectOptions::from_str(url)?;
+        let pool = match dialect {
+            Dialect::Sqlite => {
+                AnyPoolOptions::new()
+                    .max_connections(8)
+                    .after_connect(|conn, _| {
+                        Box::pin(async move {
+                            // WAL: readers never wait for the writer. NORMAL in WAL mode
+                            // survives a process crash (kill -9); only an OS crash can lose the
+                            // last commits, an acceptable price for fast acknowledgements.
+                            conn.execute(
+                                "PRAGMA journal_mode = WAL; PRAGMA synchronous = NORMAL; \
+                                 PRAGMA foreign_keys = ON; PRAGMA busy_timeout = 10000;",
+                            )
+                            .await
+                            .map(|_| ())
+                        })
+                    })
+                    .connect_with(opts)
+                    .await?
+            }
+            Dialect::Postgres => {
+                AnyPoolOptions::new()
+                    .max_connections(8)
+                    .acquire_timeout(Duration::from_secs(10))
+                    .connect_with(opts)
+                    .await?
+            }
+        };
+        match dialect {
+            Dialect::Sqlite => sqlx::migrate!("../../migrations").run(&pool).await?,
+            Dialect::Postgres => {
+                sqlx::migrate!("../../migrations/postgres")
+                    .run(&pool)
+                    .await?
+            }
+        }
+        Ok(Store { pool, dialect })
+    }
+
+    pub fn dialect(&self) -> Dialect {
+        self.dialect
+    }
+
+    /// `sqlite` or `postgres`, the same word as the URL scheme.
+    pub fn dialect_name(&self) -> &'static str {
+        match self.dialect {
+            Dialect::Sqlite => "sqlite",
+            Dialect::Postgres => "postgres",
+        }
+    }
+
+    /// The statement for this store's dialect, where the two write it differently.
+    pub(crate) fn pick<'a>(&self, sqlite: &'a str, postgres: &'a str) -> &'a str {
+        match self.dialect {
+            Dialect::Sqlite => sqlite,
+            Dialect::Postgres => postgres,
+        }
     }
 
     pub async fn ping(&self) -> Result<()> {
@@ -63,12 +137,39 @@ impl Store {
             .map(|_| ())
     }
 
-    pub(crate) async fn begin(&self) -> Result<sqlx::Transaction<'static, sqlx::Sqlite>> {
-        self.pool.begin_with("BEGIN IMMEDIATE").await
+    pub(crate) async fn begin(&self) -> Result<sqlx::Transaction<'static, sqlx::Any>> {
+        match self.dialect {
+            Dialect::Sqlite => self.pool.begin_with("BEGIN IMMEDIATE").await,
+            Dialect::Postgres => self.pool.begin().await,
+        }
     }
 
     /// For feature modules that keep their queries next to their code (e.g. `pendants`).
-    pub(crate) fn pool(&self) -> &SqlitePool {
+    pub(crate) fn pool(&self) -> &AnyPool {
         &self.pool
+    }
+}
+
+/// The URL of the SQLite file at `path`, created when missing.
+pub fn sqlite_url(path: &Path) -> String {
+    format!("sqlite://{}?mode=rwc", path.display())
+}
+
+/// A database URL for messages: the password replaced by `***`.
+pub fn redact_url(url: &str) -> String {
+    match (url.find("://"), url.rfind('@')) {
+        (Some(scheme), Some(at)) if at > scheme => {
+            let userinfo = &url[scheme + 3..at];
+            match userinfo.find(':') {
+                Some(colon) => format!(
+                    "{}{}:***{}",
+                    &url[..scheme + 3],
+                    &userinfo[..colon],
+                    &url[at..]
+                ),
+                None => url.to_string(),
+            }
+        }
+        _ => url.to_string(),
     }
 }

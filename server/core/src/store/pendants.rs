@@ -55,7 +55,7 @@ impl Store {
         let now = now_ms();
         let id: i64 = sqlx::query_scalar(
             "INSERT INTO pendants (name, address, dialect, machine_id, config, created_at)
-             VALUES (?, ?, ?, ?, ?, ?) RETURNING id",
+             VALUES ($1, $2, $3, $4, $5, $6) RETURNING id",
         )
         .bind(name)
         .bind(address)
@@ -66,7 +66,7 @@ impl Store {
         .fetch_one(&mut *tx)
         .await?;
         for (slot, action) in macros {
-            sqlx::query("INSERT INTO pendant_macros (pendant_id, slot, action, updated_at) VALUES (?, ?, ?, ?)")
+            sqlx::query("INSERT INTO pendant_macros (pendant_id, slot, action, updated_at) VALUES ($1, $2, $3, $4)")
                 .bind(id)
                 .bind(*slot as i64)
                 .bind(json!(action).to_string())
@@ -85,7 +85,7 @@ impl Store {
     }
 
     pub async fn pendant(&self, id: i64) -> Result<Option<PendantRow>> {
-        sqlx::query_as("SELECT id, name, address, dialect, machine_id, config, created_at FROM pendants WHERE id = ?")
+        sqlx::query_as("SELECT id, name, address, dialect, machine_id, config, created_at FROM pendants WHERE id = $1")
             .bind(id)
             .fetch_optional(self.pool())
             .await
@@ -93,7 +93,7 @@ impl Store {
 
     pub async fn set_pendant_machine(&self, id: i64, machine: Option<i64>) -> Result<()> {
         let mut tx = self.begin().await?;
-        sqlx::query("UPDATE pendants SET machine_id = ? WHERE id = ?")
+        sqlx::query("UPDATE pendants SET machine_id = $1 WHERE id = $2")
             .bind(machine)
             .bind(id)
             .execute(&mut *tx)
@@ -108,7 +108,7 @@ impl Store {
         machine: Option<i64>,
     ) -> Result<()> {
         let mut tx = self.begin().await?;
-        sqlx::query("UPDATE pendants SET address = ?, machine_id = ? WHERE id = ?")
+        sqlx::query("UPDATE pendants SET address = $1, machine_id = $2 WHERE id = $3")
             .bind(address)
             .bind(machine)
             .bind(id)
@@ -128,7 +128,7 @@ impl Store {
         match action {
             Some(a) => {
                 sqlx::query(
-                    "INSERT INTO pendant_macros (pendant_id, slot, action, updated_at) VALUES (?, ?, ?, ?)
+                    "INSERT INTO pendant_macros (pendant_id, slot, action, updated_at) VALUES ($1, $2, $3, $4)
                      ON CONFLICT (pendant_id, slot) DO UPDATE SET action = excluded.action, updated_at = excluded.updated_at",
                 )
                 .bind(id)
@@ -139,7 +139,7 @@ impl Store {
                 .await?;
             }
             None => {
-                sqlx::query("DELETE FROM pendant_macros WHERE pendant_id = ? AND slot = ?")
+                sqlx::query("DELETE FROM pendant_macros WHERE pendant_id = $1 AND slot = $2")
                     .bind(id)
                     .bind(slot as i64)
                     .execute(&mut *tx)
@@ -151,7 +151,7 @@ impl Store {
 
     pub async fn pendant_macros(&self, id: i64) -> Result<[Option<MacroAction>; 4]> {
         let rows: Vec<(i64, String)> =
-            sqlx::query_as("SELECT slot, action FROM pendant_macros WHERE pendant_id = ?")
+            sqlx::query_as("SELECT slot, action FROM pendant_macros WHERE pendant_id = $1")
                 .bind(id)
                 .fetch_all(self.pool())
                 .await?;
@@ -169,11 +169,11 @@ impl Store {
 
     pub async fn delete_pendant(&self, id: i64) -> Result<bool> {
         let mut tx = self.begin().await?;
-        sqlx::query("DELETE FROM pendant_macros WHERE pendant_id = ?")
+        sqlx::query("DELETE FROM pendant_macros WHERE pendant_id = $1")
             .bind(id)
             .execute(&mut *tx)
             .await?;
-        let n = sqlx::query("DELETE FROM pendants WHERE id = ?")
+        let n = sqlx::query("DELETE FROM pendants WHERE id = $1")
             .bind(id)
             .execute(&mut *tx)
             .await?

@@ -2,15 +2,73 @@
 use super::*;
 use fresa_plugin_api::contract::AxisValues;
 
-async fn store() -> (Store, std::path::PathBuf) {
+/// A store for one test, on SQLite (a file in a temporary directory, removed on drop) or on a
+/// fresh database of the test PostgreSQL server.
+struct Scratch {
+    store: Store,
+    dir: Option<std::path::PathBuf>,
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        if let Some(dir) = &self.dir {
+            std::fs::remove_dir_all(dir).ok();
+        }
+    }
+}
+
+async fn sqlite_store() -> Scratch {
     let dir = std::env::temp_dir().join(format!(
         "fresa-store-{}-{}",
         std::process::id(),
         rand::random::<u64>()
     ));
     std::fs::create_dir_all(&dir).unwrap();
-    (Store::open(&dir.join("t.db")).await.unwrap(), dir)
+    Scratch {
+        store: Store::open(&dir.join("t.db")).await.unwrap(),
+        dir: Some(dir),
+    }
 }
+
+async fn postgres_store() -> Scratch {
+    let url = super::test_postgres::fresh_database().await;
+    Scratch {
+        store: Store::connect(&url).await.unwrap(),
+        dir: None,
+    }
+}
+
+/// Runs each listed `async fn NAME(s: &Store)` as two tests, `NAME::sqlite` and
+/// `NAME::postgres`: the store behaves the same on both.
+macro_rules! on_both {
+    ($($name:ident),* $(,)?) => {$(
+        mod $name {
+            #[tokio::test]
+            async fn sqlite() {
+                let s = super::sqlite_store().await;
+                assert_eq!(s.store.dialect(), super::Dialect::Sqlite);
+                super::$name(&s.store).await
+            }
+            #[tokio::test]
+            async fn postgres() {
+                let s = super::postgres_store().await;
+                assert_eq!(s.store.dialect(), super::Dialect::Postgres);
+                super::$name(&s.store).await
+            }
+        }
+    )*};
+}
+
+on_both!(
+    second_start_on_a_busy_machine_is_refused,
+    concurrent_starts_on_one_machine_let_exactly_one_win,
+    restart_marks_active_runs_interrupted_and_keeps_last_line,
+    latest_runs_gives_each_jobs_newest_run,
+    a_run_keeps_the_part_zero_it_started_with,
+    expired_and_revoked_tokens_are_not_found,
+    event_ids_rise_and_replay_in_order,
+    pruning_keeps_audit_events_and_records_the_cut,
+);
 
 async fn machine_with_job(s: &Store, lines: i64) -> (i64, i64) {
     let m = s
@@ -32,21 +90,112 @@ async fn machine_with_job(s: &Store, lines: i64) -> (i64, i64) {
     (m, j)
 }
 
-#[tokio::test]
-async fn second_start_on_a_busy_machine_is_refused() {
-    let (s, dir) = store().await;
-    let (m, j) = machine_with_job(&s, 1).await;
+async fn second_start_on_a_busy_machine_is_refused(s: &Store) {
+    let (m, j) = machine_with_job(s, 1).await;
     let first = s.start_run(j, m).await.unwrap();
     assert!(first.is_ok());
     let second = s.start_run(j, m).await.unwrap();
     assert_eq!(second.err().map(|r| r.id), first.ok().map(|r| r.id));
-    std::fs::remove_dir_all(dir).ok();
 }
 
-#[tokio::test]
-async fn restart_marks_active_runs_interrupted_and_keeps_last_line() {
-    let (s, dir) = store().await;
-    let (m, j) = machine_with_job(&s, 9).await;
+/// Eight starts at once (eight connections, as eight nodes or clients would send them): the
+/// transaction that checks "no active run" and inserts one is atomic on both databases.
+async fn concurrent_starts_on_one_machine_let_exactly_one_win(s: &Store) {
+    let (m, j) = machine_with_job(s, 1).await;
+    let starts = (0..8).map(|_| {
+        let s = s.clone();
+        tokio::spawn(async move { s.start_run(j, m).await.unwrap() })
+    });
+    let mut won = Vec::new();
+    let mut refused = Vec::new();
+    for t in starts {
+        match t.await.unwrap() {
+            Ok(run) => won.push(run.id),
+            Err(busy) => refused.push(busy.id),
+        }
+    }
+    assert_eq!(won.len(), 1, "exactly one start wins: {won:?}");
+    assert!(
+        refused.iter().all(|id| *id == won[0]),
+        "{refused:?} vs {won:?}"
+    );
+    // A late event moving the winner twice: the compare-and-set lets one through.
+    let (a, b) = tokio::join!(
+        s.transition_run(won[0], &[RunState::Running], RunState::Completed, None),
+        s.transition_run(won[0], &[RunState::Running], RunState::Failed, Some("x")),
+    );
+    let moved = [a.unwrap(), b.unwrap()];
+    assert_eq!(moved.iter().filter(|r| r.is_some()).count(), 1, "{moved:?}");
+}
+
+async fn event_ids_rise_and_replay_in_order(s: &Store) {
+    assert_eq!(s.last_event_id().await.unwrap(), 0);
+    let mut ids = Vec::new();
+    for i in 0..5 {
+        let row = s
+            .append_event(
+                "job.state",
+                Some(1),
+                Some("local"),
+                &format!("{{\"i\":{i}}}"),
+            )
+            .await
+            .unwrap();
+        ids.push(row.id);
+    }
+    assert!(ids.windows(2).all(|w| w[0] < w[1]), "{ids:?}");
+    assert_eq!(s.last_event_id().await.unwrap(), ids[4]);
+    let after: Vec<i64> = s
+        .events_after(ids[1], 10)
+        .await
+        .unwrap()
+        .into_iter()
+        .map(|e| e.id)
+        .collect();
+    assert_eq!(after, ids[2..]);
+    assert_eq!(s.event_count().await.unwrap(), 5);
+}
+
+async fn pruning_keeps_audit_events_and_records_the_cut(s: &Store) {
+    for kind in ["machine.jog", "job.state", "machine.jog", "machine.jog"] {
+        s.append_event(kind, None, None, "{}").await.unwrap();
+    }
+    let audit = ["job.state"];
+    // Routine events up to the count cut (keep the newest one) go; the audit one stays.
+    let cut = s.routine_event_count_cut(&audit, 1).await.unwrap();
+    assert_eq!(cut, Some(3));
+    let gone = s.prune_events_batch(&audit, 0, cut, 0, 1000).await.unwrap();
+    assert_eq!(gone, 2);
+    let left: Vec<String> = s
+        .events_after(0, 10)
+        .await
+        .unwrap()
+        .into_iter()
+        .map(|e| e.kind)
+        .collect();
+    assert_eq!(left, ["job.state", "machine.jog"]);
+    assert_eq!(s.events_pruned_through().await.unwrap(), 3);
+    // Ids are never reused after a prune.
+    assert_eq!(s.last_event_id().await.unwrap(), 4);
+}
+
+/// Both dialects have the same migrations (version and name): adding one to only one side
+/// fails here.
+#[test]
+fn migrations_are_kept_in_step_on_both_databases() {
+    let versions = |m: &sqlx::migrate::Migrator| -> Vec<(i64, String)> {
+        m.iter()
+            .map(|m| (m.version, m.description.to_string()))
+            .collect()
+    };
+    let sqlite = sqlx::migrate!("../../migrations");
+    let postgres = sqlx::migrate!("../../migrations/postgres");
+    assert_eq!(versions(&sqlite), versions(&postgres));
+    assert!(versions(&sqlite).len() >= 4);
+}
+
+async fn restart_marks_active_runs_interrupted_and_keeps_last_line(s: &Store) {
+    let (m, j) = machine_with_job(s, 9).await;
     let run = s.start_run(j, m).await.unwrap().unwrap();
     s.ack_line(run.id, 5).await.unwrap();
     s.ack_line(run.id, 3).await.unwrap(); // never backwards
@@ -60,13 +209,10 @@ async fn restart_marks_active_runs_interrupted_and_keeps_last_line() {
         .await
         .unwrap()
         .is_none());
-    std::fs::remove_dir_all(dir).ok();
 }
 
-#[tokio::test]
-async fn latest_runs_gives_each_jobs_newest_run() {
-    let (s, dir) = store().await;
-    let (m, j1) = machine_with_job(&s, 3).await;
+async fn latest_runs_gives_each_jobs_newest_run(s: &Store) {
+    let (m, j1) = machine_with_job(s, 3).await;
     let j2 = s
         .insert_job(NewJob {
             name: "b",
@@ -89,13 +235,10 @@ async fn latest_runs_gives_each_jobs_newest_run() {
     assert_eq!(runs.len(), 1, "job {j2} has no run");
     assert_eq!((runs[0].job_id, runs[0].id), (j1, second.id));
     assert!(s.latest_runs(&[]).await.unwrap().is_empty());
-    std::fs::remove_dir_all(dir).ok();
 }
 
-#[tokio::test]
-async fn a_run_keeps_the_part_zero_it_started_with() {
-    let (s, dir) = store().await;
-    let (m, j) = machine_with_job(&s, 3).await;
+async fn a_run_keeps_the_part_zero_it_started_with(s: &Store) {
+    let (m, j) = machine_with_job(s, 3).await;
     let run = s.start_run(j, m).await.unwrap().unwrap();
     assert_eq!(s.run_part_zero(run.id).await.unwrap(), None);
     let zero = AxisValues {
@@ -114,7 +257,6 @@ async fn a_run_keeps_the_part_zero_it_started_with() {
         .unwrap();
     let last = s.latest_part_zero(m).await.unwrap().unwrap();
     assert_eq!((last.source.as_str(), last.y), ("robot", 0.5));
-    std::fs::remove_dir_all(dir).ok();
 }
 
 #[test]
@@ -172,7 +314,7 @@ async fn duplicate_token_names_survive_the_unique_name_migration() {
         old.run(&pool).await.unwrap();
         for (name, hash) in [("ana", "h1"), ("ana", "h2"), ("bo", "h3")] {
             sqlx::query(
-                "INSERT INTO tokens (name, role, hash, created_at) VALUES (?, 'viewer', ?, 0)",
+                "INSERT INTO tokens (name, role, hash, created_at) VALUES ($1, 'viewer', $2, 0)",
             )
             .bind(name)
             .bind(hash)
@@ -201,9 +343,7 @@ async fn duplicate_token_names_survive_the_unique_name_migration() {
     std::fs::remove_dir_all(dir).ok();
 }
 
-#[tokio::test]
-async fn expired_and_revoked_tokens_are_not_found() {
-    let (s, dir) = store().await;
+async fn expired_and_revoked_tokens_are_not_found(s: &Store) {
     s.insert_token("old", "admin", "h-old", Some(now_ms() - 1))
         .await
         .unwrap();
@@ -221,5 +361,4 @@ async fn expired_and_revoked_tokens_are_not_found() {
     assert!(s.revoke_token("new").await.unwrap());
     assert!(!s.revoke_token("new").await.unwrap());
     assert!(s.token_by_hash("h-new").await.unwrap().is_none());
-    std::fs::remove_dir_all(dir).ok();
 }

@@ -14,7 +14,7 @@ pub struct TokenRow {
 }
 
 /// What `fresa token list` shows: everything but the hash. Times are UTC, `YYYY-MM-DD HH:MM`.
-#[derive(Debug, Clone, FromRow)]
+#[derive(Debug, Clone)]
 pub struct TokenInfo {
     pub name: String,
     pub role: String,
@@ -37,7 +37,7 @@ impl Store {
     ) -> Result<i64> {
         let mut tx = self.begin().await?;
         let id = sqlx::query_scalar(
-            "INSERT INTO tokens (name, role, hash, created_at, expires_at) VALUES (?, ?, ?, ?, ?) RETURNING id",
+            "INSERT INTO tokens (name, role, hash, created_at, expires_at) VALUES ($1, $2, $3, $4, $5) RETURNING id",
         )
         .bind(name)
         .bind(role)
@@ -56,7 +56,7 @@ impl Store {
         let now = now_ms();
         let row: Option<(String, String, Option<i64>)> = sqlx::query_as(
             "SELECT name, role, last_used_at FROM tokens
-              WHERE hash = ? AND (expires_at IS NULL OR expires_at > ?)",
+              WHERE hash = $1 AND (expires_at IS NULL OR expires_at > $2)",
         )
         .bind(hash)
         .bind(now)
@@ -67,7 +67,7 @@ impl Store {
         };
         if last_used.is_none_or(|t| now - t >= LAST_USED_GRANULARITY_MS) {
             // Best effort: a busy database must not turn a valid token into an error.
-            if let Err(e) = sqlx::query("UPDATE tokens SET last_used_at = ? WHERE hash = ?")
+            if let Err(e) = sqlx::query("UPDATE tokens SET last_used_at = $1 WHERE hash = $2")
                 .bind(now)
                 .bind(hash)
                 .execute(&self.pool)
@@ -81,30 +81,54 @@ impl Store {
 
     /// Tokens that can still be used (not expired).
     pub async fn token_count(&self) -> Result<i64> {
-        sqlx::query_scalar("SELECT COUNT(*) FROM tokens WHERE expires_at IS NULL OR expires_at > ?")
-            .bind(now_ms())
-            .fetch_one(&self.pool)
-            .await
+        sqlx::query_scalar(
+            "SELECT COUNT(*) FROM tokens WHERE expires_at IS NULL OR expires_at > $1",
+        )
+        .bind(now_ms())
+        .fetch_one(&self.pool)
+        .await
     }
 
     pub async fn list_tokens(&self) -> Result<Vec<TokenInfo>> {
-        sqlx::query_as(
+        let sql = self.pick(
             "SELECT name, role,
                     strftime('%Y-%m-%d %H:%M', created_at / 1000, 'unixepoch') AS created,
                     strftime('%Y-%m-%d %H:%M', expires_at / 1000, 'unixepoch') AS expires,
-                    COALESCE(expires_at <= ?, 0) AS expired,
+                    CASE WHEN expires_at <= $1 THEN 1 ELSE 0 END AS expired,
                     strftime('%Y-%m-%d %H:%M', last_used_at / 1000, 'unixepoch') AS last_used
                FROM tokens ORDER BY name",
-        )
-        .bind(now_ms())
-        .fetch_all(&self.pool)
-        .await
+            "SELECT name, role,
+                    to_char(to_timestamp(created_at / 1000.0) AT TIME ZONE 'UTC', 'YYYY-MM-DD HH24:MI') AS created,
+                    to_char(to_timestamp(expires_at / 1000.0) AT TIME ZONE 'UTC', 'YYYY-MM-DD HH24:MI') AS expires,
+                    CASE WHEN expires_at <= $1 THEN 1 ELSE 0 END::BIGINT AS expired,
+                    to_char(to_timestamp(last_used_at / 1000.0) AT TIME ZONE 'UTC', 'YYYY-MM-DD HH24:MI') AS last_used
+               FROM tokens ORDER BY name",
+        );
+        // `expired` comes back as 0/1: the Any driver decodes booleans only from real ones.
+        let rows: Vec<(String, String, String, Option<String>, i64, Option<String>)> =
+            sqlx::query_as(sql)
+                .bind(now_ms())
+                .fetch_all(&self.pool)
+                .await?;
+        Ok(rows
+            .into_iter()
+            .map(
+                |(name, role, created, expires, expired, last_used)| TokenInfo {
+                    name,
+                    role,
+                    created,
+                    expires,
+                    expired: expired != 0,
+                    last_used,
+                },
+            )
+            .collect())
     }
 
     /// Deletes the token named `name`; false if there is none.
     pub async fn revoke_token(&self, name: &str) -> Result<bool> {
         let mut tx = self.begin().await?;
-        let n = sqlx::query("DELETE FROM tokens WHERE name = ?")
+        let n = sqlx::query("DELETE FROM tokens WHERE name = $1")
             .bind(name)
             .execute(&mut *tx)
             .await?
