@@ -104,7 +104,7 @@ impl ServiceDirArgs {
 #[cfg(windows)]
 fn service_command(command: ServiceCmd) -> Result<(), Box<dyn std::error::Error>> {
     use service::{ServiceSpec, Waits, RESTART_DELAY};
-    let scm = service::windows::Scm;
+    let scm = service::windows::Scm::default();
     let waits = Waits::default();
     let mut out = std::io::stdout();
     let r = match command {

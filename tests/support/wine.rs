@@ -50,13 +50,19 @@ pub fn windows_bin_dir() -> &'static Path {
     })
 }
 
-/// Runs `cmd` to completion within `timeout` (polling), returning its output; panics naming
-/// `what` when it fails, cannot start or overruns.
-fn run(mut cmd: Command, timeout: Duration, what: &str, install_hint: &str) -> String {
+/// Runs `cmd` to completion within `timeout` (polling; killed and a panic naming `what` past
+/// it) and returns its exit status and its stdout and stderr together. Panics with
+/// `install_hint` when it cannot start.
+pub fn output_within(
+    mut cmd: Command,
+    timeout: Duration,
+    what: &str,
+    install_hint: &str,
+) -> (std::process::ExitStatus, String) {
     let out = tempfile::NamedTempFile::new().expect("temp file");
     let mut child = cmd
         .stdin(Stdio::null())
-        .stdout(Stdio::null())
+        .stdout(out.reopen().expect("reopen temp file"))
         .stderr(out.reopen().expect("reopen temp file"))
         .spawn()
         .unwrap_or_else(|e| panic!("cannot run {what} ({e}): {install_hint}"));
@@ -72,7 +78,15 @@ fn run(mut cmd: Command, timeout: Duration, what: &str, install_hint: &str) -> S
         }
         std::thread::sleep(Duration::from_millis(50));
     };
-    let text = std::fs::read_to_string(out.path()).unwrap_or_default();
+    (
+        status,
+        std::fs::read_to_string(out.path()).unwrap_or_default(),
+    )
+}
+
+/// [`output_within`], failing the test unless it succeeds.
+fn run(cmd: Command, timeout: Duration, what: &str, install_hint: &str) -> String {
+    let (status, text) = output_within(cmd, timeout, what, install_hint);
     assert!(
         status.success(),
         "{what} failed ({status}): {install_hint}\n{text}"
@@ -80,54 +94,78 @@ fn run(mut cmd: Command, timeout: Duration, what: &str, install_hint: &str) -> S
     text
 }
 
-/// The Wine prefix the tests use (`<target>/wine-prefix`), set up on first use: `wineboot`, and
-/// the `bcryptprimitives.dll` stand-in where Wine has none (`tests/fixtures/wine/`).
+/// The Wine prefix the tests use (`<target>/wine-prefix`), set up on first use.
 pub fn prefix() -> &'static Path {
     static PREFIX: OnceLock<PathBuf> = OnceLock::new();
-    PREFIX.get_or_init(|| {
-        let target = crate::profile_dir()
-            .parent()
-            .expect("profile dir has a parent")
-            .to_path_buf();
-        let prefix = target.join("wine-prefix");
-        if !prefix.join("system.reg").is_file() {
-            let mut cmd = Command::new("wine");
-            cmd.args(["wineboot", "--init"])
-                .env("WINEPREFIX", &prefix)
-                .env("WINEDEBUG", "-all");
-            run(
-                cmd,
-                WINEBOOT_TIMEOUT,
-                "`wine wineboot --init`",
-                "install Wine with `apt-get install wine wine64`",
-            );
-        }
-        let system32 = prefix.join("drive_c/windows/system32");
-        let shim = system32.join("bcryptprimitives.dll");
-        if !shim.is_file() {
-            let src = crate::workspace_root().join("tests/fixtures/wine/bcryptprimitives.c");
-            // Built beside and renamed into place: another test process may be doing the same.
-            let tmp = system32.join(format!("bcryptprimitives.{}.tmp", std::process::id()));
-            let mut cmd = Command::new("x86_64-w64-mingw32-gcc");
-            cmd.args(["-shared", "-O2", "-Wall", "-Werror", "-o"])
-                .arg(&tmp)
-                .arg(&src)
-                .arg("-ladvapi32");
-            run(
-                cmd,
-                Duration::from_secs(120),
-                "the MinGW C compiler x86_64-w64-mingw32-gcc",
-                "install it with `apt-get install mingw-w64`",
-            );
-            std::fs::rename(&tmp, &shim).expect("move bcryptprimitives.dll into place");
-        }
-        prefix
-    })
+    PREFIX.get_or_init(|| set_up("wine-prefix"))
+}
+
+/// A prefix of its own for the service test (`<target>/wine-prefix-service`): Wine starts an
+/// installed automatic service whenever a prefix boots, which must not touch the other tests.
+pub fn service_prefix() -> &'static Path {
+    static PREFIX: OnceLock<PathBuf> = OnceLock::new();
+    PREFIX.get_or_init(|| set_up("wine-prefix-service"))
+}
+
+/// `<target>/NAME`, set up once: `wineboot`, and the `bcryptprimitives.dll` stand-in where Wine
+/// has none (`tests/fixtures/wine/`).
+fn set_up(name: &str) -> PathBuf {
+    let target = crate::profile_dir()
+        .parent()
+        .expect("profile dir has a parent")
+        .to_path_buf();
+    let prefix = target.join(name);
+    if !prefix.join("system.reg").is_file() {
+        let mut cmd = Command::new("wine");
+        cmd.args(["wineboot", "--init"])
+            .env("WINEPREFIX", &prefix)
+            .env("WINEDEBUG", "-all");
+        run(
+            cmd,
+            WINEBOOT_TIMEOUT,
+            "`wine wineboot --init`",
+            "install Wine with `apt-get install wine wine64`",
+        );
+        // wineboot returns while the new prefix is still settling (its services restart);
+        // the prefix is ready once its server has exited.
+        let mut cmd = Command::new("wineserver");
+        cmd.arg("-w").env("WINEPREFIX", &prefix);
+        run(
+            cmd,
+            WINEBOOT_TIMEOUT,
+            "`wineserver -w`",
+            "install Wine with `apt-get install wine wine64`",
+        );
+    }
+    let system32 = prefix.join("drive_c/windows/system32");
+    let shim = system32.join("bcryptprimitives.dll");
+    if !shim.is_file() {
+        let src = crate::workspace_root().join("tests/fixtures/wine/bcryptprimitives.c");
+        // Built beside and renamed into place: another test process may be doing the same.
+        let tmp = system32.join(format!("bcryptprimitives.{}.tmp", std::process::id()));
+        let mut cmd = Command::new("x86_64-w64-mingw32-gcc");
+        cmd.args(["-shared", "-O2", "-Wall", "-Werror", "-o"])
+            .arg(&tmp)
+            .arg(&src)
+            .arg("-ladvapi32");
+        run(
+            cmd,
+            Duration::from_secs(120),
+            "the MinGW C compiler x86_64-w64-mingw32-gcc",
+            "install it with `apt-get install mingw-w64`",
+        );
+        std::fs::rename(&tmp, &shim).expect("move bcryptprimitives.dll into place");
+    }
+    prefix
 }
 
 /// `wine EXE` in the tests' prefix, with no `FRESA_*` variable inherited.
 pub fn command(exe: &Path) -> Command {
-    let prefix = prefix();
+    command_in(prefix(), exe)
+}
+
+/// `wine EXE` in `prefix`, with no `FRESA_*` variable inherited.
+pub fn command_in(prefix: &Path, exe: &Path) -> Command {
     let mut cmd = Command::new("wine");
     cmd.arg(exe)
         .env("WINEPREFIX", prefix)

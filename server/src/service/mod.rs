@@ -70,8 +70,12 @@ pub struct ServiceSpec {
 pub trait ServiceManager {
     /// `None`: not installed.
     fn state(&self) -> Result<Option<State>, Error>;
-    /// Registers the service (automatic start, LocalSystem) with restart-on-failure actions.
+    /// Registers the service (automatic start, LocalSystem).
     fn create(&self, spec: &ServiceSpec) -> Result<(), Error>;
+    /// Restart the service `delay` after its process fails.
+    fn restart_on_failure(&self, delay: Duration) -> Result<(), Error>;
+    /// Count a stop with a non-zero exit code as a failure too (not only a crash).
+    fn restart_on_error_exit(&self) -> Result<(), Error>;
     fn delete(&self) -> Result<(), Error>;
     fn start(&self) -> Result<(), Error>;
     /// Sends the stop control; returns at once.
@@ -167,6 +171,23 @@ pub fn install(
             .map_err(|e| format!("cannot write {}: {e}", config.display()))?;
     }
     mgr.create(spec)?;
+    // A service that is not restarted is not what was asked for: take it away again.
+    if let Err(e) = mgr.restart_on_failure(spec.restart_delay) {
+        let removed = match mgr.delete() {
+            Ok(()) => "the service was removed again".to_string(),
+            Err(d) => format!("removing the service failed too ({d}): fresa service uninstall"),
+        };
+        return Err(
+            format!("cannot set restart-on-failure for {SERVICE_NAME}: {e}; {removed}").into(),
+        );
+    }
+    if let Err(e) = mgr.restart_on_error_exit() {
+        writeln!(
+            out,
+            "warning: {SERVICE_NAME} is restarted after a crash but not after it stops with an \
+             error ({e})"
+        )?;
+    }
     // Errors still reach the log file; the Event Log is the second place they go.
     if let Err(e) = mgr.register_event_source() {
         writeln!(
@@ -367,6 +388,8 @@ mod tests {
         /// States returned by `state()`, in order; the last one repeats.
         states: Mutex<VecDeque<Option<State>>>,
         event_source_fails: bool,
+        restart_fails: bool,
+        error_exit_flag_fails: bool,
     }
 
     impl FakeScm {
@@ -399,6 +422,20 @@ mod tests {
                 spec.exe.display(),
                 spec.args.join(" ")
             ));
+            Ok(())
+        }
+        fn restart_on_failure(&self, delay: Duration) -> Result<(), Error> {
+            self.call(&format!("restart_on_failure {delay:?}"));
+            if self.restart_fails {
+                return Err("invalid level".into());
+            }
+            Ok(())
+        }
+        fn restart_on_error_exit(&self) -> Result<(), Error> {
+            self.call("restart_on_error_exit");
+            if self.error_exit_flag_fails {
+                return Err("invalid level".into());
+            }
             Ok(())
         }
         fn delete(&self) -> Result<(), Error> {
@@ -453,6 +490,8 @@ mod tests {
             scm.calls(),
             [
                 "create C:/Fresa/fresa.exe service run",
+                "restart_on_failure 5s",
+                "restart_on_error_exit",
                 "register_event_source"
             ]
         );
@@ -504,6 +543,42 @@ mod tests {
         let text = String::from_utf8(out).unwrap();
         assert!(
             text.contains("warning") && text.contains("access denied"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn a_service_that_cannot_be_made_to_restart_is_removed_again() {
+        let dir = tempfile::tempdir().unwrap();
+        let scm = FakeScm {
+            restart_fails: true,
+            ..FakeScm::with_states(&[None])
+        };
+        let e = install(&scm, &spec(), dir.path(), &mut Vec::new())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("restart-on-failure") && e.contains("removed again"),
+            "{e}"
+        );
+        assert_eq!(
+            scm.calls(),
+            [
+                "create C:/Fresa/fresa.exe service run",
+                "restart_on_failure 5s",
+                "delete"
+            ]
+        );
+        // Only the error-exit flag missing (Wine has no such setting): installed, with a word.
+        let scm = FakeScm {
+            error_exit_flag_fails: true,
+            ..FakeScm::with_states(&[None])
+        };
+        let mut out = Vec::new();
+        install(&scm, &spec(), dir.path(), &mut out).unwrap();
+        let text = String::from_utf8(out).unwrap();
+        assert!(
+            text.contains("warning") && text.contains("after a crash"),
             "{text}"
         );
     }

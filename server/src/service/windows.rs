@@ -23,21 +23,49 @@ use windows_service::service_manager::{ServiceManager as Manager, ServiceManager
 /// `ERROR_SERVICE_DOES_NOT_EXIST`
 const NO_SUCH_SERVICE: i32 = 1060;
 
-/// The local service manager.
-pub struct Scm;
+/// The local service manager. Keeps the handle of the service it created, so configuring it
+/// does not depend on opening it again.
+#[derive(Default)]
+pub struct Scm {
+    created: std::cell::RefCell<Option<windows_service::service::Service>>,
+}
 
 impl Scm {
     fn manager(access: ServiceManagerAccess) -> Result<Manager, Error> {
         Manager::local_computer(None::<&str>, access).map_err(|e| {
-            format!("cannot open the service manager ({e}); run this from an administrator prompt")
-                .into()
+            format!(
+                "cannot open the service manager ({}); run this from an administrator prompt",
+                describe(e)
+            )
+            .into()
         })
+    }
+
+    /// Runs `f` on the service created by `create`, or else on the service opened with `access`.
+    fn with_created<T>(
+        &self,
+        access: ServiceAccess,
+        f: impl FnOnce(&windows_service::service::Service) -> Result<T, Error>,
+    ) -> Result<T, Error> {
+        if let Some(service) = self.created.borrow().as_ref() {
+            return f(service);
+        }
+        f(&Self::open(access)?)
     }
 
     fn open(access: ServiceAccess) -> Result<windows_service::service::Service, Error> {
         Self::manager(ServiceManagerAccess::CONNECT)?
             .open_service(SERVICE_NAME, access)
-            .map_err(|e| format!("cannot open service {SERVICE_NAME}: {e}").into())
+            .map_err(|e| format!("cannot open service {SERVICE_NAME}: {}", describe(e)).into())
+    }
+}
+
+/// The crate's error with the Windows error behind it ("IO error in winapi call" alone says
+/// nothing).
+fn describe(e: windows_service::Error) -> Error {
+    match &e {
+        windows_service::Error::Winapi(io) => format!("{e}: {io}").into(),
+        _ => e.to_string().into(),
     }
 }
 
@@ -52,9 +80,11 @@ impl ServiceManager for Scm {
         {
             Ok(s) => s,
             Err(e) if is_missing(&e) => return Ok(None),
-            Err(e) => return Err(format!("cannot open service {SERVICE_NAME}: {e}").into()),
+            Err(e) => {
+                return Err(format!("cannot open service {SERVICE_NAME}: {}", describe(e)).into())
+            }
         };
-        let status = service.query_status()?;
+        let status = service.query_status().map_err(describe)?;
         Ok(Some(match status.current_state {
             ServiceState::Stopped => State::Stopped,
             ServiceState::StartPending => State::StartPending,
@@ -81,38 +111,54 @@ impl ServiceManager for Scm {
             account_password: None,
         };
         let service = manager
-            .create_service(&info, ServiceAccess::CHANGE_CONFIG | ServiceAccess::START)
-            .map_err(|e| format!("cannot create service {SERVICE_NAME}: {e}"))?;
+            .create_service(
+                &info,
+                ServiceAccess::CHANGE_CONFIG | ServiceAccess::START | ServiceAccess::DELETE,
+            )
+            .map_err(|e| format!("cannot create service {SERVICE_NAME}: {}", describe(e)))?;
         let _ = service.set_description(super::DESCRIPTION);
-        let restart = ServiceAction {
-            action_type: ServiceActionType::Restart,
-            delay: spec.restart_delay,
-        };
-        service
-            .update_failure_actions(ServiceFailureActions {
-                reset_period: ServiceFailureResetPeriod::After(Duration::from_secs(24 * 3600)),
-                reboot_msg: None,
-                command: None,
-                actions: Some(vec![restart.clone(), restart.clone(), restart]),
-            })
-            .map_err(|e| format!("cannot set the restart-on-failure actions: {e}"))?;
-        // A server that exits with an error (not only a crash) is restarted too.
-        service
-            .set_failure_actions_on_non_crash_failures(true)
-            .map_err(|e| format!("cannot set the restart-on-failure actions: {e}"))?;
+        *self.created.borrow_mut() = Some(service);
         Ok(())
     }
 
+    fn restart_on_failure(&self, delay: Duration) -> Result<(), Error> {
+        let restart = ServiceAction {
+            action_type: ServiceActionType::Restart,
+            delay,
+        };
+        let actions = ServiceFailureActions {
+            reset_period: ServiceFailureResetPeriod::After(Duration::from_secs(24 * 3600)),
+            reboot_msg: None,
+            command: None,
+            actions: Some(vec![restart.clone(), restart.clone(), restart]),
+        };
+        // A restart action needs the START right as well.
+        self.with_created(ServiceAccess::CHANGE_CONFIG | ServiceAccess::START, |s| {
+            s.update_failure_actions(actions).map_err(describe)
+        })
+    }
+
+    fn restart_on_error_exit(&self) -> Result<(), Error> {
+        self.with_created(ServiceAccess::CHANGE_CONFIG, |s| {
+            s.set_failure_actions_on_non_crash_failures(true)
+                .map_err(describe)
+        })
+    }
+
     fn delete(&self) -> Result<(), Error> {
-        Ok(Self::open(ServiceAccess::DELETE)?.delete()?)
+        let result = self.with_created(ServiceAccess::DELETE, |s| s.delete().map_err(describe));
+        *self.created.borrow_mut() = None;
+        result
     }
 
     fn start(&self) -> Result<(), Error> {
-        Ok(Self::open(ServiceAccess::START)?.start::<&str>(&[])?)
+        Self::open(ServiceAccess::START)?
+            .start::<&str>(&[])
+            .map_err(describe)
     }
 
     fn stop(&self) -> Result<(), Error> {
-        Self::open(ServiceAccess::STOP)?.stop()?;
+        Self::open(ServiceAccess::STOP)?.stop().map_err(describe)?;
         Ok(())
     }
 
