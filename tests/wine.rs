@@ -312,3 +312,28 @@ fn fresa_service_installs_serves_stops_gracefully_and_uninstalls_under_wine() {
     assert!(fresa_service(&["status"]).1.contains("not installed"));
     assert!(data.join("fresa.db").is_file(), "uninstall keeps the data");
 }
+
+/// `parport-stepper` on Windows: a real port (Linux ppdev) is refused when the machine is
+/// added, naming the platform; the simulated port works.
+#[test]
+fn the_parport_dll_refuses_a_real_port_naming_the_platform_and_accepts_sim() {
+    let s = wine_server();
+    let msg = s
+        .post(
+            "/api/v1/machines",
+            &json!({"name": "lpt", "backend": "parport-stepper",
+                    "config": {"port": "/dev/parport0"}}),
+        )
+        .expect_error(422, "invalid_config");
+    assert!(
+        msg.contains("/dev/parport0") && msg.contains("ppdev") && msg.contains("windows"),
+        "{msg}"
+    );
+    let sim = s.create_machine(&json!({
+        "name": "lpt-sim", "backend": "parport-stepper",
+        "config": {"port": "sim", "realtime_priority": false},
+    }));
+    s.wait_machine_state(sim, "idle", T);
+    let machines = s.get("/api/v1/machines").expect(200);
+    assert_eq!(machines.as_array().unwrap().len(), 1, "{machines}");
+}
