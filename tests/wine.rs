@@ -307,8 +307,12 @@ fn fresa_service_installs_serves_stops_gracefully_and_uninstalls_under_wine() {
         "nothing listens after stop"
     );
 
-    let (ok, out) = fresa_service(&["uninstall", "--data-dir", &data_arg]);
-    assert!(ok && out.contains("removed"), "{out}");
+    // Without --data-dir: the folder named is the one the service was installed with.
+    let (ok, out) = fresa_service(&["uninstall"]);
+    assert!(
+        ok && out.contains("removed") && out.contains(&data_arg),
+        "{out}"
+    );
     assert!(fresa_service(&["status"]).1.contains("not installed"));
     assert!(data.join("fresa.db").is_file(), "uninstall keeps the data");
 }

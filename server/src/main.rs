@@ -93,6 +93,20 @@ struct ServiceDirArgs {
 }
 
 impl ServiceDirArgs {
+    /// The given directory, else the installed service's, else the default.
+    #[cfg(windows)]
+    fn of_installed(
+        self,
+        scm: &dyn service::ServiceManager,
+    ) -> Result<std::path::PathBuf, Box<dyn std::error::Error>> {
+        match self.data_dir {
+            Some(d) => Ok(d),
+            None => service::installed_data_dir(scm, config::default_data_dir())
+                .map_err(|e| e.to_string())?
+                .ok_or_else(|| "no data directory: pass --data-dir".into()),
+        }
+    }
+
     #[cfg_attr(not(windows), allow(dead_code))]
     fn resolve(self) -> Result<std::path::PathBuf, Box<dyn std::error::Error>> {
         self.data_dir
@@ -123,8 +137,14 @@ fn service_command(command: ServiceCmd) -> Result<(), Box<dyn std::error::Error>
             };
             service::install(&scm, &spec, &data_dir, &mut out)
         }
-        ServiceCmd::Uninstall(d) => service::uninstall(&scm, waits, &d.resolve()?, &mut out),
-        ServiceCmd::Start(d) => service::start(&scm, waits, &d.resolve()?.join("logs"), &mut out),
+        ServiceCmd::Uninstall(d) => {
+            let data_dir = d.of_installed(&scm)?;
+            service::uninstall(&scm, waits, &data_dir, &mut out)
+        }
+        ServiceCmd::Start(d) => {
+            let logs = d.of_installed(&scm)?.join("logs");
+            service::start(&scm, waits, &logs, &mut out)
+        }
         ServiceCmd::Stop => service::stop(&scm, waits, &mut out),
         ServiceCmd::Status => service::status(&scm, &mut out),
         ServiceCmd::Run(d) => service::windows::dispatch(d.resolve()?),
@@ -206,6 +226,7 @@ fn main() -> ExitCode {
             Cmd::Token { command } => client::token(command).await,
             Cmd::Backup { file, data } => client::backup(file, data).await,
             Cmd::Gcode { command } => client::gcode(command),
+            // Handled before the runtime was built.
             Cmd::Service { .. } => Ok(()),
         }
     });

@@ -70,6 +70,8 @@ pub struct ServiceSpec {
 pub trait ServiceManager {
     /// `None`: not installed.
     fn state(&self) -> Result<Option<State>, Error>;
+    /// The installed service's command line (`"C:\...\fresa.exe" service run ...`).
+    fn command_line(&self) -> Result<Option<String>, Error>;
     /// Registers the service (automatic start, LocalSystem).
     fn create(&self, spec: &ServiceSpec) -> Result<(), Error>;
     /// Restart the service `delay` after its process fails.
@@ -83,6 +85,76 @@ pub trait ServiceManager {
     /// Lets the Event Log show the service's messages (source [`SERVICE_NAME`]).
     fn register_event_source(&self) -> Result<(), Error>;
     fn deregister_event_source(&self) -> Result<(), Error>;
+}
+
+/// The data directory the installed service uses: its `--data-dir` argument, else `default`.
+/// So `uninstall` and `start` name the right folder without being told it again.
+pub fn installed_data_dir(
+    mgr: &dyn ServiceManager,
+    default: Option<PathBuf>,
+) -> Result<Option<PathBuf>, Error> {
+    let from_service = mgr
+        .command_line()?
+        .and_then(|line| data_dir_argument(&line));
+    Ok(from_service.or(default))
+}
+
+/// The value after `--data-dir` in a Windows command line (quoted as `CommandLineToArgvW`
+/// reads it: `"C:\My Data\\"` is `C:\My Data\`).
+pub fn data_dir_argument(command_line: &str) -> Option<PathBuf> {
+    let args = split_command_line(command_line);
+    let i = args.iter().position(|a| a == "--data-dir")?;
+    args.get(i + 1).map(PathBuf::from)
+}
+
+/// Splits a command line into arguments by the rules of `CommandLineToArgvW`: spaces separate
+/// unless quoted; `2n` backslashes before a quote are `n` and the quote delimits, `2n + 1` are
+/// `n` and a literal quote; other backslashes are literal.
+fn split_command_line(line: &str) -> Vec<String> {
+    let mut args = Vec::new();
+    let mut arg = String::new();
+    let mut in_arg = false;
+    let mut quoted = false;
+    let mut chars = line.chars().peekable();
+    while let Some(c) = chars.next() {
+        match c {
+            '\\' => {
+                let mut n = 1;
+                while chars.peek() == Some(&'\\') {
+                    chars.next();
+                    n += 1;
+                }
+                in_arg = true;
+                if chars.peek() == Some(&'"') {
+                    arg.extend(std::iter::repeat_n('\\', n / 2));
+                    if n % 2 == 1 {
+                        chars.next();
+                        arg.push('"');
+                    }
+                } else {
+                    arg.extend(std::iter::repeat_n('\\', n));
+                }
+            }
+            '"' => {
+                in_arg = true;
+                quoted = !quoted;
+            }
+            ' ' | '\t' if !quoted => {
+                if in_arg {
+                    args.push(std::mem::take(&mut arg));
+                    in_arg = false;
+                }
+            }
+            c => {
+                in_arg = true;
+                arg.push(c);
+            }
+        }
+    }
+    if in_arg {
+        args.push(arg);
+    }
+    args
 }
 
 /// How often the commands look at the service's state while they wait for it.
@@ -390,6 +462,7 @@ mod tests {
         event_source_fails: bool,
         restart_fails: bool,
         error_exit_flag_fails: bool,
+        command_line: Option<String>,
     }
 
     impl FakeScm {
@@ -415,6 +488,9 @@ mod tests {
             } else {
                 *s.front().unwrap()
             })
+        }
+        fn command_line(&self) -> Result<Option<String>, Error> {
+            Ok(self.command_line.clone())
         }
         fn create(&self, spec: &ServiceSpec) -> Result<(), Error> {
             self.call(&format!(
@@ -580,6 +656,40 @@ mod tests {
         assert!(
             text.contains("warning") && text.contains("after a crash"),
             "{text}"
+        );
+    }
+
+    #[test]
+    fn the_installed_data_dir_comes_from_the_service_command_line() {
+        for (line, want) in [
+            (
+                r#""C:\Program Files\Fresa\fresa.exe" service run --data-dir D:\Fresa"#,
+                Some(r"D:\Fresa"),
+            ),
+            (
+                r#"C:\Fresa\fresa.exe service run --data-dir "D:\My Data\Fresa\\""#,
+                Some(r"D:\My Data\Fresa\"),
+            ),
+            (
+                r#"fresa.exe service run --data-dir "D:\odd\"quote""#,
+                Some(r#"D:\odd"quote"#),
+            ),
+            (r#""C:\Program Files\Fresa\fresa.exe" service run"#, None),
+        ] {
+            assert_eq!(data_dir_argument(line), want.map(PathBuf::from), "{line}");
+        }
+        let scm = FakeScm {
+            command_line: Some("fresa.exe service run --data-dir E:\\F".into()),
+            ..FakeScm::with_states(&[Some(State::Stopped)])
+        };
+        assert_eq!(
+            installed_data_dir(&scm, Some("C:/ProgramData/Fresa".into())).unwrap(),
+            Some(PathBuf::from("E:\\F"))
+        );
+        let scm = FakeScm::with_states(&[None]);
+        assert_eq!(
+            installed_data_dir(&scm, Some("C:/ProgramData/Fresa".into())).unwrap(),
+            Some(PathBuf::from("C:/ProgramData/Fresa"))
         );
     }
 

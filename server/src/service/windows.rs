@@ -94,6 +94,21 @@ impl ServiceManager for Scm {
         }))
     }
 
+    fn command_line(&self) -> Result<Option<String>, Error> {
+        let service = match Self::manager(ServiceManagerAccess::CONNECT)?
+            .open_service(SERVICE_NAME, ServiceAccess::QUERY_CONFIG)
+        {
+            Ok(s) => s,
+            Err(e) if is_missing(&e) => return Ok(None),
+            Err(e) => {
+                return Err(format!("cannot open service {SERVICE_NAME}: {}", describe(e)).into())
+            }
+        };
+        let config = service.query_config().map_err(describe)?;
+        // The crate names the whole command line `executable_path`.
+        Ok(Some(config.executable_path.to_string_lossy().into_owned()))
+    }
+
     fn create(&self, spec: &ServiceSpec) -> Result<(), Error> {
         let manager =
             Self::manager(ServiceManagerAccess::CONNECT | ServiceManagerAccess::CREATE_SERVICE)?;
