@@ -17,6 +17,9 @@ use std::time::{Duration, Instant};
 
 pub use serde_json;
 
+#[path = "support/wine.rs"]
+pub mod wine;
+
 /// How long a server may take to print its `listening on` line and answer `/healthz`.
 const START_TIMEOUT: Duration = Duration::from_secs(60);
 
@@ -172,6 +175,8 @@ pub struct Opts {
     pub extra_plugin_dirs: Vec<PathBuf>,
     /// `FRESA_LOG` for the server (default `info,tower_http=warn,sqlx=warn`).
     pub log: Option<String>,
+    /// Run the cross-built `fresa.exe` with its DLL plugins under Wine ([`wine`]).
+    pub wine: bool,
 }
 
 impl Default for Opts {
@@ -182,6 +187,7 @@ impl Default for Opts {
             max_upload_bytes: None,
             extra_plugin_dirs: Vec::new(),
             log: None,
+            wine: false,
         }
     }
 }
@@ -256,6 +262,15 @@ impl Server {
         self.root.path()
     }
 
+    /// A path as the server process sees it (under Wine: on drive `Z:`).
+    pub fn host_path(&self, p: &Path) -> String {
+        if self.opts.wine {
+            wine::path(p)
+        } else {
+            p.display().to_string()
+        }
+    }
+
     pub fn data_dir(&self) -> PathBuf {
         self.root.path().join("data")
     }
@@ -277,19 +292,24 @@ impl Server {
     /// exited, or never got ready) returns its stderr.
     pub fn spawn(&mut self) -> Result<(), String> {
         assert!(self.child.is_none(), "server already running");
-        let mut cmd = fresa_cmd();
+        let (mut cmd, plugins) = if self.opts.wine {
+            let dir = wine::windows_bin_dir();
+            (wine::command(&dir.join("fresa.exe")), dir)
+        } else {
+            (fresa_cmd(), bin_dir())
+        };
         cmd.arg("serve")
             .arg("--listen")
             .arg(&self.opts.listen)
             .arg("--data-dir")
-            .arg(self.data_dir())
+            .arg(self.host_path(&self.data_dir()))
             .arg("--config")
-            .arg(self.config_file());
+            .arg(self.host_path(&self.config_file()));
         for dir in &self.opts.extra_plugin_dirs {
-            cmd.arg("--plugin-dir").arg(dir);
+            cmd.arg("--plugin-dir").arg(self.host_path(dir));
         }
         cmd.arg("--plugin-dir")
-            .arg(bin_dir())
+            .arg(self.host_path(plugins))
             .env(
                 "FRESA_LOG",
                 self.opts
@@ -417,6 +437,18 @@ impl Server {
         std::fs::write(self.config_file(), toml).expect("write fresa.toml");
     }
 
+    /// Sends `kill -SIGNAL` (e.g. `"INT"`: Ctrl-C, also under Wine) and returns at once.
+    pub fn send_signal(&self, signal: &str) {
+        let pid = self.pid().expect("server running");
+        let ok = Command::new("kill")
+            .arg(format!("-{signal}"))
+            .arg(pid.to_string())
+            .status()
+            .expect("run kill")
+            .success();
+        assert!(ok, "kill -{signal} {pid} failed");
+    }
+
     /// Sends SIGTERM and returns at once (see [`Server::wait_exit`]).
     pub fn send_sigterm(&self) {
         let pid = self.pid().expect("server running");
@@ -531,7 +563,7 @@ impl Server {
         let mut body = json!({
             "name": name,
             "backend": "sim-machine",
-            "config": {"time_scale": time_scale, "execution_log": log},
+            "config": {"time_scale": time_scale, "execution_log": self.host_path(&log)},
         });
         if let (Some(b), Some(e)) = (body.as_object_mut(), extra.as_object()) {
             for (k, v) in e {

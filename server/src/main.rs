@@ -1,7 +1,13 @@
 //! `fresa`: the daemon (`fresa serve`) and its command-line client.
 
 mod client;
+// The service's logic and its log file are compiled on every platform so their tests run on
+// Linux too; only Windows runs them.
+#[cfg_attr(not(windows), allow(dead_code))]
+mod logging;
 mod serve;
+#[cfg_attr(not(windows), allow(dead_code))]
+mod service;
 
 use fresa_core::config;
 
@@ -53,6 +59,106 @@ enum Cmd {
         #[command(flatten)]
         data: client::DataArgs,
     },
+    /// The Windows service `Fresa` (run from an administrator prompt). On Linux, systemd runs
+    /// the server: contrib/systemd/fresa.service.
+    Service {
+        #[command(subcommand)]
+        command: ServiceCmd,
+    },
+}
+
+#[derive(Subcommand)]
+enum ServiceCmd {
+    /// Register the service (starts at boot, restarts on failure) and its Event Log source.
+    Install(ServiceDirArgs),
+    /// Stop the service if it runs and remove it; the data directory is kept.
+    Uninstall(ServiceDirArgs),
+    /// Start the service and wait until it serves.
+    Start(ServiceDirArgs),
+    /// Stop the service (motion stopped, running jobs interrupted) and wait until it has.
+    Stop,
+    /// Say whether the service is installed and running.
+    Status,
+    /// The service's entry point, started by the service manager.
+    #[command(hide = true)]
+    Run(ServiceDirArgs),
+}
+
+#[derive(clap::Args)]
+struct ServiceDirArgs {
+    /// The service's data directory (database, programs, fresa.toml, logs\); default
+    /// %ProgramData%\Fresa.
+    #[arg(long)]
+    data_dir: Option<std::path::PathBuf>,
+}
+
+impl ServiceDirArgs {
+    /// The given directory, else the installed service's, else the default.
+    #[cfg(windows)]
+    fn of_installed(
+        self,
+        scm: &dyn service::ServiceManager,
+    ) -> Result<std::path::PathBuf, Box<dyn std::error::Error>> {
+        match self.data_dir {
+            Some(d) => Ok(d),
+            None => service::installed_data_dir(scm, config::default_data_dir())
+                .map_err(|e| e.to_string())?
+                .ok_or_else(|| "no data directory: pass --data-dir".into()),
+        }
+    }
+
+    #[cfg_attr(not(windows), allow(dead_code))]
+    fn resolve(self) -> Result<std::path::PathBuf, Box<dyn std::error::Error>> {
+        self.data_dir
+            .or_else(config::default_data_dir)
+            .ok_or_else(|| "no data directory: pass --data-dir".into())
+    }
+}
+
+#[cfg(windows)]
+fn service_command(command: ServiceCmd) -> Result<(), Box<dyn std::error::Error>> {
+    use service::{ServiceSpec, Waits, RESTART_DELAY};
+    let scm = service::windows::Scm::default();
+    let waits = Waits::default();
+    let mut out = std::io::stdout();
+    let r = match command {
+        ServiceCmd::Install(d) => {
+            let explicit = d.data_dir.is_some();
+            let data_dir = d.resolve()?;
+            let mut args = vec!["service".to_string(), "run".to_string()];
+            if explicit {
+                args.push("--data-dir".into());
+                args.push(data_dir.display().to_string());
+            }
+            let spec = ServiceSpec {
+                exe: std::env::current_exe()?,
+                args,
+                restart_delay: RESTART_DELAY,
+            };
+            service::install(&scm, &spec, &data_dir, &mut out)
+        }
+        ServiceCmd::Uninstall(d) => {
+            let data_dir = d.of_installed(&scm)?;
+            service::uninstall(&scm, waits, &data_dir, &mut out)
+        }
+        ServiceCmd::Start(d) => {
+            let logs = d.of_installed(&scm)?.join("logs");
+            service::start(&scm, waits, &logs, &mut out)
+        }
+        ServiceCmd::Stop => service::stop(&scm, waits, &mut out),
+        ServiceCmd::Status => service::status(&scm, &mut out),
+        ServiceCmd::Run(d) => service::windows::dispatch(d.resolve()?),
+    };
+    r.map_err(|e| e.to_string().into())
+}
+
+#[cfg(not(windows))]
+fn service_command(_command: ServiceCmd) -> Result<(), Box<dyn std::error::Error>> {
+    Err(
+        "`fresa service` manages the Windows service; on Linux install \
+         contrib/systemd/fresa.service and use systemctl"
+            .into(),
+    )
 }
 
 /// Command-line/environment values for `fresa serve` (clap merges them: CLI beats env).
@@ -93,18 +199,19 @@ impl From<ServeArgs> for config::Overrides {
     }
 }
 
-fn init_logging(default: &str) {
-    let filter = tracing_subscriber::EnvFilter::try_from_env("FRESA_LOG")
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
-    tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .init();
-}
-
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // The service manager's calls block (they wait for the service), and `service run` builds
+    // its own runtime inside the service's thread: neither runs on this one.
+    if let Cmd::Service { command } = cli.command {
+        return match service_command(command) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("fresa: {e}");
+                ExitCode::FAILURE
+            }
+        };
+    }
     let rt = match tokio::runtime::Runtime::new() {
         Ok(rt) => rt,
         Err(e) => {
@@ -116,19 +223,16 @@ fn main() -> ExitCode {
         match cli.command {
             Cmd::Serve(args) => {
                 let settings = config::Settings::resolve(args.into())?;
-                init_logging(
-                    settings
-                        .log
-                        .as_deref()
-                        .unwrap_or("info,tower_http=warn,sqlx=warn"),
-                );
-                serve::run(settings).await
+                logging::init_console(settings.log.as_deref().unwrap_or(logging::DEFAULT_FILTER));
+                serve::run(settings, serve::wait_for_signal(), |_| {}).await
             }
             Cmd::Machine { server, command } => client::machine(server, command).await,
             Cmd::Job { server, command } => client::job(server, command).await,
             Cmd::Token { command } => client::token(command).await,
             Cmd::Backup { file, data } => client::backup(file, data).await,
             Cmd::Gcode { command } => client::gcode(command),
+            // Handled before the runtime was built.
+            Cmd::Service { .. } => Ok(()),
         }
     });
     // A backend call that never returns holds its machine's call thread; those are plain OS

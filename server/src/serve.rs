@@ -1,4 +1,5 @@
-//! `fresa serve`: bind, start, notify systemd, serve until SIGTERM/Ctrl-C, shut down cleanly.
+//! `fresa serve`: bind, start, notify systemd, serve until SIGTERM/Ctrl-C (or, as a Windows
+//! service, the service manager's stop), shut down cleanly.
 //!
 //! Shutdown order: motion first. On the signal every machine's gate closes (no new motion),
 //! active runs become `interrupted` (resumable) and each backend is told to stop, on its urgent
@@ -27,7 +28,13 @@ use tokio_util::sync::CancellationToken;
 /// At most this long for the backends to confirm they stopped.
 const STOP_MOTION_LIMIT: Duration = Duration::from_secs(5);
 
-pub async fn run(settings: Settings) -> Result<(), Box<dyn std::error::Error>> {
+/// Serves until `shutdown` completes, then stops motion and drains. `ready` is called once the
+/// server answers requests (bound, migrated, plugins loaded), with the address it listens on.
+pub async fn run(
+    settings: Settings,
+    shutdown: impl std::future::Future<Output = ()>,
+    ready: impl FnOnce(std::net::SocketAddr),
+) -> Result<(), Box<dyn std::error::Error>> {
     if let Some(f) = &settings.config_file {
         tracing::info!(file = %f.display(), "config file read");
     }
@@ -45,20 +52,21 @@ pub async fn run(settings: Settings) -> Result<(), Box<dyn std::error::Error>> {
     if !app.settings.loopback_only() {
         tracing::info!("not loopback-only: every request needs an API token");
     }
-    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
-    spawn_watchdog(app.clone());
+    systemd::ready();
+    systemd::spawn_watchdog(app.clone());
     warn_if_too_few_files(app.settings.max_connections);
     let drain = tokio_util::sync::CancellationToken::new();
     let limits = ConnLimits::from(&app.settings);
     let mut server = tokio::spawn(accept_loop(listener, router, limits, drain.clone()));
+    ready(bound);
     tokio::select! {
-        _ = wait_for_signal() => {}
+        _ = shutdown => {}
         r = &mut server => {
             // The server ended on its own (an accept loop error): still stop motion.
             tracing::error!(result = ?r, "HTTP server ended");
         }
     }
-    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
+    systemd::stopping();
     let limit = STOP_MOTION_LIMIT.min(app.settings.plugin_call_timeout);
     tracing::info!("shutting down: stopping all motion");
     app.stop_motion(limit).await;
@@ -76,28 +84,51 @@ pub async fn run(settings: Settings) -> Result<(), Box<dyn std::error::Error>> {
     Ok(())
 }
 
-/// Pings systemd's watchdog only while the database answers, so a wedged store gets us restarted.
-fn spawn_watchdog(app: fresa_core::SharedApp) {
-    let mut usec = 0u64;
-    if !sd_notify::watchdog_enabled(false, &mut usec) || usec == 0 {
-        return;
+/// systemd's `Type=notify` readiness and watchdog (Linux; nothing elsewhere).
+#[cfg(unix)]
+mod systemd {
+    use std::time::Duration;
+
+    pub fn ready() {
+        let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
     }
-    let period = Duration::from_micros(usec / 2);
-    tokio::spawn(async move {
-        let mut tick = tokio::time::interval(period);
-        loop {
-            tick.tick().await;
-            match tokio::time::timeout(period, app.store.ping()).await {
-                Ok(Ok(())) => {
-                    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
-                }
-                _ => tracing::error!("database did not answer; withholding the watchdog ping"),
-            }
+
+    pub fn stopping() {
+        let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
+    }
+
+    /// Pings the watchdog only while the database answers, so a wedged store gets us restarted.
+    pub fn spawn_watchdog(app: fresa_core::SharedApp) {
+        let mut usec = 0u64;
+        if !sd_notify::watchdog_enabled(false, &mut usec) || usec == 0 {
+            return;
         }
-    });
+        let period = Duration::from_micros(usec / 2);
+        tokio::spawn(async move {
+            let mut tick = tokio::time::interval(period);
+            loop {
+                tick.tick().await;
+                match tokio::time::timeout(period, app.store.ping()).await {
+                    Ok(Ok(())) => {
+                        let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
+                    }
+                    _ => tracing::error!("database did not answer; withholding the watchdog ping"),
+                }
+            }
+        });
+    }
 }
 
-async fn wait_for_signal() {
+#[cfg(not(unix))]
+mod systemd {
+    pub fn ready() {}
+    pub fn stopping() {}
+    pub fn spawn_watchdog(_app: fresa_core::SharedApp) {}
+}
+
+/// Console use: SIGTERM or Ctrl-C (Linux); Ctrl-C, Ctrl-Break or closing the console window
+/// (Windows).
+pub async fn wait_for_signal() {
     let ctrl_c = async {
         let _ = tokio::signal::ctrl_c().await;
     };
@@ -110,7 +141,24 @@ async fn wait_for_signal() {
             Err(_) => std::future::pending::<()>().await,
         }
     };
-    #[cfg(not(unix))]
+    #[cfg(windows)]
+    let term = async {
+        // Windows gives a closing console about 5 s: enough to stop motion, not to drain.
+        let (brk, close) = (
+            tokio::signal::windows::ctrl_break(),
+            tokio::signal::windows::ctrl_close(),
+        );
+        match (brk, close) {
+            (Ok(mut brk), Ok(mut close)) => {
+                tokio::select! {
+                    _ = brk.recv() => {}
+                    _ = close.recv() => {}
+                }
+            }
+            _ => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(any(unix, windows)))]
     let term = std::future::pending::<()>();
     tokio::select! {
         _ = ctrl_c => {}

@@ -30,6 +30,7 @@ fn main() {
     let hz = arg("--hz").unwrap_or(20_000.0);
     let secs = arg("--secs").unwrap_or(if full { 5.0 } else { 0.05 });
     let spin_us = arg("--spin-us").unwrap_or(20.0);
+    #[cfg(target_os = "linux")]
     if let Some(cpu) = arg("--cpu") {
         // SAFETY: a zeroed cpu_set_t is valid; CPU_SET writes within it.
         unsafe {
@@ -42,6 +43,10 @@ fn main() {
                 );
             }
         }
+    }
+    #[cfg(not(target_os = "linux"))]
+    if arg("--cpu").is_some() {
+        println!("--cpu: pinning to a CPU is only implemented on Linux");
     }
     let rt = realtime_priority();
     let ticks = (hz * secs) as u64;

@@ -348,7 +348,18 @@ impl Config {
                 "port" => {
                     port = Some(match v.as_str() {
                         Some("sim") => PortSpec::Sim,
-                        Some(p) if p.starts_with("/dev/") => PortSpec::Ppdev(PathBuf::from(p)),
+                        Some(p) if p.starts_with("/dev/") && cfg!(target_os = "linux") => {
+                            PortSpec::Ppdev(PathBuf::from(p))
+                        }
+                        // Checked here so the machine is refused before anything is stored.
+                        Some(p) if !cfg!(target_os = "linux") => {
+                            return Err(invalid(format!(
+                                "`port` {p:?}: a real parallel port is driven through Linux \
+                                 ppdev, which this platform ({}) does not have; use \"sim\" or \
+                                 run the server on Linux",
+                                std::env::consts::OS
+                            )))
+                        }
                         _ => {
                             return Err(invalid(format!(
                         "`port` must be \"sim\" or a ppdev device like \"/dev/parport0\", got {v}"

@@ -154,21 +154,45 @@ fn cors_origins(list: Vec<String>) -> Result<Vec<String>, ConfigError> {
     Ok(list)
 }
 
-/// Where the config file is looked for when `--config` is not given.
+/// Where the config file is looked for when `--config` is not given: the machine-wide file
+/// first (`/etc/fresa/fresa.toml`; on Windows `%ProgramData%\Fresa\fresa.toml`, beside the
+/// service's data), then the user's (`~/.config/fresa/`, `%APPDATA%\fresa\config\`).
 pub fn default_config_candidates() -> Vec<PathBuf> {
-    let mut v = vec![PathBuf::from("/etc/fresa/fresa.toml")];
+    let mut v = Vec::new();
+    if cfg!(windows) {
+        v.extend(
+            windows_machine_dir(std::env::var_os("ProgramData")).map(|d| d.join("fresa.toml")),
+        );
+    } else {
+        v.push(PathBuf::from("/etc/fresa/fresa.toml"));
+    }
     if let Some(p) = directories::ProjectDirs::from("", "", "fresa") {
         v.push(p.config_dir().join("fresa.toml"));
     }
     v
 }
 
+/// The data directory by default: on Windows the machine-wide `%ProgramData%\Fresa` (where the
+/// service keeps its data, so `fresa token` and `fresa backup` on the same PC find it);
+/// elsewhere the user's XDG data directory (the systemd unit sets its own).
 pub fn default_data_dir() -> Option<PathBuf> {
+    if cfg!(windows) {
+        return windows_machine_dir(std::env::var_os("ProgramData"));
+    }
     directories::ProjectDirs::from("", "", "fresa").map(|p| p.data_dir().to_path_buf())
 }
 
+/// `%ProgramData%\Fresa`, given the value of `%ProgramData%` (always set on Windows).
+pub fn windows_machine_dir(program_data: Option<std::ffi::OsString>) -> Option<PathBuf> {
+    program_data
+        .filter(|p| !p.is_empty())
+        .map(|p| PathBuf::from(p).join("Fresa"))
+}
+
 /// Plugins are looked for beside the `fresa` executable first: that is where cargo puts the
-/// workspace's plugin libraries, and where a package would install them.
+/// workspace's plugin libraries, and where a package would install them (on Windows the
+/// `fresa_*.dll` files go beside `fresa.exe`); then its `plugins` folder, and on Linux
+/// `/usr/lib/fresa/plugins`.
 pub fn default_plugin_dirs() -> Vec<PathBuf> {
     let mut v = Vec::new();
     if let Ok(exe) = std::env::current_exe() {
@@ -177,7 +201,9 @@ pub fn default_plugin_dirs() -> Vec<PathBuf> {
             v.push(dir.join("plugins"));
         }
     }
-    v.push(PathBuf::from("/usr/lib/fresa/plugins"));
+    if cfg!(unix) {
+        v.push(PathBuf::from("/usr/lib/fresa/plugins"));
+    }
     v
 }
 
@@ -407,6 +433,38 @@ impl Settings {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+
+    #[test]
+    fn platform_default_paths() {
+        assert_eq!(
+            windows_machine_dir(Some("C:\\ProgramData".into())),
+            Some(PathBuf::from("C:\\ProgramData").join("Fresa"))
+        );
+        assert_eq!(windows_machine_dir(None), None);
+        assert_eq!(windows_machine_dir(Some("".into())), None);
+        let candidates = default_config_candidates();
+        let plugins = default_plugin_dirs();
+        if cfg!(windows) {
+            assert!(
+                candidates.iter().all(|p| !p.starts_with("/etc")),
+                "{candidates:?}"
+            );
+            assert!(
+                plugins.iter().all(|p| !p.starts_with("/usr")),
+                "{plugins:?}"
+            );
+        } else {
+            assert_eq!(candidates[0], PathBuf::from("/etc/fresa/fresa.toml"));
+            assert_eq!(
+                plugins.last(),
+                Some(&PathBuf::from("/usr/lib/fresa/plugins"))
+            );
+        }
+        assert_eq!(
+            plugins[0],
+            std::env::current_exe().unwrap().parent().unwrap()
+        );
+    }
 
     #[test]
     fn cli_beats_file_and_file_beats_defaults() {
