@@ -7,7 +7,7 @@ use crate::datadir::{DataDirLock, LockError};
 use crate::events::EventBus;
 use crate::machine::{Machine, Machines};
 use crate::plugins::Registry;
-use crate::store::{RunRow, Store};
+use crate::store::RunRow;
 use std::sync::Arc;
 use tokio_util::sync::CancellationToken;
 
