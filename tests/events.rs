@@ -92,8 +92,9 @@ fn live_stream_shows_the_job_running_progressing_and_completed_and_replay_matche
         progress.windows(2).all(|w| w[0] <= w[1]),
         "progress went backwards: {progress:?}"
     );
+    // Line 0 = running, nothing acknowledged yet (a status tick can fall before the first ack).
     assert!(
-        progress.iter().all(|l| (1..=40).contains(l)),
+        progress.iter().all(|l| (0..=40).contains(l)),
         "{progress:?}"
     );
     assert!(
