@@ -43,7 +43,12 @@ async fn measure(label: &str, store: Store) {
     for i in 0..EVENTS {
         let t = Instant::now();
         store
-            .append_event("machine.jog", Some(m), Some("bench"), &format!("{{\"i\":{i}}}"))
+            .append_event(
+                "machine.jog",
+                Some(m),
+                Some("bench"),
+                &format!("{{\"i\":{i}}}"),
+            )
             .await
             .expect("event");
         lat.push(t.elapsed());
