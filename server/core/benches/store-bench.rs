@@ -5,6 +5,8 @@
 //! (PostgreSQL: a throwaway local server, as in the store tests; fsync off there, so the
 //! numbers compare the code paths, not disks).
 
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
 use fresa_core::store::{NewJob, Store};
 use std::time::{Duration, Instant};
 

@@ -24,6 +24,18 @@ pub struct TokenInfo {
     pub last_used: Option<String>,
 }
 
+/// A `list_tokens` row as the database gives it: `expired` as 0/1, because the Any driver
+/// decodes booleans only from real ones (SQLite has none).
+#[derive(FromRow)]
+struct TokenListRow {
+    name: String,
+    role: String,
+    created: String,
+    expires: Option<String>,
+    expired: i64,
+    last_used: Option<String>,
+}
+
 impl Store {
     // ---- tokens ----
 
@@ -104,24 +116,20 @@ impl Store {
                     to_char(to_timestamp(last_used_at / 1000.0) AT TIME ZONE 'UTC', 'YYYY-MM-DD HH24:MI') AS last_used
                FROM tokens ORDER BY name",
         );
-        // `expired` comes back as 0/1: the Any driver decodes booleans only from real ones.
-        let rows: Vec<(String, String, String, Option<String>, i64, Option<String>)> =
-            sqlx::query_as(sql)
-                .bind(now_ms())
-                .fetch_all(&self.pool)
-                .await?;
+        let rows: Vec<TokenListRow> = sqlx::query_as(sql)
+            .bind(now_ms())
+            .fetch_all(&self.pool)
+            .await?;
         Ok(rows
             .into_iter()
-            .map(
-                |(name, role, created, expires, expired, last_used)| TokenInfo {
-                    name,
-                    role,
-                    created,
-                    expires,
-                    expired: expired != 0,
-                    last_used,
-                },
-            )
+            .map(|r| TokenInfo {
+                name: r.name,
+                role: r.role,
+                created: r.created,
+                expires: r.expires,
+                expired: r.expired != 0,
+                last_used: r.last_used,
+            })
             .collect())
     }
 
