@@ -6,6 +6,8 @@
 //! skipped line leaves no trace). No allocation per line except for messages.
 
 use crate::arc::len2;
+use crate::expr::{self, Params, SysView, SUB_PARAMS};
+use crate::flow::{self, BlockKind, Flow, Frame, Keyword, OpenBlock, PendingCall, Skip};
 use crate::lex::{bit, column, lex_line, make_error, Block, LexError, LineKind};
 use crate::{
     Config, ErrorKind, GcodeError, Motion, Plane, Point, SpindleDirection, Unsupported, Warning,
@@ -132,7 +134,11 @@ pub struct Interpreter<R: BufRead> {
     cfg: Config,
     line: Vec<u8>,
     line_no: u32,
+    /// Source lines taken from the reader (line numbers of new lines).
+    reader_line_no: u32,
     lines_read: u64,
+    params: Params,
+    flow: Flow,
     blk: Block,
     st: State,
     queue: Queue,
@@ -151,6 +157,9 @@ impl<R: BufRead> Interpreter<R> {
         Interpreter {
             reader,
             st: State::new(&config),
+            params: Params::new(config.work_offsets),
+            flow: Flow::default(),
+            reader_line_no: 0,
             cfg: config,
             line: Vec::with_capacity(256),
             line_no: 0,
@@ -224,7 +233,7 @@ impl<R: BufRead> Interpreter<R> {
                 Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
                 Err(e) => {
                     return Err(GcodeError {
-                        line: self.line_no.saturating_add(1),
+                        line: self.reader_line_no.saturating_add(1),
                         column: column(&self.line, self.line.len()),
                         kind: ErrorKind::Io,
                         message: format!("read error: {e}"),
@@ -245,7 +254,7 @@ impl<R: BufRead> Interpreter<R> {
             self.reader.consume(n);
             if self.line.len() > self.cfg.max_line_bytes {
                 return Err(GcodeError {
-                    line: self.line_no.saturating_add(1),
+                    line: self.reader_line_no.saturating_add(1),
                     column: 1,
                     kind: ErrorKind::Io,
                     message: format!("line longer than {} bytes", self.cfg.max_line_bytes),
@@ -255,7 +264,8 @@ impl<R: BufRead> Interpreter<R> {
         if !any {
             return Ok(false);
         }
-        self.line_no = self.line_no.saturating_add(1);
+        self.reader_line_no = self.reader_line_no.saturating_add(1);
+        self.line_no = self.reader_line_no;
         self.lines_read += 1;
         if self.line.len() > self.cfg.max_line_bytes {
             return Err(GcodeError {
@@ -285,17 +295,571 @@ impl<R: BufRead> Interpreter<R> {
         Ok(true)
     }
 
-    /// Reads and interprets one line; events go to the queue.
-    fn step(&mut self) -> Result<(), GcodeError> {
+    /// The next line to run into `self.line`: from the kept program text
+    /// when control flow went back, else from the reader (kept once an O-word
+    /// was seen). Ok(false) at the end of input.
+    #[inline]
+    fn next_line(&mut self) -> Result<bool, GcodeError> {
+        if !self.flow.buffering {
+            return self.read_line();
+        }
+        if self.flow.pc < self.flow.prog.lines.len() {
+            let (no, s, e) = self.flow.prog.lines[self.flow.pc];
+            self.line.clear();
+            self.line.extend_from_slice(&self.flow.prog.text[s..e]);
+            self.line_no = no;
+            self.flow.cur = self.flow.pc;
+            self.flow.pc += 1;
+            return Ok(true);
+        }
         if !self.read_line()? {
-            self.done = true;
+            return Ok(false);
+        }
+        self.keep_line();
+        Ok(true)
+    }
+
+    /// Keeps the current (just read) line for later jumps.
+    fn keep_line(&mut self) {
+        let f = &mut self.flow;
+        f.buffering = true;
+        let s = f.prog.text.len();
+        f.prog.text.extend_from_slice(&self.line);
+        f.prog.lines.push((self.line_no, s, f.prog.text.len()));
+        f.cur = f.prog.lines.len() - 1;
+        f.pc = f.prog.lines.len();
+    }
+
+    fn err_at(&self, e: LexError) -> GcodeError {
+        make_error(self.line_no, &self.line, e)
+    }
+
+    /// End of input: fine unless a skip, call or block is still open.
+    fn end_of_input(&mut self) -> Result<(), GcodeError> {
+        self.done = true;
+        let open = if let Some(skip) = &self.flow.skip {
+            Some(format!(
+                "file ended while looking for o<{}> {} (from line {})",
+                skip.name,
+                skip.until.first().map_or("", |k| k.name()),
+                skip.from_line
+            ))
+        } else if let Some(f) = self.flow.frames.last() {
+            Some(format!(
+                "file ended inside subroutine o<{}> (called on line {})",
+                f.name, f.call_line
+            ))
+        } else {
+            self.flow.blocks.last().map(|b| {
+                let line = self.flow.prog.lines.get(b.start).map_or(0, |l| l.0);
+                format!(
+                    "file ended inside o<{}> {} (line {line})",
+                    b.name,
+                    match b.kind {
+                        BlockKind::If { .. } => "if",
+                        BlockKind::While => "while",
+                        BlockKind::Do => "do",
+                        BlockKind::Repeat => "repeat",
+                    }
+                )
+            })
+        };
+        match open {
+            Some(message) => Err(GcodeError {
+                line: self.reader_line_no,
+                column: 1,
+                kind: ErrorKind::Invalid,
+                message,
+            }),
+            None => Ok(()),
+        }
+    }
+
+    /// A line passed over while skipping (false condition, a subroutine's
+    /// definition, a search for a subroutine further down).
+    fn skip_line(&mut self) -> Result<(), GcodeError> {
+        let Some(at) = flow::o_at(&self.line) else {
+            return Ok(());
+        };
+        // A malformed O-word in text that is not run is not an error here.
+        let Ok(o) = flow::parse(&self.line, at) else {
+            return Ok(());
+        };
+        if matches!(o.kw, Keyword::Sub | Keyword::Number) {
+            self.flow
+                .subs
+                .entry(o.name.clone())
+                .or_insert(self.flow.cur);
+        }
+        let Some(skip) = &self.flow.skip else {
+            return Ok(());
+        };
+        if o.name != skip.name || !skip.until.contains(&o.kw) {
             return Ok(());
         }
-        let kind = match lex_line(&self.line, self.cfg.block_delete, &mut self.blk) {
+        let Some(skip) = self.flow.skip.take() else {
+            return Ok(());
+        };
+        if let Some(call) = skip.then_call {
+            return self.enter(o.name, self.flow.cur, call);
+        }
+        if !skip.inclusive {
+            // Run the matching line (else, elseif, endif) next.
+            self.flow.pc = self.flow.cur;
+        }
+        Ok(())
+    }
+
+    fn skip_to(&mut self, name: String, until: &'static [Keyword], inclusive: bool) {
+        self.flow.skip = Some(Skip {
+            name,
+            until,
+            inclusive,
+            then_call: None,
+            from_line: self.line_no,
+        });
+    }
+
+    /// Goes back to line index `idx` (a loop pass or an M98 repeat), counted
+    /// against `Config::max_loop_iterations`.
+    fn jump_back(&mut self, idx: usize) -> Result<(), GcodeError> {
+        self.flow.jumps += 1;
+        if self.flow.jumps > self.cfg.max_loop_iterations {
+            return Err(self.err_at((
+                0,
+                ErrorKind::Invalid,
+                format!(
+                    "more than {} loop passes (Config::max_loop_iterations)",
+                    self.cfg.max_loop_iterations
+                ),
+            )));
+        }
+        self.flow.pc = idx;
+        Ok(())
+    }
+
+    /// Calls subroutine `name` (found now or by reading ahead).
+    fn call(
+        &mut self,
+        name: String,
+        args: [f64; SUB_PARAMS],
+        m98_times: Option<u32>,
+        at: usize,
+    ) -> Result<(), GcodeError> {
+        // The main program counts as a level, as in LinuxCNC.
+        if self.flow.frames.len() + 1 >= self.cfg.max_call_depth {
+            return Err(self.err_at((
+                at,
+                ErrorKind::Invalid,
+                format!(
+                    "subroutine calls nested deeper than {} (Config::max_call_depth)",
+                    self.cfg.max_call_depth
+                ),
+            )));
+        }
+        let call = PendingCall {
+            args,
+            return_to: self.flow.cur + 1,
+            m98_times,
+            call_line: self.line_no,
+        };
+        match self.flow.subs.get(&name) {
+            Some(&idx) => self.enter(name, idx, call),
+            None => {
+                self.flow.skip = Some(Skip {
+                    name,
+                    until: if m98_times.is_some() {
+                        &[Keyword::Number]
+                    } else {
+                        &[Keyword::Sub]
+                    },
+                    inclusive: true,
+                    then_call: Some(call),
+                    from_line: self.line_no,
+                });
+                Ok(())
+            }
+        }
+    }
+
+    fn enter(&mut self, name: String, idx: usize, call: PendingCall) -> Result<(), GcodeError> {
+        let saved = self.params.sub_params();
+        self.flow.frames.push(Frame {
+            name,
+            return_to: call.return_to,
+            body: idx + 1,
+            saved,
+            blocks: std::mem::take(&mut self.flow.blocks),
+            m98_left: call.m98_times.map(|n| n.saturating_sub(1)),
+            call_line: call.call_line,
+        });
+        self.params.set_sub_params(&call.args);
+        self.params.push_scope();
+        self.flow.pc = idx + 1;
+        Ok(())
+    }
+
+    fn ret(&mut self, value: Option<f64>) {
+        if let Some(f) = self.flow.frames.pop() {
+            self.params.set_sub_params(&f.saved);
+            self.params.pop_scope();
+            self.flow.blocks = f.blocks;
+            self.flow.pc = f.return_to;
+        }
+        self.params.value = value.unwrap_or(0.0);
+        self.params.value_returned = value.is_some();
+    }
+
+    /// Runs the O-word at `self.line[at]`.
+    fn oword(&mut self, at: usize) -> Result<(), GcodeError> {
+        if !self.flow.buffering {
+            self.keep_line();
+        }
+        self.params.sys = sys_view(&self.st);
+        let o = flow::parse(&self.line, at).map_err(|e| self.err_at(e))?;
+        let mut i = o.rest;
+        let b = &self.line;
+        let p = &mut self.params;
+        let blanks = |i: &mut usize| {
+            while *i < b.len() && (b[*i] == b' ' || b[*i] == b'\t') {
+                *i += 1;
+            }
+        };
+        // `[condition]` after if/elseif/while/repeat (and optional after return/endsub).
+        let mut cond = |i: &mut usize, required: bool| -> Result<Option<f64>, LexError> {
+            blanks(i);
+            if b.get(*i) == Some(&b'[') {
+                return expr::expression(b, i, p).map(Some);
+            }
+            if required {
+                return Err((
+                    *i,
+                    ErrorKind::Syntax,
+                    format!("o-word {} needs a [condition]", o.kw.name()),
+                ));
+            }
+            Ok(None)
+        };
+        let value = match o.kw {
+            Keyword::If | Keyword::ElseIf | Keyword::Repeat => cond(&mut i, true),
+            Keyword::While => {
+                // The `while` closing a `do` is evaluated like any other.
+                cond(&mut i, true)
+            }
+            Keyword::Return | Keyword::EndSub => cond(&mut i, false),
+            _ => Ok(None),
+        };
+        let value = value.map_err(|e| self.err_at(e))?;
+        let mut args = [0.0; SUB_PARAMS];
+        if o.kw == Keyword::Call {
+            let b = &self.line;
+            let mut n = 0;
+            loop {
+                while i < b.len() && (b[i] == b' ' || b[i] == b'\t') {
+                    i += 1;
+                }
+                if b.get(i) != Some(&b'[') {
+                    break;
+                }
+                if n == SUB_PARAMS {
+                    return Err(self.err_at((
+                        i,
+                        ErrorKind::Invalid,
+                        format!("more than {SUB_PARAMS} subroutine arguments"),
+                    )));
+                }
+                args[n] = expr::expression(b, &mut i, &mut self.params)
+                    .map_err(|e| make_error(self.line_no, &self.line, e))?;
+                n += 1;
+            }
+        }
+        rest_is_comment(&self.line, i).map_err(|e| self.err_at(e))?;
+        let truth = value.is_some_and(|v| v != 0.0);
+        let cur = self.flow.cur;
+        let name = o.name;
+        let top_is = |f: &Flow, kind: fn(BlockKind) -> bool, name: &str| {
+            f.blocks
+                .last()
+                .is_some_and(|b| kind(b.kind) && b.name == name)
+        };
+        let mismatch = |what: &str| {
+            (
+                at,
+                ErrorKind::Invalid,
+                format!("o<{name}> {what} without a matching open block"),
+            )
+        };
+        match o.kw {
+            Keyword::Number => Ok(()),
+            Keyword::Sub => {
+                self.flow.subs.insert(name.clone(), cur);
+                self.skip_to(name, &[Keyword::EndSub], true);
+                Ok(())
+            }
+            Keyword::EndSub | Keyword::Return => {
+                // `return` may carry any o-name (LinuxCNC's retval.ngc names
+                // the enclosing if); `endsub` names its subroutine.
+                let ok = self.flow.frames.last().is_some_and(|f| {
+                    f.m98_left.is_none() && (o.kw == Keyword::Return || f.name == name)
+                });
+                if !ok {
+                    return Err(self.err_at((
+                        at,
+                        ErrorKind::Invalid,
+                        format!("o<{name}> {} outside subroutine o<{name}>", o.kw.name()),
+                    )));
+                }
+                self.ret(value);
+                Ok(())
+            }
+            Keyword::Call => self.call(name, args, None, at),
+            Keyword::If => {
+                self.flow.blocks.push(OpenBlock {
+                    name: name.clone(),
+                    kind: BlockKind::If { taken: truth },
+                    start: cur,
+                    left: 0.0,
+                });
+                if !truth {
+                    self.skip_to(
+                        name,
+                        &[Keyword::ElseIf, Keyword::Else, Keyword::EndIf],
+                        false,
+                    );
+                }
+                Ok(())
+            }
+            Keyword::ElseIf | Keyword::Else => {
+                let Some(top) = self
+                    .flow
+                    .blocks
+                    .last_mut()
+                    .filter(|b| matches!(b.kind, BlockKind::If { .. }) && b.name == name)
+                else {
+                    return Err(self.err_at(mismatch(o.kw.name())));
+                };
+                if top.kind == (BlockKind::If { taken: true }) {
+                    self.skip_to(name, &[Keyword::EndIf], false);
+                } else if o.kw == Keyword::Else || truth {
+                    top.kind = BlockKind::If { taken: true };
+                } else {
+                    self.skip_to(
+                        name,
+                        &[Keyword::ElseIf, Keyword::Else, Keyword::EndIf],
+                        false,
+                    );
+                }
+                Ok(())
+            }
+            Keyword::EndIf => {
+                if !top_is(&self.flow, |k| matches!(k, BlockKind::If { .. }), &name) {
+                    return Err(self.err_at(mismatch("endif")));
+                }
+                self.flow.blocks.pop();
+                Ok(())
+            }
+            Keyword::Do => {
+                self.flow.blocks.push(OpenBlock {
+                    name,
+                    kind: BlockKind::Do,
+                    start: cur,
+                    left: 0.0,
+                });
+                Ok(())
+            }
+            Keyword::While => {
+                if top_is(&self.flow, |k| k == BlockKind::Do, &name) {
+                    let start = self.flow.blocks.last().map_or(cur, |b| b.start);
+                    if truth {
+                        return self.jump_back(start + 1);
+                    }
+                    self.flow.blocks.pop();
+                    return Ok(());
+                }
+                let again = self.flow.blocks.last().is_some_and(|b| {
+                    b.kind == BlockKind::While && b.name == name && b.start == cur
+                });
+                if truth {
+                    if !again {
+                        self.flow.blocks.push(OpenBlock {
+                            name,
+                            kind: BlockKind::While,
+                            start: cur,
+                            left: 0.0,
+                        });
+                    }
+                } else {
+                    if again {
+                        self.flow.blocks.pop();
+                    }
+                    self.skip_to(name, &[Keyword::EndWhile], true);
+                }
+                Ok(())
+            }
+            Keyword::EndWhile => {
+                if !top_is(&self.flow, |k| k == BlockKind::While, &name) {
+                    return Err(self.err_at(mismatch("endwhile")));
+                }
+                let start = self.flow.blocks.last().map_or(cur, |b| b.start);
+                self.jump_back(start)
+            }
+            Keyword::Repeat => {
+                let n = value.unwrap_or(0.0).round();
+                if n >= 1.0 {
+                    self.flow.blocks.push(OpenBlock {
+                        name,
+                        kind: BlockKind::Repeat,
+                        start: cur,
+                        left: n,
+                    });
+                } else {
+                    self.skip_to(name, &[Keyword::EndRepeat], true);
+                }
+                Ok(())
+            }
+            Keyword::EndRepeat => {
+                if !top_is(&self.flow, |k| k == BlockKind::Repeat, &name) {
+                    return Err(self.err_at(mismatch("endrepeat")));
+                }
+                let (start, left) = self.flow.blocks.last_mut().map_or((cur, 0.0), |b| {
+                    b.left -= 1.0;
+                    (b.start, b.left)
+                });
+                if left >= 1.0 {
+                    return self.jump_back(start + 1);
+                }
+                self.flow.blocks.pop();
+                Ok(())
+            }
+            Keyword::Break | Keyword::Continue => {
+                let Some(pos) = self
+                    .flow
+                    .blocks
+                    .iter()
+                    .rposition(|b| b.name == name && !matches!(b.kind, BlockKind::If { .. }))
+                else {
+                    return Err(self.err_at(mismatch(o.kw.name())));
+                };
+                self.flow.blocks.truncate(pos + 1);
+                let Some(b) = self.flow.blocks.last().cloned() else {
+                    return Ok(());
+                };
+                if o.kw == Keyword::Break {
+                    self.flow.blocks.pop();
+                    let until: &'static [Keyword] = match b.kind {
+                        BlockKind::While => &[Keyword::EndWhile],
+                        BlockKind::Repeat => &[Keyword::EndRepeat],
+                        _ => &[Keyword::While],
+                    };
+                    self.skip_to(name, until, true);
+                    return Ok(());
+                }
+                match b.kind {
+                    BlockKind::While => self.jump_back(b.start),
+                    BlockKind::Do => self.jump_back(b.start + 1),
+                    _ => {
+                        // Like reaching endrepeat.
+                        if let Some(t) = self.flow.blocks.last_mut() {
+                            t.left -= 1.0;
+                        }
+                        if b.left - 1.0 >= 1.0 {
+                            self.jump_back(b.start + 1)
+                        } else {
+                            self.flow.blocks.pop();
+                            self.skip_to(name, &[Keyword::EndRepeat], true);
+                            Ok(())
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// M98 P<n> [L<times>] (call subprogram O<n>) and M99 (return from it).
+    fn m98_m99(&mut self, code: u16) -> Result<(), GcodeError> {
+        let blk = &self.blk;
+        let allowed = bit(b'P') | bit(b'L') | bit(b'N');
+        if blk.ng != 0 || blk.nm != 1 || blk.mask & !allowed != 0 {
+            let off = blk.m[0].1 as usize;
+            return Err(self.err_at((
+                off,
+                ErrorKind::Invalid,
+                format!("{} must be alone on its line (with P and L)", mname(code)),
+            )));
+        }
+        if !self.flow.buffering {
+            self.keep_line();
+        }
+        if code == 990 {
+            let Some(f) = self.flow.frames.last_mut().filter(|f| f.m98_left.is_some()) else {
+                let off = self.blk.m[0].1 as usize;
+                return Err(self.err_at((
+                    off,
+                    ErrorKind::Invalid,
+                    "M99 outside an M98 subprogram".to_string(),
+                )));
+            };
+            if let Some(left) = f.m98_left.filter(|&l| l > 0) {
+                f.m98_left = Some(left - 1);
+                let body = f.body;
+                return self.jump_back(body);
+            }
+            self.ret(None);
+            return Ok(());
+        }
+        let off = self.blk.m[0].1 as usize;
+        let Some(p) = self
+            .blk
+            .get(b'P')
+            .filter(|p| *p >= 0.0 && p.fract() == 0.0 && *p < 1e9)
+        else {
+            return Err(self.err_at((
+                off,
+                ErrorKind::Invalid,
+                "M98 needs P<program number>".to_string(),
+            )));
+        };
+        let times = match self.blk.get(b'L') {
+            None => 1,
+            Some(l) if l >= 0.0 && l.fract() == 0.0 && l <= 1e6 => l as u32,
+            Some(_) => {
+                let at = self.blk.pos_of(b'L') as usize;
+                return Err(self.err_at((
+                    at,
+                    ErrorKind::Invalid,
+                    "M98 L (repeats) must be a whole number".to_string(),
+                )));
+            }
+        };
+        if times == 0 {
+            return Ok(());
+        }
+        let args = self.params.sub_params();
+        self.call(format!("{}", p as u64), args, Some(times), off)
+    }
+
+    /// Reads and interprets one line; events go to the queue.
+    fn step(&mut self) -> Result<(), GcodeError> {
+        if !self.next_line()? {
+            return self.end_of_input();
+        }
+        if self.flow.skip.is_some() {
+            return self.skip_line();
+        }
+        let st = &self.st;
+        let sys = || sys_view(st);
+        let kind = match lex_line(
+            &self.line,
+            self.cfg.block_delete,
+            &mut self.blk,
+            &mut self.params,
+            &sys,
+        ) {
             Ok(k) => k,
             Err(e) => return self.fail(e),
         };
         match kind {
+            LineKind::OWord(at) => self.oword(at),
             LineKind::Deleted => Ok(()),
             LineKind::Percent => {
                 if !self.words_seen && !self.percent_open {
@@ -310,14 +874,24 @@ impl<R: BufRead> Interpreter<R> {
                 Ok(())
             }
             LineKind::Words => {
+                if !self.params.pending.is_empty() {
+                    self.params.commit();
+                }
                 if self.blk.mask == 0
                     && self.blk.ng == 0
                     && self.blk.nm == 0
                     && self.blk.msg.is_none()
+                    && self.blk.debug.is_none()
                 {
                     return Ok(());
                 }
                 self.words_seen = true;
+                if let Some(&(code @ (980 | 990), _)) = self.blk.m[..self.blk.nm]
+                    .iter()
+                    .find(|m| m.0 == 980 || m.0 == 990)
+                {
+                    return self.m98_m99(code);
+                }
                 match self.execute() {
                     Ok(()) => Ok(()),
                     Err(e) => {
@@ -615,6 +1189,13 @@ impl<R: BufRead> Interpreter<R> {
                 "Q word is not supported here".to_string(),
             ));
         }
+        if blk.has(b'L') {
+            return Err((
+                blk.pos_of(b'L') as usize,
+                ErrorKind::Unsupported,
+                "L word (G10 / canned cycle repeats) is not supported".to_string(),
+            ));
+        }
         if blk.has(b'H') && g_tlo.map(|g| g.0) != Some(430) {
             return Err((
                 blk.pos_of(b'H') as usize,
@@ -628,6 +1209,13 @@ impl<R: BufRead> Interpreter<R> {
         // 1. message (attached to M0/M1 if on the same line)
         let pause_here = matches!(m_stop, Some((0 | 10, _)));
         let mut pause_msg = None;
+        if let Some((s, e)) = blk.debug {
+            self.params.sys = sys_view(&self.st);
+            let text = expr::substitute(&self.line[s..e], &mut self.params)
+                .trim()
+                .to_string();
+            queue.push_back(Motion::Message { line, text });
+        }
         if let Some((s, e)) = blk.msg {
             let text = String::from_utf8_lossy(&self.line[s..e]).trim().to_string();
             if pause_here {
@@ -920,6 +1508,56 @@ impl<R: BufRead> Interpreter<R> {
         self.st = st;
         Ok(())
     }
+}
+
+/// What system parameters (#5420, `#<_x>`, ...) read.
+fn sys_view(st: &State) -> SysView {
+    SysView {
+        pos: st.pos,
+        inch: st.inch,
+        absolute: st.absolute,
+        coord: st.coord,
+        tool: st.tool,
+        g28: st.g28,
+        g30: st.g30,
+        feed_mm_min: st.feed.unwrap_or(0.0),
+        rpm: st.rpm,
+        plane: match st.plane {
+            Plane::XY => 170,
+            Plane::ZX => 180,
+            Plane::YZ => 190,
+        },
+        motion_g10: match st.motion {
+            MotionMode::Rapid => 0,
+            MotionMode::Linear => 10,
+            MotionMode::Cw => 20,
+            MotionMode::Ccw => 30,
+            MotionMode::None => 800,
+            MotionMode::Unsupported(c) => i32::from(c),
+        },
+    }
+}
+
+/// Only blanks and comments may follow an O-word's arguments.
+fn rest_is_comment(b: &[u8], mut i: usize) -> Result<(), LexError> {
+    while i < b.len() {
+        match b[i] {
+            b' ' | b'\t' | b'\r' => i += 1,
+            b';' => return Ok(()),
+            b'(' => match b[i..].iter().position(|&c| c == b')') {
+                Some(n) => i += n + 1,
+                None => return Err((i, ErrorKind::Syntax, "unclosed comment '('".to_string())),
+            },
+            c => {
+                return Err((
+                    i,
+                    ErrorKind::Syntax,
+                    format!("unexpected '{}' after the O-word", c as char),
+                ))
+            }
+        }
+    }
+    Ok(())
 }
 
 fn feed_mm_min(st: &State, blk: &Block) -> Result<f64, LexError> {

@@ -1,5 +1,6 @@
 //! Line lexer: bytes of one line -> a fixed-size [`Block`] (no allocation).
 
+use crate::expr::{self, Params, SysView};
 use crate::{ErrorKind, GcodeError};
 
 /// Most G / M words accepted on one line; LinuxCNC allows 4 M words and real
@@ -20,6 +21,9 @@ pub(crate) struct Block {
     pub nm: usize,
     /// Byte range of a `(msg, ...)` text.
     pub msg: Option<(usize, usize)>,
+    /// Byte range of a `(print, ...)` / `(debug, ...)` text (parameters
+    /// substituted when the line runs).
+    pub debug: Option<(usize, usize)>,
 }
 
 impl Block {
@@ -33,6 +37,7 @@ impl Block {
             m: [(0, 0); MAX_M],
             nm: 0,
             msg: None,
+            debug: None,
         }
     }
     #[inline]
@@ -67,6 +72,9 @@ pub(crate) enum LineKind {
     Percent,
     /// Starts with `/` and block delete is on.
     Deleted,
+    /// An O-word (subroutine or control flow) at this byte offset; the
+    /// interpreter reads the rest of the line.
+    OWord(usize),
 }
 
 /// Error before the column is known in characters: (byte offset, kind, message).
@@ -252,18 +260,28 @@ const SUPPORTED: u32 = bit(b'N')
     | bit(b'T')
     | bit(b'P')
     | bit(b'H')
-    | bit(b'Q');
+    | bit(b'Q')
+    | bit(b'L');
 
-/// Lexes one line (no trailing newline) into `blk`.
+/// Lexes one line (no trailing newline) into `blk`. Parameters and
+/// expressions are evaluated with `params` (whose system values come from
+/// `sys`, asked only when a line reads a parameter); assignments are left in
+/// `params.pending`.
 pub(crate) fn lex_line(
     b: &[u8],
     block_delete: bool,
     blk: &mut Block,
+    params: &mut Params,
+    sys: &dyn Fn() -> SysView,
 ) -> Result<LineKind, LexError> {
     blk.mask = 0;
     blk.ng = 0;
     blk.nm = 0;
     blk.msg = None;
+    blk.debug = None;
+    if !params.pending.is_empty() {
+        params.pending.clear();
+    }
     let mut i = 0;
     // Leading blanks, then block delete / tape marker checks.
     while i < b.len() && (b[i] == b' ' || b[i] == b'\t') {
@@ -295,12 +313,29 @@ pub(crate) fn lex_line(
         if up.is_ascii_uppercase() {
             let idx = (up - b'A') as usize;
             let at = i;
+            if up == b'O' {
+                if blk.mask != 0 || blk.ng != 0 || blk.nm != 0 {
+                    return Err((
+                        at,
+                        ErrorKind::Syntax,
+                        "an O-word must be the first word of its line".to_string(),
+                    ));
+                }
+                return Ok(LineKind::OWord(at));
+            }
             if SUPPORTED & (1 << idx) == 0 {
                 return Err((at, ErrorKind::Unsupported, unsupported_letter(up)));
             }
             i += 1;
             // Report number errors at the word's letter.
-            let v = parse_number(b, &mut i).map_err(|(_, k, m)| (at, k, m))?;
+            let after = i;
+            let v = match parse_number(b, &mut i) {
+                Ok(v) => v,
+                Err(e) => {
+                    i = after;
+                    word_value(b, &mut i, params, sys).ok_or((at, e.1, e.2))??
+                }
+            };
             match up {
                 b'G' => {
                     if blk.ng == MAX_G {
@@ -354,21 +389,23 @@ pub(crate) fn lex_line(
                 if text.len() >= t + 4 && text[t..t + 4].eq_ignore_ascii_case(b"msg,") {
                     let s = i + 1 + t + 4;
                     blk.msg = Some((s, i + 1 + close));
+                } else if text.len() >= t + 6
+                    && (text[t..t + 6].eq_ignore_ascii_case(b"debug,")
+                        || text[t..t + 6].eq_ignore_ascii_case(b"print,"))
+                {
+                    blk.debug = Some((i + 1 + t + 6, i + 1 + close));
                 }
                 i += close + 2;
             }
             b'#' => {
-                return Err((
-                    i,
-                    ErrorKind::Unsupported,
-                    "numbered parameters (#) are not supported".to_string(),
-                ))
+                params.sys = sys();
+                expr::assignment(b, &mut i, params)?;
             }
             b'[' => {
                 return Err((
                     i,
-                    ErrorKind::Unsupported,
-                    "expressions ([...]) are not supported".to_string(),
+                    ErrorKind::Syntax,
+                    "an expression '[...]' must follow a word letter (X[1+2])".to_string(),
                 ))
             }
             _ => {
@@ -377,6 +414,31 @@ pub(crate) fn lex_line(
         }
     }
     Ok(LineKind::Words)
+}
+
+/// The value of a word that is not a plain number: `X[..]`, `X#1`, `X-#<a>`,
+/// `XSIN[..]`. `None` when it does not start like one (the caller reports its
+/// own number error).
+#[cold]
+fn word_value(
+    b: &[u8],
+    i: &mut usize,
+    params: &mut Params,
+    sys: &dyn Fn() -> SysView,
+) -> Option<Result<f64, LexError>> {
+    let mut j = *i;
+    while j < b.len() && matches!(b[j], b' ' | b'\t' | b'-' | b'+') {
+        j += 1;
+    }
+    match b.get(j) {
+        Some(b'[' | b'#') => {}
+        Some(c)
+            if c.is_ascii_alphabetic() && b.get(j + 1).is_some_and(|c| c.is_ascii_alphabetic()) => {
+        }
+        _ => return None,
+    }
+    params.sys = sys();
+    Some(expr::real_value(b, i, params))
 }
 
 #[cold]
@@ -405,7 +467,6 @@ fn unexpected(b: &[u8], i: usize) -> String {
 #[cold]
 fn unsupported_letter(up: u8) -> String {
     match up {
-        b'O' => "O-words (subroutines, loops) are not supported".to_string(),
         b'A' | b'B' | b'C' | b'U' | b'V' | b'W' => {
             format!(
                 "axis word {} is not supported (3-axis X/Y/Z only)",
@@ -413,7 +474,6 @@ fn unsupported_letter(up: u8) -> String {
             )
         }
         b'D' => "D word (cutter compensation) is not supported".to_string(),
-        b'L' => "L word (G10 / canned cycle repeats) is not supported".to_string(),
         b'E' => "E word (extruder) is not supported".to_string(),
         _ => format!("{} word is not supported", up as char),
     }
@@ -444,6 +504,10 @@ fn code10(v: f64, at: usize, letter: char) -> Result<u16, LexError> {
 mod tests {
     #![allow(clippy::unwrap_used, clippy::expect_used)]
     use super::*;
+
+    fn lex(b: &[u8], bd: bool, blk: &mut Block) -> Result<LineKind, LexError> {
+        lex_line(b, bd, blk, &mut Params::default(), &SysView::default)
+    }
 
     fn num(s: &str) -> f64 {
         let mut i = 0;
@@ -478,7 +542,7 @@ mod tests {
     #[test]
     fn lexes_words_and_comments() {
         let mut b = Block::new();
-        let k = lex_line(b"n10 g1x1.5 (msg, hi there) y-2 ; z", true, &mut b).unwrap();
+        let k = lex(b"n10 g1x1.5 (msg, hi there) y-2 ; z", true, &mut b).unwrap();
         assert_eq!(k, LineKind::Words);
         assert_eq!(b.get(b'X'), Some(1.5));
         assert_eq!(b.get(b'Y'), Some(-2.0));
@@ -486,15 +550,9 @@ mod tests {
         assert_eq!(b.ng, 1);
         assert_eq!(b.g[0].0, 10);
         assert!(b.msg.is_some());
-        assert!(lex_line(b"G1 (open", true, &mut b).is_err());
-        assert_eq!(
-            lex_line(b"/G1 X1", true, &mut b).unwrap(),
-            LineKind::Deleted
-        );
-        assert_eq!(lex_line(b" % ", true, &mut b).unwrap(), LineKind::Percent);
-        assert_eq!(
-            lex_line(b"O100 sub", true, &mut b).unwrap_err().1,
-            ErrorKind::Unsupported
-        );
+        assert!(lex(b"G1 (open", true, &mut b).is_err());
+        assert_eq!(lex(b"/G1 X1", true, &mut b).unwrap(), LineKind::Deleted);
+        assert_eq!(lex(b" % ", true, &mut b).unwrap(), LineKind::Percent);
+        assert_eq!(lex(b"O100 sub", true, &mut b).unwrap(), LineKind::OWord(0));
     }
 }

@@ -45,6 +45,8 @@
 
 mod analysis;
 mod arc;
+mod expr;
+mod flow;
 mod interp;
 mod lex;
 
@@ -112,6 +114,13 @@ pub struct Config {
     pub max_line_bytes: usize,
     /// At most this many warnings are kept (the rest are counted).
     pub max_warnings: usize,
+    /// Most nesting levels, the main program included (O-word `call`,
+    /// `M98`); deeper is an error naming the line. Default 10, LinuxCNC's.
+    pub max_call_depth: usize,
+    /// Most loop passes (`while`, `do`, `repeat`, M98 `L`) in one program;
+    /// more is an error naming the line, so a runaway loop cannot hang an
+    /// upload check. Default 10,000,000.
+    pub max_loop_iterations: u64,
 }
 
 impl Default for Config {
@@ -131,6 +140,8 @@ impl Default for Config {
             max_arc_radius_mm: 1e6,
             max_line_bytes: 64 * 1024,
             max_warnings: 1000,
+            max_call_depth: 10,
+            max_loop_iterations: 10_000_000,
         }
     }
 }
