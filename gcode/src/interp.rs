@@ -22,13 +22,16 @@ const MAX_TURNS: f64 = 10_000.0;
 /// Start and end closer than this (mm, in the plane) make an IJK arc a full circle.
 const FULL_CIRCLE_EPS_MM: f64 = 1e-6;
 
-/// Events of one line. A line yields at most 11 (message, M6, spindle,
-/// coolant, dwell, G43/G49, work system, two G28 legs, motion, stop); a
-/// fixed ring keeps push/pop inlined and allocation-free.
+/// Events of one line. An ordinary line yields at most 12 (message, debug
+/// message, M6, spindle, coolant, dwell, G43/G49, work system, two G28 legs,
+/// motion, stop); a fixed ring keeps push/pop inlined and allocation-free.
+/// A canned cycle with pecks or L repeats makes more: those go to `overflow`
+/// (allocated only then), behind the ring's events.
 struct Queue {
     items: [Option<Motion>; QUEUE_CAP],
     head: usize,
     len: usize,
+    overflow: std::collections::VecDeque<Motion>,
 }
 
 const QUEUE_CAP: usize = 16;
@@ -39,21 +42,26 @@ impl Queue {
             items: Default::default(),
             head: 0,
             len: 0,
+            overflow: std::collections::VecDeque::new(),
         }
     }
     #[inline]
     fn push_back(&mut self, m: Motion) {
-        // Cannot overflow (see above); a debug check documents it.
-        debug_assert!(self.len < QUEUE_CAP);
-        if self.len < QUEUE_CAP {
+        if self.len < QUEUE_CAP && self.overflow.is_empty() {
             self.items[(self.head + self.len) % QUEUE_CAP] = Some(m);
             self.len += 1;
+        } else {
+            self.overflow.push_back(m);
         }
     }
     #[inline]
     fn pop_front(&mut self) -> Option<Motion> {
         if self.len == 0 {
-            return None;
+            return if self.overflow.is_empty() {
+                None
+            } else {
+                self.overflow.pop_front()
+            };
         }
         let m = self.items[self.head].take();
         self.head = (self.head + 1) % QUEUE_CAP;
@@ -61,7 +69,10 @@ impl Queue {
         m
     }
     fn clear(&mut self) {
-        while self.pop_front().is_some() {}
+        while self.len > 0 {
+            self.pop_front();
+        }
+        self.overflow.clear();
         self.head = 0;
     }
 }
@@ -77,6 +88,22 @@ enum MotionMode {
     /// A motion-group code we do not implement (canned cycles, probing,
     /// threading), as code * 10: later axis words are rejected, not guessed.
     Unsupported(u16),
+    /// Canned cycle G73, G81, G82, G83, G85, G89 (code * 10).
+    Cycle(u16),
+}
+
+/// Sticky values of canned cycles (LinuxCNC `cycle_*`), mm / seconds.
+#[derive(Debug, Clone, Copy, Default)]
+struct CycleState {
+    /// R and Z as last given (absolute in G90, increments in G91).
+    r: f64,
+    z: f64,
+    q: f64,
+    p: f64,
+    /// Initial level: Z where the current series of cycles began.
+    initial: Option<f64>,
+    /// G99: retract to R (else G98: to the initial level).
+    retract_to_r: bool,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -99,6 +126,7 @@ struct State {
     coord: u8,
     g28: Point,
     g30: Point,
+    cycle: CycleState,
 }
 
 impl State {
@@ -119,6 +147,11 @@ impl State {
             coord: 0,
             g28: cfg.g28_position,
             g30: cfg.g30_position,
+            // LinuxCNC's interpreter starts in G99 (retract to R).
+            cycle: CycleState {
+                retract_to_r: true,
+                ..CycleState::default()
+            },
         }
     }
 }
@@ -986,14 +1019,15 @@ impl<R: BufRead> Interpreter<R> {
         for &(code, off) in &blk.g[..blk.ng] {
             let slot = match code {
                 0 | 10 | 20 | 30 | 800 => &mut g_motion,
-                330 | 331 | 382..=385 | 730 | 760 | 810..=890 => {
+                730 | 810 | 820 | 830 | 850 | 890 => &mut g_motion,
+                330 | 331 | 382..=385 | 760 | 840 | 860..=880 => {
                     // Remember it so that following modal lines are rejected
                     // rather than run as the previous G0/G1.
                     self.st.motion = MotionMode::Unsupported(code);
                     return Err(unsupported_g(
                         code,
                         off,
-                        "canned cycles, probing and threading are not implemented",
+                        "tapping, boring cycles with spindle stops, probing and threading are not implemented",
                     ));
                 }
                 170 | 180 | 190 => &mut g_plane,
@@ -1106,16 +1140,29 @@ impl<R: BufRead> Interpreter<R> {
             }
         }
 
-        // Motion mode after this line.
+        // Motion mode after this line; the previous one decides which cycle
+        // words are sticky.
+        let motion_before = st.motion;
         if let Some((code, _)) = g_motion {
             st.motion = match code {
                 0 => MotionMode::Rapid,
                 10 => MotionMode::Linear,
                 20 => MotionMode::Cw,
                 30 => MotionMode::Ccw,
+                730 | 810 | 820 | 830 | 850 | 890 => MotionMode::Cycle(code),
                 _ => MotionMode::None,
             };
+            if !matches!(st.motion, MotionMode::Cycle(_)) {
+                st.cycle.initial = None;
+            }
         }
+        if let Some((code, _)) = g_retract {
+            st.cycle.retract_to_r = code == 990;
+        }
+        let cycle = match st.motion {
+            MotionMode::Cycle(c) => Some(c),
+            _ => None,
+        };
         let nonmodal = g_nonmodal.map(|g| g.0);
         let uses_axes_nonmodal = matches!(nonmodal, Some(280 | 300 | 920));
         if uses_axes_nonmodal && has_axes && g_motion.is_some_and(|g| g.0 != 800) {
@@ -1166,7 +1213,9 @@ impl<R: BufRead> Interpreter<R> {
         }
         // Words no command on this line uses.
         let arc_motion = motion_here && is_arc;
-        if (has_ijk || has_r) && !arc_motion {
+        if has_r && cycle.is_some() {
+            // R of a canned cycle.
+        } else if (has_ijk || has_r) && !arc_motion {
             return Err((
                 first_of(blk, ijk_mask | bit(b'R')),
                 ErrorKind::Invalid,
@@ -1174,7 +1223,10 @@ impl<R: BufRead> Interpreter<R> {
             ));
         }
         if blk.has(b'P')
-            && !(nonmodal == Some(40) || arc_motion || g_path.is_some_and(|g| g.0 == 640))
+            && !(nonmodal == Some(40)
+                || arc_motion
+                || g_path.is_some_and(|g| g.0 == 640)
+                || matches!(cycle, Some(820 | 890)))
         {
             return Err((
                 blk.pos_of(b'P') as usize,
@@ -1182,14 +1234,14 @@ impl<R: BufRead> Interpreter<R> {
                 "P word with no G4, G2/G3 or G64 on the line".to_string(),
             ));
         }
-        if blk.has(b'Q') && g_path.map(|g| g.0) != Some(640) {
+        if blk.has(b'Q') && g_path.map(|g| g.0) != Some(640) && !matches!(cycle, Some(730 | 830)) {
             return Err((
                 blk.pos_of(b'Q') as usize,
                 ErrorKind::Unsupported,
                 "Q word is not supported here".to_string(),
             ));
         }
-        if blk.has(b'L') {
+        if blk.has(b'L') && cycle.is_none() {
             return Err((
                 blk.pos_of(b'L') as usize,
                 ErrorKind::Unsupported,
@@ -1433,6 +1485,7 @@ impl<R: BufRead> Interpreter<R> {
         }
 
         // 20. motion
+        let mut cycle_end = None;
         if motion_here {
             match st.motion {
                 MotionMode::Rapid => {
@@ -1473,9 +1526,24 @@ impl<R: BufRead> Interpreter<R> {
                     )?;
                     queue.push_back(m);
                 }
+                MotionMode::Cycle(code) => {
+                    if machine {
+                        let off = g_nonmodal.map_or(0, |g| g.1);
+                        return Err((
+                            off as usize,
+                            ErrorKind::Invalid,
+                            "G53 with a canned cycle".to_string(),
+                        ));
+                    }
+                    let first = motion_before != MotionMode::Cycle(code);
+                    cycle_end = Some(canned_cycle(queue, &mut st, blk, code, first, scale, line)?);
+                }
                 MotionMode::None | MotionMode::Unsupported(_) => {}
             }
-            st.pos = target;
+            if !matches!(st.motion, MotionMode::Cycle(_)) {
+                st.cycle.initial = None;
+            }
+            st.pos = cycle_end.unwrap_or(target);
         }
 
         // 21. stops
@@ -1510,6 +1578,216 @@ impl<R: BufRead> Interpreter<R> {
     }
 }
 
+/// Most moves one canned-cycle line may make (pecks x repeats): bounds the
+/// memory a line like `G83 Q0.000001 L100000` could take.
+const MAX_CYCLE_MOVES: f64 = 1_000_000.0;
+
+/// Expands a canned cycle (XY plane) into the moves LinuxCNC makes
+/// (interp_cycles.cc: CYCLE_MACRO and convert_cycle_g*), returns the end.
+fn canned_cycle(
+    queue: &mut Queue,
+    st: &mut State,
+    blk: &Block,
+    code: u16,
+    first: bool,
+    scale: f64,
+    line: u32,
+) -> Result<Point, LexError> {
+    let here = first_of(blk, bit(b'X') | bit(b'Y') | bit(b'Z'));
+    let invalid = |at: usize, msg: String| (at, ErrorKind::Invalid, msg);
+    let name = gname(code);
+    if st.plane != Plane::XY {
+        return Err((
+            here,
+            ErrorKind::Unsupported,
+            format!("{name} is only supported in the XY plane (G17)"),
+        ));
+    }
+    let feed = match st.feed {
+        Some(f) if f > 0.0 => f,
+        _ => {
+            return Err(invalid(
+                here,
+                format!("{name} with no feed rate (F) programmed"),
+            ))
+        }
+    };
+    if first && !blk.has(b'Z') {
+        return Err(invalid(
+            here,
+            format!("{name} needs Z (the bottom of the hole)"),
+        ));
+    }
+    let z_word = blk.get(b'Z').map_or(st.cycle.z, |z| z * scale);
+    let r_word = match blk.get(b'R') {
+        Some(r) => r * scale,
+        None if !first => st.cycle.r,
+        None => return Err(invalid(here, format!("{name} needs R (the retract plane)"))),
+    };
+    let repeats = match blk.get(b'L') {
+        None => 1.0,
+        Some(l) if l >= 1.0 && l.fract() == 0.0 => l,
+        Some(_) => {
+            return Err(invalid(
+                blk.pos_of(b'L') as usize,
+                "L (repeats) must be a whole number of at least 1".to_string(),
+            ))
+        }
+    };
+    let mut q = 0.0;
+    if matches!(code, 730 | 830) {
+        q = match blk.get(b'Q') {
+            Some(v) => v * scale,
+            None if !first => st.cycle.q,
+            None => return Err(invalid(here, format!("{name} needs Q (the peck depth)"))),
+        };
+        if q <= 0.0 {
+            let at = if blk.has(b'Q') {
+                blk.pos_of(b'Q') as usize
+            } else {
+                here
+            };
+            return Err(invalid(
+                at,
+                format!("{name} Q (peck depth) must be positive"),
+            ));
+        }
+    }
+    let mut dwell = 0.0;
+    if matches!(code, 820 | 890) {
+        dwell = match blk.get(b'P') {
+            Some(v) if v >= 0.0 => v,
+            Some(_) => {
+                return Err(invalid(
+                    blk.pos_of(b'P') as usize,
+                    "negative dwell time".to_string(),
+                ))
+            }
+            None if !first => st.cycle.p,
+            None => return Err(invalid(here, format!("{name} needs P (dwell seconds)"))),
+        };
+    }
+    let mut current_z = st.pos[2];
+    let mut old_z = *st.cycle.initial.get_or_insert(current_z);
+    let (mut x, mut y, r, bottom, dx, dy);
+    if st.absolute {
+        x = blk.get(b'X').map_or(st.pos[0], |v| v * scale);
+        y = blk.get(b'Y').map_or(st.pos[1], |v| v * scale);
+        (dx, dy) = (0.0, 0.0);
+        r = r_word;
+        bottom = z_word;
+    } else {
+        dx = blk.get(b'X').map_or(0.0, |v| v * scale);
+        dy = blk.get(b'Y').map_or(0.0, |v| v * scale);
+        (x, y) = (st.pos[0], st.pos[1]);
+        r = r_word + old_z;
+        bottom = r + z_word;
+    }
+    if r < bottom {
+        return Err(invalid(
+            here,
+            format!("{name}: R ({r:.4} mm) is below Z ({bottom:.4} mm)"),
+        ));
+    }
+    let pecks = if q > 0.0 {
+        ((r - bottom) / q).ceil()
+    } else {
+        1.0
+    };
+    if pecks * repeats * 3.0 > MAX_CYCLE_MOVES {
+        return Err(invalid(
+            here,
+            format!("{name} would make more than {MAX_CYCLE_MOVES} moves (peck depth and repeats)"),
+        ));
+    }
+    let mut at = st.pos;
+    let rapid = |q: &mut Queue, at: &mut Point, to: Point| {
+        q.push_back(Motion::Rapid {
+            line,
+            from: *at,
+            to,
+        });
+        *at = to;
+    };
+    let feed_to = |q: &mut Queue, at: &mut Point, to: Point| {
+        q.push_back(Motion::Linear {
+            line,
+            from: *at,
+            to,
+            feed_mm_min: feed,
+        });
+        *at = to;
+    };
+    // Below the R plane: first straight up to it.
+    if old_z < r {
+        let up = [at[0], at[1], r];
+        rapid(queue, &mut at, up);
+        old_z = r;
+        current_z = r;
+    }
+    let clear = if st.cycle.retract_to_r { r } else { old_z };
+    // LinuxCNC 2.9 (the installed rs274): pecks back off 0.010 inch.
+    let peck_clearance = 0.254;
+    for k in 0..repeats as u64 {
+        x += dx;
+        y += dy;
+        if k == 0 && current_z > r {
+            rapid(queue, &mut at, [x, y, current_z]);
+            rapid(queue, &mut at, [x, y, r]);
+        } else {
+            rapid(queue, &mut at, [x, y, clear]);
+            if clear > r {
+                rapid(queue, &mut at, [x, y, r]);
+            }
+        }
+        match code {
+            730 | 830 => {
+                let mut depth = r - q;
+                while depth > bottom {
+                    feed_to(queue, &mut at, [x, y, depth]);
+                    if code == 830 {
+                        rapid(queue, &mut at, [x, y, r]);
+                    }
+                    rapid(queue, &mut at, [x, y, depth + peck_clearance]);
+                    depth -= q;
+                }
+                feed_to(queue, &mut at, [x, y, bottom]);
+                rapid(queue, &mut at, [x, y, clear]);
+            }
+            820 => {
+                feed_to(queue, &mut at, [x, y, bottom]);
+                queue.push_back(Motion::Dwell {
+                    line,
+                    seconds: dwell,
+                });
+                rapid(queue, &mut at, [x, y, clear]);
+            }
+            850 => {
+                feed_to(queue, &mut at, [x, y, bottom]);
+                feed_to(queue, &mut at, [x, y, r]);
+                rapid(queue, &mut at, [x, y, clear]);
+            }
+            890 => {
+                feed_to(queue, &mut at, [x, y, bottom]);
+                queue.push_back(Motion::Dwell {
+                    line,
+                    seconds: dwell,
+                });
+                feed_to(queue, &mut at, [x, y, clear]);
+            }
+            _ => {
+                feed_to(queue, &mut at, [x, y, bottom]);
+                rapid(queue, &mut at, [x, y, clear]);
+            }
+        }
+    }
+    st.cycle.r = r_word;
+    st.cycle.z = z_word;
+    st.cycle.q = q;
+    st.cycle.p = dwell;
+    Ok([x, y, clear])
+}
+
 /// What system parameters (#5420, `#<_x>`, ...) read.
 fn sys_view(st: &State) -> SysView {
     SysView {
@@ -1533,7 +1811,7 @@ fn sys_view(st: &State) -> SysView {
             MotionMode::Cw => 20,
             MotionMode::Ccw => 30,
             MotionMode::None => 800,
-            MotionMode::Unsupported(c) => i32::from(c),
+            MotionMode::Unsupported(c) | MotionMode::Cycle(c) => i32::from(c),
         },
     }
 }

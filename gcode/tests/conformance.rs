@@ -107,11 +107,11 @@ const KNOWN: &[(&str, &str)] = &[
     ),
     (
         "ncfiles/mmount.ngc",
-        "canned cycles (G81) not implemented yet",
+        "cutter radius compensation (G41) not implemented yet",
     ),
     (
         "ncfiles/polar.ngc",
-        "canned cycles (G81) not implemented yet",
+        "polar coordinates (@ and ^ words) not implemented",
     ),
     (
         "ncfiles/systems.ngc",
@@ -198,6 +198,7 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
     let text = String::from_utf8_lossy(&out.stdout);
     let mut scale = 1.0; // mm per unit
     let mut feed = 0.0; // mm/min
+    let mut feed_number = None; // a feed set since the last move
     let mut plane = 0u8;
     let mut moves = Vec::new();
     let mut other = Vec::new();
@@ -208,13 +209,25 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
         };
         match name {
             "USE_LENGTH_UNITS" => {
-                scale = if a[0] == "CANON_UNITS_INCHES" {
+                let new = if a[0] == "CANON_UNITS_INCHES" {
                     25.4
                 } else {
                     1.0
+                };
+                // rs274 sets the feed before the units of the same line
+                // (`G20 F12`: 12 mm/min, then inches). Fresa reads every
+                // number of a line in that line's units (grbl; documented):
+                // a deliberate difference, so the feed is read again in the
+                // new units when no move came between.
+                if let Some(number) = feed_number.take() {
+                    feed = number * new;
                 }
+                scale = new;
             }
-            "SET_FEED_RATE" => feed = num(a[0]) * scale,
+            "SET_FEED_RATE" => {
+                feed = num(a[0]) * scale;
+                feed_number = Some(num(a[0]));
+            }
             "SELECT_PLANE" => {
                 plane = match a[0] {
                     "CANON_PLANE_XZ" => 1,
@@ -223,6 +236,7 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
                 }
             }
             "STRAIGHT_TRAVERSE" | "STRAIGHT_FEED" => {
+                feed_number = None;
                 let to = [num(a[0]) * scale, num(a[1]) * scale, num(a[2]) * scale];
                 if a.len() > 3 && a[3..6].iter().any(|v| num(v) != 0.0) {
                     other.push(format!("{name} with A/B/C"));
@@ -234,6 +248,7 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
                 });
             }
             "ARC_FEED" => {
+                feed_number = None;
                 let (e1, e2, c1, c2, rot, n) = (
                     num(a[0]) * scale,
                     num(a[1]) * scale,

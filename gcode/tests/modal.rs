@@ -319,7 +319,7 @@ fn skip_with_warning_skips_whole_line_and_canned_cycle_lines() {
         ..Config::default()
     };
     let mut it = Interpreter::new(
-        "G0 X1\nG81 X5 Y5 Z-1 R1 F100\nX6\nG80\nG0 X2 A1\nG0 X3\n".as_bytes(),
+        "G0 X1\nG84 X5 Y5 Z-1 R1 F100\nX6\nG80\nG0 X2 A1\nG0 X3\n".as_bytes(),
         cfg,
     );
     let m: Vec<Motion> = it.by_ref().collect::<Result<_, _>>().unwrap();

@@ -1,0 +1,98 @@
+//! Canned cycles: the moves themselves are compared with rs274 in
+//! tests/conformance/canned-cycles*.ngc; here, the rules and errors.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fresa_gcode::*;
+
+fn run(src: &str) -> Result<Vec<Motion>, GcodeError> {
+    Interpreter::new(src.as_bytes(), Config::default()).collect()
+}
+
+fn err(src: &str) -> GcodeError {
+    run(src).unwrap_err()
+}
+
+#[test]
+fn g81_drills_each_hole_and_retracts_to_r_by_default() {
+    // LinuxCNC starts in G99: retract to R.
+    let m = run("G0 Z5 F100\nG81 X1 Y2 Z-1 R1\nX3\n").unwrap();
+    let ends: Vec<Point> = m.iter().filter_map(Motion::end_point).collect();
+    assert_eq!(
+        ends,
+        vec![
+            [0.0, 0.0, 5.0],
+            [1.0, 2.0, 5.0],
+            [1.0, 2.0, 1.0],
+            [1.0, 2.0, -1.0],
+            [1.0, 2.0, 1.0],
+            [3.0, 2.0, 1.0],
+            [3.0, 2.0, -1.0],
+            [3.0, 2.0, 1.0],
+        ]
+    );
+    assert!(matches!(m[3], Motion::Linear { feed_mm_min, .. } if feed_mm_min == 100.0));
+    // G98: back to the initial level (Z5).
+    let m = run("G0 Z5 F100\nG98 G81 X1 Y2 Z-1 R1\n").unwrap();
+    assert_eq!(m.last().unwrap().end_point(), Some([1.0, 2.0, 5.0]));
+}
+
+#[test]
+fn dwell_and_peck_cycles() {
+    let m = run("G0 Z5 F100\nG82 X1 Z-1 R1 P0.5\n").unwrap();
+    assert!(m
+        .iter()
+        .any(|m| matches!(m, Motion::Dwell { seconds, .. } if *seconds == 0.5)));
+    // G83 Q2 from R1 to Z-4: pecks at -1 and -3, then the bottom.
+    let m = run("G0 Z5 F100\nG83 X1 Z-4 R1 Q2\n").unwrap();
+    let feeds: Vec<f64> = m
+        .iter()
+        .filter_map(|m| match m {
+            Motion::Linear { to, .. } => Some(to[2]),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(feeds, vec![-1.0, -3.0, -4.0]);
+}
+
+#[test]
+fn incremental_repeats_step_the_hole_position() {
+    let m = run("G0 Z5 F100\nG91 G81 X10 Z-3 R-4 L3\n").unwrap();
+    let bottoms: Vec<Point> = m
+        .iter()
+        .filter_map(|m| match m {
+            Motion::Linear { to, .. } => Some(*to),
+            _ => None,
+        })
+        .collect();
+    // R = 5 - 4 = 1, bottom = 1 - 3 = -2.
+    assert_eq!(
+        bottoms,
+        vec![[10.0, 0.0, -2.0], [20.0, 0.0, -2.0], [30.0, 0.0, -2.0]]
+    );
+}
+
+#[test]
+fn cycle_errors_name_line_and_column() {
+    let e = err("G0 Z5 F100\nG81 X1 R1\n");
+    assert_eq!((e.line, e.column), (2, 5));
+    assert!(e.message.contains("needs Z"), "{e}");
+    let e = err("G0 Z5 F100\nG81 X1 Z-1\n");
+    assert!(e.message.contains("needs R"), "{e}");
+    let e = err("G0 Z5 F100\nG81 X1 Z2 R1\n");
+    assert!(e.message.contains("below Z"), "{e}");
+    let e = err("G0 Z5 F100\nG83 X1 Z-1 R1 Q0\n");
+    assert_eq!((e.line, e.column), (2, 15));
+    let e = err("G0 Z5 F100\nG81 X1 Z-1 R1 L0\n");
+    assert!(e.message.contains("L (repeats)"), "{e}");
+    let e = err("G0 Z5\nG81 X1 Z-1 R1\n");
+    assert!(e.message.contains("feed"), "{e}");
+    let e = err("G0 Z5 F100\nG18 G81 X1 Z-1 R1\n");
+    assert_eq!(e.kind, ErrorKind::Unsupported);
+    let e = err("G0 Z5 F100\nG83 X1 Z-1000 R1 Q0.0001 L100\n");
+    assert!(e.message.contains("moves"), "{e}");
+    // Tapping and spindle-stop boring stay clear errors.
+    for g in ["G84", "G74", "G86", "G87", "G88", "G76"] {
+        let e = err(&format!("G0 Z5 F100\n{g} X1 Z-1 R1\n"));
+        assert_eq!((e.line, e.kind), (2, ErrorKind::Unsupported), "{g}");
+    }
+}
