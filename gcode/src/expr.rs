@@ -25,6 +25,8 @@ pub(crate) struct SysView {
     pub tool: u32,
     pub g28: Point,
     pub g30: Point,
+    pub g92: Point,
+    pub g92_saved: Point,
     pub feed_mm_min: f64,
     pub rpm: f64,
     pub plane: u16,
@@ -53,6 +55,8 @@ pub(crate) struct Params {
     /// `#<_value>` of the last return/endsub, and whether one was returned.
     pub value: f64,
     pub value_returned: bool,
+    /// A `#<name>` was read or written since the interpreter last looked.
+    pub named_used: bool,
     name_buf: String,
 }
 
@@ -86,6 +90,14 @@ impl Params {
         match n {
             5161..=5163 => s.g28[n - 5161] / u,
             5181..=5183 => s.g30[n - 5181] / u,
+            5210 => {
+                if s.g92 == [0.0; 3] {
+                    0.0
+                } else {
+                    1.0
+                }
+            }
+            5211..=5213 => s.g92_saved[n - 5211] / u,
             5220 => f64::from(s.coord) + 1.0,
             5221..=5399 => {
                 let k = (n - 5221) / 20;
@@ -202,6 +214,7 @@ fn err(at: usize, kind: ErrorKind, msg: impl Into<String>) -> LexError {
 /// Reads `<name>` at `*i` (just after `#`), lower-cased and without blanks
 /// (LinuxCNC ignores both), into `out`.
 fn read_name(b: &[u8], i: &mut usize, out: &mut String) -> Result<(), LexError> {
+    // (No Params here: callers mark `named_used`.)
     let open = *i;
     *i += 1; // '<'
     out.clear();
@@ -243,6 +256,7 @@ fn param_index(v: f64, at: usize) -> Result<usize, LexError> {
 fn param_target(b: &[u8], i: &mut usize, p: &mut Params, at: usize) -> Result<Target, LexError> {
     skip_blanks(b, i);
     if *i < b.len() && b[*i] == b'<' {
+        p.named_used = true;
         let mut name = std::mem::take(&mut p.name_buf);
         let r = read_name(b, i, &mut name);
         let t = name.clone();
@@ -261,6 +275,7 @@ fn read_param(b: &[u8], i: &mut usize, p: &mut Params) -> Result<f64, LexError> 
     *i += 1;
     skip_blanks(b, i);
     if *i < b.len() && b[*i] == b'<' {
+        p.named_used = true;
         let mut name = std::mem::take(&mut p.name_buf);
         let r = read_name(b, i, &mut name).map(|()| p.get_named(&name));
         let msg = format!("named parameter #<{name}> is not defined");
@@ -524,6 +539,7 @@ fn function(b: &[u8], i: &mut usize, p: &mut Params) -> Result<f64, LexError> {
         ));
     }
     if name == b"exists" {
+        p.named_used = true;
         let open = *i;
         *i += 1;
         skip_blanks(b, i);

@@ -127,6 +127,10 @@ struct State {
     g28: Point,
     g30: Point,
     cycle: CycleState,
+    /// G92 / G52 offset in effect (mm): work-system frame = program + g92.
+    g92: Point,
+    /// The stored G92 values (#5211..), which G92.2 keeps and G92.3 restores.
+    g92_saved: Point,
 }
 
 impl State {
@@ -147,6 +151,8 @@ impl State {
             coord: 0,
             g28: cfg.g28_position,
             g30: cfg.g30_position,
+            g92: [0.0; 3],
+            g92_saved: [0.0; 3],
             // LinuxCNC's interpreter starts in G99 (retract to R).
             cycle: CycleState {
                 retract_to_r: true,
@@ -170,6 +176,8 @@ pub struct Interpreter<R: BufRead> {
     /// Source lines taken from the reader (line numbers of new lines).
     reader_line_no: u32,
     lines_read: u64,
+    lines_executed: u64,
+    linuxcnc_only: Option<u32>,
     params: Params,
     flow: Flow,
     blk: Block,
@@ -193,6 +201,8 @@ impl<R: BufRead> Interpreter<R> {
             params: Params::new(config.work_offsets),
             flow: Flow::default(),
             reader_line_no: 0,
+            lines_executed: 0,
+            linuxcnc_only: None,
             cfg: config,
             line: Vec::with_capacity(256),
             line_no: 0,
@@ -222,6 +232,18 @@ impl<R: BufRead> Interpreter<R> {
     pub fn lines_read(&self) -> u64 {
         self.lines_read
     }
+    /// First line that used LinuxCNC-only syntax: O-word control flow
+    /// (`o<name> sub`, `if`, `while`, ...), named parameters (`#<x>`) or
+    /// `(debug,...)` / `(print,...)`. A backend that hands the program text
+    /// to a controller with another dialect (Mach3) refuses it naming this line.
+    pub fn linuxcnc_only_line(&self) -> Option<u32> {
+        self.linuxcnc_only
+    }
+    /// Lines run (or passed over) so far: like [`Self::lines_read`], but a
+    /// loop body or subroutine counts every time it runs.
+    pub fn lines_executed(&self) -> u64 {
+        self.lines_executed
+    }
     /// Whether G20 (inch) was ever in effect.
     pub fn units_inch_seen(&self) -> bool {
         self.units_inch_seen
@@ -233,7 +255,7 @@ impl<R: BufRead> Interpreter<R> {
     /// Position (program coordinates, mm) after the last line interpreted;
     /// motions of that line may still be waiting to be yielded.
     pub fn position(&self) -> Point {
-        self.st.pos
+        add(self.st.pos, self.st.g92)
     }
     /// The configuration in use.
     pub fn config(&self) -> &Config {
@@ -361,6 +383,14 @@ impl<R: BufRead> Interpreter<R> {
         f.prog.lines.push((self.line_no, s, f.prog.text.len()));
         f.cur = f.prog.lines.len() - 1;
         f.pc = f.prog.lines.len();
+    }
+
+    #[cold]
+    fn note_linuxcnc_only(&mut self) {
+        self.params.named_used = false;
+        if self.linuxcnc_only.is_none() {
+            self.linuxcnc_only = Some(self.line_no);
+        }
     }
 
     fn err_at(&self, e: LexError) -> GcodeError {
@@ -876,6 +906,7 @@ impl<R: BufRead> Interpreter<R> {
         if !self.next_line()? {
             return self.end_of_input();
         }
+        self.lines_executed += 1;
         if self.flow.skip.is_some() {
             return self.skip_line();
         }
@@ -891,8 +922,18 @@ impl<R: BufRead> Interpreter<R> {
             Ok(k) => k,
             Err(e) => return self.fail(e),
         };
+        if self.params.named_used || self.blk.debug.is_some() {
+            self.note_linuxcnc_only();
+        }
         match kind {
-            LineKind::OWord(at) => self.oword(at),
+            LineKind::OWord(at) => {
+                if self.linuxcnc_only.is_none()
+                    && !matches!(flow::parse(&self.line, at), Ok(o) if o.kw == Keyword::Number)
+                {
+                    self.note_linuxcnc_only();
+                }
+                self.oword(at)
+            }
             LineKind::Deleted => Ok(()),
             LineKind::Percent => {
                 if !self.words_seen && !self.percent_open {
@@ -1040,10 +1081,8 @@ impl<R: BufRead> Interpreter<R> {
                 540 | 550 | 560 | 570 | 580 | 590 | 591 | 592 | 593 => &mut g_coord,
                 610 | 611 | 640 => &mut g_path,
                 980 | 990 => &mut g_retract,
-                40 | 280 | 281 | 300 | 301 | 530 => &mut g_nonmodal,
-                100 | 920..=923 => {
-                    return Err(unsupported_g(code, off, "it changes coordinate offsets"))
-                }
+                40 | 280 | 281 | 300 | 301 | 530 | 520 | 920..=923 => &mut g_nonmodal,
+                100 => return Err(unsupported_g(code, off, "it changes coordinate offsets")),
                 _ => return Err(unknown_g(code, off)),
             };
             if let Some((prev, _)) = *slot {
@@ -1164,7 +1203,7 @@ impl<R: BufRead> Interpreter<R> {
             _ => None,
         };
         let nonmodal = g_nonmodal.map(|g| g.0);
-        let uses_axes_nonmodal = matches!(nonmodal, Some(280 | 300 | 920));
+        let uses_axes_nonmodal = matches!(nonmodal, Some(280 | 300 | 920 | 520));
         if uses_axes_nonmodal && has_axes && g_motion.is_some_and(|g| g.0 != 800) {
             let (code, off) = g_nonmodal.unwrap_or((0, 0));
             return Err((
@@ -1437,7 +1476,7 @@ impl<R: BufRead> Interpreter<R> {
         for (i, letter) in [b'X', b'Y', b'Z'].into_iter().enumerate() {
             if let Some(v) = blk.get(letter) {
                 target[i] = if machine {
-                    v * scale - self.cfg.work_offsets[st.coord as usize][i]
+                    v * scale - self.cfg.work_offsets[st.coord as usize][i] - st.g92[i]
                 } else if st.absolute {
                     v * scale
                 } else {
@@ -1449,11 +1488,15 @@ impl<R: BufRead> Interpreter<R> {
         // 19. G28 / G30 (go to stored position), G28.1 / G30.1 (store).
         match nonmodal {
             Some(280 | 300) => {
-                let stored = if nonmodal == Some(280) {
-                    st.g28
-                } else {
-                    st.g30
-                };
+                // Stored positions are in the work system's frame.
+                let stored = sub(
+                    if nonmodal == Some(280) {
+                        st.g28
+                    } else {
+                        st.g30
+                    },
+                    st.g92,
+                );
                 let mut end;
                 if has_axes {
                     if target != st.pos {
@@ -1479,8 +1522,45 @@ impl<R: BufRead> Interpreter<R> {
                 });
                 st.pos = end;
             }
-            Some(281) => st.g28 = st.pos,
-            Some(301) => st.g30 = st.pos,
+            Some(281) => st.g28 = add(st.pos, st.g92),
+            Some(301) => st.g30 = add(st.pos, st.g92),
+            // G92 family and G52: the origin moves; motions keep coming out
+            // in the work system's frame (`Iterator::next` adds the offset),
+            // so no backend has to know about it.
+            Some(code @ (920 | 520 | 921 | 922 | 923)) => {
+                if matches!(code, 920 | 520) && !has_axes {
+                    let off = g_nonmodal.map_or(0, |g| g.1);
+                    return Err((
+                        off as usize,
+                        ErrorKind::Invalid,
+                        format!("{} needs at least one axis word", gname(code)),
+                    ));
+                }
+                for (i, letter) in [b'X', b'Y', b'Z'].into_iter().enumerate() {
+                    let frame = st.pos[i] + st.g92[i];
+                    match code {
+                        920 | 520 => {
+                            if let Some(v) = blk.get(letter) {
+                                let v = v * scale;
+                                st.g92[i] = if code == 920 { frame - v } else { v };
+                                st.g92_saved[i] = st.g92[i];
+                            }
+                        }
+                        921 => {
+                            st.g92[i] = 0.0;
+                            st.g92_saved[i] = 0.0;
+                        }
+                        922 => st.g92[i] = 0.0,
+                        _ => st.g92[i] = st.g92_saved[i],
+                    }
+                    st.pos[i] = frame - st.g92[i];
+                }
+                queue.push_back(Motion::OffsetChange {
+                    line,
+                    code,
+                    offset: st.g92,
+                });
+            }
             _ => {}
         }
 
@@ -1788,6 +1868,36 @@ fn canned_cycle(
     Ok([x, y, clear])
 }
 
+#[inline]
+fn add(a: Point, b: Point) -> Point {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}
+
+#[inline]
+fn sub(a: Point, b: Point) -> Point {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+/// A motion from program coordinates into the work system's frame.
+#[cold]
+fn shifted(mut m: Motion, off: Point) -> Motion {
+    match &mut m {
+        Motion::Rapid { from, to, .. } | Motion::Linear { from, to, .. } => {
+            *from = add(*from, off);
+            *to = add(*to, off);
+        }
+        Motion::Arc {
+            from, to, centre, ..
+        } => {
+            *from = add(*from, off);
+            *to = add(*to, off);
+            *centre = add(*centre, off);
+        }
+        _ => {}
+    }
+    m
+}
+
 /// What system parameters (#5420, `#<_x>`, ...) read.
 fn sys_view(st: &State) -> SysView {
     SysView {
@@ -1798,6 +1908,8 @@ fn sys_view(st: &State) -> SysView {
         tool: st.tool,
         g28: st.g28,
         g30: st.g30,
+        g92: st.g92,
+        g92_saved: st.g92_saved,
         feed_mm_min: st.feed.unwrap_or(0.0),
         rpm: st.rpm,
         plane: match st.plane {
@@ -2176,6 +2288,11 @@ impl<R: BufRead> Iterator for Interpreter<R> {
     fn next(&mut self) -> Option<Self::Item> {
         loop {
             if let Some(m) = self.queue.pop_front() {
+                // Lines that change the G92 offset move nothing, so the
+                // offset after the line holds for all of its motions.
+                if self.st.g92 != [0.0; 3] {
+                    return Some(Ok(shifted(m, self.st.g92)));
+                }
                 return Some(Ok(m));
             }
             if self.done {

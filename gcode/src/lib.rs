@@ -50,7 +50,7 @@ mod flow;
 mod interp;
 mod lex;
 
-pub use analysis::{analyse, Analysis, AnalysisOptions, Bounds};
+pub use analysis::{analyse, Analysis, AnalysisOptions, Bounds, OffsetChangeNote};
 pub use arc::{linearise, segments_for, ArcGeometry, Linearise, MIN_TOLERANCE_MM};
 pub use interp::Interpreter;
 
@@ -240,6 +240,13 @@ pub enum Motion {
     },
     /// M2/M30 (or the closing `%`).
     ProgramEnd { line: u32 },
+    /// G92, G92.1, G92.2, G92.3 or G52 (`code` = G number * 10: 920, 921,
+    /// 922, 923, 520): the program moved its origin by `offset` (mm, the
+    /// offset now in effect, zero when cancelled). The coordinates of every
+    /// motion already include it (they stay in the active work system's
+    /// frame), so a backend needs to do nothing; it is reported for the
+    /// analysis and the operator.
+    OffsetChange { line: u32, code: u16, offset: Point },
 }
 
 impl Motion {
@@ -258,6 +265,7 @@ impl Motion {
             | Motion::WorkOffset { line, .. }
             | Motion::Message { line, .. }
             | Motion::Pause { line, .. }
+            | Motion::OffsetChange { line, .. }
             | Motion::ProgramEnd { line } => *line,
         }
     }

@@ -115,7 +115,7 @@ const KNOWN: &[(&str, &str)] = &[
     ),
     (
         "ncfiles/systems.ngc",
-        "G92 / G10 L2 offsets and G5.1 splines not implemented yet",
+        "G5.1 splines and G10 L2 (offsets written by the program) not implemented yet",
     ),
 ];
 
@@ -199,6 +199,9 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
     let mut scale = 1.0; // mm per unit
     let mut feed = 0.0; // mm/min
     let mut feed_number = None; // a feed set since the last move
+                                // rs274 prints program coordinates (G92/G52 offset taken off); Fresa's
+                                // motions are in the work system's frame (offset included).
+    let mut g92 = [0.0; 3];
     let mut plane = 0u8;
     let mut moves = Vec::new();
     let mut other = Vec::new();
@@ -224,6 +227,9 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
                 }
                 scale = new;
             }
+            "SET_G92_OFFSET" => {
+                g92 = [num(a[0]) * scale, num(a[1]) * scale, num(a[2]) * scale];
+            }
             "SET_FEED_RATE" => {
                 feed = num(a[0]) * scale;
                 feed_number = Some(num(a[0]));
@@ -237,7 +243,11 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
             }
             "STRAIGHT_TRAVERSE" | "STRAIGHT_FEED" => {
                 feed_number = None;
-                let to = [num(a[0]) * scale, num(a[1]) * scale, num(a[2]) * scale];
+                let to = [
+                    num(a[0]) * scale + g92[0],
+                    num(a[1]) * scale + g92[1],
+                    num(a[2]) * scale + g92[2],
+                ];
                 if a.len() > 3 && a[3..6].iter().any(|v| num(v) != 0.0) {
                     other.push(format!("{name} with A/B/C"));
                 }
@@ -257,6 +267,13 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
                     num(a[4]) as i32,
                     num(a[5]) * scale,
                 );
+                let (i1, i2, i3) = match plane {
+                    0 => (0, 1, 2),
+                    1 => (2, 0, 1),
+                    _ => (1, 2, 0),
+                };
+                let (e1, e2, n) = (e1 + g92[i1], e2 + g92[i2], n + g92[i3]);
+                let (c1, c2) = (c1 + g92[i1], c2 + g92[i2]);
                 let to = match plane {
                     0 => [e1, e2, n],
                     1 => [e2, n, e1],

@@ -96,3 +96,45 @@ fn cycle_errors_name_line_and_column() {
         assert_eq!((e.line, e.kind), (2, ErrorKind::Unsupported), "{g}");
     }
 }
+
+#[test]
+fn g92_and_g52_shift_the_origin_and_the_analysis_shows_it() {
+    // Motions stay in the work system's frame: G92 X0 at X10 makes X5 land at 15.
+    let src =
+        "G0 X10\nG92 X0\nG1 X5 F100\nG92.1\nG0 X1\nG52 Y-2\nG0 Y0\nG92.2\nG0 Y0\nG92.3\nG0 Y1\n";
+    let m = run(src).unwrap();
+    let ends: Vec<Point> = m.iter().filter_map(Motion::end_point).collect();
+    assert_eq!(
+        ends,
+        vec![
+            [10.0, 0.0, 0.0],
+            [15.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [1.0, -2.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [1.0, -1.0, 0.0],
+        ]
+    );
+    assert!(matches!(
+        m[1],
+        Motion::OffsetChange { line: 2, code: 920, offset } if offset == [10.0, 0.0, 0.0]
+    ));
+    let a = analyse(src.as_bytes(), &AnalysisOptions::default()).unwrap();
+    assert_eq!(a.offset_change_count, 5);
+    let cmds: Vec<&str> = a
+        .offset_changes
+        .iter()
+        .map(|o| o.command.as_str())
+        .collect();
+    assert_eq!(cmds, ["G92", "G92.1", "G52", "G92.2", "G92.3"]);
+    assert_eq!(a.offset_changes[2].offset, [0.0, -2.0, 0.0]);
+    assert_eq!(a.cutting_bounds.unwrap().max[0], 15.0);
+    let json = serde_json::to_value(&a).unwrap();
+    assert_eq!(json["offset_changes"][0]["line"], 2);
+    assert!(json["cutting_length_mm"].is_number(), "old fields stay");
+    // G92 needs an axis word; G10 (offsets written into the machine) is refused.
+    let e = err("G0 X1\nG92\n");
+    assert_eq!((e.line, e.column), (2, 1));
+    let e = err("G10 L2 P1 X5\n");
+    assert_eq!(e.kind, ErrorKind::Unsupported);
+}

@@ -218,3 +218,23 @@ fn plain_programs_are_not_buffered() {
     let e = err(src);
     assert_eq!(e.line, 3);
 }
+
+#[test]
+fn linuxcnc_only_syntax_is_reported_by_line() {
+    let line = |src: &str| {
+        let mut it = Interpreter::new(src.as_bytes(), Config::default());
+        for m in it.by_ref() {
+            m.unwrap();
+        }
+        it.linuxcnc_only_line()
+    };
+    // Numbered parameters, expressions and M98 subprograms are common ground (Mach3 runs them).
+    assert_eq!(
+        line("#1=2\nG0 X[#1*2]\nM98 P100\nM30\nO100\nG0 X1\nM99\n"),
+        None
+    );
+    assert_eq!(line("G0 X1\n#<a>=1\n"), Some(2));
+    assert_eq!(line("G0 X1\nG0 X1\no1 if [1]\no1 endif\n"), Some(3));
+    assert_eq!(line("G0 X1\n(debug, hi)\n"), Some(2));
+    assert_eq!(line("G0 X[EXISTS[#<a>]]\n"), Some(1));
+}
