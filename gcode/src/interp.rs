@@ -45,9 +45,11 @@ impl Queue {
             overflow: std::collections::VecDeque::new(),
         }
     }
+    /// Pushes happen only while a line runs, and a line starts with an
+    /// empty queue: the ring is full before anything goes to `overflow`.
     #[inline]
     fn push_back(&mut self, m: Motion) {
-        if self.len < QUEUE_CAP && self.overflow.is_empty() {
+        if self.len < QUEUE_CAP {
             self.items[(self.head + self.len) % QUEUE_CAP] = Some(m);
             self.len += 1;
         } else {
@@ -57,16 +59,25 @@ impl Queue {
     #[inline]
     fn pop_front(&mut self) -> Option<Motion> {
         if self.len == 0 {
-            return if self.overflow.is_empty() {
-                None
-            } else {
-                self.overflow.pop_front()
-            };
+            return self.pop_overflow();
         }
         let m = self.items[self.head].take();
         self.head = (self.head + 1) % QUEUE_CAP;
         self.len -= 1;
         m
+    }
+    #[inline(never)]
+    fn pop_overflow(&mut self) -> Option<Motion> {
+        self.overflow.pop_front()
+    }
+    #[cold]
+    fn shift_all(&mut self, off: Point) {
+        for m in self.items.iter_mut().flatten() {
+            shift(m, off);
+        }
+        for m in self.overflow.iter_mut() {
+            shift(m, off);
+        }
     }
     fn clear(&mut self) {
         while self.len > 0 {
@@ -126,11 +137,6 @@ struct State {
     coord: u8,
     g28: Point,
     g30: Point,
-    cycle: CycleState,
-    /// G92 / G52 offset in effect (mm): work-system frame = program + g92.
-    g92: Point,
-    /// The stored G92 values (#5211..), which G92.2 keeps and G92.3 restores.
-    g92_saved: Point,
 }
 
 impl State {
@@ -151,13 +157,6 @@ impl State {
             coord: 0,
             g28: cfg.g28_position,
             g30: cfg.g30_position,
-            g92: [0.0; 3],
-            g92_saved: [0.0; 3],
-            // LinuxCNC's interpreter starts in G99 (retract to R).
-            cycle: CycleState {
-                retract_to_r: true,
-                ..CycleState::default()
-            },
         }
     }
 }
@@ -178,6 +177,14 @@ pub struct Interpreter<R: BufRead> {
     lines_read: u64,
     lines_executed: u64,
     linuxcnc_only: Option<u32>,
+    // Kept out of `State`, which is copied twice per line: these change only
+    // on cycle and G92 lines, which write them back when the line succeeded.
+    cycle: CycleState,
+    /// G92 / G52 offset in effect (mm): work-system frame = program + g92.
+    g92: Point,
+    /// The stored G92 values (#5211..), which G92.2 keeps and G92.3 restores.
+    g92_saved: Point,
+    g92_active: bool,
     params: Params,
     flow: Flow,
     blk: Block,
@@ -203,6 +210,14 @@ impl<R: BufRead> Interpreter<R> {
             reader_line_no: 0,
             lines_executed: 0,
             linuxcnc_only: None,
+            // LinuxCNC's interpreter starts in G99 (retract to R).
+            cycle: CycleState {
+                retract_to_r: true,
+                ..CycleState::default()
+            },
+            g92: [0.0; 3],
+            g92_saved: [0.0; 3],
+            g92_active: false,
             cfg: config,
             line: Vec::with_capacity(256),
             line_no: 0,
@@ -255,7 +270,7 @@ impl<R: BufRead> Interpreter<R> {
     /// Position (program coordinates, mm) after the last line interpreted;
     /// motions of that line may still be waiting to be yielded.
     pub fn position(&self) -> Point {
-        add(self.st.pos, self.st.g92)
+        add(self.st.pos, self.g92)
     }
     /// The configuration in use.
     pub fn config(&self) -> &Config {
@@ -279,6 +294,7 @@ impl<R: BufRead> Interpreter<R> {
 
     /// Reads the next line into `self.line` (without "\n" / "\r\n").
     /// Returns Ok(false) at end of input.
+    #[inline(always)]
     fn read_line(&mut self) -> Result<bool, GcodeError> {
         self.line.clear();
         let mut any = false;
@@ -578,7 +594,7 @@ impl<R: BufRead> Interpreter<R> {
         if !self.flow.buffering {
             self.keep_line();
         }
-        self.params.sys = sys_view(&self.st);
+        self.params.sys = sys_view(&self.st, self.g92, self.g92_saved);
         let o = flow::parse(&self.line, at).map_err(|e| self.err_at(e))?;
         let mut i = o.rest;
         let b = &self.line;
@@ -911,7 +927,8 @@ impl<R: BufRead> Interpreter<R> {
             return self.skip_line();
         }
         let st = &self.st;
-        let sys = || sys_view(st);
+        let (g92, g92_saved) = (&self.g92, &self.g92_saved);
+        let sys = || sys_view(st, *g92, *g92_saved);
         let kind = match lex_line(
             &self.line,
             self.cfg.block_delete,
@@ -922,11 +939,11 @@ impl<R: BufRead> Interpreter<R> {
             Ok(k) => k,
             Err(e) => return self.fail(e),
         };
-        if self.params.named_used || self.blk.debug.is_some() {
-            self.note_linuxcnc_only();
-        }
         match kind {
             LineKind::OWord(at) => {
+                if self.params.named_used {
+                    self.note_linuxcnc_only();
+                }
                 if self.linuxcnc_only.is_none()
                     && !matches!(flow::parse(&self.line, at), Ok(o) if o.kw == Keyword::Number)
                 {
@@ -948,8 +965,21 @@ impl<R: BufRead> Interpreter<R> {
                 Ok(())
             }
             LineKind::Words => {
-                if !self.params.pending.is_empty() {
-                    self.params.commit();
+                if self.blk.special {
+                    // Parameters, assignments, debug messages, M98/M99.
+                    if self.params.named_used || self.blk.debug.is_some() {
+                        self.note_linuxcnc_only();
+                    }
+                    if !self.params.pending.is_empty() {
+                        self.params.commit();
+                    }
+                    if let Some(&(code @ (980 | 990), _)) = self.blk.m[..self.blk.nm]
+                        .iter()
+                        .find(|m| m.0 == 980 || m.0 == 990)
+                    {
+                        self.words_seen = true;
+                        return self.m98_m99(code);
+                    }
                 }
                 if self.blk.mask == 0
                     && self.blk.ng == 0
@@ -960,12 +990,6 @@ impl<R: BufRead> Interpreter<R> {
                     return Ok(());
                 }
                 self.words_seen = true;
-                if let Some(&(code @ (980 | 990), _)) = self.blk.m[..self.blk.nm]
-                    .iter()
-                    .find(|m| m.0 == 980 || m.0 == 990)
-                {
-                    return self.m98_m99(code);
-                }
                 match self.execute() {
                     Ok(()) => Ok(()),
                     Err(e) => {
@@ -1039,10 +1063,14 @@ impl<R: BufRead> Interpreter<R> {
 
     /// Interprets the lexed block. Works on a copy of the state and commits it
     /// at the end, so an error or a skipped line changes nothing.
+    #[inline(always)]
     fn execute(&mut self) -> Result<(), LexError> {
         let blk = &self.blk;
         let line = self.line_no;
         let mut st = self.st;
+        // Written back with the state when the line succeeds.
+        let mut cycle_new: Option<CycleState> = None;
+        let mut g92_new: Option<(Point, Point)> = None;
 
         // --- classify G words into modal groups -------------------------
         let mut g_motion: Option<(u16, u32)> = None;
@@ -1191,12 +1219,12 @@ impl<R: BufRead> Interpreter<R> {
                 730 | 810 | 820 | 830 | 850 | 890 => MotionMode::Cycle(code),
                 _ => MotionMode::None,
             };
-            if !matches!(st.motion, MotionMode::Cycle(_)) {
-                st.cycle.initial = None;
+            if self.cycle.initial.is_some() && !matches!(st.motion, MotionMode::Cycle(_)) {
+                cycle_new.get_or_insert(self.cycle).initial = None;
             }
         }
         if let Some((code, _)) = g_retract {
-            st.cycle.retract_to_r = code == 990;
+            cycle_new.get_or_insert(self.cycle).retract_to_r = code == 990;
         }
         let cycle = match st.motion {
             MotionMode::Cycle(c) => Some(c),
@@ -1301,7 +1329,7 @@ impl<R: BufRead> Interpreter<R> {
         let pause_here = matches!(m_stop, Some((0 | 10, _)));
         let mut pause_msg = None;
         if let Some((s, e)) = blk.debug {
-            self.params.sys = sys_view(&self.st);
+            self.params.sys = sys_view(&self.st, self.g92, self.g92_saved);
             let text = expr::substitute(&self.line[s..e], &mut self.params)
                 .trim()
                 .to_string();
@@ -1476,7 +1504,7 @@ impl<R: BufRead> Interpreter<R> {
         for (i, letter) in [b'X', b'Y', b'Z'].into_iter().enumerate() {
             if let Some(v) = blk.get(letter) {
                 target[i] = if machine {
-                    v * scale - self.cfg.work_offsets[st.coord as usize][i] - st.g92[i]
+                    v * scale - self.cfg.work_offsets[st.coord as usize][i] - self.g92[i]
                 } else if st.absolute {
                     v * scale
                 } else {
@@ -1495,7 +1523,7 @@ impl<R: BufRead> Interpreter<R> {
                     } else {
                         st.g30
                     },
-                    st.g92,
+                    self.g92,
                 );
                 let mut end;
                 if has_axes {
@@ -1522,8 +1550,8 @@ impl<R: BufRead> Interpreter<R> {
                 });
                 st.pos = end;
             }
-            Some(281) => st.g28 = add(st.pos, st.g92),
-            Some(301) => st.g30 = add(st.pos, st.g92),
+            Some(281) => st.g28 = add(st.pos, self.g92),
+            Some(301) => st.g30 = add(st.pos, self.g92),
             // G92 family and G52: the origin moves; motions keep coming out
             // in the work system's frame (`Iterator::next` adds the offset),
             // so no backend has to know about it.
@@ -1536,36 +1564,37 @@ impl<R: BufRead> Interpreter<R> {
                         format!("{} needs at least one axis word", gname(code)),
                     ));
                 }
+                let (mut g92, mut saved) = (self.g92, self.g92_saved);
                 for (i, letter) in [b'X', b'Y', b'Z'].into_iter().enumerate() {
-                    let frame = st.pos[i] + st.g92[i];
+                    let frame = st.pos[i] + g92[i];
                     match code {
                         920 | 520 => {
                             if let Some(v) = blk.get(letter) {
                                 let v = v * scale;
-                                st.g92[i] = if code == 920 { frame - v } else { v };
-                                st.g92_saved[i] = st.g92[i];
+                                g92[i] = if code == 920 { frame - v } else { v };
+                                saved[i] = g92[i];
                             }
                         }
                         921 => {
-                            st.g92[i] = 0.0;
-                            st.g92_saved[i] = 0.0;
+                            g92[i] = 0.0;
+                            saved[i] = 0.0;
                         }
-                        922 => st.g92[i] = 0.0,
-                        _ => st.g92[i] = st.g92_saved[i],
+                        922 => g92[i] = 0.0,
+                        _ => g92[i] = saved[i],
                     }
-                    st.pos[i] = frame - st.g92[i];
+                    st.pos[i] = frame - g92[i];
                 }
+                g92_new = Some((g92, saved));
                 queue.push_back(Motion::OffsetChange {
                     line,
                     code,
-                    offset: st.g92,
+                    offset: g92,
                 });
             }
             _ => {}
         }
 
         // 20. motion
-        let mut cycle_end = None;
         if motion_here {
             match st.motion {
                 MotionMode::Rapid => {
@@ -1616,14 +1645,13 @@ impl<R: BufRead> Interpreter<R> {
                         ));
                     }
                     let first = motion_before != MotionMode::Cycle(code);
-                    cycle_end = Some(canned_cycle(queue, &mut st, blk, code, first, scale, line)?);
+                    let mut cyc = cycle_new.unwrap_or(self.cycle);
+                    target = canned_cycle(queue, &mut st, &mut cyc, blk, code, first, scale, line)?;
+                    cycle_new = Some(cyc);
                 }
                 MotionMode::None | MotionMode::Unsupported(_) => {}
             }
-            if !matches!(st.motion, MotionMode::Cycle(_)) {
-                st.cycle.initial = None;
-            }
-            st.pos = cycle_end.unwrap_or(target);
+            st.pos = target;
         }
 
         // 21. stops
@@ -1651,9 +1679,28 @@ impl<R: BufRead> Interpreter<R> {
                 st = State::new(&self.cfg);
                 st.pos = keep;
                 st.inch = inch;
+                // G80 and G99 again; G92 offsets survive M2 (LinuxCNC).
+                cycle_new = Some(CycleState {
+                    retract_to_r: true,
+                    ..CycleState::default()
+                });
             }
         }
         self.st = st;
+        if let Some(c) = cycle_new {
+            self.cycle = c;
+        }
+        if let Some((g92, saved)) = g92_new {
+            self.g92 = g92;
+            self.g92_saved = saved;
+            self.g92_active = g92 != [0.0; 3];
+        }
+        if self.g92_active {
+            // Into the work system's frame. Lines that change the offset
+            // move nothing, so the offset after the line holds for all of
+            // its motions.
+            self.queue.shift_all(self.g92);
+        }
         Ok(())
     }
 }
@@ -1667,6 +1714,7 @@ const MAX_CYCLE_MOVES: f64 = 1_000_000.0;
 fn canned_cycle(
     queue: &mut Queue,
     st: &mut State,
+    cyc: &mut CycleState,
     blk: &Block,
     code: u16,
     first: bool,
@@ -1698,10 +1746,10 @@ fn canned_cycle(
             format!("{name} needs Z (the bottom of the hole)"),
         ));
     }
-    let z_word = blk.get(b'Z').map_or(st.cycle.z, |z| z * scale);
+    let z_word = blk.get(b'Z').map_or(cyc.z, |z| z * scale);
     let r_word = match blk.get(b'R') {
         Some(r) => r * scale,
-        None if !first => st.cycle.r,
+        None if !first => cyc.r,
         None => return Err(invalid(here, format!("{name} needs R (the retract plane)"))),
     };
     let repeats = match blk.get(b'L') {
@@ -1718,7 +1766,7 @@ fn canned_cycle(
     if matches!(code, 730 | 830) {
         q = match blk.get(b'Q') {
             Some(v) => v * scale,
-            None if !first => st.cycle.q,
+            None if !first => cyc.q,
             None => return Err(invalid(here, format!("{name} needs Q (the peck depth)"))),
         };
         if q <= 0.0 {
@@ -1743,12 +1791,12 @@ fn canned_cycle(
                     "negative dwell time".to_string(),
                 ))
             }
-            None if !first => st.cycle.p,
+            None if !first => cyc.p,
             None => return Err(invalid(here, format!("{name} needs P (dwell seconds)"))),
         };
     }
     let mut current_z = st.pos[2];
-    let mut old_z = *st.cycle.initial.get_or_insert(current_z);
+    let mut old_z = *cyc.initial.get_or_insert(current_z);
     let (mut x, mut y, r, bottom, dx, dy);
     if st.absolute {
         x = blk.get(b'X').map_or(st.pos[0], |v| v * scale);
@@ -1805,7 +1853,7 @@ fn canned_cycle(
         old_z = r;
         current_z = r;
     }
-    let clear = if st.cycle.retract_to_r { r } else { old_z };
+    let clear = if cyc.retract_to_r { r } else { old_z };
     // LinuxCNC 2.9 (the installed rs274): pecks back off 0.010 inch.
     let peck_clearance = 0.254;
     for k in 0..repeats as u64 {
@@ -1861,10 +1909,10 @@ fn canned_cycle(
             }
         }
     }
-    st.cycle.r = r_word;
-    st.cycle.z = z_word;
-    st.cycle.q = q;
-    st.cycle.p = dwell;
+    cyc.r = r_word;
+    cyc.z = z_word;
+    cyc.q = q;
+    cyc.p = dwell;
     Ok([x, y, clear])
 }
 
@@ -1880,8 +1928,8 @@ fn sub(a: Point, b: Point) -> Point {
 
 /// A motion from program coordinates into the work system's frame.
 #[cold]
-fn shifted(mut m: Motion, off: Point) -> Motion {
-    match &mut m {
+fn shift(m: &mut Motion, off: Point) {
+    match m {
         Motion::Rapid { from, to, .. } | Motion::Linear { from, to, .. } => {
             *from = add(*from, off);
             *to = add(*to, off);
@@ -1895,11 +1943,10 @@ fn shifted(mut m: Motion, off: Point) -> Motion {
         }
         _ => {}
     }
-    m
 }
 
 /// What system parameters (#5420, `#<_x>`, ...) read.
-fn sys_view(st: &State) -> SysView {
+fn sys_view(st: &State, g92: Point, g92_saved: Point) -> SysView {
     SysView {
         pos: st.pos,
         inch: st.inch,
@@ -1908,8 +1955,8 @@ fn sys_view(st: &State) -> SysView {
         tool: st.tool,
         g28: st.g28,
         g30: st.g30,
-        g92: st.g92,
-        g92_saved: st.g92_saved,
+        g92,
+        g92_saved,
         feed_mm_min: st.feed.unwrap_or(0.0),
         rpm: st.rpm,
         plane: match st.plane {
@@ -2288,11 +2335,6 @@ impl<R: BufRead> Iterator for Interpreter<R> {
     fn next(&mut self) -> Option<Self::Item> {
         loop {
             if let Some(m) = self.queue.pop_front() {
-                // Lines that change the G92 offset move nothing, so the
-                // offset after the line holds for all of its motions.
-                if self.st.g92 != [0.0; 3] {
-                    return Some(Ok(shifted(m, self.st.g92)));
-                }
                 return Some(Ok(m));
             }
             if self.done {

@@ -24,6 +24,9 @@ pub(crate) struct Block {
     /// Byte range of a `(print, ...)` / `(debug, ...)` text (parameters
     /// substituted when the line runs).
     pub debug: Option<(usize, usize)>,
+    /// The line needs more than the plain path: a parameter, an assignment,
+    /// a debug message or M98/M99. One flag keeps plain lines to one test.
+    pub special: bool,
 }
 
 impl Block {
@@ -38,6 +41,7 @@ impl Block {
             nm: 0,
             msg: None,
             debug: None,
+            special: false,
         }
     }
     #[inline]
@@ -279,7 +283,8 @@ pub(crate) fn lex_line(
     blk.nm = 0;
     blk.msg = None;
     blk.debug = None;
-    if !params.pending.is_empty() {
+    if blk.special {
+        blk.special = false;
         params.pending.clear();
     }
     let mut i = 0;
@@ -313,17 +318,17 @@ pub(crate) fn lex_line(
         if up.is_ascii_uppercase() {
             let idx = (up - b'A') as usize;
             let at = i;
-            if up == b'O' {
-                if blk.mask != 0 || blk.ng != 0 || blk.nm != 0 {
-                    return Err((
-                        at,
-                        ErrorKind::Syntax,
-                        "an O-word must be the first word of its line".to_string(),
-                    ));
-                }
-                return Ok(LineKind::OWord(at));
-            }
             if SUPPORTED & (1 << idx) == 0 {
+                if up == b'O' {
+                    if blk.mask != 0 || blk.ng != 0 || blk.nm != 0 {
+                        return Err((
+                            at,
+                            ErrorKind::Syntax,
+                            "an O-word must be the first word of its line".to_string(),
+                        ));
+                    }
+                    return Ok(LineKind::OWord(at));
+                }
                 return Err((at, ErrorKind::Unsupported, unsupported_letter(up)));
             }
             i += 1;
@@ -333,6 +338,7 @@ pub(crate) fn lex_line(
                 Ok(v) => v,
                 Err(e) => {
                     i = after;
+                    blk.special = true;
                     word_value(b, &mut i, params, sys).ok_or((at, e.1, e.2))??
                 }
             };
@@ -348,7 +354,9 @@ pub(crate) fn lex_line(
                     if blk.nm == MAX_M {
                         return Err((at, ErrorKind::Invalid, "too many M words".to_string()));
                     }
-                    blk.m[blk.nm] = (code10(v, at, 'M')?, at as u32);
+                    let code = code10(v, at, 'M')?;
+                    blk.special |= code == 980 || code == 990;
+                    blk.m[blk.nm] = (code, at as u32);
                     blk.nm += 1;
                 }
                 _ => {
@@ -394,10 +402,12 @@ pub(crate) fn lex_line(
                         || text[t..t + 6].eq_ignore_ascii_case(b"print,"))
                 {
                     blk.debug = Some((i + 1 + t + 6, i + 1 + close));
+                    blk.special = true;
                 }
                 i += close + 2;
             }
             b'#' => {
+                blk.special = true;
                 params.sys = sys();
                 expr::assignment(b, &mut i, params)?;
             }
