@@ -1711,6 +1711,7 @@ const MAX_CYCLE_MOVES: f64 = 1_000_000.0;
 
 /// Expands a canned cycle (XY plane) into the moves LinuxCNC makes
 /// (interp_cycles.cc: CYCLE_MACRO and convert_cycle_g*), returns the end.
+#[allow(clippy::too_many_arguments)]
 fn canned_cycle(
     queue: &mut Queue,
     st: &mut State,
