@@ -8,7 +8,9 @@
 use crate::arc::len2;
 use crate::expr::{self, Params, SysView, SUB_PARAMS};
 use crate::flow::{self, BlockKind, Flow, Frame, Keyword, OpenBlock, PendingCall, Skip};
-use crate::lex::{bit, column, lex_line, make_error, Block, LexError, LineKind};
+use crate::lex::{
+    bit, column, lex_line, make_error, Block, LexError, LineKind, POLAR_A, POLAR_MASK, POLAR_R,
+};
 use crate::{
     Config, ErrorKind, GcodeError, Motion, Plane, Point, SpindleDirection, Unsupported, Warning,
 };
@@ -185,6 +187,9 @@ pub struct Interpreter<R: BufRead> {
     /// The stored G92 values (#5211..), which G92.2 keeps and G92.3 restores.
     g92_saved: Point,
     g92_active: bool,
+    /// M70's saved modal state; M73's, per call depth, restored on return.
+    saved_modal: Option<State>,
+    auto_restore: Vec<(usize, State)>,
     params: Params,
     flow: Flow,
     blk: Block,
@@ -218,6 +223,8 @@ impl<R: BufRead> Interpreter<R> {
             g92: [0.0; 3],
             g92_saved: [0.0; 3],
             g92_active: false,
+            saved_modal: None,
+            auto_restore: Vec::new(),
             cfg: config,
             line: Vec::with_capacity(256),
             line_no: 0,
@@ -579,6 +586,14 @@ impl<R: BufRead> Interpreter<R> {
     }
 
     fn ret(&mut self, value: Option<f64>) {
+        let depth = self.flow.frames.len();
+        if self.auto_restore.last().is_some_and(|a| a.0 == depth) {
+            if let Some((_, saved)) = self.auto_restore.pop() {
+                let mut st = self.st;
+                restore_modal(&self.cfg, &mut self.queue, &mut st, &saved, self.line_no);
+                self.st = st;
+            }
+        }
         if let Some(f) = self.flow.frames.pop() {
             self.params.set_sub_params(&f.saved);
             self.params.pop_scope();
@@ -1132,10 +1147,14 @@ impl<R: BufRead> Interpreter<R> {
         let mut m_spindle: Option<(u16, u32)> = None;
         let mut m_tool = false;
         let (mut m_mist, mut m_flood, mut m_cool_off) = (false, false, false);
+        let mut m_state: Option<(u16, u32)> = None;
+        let mut m_set_tool: Option<(u16, u32)> = None;
         for &(code, off) in &blk.m[..blk.nm] {
             let slot = match code {
                 0 | 10 | 20 | 300 => &mut m_stop,
                 30 | 40 | 50 => &mut m_spindle,
+                700 | 710 | 720 | 730 => &mut m_state,
+                610 => &mut m_set_tool,
                 60 => {
                     if m_tool {
                         return Err(same_group_m(60, 60, off));
@@ -1178,7 +1197,7 @@ impl<R: BufRead> Interpreter<R> {
         }
 
         // --- which words are used --------------------------------------
-        let axis_mask = bit(b'X') | bit(b'Y') | bit(b'Z');
+        let axis_mask = bit(b'X') | bit(b'Y') | bit(b'Z') | POLAR_MASK;
         let has_axes = blk.mask & axis_mask != 0;
         let ijk_mask = bit(b'I') | bit(b'J') | bit(b'K');
         let has_ijk = blk.mask & ijk_mask != 0;
@@ -1301,7 +1320,11 @@ impl<R: BufRead> Interpreter<R> {
                 "P word with no G4, G2/G3 or G64 on the line".to_string(),
             ));
         }
-        if blk.has(b'Q') && g_path.map(|g| g.0) != Some(640) && !matches!(cycle, Some(730 | 830)) {
+        if blk.has(b'Q')
+            && g_path.map(|g| g.0) != Some(640)
+            && !matches!(cycle, Some(730 | 830))
+            && m_set_tool.is_none()
+        {
             return Err((
                 blk.pos_of(b'Q') as usize,
                 ErrorKind::Unsupported,
@@ -1382,6 +1405,21 @@ impl<R: BufRead> Interpreter<R> {
                 ));
             }
             st.tool = t as u32;
+        }
+        // M61 Q: the tool in the spindle is Q, without a change (LinuxCNC).
+        if let Some((_, off)) = m_set_tool {
+            match blk.get(b'Q') {
+                Some(q) if q >= 0.0 && q.fract() == 0.0 && q <= f64::from(u32::MAX) => {
+                    st.tool = q as u32;
+                }
+                _ => {
+                    return Err((
+                        off as usize,
+                        ErrorKind::Invalid,
+                        "M61 needs Q with a tool number (a non-negative integer)".to_string(),
+                    ))
+                }
+            }
         }
         // 6. tool change
         if m_tool {
@@ -1511,6 +1549,19 @@ impl<R: BufRead> Interpreter<R> {
                     st.pos[i] + v * scale
                 };
             }
+        }
+
+        if blk.mask & POLAR_MASK != 0 && !matches!(st.motion, MotionMode::Cycle(_)) {
+            if machine {
+                return Err((
+                    first_of(blk, POLAR_MASK),
+                    ErrorKind::Invalid,
+                    "polar coordinates (@ ^) with G53".to_string(),
+                ));
+            }
+            let (x, y) = polar_xy(blk, st.absolute, st.pos, scale)?;
+            target[0] = x;
+            target[1] = y;
         }
 
         // 19. G28 / G30 (go to stored position), G28.1 / G30.1 (store).
@@ -1652,6 +1703,31 @@ impl<R: BufRead> Interpreter<R> {
                 MotionMode::None | MotionMode::Unsupported(_) => {}
             }
             st.pos = target;
+        }
+
+        // M70-M73: save, invalidate, restore the modal state (LinuxCNC).
+        if let Some((code, off)) = m_state {
+            match code {
+                700 => self.saved_modal = Some(st),
+                710 => self.saved_modal = None,
+                720 => {
+                    let Some(saved) = self.saved_modal else {
+                        return Err((
+                            off as usize,
+                            ErrorKind::Invalid,
+                            "M72 with no state saved by M70".to_string(),
+                        ));
+                    };
+                    restore_modal(&self.cfg, queue, &mut st, &saved, line);
+                }
+                _ => {
+                    // M73: restored when this subroutine returns.
+                    let depth = self.flow.frames.len();
+                    if !self.auto_restore.last().is_some_and(|a| a.0 == depth) {
+                        self.auto_restore.push((depth, st));
+                    }
+                }
+            }
         }
 
         // 21. stops
@@ -1799,15 +1875,27 @@ fn canned_cycle(
     let mut current_z = st.pos[2];
     let mut old_z = *cyc.initial.get_or_insert(current_z);
     let (mut x, mut y, r, bottom, dx, dy);
+    // Polar increments (G91 @ ^) turn about the origin on every repeat.
+    let (mut dr, mut da) = (0.0, 0.0);
     if st.absolute {
-        x = blk.get(b'X').map_or(st.pos[0], |v| v * scale);
-        y = blk.get(b'Y').map_or(st.pos[1], |v| v * scale);
+        if blk.mask & POLAR_MASK != 0 {
+            (x, y) = polar_xy(blk, true, st.pos, scale)?;
+        } else {
+            x = blk.get(b'X').map_or(st.pos[0], |v| v * scale);
+            y = blk.get(b'Y').map_or(st.pos[1], |v| v * scale);
+        }
         (dx, dy) = (0.0, 0.0);
         r = r_word;
         bottom = z_word;
     } else {
         dx = blk.get(b'X').map_or(0.0, |v| v * scale);
         dy = blk.get(b'Y').map_or(0.0, |v| v * scale);
+        if blk.mask & (1 << POLAR_R) != 0 {
+            dr = blk.vals[POLAR_R] * scale;
+        }
+        if blk.mask & (1 << POLAR_A) != 0 {
+            da = blk.vals[POLAR_A].to_radians();
+        }
         (x, y) = (st.pos[0], st.pos[1]);
         r = r_word + old_z;
         bottom = r + z_word;
@@ -1860,6 +1948,16 @@ fn canned_cycle(
     for k in 0..repeats as u64 {
         x += dx;
         y += dy;
+        if dr != 0.0 || da != 0.0 {
+            if x == 0.0 && y == 0.0 {
+                return Err(invalid(
+                    here,
+                    "incremental polar move at the origin (no angle to start from)".to_string(),
+                ));
+            }
+            let (rad, ang) = (x.hypot(y) + dr, y.atan2(x) + da);
+            (x, y) = (rad * ang.cos(), rad * ang.sin());
+        }
         if k == 0 && current_z > r {
             rapid(queue, &mut at, [x, y, current_z]);
             rapid(queue, &mut at, [x, y, r]);
@@ -1915,6 +2013,88 @@ fn canned_cycle(
     cyc.q = q;
     cyc.p = dwell;
     Ok([x, y, clear])
+}
+
+/// M72 / M73's return: back to the saved units, distance modes, plane, feed,
+/// speed, spindle, coolant, work system and motion mode (position, stored
+/// G28/G30 positions and tool stay), with the events a change needs.
+#[cold]
+fn restore_modal(cfg: &Config, queue: &mut Queue, st: &mut State, saved: &State, line: u32) {
+    if saved.coord != st.coord {
+        let old = cfg.work_offsets[st.coord as usize];
+        let new = cfg.work_offsets[saved.coord as usize];
+        for i in 0..3 {
+            st.pos[i] += old[i] - new[i];
+        }
+        queue.push_back(Motion::WorkOffset {
+            line,
+            system: saved.coord + 1,
+        });
+    }
+    if saved.spindle != st.spindle || saved.rpm != st.rpm {
+        queue.push_back(Motion::Spindle {
+            line,
+            direction: saved.spindle,
+            rpm: saved.rpm,
+        });
+    }
+    if saved.mist != st.mist || saved.flood != st.flood {
+        queue.push_back(Motion::Coolant {
+            line,
+            mist: saved.mist,
+            flood: saved.flood,
+        });
+    }
+    let (pos, tool, g28, g30) = (st.pos, st.tool, st.g28, st.g30);
+    *st = *saved;
+    st.pos = pos;
+    st.tool = tool;
+    st.g28 = g28;
+    st.g30 = g30;
+}
+
+/// X and Y of a move written with LinuxCNC's polar words (`@` radius, `^`
+/// angle in degrees, about the origin; interp_find.cc `find_ends`).
+#[cold]
+fn polar_xy(blk: &Block, absolute: bool, pos: Point, scale: f64) -> Result<(f64, f64), LexError> {
+    let at = first_of(blk, POLAR_MASK);
+    if blk.has(b'X') || blk.has(b'Y') {
+        return Err((
+            at,
+            ErrorKind::Invalid,
+            "X or Y words with polar coordinates (@ ^)".to_string(),
+        ));
+    }
+    let r_word = (blk.mask & (1 << POLAR_R) != 0).then(|| blk.vals[POLAR_R] * scale);
+    let a_word = (blk.mask & (1 << POLAR_A) != 0).then(|| blk.vals[POLAR_A].to_radians());
+    let (x, y) = (pos[0], pos[1]);
+    let at_origin = x == 0.0 && y == 0.0;
+    let (r, a) = if absolute {
+        if a_word.is_none() && at_origin {
+            return Err((
+                at,
+                ErrorKind::Invalid,
+                "polar radius without an angle at the origin".to_string(),
+            ));
+        }
+        (
+            r_word.unwrap_or_else(|| x.hypot(y)),
+            a_word.unwrap_or_else(|| y.atan2(x)),
+        )
+    } else {
+        if at_origin {
+            return Err((
+                at,
+                ErrorKind::Invalid,
+                "incremental polar move at the origin (no angle to start from)".to_string(),
+            ));
+        }
+        (
+            x.hypot(y) + r_word.unwrap_or(0.0),
+            y.atan2(x) + a_word.unwrap_or(0.0),
+        )
+    };
+    Ok((r * a.cos(), r * a.sin()))
 }
 
 #[inline]
@@ -2266,7 +2446,7 @@ fn lenient_scan(b: &[u8]) -> Scan {
 /// Byte offset of the first present word among `mask` (0 if none).
 fn first_of(blk: &Block, mask: u32) -> usize {
     let mut best = u32::MAX;
-    for i in 0..26 {
+    for i in 0..28 {
         if blk.mask & mask & (1 << i) != 0 {
             best = best.min(blk.pos[i]);
         }

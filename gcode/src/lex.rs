@@ -11,8 +11,9 @@ pub(crate) const MAX_M: usize = 8;
 /// Words of one line. Values of letters are indexed by `letter - b'A'`;
 /// `mask` says which letters are present. Positions are byte offsets.
 pub(crate) struct Block {
-    pub vals: [f64; 26],
-    pub pos: [u32; 26],
+    /// Letters A..Z, then `@` (polar radius) and `^` (polar angle).
+    pub vals: [f64; 28],
+    pub pos: [u32; 28],
     pub mask: u32,
     /// G codes as value * 10 (G90.1 -> 901), with byte offset.
     pub g: [(u16, u32); MAX_G],
@@ -32,8 +33,8 @@ pub(crate) struct Block {
 impl Block {
     pub fn new() -> Self {
         Block {
-            vals: [0.0; 26],
-            pos: [0; 26],
+            vals: [0.0; 28],
+            pos: [0; 28],
             mask: 0,
             g: [(0, 0); MAX_G],
             ng: 0,
@@ -61,6 +62,11 @@ impl Block {
         self.pos[(letter - b'A') as usize]
     }
 }
+
+/// Slots of LinuxCNC's polar words in [`Block`].
+pub(crate) const POLAR_R: usize = 26;
+pub(crate) const POLAR_A: usize = 27;
+pub(crate) const POLAR_MASK: u32 = (1 << POLAR_R) | (1 << POLAR_A);
 
 #[inline]
 pub(crate) const fn bit(letter: u8) -> u32 {
@@ -377,6 +383,31 @@ pub(crate) fn lex_line(
         match c {
             b' ' | b'\t' | b'\r' => i += 1,
             b';' => break,
+            b'@' | b'^' => {
+                // LinuxCNC polar coordinates: @radius ^angle (degrees).
+                let at = i;
+                let idx = if c == b'@' { POLAR_R } else { POLAR_A };
+                i += 1;
+                let after = i;
+                let v = match parse_number(b, &mut i) {
+                    Ok(v) => v,
+                    Err(e) => {
+                        i = after;
+                        blk.special = true;
+                        word_value(b, &mut i, params, sys).ok_or((at, e.1, e.2))??
+                    }
+                };
+                if blk.mask & (1 << idx) != 0 {
+                    return Err((
+                        at,
+                        ErrorKind::Invalid,
+                        format!("{} word repeated on one line", c as char),
+                    ));
+                }
+                blk.mask |= 1 << idx;
+                blk.vals[idx] = v;
+                blk.pos[idx] = at as u32;
+            }
             b'(' => {
                 let rest = &b[i + 1..];
                 let Some(close) = rest.iter().position(|&x| x == b')' || x == b'(') else {

@@ -138,3 +138,36 @@ fn g92_and_g52_shift_the_origin_and_the_analysis_shows_it() {
     let e = err("G10 L2 P1 X5\n");
     assert_eq!(e.kind, ErrorKind::Unsupported);
 }
+
+#[test]
+fn polar_coordinates_about_the_origin() {
+    let close = |a: Point, b: Point| (0..3).all(|i| (a[i] - b[i]).abs() < 1e-9);
+    let ends: Vec<Point> = run("G0 X2 Y0\n^90\n@1\nG91 ^90\n@1\n")
+        .unwrap()
+        .iter()
+        .filter_map(Motion::end_point)
+        .collect();
+    let want = [
+        [2.0, 0.0, 0.0],
+        [0.0, 2.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [-1.0, 0.0, 0.0],
+        [-2.0, 0.0, 0.0],
+    ];
+    assert!(ends.iter().zip(want).all(|(a, b)| close(*a, b)), "{ends:?}");
+    // Holes on a circle: G91 ^ steps the angle on every L repeat.
+    let m = run("G0 X1 Y0 Z1 F100\nG91 G81 ^90 R-0.5 Z-1 L4\n").unwrap();
+    let holes: Vec<Point> = m
+        .iter()
+        .filter_map(|m| match m {
+            Motion::Linear { to, .. } => Some(*to),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(holes.len(), 4);
+    assert!(close(holes[3], [1.0, 0.0, -0.5]), "{holes:?}");
+    let e = err("G0 X1 @2\n");
+    assert!(e.message.contains("polar"), "{e}");
+    let e = err("G0 @2\n");
+    assert_eq!((e.line, e.column), (1, 4));
+}

@@ -238,3 +238,51 @@ fn linuxcnc_only_syntax_is_reported_by_line() {
     assert_eq!(line("G0 X1\n(debug, hi)\n"), Some(2));
     assert_eq!(line("G0 X[EXISTS[#<a>]]\n"), Some(1));
 }
+
+#[test]
+fn modal_state_save_restore_and_m61() {
+    // M70 saves, M72 restores (units, distance mode, feed), M71 forgets.
+    let m: Vec<Motion> = Interpreter::new(
+        "G21 G90 F200\nM70\nG20 G91 F10\nG1 X1\nM72\nG1 X5\nM71\n".as_bytes(),
+        Config::default(),
+    )
+    .collect::<Result<_, _>>()
+    .unwrap();
+    match (&m[0], &m[1]) {
+        (
+            Motion::Linear {
+                to: a,
+                feed_mm_min: fa,
+                ..
+            },
+            Motion::Linear {
+                to: b,
+                feed_mm_min: fb,
+                ..
+            },
+        ) => {
+            assert_eq!((a[0], *fa), (25.4, 254.0));
+            assert_eq!((b[0], *fb), (5.0, 200.0), "absolute mm at F200 again");
+        }
+        other => panic!("{other:?}"),
+    }
+    let e = err("M72\n");
+    assert!(e.message.contains("M70"), "{e}");
+    // M73 restores when the subroutine returns.
+    assert_eq!(
+        xs("o1 sub\nM73\nG91\no1 endsub\nG0 X1\no1 call\nG0 X1\n"),
+        vec![1.0, 1.0]
+    );
+    // M61 Q sets the tool without a change; G43 then uses it.
+    let m: Vec<Motion> = Interpreter::new("M61 Q4\nG43\n".as_bytes(), Config::default())
+        .collect::<Result<_, _>>()
+        .unwrap();
+    assert_eq!(
+        m,
+        vec![Motion::ToolLengthOffset {
+            line: 2,
+            tool: Some(4)
+        }]
+    );
+    assert!(err("M61\n").message.contains("M61"));
+}
