@@ -124,6 +124,13 @@ const POW10: [f64; 23] = [
 /// division), anything longer goes through `str::parse`.
 #[inline]
 pub(crate) fn parse_number(b: &[u8], i: &mut usize) -> Result<f64, LexError> {
+    parse_number_hot(b, i)
+}
+
+/// [`parse_number`], always inlined: for the one hot call site, the words of
+/// a line in [`lex_line`].
+#[inline(always)]
+fn parse_number_hot(b: &[u8], i: &mut usize) -> Result<f64, LexError> {
     // Fast path for the common shape `[-+]digits[.digits]` with no blanks
     // inside; anything else goes to the general scanner below.
     let mut j = *i;
@@ -340,7 +347,7 @@ pub(crate) fn lex_line(
             i += 1;
             // Report number errors at the word's letter.
             let after = i;
-            let v = match parse_number(b, &mut i) {
+            let v = match parse_number_hot(b, &mut i) {
                 Ok(v) => v,
                 Err(e) => {
                     i = after;
@@ -383,31 +390,7 @@ pub(crate) fn lex_line(
         match c {
             b' ' | b'\t' | b'\r' => i += 1,
             b';' => break,
-            b'@' | b'^' => {
-                // LinuxCNC polar coordinates: @radius ^angle (degrees).
-                let at = i;
-                let idx = if c == b'@' { POLAR_R } else { POLAR_A };
-                i += 1;
-                let after = i;
-                let v = match parse_number(b, &mut i) {
-                    Ok(v) => v,
-                    Err(e) => {
-                        i = after;
-                        blk.special = true;
-                        word_value(b, &mut i, params, sys).ok_or((at, e.1, e.2))??
-                    }
-                };
-                if blk.mask & (1 << idx) != 0 {
-                    return Err((
-                        at,
-                        ErrorKind::Invalid,
-                        format!("{} word repeated on one line", c as char),
-                    ));
-                }
-                blk.mask |= 1 << idx;
-                blk.vals[idx] = v;
-                blk.pos[idx] = at as u32;
-            }
+            b'@' | b'^' => polar_word(b, &mut i, blk, params, sys)?,
             b'(' => {
                 let rest = &b[i + 1..];
                 let Some(close) = rest.iter().position(|&x| x == b')' || x == b'(') else {
@@ -455,6 +438,43 @@ pub(crate) fn lex_line(
         }
     }
     Ok(LineKind::Words)
+}
+
+/// LinuxCNC's polar words: `@radius`, `^angle` (degrees). Out of line so
+/// that the number parser stays inlined in the letter path.
+#[cold]
+#[inline(never)]
+fn polar_word(
+    b: &[u8],
+    i: &mut usize,
+    blk: &mut Block,
+    params: &mut Params,
+    sys: &dyn Fn() -> SysView,
+) -> Result<(), LexError> {
+    let at = *i;
+    let c = b[at];
+    let idx = if c == b'@' { POLAR_R } else { POLAR_A };
+    *i += 1;
+    let after = *i;
+    let v = match parse_number(b, i) {
+        Ok(v) => v,
+        Err(e) => {
+            *i = after;
+            blk.special = true;
+            word_value(b, i, params, sys).ok_or((at, e.1, e.2))??
+        }
+    };
+    if blk.mask & (1 << idx) != 0 {
+        return Err((
+            at,
+            ErrorKind::Invalid,
+            format!("{} word repeated on one line", c as char),
+        ));
+    }
+    blk.mask |= 1 << idx;
+    blk.vals[idx] = v;
+    blk.pos[idx] = at as u32;
+    Ok(())
 }
 
 /// The value of a word that is not a plain number: `X[..]`, `X#1`, `X-#<a>`,
