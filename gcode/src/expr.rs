@@ -278,9 +278,17 @@ fn read_param(b: &[u8], i: &mut usize, p: &mut Params) -> Result<f64, LexError> 
         p.named_used = true;
         let mut name = std::mem::take(&mut p.name_buf);
         let r = read_name(b, i, &mut name).map(|()| p.get_named(&name));
-        let msg = format!("named parameter #<{name}> is not defined");
+        let r = match r {
+            Ok(Some(v)) => Ok(v),
+            Ok(None) => Err(err(
+                at,
+                ErrorKind::Invalid,
+                format!("named parameter #<{name}> is not defined"),
+            )),
+            Err(e) => Err(e),
+        };
         p.name_buf = name;
-        return r?.ok_or_else(|| err(at, ErrorKind::Invalid, msg));
+        return r;
     }
     let v = real_value(b, i, p)?;
     Ok(p.get_numbered(param_index(v, at)?))

@@ -216,11 +216,12 @@ fn parse_number_general(b: &[u8], i: &mut usize) -> Result<f64, LexError> {
         j += 1;
     }
     if !seen_digit {
-        let kind = match b.get(j) {
-            Some(b'#' | b'[') => ErrorKind::Unsupported,
-            _ => ErrorKind::Syntax,
-        };
-        return Err((start, kind, number_expected(b, j)));
+        // An expression or parameter follows: the caller evaluates it, so
+        // no message is built (this is the parametric programs' hot path).
+        if matches!(b.get(j), Some(b'#' | b'[')) {
+            return Err((start, ErrorKind::Syntax, String::new()));
+        }
+        return Err((start, ErrorKind::Syntax, number_expected(b, j)));
     }
     *i = j;
     if !overflow && mant < (1u64 << 53) && (frac as usize) < POW10.len() {
@@ -254,8 +255,6 @@ fn slow_number(text: &[u8], start: usize) -> Result<f64, LexError> {
 #[cold]
 fn number_expected(b: &[u8], j: usize) -> String {
     match b.get(j) {
-        Some(b'#') => "numbered parameters (#) are not supported".to_string(),
-        Some(b'[') => "expressions ([...]) are not supported".to_string(),
         Some(&c) if c.is_ascii_graphic() => format!("expected a number, found '{}'", c as char),
         _ => "expected a number".to_string(),
     }
