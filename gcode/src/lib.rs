@@ -8,8 +8,10 @@
 //! * [`linearise`] turns arcs into chords within a tolerance with exact endpoints.
 //! * [`analyse`] computes bounds, lengths and a feed-based run-time estimate.
 //!
-//! The dialect is the common subset of grbl and LinuxCNC; see the crate README
-//! for the full list of words and the rules that are applied.
+//! The dialect is the common ground of grbl and LinuxCNC plus LinuxCNC's
+//! parameters, expressions, O-word control flow, canned cycles and G92/G52,
+//! checked against LinuxCNC's `rs274` (tests/conformance.rs); see the crate
+//! README for the full list of words and the rules that are applied.
 //!
 //! ```
 //! use fresa_gcode::{analyse, linearise, AnalysisOptions, Config, Interpreter, Motion};
@@ -59,8 +61,8 @@ use serde::{Deserialize, Serialize};
 /// X, Y, Z in millimetres.
 pub type Point = [f64; 3];
 
-/// What to do with words the interpreter does not implement (O-words, `#`
-/// parameters, expressions, canned cycles, cutter compensation, ...).
+/// What to do with words the interpreter does not implement (cutter
+/// compensation, G10, splines, A/B/C axes, probing, ...).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub enum Unsupported {
     /// Stop with a [`GcodeError`] naming line and column (default: never guess).
