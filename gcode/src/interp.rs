@@ -91,6 +91,13 @@ impl Queue {
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum FeedMode {
+    PerMinute,
+    InverseTime,
+    PerRevolution,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum MotionMode {
     /// G80, or nothing programmed yet: axis words are an error.
     None,
@@ -130,6 +137,9 @@ struct State {
     /// Last F word in mm/min, converted with the units of its own line: a
     /// later G20/G21 keeps the physical feed (grbl; LinuxCNC rescales it).
     feed: Option<f64>,
+    /// G94 (units per minute), G93 (inverse time: F is 1/minutes, on every
+    /// feed line), G95 (units per spindle revolution).
+    feed_mode: FeedMode,
     rpm: f64,
     spindle: SpindleDirection,
     mist: bool,
@@ -151,6 +161,7 @@ impl State {
             absolute: true,
             arc_absolute: false,
             feed: None,
+            feed_mode: FeedMode::PerMinute,
             rpm: 0.0,
             spindle: SpindleDirection::Off,
             mist: false,
@@ -1203,17 +1214,18 @@ impl<R: BufRead> Interpreter<R> {
         let has_ijk = blk.mask & ijk_mask != 0;
         let has_r = blk.has(b'R');
 
-        if let Some((code, off)) = g_feedmode {
-            if code != 940 {
-                return Err(unsupported_g(
-                    code,
-                    off,
-                    if code == 930 {
-                        "inverse-time feed is not implemented; use G94 units per minute"
-                    } else {
-                        "feed per revolution is not implemented; use G94 units per minute"
-                    },
-                ));
+        if let Some((code, _)) = g_feedmode {
+            let mode = match code {
+                930 => FeedMode::InverseTime,
+                950 => FeedMode::PerRevolution,
+                _ => FeedMode::PerMinute,
+            };
+            // A feed of another mode means something else: it must be given
+            // again (LinuxCNC zeroes it). G94 in G94 keeps it (grbl; LinuxCNC
+            // would zero it too, refusing a later F-less feed move).
+            if mode != st.feed_mode {
+                st.feed_mode = mode;
+                st.feed = None;
             }
         }
         if let Some((code, off)) = g_cutter {
@@ -1381,7 +1393,12 @@ impl<R: BufRead> Interpreter<R> {
                     "negative feed rate".to_string(),
                 ));
             }
-            st.feed = Some(f * scale);
+            // Inverse time is 1/minutes, no length: not scaled by G20.
+            st.feed = Some(if st.feed_mode == FeedMode::InverseTime {
+                f
+            } else {
+                f * scale
+            });
         }
         // 4. spindle speed
         let s_word = blk.get(b'S');
@@ -1656,7 +1673,10 @@ impl<R: BufRead> Interpreter<R> {
                     });
                 }
                 MotionMode::Linear => {
-                    let feed = feed_mm_min(&st, blk)?;
+                    let mut feed = feed_mm_min(&st, blk)?;
+                    if st.feed_mode != FeedMode::PerMinute {
+                        feed = feed_in_mode(&st, blk, feed, len3(st.pos, target))?;
+                    }
                     queue.push_back(Motion::Linear {
                         line,
                         from: st.pos,
@@ -1674,7 +1694,7 @@ impl<R: BufRead> Interpreter<R> {
                         ));
                     }
                     let feed = feed_mm_min(&st, blk)?;
-                    let m = arc_motion_of(
+                    let mut m = arc_motion_of(
                         &self.cfg,
                         &st,
                         blk,
@@ -1684,6 +1704,14 @@ impl<R: BufRead> Interpreter<R> {
                         scale,
                         line,
                     )?;
+                    if st.feed_mode != FeedMode::PerMinute {
+                        let length =
+                            crate::ArcGeometry::from_motion(&m).map_or(0.0, |g| g.length());
+                        let f = feed_in_mode(&st, blk, feed, length)?;
+                        if let Motion::Arc { feed_mm_min, .. } = &mut m {
+                            *feed_mm_min = f;
+                        }
+                    }
                     queue.push_back(m);
                 }
                 MotionMode::Cycle(code) => {
@@ -1781,6 +1809,43 @@ impl<R: BufRead> Interpreter<R> {
     }
 }
 
+#[inline]
+fn len3(a: Point, b: Point) -> f64 {
+    let (dx, dy, dz) = (b[0] - a[0], b[1] - a[1], b[2] - a[2]);
+    (dx * dx + dy * dy + dz * dz).sqrt()
+}
+
+/// mm/min of a feed move in G93 (F = 1/minutes for this move of `length`
+/// mm, F required on the line) or G95 (F mm per revolution x spindle speed).
+#[cold]
+fn feed_in_mode(st: &State, blk: &Block, feed: f64, length: f64) -> Result<f64, LexError> {
+    let at = first_of(blk, bit(b'X') | bit(b'Y') | bit(b'Z') | bit(b'F'));
+    match st.feed_mode {
+        FeedMode::InverseTime => {
+            if !blk.has(b'F') {
+                return Err((
+                    at,
+                    ErrorKind::Invalid,
+                    "inverse-time feed (G93) needs F on every feed move".to_string(),
+                ));
+            }
+            // A move of no length takes no time at any rate.
+            Ok(if length > 0.0 { length * feed } else { feed })
+        }
+        FeedMode::PerRevolution => {
+            if st.spindle == SpindleDirection::Off || st.rpm <= 0.0 {
+                return Err((
+                    at,
+                    ErrorKind::Invalid,
+                    "feed per revolution (G95) with the spindle stopped".to_string(),
+                ));
+            }
+            Ok(feed * st.rpm)
+        }
+        FeedMode::PerMinute => Ok(feed),
+    }
+}
+
 /// Most moves one canned-cycle line may make (pecks x repeats): bounds the
 /// memory a line like `G83 Q0.000001 L100000` could take.
 const MAX_CYCLE_MOVES: f64 = 1_000_000.0;
@@ -1816,6 +1881,16 @@ fn canned_cycle(
                 format!("{name} with no feed rate (F) programmed"),
             ))
         }
+    };
+    let feed = match st.feed_mode {
+        FeedMode::PerMinute => feed,
+        FeedMode::InverseTime => {
+            return Err(invalid(
+                here,
+                format!("{name} in inverse-time feed (G93): LinuxCNC refuses it too"),
+            ))
+        }
+        FeedMode::PerRevolution => feed_in_mode(st, blk, feed, 0.0)?,
     };
     if first && !blk.has(b'Z') {
         return Err(invalid(

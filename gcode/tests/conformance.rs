@@ -174,6 +174,8 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
                                 // rs274 prints program coordinates (G92/G52 offset taken off); Fresa's
                                 // motions are in the work system's frame (offset included).
     let mut g92 = [0.0; 3];
+    // G95: rs274 prints the feed per revolution; Fresa's motions carry mm/min.
+    let (mut per_rev, mut rpm) = (false, 0.0);
     let mut plane = 0u8;
     let mut moves = Vec::new();
     let mut other = Vec::new();
@@ -199,6 +201,8 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
                 }
                 scale = new;
             }
+            "SET_FEED_MODE" => per_rev = a.get(1) == Some(&"1"),
+            "SET_SPINDLE_SPEED" => rpm = num(a[1]),
             "SET_G92_OFFSET" => {
                 g92 = [num(a[0]) * scale, num(a[1]) * scale, num(a[2]) * scale];
             }
@@ -223,6 +227,7 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
                 if a.len() > 3 && a[3..6].iter().any(|v| num(v) != 0.0) {
                     other.push(format!("{name} with A/B/C"));
                 }
+                let feed = if per_rev { feed * rpm } else { feed };
                 moves.push(if name == "STRAIGHT_FEED" {
                     Canon::Feed { to, feed }
                 } else {
@@ -256,7 +261,7 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
                     centre: [c1, c2],
                     plane,
                     rotation: rot,
-                    feed,
+                    feed: if per_rev { feed * rpm } else { feed },
                 });
             }
             "STRAIGHT_PROBE" | "NURBS_FEED" | "RIGID_TAP" => other.push(name.to_string()),

@@ -171,3 +171,40 @@ fn polar_coordinates_about_the_origin() {
     let e = err("G0 @2\n");
     assert_eq!((e.line, e.column), (1, 4));
 }
+
+#[test]
+fn inverse_time_and_feed_per_revolution_become_mm_per_minute() {
+    let feeds = |src: &str| -> Vec<f64> {
+        run(src)
+            .unwrap()
+            .iter()
+            .filter_map(|m| match m {
+                Motion::Linear { feed_mm_min, .. } | Motion::Arc { feed_mm_min, .. } => {
+                    Some(*feed_mm_min)
+                }
+                _ => None,
+            })
+            .collect()
+    };
+    // G93: 10 mm in 1/2 minute = 20 mm/min; a half circle of radius 5 in 1/3 minute.
+    let f = feeds("G93 G1 X10 F2\nG2 X20 I5 F3\n");
+    assert_eq!(f[0], 20.0);
+    assert!(
+        (f[1] - 5.0 * std::f64::consts::PI * 3.0).abs() < 1e-9,
+        "{f:?}"
+    );
+    // G95: 0.1 mm per revolution at 1000 rpm; inch F is per revolution too.
+    assert_eq!(
+        feeds("S1000 M3 G95 F0.1\nG1 X10\nG20 G1 X1 F0.004\n"),
+        vec![100.0, 0.004 * 25.4 * 1000.0]
+    );
+    // A new feed mode needs a new F; G94 in G94 keeps it.
+    assert!(err("G1 X1 F100\nG95\nS100 M3\nG1 X2\n")
+        .message
+        .contains("no feed rate"));
+    assert_eq!(feeds("G94 F100\nG94\nG1 X1\n"), vec![100.0]);
+    let e = err("G95 F0.1\nG1 X1\n");
+    assert!(e.message.contains("spindle stopped"), "{e}");
+    let e = err("G0 Z5\nG93 G81 X1 Z-1 R1 F2\n");
+    assert!(e.message.contains("inverse-time"), "{e}");
+}

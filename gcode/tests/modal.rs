@@ -296,8 +296,12 @@ fn path_control_and_retract_modes_are_accepted() {
 
 #[test]
 fn inverse_time_and_unsupported_words_are_clear_errors() {
-    let e = err("G1 X1 F1\nG93\n");
-    assert_eq!((e.line, e.column, e.kind), (2, 1, ErrorKind::Unsupported));
+    // G93/G95 run (tests/cycles.rs); G93 needs F on each feed move.
+    let e = err("G1 X1 F1\nG93 G1 X2\n");
+    assert_eq!((e.line, e.column, e.kind), (2, 8, ErrorKind::Invalid));
+    assert!(e.message.contains("no feed rate"), "{e}");
+    let e = err("G93 G1 X1 F2\nG1 X2\n");
+    assert_eq!((e.line, e.column), (2, 4));
     assert!(e.message.contains("inverse-time"), "{e}");
     // O-words, parameters and expressions are interpreted (tests/params.rs);
     // their errors are syntax errors, not "unsupported".
