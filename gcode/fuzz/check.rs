@@ -31,9 +31,7 @@ pub fn interp(data: &[u8]) {
     };
     // Loops and subroutines go back to earlier lines; without O-words or M98
     // the line numbers never decrease.
-    let may_jump = text
-        .iter()
-        .any(|&c| c == b'o' || c == b'O' || c == b'9');
+    let may_jump = text.iter().any(|&c| c == b'o' || c == b'O' || c == b'9');
     let mut it = Interpreter::new(text, cfg.clone());
     let mut last_line = 0u32;
     let mut n = 0;
