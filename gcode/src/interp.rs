@@ -404,12 +404,24 @@ impl<R: BufRead> Interpreter<R> {
         if !self.read_line()? {
             return Ok(false);
         }
-        self.keep_line();
+        self.keep_line()?;
         Ok(true)
     }
 
-    /// Keeps the current (just read) line for later jumps.
-    fn keep_line(&mut self) {
+    /// Keeps the current (just read) line for later jumps, within
+    /// `Config::max_kept_program_bytes`.
+    fn keep_line(&mut self) -> Result<(), GcodeError> {
+        if self.flow.prog.text.len() + self.line.len() > self.cfg.max_kept_program_bytes {
+            return Err(GcodeError {
+                line: self.line_no,
+                column: 1,
+                kind: ErrorKind::Io,
+                message: format!(
+                    "a program with O-words or M98 is kept in memory, and this one is longer than {} bytes (Config::max_kept_program_bytes)",
+                    self.cfg.max_kept_program_bytes
+                ),
+            });
+        }
         let f = &mut self.flow;
         f.buffering = true;
         let s = f.prog.text.len();
@@ -417,6 +429,7 @@ impl<R: BufRead> Interpreter<R> {
         f.prog.lines.push((self.line_no, s, f.prog.text.len()));
         f.cur = f.prog.lines.len() - 1;
         f.pc = f.prog.lines.len();
+        Ok(())
     }
 
     #[cold]
@@ -618,7 +631,7 @@ impl<R: BufRead> Interpreter<R> {
     /// Runs the O-word at `self.line[at]`.
     fn oword(&mut self, at: usize) -> Result<(), GcodeError> {
         if !self.flow.buffering {
-            self.keep_line();
+            self.keep_line()?;
         }
         self.params.sys = sys_view(&self.st, self.g92, self.g92_saved);
         let o = flow::parse(&self.line, at).map_err(|e| self.err_at(e))?;
@@ -893,7 +906,7 @@ impl<R: BufRead> Interpreter<R> {
             )));
         }
         if !self.flow.buffering {
-            self.keep_line();
+            self.keep_line()?;
         }
         if code == 990 {
             let Some(f) = self.flow.frames.last_mut().filter(|f| f.m98_left.is_some()) else {

@@ -123,6 +123,10 @@ pub struct Config {
     /// more is an error naming the line, so a runaway loop cannot hang an
     /// upload check. Default 10,000,000.
     pub max_loop_iterations: u64,
+    /// Loops and calls need the program text again: from the first O-word
+    /// or M98 on, the lines read are kept in memory, at most this many bytes
+    /// (more is an error naming the line). Default 256 MiB.
+    pub max_kept_program_bytes: usize,
 }
 
 impl Default for Config {
@@ -144,6 +148,7 @@ impl Default for Config {
             max_warnings: 1000,
             max_call_depth: 10,
             max_loop_iterations: 10_000_000,
+            max_kept_program_bytes: 256 * 1024 * 1024,
         }
     }
 }

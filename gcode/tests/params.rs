@@ -193,7 +193,7 @@ fn limits_are_errors_not_hangs() {
     let e = err_cfg("o1 while [1]\nG0 X1\no1 endwhile\n", cfg.clone());
     assert_eq!(e.line, 3);
     assert!(e.message.contains("max_loop_iterations"), "{e}");
-    let e = err_cfg("o1 sub\no1 call\no1 endsub\no1 call\n", cfg);
+    let e = err_cfg("o1 sub\no1 call\no1 endsub\no1 call\n", cfg.clone());
     assert_eq!(e.line, 2);
     assert!(e.message.contains("max_call_depth"), "{e}");
     // Unclosed blocks and missing subroutines name what is open.
@@ -207,6 +207,15 @@ fn limits_are_errors_not_hangs() {
     assert_eq!((e.line, e.column), (1, 4));
     let e = err("o1 if [1] G0 X1\n");
     assert_eq!((e.line, e.column), (1, 11));
+    // The text kept for jumps is bounded too.
+    let small = Config {
+        max_kept_program_bytes: 64,
+        ..Config::default()
+    };
+    let long = format!("o1 repeat [2]\n{}o1 endrepeat\n", "G0 X1\n".repeat(20));
+    let e = err_cfg(&long, small);
+    assert_eq!(e.kind, ErrorKind::Io);
+    assert!(e.message.contains("max_kept_program_bytes"), "{e}");
 }
 
 #[test]
