@@ -223,8 +223,8 @@ fn bad_uploads_are_refused_and_leave_no_job_and_no_file() {
     f.assert_untouched("sha256 mismatch");
 
     for (program, code_pos) in [
-        ("G21\nG1 X1 #5=3\n", "line 2, column 7"),
-        ("G21\nO100 sub\nG0 X1\nO100 endsub\n", "line 2, column 1"),
+        ("G21\nG0 X[1/0]\n", "line 2, column 7"),
+        ("G21\nO100 endwhile\nG0 X1\n", "line 2, column 1"),
         ("G0 X1\nG1 X2 X3\n", "line 2, column 7"),
         ("G0 X1\nG1 XA\n", "line 2, column 4"),
     ] {

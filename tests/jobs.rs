@@ -268,3 +268,35 @@ fn the_next_job_starts_as_soon_as_the_last_one_completed() {
         s.wait_job_state(id, "completed", T);
     }
 }
+
+/// A LinuxCNC-style program (a loop, a canned cycle, G92) is accepted by the upload check, its
+/// stored analysis shows the origin change, and the machine ends where rs274 would put it.
+#[test]
+fn a_linuxcnc_style_program_with_a_loop_a_cycle_and_g92_runs() {
+    let s = Server::start();
+    let m = s.sim("m", 0.0);
+    let program = "G21 G90 F600\nG0 X10 Y0 Z5\nG92 X0\n#1 = 0\n\
+                   o1 while [#1 LT 3]\n  G81 X[#1 * 5] Y0 Z-1 R1\n  #1 = [#1 + 1]\no1 endwhile\n\
+                   G80\nG0 X20 Z10\nM2\n";
+    let up = s.upload(m.id, "linuxcnc", program);
+    let a = &up["analysis"];
+    assert_eq!(a["offset_change_count"], 1, "{a}");
+    assert_eq!(a["offset_changes"][0]["command"], "G92", "{a}");
+    assert_eq!(a["offset_changes"][0]["line"], 3, "{a}");
+    assert_eq!(a["offset_changes"][0]["offset"][0], 10.0, "{a}");
+    // Three holes at work X 10, 15, 20 (G92 X0 at X10), each one feed from R1 down to Z-1.
+    assert_eq!(a["linear_moves"], 3, "{a}");
+    assert_eq!(a["cutting_bounds"]["min"][2], -1.0, "{a}");
+    assert_eq!(a["cutting_bounds"]["min"][0], 10.0, "{a}");
+    assert_eq!(a["cutting_bounds"]["max"][0], 20.0, "{a}");
+    let job = s.job(up["id"].as_i64().unwrap());
+    assert_eq!(job["analysis"]["offset_change_count"], 1, "stored: {job}");
+
+    let id = up["id"].as_i64().unwrap();
+    s.job_action(id, "start").expect(200);
+    s.wait_job_state(id, "completed", T);
+    // G0 X20 after G92 X0 (set at X10) ends at work X30.
+    let st = s.status(m.id);
+    assert_eq!(st["work_position"]["x"], 30.0, "{st}");
+    assert_eq!(st["work_position"]["z"], 10.0, "{st}");
+}

@@ -256,6 +256,20 @@ fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode() {
     let j = s.wait_job_state(job, "completed", T);
     assert_eq!(j["line"], 5, "{j}");
     assert_eq!(dro(&mut mach, 800), 2.0);
+
+    // LinuxCNC's O-word control flow passes the upload check, but Mach3 gets the
+    // text itself and does not run it: refused naming the line, before anything moves.
+    let job = s.upload(m, "o-words", "G21 G90\no1 if [1]\nG1 X3 F600\no1 endif\n")["id"]
+        .as_i64()
+        .unwrap();
+    let r = s.job_action(job, "start");
+    assert!(r.status >= 400, "{r:?}");
+    assert!(
+        r.text.contains("line 2") && r.text.contains("LinuxCNC-only"),
+        "{}",
+        r.text
+    );
+    assert_eq!(dro(&mut mach, 800), 2.0, "nothing moved");
 }
 
 #[test]

@@ -383,6 +383,82 @@ fn main() {
         ));
     }
     println!("{row}");
+    parametric(budget, smoke);
+}
+
+/// Parametric programs (O-word loops, expressions) from LinuxCNC's samples:
+/// lines executed per second (a loop body counts every pass), side by side
+/// with LinuxCNC's own `rs274 -g` on the same file (a separate process, so
+/// its time includes start-up; best of 3 wall-clock runs).
+fn parametric(budget: Duration, smoke: bool) {
+    let dir = std::path::Path::new("/usr/share/linuxcnc/ncfiles");
+    let files = ["3D_Chips.ngc", "flowsnake.ngc"];
+    if !dir.is_dir() {
+        println!("\n(parametric programs skipped: /usr/share/linuxcnc/ncfiles missing; apt-get install linuxcnc-uspace)");
+        return;
+    }
+    println!();
+    println!(
+        "## Parametric programs (best of 3 rounds of {:.1} s, one core)",
+        budget.as_secs_f64()
+    );
+    println!();
+    println!("| file | source lines | lines executed | motions | fresa interpret | rs274 -g (process, best of 3) | ratio |");
+    println!("|---|---:|---:|---:|---:|---:|---:|");
+    for name in files {
+        let path = dir.join(name);
+        let Ok(src) = std::fs::read(&path) else {
+            continue;
+        };
+        let run = || {
+            let mut it = Interpreter::new(&src[..], Config::default());
+            let mut n = 0u64;
+            for m in it.by_ref() {
+                black_box(m.unwrap());
+                n += 1;
+            }
+            (it.lines_executed(), n)
+        };
+        let (executed, motions) = run();
+        let t = measure(budget, || run().0).as_secs_f64();
+        let rs = if smoke { None } else { rs274_seconds(&path) };
+        let lines = src.split(|&b| b == b'\n').count();
+        let rs_col = rs.map_or("n/a".to_string(), |r| {
+            format!(
+                "{:.1} ms = {:.3} M lines/s",
+                r * 1e3,
+                executed as f64 / r / 1e6
+            )
+        });
+        let ratio = rs.map_or("".to_string(), |r| format!("{:.0}x", r / t));
+        println!(
+            "| {name} | {lines} | {executed} | {motions} | {:.2} ms = {:.2} M lines/s | {rs_col} | {ratio} |",
+            t * 1e3,
+            executed as f64 / t / 1e6
+        );
+    }
+}
+
+/// Best of 3 wall-clock runs of `rs274 -g FILE` (output discarded).
+fn rs274_seconds(path: &std::path::Path) -> Option<f64> {
+    let mut best = f64::MAX;
+    for _ in 0..3 {
+        let start = Instant::now();
+        let ok = std::process::Command::new("rs274")
+            .arg("-g")
+            .arg(path)
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .status()
+            .ok()?
+            .success();
+        if !ok {
+            return None;
+        }
+        best = best.min(start.elapsed().as_secs_f64());
+    }
+    Some(best)
 }
 
 /// Best-of-3 parse time of pygcode on `file`, via benches/pygcode_parse.py.

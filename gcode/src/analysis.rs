@@ -80,6 +80,22 @@ pub struct Analysis {
     pub max_spindle_rpm: f64,
     /// M2/M30 or a closing `%` was reached.
     pub program_end: bool,
+    /// Lines where the program moved its own origin (G92, G92.1, G92.2,
+    /// G92.3, G52), in order, at most 100 kept (`offset_change_count` counts
+    /// all). Bounds and lengths already include these offsets: they are in
+    /// the work system's frame.
+    pub offset_changes: Vec<OffsetChangeNote>,
+    pub offset_change_count: u64,
+}
+
+/// One origin change made by the program (see [`Analysis::offset_changes`]).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct OffsetChangeNote {
+    pub line: u32,
+    /// `G92`, `G92.1`, `G92.2`, `G92.3` or `G52`.
+    pub command: String,
+    /// The offset in effect afterwards, mm (program = work frame - offset).
+    pub offset: Point,
 }
 
 /// Settings for [`analyse`] (missing fields take their defaults when deserialised).
@@ -128,6 +144,8 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
         max_feed_mm_min: 0.0,
         max_spindle_rpm: 0.0,
         program_end: false,
+        offset_changes: Vec::new(),
+        offset_change_count: 0,
     };
     let rapid_rate = if opts.rapid_mm_min > 0.0 {
         opts.rapid_mm_min
@@ -199,6 +217,20 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
                 a.tools.push(tool);
             }
             Motion::ProgramEnd { .. } => a.program_end = true,
+            Motion::OffsetChange { line, code, offset } => {
+                a.offset_change_count += 1;
+                if a.offset_changes.len() < 100 {
+                    a.offset_changes.push(OffsetChangeNote {
+                        line,
+                        command: if code % 10 == 0 {
+                            format!("G{}", code / 10)
+                        } else {
+                            format!("G{}.{}", code / 10, code % 10)
+                        },
+                        offset,
+                    });
+                }
+            }
             _ => {}
         }
     }

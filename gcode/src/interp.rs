@@ -6,7 +6,11 @@
 //! skipped line leaves no trace). No allocation per line except for messages.
 
 use crate::arc::len2;
-use crate::lex::{bit, column, lex_line, make_error, Block, LexError, LineKind};
+use crate::expr::{self, Params, SysView, SUB_PARAMS};
+use crate::flow::{self, BlockKind, Flow, Frame, Keyword, OpenBlock, PendingCall, Skip};
+use crate::lex::{
+    bit, column, lex_line, make_error, Block, LexError, LineKind, POLAR_A, POLAR_MASK, POLAR_R,
+};
 use crate::{
     Config, ErrorKind, GcodeError, Motion, Plane, Point, SpindleDirection, Unsupported, Warning,
 };
@@ -20,13 +24,16 @@ const MAX_TURNS: f64 = 10_000.0;
 /// Start and end closer than this (mm, in the plane) make an IJK arc a full circle.
 const FULL_CIRCLE_EPS_MM: f64 = 1e-6;
 
-/// Events of one line. A line yields at most 11 (message, M6, spindle,
-/// coolant, dwell, G43/G49, work system, two G28 legs, motion, stop); a
-/// fixed ring keeps push/pop inlined and allocation-free.
+/// Events of one line. An ordinary line yields at most 12 (message, debug
+/// message, M6, spindle, coolant, dwell, G43/G49, work system, two G28 legs,
+/// motion, stop); a fixed ring keeps push/pop inlined and allocation-free.
+/// A canned cycle with pecks or L repeats makes more: those go to `overflow`
+/// (allocated only then), behind the ring's events.
 struct Queue {
     items: [Option<Motion>; QUEUE_CAP],
     head: usize,
     len: usize,
+    overflow: std::collections::VecDeque<Motion>,
 }
 
 const QUEUE_CAP: usize = 16;
@@ -37,31 +44,57 @@ impl Queue {
             items: Default::default(),
             head: 0,
             len: 0,
+            overflow: std::collections::VecDeque::new(),
         }
     }
+    /// Pushes happen only while a line runs, and a line starts with an
+    /// empty queue: the ring is full before anything goes to `overflow`.
     #[inline]
     fn push_back(&mut self, m: Motion) {
-        // Cannot overflow (see above); a debug check documents it.
-        debug_assert!(self.len < QUEUE_CAP);
         if self.len < QUEUE_CAP {
             self.items[(self.head + self.len) % QUEUE_CAP] = Some(m);
             self.len += 1;
+        } else {
+            self.overflow.push_back(m);
         }
     }
     #[inline]
     fn pop_front(&mut self) -> Option<Motion> {
         if self.len == 0 {
-            return None;
+            return self.pop_overflow();
         }
         let m = self.items[self.head].take();
         self.head = (self.head + 1) % QUEUE_CAP;
         self.len -= 1;
         m
     }
+    #[inline(never)]
+    fn pop_overflow(&mut self) -> Option<Motion> {
+        self.overflow.pop_front()
+    }
+    #[cold]
+    fn shift_all(&mut self, off: Point) {
+        for m in self.items.iter_mut().flatten() {
+            shift(m, off);
+        }
+        for m in self.overflow.iter_mut() {
+            shift(m, off);
+        }
+    }
     fn clear(&mut self) {
-        while self.pop_front().is_some() {}
+        while self.len > 0 {
+            self.pop_front();
+        }
+        self.overflow.clear();
         self.head = 0;
     }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum FeedMode {
+    PerMinute,
+    InverseTime,
+    PerRevolution,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -75,6 +108,22 @@ enum MotionMode {
     /// A motion-group code we do not implement (canned cycles, probing,
     /// threading), as code * 10: later axis words are rejected, not guessed.
     Unsupported(u16),
+    /// Canned cycle G73, G81, G82, G83, G85, G89 (code * 10).
+    Cycle(u16),
+}
+
+/// Sticky values of canned cycles (LinuxCNC `cycle_*`), mm / seconds.
+#[derive(Debug, Clone, Copy, Default)]
+struct CycleState {
+    /// R and Z as last given (absolute in G90, increments in G91).
+    r: f64,
+    z: f64,
+    q: f64,
+    p: f64,
+    /// Initial level: Z where the current series of cycles began.
+    initial: Option<f64>,
+    /// G99: retract to R (else G98: to the initial level).
+    retract_to_r: bool,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -88,6 +137,9 @@ struct State {
     /// Last F word in mm/min, converted with the units of its own line: a
     /// later G20/G21 keeps the physical feed (grbl; LinuxCNC rescales it).
     feed: Option<f64>,
+    /// G94 (units per minute), G93 (inverse time: F is 1/minutes, on every
+    /// feed line), G95 (units per spindle revolution).
+    feed_mode: FeedMode,
     rpm: f64,
     spindle: SpindleDirection,
     mist: bool,
@@ -109,6 +161,7 @@ impl State {
             absolute: true,
             arc_absolute: false,
             feed: None,
+            feed_mode: FeedMode::PerMinute,
             rpm: 0.0,
             spindle: SpindleDirection::Off,
             mist: false,
@@ -132,7 +185,24 @@ pub struct Interpreter<R: BufRead> {
     cfg: Config,
     line: Vec<u8>,
     line_no: u32,
+    /// Source lines taken from the reader (line numbers of new lines).
+    reader_line_no: u32,
     lines_read: u64,
+    lines_executed: u64,
+    linuxcnc_only: Option<u32>,
+    // Kept out of `State`, which is copied twice per line: these change only
+    // on cycle and G92 lines, which write them back when the line succeeded.
+    cycle: CycleState,
+    /// G92 / G52 offset in effect (mm): work-system frame = program + g92.
+    g92: Point,
+    /// The stored G92 values (#5211..), which G92.2 keeps and G92.3 restores.
+    g92_saved: Point,
+    g92_active: bool,
+    /// M70's saved modal state; M73's, per call depth, restored on return.
+    saved_modal: Option<State>,
+    auto_restore: Vec<(usize, State)>,
+    params: Params,
+    flow: Flow,
     blk: Block,
     st: State,
     queue: Queue,
@@ -151,6 +221,21 @@ impl<R: BufRead> Interpreter<R> {
         Interpreter {
             reader,
             st: State::new(&config),
+            params: Params::new(config.work_offsets),
+            flow: Flow::default(),
+            reader_line_no: 0,
+            lines_executed: 0,
+            linuxcnc_only: None,
+            // LinuxCNC's interpreter starts in G99 (retract to R).
+            cycle: CycleState {
+                retract_to_r: true,
+                ..CycleState::default()
+            },
+            g92: [0.0; 3],
+            g92_saved: [0.0; 3],
+            g92_active: false,
+            saved_modal: None,
+            auto_restore: Vec::new(),
             cfg: config,
             line: Vec::with_capacity(256),
             line_no: 0,
@@ -180,6 +265,18 @@ impl<R: BufRead> Interpreter<R> {
     pub fn lines_read(&self) -> u64 {
         self.lines_read
     }
+    /// First line that used LinuxCNC-only syntax: O-word control flow
+    /// (`o<name> sub`, `if`, `while`, ...), named parameters (`#<x>`) or
+    /// `(debug,...)` / `(print,...)`. A backend that hands the program text
+    /// to a controller with another dialect (Mach3) refuses it naming this line.
+    pub fn linuxcnc_only_line(&self) -> Option<u32> {
+        self.linuxcnc_only
+    }
+    /// Lines run (or passed over) so far: like [`Self::lines_read`], but a
+    /// loop body or subroutine counts every time it runs.
+    pub fn lines_executed(&self) -> u64 {
+        self.lines_executed
+    }
     /// Whether G20 (inch) was ever in effect.
     pub fn units_inch_seen(&self) -> bool {
         self.units_inch_seen
@@ -191,7 +288,7 @@ impl<R: BufRead> Interpreter<R> {
     /// Position (program coordinates, mm) after the last line interpreted;
     /// motions of that line may still be waiting to be yielded.
     pub fn position(&self) -> Point {
-        self.st.pos
+        add(self.st.pos, self.g92)
     }
     /// The configuration in use.
     pub fn config(&self) -> &Config {
@@ -215,6 +312,7 @@ impl<R: BufRead> Interpreter<R> {
 
     /// Reads the next line into `self.line` (without "\n" / "\r\n").
     /// Returns Ok(false) at end of input.
+    #[inline(always)]
     fn read_line(&mut self) -> Result<bool, GcodeError> {
         self.line.clear();
         let mut any = false;
@@ -224,7 +322,7 @@ impl<R: BufRead> Interpreter<R> {
                 Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
                 Err(e) => {
                     return Err(GcodeError {
-                        line: self.line_no.saturating_add(1),
+                        line: self.reader_line_no.saturating_add(1),
                         column: column(&self.line, self.line.len()),
                         kind: ErrorKind::Io,
                         message: format!("read error: {e}"),
@@ -245,7 +343,7 @@ impl<R: BufRead> Interpreter<R> {
             self.reader.consume(n);
             if self.line.len() > self.cfg.max_line_bytes {
                 return Err(GcodeError {
-                    line: self.line_no.saturating_add(1),
+                    line: self.reader_line_no.saturating_add(1),
                     column: 1,
                     kind: ErrorKind::Io,
                     message: format!("line longer than {} bytes", self.cfg.max_line_bytes),
@@ -255,7 +353,8 @@ impl<R: BufRead> Interpreter<R> {
         if !any {
             return Ok(false);
         }
-        self.line_no = self.line_no.saturating_add(1);
+        self.reader_line_no = self.reader_line_no.saturating_add(1);
+        self.line_no = self.reader_line_no;
         self.lines_read += 1;
         if self.line.len() > self.cfg.max_line_bytes {
             return Err(GcodeError {
@@ -285,17 +384,612 @@ impl<R: BufRead> Interpreter<R> {
         Ok(true)
     }
 
-    /// Reads and interprets one line; events go to the queue.
-    fn step(&mut self) -> Result<(), GcodeError> {
+    /// The next line to run into `self.line`: from the kept program text
+    /// when control flow went back, else from the reader (kept once an O-word
+    /// was seen). Ok(false) at the end of input.
+    #[inline]
+    fn next_line(&mut self) -> Result<bool, GcodeError> {
+        if !self.flow.buffering {
+            return self.read_line();
+        }
+        if self.flow.pc < self.flow.prog.lines.len() {
+            let (no, s, e) = self.flow.prog.lines[self.flow.pc];
+            self.line.clear();
+            self.line.extend_from_slice(&self.flow.prog.text[s..e]);
+            self.line_no = no;
+            self.flow.cur = self.flow.pc;
+            self.flow.pc += 1;
+            return Ok(true);
+        }
         if !self.read_line()? {
-            self.done = true;
+            return Ok(false);
+        }
+        self.keep_line()?;
+        Ok(true)
+    }
+
+    /// Keeps the current (just read) line for later jumps, within
+    /// `Config::max_kept_program_bytes`.
+    fn keep_line(&mut self) -> Result<(), GcodeError> {
+        if self.flow.prog.text.len() + self.line.len() > self.cfg.max_kept_program_bytes {
+            return Err(GcodeError {
+                line: self.line_no,
+                column: 1,
+                kind: ErrorKind::Io,
+                message: format!(
+                    "a program with O-words or M98 is kept in memory, and this one is longer than {} bytes (Config::max_kept_program_bytes)",
+                    self.cfg.max_kept_program_bytes
+                ),
+            });
+        }
+        let f = &mut self.flow;
+        f.buffering = true;
+        let s = f.prog.text.len();
+        f.prog.text.extend_from_slice(&self.line);
+        f.prog.lines.push((self.line_no, s, f.prog.text.len()));
+        f.cur = f.prog.lines.len() - 1;
+        f.pc = f.prog.lines.len();
+        Ok(())
+    }
+
+    #[cold]
+    fn note_linuxcnc_only(&mut self) {
+        self.params.named_used = false;
+        if self.linuxcnc_only.is_none() {
+            self.linuxcnc_only = Some(self.line_no);
+        }
+    }
+
+    fn err_at(&self, e: LexError) -> GcodeError {
+        make_error(self.line_no, &self.line, e)
+    }
+
+    /// End of input: fine unless a skip, call or block is still open.
+    fn end_of_input(&mut self) -> Result<(), GcodeError> {
+        self.done = true;
+        let open = if let Some(skip) = &self.flow.skip {
+            Some(format!(
+                "file ended while looking for o<{}> {} (from line {})",
+                skip.name,
+                skip.until.first().map_or("", |k| k.name()),
+                skip.from_line
+            ))
+        } else if let Some(f) = self.flow.frames.last() {
+            Some(format!(
+                "file ended inside subroutine o<{}> (called on line {})",
+                f.name, f.call_line
+            ))
+        } else {
+            self.flow.blocks.last().map(|b| {
+                let line = self.flow.prog.lines.get(b.start).map_or(0, |l| l.0);
+                format!(
+                    "file ended inside o<{}> {} (line {line})",
+                    b.name,
+                    match b.kind {
+                        BlockKind::If { .. } => "if",
+                        BlockKind::While => "while",
+                        BlockKind::Do => "do",
+                        BlockKind::Repeat => "repeat",
+                    }
+                )
+            })
+        };
+        match open {
+            Some(message) => Err(GcodeError {
+                line: self.reader_line_no,
+                column: 1,
+                kind: ErrorKind::Invalid,
+                message,
+            }),
+            None => Ok(()),
+        }
+    }
+
+    /// A line passed over while skipping (false condition, a subroutine's
+    /// definition, a search for a subroutine further down).
+    fn skip_line(&mut self) -> Result<(), GcodeError> {
+        let Some(at) = flow::o_at(&self.line) else {
+            return Ok(());
+        };
+        // A malformed O-word in text that is not run is not an error here.
+        let Ok(o) = flow::parse(&self.line, at) else {
+            return Ok(());
+        };
+        if matches!(o.kw, Keyword::Sub | Keyword::Number) {
+            self.flow
+                .subs
+                .entry(o.name.clone())
+                .or_insert(self.flow.cur);
+        }
+        let Some(skip) = &self.flow.skip else {
+            return Ok(());
+        };
+        if o.name != skip.name || !skip.until.contains(&o.kw) {
             return Ok(());
         }
-        let kind = match lex_line(&self.line, self.cfg.block_delete, &mut self.blk) {
+        let Some(skip) = self.flow.skip.take() else {
+            return Ok(());
+        };
+        if let Some(call) = skip.then_call {
+            return self.enter(o.name, self.flow.cur, call);
+        }
+        if !skip.inclusive {
+            // Run the matching line (else, elseif, endif) next.
+            self.flow.pc = self.flow.cur;
+        }
+        Ok(())
+    }
+
+    fn skip_to(&mut self, name: String, until: &'static [Keyword], inclusive: bool) {
+        self.flow.skip = Some(Skip {
+            name,
+            until,
+            inclusive,
+            then_call: None,
+            from_line: self.line_no,
+        });
+    }
+
+    /// Goes back to line index `idx` (a loop pass or an M98 repeat), counted
+    /// against `Config::max_loop_iterations`.
+    fn jump_back(&mut self, idx: usize) -> Result<(), GcodeError> {
+        self.flow.jumps += 1;
+        if self.flow.jumps > self.cfg.max_loop_iterations {
+            return Err(self.err_at((
+                0,
+                ErrorKind::Invalid,
+                format!(
+                    "more than {} loop passes (Config::max_loop_iterations)",
+                    self.cfg.max_loop_iterations
+                ),
+            )));
+        }
+        self.flow.pc = idx;
+        Ok(())
+    }
+
+    /// Calls subroutine `name` (found now or by reading ahead).
+    fn call(
+        &mut self,
+        name: String,
+        args: [f64; SUB_PARAMS],
+        m98_times: Option<u32>,
+        at: usize,
+    ) -> Result<(), GcodeError> {
+        // The main program counts as a level, as in LinuxCNC.
+        if self.flow.frames.len() + 1 >= self.cfg.max_call_depth {
+            return Err(self.err_at((
+                at,
+                ErrorKind::Invalid,
+                format!(
+                    "subroutine calls nested deeper than {} (Config::max_call_depth)",
+                    self.cfg.max_call_depth
+                ),
+            )));
+        }
+        let call = PendingCall {
+            args,
+            return_to: self.flow.cur + 1,
+            m98_times,
+            call_line: self.line_no,
+        };
+        match self.flow.subs.get(&name) {
+            Some(&idx) => self.enter(name, idx, call),
+            None => {
+                self.flow.skip = Some(Skip {
+                    name,
+                    until: if m98_times.is_some() {
+                        &[Keyword::Number]
+                    } else {
+                        &[Keyword::Sub]
+                    },
+                    inclusive: true,
+                    then_call: Some(call),
+                    from_line: self.line_no,
+                });
+                Ok(())
+            }
+        }
+    }
+
+    fn enter(&mut self, name: String, idx: usize, call: PendingCall) -> Result<(), GcodeError> {
+        let saved = self.params.sub_params();
+        self.flow.frames.push(Frame {
+            name,
+            return_to: call.return_to,
+            body: idx + 1,
+            saved,
+            blocks: std::mem::take(&mut self.flow.blocks),
+            m98_left: call.m98_times.map(|n| n.saturating_sub(1)),
+            call_line: call.call_line,
+        });
+        self.params.set_sub_params(&call.args);
+        self.params.push_scope();
+        self.flow.pc = idx + 1;
+        Ok(())
+    }
+
+    fn ret(&mut self, value: Option<f64>) {
+        let depth = self.flow.frames.len();
+        if self.auto_restore.last().is_some_and(|a| a.0 == depth) {
+            if let Some((_, saved)) = self.auto_restore.pop() {
+                let mut st = self.st;
+                restore_modal(&self.cfg, &mut self.queue, &mut st, &saved, self.line_no);
+                self.st = st;
+            }
+        }
+        if let Some(f) = self.flow.frames.pop() {
+            self.params.set_sub_params(&f.saved);
+            self.params.pop_scope();
+            self.flow.blocks = f.blocks;
+            self.flow.pc = f.return_to;
+        }
+        self.params.value = value.unwrap_or(0.0);
+        self.params.value_returned = value.is_some();
+    }
+
+    /// Runs the O-word at `self.line[at]`.
+    fn oword(&mut self, at: usize) -> Result<(), GcodeError> {
+        if !self.flow.buffering {
+            self.keep_line()?;
+        }
+        self.params.sys = sys_view(&self.st, self.g92, self.g92_saved);
+        let o = flow::parse(&self.line, at).map_err(|e| self.err_at(e))?;
+        let mut i = o.rest;
+        let b = &self.line;
+        let p = &mut self.params;
+        let blanks = |i: &mut usize| {
+            while *i < b.len() && (b[*i] == b' ' || b[*i] == b'\t') {
+                *i += 1;
+            }
+        };
+        // `[condition]` after if/elseif/while/repeat (and optional after return/endsub).
+        let mut cond = |i: &mut usize, required: bool| -> Result<Option<f64>, LexError> {
+            blanks(i);
+            if b.get(*i) == Some(&b'[') {
+                return expr::expression(b, i, p).map(Some);
+            }
+            if required {
+                return Err((
+                    *i,
+                    ErrorKind::Syntax,
+                    format!("o-word {} needs a [condition]", o.kw.name()),
+                ));
+            }
+            Ok(None)
+        };
+        let value = match o.kw {
+            Keyword::If | Keyword::ElseIf | Keyword::Repeat => cond(&mut i, true),
+            Keyword::While => {
+                // The `while` closing a `do` is evaluated like any other.
+                cond(&mut i, true)
+            }
+            Keyword::Return | Keyword::EndSub => cond(&mut i, false),
+            _ => Ok(None),
+        };
+        let value = value.map_err(|e| self.err_at(e))?;
+        let mut args = [0.0; SUB_PARAMS];
+        if o.kw == Keyword::Call {
+            let b = &self.line;
+            let mut n = 0;
+            loop {
+                while i < b.len() && (b[i] == b' ' || b[i] == b'\t') {
+                    i += 1;
+                }
+                if b.get(i) != Some(&b'[') {
+                    break;
+                }
+                if n == SUB_PARAMS {
+                    return Err(self.err_at((
+                        i,
+                        ErrorKind::Invalid,
+                        format!("more than {SUB_PARAMS} subroutine arguments"),
+                    )));
+                }
+                args[n] = expr::expression(b, &mut i, &mut self.params)
+                    .map_err(|e| make_error(self.line_no, &self.line, e))?;
+                n += 1;
+            }
+        }
+        rest_is_comment(&self.line, i).map_err(|e| self.err_at(e))?;
+        let truth = value.is_some_and(|v| v != 0.0);
+        let cur = self.flow.cur;
+        let name = o.name;
+        let top_is = |f: &Flow, kind: fn(BlockKind) -> bool, name: &str| {
+            f.blocks
+                .last()
+                .is_some_and(|b| kind(b.kind) && b.name == name)
+        };
+        let mismatch = |what: &str| {
+            (
+                at,
+                ErrorKind::Invalid,
+                format!("o<{name}> {what} without a matching open block"),
+            )
+        };
+        match o.kw {
+            Keyword::Number => Ok(()),
+            Keyword::Sub => {
+                self.flow.subs.insert(name.clone(), cur);
+                self.skip_to(name, &[Keyword::EndSub], true);
+                Ok(())
+            }
+            Keyword::EndSub | Keyword::Return => {
+                // `return` may carry any o-name (LinuxCNC's retval.ngc names
+                // the enclosing if); `endsub` names its subroutine.
+                let ok = self.flow.frames.last().is_some_and(|f| {
+                    f.m98_left.is_none() && (o.kw == Keyword::Return || f.name == name)
+                });
+                if !ok {
+                    return Err(self.err_at((
+                        at,
+                        ErrorKind::Invalid,
+                        format!("o<{name}> {} outside subroutine o<{name}>", o.kw.name()),
+                    )));
+                }
+                self.ret(value);
+                Ok(())
+            }
+            Keyword::Call => self.call(name, args, None, at),
+            Keyword::If => {
+                self.flow.blocks.push(OpenBlock {
+                    name: name.clone(),
+                    kind: BlockKind::If { taken: truth },
+                    start: cur,
+                    left: 0.0,
+                });
+                if !truth {
+                    self.skip_to(
+                        name,
+                        &[Keyword::ElseIf, Keyword::Else, Keyword::EndIf],
+                        false,
+                    );
+                }
+                Ok(())
+            }
+            Keyword::ElseIf | Keyword::Else => {
+                let Some(top) = self
+                    .flow
+                    .blocks
+                    .last_mut()
+                    .filter(|b| matches!(b.kind, BlockKind::If { .. }) && b.name == name)
+                else {
+                    return Err(self.err_at(mismatch(o.kw.name())));
+                };
+                if top.kind == (BlockKind::If { taken: true }) {
+                    self.skip_to(name, &[Keyword::EndIf], false);
+                } else if o.kw == Keyword::Else || truth {
+                    top.kind = BlockKind::If { taken: true };
+                } else {
+                    self.skip_to(
+                        name,
+                        &[Keyword::ElseIf, Keyword::Else, Keyword::EndIf],
+                        false,
+                    );
+                }
+                Ok(())
+            }
+            Keyword::EndIf => {
+                if !top_is(&self.flow, |k| matches!(k, BlockKind::If { .. }), &name) {
+                    return Err(self.err_at(mismatch("endif")));
+                }
+                self.flow.blocks.pop();
+                Ok(())
+            }
+            Keyword::Do => {
+                self.flow.blocks.push(OpenBlock {
+                    name,
+                    kind: BlockKind::Do,
+                    start: cur,
+                    left: 0.0,
+                });
+                Ok(())
+            }
+            Keyword::While => {
+                if top_is(&self.flow, |k| k == BlockKind::Do, &name) {
+                    let start = self.flow.blocks.last().map_or(cur, |b| b.start);
+                    if truth {
+                        return self.jump_back(start + 1);
+                    }
+                    self.flow.blocks.pop();
+                    return Ok(());
+                }
+                let again = self.flow.blocks.last().is_some_and(|b| {
+                    b.kind == BlockKind::While && b.name == name && b.start == cur
+                });
+                if truth {
+                    if !again {
+                        self.flow.blocks.push(OpenBlock {
+                            name,
+                            kind: BlockKind::While,
+                            start: cur,
+                            left: 0.0,
+                        });
+                    }
+                } else {
+                    if again {
+                        self.flow.blocks.pop();
+                    }
+                    self.skip_to(name, &[Keyword::EndWhile], true);
+                }
+                Ok(())
+            }
+            Keyword::EndWhile => {
+                if !top_is(&self.flow, |k| k == BlockKind::While, &name) {
+                    return Err(self.err_at(mismatch("endwhile")));
+                }
+                let start = self.flow.blocks.last().map_or(cur, |b| b.start);
+                self.jump_back(start)
+            }
+            Keyword::Repeat => {
+                let n = value.unwrap_or(0.0).round();
+                if n >= 1.0 {
+                    self.flow.blocks.push(OpenBlock {
+                        name,
+                        kind: BlockKind::Repeat,
+                        start: cur,
+                        left: n,
+                    });
+                } else {
+                    self.skip_to(name, &[Keyword::EndRepeat], true);
+                }
+                Ok(())
+            }
+            Keyword::EndRepeat => {
+                if !top_is(&self.flow, |k| k == BlockKind::Repeat, &name) {
+                    return Err(self.err_at(mismatch("endrepeat")));
+                }
+                let (start, left) = self.flow.blocks.last_mut().map_or((cur, 0.0), |b| {
+                    b.left -= 1.0;
+                    (b.start, b.left)
+                });
+                if left >= 1.0 {
+                    return self.jump_back(start + 1);
+                }
+                self.flow.blocks.pop();
+                Ok(())
+            }
+            Keyword::Break | Keyword::Continue => {
+                let Some(pos) = self
+                    .flow
+                    .blocks
+                    .iter()
+                    .rposition(|b| b.name == name && !matches!(b.kind, BlockKind::If { .. }))
+                else {
+                    return Err(self.err_at(mismatch(o.kw.name())));
+                };
+                self.flow.blocks.truncate(pos + 1);
+                let Some(b) = self.flow.blocks.last().cloned() else {
+                    return Ok(());
+                };
+                if o.kw == Keyword::Break {
+                    self.flow.blocks.pop();
+                    let until: &'static [Keyword] = match b.kind {
+                        BlockKind::While => &[Keyword::EndWhile],
+                        BlockKind::Repeat => &[Keyword::EndRepeat],
+                        _ => &[Keyword::While],
+                    };
+                    self.skip_to(name, until, true);
+                    return Ok(());
+                }
+                match b.kind {
+                    BlockKind::While => self.jump_back(b.start),
+                    BlockKind::Do => self.jump_back(b.start + 1),
+                    _ => {
+                        // Like reaching endrepeat.
+                        if let Some(t) = self.flow.blocks.last_mut() {
+                            t.left -= 1.0;
+                        }
+                        if b.left - 1.0 >= 1.0 {
+                            self.jump_back(b.start + 1)
+                        } else {
+                            self.flow.blocks.pop();
+                            self.skip_to(name, &[Keyword::EndRepeat], true);
+                            Ok(())
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// M98 P<n> [L<times>] (call subprogram O<n>) and M99 (return from it).
+    fn m98_m99(&mut self, code: u16) -> Result<(), GcodeError> {
+        let blk = &self.blk;
+        let allowed = bit(b'P') | bit(b'L') | bit(b'N');
+        if blk.ng != 0 || blk.nm != 1 || blk.mask & !allowed != 0 {
+            let off = blk.m[0].1 as usize;
+            return Err(self.err_at((
+                off,
+                ErrorKind::Invalid,
+                format!("{} must be alone on its line (with P and L)", mname(code)),
+            )));
+        }
+        if !self.flow.buffering {
+            self.keep_line()?;
+        }
+        if code == 990 {
+            let Some(f) = self.flow.frames.last_mut().filter(|f| f.m98_left.is_some()) else {
+                let off = self.blk.m[0].1 as usize;
+                return Err(self.err_at((
+                    off,
+                    ErrorKind::Invalid,
+                    "M99 outside an M98 subprogram".to_string(),
+                )));
+            };
+            if let Some(left) = f.m98_left.filter(|&l| l > 0) {
+                f.m98_left = Some(left - 1);
+                let body = f.body;
+                return self.jump_back(body);
+            }
+            self.ret(None);
+            return Ok(());
+        }
+        let off = self.blk.m[0].1 as usize;
+        let Some(p) = self
+            .blk
+            .get(b'P')
+            .filter(|p| *p >= 0.0 && p.fract() == 0.0 && *p < 1e9)
+        else {
+            return Err(self.err_at((
+                off,
+                ErrorKind::Invalid,
+                "M98 needs P<program number>".to_string(),
+            )));
+        };
+        let times = match self.blk.get(b'L') {
+            None => 1,
+            Some(l) if l >= 0.0 && l.fract() == 0.0 && l <= 1e6 => l as u32,
+            Some(_) => {
+                let at = self.blk.pos_of(b'L') as usize;
+                return Err(self.err_at((
+                    at,
+                    ErrorKind::Invalid,
+                    "M98 L (repeats) must be a whole number".to_string(),
+                )));
+            }
+        };
+        if times == 0 {
+            return Ok(());
+        }
+        let args = self.params.sub_params();
+        self.call(format!("{}", p as u64), args, Some(times), off)
+    }
+
+    /// Reads and interprets one line; events go to the queue.
+    fn step(&mut self) -> Result<(), GcodeError> {
+        if !self.next_line()? {
+            return self.end_of_input();
+        }
+        self.lines_executed += 1;
+        if self.flow.skip.is_some() {
+            return self.skip_line();
+        }
+        let st = &self.st;
+        let (g92, g92_saved) = (&self.g92, &self.g92_saved);
+        let sys = || sys_view(st, *g92, *g92_saved);
+        let kind = match lex_line(
+            &self.line,
+            self.cfg.block_delete,
+            &mut self.blk,
+            &mut self.params,
+            &sys,
+        ) {
             Ok(k) => k,
             Err(e) => return self.fail(e),
         };
         match kind {
+            LineKind::OWord(at) => {
+                if self.params.named_used {
+                    self.note_linuxcnc_only();
+                }
+                if self.linuxcnc_only.is_none()
+                    && !matches!(flow::parse(&self.line, at), Ok(o) if o.kw == Keyword::Number)
+                {
+                    self.note_linuxcnc_only();
+                }
+                self.oword(at)
+            }
             LineKind::Deleted => Ok(()),
             LineKind::Percent => {
                 if !self.words_seen && !self.percent_open {
@@ -310,10 +1004,27 @@ impl<R: BufRead> Interpreter<R> {
                 Ok(())
             }
             LineKind::Words => {
+                if self.blk.special {
+                    // Parameters, assignments, debug messages, M98/M99.
+                    if self.params.named_used || self.blk.debug.is_some() {
+                        self.note_linuxcnc_only();
+                    }
+                    if !self.params.pending.is_empty() {
+                        self.params.commit();
+                    }
+                    if let Some(&(code @ (980 | 990), _)) = self.blk.m[..self.blk.nm]
+                        .iter()
+                        .find(|m| m.0 == 980 || m.0 == 990)
+                    {
+                        self.words_seen = true;
+                        return self.m98_m99(code);
+                    }
+                }
                 if self.blk.mask == 0
                     && self.blk.ng == 0
                     && self.blk.nm == 0
                     && self.blk.msg.is_none()
+                    && self.blk.debug.is_none()
                 {
                     return Ok(());
                 }
@@ -391,10 +1102,14 @@ impl<R: BufRead> Interpreter<R> {
 
     /// Interprets the lexed block. Works on a copy of the state and commits it
     /// at the end, so an error or a skipped line changes nothing.
+    #[inline(always)]
     fn execute(&mut self) -> Result<(), LexError> {
         let blk = &self.blk;
         let line = self.line_no;
         let mut st = self.st;
+        // Written back with the state when the line succeeds.
+        let mut cycle_new: Option<CycleState> = None;
+        let mut g92_new: Option<(Point, Point)> = None;
 
         // --- classify G words into modal groups -------------------------
         let mut g_motion: Option<(u16, u32)> = None;
@@ -412,14 +1127,15 @@ impl<R: BufRead> Interpreter<R> {
         for &(code, off) in &blk.g[..blk.ng] {
             let slot = match code {
                 0 | 10 | 20 | 30 | 800 => &mut g_motion,
-                330 | 331 | 382..=385 | 730 | 760 | 810..=890 => {
+                730 | 810 | 820 | 830 | 850 | 890 => &mut g_motion,
+                330 | 331 | 382..=385 | 760 | 840 | 860..=880 => {
                     // Remember it so that following modal lines are rejected
                     // rather than run as the previous G0/G1.
                     self.st.motion = MotionMode::Unsupported(code);
                     return Err(unsupported_g(
                         code,
                         off,
-                        "canned cycles, probing and threading are not implemented",
+                        "tapping, boring cycles with spindle stops, probing and threading are not implemented",
                     ));
                 }
                 170 | 180 | 190 => &mut g_plane,
@@ -432,10 +1148,8 @@ impl<R: BufRead> Interpreter<R> {
                 540 | 550 | 560 | 570 | 580 | 590 | 591 | 592 | 593 => &mut g_coord,
                 610 | 611 | 640 => &mut g_path,
                 980 | 990 => &mut g_retract,
-                40 | 280 | 281 | 300 | 301 | 530 => &mut g_nonmodal,
-                100 | 920..=923 => {
-                    return Err(unsupported_g(code, off, "it changes coordinate offsets"))
-                }
+                40 | 280 | 281 | 300 | 301 | 530 | 520 | 920..=923 => &mut g_nonmodal,
+                100 => return Err(unsupported_g(code, off, "it changes coordinate offsets")),
                 _ => return Err(unknown_g(code, off)),
             };
             if let Some((prev, _)) = *slot {
@@ -457,10 +1171,14 @@ impl<R: BufRead> Interpreter<R> {
         let mut m_spindle: Option<(u16, u32)> = None;
         let mut m_tool = false;
         let (mut m_mist, mut m_flood, mut m_cool_off) = (false, false, false);
+        let mut m_state: Option<(u16, u32)> = None;
+        let mut m_set_tool: Option<(u16, u32)> = None;
         for &(code, off) in &blk.m[..blk.nm] {
             let slot = match code {
                 0 | 10 | 20 | 300 => &mut m_stop,
                 30 | 40 | 50 => &mut m_spindle,
+                700 | 710 | 720 | 730 => &mut m_state,
+                610 => &mut m_set_tool,
                 60 => {
                     if m_tool {
                         return Err(same_group_m(60, 60, off));
@@ -503,23 +1221,24 @@ impl<R: BufRead> Interpreter<R> {
         }
 
         // --- which words are used --------------------------------------
-        let axis_mask = bit(b'X') | bit(b'Y') | bit(b'Z');
+        let axis_mask = bit(b'X') | bit(b'Y') | bit(b'Z') | POLAR_MASK;
         let has_axes = blk.mask & axis_mask != 0;
         let ijk_mask = bit(b'I') | bit(b'J') | bit(b'K');
         let has_ijk = blk.mask & ijk_mask != 0;
         let has_r = blk.has(b'R');
 
-        if let Some((code, off)) = g_feedmode {
-            if code != 940 {
-                return Err(unsupported_g(
-                    code,
-                    off,
-                    if code == 930 {
-                        "inverse-time feed is not implemented; use G94 units per minute"
-                    } else {
-                        "feed per revolution is not implemented; use G94 units per minute"
-                    },
-                ));
+        if let Some((code, _)) = g_feedmode {
+            let mode = match code {
+                930 => FeedMode::InverseTime,
+                950 => FeedMode::PerRevolution,
+                _ => FeedMode::PerMinute,
+            };
+            // A feed of another mode means something else: it must be given
+            // again (LinuxCNC zeroes it). G94 in G94 keeps it (grbl; LinuxCNC
+            // would zero it too, refusing a later F-less feed move).
+            if mode != st.feed_mode {
+                st.feed_mode = mode;
+                st.feed = None;
             }
         }
         if let Some((code, off)) = g_cutter {
@@ -532,18 +1251,31 @@ impl<R: BufRead> Interpreter<R> {
             }
         }
 
-        // Motion mode after this line.
+        // Motion mode after this line; the previous one decides which cycle
+        // words are sticky.
+        let motion_before = st.motion;
         if let Some((code, _)) = g_motion {
             st.motion = match code {
                 0 => MotionMode::Rapid,
                 10 => MotionMode::Linear,
                 20 => MotionMode::Cw,
                 30 => MotionMode::Ccw,
+                730 | 810 | 820 | 830 | 850 | 890 => MotionMode::Cycle(code),
                 _ => MotionMode::None,
             };
+            if self.cycle.initial.is_some() && !matches!(st.motion, MotionMode::Cycle(_)) {
+                cycle_new.get_or_insert(self.cycle).initial = None;
+            }
         }
+        if let Some((code, _)) = g_retract {
+            cycle_new.get_or_insert(self.cycle).retract_to_r = code == 990;
+        }
+        let cycle = match st.motion {
+            MotionMode::Cycle(c) => Some(c),
+            _ => None,
+        };
         let nonmodal = g_nonmodal.map(|g| g.0);
-        let uses_axes_nonmodal = matches!(nonmodal, Some(280 | 300 | 920));
+        let uses_axes_nonmodal = matches!(nonmodal, Some(280 | 300 | 920 | 520));
         if uses_axes_nonmodal && has_axes && g_motion.is_some_and(|g| g.0 != 800) {
             let (code, off) = g_nonmodal.unwrap_or((0, 0));
             return Err((
@@ -592,7 +1324,9 @@ impl<R: BufRead> Interpreter<R> {
         }
         // Words no command on this line uses.
         let arc_motion = motion_here && is_arc;
-        if (has_ijk || has_r) && !arc_motion {
+        if has_r && cycle.is_some() {
+            // R of a canned cycle.
+        } else if (has_ijk || has_r) && !arc_motion {
             return Err((
                 first_of(blk, ijk_mask | bit(b'R')),
                 ErrorKind::Invalid,
@@ -600,7 +1334,10 @@ impl<R: BufRead> Interpreter<R> {
             ));
         }
         if blk.has(b'P')
-            && !(nonmodal == Some(40) || arc_motion || g_path.is_some_and(|g| g.0 == 640))
+            && !(nonmodal == Some(40)
+                || arc_motion
+                || g_path.is_some_and(|g| g.0 == 640)
+                || matches!(cycle, Some(820 | 890)))
         {
             return Err((
                 blk.pos_of(b'P') as usize,
@@ -608,11 +1345,22 @@ impl<R: BufRead> Interpreter<R> {
                 "P word with no G4, G2/G3 or G64 on the line".to_string(),
             ));
         }
-        if blk.has(b'Q') && g_path.map(|g| g.0) != Some(640) {
+        if blk.has(b'Q')
+            && g_path.map(|g| g.0) != Some(640)
+            && !matches!(cycle, Some(730 | 830))
+            && m_set_tool.is_none()
+        {
             return Err((
                 blk.pos_of(b'Q') as usize,
                 ErrorKind::Unsupported,
                 "Q word is not supported here".to_string(),
+            ));
+        }
+        if blk.has(b'L') && cycle.is_none() {
+            return Err((
+                blk.pos_of(b'L') as usize,
+                ErrorKind::Unsupported,
+                "L word (G10 / canned cycle repeats) is not supported".to_string(),
             ));
         }
         if blk.has(b'H') && g_tlo.map(|g| g.0) != Some(430) {
@@ -628,6 +1376,13 @@ impl<R: BufRead> Interpreter<R> {
         // 1. message (attached to M0/M1 if on the same line)
         let pause_here = matches!(m_stop, Some((0 | 10, _)));
         let mut pause_msg = None;
+        if let Some((s, e)) = blk.debug {
+            self.params.sys = sys_view(&self.st, self.g92, self.g92_saved);
+            let text = expr::substitute(&self.line[s..e], &mut self.params)
+                .trim()
+                .to_string();
+            queue.push_back(Motion::Message { line, text });
+        }
         if let Some((s, e)) = blk.msg {
             let text = String::from_utf8_lossy(&self.line[s..e]).trim().to_string();
             if pause_here {
@@ -651,7 +1406,12 @@ impl<R: BufRead> Interpreter<R> {
                     "negative feed rate".to_string(),
                 ));
             }
-            st.feed = Some(f * scale);
+            // Inverse time is 1/minutes, no length: not scaled by G20.
+            st.feed = Some(if st.feed_mode == FeedMode::InverseTime {
+                f
+            } else {
+                f * scale
+            });
         }
         // 4. spindle speed
         let s_word = blk.get(b'S');
@@ -675,6 +1435,21 @@ impl<R: BufRead> Interpreter<R> {
                 ));
             }
             st.tool = t as u32;
+        }
+        // M61 Q: the tool in the spindle is Q, without a change (LinuxCNC).
+        if let Some((_, off)) = m_set_tool {
+            match blk.get(b'Q') {
+                Some(q) if q >= 0.0 && q.fract() == 0.0 && q <= f64::from(u32::MAX) => {
+                    st.tool = q as u32;
+                }
+                _ => {
+                    return Err((
+                        off as usize,
+                        ErrorKind::Invalid,
+                        "M61 needs Q with a tool number (a non-negative integer)".to_string(),
+                    ))
+                }
+            }
         }
         // 6. tool change
         if m_tool {
@@ -797,7 +1572,7 @@ impl<R: BufRead> Interpreter<R> {
         for (i, letter) in [b'X', b'Y', b'Z'].into_iter().enumerate() {
             if let Some(v) = blk.get(letter) {
                 target[i] = if machine {
-                    v * scale - self.cfg.work_offsets[st.coord as usize][i]
+                    v * scale - self.cfg.work_offsets[st.coord as usize][i] - self.g92[i]
                 } else if st.absolute {
                     v * scale
                 } else {
@@ -806,14 +1581,31 @@ impl<R: BufRead> Interpreter<R> {
             }
         }
 
+        if blk.mask & POLAR_MASK != 0 && !matches!(st.motion, MotionMode::Cycle(_)) {
+            if machine {
+                return Err((
+                    first_of(blk, POLAR_MASK),
+                    ErrorKind::Invalid,
+                    "polar coordinates (@ ^) with G53".to_string(),
+                ));
+            }
+            let (x, y) = polar_xy(blk, st.absolute, st.pos, scale)?;
+            target[0] = x;
+            target[1] = y;
+        }
+
         // 19. G28 / G30 (go to stored position), G28.1 / G30.1 (store).
         match nonmodal {
             Some(280 | 300) => {
-                let stored = if nonmodal == Some(280) {
-                    st.g28
-                } else {
-                    st.g30
-                };
+                // Stored positions are in the work system's frame.
+                let stored = sub(
+                    if nonmodal == Some(280) {
+                        st.g28
+                    } else {
+                        st.g30
+                    },
+                    self.g92,
+                );
                 let mut end;
                 if has_axes {
                     if target != st.pos {
@@ -839,8 +1631,47 @@ impl<R: BufRead> Interpreter<R> {
                 });
                 st.pos = end;
             }
-            Some(281) => st.g28 = st.pos,
-            Some(301) => st.g30 = st.pos,
+            Some(281) => st.g28 = add(st.pos, self.g92),
+            Some(301) => st.g30 = add(st.pos, self.g92),
+            // G92 family and G52: the origin moves; motions keep coming out
+            // in the work system's frame (`Iterator::next` adds the offset),
+            // so no backend has to know about it.
+            Some(code @ (920 | 520 | 921 | 922 | 923)) => {
+                if matches!(code, 920 | 520) && !has_axes {
+                    let off = g_nonmodal.map_or(0, |g| g.1);
+                    return Err((
+                        off as usize,
+                        ErrorKind::Invalid,
+                        format!("{} needs at least one axis word", gname(code)),
+                    ));
+                }
+                let (mut g92, mut saved) = (self.g92, self.g92_saved);
+                for (i, letter) in [b'X', b'Y', b'Z'].into_iter().enumerate() {
+                    let frame = st.pos[i] + g92[i];
+                    match code {
+                        920 | 520 => {
+                            if let Some(v) = blk.get(letter) {
+                                let v = v * scale;
+                                g92[i] = if code == 920 { frame - v } else { v };
+                                saved[i] = g92[i];
+                            }
+                        }
+                        921 => {
+                            g92[i] = 0.0;
+                            saved[i] = 0.0;
+                        }
+                        922 => g92[i] = 0.0,
+                        _ => g92[i] = saved[i],
+                    }
+                    st.pos[i] = frame - g92[i];
+                }
+                g92_new = Some((g92, saved));
+                queue.push_back(Motion::OffsetChange {
+                    line,
+                    code,
+                    offset: g92,
+                });
+            }
             _ => {}
         }
 
@@ -855,7 +1686,10 @@ impl<R: BufRead> Interpreter<R> {
                     });
                 }
                 MotionMode::Linear => {
-                    let feed = feed_mm_min(&st, blk)?;
+                    let mut feed = feed_mm_min(&st, blk)?;
+                    if st.feed_mode != FeedMode::PerMinute {
+                        feed = feed_in_mode(&st, blk, feed, len3(st.pos, target))?;
+                    }
                     queue.push_back(Motion::Linear {
                         line,
                         from: st.pos,
@@ -873,7 +1707,7 @@ impl<R: BufRead> Interpreter<R> {
                         ));
                     }
                     let feed = feed_mm_min(&st, blk)?;
-                    let m = arc_motion_of(
+                    let mut m = arc_motion_of(
                         &self.cfg,
                         &st,
                         blk,
@@ -883,11 +1717,58 @@ impl<R: BufRead> Interpreter<R> {
                         scale,
                         line,
                     )?;
+                    if st.feed_mode != FeedMode::PerMinute {
+                        let length =
+                            crate::ArcGeometry::from_motion(&m).map_or(0.0, |g| g.length());
+                        let f = feed_in_mode(&st, blk, feed, length)?;
+                        if let Motion::Arc { feed_mm_min, .. } = &mut m {
+                            *feed_mm_min = f;
+                        }
+                    }
                     queue.push_back(m);
+                }
+                MotionMode::Cycle(code) => {
+                    if machine {
+                        let off = g_nonmodal.map_or(0, |g| g.1);
+                        return Err((
+                            off as usize,
+                            ErrorKind::Invalid,
+                            "G53 with a canned cycle".to_string(),
+                        ));
+                    }
+                    let first = motion_before != MotionMode::Cycle(code);
+                    let mut cyc = cycle_new.unwrap_or(self.cycle);
+                    target = canned_cycle(queue, &mut st, &mut cyc, blk, code, first, scale, line)?;
+                    cycle_new = Some(cyc);
                 }
                 MotionMode::None | MotionMode::Unsupported(_) => {}
             }
             st.pos = target;
+        }
+
+        // M70-M73: save, invalidate, restore the modal state (LinuxCNC).
+        if let Some((code, off)) = m_state {
+            match code {
+                700 => self.saved_modal = Some(st),
+                710 => self.saved_modal = None,
+                720 => {
+                    let Some(saved) = self.saved_modal else {
+                        return Err((
+                            off as usize,
+                            ErrorKind::Invalid,
+                            "M72 with no state saved by M70".to_string(),
+                        ));
+                    };
+                    restore_modal(&self.cfg, queue, &mut st, &saved, line);
+                }
+                _ => {
+                    // M73: restored when this subroutine returns.
+                    let depth = self.flow.frames.len();
+                    if !self.auto_restore.last().is_some_and(|a| a.0 == depth) {
+                        self.auto_restore.push((depth, st));
+                    }
+                }
+            }
         }
 
         // 21. stops
@@ -915,11 +1796,474 @@ impl<R: BufRead> Interpreter<R> {
                 st = State::new(&self.cfg);
                 st.pos = keep;
                 st.inch = inch;
+                // G80 and G99 again; G92 offsets survive M2 (LinuxCNC).
+                cycle_new = Some(CycleState {
+                    retract_to_r: true,
+                    ..CycleState::default()
+                });
             }
         }
         self.st = st;
+        if let Some(c) = cycle_new {
+            self.cycle = c;
+        }
+        if let Some((g92, saved)) = g92_new {
+            self.g92 = g92;
+            self.g92_saved = saved;
+            self.g92_active = g92 != [0.0; 3];
+        }
+        if self.g92_active {
+            // Into the work system's frame. Lines that change the offset
+            // move nothing, so the offset after the line holds for all of
+            // its motions.
+            self.queue.shift_all(self.g92);
+        }
         Ok(())
     }
+}
+
+#[inline]
+fn len3(a: Point, b: Point) -> f64 {
+    let (dx, dy, dz) = (b[0] - a[0], b[1] - a[1], b[2] - a[2]);
+    (dx * dx + dy * dy + dz * dz).sqrt()
+}
+
+/// mm/min of a feed move in G93 (F = 1/minutes for this move of `length`
+/// mm, F required on the line) or G95 (F mm per revolution x spindle speed).
+#[cold]
+fn feed_in_mode(st: &State, blk: &Block, feed: f64, length: f64) -> Result<f64, LexError> {
+    let at = first_of(blk, bit(b'X') | bit(b'Y') | bit(b'Z') | bit(b'F'));
+    match st.feed_mode {
+        FeedMode::InverseTime => {
+            if !blk.has(b'F') {
+                return Err((
+                    at,
+                    ErrorKind::Invalid,
+                    "inverse-time feed (G93) needs F on every feed move".to_string(),
+                ));
+            }
+            // A move of no length takes no time at any rate.
+            Ok(if length > 0.0 { length * feed } else { feed })
+        }
+        FeedMode::PerRevolution => {
+            if st.spindle == SpindleDirection::Off || st.rpm <= 0.0 {
+                return Err((
+                    at,
+                    ErrorKind::Invalid,
+                    "feed per revolution (G95) with the spindle stopped".to_string(),
+                ));
+            }
+            Ok(feed * st.rpm)
+        }
+        FeedMode::PerMinute => Ok(feed),
+    }
+}
+
+/// Most moves one canned-cycle line may make (pecks x repeats): bounds the
+/// memory a line like `G83 Q0.000001 L100000` could take.
+const MAX_CYCLE_MOVES: f64 = 1_000_000.0;
+
+/// Expands a canned cycle (XY plane) into the moves LinuxCNC makes
+/// (interp_cycles.cc: CYCLE_MACRO and convert_cycle_g*), returns the end.
+#[allow(clippy::too_many_arguments)]
+fn canned_cycle(
+    queue: &mut Queue,
+    st: &mut State,
+    cyc: &mut CycleState,
+    blk: &Block,
+    code: u16,
+    first: bool,
+    scale: f64,
+    line: u32,
+) -> Result<Point, LexError> {
+    let here = first_of(blk, bit(b'X') | bit(b'Y') | bit(b'Z'));
+    let invalid = |at: usize, msg: String| (at, ErrorKind::Invalid, msg);
+    let name = gname(code);
+    if st.plane != Plane::XY {
+        return Err((
+            here,
+            ErrorKind::Unsupported,
+            format!("{name} is only supported in the XY plane (G17)"),
+        ));
+    }
+    let feed = match st.feed {
+        Some(f) if f > 0.0 => f,
+        _ => {
+            return Err(invalid(
+                here,
+                format!("{name} with no feed rate (F) programmed"),
+            ))
+        }
+    };
+    let feed = match st.feed_mode {
+        FeedMode::PerMinute => feed,
+        FeedMode::InverseTime => {
+            return Err(invalid(
+                here,
+                format!("{name} in inverse-time feed (G93): LinuxCNC refuses it too"),
+            ))
+        }
+        FeedMode::PerRevolution => feed_in_mode(st, blk, feed, 0.0)?,
+    };
+    if first && !blk.has(b'Z') {
+        return Err(invalid(
+            here,
+            format!("{name} needs Z (the bottom of the hole)"),
+        ));
+    }
+    let z_word = blk.get(b'Z').map_or(cyc.z, |z| z * scale);
+    let r_word = match blk.get(b'R') {
+        Some(r) => r * scale,
+        None if !first => cyc.r,
+        None => return Err(invalid(here, format!("{name} needs R (the retract plane)"))),
+    };
+    let repeats = match blk.get(b'L') {
+        None => 1.0,
+        Some(l) if l >= 1.0 && l.fract() == 0.0 => l,
+        Some(_) => {
+            return Err(invalid(
+                blk.pos_of(b'L') as usize,
+                "L (repeats) must be a whole number of at least 1".to_string(),
+            ))
+        }
+    };
+    let mut q = 0.0;
+    if matches!(code, 730 | 830) {
+        q = match blk.get(b'Q') {
+            Some(v) => v * scale,
+            None if !first => cyc.q,
+            None => return Err(invalid(here, format!("{name} needs Q (the peck depth)"))),
+        };
+        if q <= 0.0 {
+            let at = if blk.has(b'Q') {
+                blk.pos_of(b'Q') as usize
+            } else {
+                here
+            };
+            return Err(invalid(
+                at,
+                format!("{name} Q (peck depth) must be positive"),
+            ));
+        }
+    }
+    let mut dwell = 0.0;
+    if matches!(code, 820 | 890) {
+        dwell = match blk.get(b'P') {
+            Some(v) if v >= 0.0 => v,
+            Some(_) => {
+                return Err(invalid(
+                    blk.pos_of(b'P') as usize,
+                    "negative dwell time".to_string(),
+                ))
+            }
+            None if !first => cyc.p,
+            None => return Err(invalid(here, format!("{name} needs P (dwell seconds)"))),
+        };
+    }
+    let mut current_z = st.pos[2];
+    let mut old_z = *cyc.initial.get_or_insert(current_z);
+    let (mut x, mut y, r, bottom, dx, dy);
+    // Polar increments (G91 @ ^) turn about the origin on every repeat.
+    let (mut dr, mut da) = (0.0, 0.0);
+    if st.absolute {
+        if blk.mask & POLAR_MASK != 0 {
+            (x, y) = polar_xy(blk, true, st.pos, scale)?;
+        } else {
+            x = blk.get(b'X').map_or(st.pos[0], |v| v * scale);
+            y = blk.get(b'Y').map_or(st.pos[1], |v| v * scale);
+        }
+        (dx, dy) = (0.0, 0.0);
+        r = r_word;
+        bottom = z_word;
+    } else {
+        dx = blk.get(b'X').map_or(0.0, |v| v * scale);
+        dy = blk.get(b'Y').map_or(0.0, |v| v * scale);
+        if blk.mask & (1 << POLAR_R) != 0 {
+            dr = blk.vals[POLAR_R] * scale;
+        }
+        if blk.mask & (1 << POLAR_A) != 0 {
+            da = blk.vals[POLAR_A].to_radians();
+        }
+        (x, y) = (st.pos[0], st.pos[1]);
+        r = r_word + old_z;
+        bottom = r + z_word;
+    }
+    if r < bottom {
+        return Err(invalid(
+            here,
+            format!("{name}: R ({r:.4} mm) is below Z ({bottom:.4} mm)"),
+        ));
+    }
+    let pecks = if q > 0.0 {
+        ((r - bottom) / q).ceil()
+    } else {
+        1.0
+    };
+    if pecks * repeats * 3.0 > MAX_CYCLE_MOVES {
+        return Err(invalid(
+            here,
+            format!("{name} would make more than {MAX_CYCLE_MOVES} moves (peck depth and repeats)"),
+        ));
+    }
+    let mut at = st.pos;
+    let rapid = |q: &mut Queue, at: &mut Point, to: Point| {
+        q.push_back(Motion::Rapid {
+            line,
+            from: *at,
+            to,
+        });
+        *at = to;
+    };
+    let feed_to = |q: &mut Queue, at: &mut Point, to: Point| {
+        q.push_back(Motion::Linear {
+            line,
+            from: *at,
+            to,
+            feed_mm_min: feed,
+        });
+        *at = to;
+    };
+    // Below the R plane: first straight up to it.
+    if old_z < r {
+        let up = [at[0], at[1], r];
+        rapid(queue, &mut at, up);
+        old_z = r;
+        current_z = r;
+    }
+    let clear = if cyc.retract_to_r { r } else { old_z };
+    // LinuxCNC 2.9 (the installed rs274): pecks back off 0.010 inch.
+    let peck_clearance = 0.254;
+    for k in 0..repeats as u64 {
+        x += dx;
+        y += dy;
+        if dr != 0.0 || da != 0.0 {
+            if x == 0.0 && y == 0.0 {
+                return Err(invalid(
+                    here,
+                    "incremental polar move at the origin (no angle to start from)".to_string(),
+                ));
+            }
+            let (rad, ang) = (x.hypot(y) + dr, y.atan2(x) + da);
+            (x, y) = (rad * ang.cos(), rad * ang.sin());
+        }
+        if k == 0 && current_z > r {
+            rapid(queue, &mut at, [x, y, current_z]);
+            rapid(queue, &mut at, [x, y, r]);
+        } else {
+            rapid(queue, &mut at, [x, y, clear]);
+            if clear > r {
+                rapid(queue, &mut at, [x, y, r]);
+            }
+        }
+        match code {
+            730 | 830 => {
+                let mut depth = r - q;
+                while depth > bottom {
+                    feed_to(queue, &mut at, [x, y, depth]);
+                    if code == 830 {
+                        rapid(queue, &mut at, [x, y, r]);
+                    }
+                    rapid(queue, &mut at, [x, y, depth + peck_clearance]);
+                    depth -= q;
+                }
+                feed_to(queue, &mut at, [x, y, bottom]);
+                rapid(queue, &mut at, [x, y, clear]);
+            }
+            820 => {
+                feed_to(queue, &mut at, [x, y, bottom]);
+                queue.push_back(Motion::Dwell {
+                    line,
+                    seconds: dwell,
+                });
+                rapid(queue, &mut at, [x, y, clear]);
+            }
+            850 => {
+                feed_to(queue, &mut at, [x, y, bottom]);
+                feed_to(queue, &mut at, [x, y, r]);
+                rapid(queue, &mut at, [x, y, clear]);
+            }
+            890 => {
+                feed_to(queue, &mut at, [x, y, bottom]);
+                queue.push_back(Motion::Dwell {
+                    line,
+                    seconds: dwell,
+                });
+                feed_to(queue, &mut at, [x, y, clear]);
+            }
+            _ => {
+                feed_to(queue, &mut at, [x, y, bottom]);
+                rapid(queue, &mut at, [x, y, clear]);
+            }
+        }
+    }
+    cyc.r = r_word;
+    cyc.z = z_word;
+    cyc.q = q;
+    cyc.p = dwell;
+    Ok([x, y, clear])
+}
+
+/// M72 / M73's return: back to the saved units, distance modes, plane, feed,
+/// speed, spindle, coolant, work system and motion mode (position, stored
+/// G28/G30 positions and tool stay), with the events a change needs.
+#[cold]
+fn restore_modal(cfg: &Config, queue: &mut Queue, st: &mut State, saved: &State, line: u32) {
+    if saved.coord != st.coord {
+        let old = cfg.work_offsets[st.coord as usize];
+        let new = cfg.work_offsets[saved.coord as usize];
+        for i in 0..3 {
+            st.pos[i] += old[i] - new[i];
+        }
+        queue.push_back(Motion::WorkOffset {
+            line,
+            system: saved.coord + 1,
+        });
+    }
+    if saved.spindle != st.spindle || saved.rpm != st.rpm {
+        queue.push_back(Motion::Spindle {
+            line,
+            direction: saved.spindle,
+            rpm: saved.rpm,
+        });
+    }
+    if saved.mist != st.mist || saved.flood != st.flood {
+        queue.push_back(Motion::Coolant {
+            line,
+            mist: saved.mist,
+            flood: saved.flood,
+        });
+    }
+    let (pos, tool, g28, g30) = (st.pos, st.tool, st.g28, st.g30);
+    *st = *saved;
+    st.pos = pos;
+    st.tool = tool;
+    st.g28 = g28;
+    st.g30 = g30;
+}
+
+/// X and Y of a move written with LinuxCNC's polar words (`@` radius, `^`
+/// angle in degrees, about the origin; interp_find.cc `find_ends`).
+#[cold]
+fn polar_xy(blk: &Block, absolute: bool, pos: Point, scale: f64) -> Result<(f64, f64), LexError> {
+    let at = first_of(blk, POLAR_MASK);
+    if blk.has(b'X') || blk.has(b'Y') {
+        return Err((
+            at,
+            ErrorKind::Invalid,
+            "X or Y words with polar coordinates (@ ^)".to_string(),
+        ));
+    }
+    let r_word = (blk.mask & (1 << POLAR_R) != 0).then(|| blk.vals[POLAR_R] * scale);
+    let a_word = (blk.mask & (1 << POLAR_A) != 0).then(|| blk.vals[POLAR_A].to_radians());
+    let (x, y) = (pos[0], pos[1]);
+    let at_origin = x == 0.0 && y == 0.0;
+    let (r, a) = if absolute {
+        if a_word.is_none() && at_origin {
+            return Err((
+                at,
+                ErrorKind::Invalid,
+                "polar radius without an angle at the origin".to_string(),
+            ));
+        }
+        (
+            r_word.unwrap_or_else(|| x.hypot(y)),
+            a_word.unwrap_or_else(|| y.atan2(x)),
+        )
+    } else {
+        if at_origin {
+            return Err((
+                at,
+                ErrorKind::Invalid,
+                "incremental polar move at the origin (no angle to start from)".to_string(),
+            ));
+        }
+        (
+            x.hypot(y) + r_word.unwrap_or(0.0),
+            y.atan2(x) + a_word.unwrap_or(0.0),
+        )
+    };
+    Ok((r * a.cos(), r * a.sin()))
+}
+
+#[inline]
+fn add(a: Point, b: Point) -> Point {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}
+
+#[inline]
+fn sub(a: Point, b: Point) -> Point {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+/// A motion from program coordinates into the work system's frame.
+#[cold]
+fn shift(m: &mut Motion, off: Point) {
+    match m {
+        Motion::Rapid { from, to, .. } | Motion::Linear { from, to, .. } => {
+            *from = add(*from, off);
+            *to = add(*to, off);
+        }
+        Motion::Arc {
+            from, to, centre, ..
+        } => {
+            *from = add(*from, off);
+            *to = add(*to, off);
+            *centre = add(*centre, off);
+        }
+        _ => {}
+    }
+}
+
+/// What system parameters (#5420, `#<_x>`, ...) read.
+fn sys_view(st: &State, g92: Point, g92_saved: Point) -> SysView {
+    SysView {
+        pos: st.pos,
+        inch: st.inch,
+        absolute: st.absolute,
+        coord: st.coord,
+        tool: st.tool,
+        g28: st.g28,
+        g30: st.g30,
+        g92,
+        g92_saved,
+        feed_mm_min: st.feed.unwrap_or(0.0),
+        rpm: st.rpm,
+        plane: match st.plane {
+            Plane::XY => 170,
+            Plane::ZX => 180,
+            Plane::YZ => 190,
+        },
+        motion_g10: match st.motion {
+            MotionMode::Rapid => 0,
+            MotionMode::Linear => 10,
+            MotionMode::Cw => 20,
+            MotionMode::Ccw => 30,
+            MotionMode::None => 800,
+            MotionMode::Unsupported(c) | MotionMode::Cycle(c) => i32::from(c),
+        },
+    }
+}
+
+/// Only blanks and comments may follow an O-word's arguments.
+fn rest_is_comment(b: &[u8], mut i: usize) -> Result<(), LexError> {
+    while i < b.len() {
+        match b[i] {
+            b' ' | b'\t' | b'\r' => i += 1,
+            b';' => return Ok(()),
+            b'(' => match b[i..].iter().position(|&c| c == b')') {
+                Some(n) => i += n + 1,
+                None => return Err((i, ErrorKind::Syntax, "unclosed comment '('".to_string())),
+            },
+            c => {
+                return Err((
+                    i,
+                    ErrorKind::Syntax,
+                    format!("unexpected '{}' after the O-word", c as char),
+                ))
+            }
+        }
+    }
+    Ok(())
 }
 
 fn feed_mm_min(st: &State, blk: &Block) -> Result<f64, LexError> {
@@ -1190,7 +2534,7 @@ fn lenient_scan(b: &[u8]) -> Scan {
 /// Byte offset of the first present word among `mask` (0 if none).
 fn first_of(blk: &Block, mask: u32) -> usize {
     let mut best = u32::MAX;
-    for i in 0..26 {
+    for i in 0..28 {
         if blk.mask & mask & (1 << i) != 0 {
             best = best.min(blk.pos[i]);
         }

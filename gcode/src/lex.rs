@@ -1,5 +1,6 @@
 //! Line lexer: bytes of one line -> a fixed-size [`Block`] (no allocation).
 
+use crate::expr::{self, Params, SysView};
 use crate::{ErrorKind, GcodeError};
 
 /// Most G / M words accepted on one line; LinuxCNC allows 4 M words and real
@@ -10,8 +11,9 @@ pub(crate) const MAX_M: usize = 8;
 /// Words of one line. Values of letters are indexed by `letter - b'A'`;
 /// `mask` says which letters are present. Positions are byte offsets.
 pub(crate) struct Block {
-    pub vals: [f64; 26],
-    pub pos: [u32; 26],
+    /// Letters A..Z, then `@` (polar radius) and `^` (polar angle).
+    pub vals: [f64; 28],
+    pub pos: [u32; 28],
     pub mask: u32,
     /// G codes as value * 10 (G90.1 -> 901), with byte offset.
     pub g: [(u16, u32); MAX_G],
@@ -20,19 +22,27 @@ pub(crate) struct Block {
     pub nm: usize,
     /// Byte range of a `(msg, ...)` text.
     pub msg: Option<(usize, usize)>,
+    /// Byte range of a `(print, ...)` / `(debug, ...)` text (parameters
+    /// substituted when the line runs).
+    pub debug: Option<(usize, usize)>,
+    /// The line needs more than the plain path: a parameter, an assignment,
+    /// a debug message or M98/M99. One flag keeps plain lines to one test.
+    pub special: bool,
 }
 
 impl Block {
     pub fn new() -> Self {
         Block {
-            vals: [0.0; 26],
-            pos: [0; 26],
+            vals: [0.0; 28],
+            pos: [0; 28],
             mask: 0,
             g: [(0, 0); MAX_G],
             ng: 0,
             m: [(0, 0); MAX_M],
             nm: 0,
             msg: None,
+            debug: None,
+            special: false,
         }
     }
     #[inline]
@@ -53,6 +63,11 @@ impl Block {
     }
 }
 
+/// Slots of LinuxCNC's polar words in [`Block`].
+pub(crate) const POLAR_R: usize = 26;
+pub(crate) const POLAR_A: usize = 27;
+pub(crate) const POLAR_MASK: u32 = (1 << POLAR_R) | (1 << POLAR_A);
+
 #[inline]
 pub(crate) const fn bit(letter: u8) -> u32 {
     1 << (letter - b'A')
@@ -67,6 +82,9 @@ pub(crate) enum LineKind {
     Percent,
     /// Starts with `/` and block delete is on.
     Deleted,
+    /// An O-word (subroutine or control flow) at this byte offset; the
+    /// interpreter reads the rest of the line.
+    OWord(usize),
 }
 
 /// Error before the column is known in characters: (byte offset, kind, message).
@@ -106,6 +124,13 @@ const POW10: [f64; 23] = [
 /// division), anything longer goes through `str::parse`.
 #[inline]
 pub(crate) fn parse_number(b: &[u8], i: &mut usize) -> Result<f64, LexError> {
+    parse_number_hot(b, i)
+}
+
+/// [`parse_number`], always inlined: for the one hot call site, the words of
+/// a line in [`lex_line`].
+#[inline(always)]
+fn parse_number_hot(b: &[u8], i: &mut usize) -> Result<f64, LexError> {
     // Fast path for the common shape `[-+]digits[.digits]` with no blanks
     // inside; anything else goes to the general scanner below.
     let mut j = *i;
@@ -191,11 +216,12 @@ fn parse_number_general(b: &[u8], i: &mut usize) -> Result<f64, LexError> {
         j += 1;
     }
     if !seen_digit {
-        let kind = match b.get(j) {
-            Some(b'#' | b'[') => ErrorKind::Unsupported,
-            _ => ErrorKind::Syntax,
-        };
-        return Err((start, kind, number_expected(b, j)));
+        // An expression or parameter follows: the caller evaluates it, so
+        // no message is built (this is the parametric programs' hot path).
+        if matches!(b.get(j), Some(b'#' | b'[')) {
+            return Err((start, ErrorKind::Syntax, String::new()));
+        }
+        return Err((start, ErrorKind::Syntax, number_expected(b, j)));
     }
     *i = j;
     if !overflow && mant < (1u64 << 53) && (frac as usize) < POW10.len() {
@@ -229,8 +255,6 @@ fn slow_number(text: &[u8], start: usize) -> Result<f64, LexError> {
 #[cold]
 fn number_expected(b: &[u8], j: usize) -> String {
     match b.get(j) {
-        Some(b'#') => "numbered parameters (#) are not supported".to_string(),
-        Some(b'[') => "expressions ([...]) are not supported".to_string(),
         Some(&c) if c.is_ascii_graphic() => format!("expected a number, found '{}'", c as char),
         _ => "expected a number".to_string(),
     }
@@ -252,18 +276,29 @@ const SUPPORTED: u32 = bit(b'N')
     | bit(b'T')
     | bit(b'P')
     | bit(b'H')
-    | bit(b'Q');
+    | bit(b'Q')
+    | bit(b'L');
 
-/// Lexes one line (no trailing newline) into `blk`.
+/// Lexes one line (no trailing newline) into `blk`. Parameters and
+/// expressions are evaluated with `params` (whose system values come from
+/// `sys`, asked only when a line reads a parameter); assignments are left in
+/// `params.pending`.
 pub(crate) fn lex_line(
     b: &[u8],
     block_delete: bool,
     blk: &mut Block,
+    params: &mut Params,
+    sys: &dyn Fn() -> SysView,
 ) -> Result<LineKind, LexError> {
     blk.mask = 0;
     blk.ng = 0;
     blk.nm = 0;
     blk.msg = None;
+    blk.debug = None;
+    if blk.special {
+        blk.special = false;
+        params.pending.clear();
+    }
     let mut i = 0;
     // Leading blanks, then block delete / tape marker checks.
     while i < b.len() && (b[i] == b' ' || b[i] == b'\t') {
@@ -296,11 +331,29 @@ pub(crate) fn lex_line(
             let idx = (up - b'A') as usize;
             let at = i;
             if SUPPORTED & (1 << idx) == 0 {
+                if up == b'O' {
+                    if blk.mask != 0 || blk.ng != 0 || blk.nm != 0 {
+                        return Err((
+                            at,
+                            ErrorKind::Syntax,
+                            "an O-word must be the first word of its line".to_string(),
+                        ));
+                    }
+                    return Ok(LineKind::OWord(at));
+                }
                 return Err((at, ErrorKind::Unsupported, unsupported_letter(up)));
             }
             i += 1;
             // Report number errors at the word's letter.
-            let v = parse_number(b, &mut i).map_err(|(_, k, m)| (at, k, m))?;
+            let after = i;
+            let v = match parse_number_hot(b, &mut i) {
+                Ok(v) => v,
+                Err(e) => {
+                    i = after;
+                    blk.special = true;
+                    word_value(b, &mut i, params, sys).ok_or((at, e.1, e.2))??
+                }
+            };
             match up {
                 b'G' => {
                     if blk.ng == MAX_G {
@@ -313,7 +366,9 @@ pub(crate) fn lex_line(
                     if blk.nm == MAX_M {
                         return Err((at, ErrorKind::Invalid, "too many M words".to_string()));
                     }
-                    blk.m[blk.nm] = (code10(v, at, 'M')?, at as u32);
+                    let code = code10(v, at, 'M')?;
+                    blk.special |= code == 980 || code == 990;
+                    blk.m[blk.nm] = (code, at as u32);
                     blk.nm += 1;
                 }
                 _ => {
@@ -334,6 +389,7 @@ pub(crate) fn lex_line(
         match c {
             b' ' | b'\t' | b'\r' => i += 1,
             b';' => break,
+            b'@' | b'^' => polar_word(b, &mut i, blk, params, sys)?,
             b'(' => {
                 let rest = &b[i + 1..];
                 let Some(close) = rest.iter().position(|&x| x == b')' || x == b'(') else {
@@ -354,21 +410,25 @@ pub(crate) fn lex_line(
                 if text.len() >= t + 4 && text[t..t + 4].eq_ignore_ascii_case(b"msg,") {
                     let s = i + 1 + t + 4;
                     blk.msg = Some((s, i + 1 + close));
+                } else if text.len() >= t + 6
+                    && (text[t..t + 6].eq_ignore_ascii_case(b"debug,")
+                        || text[t..t + 6].eq_ignore_ascii_case(b"print,"))
+                {
+                    blk.debug = Some((i + 1 + t + 6, i + 1 + close));
+                    blk.special = true;
                 }
                 i += close + 2;
             }
             b'#' => {
-                return Err((
-                    i,
-                    ErrorKind::Unsupported,
-                    "numbered parameters (#) are not supported".to_string(),
-                ))
+                blk.special = true;
+                params.sys = sys();
+                expr::assignment(b, &mut i, params)?;
             }
             b'[' => {
                 return Err((
                     i,
-                    ErrorKind::Unsupported,
-                    "expressions ([...]) are not supported".to_string(),
+                    ErrorKind::Syntax,
+                    "an expression '[...]' must follow a word letter (X[1+2])".to_string(),
                 ))
             }
             _ => {
@@ -377,6 +437,68 @@ pub(crate) fn lex_line(
         }
     }
     Ok(LineKind::Words)
+}
+
+/// LinuxCNC's polar words: `@radius`, `^angle` (degrees). Out of line so
+/// that the number parser stays inlined in the letter path.
+#[cold]
+#[inline(never)]
+fn polar_word(
+    b: &[u8],
+    i: &mut usize,
+    blk: &mut Block,
+    params: &mut Params,
+    sys: &dyn Fn() -> SysView,
+) -> Result<(), LexError> {
+    let at = *i;
+    let c = b[at];
+    let idx = if c == b'@' { POLAR_R } else { POLAR_A };
+    *i += 1;
+    let after = *i;
+    let v = match parse_number(b, i) {
+        Ok(v) => v,
+        Err(e) => {
+            *i = after;
+            blk.special = true;
+            word_value(b, i, params, sys).ok_or((at, e.1, e.2))??
+        }
+    };
+    if blk.mask & (1 << idx) != 0 {
+        return Err((
+            at,
+            ErrorKind::Invalid,
+            format!("{} word repeated on one line", c as char),
+        ));
+    }
+    blk.mask |= 1 << idx;
+    blk.vals[idx] = v;
+    blk.pos[idx] = at as u32;
+    Ok(())
+}
+
+/// The value of a word that is not a plain number: `X[..]`, `X#1`, `X-#<a>`,
+/// `XSIN[..]`. `None` when it does not start like one (the caller reports its
+/// own number error).
+#[cold]
+fn word_value(
+    b: &[u8],
+    i: &mut usize,
+    params: &mut Params,
+    sys: &dyn Fn() -> SysView,
+) -> Option<Result<f64, LexError>> {
+    let mut j = *i;
+    while j < b.len() && matches!(b[j], b' ' | b'\t' | b'-' | b'+') {
+        j += 1;
+    }
+    match b.get(j) {
+        Some(b'[' | b'#') => {}
+        Some(c)
+            if c.is_ascii_alphabetic() && b.get(j + 1).is_some_and(|c| c.is_ascii_alphabetic()) => {
+        }
+        _ => return None,
+    }
+    params.sys = sys();
+    Some(expr::real_value(b, i, params))
 }
 
 #[cold]
@@ -405,7 +527,6 @@ fn unexpected(b: &[u8], i: usize) -> String {
 #[cold]
 fn unsupported_letter(up: u8) -> String {
     match up {
-        b'O' => "O-words (subroutines, loops) are not supported".to_string(),
         b'A' | b'B' | b'C' | b'U' | b'V' | b'W' => {
             format!(
                 "axis word {} is not supported (3-axis X/Y/Z only)",
@@ -413,7 +534,6 @@ fn unsupported_letter(up: u8) -> String {
             )
         }
         b'D' => "D word (cutter compensation) is not supported".to_string(),
-        b'L' => "L word (G10 / canned cycle repeats) is not supported".to_string(),
         b'E' => "E word (extruder) is not supported".to_string(),
         _ => format!("{} word is not supported", up as char),
     }
@@ -444,6 +564,10 @@ fn code10(v: f64, at: usize, letter: char) -> Result<u16, LexError> {
 mod tests {
     #![allow(clippy::unwrap_used, clippy::expect_used)]
     use super::*;
+
+    fn lex(b: &[u8], bd: bool, blk: &mut Block) -> Result<LineKind, LexError> {
+        lex_line(b, bd, blk, &mut Params::default(), &SysView::default)
+    }
 
     fn num(s: &str) -> f64 {
         let mut i = 0;
@@ -478,7 +602,7 @@ mod tests {
     #[test]
     fn lexes_words_and_comments() {
         let mut b = Block::new();
-        let k = lex_line(b"n10 g1x1.5 (msg, hi there) y-2 ; z", true, &mut b).unwrap();
+        let k = lex(b"n10 g1x1.5 (msg, hi there) y-2 ; z", true, &mut b).unwrap();
         assert_eq!(k, LineKind::Words);
         assert_eq!(b.get(b'X'), Some(1.5));
         assert_eq!(b.get(b'Y'), Some(-2.0));
@@ -486,15 +610,9 @@ mod tests {
         assert_eq!(b.ng, 1);
         assert_eq!(b.g[0].0, 10);
         assert!(b.msg.is_some());
-        assert!(lex_line(b"G1 (open", true, &mut b).is_err());
-        assert_eq!(
-            lex_line(b"/G1 X1", true, &mut b).unwrap(),
-            LineKind::Deleted
-        );
-        assert_eq!(lex_line(b" % ", true, &mut b).unwrap(), LineKind::Percent);
-        assert_eq!(
-            lex_line(b"O100 sub", true, &mut b).unwrap_err().1,
-            ErrorKind::Unsupported
-        );
+        assert!(lex(b"G1 (open", true, &mut b).is_err());
+        assert_eq!(lex(b"/G1 X1", true, &mut b).unwrap(), LineKind::Deleted);
+        assert_eq!(lex(b" % ", true, &mut b).unwrap(), LineKind::Percent);
+        assert_eq!(lex(b"O100 sub", true, &mut b).unwrap(), LineKind::OWord(0));
     }
 }

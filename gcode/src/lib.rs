@@ -8,8 +8,10 @@
 //! * [`linearise`] turns arcs into chords within a tolerance with exact endpoints.
 //! * [`analyse`] computes bounds, lengths and a feed-based run-time estimate.
 //!
-//! The dialect is the common subset of grbl and LinuxCNC; see the crate README
-//! for the full list of words and the rules that are applied.
+//! The dialect is the common ground of grbl and LinuxCNC plus LinuxCNC's
+//! parameters, expressions, O-word control flow, canned cycles and G92/G52,
+//! checked against LinuxCNC's `rs274` (tests/conformance.rs); see the crate
+//! README for the full list of words and the rules that are applied.
 //!
 //! ```
 //! use fresa_gcode::{analyse, linearise, AnalysisOptions, Config, Interpreter, Motion};
@@ -45,10 +47,12 @@
 
 mod analysis;
 mod arc;
+mod expr;
+mod flow;
 mod interp;
 mod lex;
 
-pub use analysis::{analyse, Analysis, AnalysisOptions, Bounds};
+pub use analysis::{analyse, Analysis, AnalysisOptions, Bounds, OffsetChangeNote};
 pub use arc::{linearise, segments_for, ArcGeometry, Linearise, MIN_TOLERANCE_MM};
 pub use interp::Interpreter;
 
@@ -57,8 +61,8 @@ use serde::{Deserialize, Serialize};
 /// X, Y, Z in millimetres.
 pub type Point = [f64; 3];
 
-/// What to do with words the interpreter does not implement (O-words, `#`
-/// parameters, expressions, canned cycles, cutter compensation, ...).
+/// What to do with words the interpreter does not implement (cutter
+/// compensation, G10, splines, A/B/C axes, probing, ...).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub enum Unsupported {
     /// Stop with a [`GcodeError`] naming line and column (default: never guess).
@@ -112,6 +116,17 @@ pub struct Config {
     pub max_line_bytes: usize,
     /// At most this many warnings are kept (the rest are counted).
     pub max_warnings: usize,
+    /// Most nesting levels, the main program included (O-word `call`,
+    /// `M98`); deeper is an error naming the line. Default 10, LinuxCNC's.
+    pub max_call_depth: usize,
+    /// Most loop passes (`while`, `do`, `repeat`, M98 `L`) in one program;
+    /// more is an error naming the line, so a runaway loop cannot hang an
+    /// upload check. Default 10,000,000.
+    pub max_loop_iterations: u64,
+    /// Loops and calls need the program text again: from the first O-word
+    /// or M98 on, the lines read are kept in memory, at most this many bytes
+    /// (more is an error naming the line). Default 256 MiB.
+    pub max_kept_program_bytes: usize,
 }
 
 impl Default for Config {
@@ -131,6 +146,9 @@ impl Default for Config {
             max_arc_radius_mm: 1e6,
             max_line_bytes: 64 * 1024,
             max_warnings: 1000,
+            max_call_depth: 10,
+            max_loop_iterations: 10_000_000,
+            max_kept_program_bytes: 256 * 1024 * 1024,
         }
     }
 }
@@ -229,6 +247,13 @@ pub enum Motion {
     },
     /// M2/M30 (or the closing `%`).
     ProgramEnd { line: u32 },
+    /// G92, G92.1, G92.2, G92.3 or G52 (`code` = G number * 10: 920, 921,
+    /// 922, 923, 520): the program moved its origin by `offset` (mm, the
+    /// offset now in effect, zero when cancelled). The coordinates of every
+    /// motion already include it (they stay in the active work system's
+    /// frame), so a backend needs to do nothing; it is reported for the
+    /// analysis and the operator.
+    OffsetChange { line: u32, code: u16, offset: Point },
 }
 
 impl Motion {
@@ -247,6 +272,7 @@ impl Motion {
             | Motion::WorkOffset { line, .. }
             | Motion::Message { line, .. }
             | Motion::Pause { line, .. }
+            | Motion::OffsetChange { line, .. }
             | Motion::ProgramEnd { line } => *line,
         }
     }

@@ -296,21 +296,23 @@ fn path_control_and_retract_modes_are_accepted() {
 
 #[test]
 fn inverse_time_and_unsupported_words_are_clear_errors() {
-    let e = err("G1 X1 F1\nG93\n");
-    assert_eq!((e.line, e.column, e.kind), (2, 1, ErrorKind::Unsupported));
+    // G93/G95 run (tests/cycles.rs); G93 needs F on each feed move.
+    let e = err("G1 X1 F1\nG93 G1 X2\n");
+    assert_eq!((e.line, e.column, e.kind), (2, 8, ErrorKind::Invalid));
+    assert!(e.message.contains("no feed rate"), "{e}");
+    let e = err("G93 G1 X1 F2\nG1 X2\n");
+    assert_eq!((e.line, e.column), (2, 4));
     assert!(e.message.contains("inverse-time"), "{e}");
-    let e = err("G0 X0\nO100 sub\n");
-    assert_eq!((e.line, e.column, e.kind), (2, 1, ErrorKind::Unsupported));
-    let e = err("#1 = 5\n");
-    assert!(e.message.contains("parameters"));
-    let e = err("G0 X[1+2]\n");
-    assert_eq!((e.column, e.kind), (4, ErrorKind::Unsupported));
-    let e = err("G0 X#1\n");
-    assert!(e.message.contains("parameters"));
+    // O-words, parameters and expressions are interpreted (tests/params.rs);
+    // their errors are syntax errors, not "unsupported".
+    let e = err("G0 X[1+2\n");
+    assert_eq!((e.column, e.kind), (5, ErrorKind::Syntax), "at the '['");
+    let e = err("G0 X#<nope>\n");
+    assert!(e.message.contains("not defined"), "{e}");
     let e = err("G0 A5\n");
     assert_eq!(e.column, 4);
     assert!(err("G41 D1\n").message.contains("not supported"));
-    assert!(err("G92 X0\n").message.contains("G92"));
+    assert!(err("G10 L2 P1 X0\n").message.contains("G10"));
     assert!(err("M62 P1\n").message.contains("M62"));
 }
 
@@ -321,7 +323,7 @@ fn skip_with_warning_skips_whole_line_and_canned_cycle_lines() {
         ..Config::default()
     };
     let mut it = Interpreter::new(
-        "G0 X1\nG81 X5 Y5 Z-1 R1 F100\nX6\nG80\nG0 X2 #1\nG0 X3\n".as_bytes(),
+        "G0 X1\nG84 X5 Y5 Z-1 R1 F100\nX6\nG80\nG0 X2 A1\nG0 X3\n".as_bytes(),
         cfg,
     );
     let m: Vec<Motion> = it.by_ref().collect::<Result<_, _>>().unwrap();
@@ -500,7 +502,7 @@ fn skipping_never_changes_what_later_lines_do() {
         ..Config::default()
     };
     // A skipped line that sets a modal group later lines depend on is an error.
-    for src in ["G91 G0 X1 A5\n", "G20 A1\n", "G18 O100\n", "G55 #1=2\n"] {
+    for src in ["G91 G0 X1 A5\n", "G20 A1\n", "G18 B1\n", "G55 C2\n"] {
         let e = run_cfg(src, skip.clone()).unwrap_err();
         assert!(e.message.contains("cannot be skipped"), "{src}: {e}");
     }

@@ -733,9 +733,21 @@ impl Inner {
         // Validate the whole program before anything reaches Mach3.
         let interp = fresa_gcode::Interpreter::new(text.as_bytes(), Default::default());
         let mut last_active_line = 1;
-        for m in fresa_gcode::linearise(interp, 0.01) {
+        let mut motions = fresa_gcode::linearise(interp, 0.01);
+        for m in motions.by_ref() {
             let m = m.map_err(|e| PluginError::new("invalid_program", e.to_string()))?;
             last_active_line = last_active_line.max(m.line());
+        }
+        // Mach3 gets the text itself, and it does not speak LinuxCNC's
+        // O-word control flow or named parameters: refuse before it sees any.
+        if let Some(line) = motions.inner().linuxcnc_only_line() {
+            return Err(PluginError::new(
+                "invalid_program",
+                format!(
+                    "line {line}: LinuxCNC-only syntax (O-word sub/if/while, #<named> parameters \
+                     or (debug,...)) that Mach3 does not run; use numbered parameters and M98/M99"
+                ),
+            ));
         }
         let lines = u32::try_from(text.lines().count()).unwrap_or(u32::MAX);
         if start_line > lines.saturating_add(1) {

@@ -1,0 +1,35 @@
+//! Fixed work for load-independent measurements: interprets (and
+//! linearises) FILE REPS times and prints the motions. Run under
+//! `valgrind --tool=cachegrind --cache-sim=no` with two REPS values; the
+//! difference of the instruction counts divided by the difference of REPS is
+//! the cost of one pass, free of start-up and of other load on the machine.
+//!
+//!   cargo build --release -p fresa-gcode --example instructions
+//!   valgrind --tool=cachegrind --cache-sim=no target/release/examples/instructions FILE 2 [lin]
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fresa_gcode::{linearise, Config, Interpreter};
+use std::hint::black_box;
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let path = args.get(1).expect("usage: instructions FILE REPS [lin]");
+    let reps: usize = args.get(2).map_or(1, |r| r.parse().expect("REPS"));
+    let lin = args.get(3).is_some_and(|a| a == "lin");
+    let src = std::fs::read(path).expect("read FILE");
+    let mut n = 0u64;
+    for _ in 0..reps {
+        if lin {
+            for m in linearise(Interpreter::new(&src[..], Config::default()), 0.002) {
+                black_box(m.unwrap());
+                n += 1;
+            }
+        } else {
+            for m in Interpreter::new(&src[..], Config::default()) {
+                black_box(m.unwrap());
+                n += 1;
+            }
+        }
+    }
+    println!("{n} motions");
+}
