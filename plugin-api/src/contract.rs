@@ -5,6 +5,7 @@
 use serde::{Deserialize, Serialize};
 
 /// Axes every machine exposes (absent axes simply never move).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub enum Axis {
     X,
@@ -31,6 +32,7 @@ impl Axis {
 }
 
 /// One value per axis, serialised as `{"x":..,"y":..,"z":..,"a":..}`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct AxisValues {
     #[serde(default)]
@@ -66,6 +68,7 @@ impl AxisValues {
 }
 
 /// The six work coordinate systems.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
 pub enum WorkOffset {
     #[default]
@@ -100,6 +103,7 @@ impl WorkOffset {
 }
 
 /// What a machine is doing, as far as the backend can tell.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum MachineState {
@@ -157,6 +161,7 @@ impl MachineState {
 }
 
 /// A snapshot of the machine, reported by `status` and by `status` events.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MachineStatus {
     pub state: MachineState,
@@ -203,6 +208,7 @@ impl Default for MachineStatus {
 }
 
 /// Immediate machine commands. Serialised with a `command` tag, e.g. `{"command":"zero","axis":"X"}`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "command", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Command {
@@ -243,6 +249,7 @@ pub enum Command {
 }
 
 /// Digital outputs a backend may expose to `Command::SetOutput`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum OutputName {
