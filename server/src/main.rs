@@ -73,6 +73,9 @@ struct ServeArgs {
     /// Create a simulated machine named "demo" (real-time motion) if there is none.
     #[arg(long)]
     demo: bool,
+    /// MQTT broker to bridge events to, e.g. mqtt://broker.lan:1883 (beats `[mqtt] url`).
+    #[arg(long, env = "FRESA_MQTT_URL")]
+    mqtt_url: Option<String>,
 }
 
 impl From<ServeArgs> for config::Overrides {
@@ -84,6 +87,7 @@ impl From<ServeArgs> for config::Overrides {
             plugin_dirs: a.plugin_dirs,
             max_upload_bytes: a.max_upload_bytes,
             demo: a.demo,
+            mqtt_url: a.mqtt_url,
         }
     }
 }

@@ -335,7 +335,7 @@ pub struct ResumeBody {
 
 #[utoipa::path(post, path = "/jobs/{id}/{action}", tag = "jobs",
     params(("id" = i64, Path, description = "job id", example = 1),
-           ("action" = JobAction, Path, description = "`resume` also continues an `interrupted` or `failed` run from the next unacknowledged line", example = "start")),
+           ("action" = inline(JobAction), Path, description = "`resume` also continues an `interrupted` or `failed` run from the next unacknowledged line", example = "start")),
     request_body(content = Option<ResumeBody>, description = "Only for `resume`, optional"),
     responses(
         (status = 200, description = "Done: the job with its run (answered only once true: a `cancel` after motion stopped)", body = Job),

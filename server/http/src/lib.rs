@@ -8,6 +8,7 @@ mod jobs;
 pub(crate) mod machines;
 pub mod openapi;
 mod pendants;
+mod webhooks;
 
 use axum::extract::{DefaultBodyLimit, State};
 use axum::http::StatusCode;
@@ -100,6 +101,10 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
         // admin's.
         .routes(needs(Operator, routes!(pendants::patch)))
         .routes(needs(Admin, routes!(pendants::delete)))
+        .routes(needs(Admin, routes!(webhooks::list)))
+        .routes(needs(Admin, routes!(webhooks::create)))
+        .routes(needs(Admin, routes!(webhooks::get_one)))
+        .routes(needs(Admin, routes!(webhooks::delete)))
         .routes(needs(Viewer, routes!(plugins)))
         .routes(needs(Viewer, routes!(events::stream)))
         .layer(axum::middleware::from_fn_with_state(
@@ -248,6 +253,7 @@ async fn metrics(State(app): State<SharedApp>) -> Result<impl IntoResponse, erro
         "# TYPE fresa_event_subscribers gauge\nfresa_event_subscribers {}",
         app.bus.subscribers()
     );
+    out.push_str(&app.integrations.prometheus());
     Ok((
         [(
             axum::http::header::CONTENT_TYPE,

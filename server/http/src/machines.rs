@@ -325,23 +325,7 @@ pub async fn command(
     Json(raw): Json<Value>,
 ) -> Result<Json<CommandDone>, ApiError> {
     let m = machine(&app, id).await?;
-    let cmd: Command = serde_json::from_value(raw.clone())
-        .map_err(|e| ApiError::unprocessable("invalid_command", format!("{e} (commands: cycle_start, feed_hold, resume, stop, reset, home, zero, go_to_zero, select_offset, set_output, toggle_output)")))?;
-    // Like every other body: a field the command does not have is an error, not ignored (a
-    // misspelt `axis` must not zero every axis).
-    let known = serde_json::to_value(cmd).unwrap_or_default();
-    if let (Some(given), Some(known)) = (raw.as_object(), known.as_object()) {
-        if let Some(extra) = given.keys().find(|k| !known.contains_key(*k)) {
-            return Err(ApiError::unprocessable(
-                "invalid_command",
-                format!(
-                    "unknown field `{extra}` for command {:?} (its fields: {})",
-                    known["command"].as_str().unwrap_or_default(),
-                    known.keys().cloned().collect::<Vec<_>>().join(", ")
-                ),
-            ));
-        }
-    }
+    let cmd = limits::parse_command(&raw)?;
     let answer = m.command(cmd, &caller.name).await?;
     Ok(Json(CommandDone {
         ok: true,

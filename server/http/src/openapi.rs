@@ -33,7 +33,7 @@ pub type Routes = utoipa_axum::router::UtoipaMethodRouter<SharedApp>;
                        stable `code`; each operation lists the codes it answers with.",
         license(name = "MIT OR Apache-2.0")
     ),
-    components(schemas(ErrorBody, EventDoc, crate::jobs::JobAction)),
+    components(schemas(ErrorBody, EventDoc)),
     modifiers(&BearerScheme)
 )]
 pub struct ApiDoc;

@@ -29,6 +29,7 @@ mod pendants;
 #[cfg(test)]
 mod tests;
 mod tokens;
+mod webhooks;
 
 pub use backup::{backup_database, BackupError};
 pub use events::EventRow;
@@ -36,6 +37,7 @@ pub use jobs::{JobRow, NewJob, RunRow, RunState};
 pub use machines::{MachineRow, PartZeroRow};
 pub use pendants::{MacroAction, PendantRow};
 pub use tokens::{is_unique_violation, TokenInfo, TokenRow};
+pub use webhooks::{DeliveryOutcome, WebhookRow, WebhookTarget};
 
 impl Store {
     /// Opens (creating if needed) the database and applies the migrations in `migrations/`.
