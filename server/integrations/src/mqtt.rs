@@ -63,8 +63,12 @@ impl Topics {
     pub fn online(&self) -> String {
         format!("{}/nodes/{}/online", self.prefix, self.node)
     }
-    pub fn commands_filter(&self) -> String {
-        format!("{}/cmd/#", self.prefix)
+    /// Not `cmd/#`: that would include `cmd/results`, our own answers.
+    pub fn command_filters(&self) -> [String; 2] {
+        [
+            format!("{}/cmd/machines/#", self.prefix),
+            format!("{}/cmd/jobs/#", self.prefix),
+        ]
     }
     pub fn results(&self) -> String {
         format!("{}/cmd/results", self.prefix)
@@ -295,9 +299,10 @@ async fn drive(
                     );
                 }
                 if settings.commands {
-                    if let Err(e) = client.try_subscribe(topics.commands_filter(), QoS::AtLeastOnce)
-                    {
-                        tracing::warn!(error = %e, "cannot subscribe to the MQTT command topics");
+                    for filter in topics.command_filters() {
+                        if let Err(e) = client.try_subscribe(filter, QoS::AtLeastOnce) {
+                            tracing::warn!(error = %e, "cannot subscribe to the MQTT command topics");
+                        }
                     }
                 }
             }
@@ -518,6 +523,9 @@ mod tests {
         assert_eq!(t.job_state(7), "shop/fresa/jobs/7/state");
         assert_eq!(t.event("job.state"), "shop/fresa/events/job.state");
         assert_eq!(t.online(), "shop/fresa/nodes/host_1_x/online");
-        assert_eq!(t.commands_filter(), "shop/fresa/cmd/#");
+        assert_eq!(
+            t.command_filters(),
+            ["shop/fresa/cmd/machines/#", "shop/fresa/cmd/jobs/#"]
+        );
     }
 }

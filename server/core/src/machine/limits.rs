@@ -218,4 +218,3 @@ mod tests {
         assert!(check_mdi_line("G0 X100 Y-50 Z5").is_ok());
     }
 }
-
