@@ -37,6 +37,13 @@ enum Cmd {
         #[command(subcommand)]
         command: client::JobCmd,
     },
+    /// Follow a running server's event stream, one line per event.
+    Events {
+        #[command(flatten)]
+        server: client::ServerArgs,
+        #[command(flatten)]
+        filter: client::EventsArgs,
+    },
     /// G-code tools that need no server.
     Gcode {
         #[command(subcommand)]
@@ -125,6 +132,7 @@ fn main() -> ExitCode {
             }
             Cmd::Machine { server, command } => client::machine(server, command).await,
             Cmd::Job { server, command } => client::job(server, command).await,
+            Cmd::Events { server, filter } => client::events(server, filter).await,
             Cmd::Token { command } => client::token(command).await,
             Cmd::Backup { file, data } => client::backup(file, data).await,
             Cmd::Gcode { command } => client::gcode(command),
