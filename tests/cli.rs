@@ -207,11 +207,7 @@ fn job_watch_draws_a_progress_bar_on_a_terminal() {
     );
     // The bar is drawn in place (carriage returns / escapes), then the end is a plain line.
     assert!(text.contains('\r') || text.contains('\u{1b}'), "{text:?}");
-    let last = text
-        .lines()
-        .filter(|l| !l.trim().is_empty())
-        .next_back()
-        .unwrap();
+    let last = text.lines().rfind(|l| !l.trim().is_empty()).unwrap();
     assert!(last.contains("completed at line"), "{text:?}");
 }
 
