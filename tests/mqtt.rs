@@ -407,3 +407,142 @@ fn commands_are_off_by_default() {
     assert!(x_is(&s.status(1), 0.0));
     assert_eq!(metric(&s, "fresa_mqtt_commands_refused_total"), 0.0);
 }
+
+fn run(cmd: &mut Command, what: &str) {
+    let out = cmd
+        .output()
+        .unwrap_or_else(|e| panic!("{what}: {e} (apt-get install openssl mosquitto)"));
+    assert!(
+        out.status.success(),
+        "{what}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[test]
+fn tls_and_a_password_reach_a_broker_that_requires_both() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |f: &str| dir.path().join(f);
+    // A CA and a certificate for 127.0.0.1 signed by it (openssl, as an admin would).
+    run(
+        Command::new("openssl")
+            .args([
+                "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2",
+            ])
+            .args(["-subj", "/CN=fresa-test-ca", "-keyout"])
+            .arg(p("ca.key"))
+            .arg("-out")
+            .arg(p("ca.pem")),
+        "openssl CA",
+    );
+    run(
+        Command::new("openssl")
+            .args([
+                "req",
+                "-newkey",
+                "rsa:2048",
+                "-nodes",
+                "-subj",
+                "/CN=127.0.0.1",
+                "-keyout",
+            ])
+            .arg(p("server.key"))
+            .arg("-out")
+            .arg(p("server.csr")),
+        "openssl request",
+    );
+    std::fs::write(
+        p("ext.cnf"),
+        "subjectAltName=IP:127.0.0.1\nbasicConstraints=CA:FALSE\nextendedKeyUsage=serverAuth\n",
+    )
+    .unwrap();
+    run(
+        Command::new("openssl")
+            .args(["x509", "-req", "-days", "2", "-CAcreateserial", "-in"])
+            .arg(p("server.csr"))
+            .arg("-CA")
+            .arg(p("ca.pem"))
+            .arg("-CAkey")
+            .arg(p("ca.key"))
+            .arg("-extfile")
+            .arg(p("ext.cnf"))
+            .arg("-out")
+            .arg(p("server.pem")),
+        "openssl sign",
+    );
+    run(
+        Command::new("/usr/bin/mosquitto_passwd")
+            .args(["-c", "-b"])
+            .arg(p("passwd"))
+            .args(["fresa", "s3cret"]),
+        "mosquitto_passwd",
+    );
+    // Two listeners: TLS with a password for the server, plain loopback for the test's client.
+    let mut broker = Broker::start();
+    broker.stop();
+    let tls_port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let conf = p("mosquitto.conf");
+    std::fs::write(
+        &conf,
+        format!(
+            // Started as root, mosquitto would drop to the `mosquitto` user, which cannot read
+            // the test's private directory; for any other user `user` has no effect.
+            "user root\nper_listener_settings true\npersistence false\n\
+             listener {plain} 127.0.0.1\nallow_anonymous true\n\
+             listener {tls_port} 127.0.0.1\nallow_anonymous false\npassword_file {pw}\n\
+             cafile {ca}\ncertfile {cert}\nkeyfile {key}\n",
+            plain = broker.port,
+            pw = p("passwd").display(),
+            ca = p("ca.pem").display(),
+            cert = p("server.pem").display(),
+            key = p("server.key").display(),
+        ),
+    )
+    .unwrap();
+    broker.child = Some(
+        Command::new(MOSQUITTO)
+            .arg("-c")
+            .arg(&conf)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    for port in [broker.port, tls_port] {
+        wait_for(T, "mosquitto listening", || {
+            std::net::TcpStream::connect(("127.0.0.1", port))
+                .ok()
+                .map(|_| ())
+        });
+    }
+    let start = |password: &str| {
+        let mut s = Server::unstarted(Opts {
+            demo: true,
+            ..Opts::default()
+        });
+        s.write_config(&format!(
+            "[mqtt]\nurl = \"mqtts://127.0.0.1:{tls_port}\"\ntopic_prefix = \"t\"\n\
+             ca_file = \"{}\"\nusername = \"fresa\"\npassword = \"{password}\"\n",
+            p("ca.pem").display()
+        ));
+        s.spawn().unwrap();
+        s.wait_machine_state(1, "idle", T);
+        s
+    };
+    let s = start("s3cret");
+    wait_for(T, "bridge connected over TLS", || {
+        (metric(&s, "fresa_mqtt_connected") == 1.0).then_some(())
+    });
+    s.jog(1, "X", 1.0).expect(200);
+    retained_status(&broker, 1.0);
+    drop(s);
+    // A wrong password: the broker refuses it and the bridge stays disconnected (and retries).
+    let s = start("wrong");
+    let log = s.wait_log(T, "MQTT connect failed");
+    assert!(!log.is_empty());
+    assert_eq!(metric(&s, "fresa_mqtt_connected"), 0.0);
+}

@@ -342,6 +342,9 @@ async fn drive(
             Err(e) => {
                 if stats.mqtt_connected.swap(false, Ordering::Relaxed) {
                     tracing::warn!(error = %e, "MQTT bridge lost the broker; reconnecting");
+                } else if backoff == BACKOFF_FIRST {
+                    // The first failure in a row says why; the retries after it stay quiet.
+                    tracing::warn!(error = %e, "MQTT connect failed; retrying with backoff");
                 } else {
                     tracing::debug!(error = %e, retry_in = ?backoff, "MQTT connect failed");
                 }
