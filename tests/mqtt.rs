@@ -278,7 +278,8 @@ impl Sub {
 #[test]
 fn a_broker_outage_leaves_the_machines_alone_and_the_bridge_reconnects() {
     let mut broker = Broker::start();
-    let s = bridged_demo(&broker, "");
+    // A small queue, so the outage overflows it.
+    let s = bridged_demo(&broker, "queue = 5\n");
     broker.stop();
     wait_for(T, "bridge sees the broker gone", || {
         (metric(&s, "fresa_mqtt_connected") == 0.0).then_some(())
@@ -291,6 +292,8 @@ fn a_broker_outage_leaves_the_machines_alone_and_the_bridge_reconnects() {
             x_is(&e.data["data"], f64::from(i))
         });
     }
+    // What did not fit while the broker was away was dropped and counted, not waited for.
+    assert!(metric(&s, "fresa_mqtt_dropped_total") > 0.0);
     broker.run();
     wait_for(T, "bridge reconnected", || {
         (metric(&s, "fresa_mqtt_connected") == 1.0

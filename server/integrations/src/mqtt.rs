@@ -247,6 +247,64 @@ async fn messages(
     out
 }
 
+/// Part of what is announced on connecting.
+enum Announce {
+    /// The node's birth message.
+    Online,
+    /// A machine's current status (retained).
+    Status(i64),
+}
+
+/// What a consumer needs after the broker lost it: the birth message and every machine's status.
+async fn announcement(app: &SharedApp) -> Vec<Announce> {
+    let mut v = vec![Announce::Online];
+    v.extend(
+        app.machines
+            .all()
+            .await
+            .iter()
+            .map(|m| Announce::Status(m.id)),
+    );
+    v
+}
+
+/// Offers the announcement's parts in order and keeps those the queue had no room for, to try
+/// again when it moves (a status is taken fresh each time).
+async fn announce(
+    app: &SharedApp,
+    client: &AsyncClient,
+    topics: &Topics,
+    settings: &MqttSettings,
+    left: &mut Vec<Announce>,
+) {
+    while let Some(next) = left.first() {
+        let (topic, qos, body) = match next {
+            Announce::Online => (
+                topics.online(),
+                QoS::AtLeastOnce,
+                online_payload(true, &settings.node),
+            ),
+            Announce::Status(id) => {
+                let Some(m) = app.machines.get(*id).await else {
+                    left.remove(0);
+                    continue;
+                };
+                let status = json!(m.status());
+                let body = status_json(app, *id, &status)
+                    .await
+                    .to_string()
+                    .into_bytes();
+                (topics.status(*id), QoS::AtMostOnce, body)
+            }
+        };
+        if client.try_publish(topic, qos, true, body).is_err() {
+            return;
+        }
+        IntegrationStats::add(&app.integrations.mqtt_published, 1);
+        left.remove(0);
+    }
+}
+
 /// Polls the connection (rumqttc reconnects on the next poll after an error), with doubling
 /// delays between failed attempts; announces the node and the machines' status on each
 /// connection; hands command messages to their own tasks.
@@ -259,6 +317,8 @@ async fn drive(
 ) {
     let mut backoff = BACKOFF_FIRST;
     let mut connections = 0u64;
+    // What of the announcement did not fit in the queue yet.
+    let mut to_announce: Vec<Announce> = Vec::new();
     let in_flight = Arc::new(tokio::sync::Semaphore::new(MAX_COMMANDS_IN_FLIGHT));
     let stats = &app.integrations;
     loop {
@@ -275,29 +335,8 @@ async fn drive(
                 stats.mqtt_connected.store(true, Ordering::Relaxed);
                 backoff = BACKOFF_FIRST;
                 tracing::info!(reconnects = connections - 1, "MQTT bridge connected");
-                offer(
-                    &app,
-                    &client,
-                    topics.online(),
-                    QoS::AtLeastOnce,
-                    true,
-                    online_payload(true, &settings.node),
-                );
-                for m in app.machines.all().await {
-                    let status = json!(m.status());
-                    let body = status_json(&app, m.id, &status)
-                        .await
-                        .to_string()
-                        .into_bytes();
-                    offer(
-                        &app,
-                        &client,
-                        topics.status(m.id),
-                        QoS::AtMostOnce,
-                        true,
-                        body,
-                    );
-                }
+                to_announce = announcement(&app).await;
+                announce(&app, &client, &topics, &settings, &mut to_announce).await;
                 if settings.commands {
                     for filter in topics.command_filters() {
                         if let Err(e) = client.try_subscribe(filter, QoS::AtLeastOnce) {
@@ -337,6 +376,10 @@ async fn drive(
                     );
                     drop(permit);
                 });
+            }
+            Ok(Event::Outgoing(_)) if !to_announce.is_empty() => {
+                // The queue was full of what waited for the broker; now that it moves, go on.
+                announce(&app, &client, &topics, &settings, &mut to_announce).await;
             }
             Ok(_) => {}
             Err(e) => {
