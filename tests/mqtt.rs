@@ -326,6 +326,10 @@ fn commands_need_a_token_with_the_operator_role() {
     wait_for(T, "bridge connected", || {
         (metric(&s, "fresa_mqtt_connected") == 1.0).then_some(())
     });
+    // Commands reach the bridge only once the broker has its subscriptions.
+    wait_for(T, "command subscriptions confirmed", || {
+        (metric(&s, "fresa_mqtt_commands_ready") == 1.0).then_some(())
+    });
     let c = Sub::new(&broker, &["t/cmd/results"]);
     let jog = "t/cmd/machines/1/jog";
     for (payload, code) in [
@@ -409,6 +413,11 @@ fn commands_are_off_by_default() {
     }
     assert!(x_is(&s.status(1), 0.0));
     assert_eq!(metric(&s, "fresa_mqtt_commands_refused_total"), 0.0);
+    assert_eq!(
+        metric(&s, "fresa_mqtt_commands_ready"),
+        0.0,
+        "nothing subscribed"
+    );
 }
 
 fn run(cmd: &mut Command, what: &str) {

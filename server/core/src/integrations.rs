@@ -20,6 +20,8 @@ pub struct IntegrationStats {
     pub mqtt_dropped: AtomicU64,
     /// Whether the bridge is connected to the broker now.
     pub mqtt_connected: AtomicBool,
+    /// Whether the broker has confirmed the command subscriptions (with `commands = true`).
+    pub mqtt_commands_ready: AtomicBool,
     /// Successful connections after the first.
     pub mqtt_reconnects: AtomicU64,
     /// Command messages refused (bad token, role, payload).
@@ -84,6 +86,10 @@ impl IntegrationStats {
         out.push_str(&format!(
             "# HELP fresa_mqtt_connected 1 while the MQTT bridge is connected.\n# TYPE fresa_mqtt_connected gauge\nfresa_mqtt_connected {}\n",
             u8::from(self.mqtt_connected.load(Ordering::Relaxed))
+        ));
+        out.push_str(&format!(
+            "# HELP fresa_mqtt_commands_ready 1 while the broker has confirmed the MQTT command subscriptions.\n# TYPE fresa_mqtt_commands_ready gauge\nfresa_mqtt_commands_ready {}\n",
+            u8::from(self.mqtt_commands_ready.load(Ordering::Relaxed))
         ));
         out
     }

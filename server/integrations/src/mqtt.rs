@@ -319,6 +319,8 @@ async fn drive(
     let mut connections = 0u64;
     // What of the announcement did not fit in the queue yet.
     let mut to_announce: Vec<Announce> = Vec::new();
+    // Subscription acknowledgements since the last connection.
+    let mut sub_acks = 0u32;
     let in_flight = Arc::new(tokio::sync::Semaphore::new(MAX_COMMANDS_IN_FLIGHT));
     let stats = &app.integrations;
     loop {
@@ -335,6 +337,7 @@ async fn drive(
                 stats.mqtt_connected.store(true, Ordering::Relaxed);
                 backoff = BACKOFF_FIRST;
                 tracing::info!(reconnects = connections - 1, "MQTT bridge connected");
+                sub_acks = 0;
                 to_announce = announcement(&app).await;
                 announce(&app, &client, &topics, &settings, &mut to_announce).await;
                 if settings.commands {
@@ -377,12 +380,20 @@ async fn drive(
                     drop(permit);
                 });
             }
+            Ok(Event::Incoming(Packet::SubAck(_))) => {
+                // Both command filters are asked for at once; the broker answers in order.
+                sub_acks += 1;
+                if sub_acks >= 2 {
+                    stats.mqtt_commands_ready.store(true, Ordering::Relaxed);
+                }
+            }
             Ok(Event::Outgoing(_)) if !to_announce.is_empty() => {
                 // The queue was full of what waited for the broker; now that it moves, go on.
                 announce(&app, &client, &topics, &settings, &mut to_announce).await;
             }
             Ok(_) => {}
             Err(e) => {
+                stats.mqtt_commands_ready.store(false, Ordering::Relaxed);
                 if stats.mqtt_connected.swap(false, Ordering::Relaxed) {
                     tracing::warn!(error = %e, "MQTT bridge lost the broker; reconnecting");
                 } else if backoff == BACKOFF_FIRST {
