@@ -2,6 +2,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+use fresa_tests::serde_json;
 use fresa_tests::{assert_every_line_once, corpus, fresa_cmd, output_text, Server};
 use std::time::Duration;
 
@@ -122,4 +123,159 @@ fn cli_errors_name_the_problem_and_exit_non_zero() {
         "{}",
         output_text(&out)
     );
+}
+
+#[test]
+fn machine_list_aligns_its_columns() {
+    let s = Server::start();
+    s.sim("a-machine-with-a-rather-long-name", 0.0);
+    s.sim("m2", 0.0);
+    let out = s.cli(&["machine", "list"]);
+    assert!(out.status.success(), "{}", output_text(&out));
+    let text = stdout(&out);
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines.len(), 3, "{text}");
+    // Every column starts at the same character in every row.
+    let starts = |l: &str| -> Vec<usize> {
+        let mut v = vec![0];
+        let b = l.as_bytes();
+        for i in 1..b.len() {
+            if b[i] != b' ' && b[i - 1] == b' ' {
+                v.push(i);
+            }
+        }
+        v
+    };
+    let header = starts(lines[0]);
+    assert_eq!(header.len(), 4, "{text}");
+    for l in &lines[1..] {
+        assert_eq!(starts(l), header, "{text}");
+    }
+}
+
+#[test]
+fn job_watch_prints_lines_with_elapsed_and_remaining_when_not_a_terminal() {
+    let s = Server::start();
+    let m = s.sim("m", 0.03);
+    let file = corpus("cncjs-arc-xz-plane.gcode");
+    let (id, _) = s.upload_and_start(m.id, "arc", &std::fs::read_to_string(&file).unwrap());
+    let out = s.cli(&["job", "watch", &id.to_string()]);
+    assert!(out.status.success(), "{}", output_text(&out));
+    let text = stdout(&out);
+    let progress: Vec<&str> = text.lines().filter(|l| l.starts_with("line ")).collect();
+    assert!(!progress.is_empty(), "{text}");
+    for l in &progress {
+        assert!(
+            l.contains('%') && l.contains("elapsed ") && l.contains("remaining "),
+            "{l}"
+        );
+    }
+    // No terminal, no escape sequences.
+    assert!(!text.contains('\u{1b}'), "{text:?}");
+    let last = text.lines().last().unwrap();
+    assert!(
+        last.starts_with("completed at line") && last.contains("elapsed"),
+        "{text}"
+    );
+}
+
+#[test]
+fn job_watch_draws_a_progress_bar_on_a_terminal() {
+    let s = Server::start();
+    let m = s.sim("m", 0.03);
+    let file = corpus("cncjs-arc-xz-plane.gcode");
+    let (id, _) = s.upload_and_start(m.id, "arc", &std::fs::read_to_string(&file).unwrap());
+    // python3's pty module gives the CLI a terminal (python3 is in tests/run's list).
+    let out = std::process::Command::new("python3")
+        .args([
+            "-c",
+            "import pty, sys; sys.exit(pty.spawn(sys.argv[1:]) >> 8)",
+        ])
+        .arg(fresa_tests::fresa_bin())
+        .args(["job", "watch", &id.to_string(), "--server", &s.base])
+        .output()
+        .expect("python3 (apt-get install python3)");
+    let text = stdout(&out);
+    assert!(out.status.success(), "{}", output_text(&out));
+    assert!(
+        text.contains("remaining") && text.contains("elapsed"),
+        "{text:?}"
+    );
+    assert!(
+        text.contains("[=") || text.contains("=>"),
+        "no bar in {text:?}"
+    );
+    // The bar is drawn in place (carriage returns / escapes), then the end is a plain line.
+    assert!(text.contains('\r') || text.contains('\u{1b}'), "{text:?}");
+    let last = text.lines().rfind(|l| !l.trim().is_empty()).unwrap();
+    assert!(last.contains("completed at line"), "{text:?}");
+}
+
+#[test]
+fn events_follows_the_stream_with_filters() {
+    let s = Server::start_demo();
+    s.wait_machine_state(1, "idle", T);
+    s.jog(1, "X", 1.0).expect(200);
+    s.wait_machine_state(1, "idle", T);
+    s.command(1, "zero", serde_json::json!({"axis": "X"}))
+        .expect(200);
+    let mut child = fresa_cmd()
+        .args(["events", "--types", "machine.jog", "--after", "0", "--json"])
+        .args(["--server", &s.base])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stdout = child.stdout.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        use std::io::BufRead;
+        for line in std::io::BufReader::new(stdout).lines() {
+            let Ok(line) = line else { return };
+            if tx.send(line).is_err() {
+                return;
+            }
+        }
+    });
+    // The replayed jog, then a live one; the command is filtered out.
+    s.wait_machine_state(1, "idle", T);
+    s.jog(1, "Y", 2.0).expect(200);
+    let mut got = Vec::new();
+    while got.len() < 2 {
+        let line = rx.recv_timeout(T).expect("an event line");
+        let v: serde_json::Value = serde_json::from_str(&line).unwrap();
+        got.push(v);
+    }
+    child.kill().ok();
+    child.wait().ok();
+    assert!(got.iter().all(|v| v["type"] == "machine.jog"), "{got:?}");
+    assert_eq!(got[0]["data"]["axis"], "X");
+    assert_eq!(got[1]["data"]["axis"], "Y");
+
+    // The plain format: id, UTC time, type, machine, actor, data.
+    let mut child = fresa_cmd()
+        .args([
+            "events",
+            "--types",
+            "machine",
+            "--machine",
+            "1",
+            "--after",
+            "0",
+        ])
+        .args(["--server", &s.base])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut first = String::new();
+    use std::io::BufRead;
+    std::io::BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut first)
+        .unwrap();
+    child.kill().ok();
+    child.wait().ok();
+    let words: Vec<&str> = first.split_whitespace().collect();
+    assert!(words[0].starts_with('#'), "{first}");
+    assert!(words[1].ends_with('Z') && words[1].contains('T'), "{first}");
+    assert!(words[2].starts_with("machine."), "{first}");
+    assert_eq!(words[3], "machine=1", "{first}");
 }

@@ -6,6 +6,7 @@ use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
 /// Axes every machine exposes (absent axes simply never move).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub enum Axis {
     X,
@@ -32,6 +33,7 @@ impl Axis {
 }
 
 /// One value per axis, serialised as `{"x":..,"y":..,"z":..,"a":..}`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct AxisValues {
     #[serde(default)]
@@ -67,6 +69,7 @@ impl AxisValues {
 }
 
 /// The six work coordinate systems.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
 pub enum WorkOffset {
     #[default]
@@ -101,6 +104,7 @@ impl WorkOffset {
 }
 
 /// What a machine is doing, as far as the backend can tell.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum MachineState {
@@ -158,6 +162,7 @@ impl MachineState {
 }
 
 /// A snapshot of the machine, reported by `status` and by `status` events.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MachineStatus {
     pub state: MachineState,
@@ -195,6 +200,7 @@ pub struct MachineStatus {
 }
 
 /// The value of an output: a switch or a number (e.g. spindle rpm).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(untagged)]
 pub enum IoValue {
@@ -270,6 +276,7 @@ impl Default for MachineStatus {
 }
 
 /// Immediate machine commands. Serialised with a `command` tag, e.g. `{"command":"zero","axis":"X"}`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "command", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Command {
@@ -310,6 +317,7 @@ pub enum Command {
 }
 
 /// Digital outputs a backend may expose to `Command::SetOutput`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum OutputName {

@@ -30,6 +30,23 @@ pub enum MachineCmd {
     Status { id: i64 },
 }
 
+/// Filters of `fresa events`.
+#[derive(Args)]
+pub struct EventsArgs {
+    /// Comma-separated event types; `job` matches `job.*` (e.g. `job,machine.alarm`).
+    #[arg(long)]
+    types: Option<String>,
+    /// Only this machine's events.
+    #[arg(long)]
+    machine: Option<i64>,
+    /// Replay persisted events after this id first (0: the whole log), then follow.
+    #[arg(long)]
+    after: Option<i64>,
+    /// One JSON object per line (the stream's `data`), for scripts.
+    #[arg(long)]
+    json: bool,
+}
+
 #[derive(Subcommand)]
 pub enum JobCmd {
     /// Upload a G-code file as a job.
@@ -163,16 +180,17 @@ pub async fn machine(server: ServerArgs, cmd: MachineCmd) -> Res {
             let v = c
                 .send(c.req(reqwest::Method::GET, "/api/v1/machines"))
                 .await?;
-            println!("{:<5} {:<20} {:<16} STATE", "ID", "NAME", "BACKEND");
+            let mut rows = vec![["ID", "NAME", "BACKEND", "STATE"].map(String::from)];
             for m in v.as_array().into_iter().flatten() {
-                println!(
-                    "{:<5} {:<20} {:<16} {}",
-                    m["id"],
-                    m["name"].as_str().unwrap_or(""),
-                    m["backend"].as_str().unwrap_or(""),
-                    m["state"].as_str().unwrap_or("")
-                );
+                let text = |k: &str| m[k].as_str().unwrap_or("").to_string();
+                rows.push([
+                    m["id"].to_string(),
+                    text("name"),
+                    text("backend"),
+                    text("state"),
+                ]);
             }
+            print!("{}", columns(&rows));
         }
         MachineCmd::Status { id } => {
             let s = c
@@ -234,6 +252,207 @@ fn status_text(s: &serde_json::Value) -> String {
         out.push_str(&format!("{label} {shown}\n"));
     }
     out
+}
+
+/// Rows as left-aligned columns, each as wide as its widest cell (the last one unpadded).
+fn columns<const N: usize>(rows: &[[String; N]]) -> String {
+    let mut widths = [0usize; N];
+    for r in rows {
+        for (w, cell) in widths.iter_mut().zip(r) {
+            *w = (*w).max(cell.chars().count());
+        }
+    }
+    let mut out = String::new();
+    for r in rows {
+        let cells: Vec<String> = r
+            .iter()
+            .zip(widths)
+            .enumerate()
+            .map(|(i, (cell, w))| {
+                if i + 1 == N {
+                    cell.clone()
+                } else {
+                    format!("{cell:<w$}")
+                }
+            })
+            .collect();
+        out.push_str(&cells.join("  "));
+        out.push('\n');
+    }
+    out
+}
+
+/// `H:MM:SS`.
+fn clock(d: std::time::Duration) -> String {
+    let t = d.as_secs();
+    format!("{}:{:02}:{:02}", t / 3600, t / 60 % 60, t % 60)
+}
+
+/// How `job watch` shows progress: a bar on a terminal, one line per update otherwise (logs,
+/// pipes, CI).
+enum Progress {
+    Bar(indicatif::ProgressBar),
+    Lines,
+}
+
+impl Progress {
+    fn new(total: u64, line: u64, elapsed: std::time::Duration) -> Progress {
+        use std::io::IsTerminal;
+        if !std::io::stdout().is_terminal() {
+            return Progress::Lines;
+        }
+        let bar = indicatif::ProgressBar::new(total.max(1)).with_elapsed(elapsed);
+        let style = indicatif::ProgressStyle::with_template(
+            "[{bar:30}] line {pos}/{len} {percent}%  elapsed {elapsed_precise}  remaining {eta_precise} {msg}",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+        .progress_chars("=> ");
+        bar.set_style(style);
+        bar.set_position(line);
+        Progress::Bar(bar)
+    }
+
+    /// `remaining` is the time left at the pace so far (None before the first line).
+    fn update(&self, line: u64, total: u64, percent: &Value, elapsed: std::time::Duration) {
+        match self {
+            Progress::Bar(bar) => {
+                bar.set_length(total.max(1));
+                bar.set_position(line);
+            }
+            Progress::Lines => {
+                let remaining = (line > 0 && total >= line)
+                    .then(|| elapsed.mul_f64((total - line) as f64 / line as f64))
+                    .map(clock)
+                    .unwrap_or_else(|| "?".into());
+                println!(
+                    "line {line}/{total} ({percent}%)  elapsed {}  remaining {remaining}",
+                    clock(elapsed)
+                );
+            }
+        }
+    }
+
+    fn finish(&self) {
+        if let Progress::Bar(bar) = self {
+            bar.finish_and_clear();
+        }
+    }
+}
+
+/// Reads a Server-Sent Events response; `on_event` gets each event's `data` as JSON and returns
+/// false to stop. Errs when the stream breaks; Ok(false) when the server ended it.
+async fn follow_events(
+    resp: reqwest::Response,
+    mut on_event: impl FnMut(Value) -> bool,
+) -> Result<bool, Box<dyn std::error::Error>> {
+    let mut stream = resp.bytes_stream();
+    let mut buf = String::new();
+    while let Some(chunk) = stream.next().await {
+        buf.push_str(&String::from_utf8_lossy(&chunk?));
+        while let Some(end) = buf.find("\n\n") {
+            let block: String = buf.drain(..end + 2).collect();
+            let data: String = block
+                .lines()
+                .filter_map(|l| l.strip_prefix("data:"))
+                .map(str::trim_start)
+                .collect();
+            let Ok(ev) = serde_json::from_str::<Value>(&data) else {
+                continue;
+            };
+            if !on_event(ev) {
+                return Ok(true);
+            }
+        }
+    }
+    Ok(false)
+}
+
+/// `fresa events`: follows the event stream, one line per event.
+pub async fn events(server: ServerArgs, f: EventsArgs) -> Res {
+    let c = Client::new(server);
+    let mut query: Vec<(&str, String)> = Vec::new();
+    if let Some(t) = &f.types {
+        query.push(("types", t.clone()));
+    }
+    if let Some(m) = f.machine {
+        query.push(("machine", m.to_string()));
+    }
+    if let Some(a) = f.after {
+        query.push(("after", a.to_string()));
+    }
+    let resp = c
+        .req(reqwest::Method::GET, "/api/v1/events")
+        .query(&query)
+        .send()
+        .await
+        .map_err(|e| format!("cannot reach the server at {}: {e}", c.base))?;
+    if !resp.status().is_success() {
+        let status = resp.status();
+        let body: Value = resp.json().await.unwrap_or(Value::Null);
+        return Err(format!(
+            "{status} {}: {}",
+            body["code"].as_str().unwrap_or(""),
+            body["message"].as_str().unwrap_or("events refused")
+        )
+        .into());
+    }
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    let ended = !follow_events(resp, |ev| {
+        let line = if f.json {
+            ev.to_string()
+        } else {
+            let id = ev["id"]
+                .as_i64()
+                .map(|i| format!("#{i} "))
+                .unwrap_or_default();
+            let machine = ev["machine"]
+                .as_i64()
+                .map(|m| format!(" machine={m}"))
+                .unwrap_or_default();
+            let actor = ev["actor"]
+                .as_str()
+                .map(|a| format!(" actor={a}"))
+                .unwrap_or_default();
+            format!(
+                "{}{} {}{machine}{actor} {}",
+                id,
+                utc(ev["time"].as_i64().unwrap_or(0)),
+                ev["type"].as_str().unwrap_or("?"),
+                ev["data"]
+            )
+        };
+        // A closed pipe (`| head`) ends the command instead of failing it.
+        writeln!(out, "{line}").and_then(|_| out.flush()).is_ok()
+    })
+    .await?;
+    if ended {
+        return Err("the server closed the event stream".into());
+    }
+    Ok(())
+}
+
+/// `2026-11-30T18:04:05.123Z` from milliseconds since the epoch.
+fn utc(ms: i64) -> String {
+    let secs = ms.div_euclid(1000);
+    let (days, rem) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
+    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}.{:03}Z",
+        rem / 3600,
+        rem / 60 % 60,
+        rem % 60,
+        ms.rem_euclid(1000)
+    )
 }
 
 fn is_terminal(state: &str) -> bool {
@@ -302,46 +521,67 @@ pub async fn job(server: ServerArgs, cmd: JobCmd) -> Res {
             if is_terminal(&state) {
                 return Ok(());
             }
-            let mut stream = resp.bytes_stream();
-            let mut buf = String::new();
-            while let Some(chunk) = stream.next().await {
-                buf.push_str(&String::from_utf8_lossy(&chunk?));
-                while let Some(end) = buf.find("\n\n") {
-                    let block: String = buf.drain(..end + 2).collect();
-                    let data: String = block
-                        .lines()
-                        .filter_map(|l| l.strip_prefix("data:"))
-                        .map(str::trim_start)
-                        .collect();
-                    let Ok(ev) = serde_json::from_str::<Value>(&data) else {
-                        continue;
-                    };
-                    if ev["data"]["job"].as_i64() != Some(id) {
-                        continue;
-                    }
-                    let d = &ev["data"];
-                    match ev["type"].as_str() {
-                        Some("job.progress") => println!(
-                            "line {}/{} ({}%)",
-                            d["line"], d["total_lines"], d["percent"]
-                        ),
-                        Some("job.state") => {
-                            let s = d["state"].as_str().unwrap_or("?");
-                            println!(
-                                "{s} at line {}{}",
-                                d["line"],
-                                d["message"]
-                                    .as_str()
-                                    .map(|m| format!(": {m}"))
-                                    .unwrap_or_default()
-                            );
-                            if is_terminal(s) {
-                                return Ok(());
-                            }
-                        }
-                        _ => {}
-                    }
+            // Elapsed counts from the run's start (it may have started before watch did).
+            let now_ms = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_millis() as i64)
+                .unwrap_or(0);
+            let started = job["run"]["started_at"]
+                .as_i64()
+                .map(|t| std::time::Duration::from_millis(now_ms.saturating_sub(t).max(0) as u64))
+                .unwrap_or_default();
+            let watch_start = std::time::Instant::now();
+            let elapsed = move || started + watch_start.elapsed();
+            let progress = Progress::new(
+                job["line_count"].as_u64().unwrap_or(0),
+                job["line"].as_u64().unwrap_or(0),
+                started,
+            );
+            let mut end = None;
+            follow_events(resp, |ev| {
+                if ev["data"]["job"].as_i64() != Some(id) {
+                    return true;
                 }
+                let d = &ev["data"];
+                match ev["type"].as_str() {
+                    Some("job.progress") => {
+                        progress.update(
+                            d["line"].as_u64().unwrap_or(0),
+                            d["total_lines"].as_u64().unwrap_or(0),
+                            &d["percent"],
+                            elapsed(),
+                        );
+                        true
+                    }
+                    Some("job.state") => {
+                        let s = d["state"].as_str().unwrap_or("?").to_string();
+                        let line = format!(
+                            "{s} at line {}{}  elapsed {}",
+                            d["line"],
+                            d["message"]
+                                .as_str()
+                                .map(|m| format!(": {m}"))
+                                .unwrap_or_default(),
+                            clock(elapsed())
+                        );
+                        let done = is_terminal(&s);
+                        if done {
+                            end = Some(line);
+                        } else if let Progress::Bar(bar) = &progress {
+                            bar.println(line);
+                        } else {
+                            println!("{line}");
+                        }
+                        !done
+                    }
+                    _ => true,
+                }
+            })
+            .await?;
+            progress.finish();
+            if let Some(line) = end {
+                println!("{line}");
+                return Ok(());
             }
             return Err("the server closed the event stream".into());
         }
@@ -363,10 +603,9 @@ async fn open_store(
 ) -> Result<fresa_core::store::Store, Box<dyn std::error::Error>> {
     std::fs::create_dir_all(&settings.data_dir)
         .map_err(|e| format!("cannot create {}: {e}", settings.data_dir.display()))?;
-    settings
-        .open_store()
-        .await
-        .map_err(|e| format!("cannot open database {}: {e}", settings.database_label()).into())
+    settings.open_store().await.map_err(|e| {
+        format!("cannot open database {}: {e}", settings.database_label()).into()
+    })
 }
 
 pub async fn token(cmd: TokenCmd) -> Res {

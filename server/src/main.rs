@@ -43,6 +43,13 @@ enum Cmd {
         #[command(subcommand)]
         command: client::JobCmd,
     },
+    /// Follow a running server's event stream, one line per event.
+    Events {
+        #[command(flatten)]
+        server: client::ServerArgs,
+        #[command(flatten)]
+        filter: client::EventsArgs,
+    },
     /// G-code tools that need no server.
     Gcode {
         #[command(subcommand)]
@@ -183,6 +190,9 @@ struct ServeArgs {
     /// Create a simulated machine named "demo" (real-time motion) if there is none.
     #[arg(long)]
     demo: bool,
+    /// MQTT broker to bridge events to, e.g. mqtt://broker.lan:1883 (beats `[mqtt] url`).
+    #[arg(long, env = "FRESA_MQTT_URL")]
+    mqtt_url: Option<String>,
 }
 
 impl From<ServeArgs> for config::Overrides {
@@ -195,6 +205,7 @@ impl From<ServeArgs> for config::Overrides {
             plugin_dirs: a.plugin_dirs,
             max_upload_bytes: a.max_upload_bytes,
             demo: a.demo,
+            mqtt_url: a.mqtt_url,
         }
     }
 }
@@ -228,6 +239,7 @@ fn main() -> ExitCode {
             }
             Cmd::Machine { server, command } => client::machine(server, command).await,
             Cmd::Job { server, command } => client::job(server, command).await,
+            Cmd::Events { server, filter } => client::events(server, filter).await,
             Cmd::Token { command } => client::token(command).await,
             Cmd::Backup { file, data } => client::backup(file, data).await,
             Cmd::Gcode { command } => client::gcode(command),

@@ -47,6 +47,7 @@ pub async fn run(
     let bound = listener.local_addr()?;
     let app = App::start(settings).await?;
     let router = fresa_http::service(app.clone());
+    let integrations = fresa_integrations::start(app.clone());
     // This exact phrase is what scripts and tests wait for.
     tracing::info!("listening on http://{bound}");
     if !app.settings.loopback_only() {
@@ -75,6 +76,8 @@ pub async fn run(
     tracing::info!("draining connections for at most {grace:?}");
     drain.cancel();
     app.stop_rest(limit).await;
+    // Shutdown was signalled by `stop_rest`: the MQTT bridge says it is going offline.
+    integrations.join(Duration::from_secs(2)).await;
     // The accept loop ends once every connection has closed (or is aborted here).
     if !server.is_finished() && tokio::time::timeout(grace, &mut server).await.is_err() {
         tracing::warn!("connections still open after {grace:?}; closing them");

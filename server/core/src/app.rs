@@ -20,6 +20,8 @@ pub struct App {
     pub pendants: Pendants,
     /// Cancelled on shutdown: ends SSE streams and background loops.
     pub shutdown: CancellationToken,
+    /// Counters of the webhook deliveries and the MQTT bridge, for `/metrics`.
+    pub integrations: crate::integrations::IntegrationStats,
     /// Whether requests must carry a token (any non-loopback bind).
     pub auth_required: bool,
     /// Held while the process lives: one server per data directory.

@@ -47,6 +47,191 @@ pub struct FileConfig {
     /// Origins (`http://tablet.lan:8080`) of other sites' pages allowed to call the API from a
     /// browser; none by default.
     pub cors_origins: Option<Vec<String>>,
+    pub webhooks: Option<WebhooksFile>,
+    pub mqtt: Option<MqttFile>,
+}
+
+/// `[webhooks]`: how deliveries are retried.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WebhooksFile {
+    pub max_attempts: Option<u32>,
+    pub retry_initial_ms: Option<u64>,
+    pub timeout_ms: Option<u64>,
+    pub queue: Option<usize>,
+}
+
+/// `[mqtt]`: the bridge to an external broker (off unless `url` or `FRESA_MQTT_URL` is set).
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MqttFile {
+    pub url: Option<String>,
+    pub topic_prefix: Option<String>,
+    pub username: Option<String>,
+    pub password: Option<String>,
+    /// PEM file of the CA that signed the broker's certificate (`mqtts://`); default: the
+    /// system's roots.
+    pub ca_file: Option<PathBuf>,
+    pub client_id: Option<String>,
+    /// Accept commands on `<prefix>/machines/<id>/commands/...` (each with a token).
+    pub commands: Option<bool>,
+    pub queue: Option<usize>,
+}
+
+/// Webhook delivery: attempts per event, the first retry's delay (doubling, at most 5 min),
+/// each request's timeout, and how many events may wait per webhook before new ones are dropped.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct WebhookSettings {
+    pub max_attempts: u32,
+    pub retry_initial: Duration,
+    pub timeout: Duration,
+    pub queue: usize,
+}
+
+impl Default for WebhookSettings {
+    fn default() -> Self {
+        WebhookSettings {
+            max_attempts: 6,
+            retry_initial: Duration::from_secs(1),
+            timeout: Duration::from_secs(10),
+            queue: 1000,
+        }
+    }
+}
+
+/// The MQTT bridge's settings, resolved.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct MqttSettings {
+    pub host: String,
+    pub port: u16,
+    pub tls: bool,
+    pub ca_file: Option<PathBuf>,
+    pub topic_prefix: String,
+    pub username: Option<String>,
+    pub password: Option<String>,
+    pub client_id: String,
+    /// The node name in `<prefix>/nodes/<node>/online`: the host name.
+    pub node: String,
+    pub commands: bool,
+    pub queue: usize,
+}
+
+/// `mqtt://host[:1883]` or `mqtts://host[:8883]` (TLS).
+pub fn parse_mqtt_url(url: &str) -> Result<(String, u16, bool), ConfigError> {
+    let bad = |why: &str| {
+        ConfigError::Invalid(format!(
+            "mqtt url {url:?}: {why} (expected mqtt://host:port or mqtts://host:port)"
+        ))
+    };
+    let (tls, rest) = if let Some(r) = url.strip_prefix("mqtt://") {
+        (false, r)
+    } else if let Some(r) = url.strip_prefix("mqtts://") {
+        (true, r)
+    } else {
+        return Err(bad("the scheme must be mqtt or mqtts"));
+    };
+    let rest = rest.trim_end_matches('/');
+    if rest.contains('/') || rest.contains('@') {
+        return Err(bad(
+            "no path or credentials in the URL (use username/password)",
+        ));
+    }
+    let default_port = if tls { 8883 } else { 1883 };
+    let (host, port) = match rest.rsplit_once(':') {
+        Some((h, p)) if !h.ends_with(']') || rest.starts_with('[') => {
+            let port = p
+                .parse::<u16>()
+                .map_err(|_| bad(&format!("port {p:?} is not a number 1..65535")))?;
+            (h.trim_start_matches('[').trim_end_matches(']'), port)
+        }
+        _ => (rest, default_port),
+    };
+    if host.is_empty() || port == 0 {
+        return Err(bad("no host"));
+    }
+    Ok((host.to_string(), port, tls))
+}
+
+fn host_name() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .ok()
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .or_else(|| std::env::var("COMPUTERNAME").ok())
+        .map(|h| h.trim().to_string())
+        .filter(|h| !h.is_empty())
+        .unwrap_or_else(|| "fresa".into())
+}
+
+fn webhooks(file: Option<&WebhooksFile>) -> Result<WebhookSettings, ConfigError> {
+    let d = WebhookSettings::default();
+    let Some(f) = file else { return Ok(d) };
+    Ok(WebhookSettings {
+        max_attempts: bounded(
+            "webhooks.max_attempts",
+            f.max_attempts,
+            d.max_attempts,
+            1,
+            20,
+        )?,
+        retry_initial: Duration::from_millis(bounded(
+            "webhooks.retry_initial_ms",
+            f.retry_initial_ms,
+            1000,
+            10,
+            600_000,
+        )?),
+        timeout: Duration::from_millis(bounded(
+            "webhooks.timeout_ms",
+            f.timeout_ms,
+            10_000,
+            100,
+            60_000,
+        )?),
+        queue: bounded("webhooks.queue", f.queue, d.queue, 1, 100_000)?,
+    })
+}
+
+fn mqtt(
+    file: Option<MqttFile>,
+    env_url: Option<String>,
+) -> Result<Option<MqttSettings>, ConfigError> {
+    let file = file.unwrap_or_default();
+    let Some(url) = env_url.or(file.url) else {
+        return Ok(None);
+    };
+    let (host, port, tls) = parse_mqtt_url(&url)?;
+    let topic_prefix = file.topic_prefix.unwrap_or_else(|| "fresa".into());
+    if topic_prefix.is_empty()
+        || topic_prefix.contains(['+', '#', '\0'])
+        || topic_prefix.starts_with('/')
+        || topic_prefix.ends_with('/')
+    {
+        return Err(ConfigError::Invalid(format!(
+            "mqtt.topic_prefix {topic_prefix:?}: must be a topic without wildcards (+ #) or \
+             leading/trailing /"
+        )));
+    }
+    if file.ca_file.is_some() && !tls {
+        return Err(ConfigError::Invalid(
+            "mqtt.ca_file is set but the url is mqtt://; use mqtts:// for TLS".into(),
+        ));
+    }
+    let node = host_name();
+    Ok(Some(MqttSettings {
+        host,
+        port,
+        tls,
+        ca_file: file.ca_file,
+        topic_prefix,
+        username: file.username,
+        password: file.password,
+        client_id: file
+            .client_id
+            .unwrap_or_else(|| format!("fresa-{node}-{}", std::process::id())),
+        node,
+        commands: file.commands.unwrap_or(false),
+        queue: bounded("mqtt.queue", file.queue, 10_000, 1, 1_000_000)?,
+    }))
 }
 
 /// Command-line/environment values for `fresa serve` (the binary parses them: CLI beats env).
@@ -59,6 +244,8 @@ pub struct Overrides {
     pub plugin_dirs: Vec<PathBuf>,
     pub max_upload_bytes: Option<u64>,
     pub demo: bool,
+    /// `FRESA_MQTT_URL`: beats `[mqtt] url`.
+    pub mqtt_url: Option<String>,
 }
 
 #[derive(Debug, Clone)]
@@ -90,6 +277,9 @@ pub struct Settings {
     pub log: Option<String>,
     pub allowed_hosts: Vec<String>,
     pub cors_origins: Vec<String>,
+    pub webhooks: WebhookSettings,
+    /// None: no MQTT bridge.
+    pub mqtt: Option<MqttSettings>,
     /// What the config file says that deserves a word in the log; resolved before logging is
     /// set up (the log filter comes from the file), so `serve` logs them.
     pub warnings: Vec<String>,
@@ -398,6 +588,8 @@ impl Settings {
             log: file.log,
             allowed_hosts: file.allowed_hosts.unwrap_or_default(),
             cors_origins: cors_origins(file.cors_origins.unwrap_or_default())?,
+            webhooks: webhooks(file.webhooks.as_ref())?,
+            mqtt: mqtt(file.mqtt, o.mqtt_url)?,
             warnings,
         })
     }
@@ -560,6 +752,43 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("event_retention_count"), "{e}");
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn mqtt_and_webhook_settings() {
+        let (dir, resolve) = toml_resolver("fresa-cfg5");
+        let s = resolve("").unwrap();
+        assert_eq!(s.mqtt, None);
+        assert_eq!(s.webhooks, WebhookSettings::default());
+        let m = resolve("[mqtt]\nurl = \"mqtt://broker.lan\"\n")
+            .unwrap()
+            .mqtt
+            .unwrap();
+        assert_eq!(
+            (m.host.as_str(), m.port, m.tls),
+            ("broker.lan", 1883, false)
+        );
+        assert_eq!(m.topic_prefix, "fresa");
+        assert!(!m.commands);
+        let m = resolve("[mqtt]\nurl = \"mqtts://10.0.0.2:9000\"\ntopic_prefix = \"shop/fresa\"\n")
+            .unwrap()
+            .mqtt
+            .unwrap();
+        assert_eq!((m.host.as_str(), m.port, m.tls), ("10.0.0.2", 9000, true));
+        for (toml, needle) in [
+            ("[mqtt]\nurl = \"http://x\"\n", "scheme"),
+            ("[mqtt]\nurl = \"mqtt://x:99999\"\n", "port"),
+            (
+                "[mqtt]\nurl = \"mqtt://x\"\ntopic_prefix = \"a/#\"\n",
+                "topic_prefix",
+            ),
+            ("[mqtt]\nurl = \"mqtt://x\"\nqos = 1\n", "qos"),
+            ("[webhooks]\nmax_attempts = 0\n", "webhooks.max_attempts"),
+        ] {
+            let e = resolve(toml).unwrap_err().to_string();
+            assert!(e.contains(needle), "{toml}: {e}");
+        }
         std::fs::remove_dir_all(dir).ok();
     }
 

@@ -132,6 +132,8 @@ pub const AUDIT_EVENT_TYPES: &[&str] = &[
     "pendant.macro",
     "pendant.deleted",
     "pendant.upload",
+    "webhook.created",
+    "webhook.deleted",
 ];
 
 /// Rows per delete: one short write transaction each, so machine tasks and uploads waiting

@@ -7,6 +7,8 @@
 //!   goes to the job's machine.
 //! * [`pendants`]: handwheel pendants; their keys call the same functions the HTTP layer does.
 //! * [`events`]: the event bus and audit log. [`plugins`]: the plugin registry.
+//! * [`webhooks`]: webhook registrations; [`integrations`]: what webhook deliveries and the MQTT
+//!   bridge (crate `fresa-integrations`) count, for `/metrics`.
 //! * [`app`]: the whole; `startup`: its start-up and shutdown. [`error`]: the core's errors.
 
 pub mod app;
@@ -15,6 +17,7 @@ pub mod datadir;
 pub mod demo;
 pub mod error;
 pub mod events;
+pub mod integrations;
 pub mod jobs;
 pub mod machine;
 pub mod pendants;
@@ -22,6 +25,7 @@ pub mod plugins;
 pub mod programs;
 mod startup;
 pub mod store;
+pub mod webhooks;
 
 pub use app::{App, SharedApp};
 pub use error::{Error, ErrorKind, Result};

@@ -113,6 +113,7 @@ impl App {
             machines: Machines::default(),
             pendants: Default::default(),
             shutdown,
+            integrations: Default::default(),
             auth_required,
             _lock: lock,
         });

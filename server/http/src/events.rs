@@ -14,7 +14,8 @@ use serde::Deserialize;
 use std::convert::Infallible;
 use tokio::sync::broadcast::error::RecvError;
 
-#[derive(Deserialize, Default)]
+#[derive(Deserialize, Default, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 pub struct Filter {
     /// Comma-separated event types; `job` matches `job.*`.
     types: Option<String>,
@@ -54,6 +55,15 @@ fn to_sse(e: &BusEvent) -> Event {
     ev
 }
 
+#[utoipa::path(get, path = "/events", tag = "events",
+    params(Filter,
+        ("Last-Event-ID" = Option<i64>, Header, description = "Resume after this persisted event id"),
+        ("access_token" = Option<String>, Query, description = "The token, for browsers' EventSource (accepted here only)")),
+    responses(
+        (status = 200, description = "Server-Sent Events: `event: <type>`, `id: <id>` (persisted events), `data: Event` as JSON. A client that fell behind, or resumes across pruned events, first gets `event: resync` (`{\"reason\", \"missed\"|\"pruned_through\", \"after\"}`).",
+            content_type = "text/event-stream", body = crate::openapi::EventDoc),
+        (status = 400, description = "`invalid_header`, `invalid_query`, `token_in_query`", body = crate::openapi::ErrorBody),
+    ))]
 pub async fn stream(
     State(app): State<SharedApp>,
     headers: HeaderMap,

@@ -1,5 +1,6 @@
 use super::auth::Caller;
 use super::error::{ApiError, Json, Path, Query};
+use crate::openapi::ErrorBody;
 use axum::body::Body;
 use axum::extract::{FromRequest, Multipart, Request, State};
 use axum::http::{header, StatusCode};
@@ -11,22 +12,96 @@ use fresa_core::SharedApp;
 use futures_util::StreamExt;
 use serde::Deserialize;
 use serde_json::{json, Value};
+use utoipa::{IntoParams, ToSchema};
 
-#[derive(Deserialize, Default)]
+#[derive(Deserialize, Default, IntoParams)]
 #[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
 pub struct UploadParams {
+    /// The machine the job is for (required; a multipart `machine` part may give it instead).
+    #[param(example = 1)]
+    machine: Option<i64>,
+    /// Job name (default: the multipart file name).
+    #[param(example = "spiral")]
+    name: Option<String>,
+    /// Expected SHA-256 of the program, hex: a mismatch refuses the upload.
+    sha256: Option<String>,
+}
+
+#[derive(Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct ListParams {
+    /// Only this machine's jobs.
+    machine: Option<i64>,
+    /// At most this many, newest first (1..1000, default 100).
+    limit: Option<i64>,
+}
+
+/// The multipart form of an upload.
+#[derive(ToSchema)]
+#[allow(dead_code)] // describes the form `upload` reads
+pub struct UploadForm {
+    /// The program.
+    #[schema(format = Binary, value_type = String)]
+    file: Vec<u8>,
     machine: Option<i64>,
     name: Option<String>,
     sha256: Option<String>,
 }
 
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ListParams {
-    machine: Option<i64>,
-    limit: Option<i64>,
+/// What an upload answers with.
+#[derive(ToSchema)]
+#[allow(dead_code)] // describes the JSON `upload` builds
+pub struct Uploaded {
+    id: i64,
+    sha256: String,
+    line_count: i64,
+    /// Bounds, lengths, time estimate.
+    #[schema(value_type = Object)]
+    analysis: Value,
 }
 
+/// A job: `id`, `name`, `machine`, `sha256`, `size_bytes`, `line_count`, `source`,
+/// `created_at`, `analysis`, `state` (`ready` before the first start, then the run's state),
+/// `line` (last acknowledged), `percent`, `run` (the latest run or null).
+#[derive(ToSchema)]
+#[allow(dead_code)] // describes `fresa_core::jobs::job_json`
+pub struct Job {
+    id: i64,
+    name: Option<String>,
+    machine: i64,
+    sha256: String,
+    size_bytes: i64,
+    line_count: i64,
+    source: String,
+    created_at: i64,
+    #[schema(value_type = Option<Object>)]
+    analysis: Value,
+    /// `ready`, `running`, `paused`, `completed`, `failed`, `cancelled`, `interrupted`.
+    state: String,
+    line: i64,
+    percent: f64,
+    #[schema(value_type = Option<Object>)]
+    run: Value,
+}
+
+/// Run control: what `POST /jobs/{id}/{action}` does.
+#[derive(ToSchema)]
+#[schema(rename_all = "snake_case")]
+#[allow(dead_code)] // the path segment `control` matches on
+pub enum JobAction {
+    Start,
+    Pause,
+    Resume,
+    Cancel,
+}
+
+#[utoipa::path(get, path = "/jobs", tag = "jobs", params(ListParams),
+    responses(
+        (status = 200, description = "Jobs, newest first", body = [Job]),
+        (status = 400, description = "`invalid_query`", body = ErrorBody),
+    ))]
 pub async fn list(
     State(app): State<SharedApp>,
     Query(p): Query<ListParams>,
@@ -50,6 +125,12 @@ pub async fn list(
     Ok(Json(out))
 }
 
+#[utoipa::path(get, path = "/jobs/{id}", tag = "jobs",
+    params(("id" = i64, Path, description = "job id", example = 1)),
+    responses(
+        (status = 200, description = "The job", body = Job),
+        (status = 404, description = "`unknown_job`", body = ErrorBody),
+    ))]
 pub async fn get_one(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
@@ -63,6 +144,12 @@ pub async fn get_one(
     Ok(Json(core::job_json(&job, run.as_ref())))
 }
 
+#[utoipa::path(get, path = "/jobs/{id}/gcode", tag = "jobs",
+    params(("id" = i64, Path, description = "job id", example = 1)),
+    responses(
+        (status = 200, description = "The stored program", content_type = "text/plain", body = String),
+        (status = 404, description = "`unknown_job`", body = ErrorBody),
+    ))]
 pub async fn gcode(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
@@ -83,6 +170,19 @@ pub async fn gcode(
 /// Upload: the raw body is the program (`?machine=ID&name=NAME[&sha256=HEX]`), or a multipart
 /// form with a `file` part (and optional `machine`, `name`, `sha256` parts). Streamed to disk,
 /// checked, hashed, analysed; the job exists only once all of that succeeded.
+#[utoipa::path(post, path = "/jobs", tag = "jobs", params(UploadParams),
+    request_body(content(
+        (String = "text/plain", example = "G21 G90\nG0 X1 Y1\nG1 X5 F300\nM2\n"),
+        (UploadForm = "multipart/form-data"),
+    ), description = "The program (UTF-8 G-code), streamed; at most `max_upload_bytes`"),
+    responses(
+        (status = 201, description = "Stored and analysed", body = Uploaded),
+        (status = 400, description = "`missing_field`, `invalid_multipart`, `upload_aborted`, `invalid_query`", body = ErrorBody),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+        (status = 408, description = "`upload_timeout`", body = ErrorBody),
+        (status = 413, description = "`too_large`", body = ErrorBody),
+        (status = 422, description = "`invalid_gcode` (line and column), `not_utf8`, `sha256_mismatch`", body = ErrorBody),
+    ))]
 pub async fn upload(
     State(app): State<SharedApp>,
     Extension(caller): Extension<Caller>,
@@ -225,14 +325,26 @@ async fn check_machine(app: &SharedApp, machine: Option<i64>) -> Result<(), ApiE
 }
 
 /// Optional body of `POST /jobs/{id}/resume`.
-#[derive(Deserialize, Default)]
+#[derive(Deserialize, Default, ToSchema)]
 #[serde(deny_unknown_fields)]
-struct ResumeBody {
+pub struct ResumeBody {
     /// Accept the part zero the controller reports now, even if it differs from the run's.
     #[serde(default)]
     confirm_part_zero: bool,
 }
 
+#[utoipa::path(post, path = "/jobs/{id}/{action}", tag = "jobs",
+    params(("id" = i64, Path, description = "job id", example = 1),
+           ("action" = inline(JobAction), Path, description = "`resume` also continues an `interrupted` or `failed` run from the next unacknowledged line", example = "start")),
+    request_body(content = Option<ResumeBody>, description = "Only for `resume`, optional"),
+    responses(
+        (status = 200, description = "Done: the job with its run (answered only once true: a `cancel` after motion stopped)", body = Job),
+        (status = 400, description = "`invalid_json`", body = ErrorBody),
+        (status = 404, description = "`unknown_job`, `unknown_action`", body = ErrorBody),
+        (status = 409, description = "`machine_busy`, `not_started`, `not_running`, `not_resumable`, `not_cancellable`, `part_zero_changed`, `stopped`, `backend_rejected`", body = ErrorBody),
+        (status = 422, description = "`backend_rejected` (e.g. the program leaves the travel)", body = ErrorBody),
+        (status = 503, description = "`machine_offline`, `machine_unresponsive`, `machine_unavailable`, `shutting_down`", body = ErrorBody),
+    ))]
 pub async fn control(
     State(app): State<SharedApp>,
     Path((id, action)): Path<(i64, String)>,

@@ -6,97 +6,32 @@ mod events;
 mod guard;
 mod jobs;
 pub(crate) mod machines;
+pub mod openapi;
 mod pendants;
+mod webhooks;
 
 use axum::extract::{DefaultBodyLimit, State};
 use axum::http::StatusCode;
 use axum::response::IntoResponse;
-use axum::routing::{delete, get, patch, post, put};
 use axum::Router;
 use error::Json;
 use fresa_core::SharedApp;
+use openapi::{needs, public, ErrorBody};
+use utoipa::OpenApi;
+use utoipa_axum::router::{OpenApiRouter, UtoipaMethodRouterExt};
+use utoipa_axum::routes;
 
 /// Every route with the role it needs: reading is for viewers, moving machines and jobs for
 /// operators, configuring machines, pendants and plugins for admins.
+///
+/// A route is added only as `.routes(needs(ROLE, routes!(handler)))`: the handler's
+/// `#[utoipa::path(METHOD, path = ...)]` gives its method and path, so the router and the
+/// OpenAPI description (`GET /api/v1/openapi.json`) are built from the same lines.
 pub fn router(app: SharedApp) -> Router {
-    use auth::needs;
-    use auth::Role::{Admin, Operator, Viewer};
-    let api = Router::new()
-        .route(
-            "/machines",
-            needs(Viewer, get(machines::list)).merge(needs(Admin, post(machines::create))),
-        )
-        .route("/machines/{id}", needs(Viewer, get(machines::get_one)))
-        .route(
-            "/machines/{id}/status",
-            needs(Viewer, get(machines::status)),
-        )
-        .route("/machines/{id}/jog", needs(Operator, post(machines::jog)))
-        .route(
-            "/machines/{id}/commands",
-            needs(Operator, post(machines::command)),
-        )
-        .route("/machines/{id}/mdi", needs(Operator, post(machines::mdi)))
-        .route(
-            "/machines/{id}/offsets",
-            needs(Viewer, get(machines::offsets)),
-        )
-        .route(
-            "/machines/{id}/offsets/{name}",
-            needs(Operator, put(machines::set_offset)),
-        )
-        .route(
-            "/machines/{id}/part-zero",
-            needs(Viewer, get(machines::part_zeros))
-                .merge(needs(Operator, post(machines::record_part_zero))),
-        )
-        .route(
-            "/machines/{id}/as-program",
-            needs(Viewer, get(machines::as_program)),
-        )
-        .route(
-            "/jobs",
-            needs(Viewer, get(jobs::list)).merge(needs(
-                Operator,
-                // Uploads are streamed to disk under our own limit (`max_upload_bytes`).
-                post(jobs::upload).layer(DefaultBodyLimit::disable()),
-            )),
-        )
-        .route("/jobs/{id}", needs(Viewer, get(jobs::get_one)))
-        .route("/jobs/{id}/gcode", needs(Viewer, get(jobs::gcode)))
-        .route("/jobs/{id}/{action}", needs(Operator, post(jobs::control)))
-        .route(
-            "/pendants",
-            needs(Viewer, get(pendants::list)).merge(needs(Admin, post(pendants::create))),
-        )
-        .route(
-            "/pendants/discovered",
-            needs(Viewer, get(pendants::discovered)),
-        )
-        .route(
-            "/pendants/{id}",
-            needs(Viewer, get(pendants::get_one))
-                // Binding a pendant to a machine is an operator's job; creating or deleting
-                // one is an admin's.
-                .merge(needs(Operator, patch(pendants::patch)))
-                .merge(needs(Admin, delete(pendants::delete))),
-        )
-        .route("/plugins", needs(Viewer, get(plugins)))
-        .route("/events", needs(Viewer, get(events::stream)))
-        .layer(axum::middleware::from_fn_with_state(
-            app.clone(),
-            auth::middleware,
-        ));
-    let router = Router::new()
-        .nest("/api/v1", api)
-        .route("/healthz", get(healthz))
-        .route(
-            "/metrics",
-            needs(Viewer, get(metrics)).layer(axum::middleware::from_fn_with_state(
-                app.clone(),
-                auth::middleware,
-            )),
-        )
+    let (router, doc) = described_router(app.clone());
+    let doc = openapi::Document(doc_json(&doc).into());
+    let router = router
+        .layer(axum::Extension(doc))
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed);
     // CORS only when some origin is allowed: deny-by-default needs no layer at all.
@@ -120,6 +55,75 @@ pub fn router(app: SharedApp) -> Router {
             ),
         )
         .with_state(app)
+}
+
+/// The OpenAPI description of [`router`], as served (for tools and tests without a server).
+pub fn openapi_document(app: SharedApp) -> String {
+    doc_json(&described_router(app).1)
+}
+
+fn doc_json(doc: &utoipa::openapi::OpenApi) -> String {
+    doc.to_pretty_json().unwrap_or_else(|e| {
+        tracing::error!(error = %e, "could not serialise the OpenAPI description");
+        "{}".into()
+    })
+}
+
+fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::OpenApi) {
+    use auth::Role::{Admin, Operator, Viewer};
+    let api = OpenApiRouter::new()
+        .routes(needs(Viewer, routes!(machines::list)))
+        .routes(needs(Admin, routes!(machines::create)))
+        .routes(needs(Viewer, routes!(machines::get_one)))
+        .routes(needs(Viewer, routes!(machines::status)))
+        .routes(needs(Operator, routes!(machines::jog)))
+        .routes(needs(Operator, routes!(machines::command)))
+        .routes(needs(Operator, routes!(machines::mdi)))
+        .routes(needs(Viewer, routes!(machines::offsets)))
+        .routes(needs(Operator, routes!(machines::set_offset)))
+        .routes(needs(Viewer, routes!(machines::part_zeros)))
+        .routes(needs(Operator, routes!(machines::record_part_zero)))
+        .routes(needs(Viewer, routes!(machines::as_program)))
+        .routes(needs(Viewer, routes!(jobs::list)))
+        .routes(needs(
+            Operator,
+            // Uploads are streamed to disk under our own limit (`max_upload_bytes`).
+            routes!(jobs::upload).map(|r| r.layer(DefaultBodyLimit::disable())),
+        ))
+        .routes(needs(Viewer, routes!(jobs::get_one)))
+        .routes(needs(Viewer, routes!(jobs::gcode)))
+        .routes(needs(Operator, routes!(jobs::control)))
+        .routes(needs(Viewer, routes!(pendants::list)))
+        .routes(needs(Admin, routes!(pendants::create)))
+        .routes(needs(Viewer, routes!(pendants::discovered)))
+        .routes(needs(Viewer, routes!(pendants::get_one)))
+        // Binding a pendant to a machine is an operator's job; creating or deleting one is an
+        // admin's.
+        .routes(needs(Operator, routes!(pendants::patch)))
+        .routes(needs(Admin, routes!(pendants::delete)))
+        .routes(needs(Admin, routes!(webhooks::list)))
+        .routes(needs(Admin, routes!(webhooks::create)))
+        .routes(needs(Admin, routes!(webhooks::get_one)))
+        .routes(needs(Admin, routes!(webhooks::delete)))
+        .routes(needs(Viewer, routes!(plugins)))
+        .routes(needs(Viewer, routes!(events::stream)))
+        .layer(axum::middleware::from_fn_with_state(
+            app.clone(),
+            auth::middleware,
+        ))
+        // Outside the auth layer: the description is public (see `openapi::openapi_json`).
+        .routes(public(routes!(openapi::openapi_json)));
+    let metrics = OpenApiRouter::new()
+        .routes(needs(Viewer, routes!(metrics)))
+        .layer(axum::middleware::from_fn_with_state(
+            app.clone(),
+            auth::middleware,
+        ));
+    OpenApiRouter::with_openapi(openapi::ApiDoc::openapi())
+        .nest("/api/v1", api)
+        .routes(public(routes!(healthz)))
+        .merge(metrics)
+        .split_for_parts()
 }
 
 /// The whole HTTP service: the router behind the cross-site and rebinding guard. The guard wraps
@@ -162,8 +166,21 @@ async fn method_not_allowed(method: axum::http::Method, uri: axum::http::Uri) ->
     )
 }
 
+/// `{"status": "ok"|"degraded", "unresponsive_machines": [id]}`.
+#[derive(serde::Serialize, utoipa::ToSchema)]
+#[allow(dead_code)] // describes the JSON `healthz` builds
+struct Health {
+    status: String,
+    unresponsive_machines: Vec<i64>,
+}
+
 /// `ok`; `degraded` (still 200: the other machines work) naming machines whose backend stopped
 /// answering; 503 when the database does not answer.
+#[utoipa::path(get, path = "/healthz", tag = "system",
+    responses(
+        (status = 200, description = "`ok`, or `degraded` naming machines whose backend stopped answering", body = Health),
+        (status = 503, description = "The database does not answer (`status`: `unavailable`, `message`)", body = Object),
+    ))]
 async fn healthz(State(app): State<SharedApp>) -> impl IntoResponse {
     if let Err(e) = app.store.ping().await {
         return (
@@ -191,6 +208,11 @@ async fn healthz(State(app): State<SharedApp>) -> impl IntoResponse {
 }
 
 /// Prometheus text format. Read-only and cheap: gauges from memory plus one grouped query.
+#[utoipa::path(get, path = "/metrics", tag = "system",
+    responses(
+        (status = 200, description = "Prometheus text: machine states, job runs by state, plugins, event subscribers, integration queues and drops", content_type = "text/plain", body = String),
+        (status = 500, description = "`internal` (the database failed)", body = ErrorBody),
+    ))]
 async fn metrics(State(app): State<SharedApp>) -> Result<impl IntoResponse, error::ApiError> {
     use std::fmt::Write;
     let mut out = String::new();
@@ -259,6 +281,7 @@ async fn metrics(State(app): State<SharedApp>) -> Result<impl IntoResponse, erro
         "# TYPE fresa_event_subscribers gauge\nfresa_event_subscribers {}",
         app.bus.subscribers()
     );
+    out.push_str(&app.integrations.prometheus());
     Ok((
         [(
             axum::http::header::CONTENT_TYPE,
@@ -268,6 +291,8 @@ async fn metrics(State(app): State<SharedApp>) -> Result<impl IntoResponse, erro
     ))
 }
 
+#[utoipa::path(get, path = "/plugins", tag = "system",
+    responses((status = 200, description = "Loaded `plugins`, load `failures`, `skipped` libraries with their reason, and the host's `abi`", body = Object)))]
 async fn plugins(State(app): State<SharedApp>) -> Json<serde_json::Value> {
     Json(serde_json::json!({
         "plugins": app.plugins.infos(),

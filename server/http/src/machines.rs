@@ -1,14 +1,18 @@
 use super::auth::Caller;
 use super::error::{ApiError, Json, Path};
+use crate::openapi::ErrorBody;
 use axum::extract::State;
 use axum::http::StatusCode;
 use axum::Extension;
 use fresa_core::machine::{limits, Machine};
 use fresa_core::SharedApp;
-use fresa_plugin_api::contract::{Axis, AxisValues, Command, MachineStatus, WorkOffset};
-use serde::Deserialize;
+use fresa_plugin_api::contract::{
+    Axis, AxisValues, Command, MachineState, MachineStatus, WorkOffset,
+};
+use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 use std::sync::Arc;
+use utoipa::ToSchema;
 
 async fn machine(app: &SharedApp, id: i64) -> Result<Arc<Machine>, ApiError> {
     app.machines
@@ -17,15 +21,57 @@ async fn machine(app: &SharedApp, id: i64) -> Result<Arc<Machine>, ApiError> {
         .ok_or_else(|| ApiError::not_found("unknown_machine", format!("no machine with id {id}")))
 }
 
-fn machine_json(m: &Machine) -> Value {
-    let row = m.row();
-    let status = m.status();
-    json!({"id": row.id, "name": row.name, "backend": row.backend, "config": row.config_json(),
-           "max_jog_mm": row.max_jog_mm, "max_feed_mm_min": row.max_feed_mm_min,
-           "state": status.state, "reason": status.reason, "created_at": row.created_at})
+/// A machine: its stored row and live state.
+#[derive(Serialize, ToSchema)]
+#[schema(as = Machine)]
+pub struct MachineView {
+    id: i64,
+    name: String,
+    /// The plugin that drives it, e.g. `sim-machine`.
+    backend: String,
+    /// The backend's own settings, as given at creation.
+    #[schema(value_type = Object)]
+    config: Value,
+    max_jog_mm: f64,
+    max_feed_mm_min: f64,
+    state: MachineState,
+    /// Why the machine is offline or unresponsive, when it is.
+    reason: Option<String>,
+    /// Milliseconds since the Unix epoch.
+    created_at: i64,
 }
 
-pub async fn list(State(app): State<SharedApp>) -> Json<Vec<Value>> {
+fn machine_json(m: &Machine) -> MachineView {
+    let row = m.row();
+    let status = m.status();
+    MachineView {
+        id: row.id,
+        name: row.name.clone(),
+        backend: row.backend.clone(),
+        config: row.config_json(),
+        max_jog_mm: row.max_jog_mm,
+        max_feed_mm_min: row.max_feed_mm_min,
+        state: status.state,
+        reason: status.reason,
+        created_at: row.created_at,
+    }
+}
+
+/// `{"id": N}`: what a create answers with (201).
+#[derive(Serialize, ToSchema)]
+pub struct Created {
+    pub id: i64,
+}
+
+/// `{"ok": true}`: the request was carried out.
+#[derive(Serialize, ToSchema)]
+pub struct Done {
+    pub ok: bool,
+}
+
+#[utoipa::path(get, path = "/machines", tag = "machines",
+    responses((status = 200, description = "Every machine", body = [MachineView])))]
+pub async fn list(State(app): State<SharedApp>) -> Json<Vec<MachineView>> {
     Json(
         app.machines
             .all()
@@ -36,32 +82,51 @@ pub async fn list(State(app): State<SharedApp>) -> Json<Vec<Value>> {
     )
 }
 
+#[utoipa::path(get, path = "/machines/{id}", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    responses(
+        (status = 200, description = "The machine", body = MachineView),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+    ))]
 pub async fn get_one(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
-) -> Result<Json<Value>, ApiError> {
+) -> Result<Json<MachineView>, ApiError> {
     let m = machine(&app, id).await?;
     Ok(Json(machine_json(&m)))
 }
 
-#[derive(Deserialize)]
+#[derive(Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct NewMachine {
+    /// Unique, at most 100 characters.
     name: String,
+    /// A loaded backend plugin (`GET /plugins`).
     backend: String,
+    /// The backend's settings; it checks them before anything is stored.
     #[serde(default)]
+    #[schema(value_type = Option<Object>)]
     config: Option<Value>,
+    /// Longest jog accepted, mm (default 50, at most 1000).
     #[serde(default)]
     max_jog_mm: Option<f64>,
+    /// Fastest jog feed accepted, mm/min (default 5000, at most 100000).
     #[serde(default)]
     max_feed_mm_min: Option<f64>,
 }
 
+#[utoipa::path(post, path = "/machines", tag = "machines",
+    request_body(content = NewMachine, example = json!({"name": "router-2", "backend": "sim-machine", "config": {"time_scale": 0.01}})),
+    responses(
+        (status = 201, description = "Created", body = Created),
+        (status = 409, description = "`name_taken`", body = ErrorBody),
+        (status = 422, description = "`invalid_field`, `invalid_name`, `unknown_backend`, `invalid_config`", body = ErrorBody),
+    ))]
 pub async fn create(
     State(app): State<SharedApp>,
     Extension(caller): Extension<Caller>,
     Json(req): Json<NewMachine>,
-) -> Result<(StatusCode, Json<Value>), ApiError> {
+) -> Result<(StatusCode, Json<Created>), ApiError> {
     let name = fresa_core::Error::required_name(&req.name)?;
     let mut config = req.config.unwrap_or_else(|| json!({}));
     if !config.is_object() {
@@ -131,93 +196,158 @@ pub async fn create(
             json!({"id": id, "name": name, "backend": req.backend}),
         )
         .await;
-    Ok((StatusCode::CREATED, Json(json!({"id": id}))))
+    Ok((StatusCode::CREATED, Json(Created { id })))
 }
 
+/// A machine's status: what the backend reports, plus the machine id and the running job.
+#[derive(Serialize, ToSchema)]
+#[schema(as = Status)]
+pub struct StatusView {
+    #[serde(flatten)]
+    status: MachineStatus,
+    machine: i64,
+    /// `job`, `run`, `line`, `total_lines`, `percent` of the active run; null when none.
+    #[schema(value_type = Option<Object>)]
+    job: Option<Value>,
+}
+
+#[utoipa::path(get, path = "/machines/{id}/status", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    responses(
+        (status = 200, description = "The machine's status", body = StatusView),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+    ))]
 pub async fn status(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
-) -> Result<Json<Value>, ApiError> {
+) -> Result<Json<StatusView>, ApiError> {
     let m = machine(&app, id).await?;
     Ok(Json(status_json(&m, m.status())))
 }
 
-fn status_json(m: &Machine, s: MachineStatus) -> Value {
-    let mut v = json!(s);
-    let job = m.run().map(|r| r.progress_json());
-    if let Some(o) = v.as_object_mut() {
-        o.insert("machine".into(), json!(m.id));
-        o.insert("job".into(), job.unwrap_or(Value::Null));
+fn status_json(m: &Machine, status: MachineStatus) -> StatusView {
+    StatusView {
+        status,
+        machine: m.id,
+        job: m.run().map(|r| r.progress_json()),
     }
-    v
 }
 
-#[derive(Deserialize)]
+#[derive(Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct JogReq {
     axis: Axis,
+    /// mm (degrees for A), signed; at most the machine's `max_jog_mm`.
     distance: f64,
+    /// mm/min; at most the machine's `max_feed_mm_min`.
     #[serde(default)]
     feed: Option<f64>,
 }
 
+#[utoipa::path(post, path = "/machines/{id}/jog", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    request_body(content = JogReq, example = json!({"axis": "X", "distance": 5.0})),
+    responses(
+        (status = 200, description = "The jog was carried out", body = Done),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+        (status = 409, description = "`machine_busy`, `stopped`, `backend_rejected`", body = ErrorBody),
+        (status = 422, description = "`jog_too_far`, `feed_out_of_range`, `invalid_field`, `backend_rejected`", body = ErrorBody),
+        (status = 502, description = "`backend_error`", body = ErrorBody),
+        (status = 503, description = "`machine_offline`, `machine_unresponsive`, `shutting_down`", body = ErrorBody),
+        (status = 504, description = "`backend_timeout`", body = ErrorBody),
+    ))]
 pub async fn jog(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
     Extension(caller): Extension<Caller>,
     Json(req): Json<JogReq>,
-) -> Result<Json<Value>, ApiError> {
+) -> Result<Json<Done>, ApiError> {
     let m = machine(&app, id).await?;
     m.jog(req.axis, req.distance, req.feed, &caller.name)
         .await?;
-    Ok(Json(json!({"ok": true})))
+    Ok(Json(Done { ok: true }))
 }
 
-#[derive(Deserialize)]
+#[derive(Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct MdiReq {
+    /// One G-code line, checked before it is sent.
     line: String,
 }
 
+#[utoipa::path(post, path = "/machines/{id}/mdi", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    request_body(content = MdiReq, example = json!({"line": "G91 G0 Z5"})),
+    responses(
+        (status = 200, description = "The line was carried out", body = Done),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+        (status = 409, description = "`machine_busy`, `stopped`, `backend_rejected`", body = ErrorBody),
+        (status = 422, description = "`invalid_gcode` (with the column), `backend_rejected`", body = ErrorBody),
+        (status = 502, description = "`backend_error`", body = ErrorBody),
+        (status = 503, description = "`machine_offline`, `machine_unresponsive`, `shutting_down`", body = ErrorBody),
+        (status = 504, description = "`backend_timeout`", body = ErrorBody),
+    ))]
 pub async fn mdi(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
     Extension(caller): Extension<Caller>,
     Json(req): Json<MdiReq>,
-) -> Result<Json<Value>, ApiError> {
+) -> Result<Json<Done>, ApiError> {
     let m = machine(&app, id).await?;
     m.mdi(&req.line, &caller.name).await?;
-    Ok(Json(json!({"ok": true})))
+    Ok(Json(Done { ok: true }))
 }
 
+/// `{"ok": true, "result": ...}`: the backend's answer, e.g. `{"output", "on"}` for a toggle.
+#[derive(Serialize, ToSchema)]
+pub struct CommandDone {
+    ok: bool,
+    #[schema(value_type = Object)]
+    result: Value,
+}
+
+#[utoipa::path(post, path = "/machines/{id}/commands", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    request_body(content = Command, example = json!({"command": "zero", "axis": "X"})),
+    responses(
+        (status = 200, description = "The command was carried out", body = CommandDone),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+        (status = 409, description = "`machine_busy`, `stopped`, `backend_rejected`", body = ErrorBody),
+        (status = 422, description = "`invalid_command`, `backend_rejected`", body = ErrorBody),
+        (status = 502, description = "`backend_error`", body = ErrorBody),
+        (status = 503, description = "`machine_offline`, `machine_unresponsive`, `shutting_down`", body = ErrorBody),
+        (status = 504, description = "`backend_timeout`", body = ErrorBody),
+    ))]
 pub async fn command(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
     Extension(caller): Extension<Caller>,
     Json(raw): Json<Value>,
-) -> Result<Json<Value>, ApiError> {
+) -> Result<Json<CommandDone>, ApiError> {
     let m = machine(&app, id).await?;
-    let cmd: Command = serde_json::from_value(raw.clone())
-        .map_err(|e| ApiError::unprocessable("invalid_command", format!("{e} (commands: cycle_start, feed_hold, resume, stop, reset, home, zero, go_to_zero, select_offset, set_output, toggle_output)")))?;
-    // Like every other body: a field the command does not have is an error, not ignored (a
-    // misspelt `axis` must not zero every axis).
-    let known = serde_json::to_value(cmd).unwrap_or_default();
-    if let (Some(given), Some(known)) = (raw.as_object(), known.as_object()) {
-        if let Some(extra) = given.keys().find(|k| !known.contains_key(*k)) {
-            return Err(ApiError::unprocessable(
-                "invalid_command",
-                format!(
-                    "unknown field `{extra}` for command {:?} (its fields: {})",
-                    known["command"].as_str().unwrap_or_default(),
-                    known.keys().cloned().collect::<Vec<_>>().join(", ")
-                ),
-            ));
-        }
-    }
+    let cmd = limits::parse_command(&raw)?;
     let answer = m.command(cmd, &caller.name).await?;
-    Ok(Json(json!({"ok": true, "result": answer})))
+    Ok(Json(CommandDone {
+        ok: true,
+        result: answer,
+    }))
 }
 
+/// The work offsets and which is active.
+#[derive(ToSchema)]
+#[allow(dead_code)] // describes the JSON `offsets` builds
+pub struct OffsetsView {
+    active: WorkOffset,
+    /// `G54`..`G59` to their values.
+    offsets: std::collections::BTreeMap<String, AxisValues>,
+}
+
+#[utoipa::path(get, path = "/machines/{id}/offsets", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    responses(
+        (status = 200, description = "The work offsets", body = OffsetsView),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+    ))]
 pub async fn offsets(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
@@ -233,7 +363,8 @@ pub async fn offsets(
     ))
 }
 
-#[derive(Deserialize)]
+/// Any of the axes; the others keep their values.
+#[derive(Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct OffsetReq {
     x: Option<f64>,
@@ -242,6 +373,25 @@ pub struct OffsetReq {
     a: Option<f64>,
 }
 
+/// `{"offset", "values"}`: the offset as now stored.
+#[derive(ToSchema)]
+#[allow(dead_code)] // describes the JSON `set_offset` builds
+pub struct OffsetSet {
+    offset: WorkOffset,
+    values: AxisValues,
+}
+
+#[utoipa::path(put, path = "/machines/{id}/offsets/{name}", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1),
+           ("name" = WorkOffset, Path, description = "G54..G59", example = "G55")),
+    request_body(content = OffsetReq, example = json!({"x": 10.0, "y": 20.0})),
+    responses(
+        (status = 200, description = "Set in the backend and stored", body = OffsetSet),
+        (status = 404, description = "`unknown_machine`, `unknown_offset`", body = ErrorBody),
+        (status = 409, description = "`machine_busy`, `backend_rejected`", body = ErrorBody),
+        (status = 422, description = "`invalid_field`", body = ErrorBody),
+        (status = 503, description = "`machine_offline`, `machine_unresponsive`", body = ErrorBody),
+    ))]
 pub async fn set_offset(
     State(app): State<SharedApp>,
     Path((id, name)): Path<(i64, String)>,
@@ -287,7 +437,7 @@ pub async fn set_offset(
     Ok(Json(json!({"offset": offset, "values": values})))
 }
 
-#[derive(Deserialize, Default)]
+#[derive(Deserialize, Default, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PartZeroReq {
     /// Machine coordinates of the part zero; the current machine position when absent.
@@ -299,6 +449,15 @@ pub struct PartZeroReq {
     note: Option<String>,
 }
 
+#[utoipa::path(post, path = "/machines/{id}/part-zero", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    request_body(content = Option<PartZeroReq>, description = "Optional: an empty body records the current machine position", example = json!({"note": "vise jaw, left"})),
+    responses(
+        (status = 201, description = "Recorded: `id`, `machine_id`, `x`, `y`, `z`, `a`, `source`, `actor`, `note`, `created_at`", body = Object),
+        (status = 400, description = "`invalid_json`", body = ErrorBody),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+        (status = 503, description = "`machine_offline`, `machine_unresponsive`", body = ErrorBody),
+    ))]
 pub async fn record_part_zero(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
@@ -333,6 +492,12 @@ pub async fn record_part_zero(
     Ok((StatusCode::CREATED, Json(json!(row))))
 }
 
+#[utoipa::path(get, path = "/machines/{id}/part-zero", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    responses(
+        (status = 200, description = "Part-zero history, newest first: `id`, `machine_id`, `x`, `y`, `z`, `a`, `source`, `actor`, `note`, `created_at`", body = [Object]),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+    ))]
 pub async fn part_zeros(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
@@ -343,6 +508,13 @@ pub async fn part_zeros(
 
 /// `GET /machines/{id}/as-program`: the controller program the backend generates (robot
 /// backends), as a download.
+#[utoipa::path(get, path = "/machines/{id}/as-program", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    responses(
+        (status = 200, description = "The generated program (kawasaki-as `fresa-v1`), as an attachment", content_type = "text/plain", body = String),
+        (status = 404, description = "`unknown_machine`; `no_artifact` for backends without one", body = ErrorBody),
+        (status = 409, description = "`not_available` (a legacy-protocol robot)", body = ErrorBody),
+    ))]
 pub async fn as_program(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,

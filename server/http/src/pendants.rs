@@ -1,5 +1,7 @@
 use super::auth::Caller;
 use super::error::{ApiError, Json, Path};
+use crate::machines::Created;
+use crate::openapi::ErrorBody;
 use axum::extract::State;
 use axum::http::StatusCode;
 use axum::Extension;
@@ -9,20 +11,48 @@ use fresa_core::SharedApp;
 use serde::Deserialize;
 use serde_json::{json, Value};
 use std::collections::BTreeMap;
+use utoipa::ToSchema;
 
-#[derive(Deserialize)]
+#[derive(Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct NewPendant {
     name: String,
+    /// `host:port` (default port 8001), an IP or DNS name.
     address: String,
+    /// The machine to bind it to.
     #[serde(default)]
     machine: Option<i64>,
+    /// `firmware` (default) or `document`.
     #[serde(default)]
     dialect: Option<String>,
     #[serde(default)]
+    #[schema(value_type = Option<Object>)]
     config: Option<Value>,
+    /// `M1`..`M4` to an action (`{"type": "command"|"jog"|"toggle"|"mdi", ...}`) or null.
     #[serde(default)]
+    #[schema(value_type = Option<Object>)]
     macros: Option<BTreeMap<String, Option<Value>>>,
+}
+
+/// A pendant and its link.
+#[derive(ToSchema)]
+#[allow(dead_code)] // describes `fresa_core::pendants::pendant_json`
+pub struct Pendant {
+    id: i64,
+    name: String,
+    address: String,
+    dialect: String,
+    machine: Option<i64>,
+    connected: bool,
+    #[schema(value_type = Object)]
+    config: Value,
+    /// `M1`..`M4` to their action (or null).
+    #[schema(value_type = Object)]
+    macros: Value,
+    /// False when the transport plugin is not loaded; `reason` says why.
+    available: bool,
+    reason: Option<String>,
+    created_at: i64,
 }
 
 /// `{"M1": action|null, ...}` -> slots; names the bad key or action.
@@ -90,11 +120,18 @@ async fn check_machine(app: &SharedApp, machine: Option<i64>) -> Result<(), ApiE
     Ok(())
 }
 
+#[utoipa::path(post, path = "/pendants", tag = "pendants",
+    request_body(content = NewPendant, example = json!({"name": "bench-1", "address": "127.0.0.1:8001", "dialect": "firmware"})),
+    responses(
+        (status = 201, description = "Created; the server connects to it", body = Created),
+        (status = 409, description = "`name_taken`", body = ErrorBody),
+        (status = 422, description = "`invalid_field`, `invalid_name`, `unknown_machine`", body = ErrorBody),
+    ))]
 pub async fn create(
     State(app): State<SharedApp>,
     Extension(caller): Extension<Caller>,
     Json(req): Json<NewPendant>,
-) -> Result<(StatusCode, Json<Value>), ApiError> {
+) -> Result<(StatusCode, Json<Created>), ApiError> {
     let name = fresa_core::Error::required_name(&req.name)?;
     let (host, port) = split_address(&req.address);
     if host.is_empty() || port == 0 {
@@ -170,7 +207,7 @@ pub async fn create(
             json!({"pendant": id, "name": name, "address": req.address, "machine": req.machine}),
         )
         .await;
-    Ok((StatusCode::CREATED, Json(json!({"id": id}))))
+    Ok((StatusCode::CREATED, Json(Created { id })))
 }
 
 /// Same rule as the transport plugin: `host:port`, or `host` for port 8001; the host must be an
@@ -236,6 +273,8 @@ mod tests {
     }
 }
 
+#[utoipa::path(get, path = "/pendants", tag = "pendants",
+    responses((status = 200, description = "Every pendant", body = [Pendant])))]
 pub async fn list(State(app): State<SharedApp>) -> Json<Vec<Value>> {
     Json(
         app.pendants
@@ -254,6 +293,12 @@ async fn pendant(app: &SharedApp, id: i64) -> Result<std::sync::Arc<core::Pendan
         .ok_or_else(|| ApiError::not_found("unknown_pendant", format!("no pendant with id {id}")))
 }
 
+#[utoipa::path(get, path = "/pendants/{id}", tag = "pendants",
+    params(("id" = i64, Path, description = "pendant id", example = 1)),
+    responses(
+        (status = 200, description = "The pendant", body = Pendant),
+        (status = 404, description = "`unknown_pendant`", body = ErrorBody),
+    ))]
 pub async fn get_one(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
@@ -267,15 +312,27 @@ fn double_option<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<Option
     Option::<i64>::deserialize(d).map(Some)
 }
 
-#[derive(Deserialize)]
+#[derive(Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PatchPendant {
+    /// Bind to this machine; `null` unbinds; absent keeps the binding.
     #[serde(default, deserialize_with = "double_option")]
+    #[schema(value_type = Option<i64>)]
     machine: Option<Option<i64>>,
+    /// `M1`..`M4` to an action or null (see `NewPendant.macros`).
     #[serde(default)]
+    #[schema(value_type = Option<Object>)]
     macros: Option<BTreeMap<String, Option<Value>>>,
 }
 
+#[utoipa::path(patch, path = "/pendants/{id}", tag = "pendants",
+    params(("id" = i64, Path, description = "pendant id", example = 1)),
+    request_body(content = PatchPendant, example = json!({"machine": null})),
+    responses(
+        (status = 200, description = "The pendant as now bound", body = Pendant),
+        (status = 404, description = "`unknown_pendant`", body = ErrorBody),
+        (status = 422, description = "`invalid_field`, `unknown_machine`", body = ErrorBody),
+    ))]
 pub async fn patch(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
@@ -317,6 +374,12 @@ pub async fn patch(
     Ok(Json(core::pendant_json(&p)))
 }
 
+#[utoipa::path(delete, path = "/pendants/{id}", tag = "pendants",
+    params(("id" = i64, Path, description = "pendant id", example = 1)),
+    responses(
+        (status = 204, description = "Removed; its link is closed"),
+        (status = 404, description = "`unknown_pendant`", body = ErrorBody),
+    ))]
 pub async fn delete(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
@@ -336,6 +399,8 @@ pub async fn delete(
     Ok(StatusCode::NO_CONTENT)
 }
 
+#[utoipa::path(get, path = "/pendants/discovered", tag = "pendants",
+    responses((status = 200, description = "Pendants announced on the LAN by mDNS (`MPGnnnnnn`, `_http._tcp`)", body = Object)))]
 pub async fn discovered(State(app): State<SharedApp>) -> Result<Json<Value>, ApiError> {
     Ok(Json(core::discovered(&app).await?))
 }

@@ -136,6 +136,33 @@ pub fn check_mdi_line(line: &str) -> std::result::Result<(), String> {
     Ok(())
 }
 
+/// A command request body (`{"command": "zero", "axis": "X"}`) as the HTTP API and the MQTT
+/// command topics take it: a field the command does not have is an error, not ignored (a
+/// misspelt `axis` must not zero every axis).
+pub fn parse_command(raw: &serde_json::Value) -> Result<fresa_plugin_api::contract::Command> {
+    use fresa_plugin_api::contract::Command;
+    let cmd: Command = serde_json::from_value(raw.clone()).map_err(|e| {
+        Error::invalid(
+            "invalid_command",
+            format!("{e} (commands: cycle_start, feed_hold, resume, stop, reset, home, zero, go_to_zero, select_offset, set_output, toggle_output)"),
+        )
+    })?;
+    let known = serde_json::to_value(cmd).unwrap_or_default();
+    if let (Some(given), Some(known)) = (raw.as_object(), known.as_object()) {
+        if let Some(extra) = given.keys().find(|k| !known.contains_key(*k)) {
+            return Err(Error::invalid(
+                "invalid_command",
+                format!(
+                    "unknown field `{extra}` for command {:?} (its fields: {})",
+                    known["command"].as_str().unwrap_or_default(),
+                    known.keys().cloned().collect::<Vec<_>>().join(", ")
+                ),
+            ));
+        }
+    }
+    Ok(cmd)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -43,6 +43,7 @@ pub mod test_postgres;
 #[cfg(test)]
 mod tests;
 mod tokens;
+mod webhooks;
 
 pub use backup::{backup_database, BackupError};
 pub use events::EventRow;
@@ -50,6 +51,7 @@ pub use jobs::{JobRow, NewJob, RunRow, RunState};
 pub use machines::{MachineRow, PartZeroRow};
 pub use pendants::{MacroAction, PendantRow};
 pub use tokens::{is_unique_violation, TokenInfo, TokenRow};
+pub use webhooks::{DeliveryOutcome, WebhookRow, WebhookTarget};
 
 impl Store {
     /// Opens (creating if needed) the SQLite database at `path` and applies the migrations.
