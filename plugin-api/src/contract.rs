@@ -196,6 +196,7 @@ pub struct MachineStatus {
     /// switches (`spindle`, `coolant_flood`, ...), numbers where the backend has them
     /// (`spindle_rpm`).
     #[serde(default)]
+    #[cfg_attr(feature = "openapi", schema(value_type = Object))]
     pub outputs: BTreeMap<String, Option<IoValue>>,
 }
 
