@@ -267,3 +267,36 @@ pub async fn control(
         .ok_or_else(|| ApiError::internal("job vanished"))?;
     Ok(Json(core::job_json(&job, Some(&run))))
 }
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToolpathParams {
+    max_vertices: Option<usize>,
+}
+
+/// The job's path for previews in the binary format of `fresa_core::toolpath` (README: Toolpath
+/// format), decimated to `max_vertices` (default 250000).
+pub async fn toolpath(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Query(p): Query<ToolpathParams>,
+) -> Result<Response, ApiError> {
+    use fresa_core::toolpath::{DEFAULT_MAX_VERTICES, MAX_MAX_VERTICES, MIN_MAX_VERTICES};
+    let max = p.max_vertices.unwrap_or(DEFAULT_MAX_VERTICES);
+    if !(MIN_MAX_VERTICES..=MAX_MAX_VERTICES).contains(&max) {
+        return Err(ApiError::bad_request(
+            "invalid_query",
+            format!("`max_vertices` must be {MIN_MAX_VERTICES}..={MAX_MAX_VERTICES}, got {max}"),
+        ));
+    }
+    let bytes = core::toolpath(&app, id, max).await?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, "application/octet-stream"),
+            // Programs never change (content-addressed), so neither does their path.
+            (header::CACHE_CONTROL, "private, max-age=3600"),
+        ],
+        bytes,
+    )
+        .into_response())
+}

@@ -1,6 +1,7 @@
 //! HTTP API v1. See the README's endpoint table.
 
 pub mod auth;
+mod console;
 pub mod error;
 mod events;
 mod guard;
@@ -64,6 +65,10 @@ pub fn router(app: SharedApp) -> Router {
         )
         .route("/jobs/{id}", needs(Viewer, get(jobs::get_one)))
         .route("/jobs/{id}/gcode", needs(Viewer, get(jobs::gcode)))
+        .route(
+            "/jobs/{id}/toolpath",
+            needs(Viewer, get(jobs::toolpath)).layer(compression()),
+        )
         .route("/jobs/{id}/{action}", needs(Operator, post(jobs::control)))
         .route(
             "/pendants",
@@ -82,13 +87,20 @@ pub fn router(app: SharedApp) -> Router {
                 .merge(needs(Admin, delete(pendants::delete))),
         )
         .route("/plugins", needs(Viewer, get(plugins)))
+        .route("/whoami", needs(Viewer, get(whoami)))
         .route("/events", needs(Viewer, get(events::stream)))
         .layer(axum::middleware::from_fn_with_state(
             app.clone(),
             auth::middleware,
         ));
+    // The console's files need no token (the API calls they make do); still behind the guard.
+    let console = Router::new()
+        .route("/", get(console::index))
+        .route("/assets/{name}", get(console::asset))
+        .layer(compression());
     let router = Router::new()
         .nest("/api/v1", api)
+        .merge(console)
         .route("/healthz", get(healthz))
         .route(
             "/metrics",
@@ -132,6 +144,25 @@ pub fn service(app: SharedApp) -> Service {
 
 /// What `service` returns: serve it with hyper (requests with an axum `Body`).
 pub type Service = guard::Guarded<Router>;
+
+/// gzip for the console's files and toolpaths (not for the event stream, whose events must not
+/// wait in a compressor's buffer).
+fn compression() -> tower_http::compression::CompressionLayer {
+    tower_http::compression::CompressionLayer::new()
+}
+
+/// Who the caller is and whether this server needs a token: the console disables what the role
+/// may not do and asks for a token when one is needed.
+async fn whoami(
+    State(app): State<SharedApp>,
+    axum::Extension(caller): axum::Extension<auth::Caller>,
+) -> Json<serde_json::Value> {
+    Json(serde_json::json!({
+        "name": caller.name,
+        "role": caller.role.name(),
+        "auth_required": app.auth_required,
+    }))
+}
 
 /// Deny-by-default CORS: only the configured origins get CORS headers (and preflights).
 fn cors(origins: &[String]) -> tower_http::cors::CorsLayer {
