@@ -128,6 +128,13 @@ impl Browser {
             .unwrap_or_else(|e| panic!("script failed: {e}\n{script}"))
     }
 
+    /// Runs an asynchronous script: it calls `arguments[arguments.length - 1](value)` when done.
+    pub fn js_async(&self, script: &str) -> Value {
+        self.rt
+            .block_on(self.c().execute_async(script, vec![]))
+            .unwrap_or_else(|e| panic!("script failed: {e}\n{script}"))
+    }
+
     /// Polls `script` until it returns something truthy; panics after `timeout` naming `what`
     /// and the page's visible text.
     #[track_caller]

@@ -250,11 +250,19 @@ export class ToolpathView {
     const X = (x) => w / 2 + (x - cx) * s, Y = (y) => hh / 2 - (y - cy) * s;
     ctx.fillStyle = '#f7f7f5'; ctx.fillRect(0, 0, w, hh);
     ctx.strokeStyle = '#999'; ctx.strokeRect(X(p.min[0]), Y(p.max[1]), (p.max[0] - p.min[0]) * s, (p.max[1] - p.min[1]) * s);
+    // One path per colour: a stroke per segment would be far too slow for large programs.
     const pos = p.positions;
-    for (let i = 1; i < p.n; i++) {
-      const k = p.kinds[i];
-      ctx.strokeStyle = p.lines[i] <= this.done ? '#2a4' : k === 1 ? 'rgba(237,140,33,0.55)' : '#2e6bdb';
-      ctx.beginPath(); ctx.moveTo(X(pos[3 * i - 3]), Y(pos[3 * i - 2])); ctx.lineTo(X(pos[3 * i]), Y(pos[3 * i + 1])); ctx.stroke();
+    const styles = ['#2a4', 'rgba(237,140,33,0.55)', '#2e6bdb'];
+    for (let style = 0; style < 3; style++) {
+      ctx.strokeStyle = styles[style];
+      ctx.beginPath();
+      for (let i = 1; i < p.n; i++) {
+        const k = p.lines[i] <= this.done ? 0 : p.kinds[i];
+        if (k !== style) continue;
+        ctx.moveTo(X(pos[3 * i - 3]), Y(pos[3 * i - 2]));
+        ctx.lineTo(X(pos[3 * i]), Y(pos[3 * i + 1]));
+      }
+      ctx.stroke();
     }
     if (this.tool) { ctx.fillStyle = '#d11'; ctx.beginPath(); ctx.arc(X(this.tool[0]), Y(this.tool[1]), 5, 0, 7); ctx.fill(); }
   }
