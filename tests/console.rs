@@ -233,6 +233,28 @@ fn an_operator_drives_the_demo_in_a_browser() {
         .iter()
         .all(|v| v.as_f64().unwrap() <= max_jog));
 
+    // Offsets are editable; part zero is recorded here and listed.
+    b.type_into(
+        "tr[data-offset=\"G55\"] input[aria-label=\"G55 x\"]",
+        "12.5",
+    );
+    b.click("tr[data-offset=\"G55\"] td.row button:first-child");
+    wait_for(T, "G55 to be stored", || {
+        let o = s.get("/api/v1/machines/1/offsets").body;
+        (o["offsets"]["G55"]["x"].as_f64() == Some(12.5)).then_some(())
+    });
+    b.type_into("input[aria-label=\"part zero note\"]", "vise jaw");
+    b.click("#record-part-zero");
+    wait_for(T, "the part zero to be recorded", || {
+        let h = s.get("/api/v1/machines/1/part-zero").body;
+        (h[0]["note"] == "vise jaw" && h[0]["x"].as_f64() == Some(1.0)).then_some(())
+    });
+    b.wait(
+        "the part-zero history to list it",
+        T,
+        "return [...document.querySelectorAll('td')].some(td => td.textContent === 'vise jaw');",
+    );
+
     // MDI: the server's 422 is shown with its column marked.
     b.type_into("#mdi", "G1 X(");
     b.click("form:has(#mdi) button[type=submit]");
@@ -262,6 +284,8 @@ fn an_operator_drives_the_demo_in_a_browser() {
         .and_then(|n| n.parse().ok())
         .unwrap();
     assert_eq!(s.job(job_id)["name"], "cncjs-circle-inch");
+    let progress = b.js("return document.getElementById('upload-progress').value;");
+    assert_eq!(progress.as_f64(), Some(1.0), "upload progress bar");
     b.screenshot("jobs-uploaded");
     b.click("#upload-result [data-action=\"start\"]");
     b.goto(&format!("{}/#/jobs/{job_id}", s.base));
@@ -278,6 +302,30 @@ fn an_operator_drives_the_demo_in_a_browser() {
         "const c = document.querySelector('canvas.toolpath'); return c && +c.dataset.vertices > 10;",
     );
     b.screenshot("job-toolpath");
+
+    // Drag and drop: a file dropped on the zone is uploaded like a chosen one.
+    b.goto(&format!("{}/#/jobs", s.base));
+    b.wait_text("#drop-zone", T);
+    b.js("const dt = new DataTransfer(); \
+          dt.items.add(new File(['G21 G90\\nG1 X1 F100\\nM30\\n'], 'dropped.nc')); \
+          document.getElementById('drop-zone').dispatchEvent(new DragEvent('drop', {dataTransfer: dt, bubbles: true}));");
+    let stored = b.wait(
+        "the dropped file to be stored",
+        T,
+        "const h = document.querySelector('#upload-result h3'); return h && h.textContent.includes('dropped.nc') ? h.textContent : null;",
+    );
+    assert!(
+        stored.as_str().unwrap().starts_with("Stored as job"),
+        "{stored}"
+    );
+    let jobs = s.get("/api/v1/jobs").body;
+    assert!(
+        jobs.as_array()
+            .unwrap()
+            .iter()
+            .any(|j| j["name"] == "dropped" && j["line_count"] == 3),
+        "{jobs}"
+    );
 
     // A broken corpus program: refused, its line and column shown in the program.
     b.goto(&format!("{}/#/jobs", s.base));

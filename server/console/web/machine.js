@@ -130,7 +130,7 @@ export async function machinePage(page, { id }, events) {
     }) : [h('tr', {}, h('td', { colspan: 8, class: 'muted' }, 'none recorded'))]));
   };
   const note = h('input', { type: 'text', placeholder: 'note (optional)', maxlength: 200, 'aria-label': 'part zero note' });
-  const record = h('button', { dataset: { need: 'operator' }, onclick: (ev) =>
+  const record = h('button', { id: 'record-part-zero', dataset: { need: 'operator' }, onclick: (ev) =>
     act(ev.currentTarget, () => api('POST', `/machines/${id}/part-zero`, note.value ? { note: note.value } : {}), 'Part zero recorded')
       .then(loadPartZeros).catch(() => {}) }, 'Record here');
 
