@@ -302,6 +302,23 @@ fn an_operator_drives_the_demo_in_a_browser() {
         "const c = document.querySelector('canvas.toolpath'); return c && +c.dataset.vertices > 10;",
     );
     b.screenshot("job-toolpath");
+    // The path is really drawn (not a blank canvas), in the top view and in 3D.
+    let coloured = "const c = document.querySelector('canvas.toolpath'); \
+        const t = document.createElement('canvas'); t.width = c.width; t.height = c.height; \
+        const g = t.getContext('2d'); g.drawImage(c, 0, 0); \
+        const d = g.getImageData(0, 0, t.width, t.height).data; let n = 0; \
+        for (let i = 0; i < d.length; i += 4) if (d[i + 1] > d[i] + 60 && d[i + 1] > d[i + 2]) n++; \
+        return n;";
+    let green_top = b.wait("green (executed) pixels in the top view", T, coloured);
+    b.click("[data-view=\"3d\"]");
+    b.wait(
+        "the 3D view",
+        T,
+        "return document.querySelector('[data-view=\"3d\"]').classList.contains('active');",
+    );
+    let green_3d = b.wait("green (executed) pixels in the 3D view", T, coloured);
+    assert!(green_top.as_u64().unwrap() > 100 && green_3d.as_u64().unwrap() > 100);
+    b.screenshot("job-toolpath-3d");
 
     // Drag and drop: a file dropped on the zone is uploaded like a chosen one.
     b.goto(&format!("{}/#/jobs", s.base));

@@ -158,13 +158,30 @@ export class ToolpathView {
   setMode(m) { this.mode = m; this.draw(); }
 
   bindInput() {
-    let last = null;
-    this.canvas.addEventListener('pointerdown', (e) => { last = [e.clientX, e.clientY]; this.canvas.setPointerCapture(e.pointerId); });
-    this.canvas.addEventListener('pointerup', () => { last = null; });
+    // One pointer drags (orbit in 3D, pan in the top view; shift pans in 3D); two pinch-zoom.
+    const pointers = new Map();
+    let pinch = 0;
+    const spread = () => { const [a, b] = [...pointers.values()]; return Math.hypot(a[0] - b[0], a[1] - b[1]); };
+    this.canvas.addEventListener('pointerdown', (e) => {
+      pointers.set(e.pointerId, [e.clientX, e.clientY]);
+      this.canvas.setPointerCapture(e.pointerId);
+      if (pointers.size === 2) pinch = spread();
+    });
+    const up = (e) => { pointers.delete(e.pointerId); pinch = 0; };
+    this.canvas.addEventListener('pointerup', up);
+    this.canvas.addEventListener('pointercancel', up);
     this.canvas.addEventListener('pointermove', (e) => {
+      const last = pointers.get(e.pointerId);
       if (!last) return;
+      pointers.set(e.pointerId, [e.clientX, e.clientY]);
+      if (pointers.size === 2) {
+        const d = spread();
+        if (pinch > 0) this.zoom *= d / pinch;
+        pinch = d;
+        this.draw();
+        return;
+      }
       const dx = e.clientX - last[0], dy = e.clientY - last[1];
-      last = [e.clientX, e.clientY];
       if (this.mode === '3d' && !e.shiftKey) {
         this.yaw -= dx * 0.01;
         this.pitch = Math.max(0.05, Math.min(Math.PI - 0.05, this.pitch - dy * 0.01));
@@ -234,6 +251,12 @@ export class ToolpathView {
     gl.bufferData(gl.ARRAY_BUFFER, new Float32Array(lines), gl.DYNAMIC_DRAW);
     gl.enableVertexAttribArray(this.loc.pos);
     gl.vertexAttribPointer(this.loc.pos, 3, gl.FLOAT, false, 0, 0);
+    // Generic values for the integer attributes this VAO does not feed: WebGL2 refuses a draw
+    // whose default (float) attribute type differs from the shader's `uint`.
+    gl.disableVertexAttribArray(this.loc.line);
+    gl.disableVertexAttribArray(this.loc.kind);
+    gl.vertexAttribI4ui(this.loc.line, 0, 0, 0, 0);
+    gl.vertexAttribI4ui(this.loc.kind, 2, 0, 0, 0);
     gl.uniform1i(this.uni.useSolid, 1);
     gl.uniform4f(this.uni.solid, 0.55, 0.55, 0.55, 0.8);
     gl.drawArrays(gl.LINES, 0, boxCount);
