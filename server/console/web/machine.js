@@ -140,7 +140,10 @@ export async function machinePage(page, { id }, events) {
   let previewJob = null;
   const drawPreview = async () => {
     const r = state.runs.get(id);
-    if (!r || !r.job) return;
+    if (!r || !r.job) {
+      if (!preview) previewBox.replaceChildren(h('p', { class: 'muted' }, 'No job running. Start one from Jobs.'));
+      return;
+    }
     if (previewJob !== r.job) {
       previewJob = r.job;
       if (preview) preview.destroy();
