@@ -10,7 +10,7 @@
 //! 4       4  u32    n: vertex count
 //! 8       4  u32    moves: moves read before decimation
 //! 12      4  f32    decimation: the smallest distance (mm) kept between merged vertices (0: none)
-//! 16      24 f32x6  bounds min x,y,z, max x,y,z of the vertices (zeros when n = 0)
+//! 16      24 f32x6  bounds min x,y,z, max x,y,z of every move's end (and the start)
 //! 40      8         reserved (zero)
 //! 48      12n f32   x,y,z per vertex (program coordinates, mm)
 //! 48+12n  4n  u32   source line of the move that ends at the vertex
@@ -52,6 +52,12 @@ pub struct Toolpath {
     moves: u64,
     /// Current merge distance (mm); doubled whenever the budget is reached.
     min_step: f32,
+    /// Once the merge distance exceeds the path's size, kinds alone could still exceed the
+    /// budget (rapids and cuts alternating); then they merge too, a cut winning.
+    merge_kinds: bool,
+    /// Bounds of every point seen (merged ones too), kept as they arrive.
+    lo: [f32; 3],
+    hi: [f32; 3],
 }
 
 impl Toolpath {
@@ -64,7 +70,11 @@ impl Toolpath {
         config.arc_tolerance_mm = config.arc_tolerance_mm.max(PREVIEW_ARC_TOLERANCE_MM);
         let start = config.initial_position;
         let max = max_vertices.max(2);
-        let mut t = Toolpath::default();
+        let mut t = Toolpath {
+            lo: to_f32(start),
+            hi: to_f32(start),
+            ..Toolpath::default()
+        };
         t.vertices.push(Vertex {
             p: to_f32(start),
             line: 0,
@@ -79,6 +89,11 @@ impl Toolpath {
                 _ => continue,
             };
             t.moves += 1;
+            let p = to_f32(to);
+            for i in 0..3 {
+                t.lo[i] = t.lo[i].min(p[i]);
+                t.hi[i] = t.hi[i].max(p[i]);
+            }
             t.push(Vertex {
                 p: to_f32(to),
                 line,
@@ -107,10 +122,10 @@ impl Toolpath {
         if n >= 2 && self.min_step > 0.0 {
             let prev = self.vertices[n - 1];
             let anchor = self.vertices[n - 2];
-            let same_kind = prev.kind == v.kind || self.merges_kinds();
+            let same_kind = prev.kind == v.kind || self.merge_kinds;
             if same_kind && prev.kind != Kind::Start && dist(anchor.p, v.p) < self.min_step {
                 self.vertices[n - 1] = Vertex {
-                    kind: if self.merges_kinds() {
+                    kind: if self.merge_kinds {
                         prev.kind.max_cut(v.kind)
                     } else {
                         v.kind
@@ -123,40 +138,19 @@ impl Toolpath {
         self.vertices.push(v);
     }
 
-    /// Once the merge distance exceeds the path's size, kinds alone could still exceed the budget
-    /// (rapids and cuts alternating); then they merge too, a cut winning.
-    fn merges_kinds(&self) -> bool {
-        let (lo, hi) = self.bounds();
-        self.min_step > dist(lo, hi).max(1e-3)
-    }
-
     /// Doubles the merge distance and re-applies it to what is kept so far.
     fn coarsen(&mut self) {
+        let size = dist(self.lo, self.hi);
         self.min_step = if self.min_step > 0.0 {
             self.min_step * 2.0
         } else {
-            let (lo, hi) = self.bounds();
-            (dist(lo, hi) * 1e-5).max(1e-4)
+            (size * 1e-5).max(1e-4)
         };
+        self.merge_kinds = self.min_step > size.max(1e-3);
         let old = std::mem::take(&mut self.vertices);
         for v in old {
             self.push(v);
         }
-    }
-
-    fn bounds(&self) -> ([f32; 3], [f32; 3]) {
-        let mut lo = [f32::INFINITY; 3];
-        let mut hi = [f32::NEG_INFINITY; 3];
-        for v in &self.vertices {
-            for i in 0..3 {
-                lo[i] = lo[i].min(v.p[i]);
-                hi[i] = hi[i].max(v.p[i]);
-            }
-        }
-        if self.vertices.is_empty() {
-            return ([0.0; 3], [0.0; 3]);
-        }
-        (lo, hi)
     }
 
     /// The binary form described in the module documentation.
@@ -167,8 +161,7 @@ impl Toolpath {
         out.extend_from_slice(&(n as u32).to_le_bytes());
         out.extend_from_slice(&(self.moves.min(u32::MAX as u64) as u32).to_le_bytes());
         out.extend_from_slice(&self.min_step.to_le_bytes());
-        let (lo, hi) = self.bounds();
-        for c in lo.iter().chain(hi.iter()) {
+        for c in self.lo.iter().chain(self.hi.iter()) {
             out.extend_from_slice(&c.to_le_bytes());
         }
         out.extend_from_slice(&[0; 8]);
