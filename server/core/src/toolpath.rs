@@ -90,9 +90,9 @@ impl Toolpath {
             };
             t.moves += 1;
             let p = to_f32(to);
-            for i in 0..3 {
-                t.lo[i] = t.lo[i].min(p[i]);
-                t.hi[i] = t.hi[i].max(p[i]);
+            for (i, c) in p.iter().enumerate() {
+                t.lo[i] = t.lo[i].min(*c);
+                t.hi[i] = t.hi[i].max(*c);
             }
             t.push(Vertex {
                 p: to_f32(to),
