@@ -413,6 +413,16 @@ fn an_operator_drives_the_demo_in_a_browser() {
          return t.includes('pendant.macro') && t.includes('job.state') && t.includes('machine.jog');",
     );
     b.screenshot("events");
+    // Filtered by type (the server filters): only pendant events remain.
+    b.type_into("#events-types", "pendant");
+    b.click("#events-types ~ button[type=submit]");
+    b.wait(
+        "only pendant events",
+        T,
+        "const rows = [...document.querySelectorAll('table.events tbody tr')]; \
+         return rows.length > 0 && rows.every(r => r.dataset.type.startsWith('pendant.')) && \
+           rows.some(r => r.dataset.type === 'pendant.macro');",
+    );
     b.goto(&format!("{}/#/plugins", s.base));
     b.wait_text("[data-plugin=\"sim-machine\"]", T);
     b.screenshot("plugins");
