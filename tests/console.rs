@@ -506,3 +506,83 @@ fn a_network_server_asks_for_a_token_and_a_viewer_cannot_move() {
     s.token = Some(operator);
     assert_eq!(s.status(1)["work_position"]["x"].as_f64(), Some(1.0));
 }
+
+/// The simulated Kawasaki controller (`kawasaki-as-sim`), which can drop the link after N moves
+/// and report another part zero when the server reconnects.
+struct Robot {
+    child: std::process::Child,
+    addr: String,
+}
+
+impl Drop for Robot {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+#[test]
+fn a_changed_part_zero_is_confirmed_in_a_dialog() {
+    use std::io::BufRead;
+    let s = Server::start();
+    let mut child = std::process::Command::new(fresa_tests::bin_dir().join("kawasaki-as-sim"))
+        .args(["--listen", "127.0.0.1:0", "--protocol", "fresa-v1"])
+        .args([
+            "--drop-after",
+            "20",
+            "--part-zero-after-reconnect",
+            "-390,5,-30",
+        ])
+        .arg("--log")
+        .arg(s.root().join("robot.log"))
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .expect("start kawasaki-as-sim");
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let robot = Robot {
+        addr: line.trim().trim_start_matches("listening on ").to_string(),
+        child,
+    };
+    let m = s.create_machine(&json!({"name": "robot", "backend": "kawasaki-as",
+        "config": {"address": robot.addr, "protocol": "fresa-v1"}}));
+    let mut program = String::from("G21 G90\nG0 X0 Y0 Z5\nG1 Z-1 F300\n");
+    for i in 0..40 {
+        program.push_str(&format!("G1 X{} Y{} F300\n", 10 + i % 7, i % 10));
+    }
+    program.push_str("G0 Z5\nM30\n");
+    let job = s.upload(m, "robot-job", program)["id"].as_i64().unwrap();
+    s.job_action(job, "start").expect(200);
+    s.wait_job_state(job, "failed", T);
+
+    let b = Browser::start();
+    b.goto(&format!("{}/#/jobs/{job}", s.base));
+    b.click("[data-action=\"resume\"]");
+    let dialog = b.wait_text("#part-zero-dialog", T);
+    assert!(
+        dialog.contains("-400.000, 0.000, -30.000") && dialog.contains("-390.000, 5.000, -30.000"),
+        "{dialog}"
+    );
+    b.screenshot("part-zero-dialog");
+    // Declined: nothing moves, the run stays as it was.
+    b.click("#dialog button[value=\"no\"]");
+    b.wait(
+        "the dialog to close",
+        T,
+        "return !document.getElementById('dialog').open;",
+    );
+    assert_eq!(s.job(job)["state"], "failed");
+    // Confirmed: the run resumes with the new part zero and completes.
+    b.click("[data-action=\"resume\"]");
+    b.wait_text("#part-zero-dialog", T);
+    b.click("#dialog button[value=\"yes\"]");
+    s.wait_job_state(job, "completed", T);
+    b.wait(
+        "the page to show completed",
+        T,
+        "const e = document.getElementById('job-state'); return e && e.textContent === 'completed';",
+    );
+}

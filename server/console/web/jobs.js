@@ -54,7 +54,7 @@ function runButtons(j, after) {
   return h('div', { class: 'row wrap' },
     h('button', { dataset: { need: 'motion', action: 'start', off: off(!active) }, onclick: ctl('start') }, s === 'ready' ? 'Start' : 'Run again'),
     h('button', { dataset: { need: 'operator', action: 'pause', off: off(s === 'running') }, onclick: ctl('pause') }, 'Pause'),
-    h('button', { dataset: { need: 'motion', action: 'resume', off: off(s === 'paused' || s === 'interrupted') }, onclick: ctl('resume') }, 'Resume'),
+    h('button', { dataset: { need: 'motion', action: 'resume', off: off(['paused', 'interrupted', 'failed'].includes(s)) }, onclick: ctl('resume') }, 'Resume'),
     h('button', { dataset: { need: 'operator', action: 'cancel', off: off(active || s === 'interrupted') }, class: 'danger', onclick: ctl('cancel') }, 'Cancel'));
 }
 
