@@ -269,6 +269,17 @@ fn an_operator_drives_the_demo_in_a_browser() {
     assert_eq!(marked, "G1 X(".chars().nth(col - 1).unwrap().to_string());
     b.type_into("#mdi", "");
     b.screenshot("machine");
+    // On a tablet in portrait the controls stay at least 44 px and STOP stays in view.
+    b.resize(820, 1180);
+    let small = b.js(
+        "return [...document.querySelectorAll('button, select, input:not([type=file])')] \
+           .filter(e => e.offsetParent !== null) \
+           .filter(e => e.getBoundingClientRect().height < 44 || e.getBoundingClientRect().width < 44) \
+           .map(e => e.outerHTML.slice(0, 80));",
+    );
+    assert_eq!(small, json!([]), "touch targets under 44 px");
+    b.screenshot("machine-tablet");
+    b.resize(1280, 1000);
 
     // Jobs: upload a corpus program through the file input to the fast sim machine.
     b.goto(&format!("{}/#/jobs", s.base));

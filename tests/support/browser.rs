@@ -233,6 +233,13 @@ impl Browser {
         });
     }
 
+    /// Resizes the window (e.g. to a tablet's viewport).
+    pub fn resize(&self, width: u32, height: u32) {
+        self.rt
+            .block_on(self.c().set_window_size(width, height))
+            .unwrap();
+    }
+
     /// Saves a PNG of the viewport under [`screenshot_dir`] and returns its path.
     pub fn screenshot(&self, name: &str) -> PathBuf {
         let png = self.rt.block_on(self.c().screenshot()).unwrap();
