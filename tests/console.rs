@@ -590,7 +590,10 @@ fn a_changed_part_zero_is_confirmed_in_a_dialog() {
     b.click("[data-action=\"resume\"]");
     b.wait_text("#part-zero-dialog", T);
     b.click("#dialog button[value=\"yes\"]");
-    s.wait_job_state(job, "completed", T);
+    // The click only sends the resume: the run is still `failed` until the server has it.
+    s.wait_job(job, T, "completed after the confirmed resume", |j| {
+        j["state"] == "completed"
+    });
     b.wait(
         "the page to show completed",
         T,
