@@ -178,8 +178,19 @@ fn toolpath_is_the_programs_path_bounded_in_size() {
     assert_eq!(s.get("/api/v1/jobs/999/toolpath").status, 404);
 }
 
+/// The DRO's text for `axis`, once it shows a number (it shows a dash until a status came).
 fn dro(b: &Browser, axis: &str) -> String {
-    b.wait_text(&format!("[data-dro=\"{axis}\"]"), T)
+    b.wait(
+        &format!("the DRO of {axis}"),
+        T,
+        &format!(
+            "const e = document.querySelector('[data-dro=\"{axis}\"]'); \
+             return e && /^-?[0-9]/.test(e.textContent) ? e.textContent : null;"
+        ),
+    )
+    .as_str()
+    .unwrap()
+    .to_string()
 }
 
 #[test]
@@ -475,8 +486,13 @@ fn a_network_server_asks_for_a_token_and_a_viewer_cannot_move() {
     b.screenshot("sign-in");
     b.type_into("#token", "fresa_wrong");
     b.click("#signin button[type=submit]");
-    let err = b.wait_text("#signin-error", T);
-    assert!(err.contains("invalid_token"), "{err}");
+    // The error line exists (empty) from the start: wait for the server's answer in it.
+    let err = b.wait(
+        "the sign-in error",
+        T,
+        "const e = document.getElementById('signin-error'); return e && e.textContent.trim();",
+    );
+    assert!(err.as_str().unwrap().contains("invalid_token"), "{err}");
 
     b.type_into("#token", &viewer);
     b.click("#signin button[type=submit]");
@@ -572,6 +588,11 @@ fn a_changed_part_zero_is_confirmed_in_a_dialog() {
     let b = Browser::start();
     b.goto(&format!("{}/#/jobs/{job}", s.base));
     b.click("[data-action=\"resume\"]");
+    b.wait(
+        "the dialog",
+        T,
+        "return document.getElementById('dialog').open;",
+    );
     let dialog = b.wait_text("#part-zero-dialog", T);
     assert!(
         dialog.contains("-400.000, 0.000, -30.000") && dialog.contains("-390.000, 5.000, -30.000"),
@@ -588,7 +609,11 @@ fn a_changed_part_zero_is_confirmed_in_a_dialog() {
     assert_eq!(s.job(job)["state"], "failed");
     // Confirmed: the run resumes with the new part zero and completes.
     b.click("[data-action=\"resume\"]");
-    b.wait_text("#part-zero-dialog", T);
+    b.wait(
+        "the dialog again",
+        T,
+        "const d = document.getElementById('dialog'); return d.open && !!d.querySelector('#part-zero-dialog');",
+    );
     b.click("#dialog button[value=\"yes\"]");
     // The click only sends the resume: the run is still `failed` until the server has it.
     s.wait_job(job, T, "completed after the confirmed resume", |j| {
