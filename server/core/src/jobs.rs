@@ -122,6 +122,33 @@ async fn analyse(
     }
 }
 
+/// A job's toolpath in the preview format of [`crate::toolpath`], at most `max_vertices`
+/// vertices, interpreted with the same unsupported-word policy as its upload.
+pub async fn toolpath(app: &App, job_id: i64, max_vertices: usize) -> Result<Vec<u8>> {
+    let job = app
+        .store
+        .job(job_id)
+        .await?
+        .ok_or_else(|| Error::not_found("unknown_job", format!("no job with id {job_id}")))?;
+    let unsupported = unsupported_policy(app, job.machine_id).await?;
+    let path = crate::programs::program_path(&app.settings.programs_dir(), &job.sha256);
+    tokio::task::spawn_blocking(move || {
+        let file = std::fs::File::open(&path).map_err(|e| {
+            Error::internal(format!("program file {} is missing: {e}", path.display()))
+        })?;
+        let reader = std::io::BufReader::with_capacity(1 << 16, file);
+        let config = fresa_gcode::Config {
+            unsupported,
+            ..fresa_gcode::Config::default()
+        };
+        crate::toolpath::Toolpath::build(reader, config, max_vertices)
+            .map(|t| t.encode())
+            .map_err(|e| Error::invalid("invalid_gcode", format!("G-code error at {e}")))
+    })
+    .await
+    .map_err(|e| Error::internal(format!("toolpath failed: {e}")))?
+}
+
 /// Job as the API shows it: the job row, its analysis and its latest run.
 pub fn job_json(job: &JobRow, run: Option<&RunRow>) -> serde_json::Value {
     let analysis: serde_json::Value = job

@@ -4,7 +4,7 @@
 //! * [`machine`]: a task per machine that owns its run lifecycle, and the lanes its backend
 //!   calls travel on.
 //! * [`programs`]: uploaded programs on disk. [`jobs`]: from a program to a job; run control
-//!   goes to the job's machine.
+//!   goes to the job's machine; [`toolpath`]: a program's path for previews.
 //! * [`pendants`]: handwheel pendants; their keys call the same functions the HTTP layer does.
 //! * [`events`]: the event bus and audit log. [`plugins`]: the plugin registry.
 //! * [`webhooks`]: webhook registrations; [`integrations`]: what webhook deliveries and the MQTT
@@ -25,6 +25,7 @@ pub mod plugins;
 pub mod programs;
 mod startup;
 pub mod store;
+pub mod toolpath;
 pub mod webhooks;
 
 pub use app::{App, SharedApp};

@@ -379,3 +379,46 @@ pub async fn control(
         .ok_or_else(|| ApiError::internal("job vanished"))?;
     Ok(Json(core::job_json(&job, Some(&run))))
 }
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToolpathParams {
+    max_vertices: Option<usize>,
+}
+
+/// The job's path for previews in the binary format of `fresa_core::toolpath` (README: Toolpath
+/// format), decimated to `max_vertices` (default 250000).
+#[utoipa::path(get, path = "/jobs/{id}/toolpath", tag = "jobs",
+    params(
+        ("id" = i64, Path, description = "job id", example = 1),
+        ("max_vertices" = Option<usize>, Query, description = "vertex budget, 1000..2000000 (default 250000)"),
+    ),
+    responses(
+        (status = 200, description = "The path: a 48-byte `FTP1` header, then per vertex float32 x, y, z, u32 source line, u8 kind (README: Toolpath format)", content_type = "application/octet-stream"),
+        (status = 400, description = "`invalid_query`: max_vertices out of range", body = ErrorBody),
+        (status = 404, description = "`unknown_job`", body = ErrorBody),
+    ))]
+pub async fn toolpath(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Query(p): Query<ToolpathParams>,
+) -> Result<Response, ApiError> {
+    use fresa_core::toolpath::{DEFAULT_MAX_VERTICES, MAX_MAX_VERTICES, MIN_MAX_VERTICES};
+    let max = p.max_vertices.unwrap_or(DEFAULT_MAX_VERTICES);
+    if !(MIN_MAX_VERTICES..=MAX_MAX_VERTICES).contains(&max) {
+        return Err(ApiError::bad_request(
+            "invalid_query",
+            format!("`max_vertices` must be {MIN_MAX_VERTICES}..={MAX_MAX_VERTICES}, got {max}"),
+        ));
+    }
+    let bytes = core::toolpath(&app, id, max).await?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, "application/octet-stream"),
+            // Programs never change (content-addressed), so neither does their path.
+            (header::CACHE_CONTROL, "private, max-age=3600"),
+        ],
+        bytes,
+    )
+        .into_response())
+}

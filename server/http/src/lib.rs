@@ -1,6 +1,7 @@
 //! HTTP API v1. See the README's endpoint table.
 
 pub mod auth;
+mod console;
 pub mod error;
 mod events;
 mod guard;
@@ -92,6 +93,10 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
         ))
         .routes(needs(Viewer, routes!(jobs::get_one)))
         .routes(needs(Viewer, routes!(jobs::gcode)))
+        .routes(needs(
+            Viewer,
+            routes!(jobs::toolpath).map(|r| r.layer(compression())),
+        ))
         .routes(needs(Operator, routes!(jobs::control)))
         .routes(needs(Viewer, routes!(pendants::list)))
         .routes(needs(Admin, routes!(pendants::create)))
@@ -106,6 +111,7 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
         .routes(needs(Admin, routes!(webhooks::get_one)))
         .routes(needs(Admin, routes!(webhooks::delete)))
         .routes(needs(Viewer, routes!(plugins)))
+        .routes(needs(Viewer, routes!(whoami)))
         .routes(needs(Viewer, routes!(events::stream)))
         .layer(axum::middleware::from_fn_with_state(
             app.clone(),
@@ -119,8 +125,15 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
             app.clone(),
             auth::middleware,
         ));
+    // The console's files need no token (the API calls they make do); still behind the guard.
     OpenApiRouter::with_openapi(openapi::ApiDoc::openapi())
         .nest("/api/v1", api)
+        .routes(public(
+            routes!(console::index).map(|r| r.layer(compression())),
+        ))
+        .routes(public(
+            routes!(console::asset).map(|r| r.layer(compression())),
+        ))
         .routes(public(routes!(healthz)))
         .merge(metrics)
         .split_for_parts()
@@ -136,6 +149,29 @@ pub fn service(app: SharedApp) -> Service {
 
 /// What `service` returns: serve it with hyper (requests with an axum `Body`).
 pub type Service = guard::Guarded<Router>;
+
+/// gzip for the console's files and toolpaths (not for the event stream, whose events must not
+/// wait in a compressor's buffer).
+fn compression() -> tower_http::compression::CompressionLayer {
+    tower_http::compression::CompressionLayer::new()
+}
+
+/// Who the caller is and whether this server needs a token: the console disables what the role
+/// may not do and asks for a token when one is needed.
+#[utoipa::path(get, path = "/whoami", tag = "server",
+    responses(
+        (status = 200, description = "`{\"name\", \"role\", \"auth_required\"}`: the caller's token name (or `local`), its role, and whether this server needs a token", body = Object),
+    ))]
+async fn whoami(
+    State(app): State<SharedApp>,
+    axum::Extension(caller): axum::Extension<auth::Caller>,
+) -> Json<serde_json::Value> {
+    Json(serde_json::json!({
+        "name": caller.name,
+        "role": caller.role.name(),
+        "auth_required": app.auth_required,
+    }))
+}
 
 /// Deny-by-default CORS: only the configured origins get CORS headers (and preflights).
 fn cors(origins: &[String]) -> tower_http::cors::CorsLayer {

@@ -1,0 +1,190 @@
+// Jobs: upload (file picker or drag and drop, with progress), the analysis or the refusal with
+// its line and column shown in the program, the job list with run control, and a job's preview.
+
+import { api, upload } from './api.js';
+import { state, h, gate, act, toast, errorText, position, duration, time, machineName, dialog, forgetJob } from './ui.js';
+import { ToolpathView } from './toolpath.js';
+
+const BOUNDS = (b) => b ? `X ${b.min[0].toFixed(2)}…${b.max[0].toFixed(2)} · Y ${b.min[1].toFixed(2)}…${b.max[1].toFixed(2)} · Z ${b.min[2].toFixed(2)}…${b.max[2].toFixed(2)}` : '—';
+
+export function analysisView(a) {
+  if (!a) return h('p', { class: 'muted' }, 'no analysis stored');
+  const rows = [
+    ['Lines', `${a.lines} (${a.motion_lines} with motion)`],
+    ['Cutting bounds', BOUNDS(a.cutting_bounds)],
+    ['Rapid bounds', BOUNDS(a.rapid_bounds)],
+    ['Cutting length', a.cutting_length_mm.toFixed(1) + ' mm'],
+    ['Rapid length', a.rapid_length_mm.toFixed(1) + ' mm'],
+    ['Estimated time', duration(a.estimated_seconds)],
+    ['Moves', `${a.rapid_moves} rapid · ${a.linear_moves} linear · ${a.arc_moves} arc`],
+    ['Max feed / spindle', `${a.max_feed_mm_min} mm/min · ${a.max_spindle_rpm} rpm`],
+    ['Tools', a.tools.length ? a.tools.map((t) => 'T' + t).join(' ') : '—'],
+  ];
+  const warnings = (a.warnings || []).slice(0, 50).map((w) => h('li', {}, `line ${w.line}, column ${w.column}: ${w.message}`));
+  return h('div', { class: 'analysis', id: 'analysis' },
+    h('table', {}, rows.map(([k, v]) => h('tr', {}, h('th', {}, k), h('td', {}, v)))),
+    warnings.length ? h('details', { open: true }, h('summary', {}, `${a.warnings.length + (a.warnings_dropped || 0)} warnings`), h('ul', {}, warnings)) : null);
+}
+
+/** The program around `line`, that line marked and its `column` highlighted. */
+export function gcodeExcerpt(text, line, column) {
+  const lines = text.split(/\r?\n/);
+  const from = Math.max(1, line - 5), to = Math.min(lines.length, line + 5);
+  const out = h('pre', { class: 'gcode', id: 'gcode-view' });
+  for (let n = from; n <= to; n++) {
+    const src = lines[n - 1] || '';
+    const num = h('span', { class: 'ln' }, String(n).padStart(5) + '  ');
+    if (n === line) {
+      const i = Math.max(0, Math.min(src.length, column - 1));
+      out.append(h('div', { class: 'err-line', dataset: { line: n } }, num, src.slice(0, i),
+        h('mark', { class: 'col', dataset: { column } }, src.slice(i, i + 1) || ' '), src.slice(i + 1)));
+    } else {
+      out.append(h('div', {}, num, src));
+    }
+  }
+  return out;
+}
+
+function runButtons(j, after) {
+  const ctl = (action, body) => (ev) => act(ev.currentTarget, () => control(j.id, action, body), `${action} sent`).then(after).catch(() => {});
+  const s = j.state;
+  const active = ['running', 'paused'].includes(s);
+  // What the run's state allows (the server checks again); `gate` adds the role and stream.
+  const off = (allowed) => (allowed ? '0' : '1');
+  return h('div', { class: 'row wrap' },
+    h('button', { dataset: { need: 'motion', action: 'start', off: off(!active) }, onclick: ctl('start') }, s === 'ready' ? 'Start' : 'Run again'),
+    h('button', { dataset: { need: 'operator', action: 'pause', off: off(s === 'running') }, onclick: ctl('pause') }, 'Pause'),
+    h('button', { dataset: { need: 'motion', action: 'resume', off: off(['paused', 'interrupted', 'failed'].includes(s)) }, onclick: ctl('resume') }, 'Resume'),
+    h('button', { dataset: { need: 'operator', action: 'cancel', off: off(active || s === 'interrupted') }, class: 'danger', onclick: ctl('cancel') }, 'Cancel'));
+}
+
+/** Run control; a resume the controller refuses because its part zero moved asks the operator. */
+async function control(id, action, body) {
+  try {
+    return await api('POST', `/jobs/${id}/${action}`, body);
+  } catch (e) {
+    if (action !== 'resume' || e.code !== 'part_zero_changed') throw e;
+    const tuples = [...e.message.matchAll(/\(([-\d.]+), ([-\d.]+), ([-\d.]+)\)/g)].map((m) => m.slice(1).join(', '));
+    const body = h('div', { id: 'part-zero-dialog' },
+      h('p', {}, 'The controller reports another part zero than the one this run started with.'),
+      h('table', {}, h('tr', {}, h('th', {}, 'Run started with'), h('td', { class: 'num' }, tuples[1] || '?')),
+        h('tr', {}, h('th', {}, 'Controller reports now'), h('td', { class: 'num' }, tuples[0] || '?'))),
+      h('p', { class: 'muted small' }, e.message));
+    const answer = await dialog('Part zero changed', body, [['Keep stopped', 'no'], ['Resume with the new part zero', 'yes', 'danger']]);
+    if (answer !== 'yes') throw new Error('resume not confirmed: the run stays paused');
+    return api('POST', `/jobs/${id}/resume`, { confirm_part_zero: true });
+  }
+}
+
+async function detail(page, id, events) {
+  const j = await api('GET', `/jobs/${id}`);
+  const info = h('div');
+  const previewBox = h('div', { class: 'preview-box' });
+  const preview = new ToolpathView(previewBox);
+  const refresh = async () => {
+    forgetJob(id);
+    const cur = await api('GET', `/jobs/${id}`);
+    info.replaceChildren(
+      h('p', {}, `Machine ${machineName(cur.machine)} · ${cur.line_count} lines · ${(cur.size_bytes / 1024).toFixed(1)} KB · uploaded ${time(cur.created_at)}`),
+      h('p', {}, 'State ', h('span', { class: 'badge state-' + cur.state, id: 'job-state' }, cur.state),
+        ` · line ${cur.line}/${cur.line_count} · `, h('span', { id: 'job-percent' }, cur.percent.toFixed(1) + ' %'),
+        cur.run && cur.run.message ? ' · ' + cur.run.message : ''),
+      h('progress', { max: 100, value: cur.percent, id: 'job-progress' }),
+      runButtons(cur, refresh));
+    gate(info);
+    preview.setProgress(cur.line);
+  };
+  page.append(h('p', {}, h('a', { href: '#/jobs' }, '← all jobs')), h('h1', {}, j.name),
+    h('div', { class: 'cols' }, h('section', { class: 'card' }, info, analysisView(j.analysis)),
+      h('section', { class: 'card' }, h('h2', {}, 'Toolpath'), previewBox)));
+  await refresh();
+  preview.load(id).catch((e) => previewBox.replaceChildren(h('p', { class: 'error' }, errorText(e))));
+  const progress = (e) => {
+    if (e.data.job !== id) return;
+    const pct = e.data.percent ?? (100 * e.data.line / j.line_count);
+    const bar = info.querySelector('#job-progress');
+    if (bar) bar.value = pct;
+    const p = info.querySelector('#job-percent');
+    if (p) p.textContent = pct.toFixed(1) + ' %';
+    preview.setProgress(e.data.line, (state.status.get(j.machine) || {}).work_position);
+  };
+  const offs = [
+    events.on('job.progress', progress),
+    events.on('job.state', (e) => { if (e.data.job === id) { refresh(); preview.setProgress(e.data.line); } }),
+    events.on('status', (e) => { if (e.machine === j.machine) preview.setProgress(null, e.data.work_position); }),
+  ];
+  return () => { offs.forEach((f) => f()); preview.destroy(); };
+}
+
+export async function jobsPage(page, params, events) {
+  if (params.job) return detail(page, params.job, events);
+  const machines = [...state.machines.values()];
+  const machineSel = h('select', { id: 'upload-machine', 'aria-label': 'machine' }, machines.map((m) => h('option', { value: m.id }, m.name)));
+  const fileInput = h('input', { type: 'file', id: 'upload-file', accept: '.nc,.ngc,.gcode,.tap,.txt,text/plain', dataset: { need: 'operator' } });
+  const bar = h('progress', { id: 'upload-progress', max: 1, value: 0, hidden: true });
+  const result = h('div', { id: 'upload-result' });
+  const drop = h('div', { class: 'drop', id: 'drop-zone' }, 'Drop a G-code file here, or ', h('label', { class: 'button' }, 'choose a file', fileInput));
+
+  const send = async (file) => {
+    if (!can_upload()) return;
+    result.replaceChildren(h('p', {}, `Uploading ${file.name}…`));
+    bar.hidden = false; bar.value = 0;
+    try {
+      const r = await upload(machineSel.value, file, (f) => { bar.value = f; });
+      bar.value = 1;
+      result.replaceChildren(h('h3', {}, `Stored as job ${r.id}: ${file.name}`),
+        h('p', {}, h('a', { href: `#/jobs/${r.id}`, id: 'open-job' }, 'Open job ' + r.id + ' (toolpath, start)')),
+        runButtons({ id: r.id, state: 'ready' }, reload), analysisView(r.analysis));
+      gate(result);
+      reload();
+    } catch (e) {
+      bar.hidden = true;
+      const pos = position(e.message);
+      const children = [h('h3', { class: 'error' }, 'Refused'), h('p', { class: 'error', id: 'refusal' }, errorText(e))];
+      if (pos && file.size < 64 * 1024 * 1024) {
+        children.push(h('p', {}, `Line ${pos.line}, column ${pos.column}:`), gcodeExcerpt(await file.text(), pos.line, pos.column));
+      }
+      result.replaceChildren(...children);
+    }
+  };
+  const can_upload = () => !fileInput.disabled;
+  fileInput.addEventListener('change', () => { if (fileInput.files[0]) send(fileInput.files[0]); fileInput.value = ''; });
+  drop.addEventListener('dragover', (e) => { e.preventDefault(); drop.classList.add('over'); });
+  drop.addEventListener('dragleave', () => drop.classList.remove('over'));
+  drop.addEventListener('drop', (e) => {
+    e.preventDefault();
+    drop.classList.remove('over');
+    const f = e.dataTransfer.files[0];
+    if (f) send(f);
+  });
+
+  const filter = h('select', { id: 'jobs-filter', 'aria-label': 'filter by machine' }, h('option', { value: '' }, 'all machines'),
+    machines.map((m) => h('option', { value: m.id }, m.name)));
+  const tbody = h('tbody');
+  let loading = null;
+  const reload = async () => {
+    if (loading) return loading;
+    loading = (async () => {
+      const q = filter.value ? `?machine=${filter.value}` : '';
+      const jobs = await api('GET', '/jobs' + q);
+      tbody.replaceChildren(...jobs.map((j) => h('tr', { dataset: { job: j.id } },
+        h('td', {}, h('a', { href: `#/jobs/${j.id}` }, String(j.id))), h('td', {}, h('a', { href: `#/jobs/${j.id}` }, j.name)),
+        h('td', {}, machineName(j.machine)), h('td', { class: 'num' }, j.line_count),
+        h('td', {}, h('span', { class: 'badge state-' + j.state }, j.state)),
+        h('td', {}, h('progress', { max: 100, value: j.percent }), ' ', j.percent.toFixed(1) + ' %'),
+        h('td', {}, time(j.created_at)), h('td', {}, runButtons(j, reload)))));
+      gate(tbody);
+    })().finally(() => { loading = null; });
+    return loading;
+  };
+  filter.addEventListener('change', reload);
+  page.append(h('h1', {}, 'Jobs'),
+    h('section', { class: 'card' }, h('h2', {}, 'Upload a program'), h('div', { class: 'row' }, h('label', {}, 'Machine ', machineSel)), drop, bar, result),
+    h('section', { class: 'card' }, h('div', { class: 'row between' }, h('h2', {}, 'All jobs'), filter),
+      h('table', { class: 'jobs' }, h('thead', {}, h('tr', {}, ['#', 'name', 'machine', 'lines', 'state', 'progress', 'uploaded', ''].map((t) => h('th', {}, t)))), tbody)));
+  await reload().catch((e) => toast(errorText(e)));
+  let timer = 0;
+  const soon = () => { if (!timer) timer = setTimeout(() => { timer = 0; reload().catch(() => {}); }, 250); };
+  const offs = [events.on('job.state', soon), events.on('job.created', soon), events.on('job.progress', soon), events.on('reloaded', soon)];
+  return () => { offs.forEach((f) => f()); clearTimeout(timer); };
+}

@@ -1,0 +1,206 @@
+// One machine: DRO, step jog, cycle controls, outputs, MDI, offsets, part zeros, and the
+// running job's toolpath. STOP and feed hold stay on screen (sticky bar).
+
+import { api } from './api.js';
+import { state, h, gate, mm, act, toast, errorText, position, ioLamps, time } from './ui.js';
+import { urgentButtons, stateBadge, runBlock } from './overview.js';
+import { ToolpathView } from './toolpath.js';
+
+const AXES = ['x', 'y', 'z', 'a'];
+const STEPS = [0.001, 0.01, 0.1, 1, 10];
+const OFFSETS = ['G54', 'G55', 'G56', 'G57', 'G58', 'G59'];
+const OUTPUTS = [['spindle', 'Spindle'], ['coolant', 'Coolant'], ['z_lift', 'Z lift']];
+
+/** A G-code line with the character at `column` marked (1-based). */
+export function markColumn(line, column) {
+  const i = Math.max(0, Math.min(line.length, column - 1));
+  return h('code', { class: 'gline' }, line.slice(0, i),
+    h('mark', { class: 'col' }, line.slice(i, i + 1) || ' '), line.slice(i + 1));
+}
+
+export async function machinePage(page, { id }, events) {
+  const m = state.machines.get(id) || await api('GET', `/machines/${id}`);
+  const cmd = (command, extra) => api('POST', `/machines/${id}/commands`, Object.assign({ command }, extra || {}));
+
+  // Header with the urgent buttons, sticky on small screens.
+  const badge = h('span');
+  const header = h('div', { class: 'sticky-bar' },
+    h('h1', {}, m.name, ' ', h('span', { class: 'muted small' }, m.backend)), badge,
+    h('div', { class: 'row urgent' }, urgentButtons(id)));
+
+  // DRO.
+  const dro = {};
+  const mpos = {};
+  const droEl = h('div', { class: 'dro' }, AXES.map((a) => h('div', { class: 'dro-axis' },
+    h('span', { class: 'dro-label' }, a.toUpperCase()),
+    (dro[a] = h('span', { class: 'dro-value num', dataset: { dro: a } }, '—')),
+    (mpos[a] = h('span', { class: 'dro-m num muted', dataset: { mpos: a } }, '—')))));
+  const droInfo = h('div', { class: 'muted' });
+  const lamps = h('div');
+  const run = runBlock(id);
+
+  // Step jog, bounded by the machine's limits (the server refuses anything past them too).
+  const steps = STEPS.filter((s) => s <= m.max_jog_mm);
+  const stepSel = h('select', { id: 'jog-step', 'aria-label': 'jog step (mm)' },
+    steps.map((s) => h('option', { value: s, selected: s === 1 }, s + ' mm')));
+  const feed = h('input', { id: 'jog-feed', type: 'number', min: 1, max: m.max_feed_mm_min, step: 1,
+    value: Math.min(1000, m.max_feed_mm_min), 'aria-label': 'jog feed (mm/min)' });
+  const jogError = h('p', { class: 'error', id: 'jog-error' });
+  const jog = (axis, sign) => async (ev) => {
+    jogError.textContent = '';
+    const distance = sign * parseFloat(stepSel.value);
+    const f = parseFloat(feed.value);
+    if (!(f > 0 && f <= m.max_feed_mm_min)) {
+      jogError.textContent = `feed must be 1..${m.max_feed_mm_min} mm/min`;
+      return;
+    }
+    try {
+      await act(ev.currentTarget, () => api('POST', `/machines/${id}/jog`, { axis: axis.toUpperCase(), distance, feed: f }));
+    } catch (e) { jogError.textContent = errorText(e); }
+  };
+  const jogPad = h('div', { class: 'jog' }, AXES.map((a) => h('div', { class: 'jog-axis' },
+    h('button', { dataset: { need: 'motion', jog: a.toUpperCase() + '-' }, onclick: jog(a, -1) }, a.toUpperCase() + '−'),
+    h('button', { dataset: { need: 'motion', jog: a.toUpperCase() + '+' }, onclick: jog(a, 1) }, a.toUpperCase() + '+'))));
+
+  const button = (label, command, need, extra) => h('button', { dataset: { need, cmd: command },
+    onclick: (ev) => act(ev.currentTarget, () => cmd(command, extra), label + ' sent').catch(() => {}) }, label);
+  const cycle = h('div', { class: 'row wrap' },
+    button('Cycle start', 'cycle_start', 'motion'), button('Resume', 'resume', 'motion'),
+    button('Reset', 'reset', 'operator'), button('Home', 'home', 'motion'),
+    button('Go to zero', 'go_to_zero', 'motion'));
+  const zeros = h('div', { class: 'row wrap' }, h('span', { class: 'muted' }, 'Zero'),
+    AXES.map((a) => button(a.toUpperCase(), 'zero', 'operator', { axis: a.toUpperCase() })),
+    button('All', 'zero', 'operator'));
+  const outputs = h('div', { class: 'row wrap' });
+  const drawOutputs = () => {
+    const io = (state.io.get(id) || {}).outputs;
+    outputs.replaceChildren(h('span', { class: 'muted' }, 'Outputs'), ...OUTPUTS
+      .filter(([name]) => !io || Object.keys(io).some((k) => k === name || k.startsWith(name + '_')))
+      .map(([name, label]) => h('button', { dataset: { need: 'operator', output: name },
+        onclick: (ev) => act(ev.currentTarget, () => cmd('toggle_output', { name }), label + ' toggled').catch(() => {}) }, label)));
+    gate(outputs);
+  };
+
+  // MDI: the server checks the line; a 422 shows the line with its column marked.
+  const mdiInput = h('input', { id: 'mdi', type: 'text', placeholder: 'G91 G0 Z5', autocomplete: 'off', spellcheck: 'false' });
+  const mdiError = h('div', { class: 'error', id: 'mdi-error' });
+  const mdiForm = h('form', { class: 'row' }, mdiInput,
+    h('button', { type: 'submit', dataset: { need: 'motion' } }, 'Send MDI'));
+  mdiForm.addEventListener('submit', async (ev) => {
+    ev.preventDefault();
+    mdiError.replaceChildren();
+    const line = mdiInput.value;
+    try {
+      await api('POST', `/machines/${id}/mdi`, { line });
+      toast('MDI sent', 'ok');
+    } catch (e) {
+      const pos = position(e.message);
+      mdiError.replaceChildren(h('p', {}, errorText(e)), pos ? markColumn(line, pos.column) : '');
+    }
+  });
+
+  // Offsets G54..G59, editable.
+  const offsetsBody = h('tbody');
+  const loadOffsets = async () => {
+    const o = await api('GET', `/machines/${id}/offsets`);
+    offsetsBody.replaceChildren(...OFFSETS.map((name) => {
+      const v = o.offsets[name] || {};
+      const inputs = AXES.map((a) => h('input', { type: 'number', step: 'any', value: v[a] ?? 0, 'aria-label': `${name} ${a}`, dataset: { need: 'operator' } }));
+      const save = h('button', { dataset: { need: 'operator' }, onclick: async (ev) => {
+        const body = {};
+        AXES.forEach((a, i) => { body[a] = parseFloat(inputs[i].value); });
+        await act(ev.currentTarget, () => api('PUT', `/machines/${id}/offsets/${name}`, body), name + ' saved').catch(() => {});
+      } }, 'Save');
+      const select = h('button', { dataset: { need: 'operator' }, onclick: (ev) =>
+        act(ev.currentTarget, () => cmd('select_offset', { offset: name }), name + ' active').then(loadOffsets).catch(() => {}) }, 'Use');
+      return h('tr', { class: o.active === name ? 'active' : '', dataset: { offset: name } },
+        h('th', {}, name, o.active === name ? ' ●' : ''), inputs.map((i) => h('td', {}, i)), h('td', { class: 'row' }, save, select));
+    }));
+    gate(offsetsBody);
+  };
+
+  // Part-zero history.
+  const pzList = h('tbody');
+  const loadPartZeros = async () => {
+    const rows = await api('GET', `/machines/${id}/part-zero`);
+    pzList.replaceChildren(...(rows.length ? rows.slice(0, 20).map((r) => {
+      const p = r.position || r;
+      return h('tr', {}, h('td', {}, time(r.created_at || r.time || 0)),
+        AXES.map((a) => h('td', { class: 'num' }, mm(p[a]))), h('td', {}, r.source || ''), h('td', {}, r.actor || ''), h('td', {}, r.note || ''));
+    }) : [h('tr', {}, h('td', { colspan: 8, class: 'muted' }, 'none recorded'))]));
+  };
+  const note = h('input', { type: 'text', placeholder: 'note (optional)', maxlength: 200, 'aria-label': 'part zero note' });
+  const record = h('button', { id: 'record-part-zero', dataset: { need: 'operator' }, onclick: (ev) =>
+    act(ev.currentTarget, () => api('POST', `/machines/${id}/part-zero`, note.value ? { note: note.value } : {}), 'Part zero recorded')
+      .then(loadPartZeros).catch(() => {}) }, 'Record here');
+
+  // The running job's toolpath with the tool position.
+  const previewBox = h('div', { class: 'preview-box' });
+  let preview = null;
+  let previewJob = null;
+  const drawPreview = async () => {
+    const r = state.runs.get(id);
+    if (!r || !r.job) {
+      if (!preview) previewBox.replaceChildren(h('p', { class: 'muted' }, 'No job running. Start one from Jobs.'));
+      return;
+    }
+    if (previewJob !== r.job) {
+      previewJob = r.job;
+      if (preview) preview.destroy();
+      preview = new ToolpathView(previewBox);
+      try { await preview.load(r.job); } catch (e) { previewBox.replaceChildren(h('p', { class: 'error' }, errorText(e))); }
+    }
+    const s = state.status.get(id) || {};
+    if (preview) preview.setProgress(r.line || 0, s.work_position);
+  };
+
+  page.append(header,
+    h('div', { class: 'cols' },
+      h('section', { class: 'card' }, h('h2', {}, 'Position'), droEl, droInfo, run.el, lamps),
+      h('section', { class: 'card' }, h('h2', {}, 'Jog'),
+        h('div', { class: 'row wrap' }, h('label', {}, 'Step ', stepSel), h('label', {}, 'Feed ', feed, ' mm/min')),
+        h('p', { class: 'muted small' }, `At most ${m.max_jog_mm} mm per step and ${m.max_feed_mm_min} mm/min.`),
+        jogPad, jogError)),
+    h('div', { class: 'cols' },
+      h('section', { class: 'card' }, h('h2', {}, 'Cycle'), cycle, zeros, outputs),
+      h('section', { class: 'card' }, h('h2', {}, 'MDI'), mdiForm, mdiError)),
+    h('section', { class: 'card' }, h('h2', {}, 'Work offsets'),
+      h('table', { class: 'offsets' }, h('thead', {}, h('tr', {}, h('th', {}, ''), AXES.map((a) => h('th', {}, a.toUpperCase())), h('th', {}, ''))), offsetsBody)),
+    h('section', { class: 'card' }, h('h2', {}, 'Part zero'), h('div', { class: 'row' }, note, record),
+      h('table', {}, h('thead', {}, h('tr', {}, h('th', {}, 'when'), AXES.map((a) => h('th', {}, a.toUpperCase())), h('th', {}, 'source'), h('th', {}, 'who'), h('th', {}, 'note'))), pzList)),
+    h('section', { class: 'card' }, h('h2', {}, 'Running job'), previewBox));
+
+  const update = () => {
+    const s = state.status.get(id) || {};
+    const row = state.machines.get(id) || m;
+    badge.replaceChildren(stateBadge(s.state || row.state, row.reason || s.reason));
+    for (const a of AXES) {
+      dro[a].textContent = mm((s.work_position || {})[a]);
+      mpos[a].textContent = 'M ' + mm((s.machine_position || {})[a]);
+    }
+    droInfo.textContent = `offset ${s.active_offset || '—'} · feed ${s.feed ?? '—'} mm/min · override ${s.feed_override ?? '—'} %`;
+    run.update();
+    const l = ioLamps(id);
+    lamps.replaceChildren(...(l ? [l] : []));
+  };
+  let frame = 0;
+  const schedule = () => {
+    if (!frame) frame = requestAnimationFrame(() => { frame = 0; update(); drawPreview(); });
+  };
+  update();
+  drawOutputs();
+  await Promise.all([loadOffsets(), loadPartZeros()]).catch((e) => toast(errorText(e)));
+  drawPreview();
+  const mine = (fn) => (e) => { if (e.machine === id) fn(e); };
+  const offs = [
+    events.on('status', mine(schedule)),
+    events.on('machine.state', mine(schedule)),
+    events.on('machine.io', mine(() => { schedule(); drawOutputs(); })),
+    events.on('runs', schedule),
+    events.on('reloaded', schedule),
+    events.on('machine.offsets', mine(() => loadOffsets().catch(() => {}))),
+    events.on('machine.part_zero', mine(() => loadPartZeros().catch(() => {}))),
+  ];
+  const tick = setInterval(schedule, 1000);
+  return () => { offs.forEach((f) => f()); clearInterval(tick); cancelAnimationFrame(frame); if (preview) preview.destroy(); };
+}
