@@ -603,9 +603,10 @@ async fn open_store(
 ) -> Result<fresa_core::store::Store, Box<dyn std::error::Error>> {
     std::fs::create_dir_all(&settings.data_dir)
         .map_err(|e| format!("cannot create {}: {e}", settings.data_dir.display()))?;
-    settings.open_store().await.map_err(|e| {
-        format!("cannot open database {}: {e}", settings.database_label()).into()
-    })
+    settings
+        .open_store()
+        .await
+        .map_err(|e| format!("cannot open database {}: {e}", settings.database_label()).into())
 }
 
 pub async fn token(cmd: TokenCmd) -> Res {
