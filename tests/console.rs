@@ -625,3 +625,60 @@ fn a_changed_part_zero_is_confirmed_in_a_dialog() {
         "const e = document.getElementById('job-state'); return e && e.textContent === 'completed';",
     );
 }
+
+/// Machine I/O lamps on the machine page: a limit switch pressed by moving onto it lights its
+/// lamp (and the page shows the alarm naming it), a switched output lights, and the overview
+/// card shows the same lamps.
+#[test]
+fn io_lamps_follow_the_machines_inputs_and_outputs() {
+    let s = Server::start();
+    let m = s.create_machine(&json!({
+        "name": "switched", "backend": "sim-machine", "max_jog_mm": 20.0,
+        "config": {"time_scale": 0.05, "switches": {
+            "limit_x_max": {"axis": "x", "at_or_above": 5},
+            "probe": {"axis": "z", "at_or_below": -20}}}
+    }));
+    s.wait_machine_state(m, "idle", T);
+    let b = Browser::start();
+    // JS answering the class list of the lamp named `name` once it has class `cls`.
+    let lamp_is = |name: &str, cls: &str| {
+        format!(
+            "const l = [...document.querySelectorAll('.lamp')].find(l => l.textContent === '{name}'); \
+             return l && l.classList.contains('{cls}') ? l.className : null;"
+        )
+    };
+    b.goto(&format!("{}/#/machines/{m}", s.base));
+    b.wait("the limit lamp, off", T, &lamp_is("limit_x_max", "off"));
+    b.wait("the probe lamp, off", T, &lamp_is("probe", "off"));
+
+    // Press the switch by jogging onto it (through the API, as a pendant would): the page
+    // follows the live stream.
+    s.jog(m, "X", 10.0).expect(200);
+    let lit = b.wait("the limit lamp lit", T, &lamp_is("limit_x_max", "on"));
+    assert!(
+        lit.as_str().unwrap_or("").contains("in"),
+        "an input lamp: {lit}"
+    );
+    b.wait(
+        "the alarm naming the input",
+        T,
+        "return document.body.textContent.includes('limit_x_max tripped');",
+    );
+
+    // An output switched through the API lights its lamp.
+    s.command(m, "reset", json!({})).expect(200);
+    s.command(m, "toggle_output", json!({"name": "spindle"}))
+        .expect(200);
+    b.wait("the spindle lamp lit", T, &lamp_is("spindle", "on"));
+    // Reset cleared the alarm: the page must not keep showing it.
+    b.wait(
+        "the alarm gone after reset",
+        T,
+        "return !document.body.textContent.includes('limit_x_max tripped');",
+    );
+    b.screenshot("io-lamps");
+
+    // The overview card shows the same lamps.
+    b.goto(&s.base);
+    b.wait("the card's spindle lamp", T, &lamp_is("spindle", "on"));
+}

@@ -106,8 +106,12 @@ function wire() {
     }
   });
   events.on('status', (e) => {
+    // A status event is the whole status: fields it leaves out (alarm, reason, run) are gone,
+    // not kept from the last one. Only the job summary from GET .../status is carried over.
     const cur = state.status.get(e.machine) || {};
-    state.status.set(e.machine, Object.assign({}, cur, e.data));
+    const next = Object.assign({}, e.data);
+    if (cur.job && !('job' in next) && next.run !== undefined) next.job = cur.job;
+    state.status.set(e.machine, next);
     applyIo(e.machine, e.data);
     const r = state.runs.get(e.machine);
     if (r && e.data.line !== undefined) r.line = Math.max(r.line || 0, e.data.line);
@@ -117,7 +121,10 @@ function wire() {
     const m = state.machines.get(e.machine);
     if (m) m.state = e.data.to;
     const s = state.status.get(e.machine);
-    if (s) s.state = e.data.to;
+    if (s) {
+      s.state = e.data.to;
+      if (e.data.to !== 'alarm') delete s.alarm;
+    }
   });
   events.on('job.progress', async (e) => { await trackRun(e.machine, e.data); events.dispatch('runs', '{}'); });
   events.on('job.state', async (e) => {

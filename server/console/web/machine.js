@@ -173,7 +173,7 @@ export async function machinePage(page, { id }, events) {
   const update = () => {
     const s = state.status.get(id) || {};
     const row = state.machines.get(id) || m;
-    badge.replaceChildren(stateBadge(s.state || row.state, row.reason || s.reason));
+    badge.replaceChildren(stateBadge(s.state || row.state, row.reason || s.reason || s.alarm));
     for (const a of AXES) {
       dro[a].textContent = mm((s.work_position || {})[a]);
       mpos[a].textContent = 'M ' + mm((s.machine_position || {})[a]);

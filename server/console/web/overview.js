@@ -65,7 +65,7 @@ function card(m) {
     update() {
       const s = state.status.get(m.id) || {};
       const row = state.machines.get(m.id) || m;
-      badge.replaceChildren(stateBadge(s.state || row.state, row.reason || s.reason));
+      badge.replaceChildren(stateBadge(s.state || row.state, row.reason || s.reason || s.alarm));
       offset.textContent = s.active_offset ? 'offset ' + s.active_offset : '';
       for (const kind of ['work', 'machine']) {
         const p = s[kind + '_position'] || {};
