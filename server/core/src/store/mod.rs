@@ -152,9 +152,22 @@ impl Store {
     }
 }
 
-/// The URL of the SQLite file at `path`, created when missing.
+/// The URL of the SQLite file at `path`, created when missing. The `Any` driver parses it as a
+/// URL before SQLite's own parser sees it, so the path is percent-encoded (SQLite's side
+/// decodes it): spaces, `?`, `#` and Windows paths (`C:\ProgramData\...`, where `C:` would
+/// otherwise read as a host and port) all arrive intact. `sqlite:` without `//` keeps a drive
+/// letter from being taken for a host.
 pub fn sqlite_url(path: &Path) -> String {
-    format!("sqlite://{}?mode=rwc", path.display())
+    let mut url = String::from("sqlite:");
+    for b in path.to_string_lossy().bytes() {
+        if b.is_ascii_alphanumeric() || b"-._~/:".contains(&b) {
+            url.push(b as char);
+        } else {
+            url.push_str(&format!("%{b:02X}"));
+        }
+    }
+    url.push_str("?mode=rwc");
+    url
 }
 
 /// A database URL for messages: the password replaced by `***`.

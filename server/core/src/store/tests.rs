@@ -362,3 +362,33 @@ async fn expired_and_revoked_tokens_are_not_found(s: &Store) {
     assert!(!s.revoke_token("new").await.unwrap());
     assert!(s.token_by_hash("h-new").await.unwrap().is_none());
 }
+
+/// Paths that a URL would mangle reach SQLite intact: a space, `#`, `?`, `%` in a directory name.
+#[tokio::test]
+async fn a_database_path_with_url_characters_opens_and_is_that_file() {
+    let dir = std::env::temp_dir().join(format!(
+        "fresa store #1 ?x %20 {}-{}",
+        std::process::id(),
+        rand::random::<u64>()
+    ));
+    std::fs::create_dir_all(&dir).unwrap();
+    let db = dir.join("fresa.db");
+    let s = Store::open(&db).await.unwrap();
+    s.insert_machine("m", "sim-machine", &serde_json::json!({}), 50.0, 1000.0)
+        .await
+        .unwrap();
+    assert!(db.is_file(), "the store is the file asked for: {}", db.display());
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
+fn sqlite_urls_keep_windows_paths_whole() {
+    assert_eq!(
+        sqlite_url(std::path::Path::new(r"C:\ProgramData\Fresa\fresa.db")),
+        "sqlite:C:%5CProgramData%5CFresa%5Cfresa.db?mode=rwc"
+    );
+    assert_eq!(
+        sqlite_url(std::path::Path::new("/var/lib/fresa/fresa.db")),
+        "sqlite:/var/lib/fresa/fresa.db?mode=rwc"
+    );
+}
