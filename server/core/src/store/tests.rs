@@ -377,7 +377,11 @@ async fn a_database_path_with_url_characters_opens_and_is_that_file() {
     s.insert_machine("m", "sim-machine", &serde_json::json!({}), 50.0, 1000.0)
         .await
         .unwrap();
-    assert!(db.is_file(), "the store is the file asked for: {}", db.display());
+    assert!(
+        db.is_file(),
+        "the store is the file asked for: {}",
+        db.display()
+    );
     std::fs::remove_dir_all(dir).ok();
 }
 
