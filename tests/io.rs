@@ -32,7 +32,10 @@ fn a_limit_switch_trips_shows_everywhere_and_the_axis_jogs_off_it() {
     );
 
     s.jog(m, "X", 10.0).expect(200);
-    let st = s.wait_machine_state(m, "alarm", T);
+    // The state change can be published a moment before the status that carries its reason.
+    let st = s.wait_status(m, T, "alarm with its reason", |st| {
+        st["state"] == "alarm" && st["alarm"].is_string()
+    });
     assert_eq!(st["inputs"]["limit_x_max"], true, "{st}");
     assert!(
         st["alarm"].as_str().unwrap().contains("limit_x_max"),

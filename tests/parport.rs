@@ -151,7 +151,10 @@ fn a_limit_input_stops_the_job_with_an_alarm_naming_the_input_and_shows_on_the_s
         failed.to_string().contains(alarm),
         "the job names the input: {failed}"
     );
-    let st = s.wait_machine_state(m, "alarm", T);
+    // The state change can be published a moment before the status that carries its reason.
+    let st = s.wait_status(m, T, "alarm with its reason", |st| {
+        st["state"] == "alarm" && st["alarm"].is_string()
+    });
     assert_eq!(st["alarm"], alarm, "{st}");
     // Stopped early: 60 coil writes is about 3 mm at 20 steps/mm, far from X40.
     let x = axis(&st, "machine_position", "x");
