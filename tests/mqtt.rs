@@ -232,9 +232,14 @@ fn status_job_state_events_and_the_node_reach_the_broker() {
     let job = s.upload(1, "short", "G21 G90\nG0 X5\nG1 X6 F3000\nM2\n")["id"]
         .as_i64()
         .unwrap();
+    let topic = format!("t/jobs/{job}/state");
+    let live = Sub::new(&broker, &[&topic]);
     s.job_action(job, "start").expect(200);
     s.wait_job_state(job, "completed", T);
-    let later = Sub::new(&broker, &[&format!("t/jobs/{job}/state")]);
+    // The job's end reaches the broker after the store has it: wait until the bridge has
+    // published it, then a new subscriber must get it as the retained message.
+    live.until(&topic, |v, _| v["state"] == "completed");
+    let later = Sub::new(&broker, &[&topic]);
     let (state, retained) = later.until(&format!("t/jobs/{job}/state"), |v, _| {
         v["state"] == "completed"
     });
