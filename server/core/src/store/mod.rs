@@ -31,12 +31,16 @@ pub enum Dialect {
 pub struct Store {
     pool: AnyPool,
     dialect: Dialect,
+    /// The node this process is (see [`Store::for_node`]): machines and pendants it creates
+    /// belong to it. `None` in tools and tests that are no node.
+    node: Option<std::sync::Arc<str>>,
 }
 
 mod backup;
 mod events;
 mod jobs;
 mod machines;
+mod nodes;
 mod pendants;
 #[cfg(any(test, feature = "test-support"))]
 pub mod test_postgres;
@@ -46,9 +50,10 @@ mod tokens;
 mod webhooks;
 
 pub use backup::{backup_database, BackupError};
-pub use events::EventRow;
+pub use events::{EventRow, EVENTS_CHANNEL};
 pub use jobs::{JobRow, NewJob, RunRow, RunState};
 pub use machines::{MachineRow, PartZeroRow};
+pub use nodes::NodeRow;
 pub use pendants::{MacroAction, PendantRow};
 pub use tokens::{is_unique_violation, TokenInfo, TokenRow};
 pub use webhooks::{DeliveryOutcome, WebhookRow, WebhookTarget};
@@ -109,7 +114,22 @@ impl Store {
                     .await?
             }
         }
-        Ok(Store { pool, dialect })
+        Ok(Store {
+            pool,
+            dialect,
+            node: None,
+        })
+    }
+
+    /// The same store, for the node `name`: what it creates belongs to that node.
+    pub fn for_node(mut self, name: &str) -> Store {
+        self.node = Some(name.into());
+        self
+    }
+
+    /// The node this store handle belongs to, if any.
+    pub fn node(&self) -> Option<&str> {
+        self.node.as_deref()
     }
 
     pub fn dialect(&self) -> Dialect {
