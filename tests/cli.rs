@@ -15,9 +15,11 @@ fn stdout(o: &std::process::Output) -> String {
 #[test]
 fn machine_list_shows_the_demo_machine() {
     let s = Server::start_demo();
-    let demo = s.get("/api/v1/machines").expect(200)[0]["id"]
-        .as_i64()
-        .unwrap();
+    let listed = s.get("/api/v1/machines").expect(200);
+    let demo = listed[0]["id"].as_i64().unwrap();
+    // The node that drives it: this server, named after the host by default.
+    let node = listed[0]["node"].as_str().unwrap().to_string();
+    assert!(!node.is_empty());
     s.wait_machine_state(demo, "idle", T);
     let out = s.cli(&["machine", "list"]);
     assert!(out.status.success(), "{}", output_text(&out));
@@ -29,7 +31,13 @@ fn machine_list_shows_the_demo_machine() {
     let cols: Vec<&str> = row.split_whitespace().collect();
     assert_eq!(
         cols,
-        [demo.to_string().as_str(), "demo", "sim-machine", "idle"]
+        [
+            demo.to_string().as_str(),
+            "demo",
+            "sim-machine",
+            &node,
+            "idle"
+        ]
     );
     assert!(text.lines().next().unwrap().contains("NAME"), "{text}");
 }
@@ -147,7 +155,7 @@ fn machine_list_aligns_its_columns() {
         v
     };
     let header = starts(lines[0]);
-    assert_eq!(header.len(), 4, "{text}");
+    assert_eq!(header.len(), 5, "{text}");
     for l in &lines[1..] {
         assert_eq!(starts(l), header, "{text}");
     }

@@ -95,6 +95,28 @@ fn a_machine_on_node_a_is_jogged_and_runs_a_job_through_node_b() {
     assert_eq!(jog_b.data["node"], "hall-a", "{jog_b:?}");
     assert_eq!(jog_b.data["actor"], "local", "{jog_b:?}");
     assert_eq!(jog_b.data["machine"], m.id);
+    // Live status (a transient event) reaches B's stream from A too.
+    let on_b_status = b.events(&format!("types=status&machine={}", m.id), None);
+    b.jog(m.id, "Y", 1.0).expect(200);
+    first_event(&on_b_status, "A's live status on B's stream", |e| {
+        e.event == "status"
+            && e.data["node"] == "hall-a"
+            && (e.data["data"]["work_position"]["y"].as_f64() == Some(1.0))
+    });
+    // A pendant on node B cannot drive A's machine: its keys would go to a task B lacks.
+    let p = b
+        .post(
+            "/api/v1/pendants",
+            &json!({"name": "p-b", "address": "127.0.0.1:9", "dialect": "firmware"}),
+        )
+        .expect(201)["id"]
+        .as_i64()
+        .unwrap();
+    let msg = b
+        .req(reqwest::Method::PATCH, &format!("/api/v1/pendants/{p}"))
+        .json(&json!({"machine": m.id}));
+    let msg = b.send(msg).expect_error(422, "machine_on_other_node");
+    assert!(msg.contains("node hall-a"), "{msg}");
     // B's status read of the remote machine is A's live answer.
     let st = b.status(m.id);
     assert!(
@@ -223,6 +245,15 @@ fn an_admin_moves_a_machine_to_another_node() {
     wait_for(T, "B to see the machine idle", || {
         (machine_on(&b, m.id)["state"] == "idle").then_some(())
     });
+    // Its handwheel, on A's network, bound to it.
+    let pendant = a
+        .post(
+            "/api/v1/pendants",
+            &json!({"name": "wheel", "address": "127.0.0.1:9", "dialect": "firmware", "machine": m.id}),
+        )
+        .expect(201)["id"]
+        .as_i64()
+        .unwrap();
     b.put(
         &format!("/api/v1/machines/{}/node", m.id),
         &json!({"node": "no such name!"}),

@@ -180,13 +180,14 @@ pub async fn machine(server: ServerArgs, cmd: MachineCmd) -> Res {
             let v = c
                 .send(c.req(reqwest::Method::GET, "/api/v1/machines"))
                 .await?;
-            let mut rows = vec![["ID", "NAME", "BACKEND", "STATE"].map(String::from)];
+            let mut rows = vec![["ID", "NAME", "BACKEND", "NODE", "STATE"].map(String::from)];
             for m in v.as_array().into_iter().flatten() {
                 let text = |k: &str| m[k].as_str().unwrap_or("").to_string();
                 rows.push([
                     m["id"].to_string(),
                     text("name"),
                     text("backend"),
+                    text("node"),
                     text("state"),
                 ]);
             }

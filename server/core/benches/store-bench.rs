@@ -66,7 +66,11 @@ async fn measure(label: &str, store: Store) {
 
 #[tokio::main]
 async fn main() {
-    let which = std::env::args().nth(1).unwrap_or_default();
+    // `cargo bench` passes `--bench`; the first other argument picks the database.
+    let which = std::env::args()
+        .skip(1)
+        .find(|a| !a.starts_with('-'))
+        .unwrap_or_default();
     if which.is_empty() || which == "sqlite" {
         let dir = std::env::temp_dir().join(format!("fresa-store-bench-{}", std::process::id()));
         std::fs::create_dir_all(&dir).expect("temp dir");

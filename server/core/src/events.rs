@@ -321,6 +321,7 @@ pub const AUDIT_EVENT_TYPES: &[&str] = &[
     "pendant.bound",
     "pendant.macro",
     "pendant.deleted",
+    "pendant.node",
     "pendant.upload",
     "webhook.created",
     "webhook.deleted",

@@ -6,7 +6,7 @@
 //! heartbeat stops.
 
 use crate::app::{App, SharedApp};
-use crate::store::{now_ms, MachineRow, NodeRow};
+use crate::store::{MachineRow, NodeRow};
 use fresa_plugin_api::contract::{MachineState, MachineStatus};
 use serde::Serialize;
 use std::collections::{BTreeMap, HashSet};
@@ -71,8 +71,7 @@ fn http_date(ms: i64) -> String {
 
 impl App {
     fn node_is_fresh(&self, row: &NodeRow) -> bool {
-        let limit = self.settings.node.offline_after.as_millis() as i64;
-        now_ms() - row.heartbeat_at <= limit
+        row.age_ms <= self.settings.node.offline_after.as_millis() as i64
     }
 
     /// Which node drives machine `id`. A machine this node has loaded is local whatever the
@@ -246,6 +245,7 @@ async fn reconcile(app: &SharedApp) -> crate::Result<()> {
             crate::startup::load_machine(app, row).await;
         }
     }
+    reconcile_pendants(app).await?;
     for m in loaded {
         if !ours.contains(&m.id) && m.run().is_none() {
             tracing::info!(
@@ -257,6 +257,33 @@ async fn reconcile(app: &SharedApp) -> crate::Result<()> {
             if let Err(e) = m.shutdown_backend().await {
                 tracing::error!(machine = m.id, error = %e, "shutdown of a machine moved away failed");
             }
+        }
+    }
+    Ok(())
+}
+
+/// The same for pendants: start the ones moved here, close the links of the ones moved away.
+async fn reconcile_pendants(app: &SharedApp) -> crate::Result<()> {
+    let me = app.settings.node.name.as_str();
+    let rows = app.store.list_pendants().await?;
+    let ours: HashSet<i64> = rows
+        .iter()
+        .filter(|r| r.node.as_deref() == Some(me))
+        .map(|r| r.id)
+        .collect();
+    let running: HashSet<i64> = app.pendants.all().await.iter().map(|p| p.id).collect();
+    for id in running.difference(&ours) {
+        tracing::info!(
+            pendant = id,
+            "pendant moved to another node: closing its link"
+        );
+        app.pendants.remove(*id).await;
+    }
+    for row in rows {
+        if ours.contains(&row.id) && !running.contains(&row.id) {
+            tracing::info!(pendant = row.id, name = %row.name, "pendant moved to this node: starting its link");
+            let created = crate::pendants::create_instance(app, &row).await;
+            crate::pendants::attach(app, row, created).await;
         }
     }
     Ok(())

@@ -107,6 +107,7 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
         // admin's.
         .routes(needs(Operator, routes!(pendants::patch)))
         .routes(needs(Admin, routes!(pendants::delete)))
+        .routes(needs(Admin, routes!(pendants::set_node)))
         .routes(needs(Admin, routes!(webhooks::list)))
         .routes(needs(Admin, routes!(webhooks::create)))
         .routes(needs(Admin, routes!(webhooks::get_one)))

@@ -111,6 +111,18 @@ fn parse_macros(
 async fn check_machine(app: &SharedApp, machine: Option<i64>) -> Result<(), ApiError> {
     if let Some(id) = machine {
         if app.machines.get(id).await.is_none() {
+            // A pendant's keys go to its machine's task on this node: both must be here.
+            if let Some(row) = app.store.machine(id).await? {
+                return Err(ApiError::unprocessable(
+                    "machine_on_other_node",
+                    format!(
+                        "field `machine`: machine {id} is driven by node {}; a pendant drives \
+                         machines of its own node ({})",
+                        row.node.as_deref().unwrap_or("?"),
+                        app.settings.node.name
+                    ),
+                ));
+            }
             return Err(ApiError::unprocessable(
                 "unknown_machine",
                 format!("field `machine`: no machine with id {id}"),
@@ -125,7 +137,7 @@ async fn check_machine(app: &SharedApp, machine: Option<i64>) -> Result<(), ApiE
     responses(
         (status = 201, description = "Created; the server connects to it", body = Created),
         (status = 409, description = "`name_taken`", body = ErrorBody),
-        (status = 422, description = "`invalid_field`, `invalid_name`, `unknown_machine`", body = ErrorBody),
+        (status = 422, description = "`invalid_field`, `invalid_name`, `unknown_machine`, `machine_on_other_node`", body = ErrorBody),
     ))]
 pub async fn create(
     State(app): State<SharedApp>,
@@ -331,7 +343,7 @@ pub struct PatchPendant {
     responses(
         (status = 200, description = "The pendant as now bound", body = Pendant),
         (status = 404, description = "`unknown_pendant`", body = ErrorBody),
-        (status = 422, description = "`invalid_field`, `unknown_machine`", body = ErrorBody),
+        (status = 422, description = "`invalid_field`, `unknown_machine`, `machine_on_other_node`", body = ErrorBody),
     ))]
 pub async fn patch(
     State(app): State<SharedApp>,
@@ -403,4 +415,60 @@ pub async fn delete(
     responses((status = 200, description = "Pendants announced on the LAN by mDNS (`MPGnnnnnn`, `_http._tcp`)", body = Object)))]
 pub async fn discovered(State(app): State<SharedApp>) -> Result<Json<Value>, ApiError> {
     Ok(Json(core::discovered(&app).await?))
+}
+
+#[derive(Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PendantNodeReq {
+    /// The node whose network the pendant is on now (its `node_name`).
+    node: String,
+}
+
+/// Moves a pendant to another node (it was carried to another hall): that node opens its link
+/// within a heartbeat and this one closes it. The machine binding is kept only if that machine
+/// is driven by the new node.
+#[utoipa::path(put, path = "/pendants/{id}/node", tag = "pendants",
+    params(("id" = i64, Path, description = "pendant id", example = 1)),
+    request_body(content = PendantNodeReq, example = json!({"node": "hall-2"})),
+    responses(
+        (status = 200, description = "Moved: `{\"pendant\", \"node\", \"machine\"}`", body = Object),
+        (status = 404, description = "`unknown_pendant`", body = ErrorBody),
+        (status = 422, description = "`invalid_field`", body = ErrorBody),
+    ))]
+pub async fn set_node(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Extension(caller): Extension<Caller>,
+    Json(req): Json<PendantNodeReq>,
+) -> Result<Json<Value>, ApiError> {
+    if !fresa_core::config::NodeSettings::valid_name(&req.node) {
+        return Err(ApiError::unprocessable(
+            "invalid_field",
+            format!(
+                "node: {:?} is not a node name (1 to 63 letters, digits, '-', '_' or '.')",
+                req.node
+            ),
+        ));
+    }
+    let before = app.store.pendant(id).await?.ok_or_else(|| {
+        ApiError::not_found("unknown_pendant", format!("no pendant with id {id}"))
+    })?;
+    app.store.set_pendant_node(id, &req.node).await?;
+    let after = app.store.pendant(id).await?.ok_or_else(|| {
+        ApiError::not_found("unknown_pendant", format!("no pendant with id {id}"))
+    })?;
+    if let Some(p) = app.pendants.get(id).await {
+        p.set_machine(after.machine_id);
+    }
+    let body =
+        json!({"pendant": id, "from": before.node, "node": req.node, "machine": after.machine_id});
+    app.bus
+        .record_or_log(
+            "pendant.node",
+            before.machine_id,
+            Some(&caller.name),
+            body.clone(),
+        )
+        .await;
+    Ok(Json(body))
 }

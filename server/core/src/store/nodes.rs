@@ -16,26 +16,45 @@ pub struct NodeRow {
     /// JSON: machine id -> status, as of the heartbeat.
     #[serde(skip)]
     pub machines: String,
+    /// How long ago the last heartbeat was, by the database's clock (the nodes' own clocks may
+    /// disagree; the database's is the one all of them wrote with).
+    pub age_ms: i64,
 }
 
 /// Programs are stored in chunks of this size: well under any row or packet limit, few rows.
 const CHUNK_BYTES: usize = 256 * 1024;
 
 impl Store {
+    /// The database's clock in Unix milliseconds, as SQL: heartbeats are written and judged by
+    /// one clock, whatever the nodes' clocks say.
+    fn db_now_ms(&self) -> &'static str {
+        self.pick(
+            "CAST((julianday('now') - 2440587.5) * 86400000.0 AS INTEGER)",
+            "CAST(EXTRACT(EPOCH FROM clock_timestamp()) * 1000 AS BIGINT)",
+        )
+    }
+
+    fn node_select(&self) -> String {
+        format!(
+            "SELECT name, url, version, started_at, heartbeat_at, machines, \
+             ({} - heartbeat_at) AS age_ms FROM nodes",
+            self.db_now_ms()
+        )
+    }
+
     /// Records that node `name` (re)started and is reachable at `url`.
     pub async fn register_node(&self, name: &str, url: &str, version: &str) -> Result<()> {
-        let now = now_ms();
         let mut tx = self.begin().await?;
-        sqlx::query(
+        sqlx::query(&format!(
             "INSERT INTO nodes (name, url, version, started_at, heartbeat_at, machines)
-             VALUES ($1, $2, $3, $4, $4, '{}')
-             ON CONFLICT (name) DO UPDATE SET url = $2, version = $3, started_at = $4,
-               heartbeat_at = $4",
-        )
+             VALUES ($1, $2, $3, {now}, {now}, '{{}}')
+             ON CONFLICT (name) DO UPDATE SET url = $2, version = $3, started_at = {now},
+               heartbeat_at = {now}",
+            now = self.db_now_ms()
+        ))
         .bind(name)
         .bind(url)
         .bind(version)
-        .bind(now)
         .execute(&mut *tx)
         .await?;
         tx.commit().await
@@ -44,23 +63,25 @@ impl Store {
     /// The node's heartbeat, with its machines' status (JSON object by machine id).
     pub async fn node_heartbeat(&self, name: &str, machines: &str) -> Result<()> {
         let mut tx = self.begin().await?;
-        sqlx::query("UPDATE nodes SET heartbeat_at = $1, machines = $2 WHERE name = $3")
-            .bind(now_ms())
-            .bind(machines)
-            .bind(name)
-            .execute(&mut *tx)
-            .await?;
+        sqlx::query(&format!(
+            "UPDATE nodes SET heartbeat_at = {}, machines = $1 WHERE name = $2",
+            self.db_now_ms()
+        ))
+        .bind(machines)
+        .bind(name)
+        .execute(&mut *tx)
+        .await?;
         tx.commit().await
     }
 
     pub async fn list_nodes(&self) -> Result<Vec<NodeRow>> {
-        sqlx::query_as("SELECT * FROM nodes ORDER BY name")
+        sqlx::query_as(&format!("{} ORDER BY name", self.node_select()))
             .fetch_all(&self.pool)
             .await
     }
 
     pub async fn node_row(&self, name: &str) -> Result<Option<NodeRow>> {
-        sqlx::query_as("SELECT * FROM nodes WHERE name = $1")
+        sqlx::query_as(&format!("{} WHERE name = $1", self.node_select()))
             .bind(name)
             .fetch_optional(&self.pool)
             .await
@@ -83,8 +104,9 @@ impl Store {
         Ok(n)
     }
 
-    /// Moves a machine to another node (the hardware moved). Refused (returns `false`) while it
-    /// has an active run: the run belongs to the process driving it.
+    /// Moves a machine, and the pendants bound to it, to another node (the hardware moved).
+    /// Refused (returns `false`) while it has an active run: the run belongs to the process
+    /// driving it.
     pub async fn set_machine_node(&self, machine_id: i64, node: &str) -> Result<bool> {
         let mut tx = self.begin().await?;
         let n = sqlx::query(&format!(
@@ -94,6 +116,34 @@ impl Store {
         ))
         .bind(node)
         .bind(machine_id)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        if n == 1 {
+            // The machine's handwheels go with it: a pendant drives machines of its own node.
+            sqlx::query("UPDATE pendants SET node = $1 WHERE machine_id = $2")
+                .bind(node)
+                .bind(machine_id)
+                .execute(&mut *tx)
+                .await?;
+        }
+        tx.commit().await?;
+        Ok(n == 1)
+    }
+
+    /// Moves a pendant to another node (it is now on that node's network). Its machine binding
+    /// is kept only if that machine is driven by the same node: a pendant's keys go to a machine
+    /// task on its own node.
+    pub async fn set_pendant_node(&self, pendant_id: i64, node: &str) -> Result<bool> {
+        let mut tx = self.begin().await?;
+        let n = sqlx::query(
+            "UPDATE pendants SET node = $1,
+               machine_id = CASE WHEN machine_id IN (SELECT id FROM machines WHERE node = $1)
+                            THEN machine_id ELSE NULL END
+             WHERE id = $2",
+        )
+        .bind(node)
+        .bind(pendant_id)
         .execute(&mut *tx)
         .await?
         .rows_affected();

@@ -260,6 +260,8 @@ async fn nodes_share_machines_secret_and_programs(s: &Store) {
         ["a", "b"]
     );
     assert_eq!(nodes[0].machines, r#"{"1":{"state":"idle"}}"#);
+    // Ages come from the database's clock: just written, so about zero.
+    assert!((-1000..60_000).contains(&nodes[0].age_ms), "{nodes:?}");
     // Re-registering (a restart) keeps one row and takes the new URL.
     s.register_node("a", "http://127.0.0.1:3", "0.1.0")
         .await
