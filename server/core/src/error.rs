@@ -113,6 +113,13 @@ impl Error {
 impl From<sqlx::Error> for Error {
     fn from(e: sqlx::Error) -> Self {
         tracing::error!(error = %e, "database error");
+        if crate::store::health::is_unreachable(&e) {
+            return Error::new(
+                ErrorKind::Unavailable,
+                "database_unavailable",
+                format!("the database is unreachable: {e}"),
+            );
+        }
         Error::internal(format!("database error: {e}"))
     }
 }

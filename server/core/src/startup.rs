@@ -100,6 +100,11 @@ impl App {
         }
         let bus = EventBus::new(store.clone(), 4096);
         let shutdown = CancellationToken::new();
+        // Before the machines start: their tasks read it to refuse new motion during an outage.
+        store
+            .health()
+            .spawn_monitor(store.clone(), shutdown.clone());
+        bus.spawn_delayed_writer(shutdown.clone());
         crate::events::spawn_pruner(
             store.clone(),
             settings.event_retention.clone(),

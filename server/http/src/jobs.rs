@@ -343,7 +343,7 @@ pub struct ResumeBody {
         (status = 404, description = "`unknown_job`, `unknown_action`", body = ErrorBody),
         (status = 409, description = "`machine_busy`, `not_started`, `not_running`, `not_resumable`, `not_cancellable`, `part_zero_changed`, `stopped`, `backend_rejected`", body = ErrorBody),
         (status = 422, description = "`backend_rejected` (e.g. the program leaves the travel)", body = ErrorBody),
-        (status = 503, description = "`machine_offline`, `machine_unresponsive`, `machine_unavailable`, `shutting_down`", body = ErrorBody),
+        (status = 503, description = "`machine_offline`, `machine_unresponsive`, `machine_unavailable`, `shutting_down`, `database_unavailable` (start and resume; pause and cancel of the running job still work)", body = ErrorBody),
     ))]
 pub async fn control(
     State(app): State<SharedApp>,
@@ -372,11 +372,7 @@ pub async fn control(
             ))
         }
     };
-    let job = app
-        .store
-        .job(id)
-        .await?
-        .ok_or_else(|| ApiError::internal("job vanished"))?;
+    let job = core::job(&app, id).await?;
     Ok(Json(core::job_json(&job, Some(&run))))
 }
 

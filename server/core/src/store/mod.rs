@@ -31,10 +31,14 @@ pub enum Dialect {
 pub struct Store {
     pool: AnyPool,
     dialect: Dialect,
+    health: DbHealth,
+    /// Tokens the database accepted, for authentication while it is unreachable.
+    known_tokens: tokens::KnownTokens,
 }
 
 mod backup;
 mod events;
+pub mod health;
 mod jobs;
 mod machines;
 mod pendants;
@@ -47,6 +51,7 @@ mod webhooks;
 
 pub use backup::{backup_database, BackupError};
 pub use events::EventRow;
+pub use health::{DbHealth, DbState};
 pub use jobs::{JobRow, NewJob, RunRow, RunState};
 pub use machines::{MachineRow, PartZeroRow};
 pub use pendants::{MacroAction, PendantRow};
@@ -109,7 +114,17 @@ impl Store {
                     .await?
             }
         }
-        Ok(Store { pool, dialect })
+        Ok(Store {
+            pool,
+            dialect,
+            health: DbHealth::new(redact_url(url)),
+            known_tokens: Default::default(),
+        })
+    }
+
+    /// Whether the database answers (shared by every clone of this store).
+    pub fn health(&self) -> &DbHealth {
+        &self.health
     }
 
     pub fn dialect(&self) -> Dialect {
