@@ -351,6 +351,9 @@ pub async fn control(
     Extension(caller): Extension<Caller>,
     body: axum::body::Bytes,
 ) -> Result<Json<Value>, ApiError> {
+    // Read first: while the database is unreachable the job is known from its machine only as
+    // long as its run is current, and a cancel ends that.
+    let job = core::job(&app, id).await?;
     let run = match action.as_str() {
         "start" => core::start(&app, id, &caller.name).await?,
         "pause" => core::pause(&app, id, &caller.name).await?,
@@ -372,7 +375,6 @@ pub async fn control(
             ))
         }
     };
-    let job = core::job(&app, id).await?;
     Ok(Json(core::job_json(&job, Some(&run))))
 }
 

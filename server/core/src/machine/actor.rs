@@ -550,8 +550,19 @@ impl Task {
             }
         }
         let remembered = self.remembered_run(run_id);
-        if let Some(current) = &remembered {
-            if !from.contains(&current.state) || !current.state.can_move_to(to) {
+        // The run's state as the store will have it once the pending writes land: a late or
+        // duplicate report (the backend's end of a run just cancelled) is ignored here as the
+        // compare-and-set would ignore it, so it is neither queued nor recorded twice.
+        let known = self
+            .pending
+            .transitions
+            .iter()
+            .rev()
+            .find(|t| t.run_id == run_id)
+            .map(|t| t.to)
+            .or(remembered.as_ref().map(|r| r.state));
+        if let Some(state) = known {
+            if !from.contains(&state) || !state.can_move_to(to) {
                 return Ok(None);
             }
         }
@@ -1273,6 +1284,14 @@ mod tests {
         let stored = store.run(run.id).await.unwrap().unwrap();
         assert_eq!((stored.state, stored.last_line), (RunState::Running, 0));
         assert_eq!(task.pending.acks.get(&run.id), Some(&10));
+        assert_eq!(task.pending.transitions.len(), 1);
+        // A duplicate end reported during the outage is not kept twice.
+        task.handle_events(vec![ev(Event::RunEnded {
+            run: run.id,
+            outcome: RunOutcome::Cancelled,
+            message: None,
+        })])
+        .await;
         assert_eq!(task.pending.transitions.len(), 1);
 
         store.health().mark_up();
