@@ -824,15 +824,29 @@ impl Task {
                 return Err(e);
             }
         };
+        let health = self.store.health().clone();
         // A controller that reports its own part zero: the run keeps the one it (re)started
         // with, for the check on the next resume.
         if let Some(zero) = answer
             .get("part_zero")
             .and_then(|z| serde_json::from_value::<AxisValues>(z.clone()).ok())
         {
-            self.store.set_run_part_zero(run.id, zero).await?;
+            // The program runs now: a database that went down meanwhile must not turn the
+            // answer into a failure (only the part-zero check of a later resume is lost).
+            if let Err(e) = health
+                .guard(self.store.set_run_part_zero(run.id, zero))
+                .await
+            {
+                tracing::error!(machine = self.id, run = run.id, error = %e, "could not store the run's part zero");
+            }
         }
-        Ok(self.store.run(run.id).await?.unwrap_or(run))
+        Ok(health
+            .guard(self.store.run(run.id))
+            .await
+            .ok()
+            .flatten()
+            .or_else(|| self.remembered_run(run.id))
+            .unwrap_or(run))
     }
 
     /// The job's latest run: from the store, or, while the database is unreachable, the
