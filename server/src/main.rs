@@ -180,6 +180,9 @@ struct ServeArgs {
     /// default: the SQLite file in the data directory.
     #[arg(long, env = "FRESA_DATABASE_URL")]
     database_url: Option<String>,
+    /// This node's name among nodes sharing one PostgreSQL store (default: the host name).
+    #[arg(long, env = "FRESA_NODE_NAME")]
+    node_name: Option<String>,
     #[arg(long, env = "FRESA_CONFIG")]
     config: Option<std::path::PathBuf>,
     /// Extra plugin directory, searched before the defaults (repeatable).
@@ -201,6 +204,7 @@ impl From<ServeArgs> for config::Overrides {
             listen: a.listen,
             data_dir: a.data_dir,
             database_url: a.database_url,
+            node_name: a.node_name,
             config: a.config,
             plugin_dirs: a.plugin_dirs,
             max_upload_bytes: a.max_upload_bytes,

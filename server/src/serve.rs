@@ -46,6 +46,7 @@ pub async fn run(
         bind(settings.listen).map_err(|e| format!("cannot listen on {}: {e}", settings.listen))?;
     let bound = listener.local_addr()?;
     let app = App::start(settings).await?;
+    fresa_core::nodes::start(&app, bound).await?;
     let router = fresa_http::service(app.clone());
     let integrations = fresa_integrations::start(app.clone());
     // This exact phrase is what scripts and tests wait for.

@@ -23,6 +23,15 @@ pub struct FileConfig {
     /// `postgres://USER[:PASSWORD]@HOST:PORT/DB` to share one store between nodes; default:
     /// the embedded SQLite file `fresa.db` in the data directory.
     pub database_url: Option<String>,
+    /// This node's name among the nodes sharing the store (default: the host name).
+    pub node_name: Option<String>,
+    /// The URL other nodes reach this one at, e.g. `http://hall2.lan:7878` (default: the
+    /// listen address, with the host name when listening on every address).
+    pub node_url: Option<String>,
+    /// How often this node writes its heartbeat (and its machines' status) to the store.
+    pub node_heartbeat_ms: Option<u64>,
+    /// A node whose heartbeat is older than this is shown unreachable, its machines offline.
+    pub node_offline_after_ms: Option<u64>,
     pub plugin_dirs: Option<Vec<PathBuf>>,
     pub max_upload_bytes: Option<u64>,
     pub status_rate_hz: Option<f64>,
@@ -152,7 +161,7 @@ pub fn parse_mqtt_url(url: &str) -> Result<(String, u16, bool), ConfigError> {
     Ok((host.to_string(), port, tls))
 }
 
-fn host_name() -> String {
+pub(crate) fn host_name() -> String {
     std::fs::read_to_string("/proc/sys/kernel/hostname")
         .ok()
         .or_else(|| std::env::var("HOSTNAME").ok())
@@ -160,6 +169,57 @@ fn host_name() -> String {
         .map(|h| h.trim().to_string())
         .filter(|h| !h.is_empty())
         .unwrap_or_else(|| "fresa".into())
+}
+
+fn node_settings(file: &FileConfig, env_name: Option<String>) -> Result<NodeSettings, ConfigError> {
+    let name = env_name
+        .or_else(|| file.node_name.clone())
+        .unwrap_or_else(host_name);
+    if !NodeSettings::valid_name(&name) {
+        return Err(ConfigError::Invalid(format!(
+            "node_name {name:?}: use 1 to 63 letters, digits, '-', '_' or '.' (set node_name, \
+             FRESA_NODE_NAME or --node-name)"
+        )));
+    }
+    if let Some(url) = &file.node_url {
+        if !(url.starts_with("http://") || url.starts_with("https://"))
+            || url_authority(url).is_none()
+        {
+            return Err(ConfigError::Invalid(format!(
+                "node_url {url:?}: expected http://HOST:PORT (the address other nodes reach this one at)"
+            )));
+        }
+    }
+    let heartbeat_ms = bounded(
+        "node_heartbeat_ms",
+        file.node_heartbeat_ms,
+        1000,
+        50,
+        60_000,
+    )?;
+    let offline_ms = bounded(
+        "node_offline_after_ms",
+        file.node_offline_after_ms,
+        (5 * heartbeat_ms).max(5000),
+        2 * heartbeat_ms,
+        600_000,
+    )?;
+    Ok(NodeSettings {
+        name,
+        url: file
+            .node_url
+            .clone()
+            .map(|u| u.trim_end_matches('/').to_string()),
+        heartbeat: Duration::from_millis(heartbeat_ms),
+        offline_after: Duration::from_millis(offline_ms),
+    })
+}
+
+/// `host:port` of `scheme://host:port/...`.
+fn url_authority(url: &str) -> Option<String> {
+    let rest = url.split_once("://")?.1;
+    let authority = rest.split(['/', '?', '#']).next()?;
+    (!authority.is_empty()).then(|| authority.to_string())
 }
 
 fn webhooks(file: Option<&WebhooksFile>) -> Result<WebhookSettings, ConfigError> {
@@ -240,6 +300,8 @@ pub struct Overrides {
     pub listen: Option<String>,
     pub data_dir: Option<PathBuf>,
     pub database_url: Option<String>,
+    /// `FRESA_NODE_NAME` / `--node-name`: beats `node_name`.
+    pub node_name: Option<String>,
     pub config: Option<PathBuf>,
     pub plugin_dirs: Vec<PathBuf>,
     pub max_upload_bytes: Option<u64>,
@@ -255,6 +317,7 @@ pub struct Settings {
     /// The store: `Some` PostgreSQL (or explicit `sqlite://`) URL, `None` the embedded SQLite
     /// file [`Settings::db_path`].
     pub database_url: Option<String>,
+    pub node: NodeSettings,
     pub plugin_dirs: Vec<PathBuf>,
     pub max_upload_bytes: u64,
     pub status_interval: Duration,
@@ -283,6 +346,28 @@ pub struct Settings {
     /// What the config file says that deserves a word in the log; resolved before logging is
     /// set up (the log filter comes from the file), so `serve` logs them.
     pub warnings: Vec<String>,
+}
+
+/// This process among the nodes that share one store.
+#[derive(Debug, Clone)]
+pub struct NodeSettings {
+    /// Unique among the nodes: machines and pendants belong to a node by this name.
+    pub name: String,
+    /// Where other nodes reach this one; `None`: derived from the bound address at start.
+    pub url: Option<String>,
+    pub heartbeat: Duration,
+    pub offline_after: Duration,
+}
+
+impl NodeSettings {
+    /// A node name: what a host name may hold, so it reads well in URLs, logs and metrics.
+    pub fn valid_name(name: &str) -> bool {
+        !name.is_empty()
+            && name.len() <= 63
+            && name
+                .bytes()
+                .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_' || b == b'.')
+    }
 }
 
 /// How long the event log keeps what. Routine events (jogs, commands, MDI, pendant traffic:
@@ -481,6 +566,7 @@ impl Settings {
             },
         };
         let event_retention = retention(&file)?;
+        let node = node_settings(&file, o.node_name)?;
         let listen_str = o
             .listen
             .or(file.listen)
@@ -508,6 +594,11 @@ impl Settings {
                     crate::store::redact_url(url)
                 )));
             }
+        }
+        let mut allowed_hosts = file.allowed_hosts.unwrap_or_default();
+        // Other nodes address this one by its node URL: requests naming it are for us.
+        if let Some(host) = node.url.as_deref().and_then(url_authority) {
+            allowed_hosts.push(host);
         }
         let mut plugin_dirs = o.plugin_dirs;
         plugin_dirs.extend(file.plugin_dirs.unwrap_or_default());
@@ -569,6 +660,7 @@ impl Settings {
             listen,
             data_dir,
             database_url,
+            node,
             plugin_dirs,
             max_upload_bytes: o
                 .max_upload_bytes
@@ -586,7 +678,7 @@ impl Settings {
             demo: o.demo,
             config_file,
             log: file.log,
-            allowed_hosts: file.allowed_hosts.unwrap_or_default(),
+            allowed_hosts,
             cors_origins: cors_origins(file.cors_origins.unwrap_or_default())?,
             webhooks: webhooks(file.webhooks.as_ref())?,
             mqtt: mqtt(file.mqtt, o.mqtt_url)?,

@@ -10,19 +10,22 @@ use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
 use tokio::sync::{broadcast, Mutex};
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct BusEvent {
     /// Present on persisted events only.
-    #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(skip_serializing_if = "Option::is_none", default)]
     pub id: Option<i64>,
     #[serde(rename = "type")]
     pub kind: String,
-    #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(skip_serializing_if = "Option::is_none", default)]
     pub machine: Option<i64>,
-    #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(skip_serializing_if = "Option::is_none", default)]
     pub actor: Option<String>,
     pub time: i64,
     pub data: serde_json::Value,
+    /// The node it happened on, when the store is shared by nodes.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub node: Option<String>,
 }
 
 impl From<EventRow> for BusEvent {
@@ -34,9 +37,18 @@ impl From<EventRow> for BusEvent {
             actor: r.actor,
             time: r.created_at,
             data: serde_json::from_str(&r.data).unwrap_or(serde_json::Value::Null),
+            node: r.node,
         }
     }
 }
+
+/// Transient events (status, progress) a node shares with the other nodes: bounded, so a slow
+/// database drops some (the next status supersedes them) instead of growing memory.
+const SHARED_TRANSIENT_QUEUE: usize = 1024;
+/// PostgreSQL limits a notification's payload to 8000 bytes.
+const MAX_NOTIFY_PAYLOAD: usize = 7900;
+/// The notification channel of transient events.
+const TRANSIENT_CHANNEL: &str = "fresa_transient";
 
 #[derive(Clone)]
 pub struct EventBus {
@@ -46,6 +58,9 @@ pub struct EventBus {
     /// lock also guards the events recorded while the database was unreachable, oldest first:
     /// they are written (and only then sent, with their ids) before any newer event.
     order: Arc<Mutex<VecDeque<Delayed>>>,
+    /// Set when the store is shared by nodes (PostgreSQL): persisted events reach subscribers
+    /// only through the tail ([`spawn_tail`]), in id order, whichever node appended them.
+    shared: Option<Shared>,
     /// Delayed events dropped because the buffer was full (the oldest go first).
     dropped: Arc<AtomicU64>,
     /// How many events wait for the database now (for `/metrics`, without taking the lock).
@@ -67,13 +82,31 @@ struct Delayed {
     at: i64,
 }
 
+#[derive(Clone)]
+struct Shared {
+    /// Wakes the tail at once after a local append (not waiting for the notification).
+    wake: Arc<tokio::sync::Notify>,
+    /// Transient events for the other nodes.
+    outbox: tokio::sync::mpsc::Sender<Arc<BusEvent>>,
+    outbox_rx: Arc<Mutex<Option<tokio::sync::mpsc::Receiver<Arc<BusEvent>>>>>,
+}
+
 impl EventBus {
     pub fn new(store: Store, capacity: usize) -> Self {
         let (tx, _) = broadcast::channel(capacity);
+        let shared = (store.dialect() == crate::store::Dialect::Postgres).then(|| {
+            let (outbox, rx) = tokio::sync::mpsc::channel(SHARED_TRANSIENT_QUEUE);
+            Shared {
+                wake: Arc::new(tokio::sync::Notify::new()),
+                outbox,
+                outbox_rx: Arc::new(Mutex::new(Some(rx))),
+            }
+        });
         EventBus {
             store,
             tx,
             order: Arc::new(Mutex::new(VecDeque::new())),
+            shared,
             dropped: Arc::new(AtomicU64::new(0)),
             waiting: Arc::new(AtomicUsize::new(0)),
         }
@@ -106,14 +139,7 @@ impl EventBus {
                 .await;
             match written {
                 Ok(row) => {
-                    let _ = self.tx.send(Arc::new(BusEvent {
-                        id: Some(row.id),
-                        kind: d.kind.clone(),
-                        machine: d.machine,
-                        actor: d.actor.clone(),
-                        time: row.created_at,
-                        data,
-                    }));
+                    self.publish_row(row, data);
                     delayed.pop_front();
                 }
                 Err(e) if e.code == "database_unavailable" => break,
@@ -150,6 +176,25 @@ impl EventBus {
         });
     }
 
+    /// A row just appended, to the subscribers: directly on a store of its own; through the tail
+    /// when the store is shared (it delivers every node's events in id order).
+    fn publish_row(&self, row: crate::store::EventRow, data: serde_json::Value) {
+        match &self.shared {
+            Some(shared) => shared.wake.notify_one(),
+            None => {
+                let _ = self.tx.send(Arc::new(BusEvent {
+                    id: Some(row.id),
+                    kind: row.kind,
+                    machine: row.machine_id,
+                    actor: row.actor,
+                    time: row.created_at,
+                    data,
+                    node: row.node,
+                }));
+            }
+        }
+    }
+
     /// Appends to the event log and fans out. Returns the event id.
     pub async fn record(
         &self,
@@ -167,14 +212,7 @@ impl EventBus {
             .append_event(kind, machine, actor, &data.to_string())
             .await?;
         let id = row.id;
-        let _ = self.tx.send(Arc::new(BusEvent {
-            id: Some(id),
-            kind: kind.to_string(),
-            machine,
-            actor: actor.map(str::to_string),
-            time: row.created_at,
-            data,
-        }));
+        self.publish_row(row, data);
         Ok(id)
     }
 
@@ -201,14 +239,7 @@ impl EventBus {
                 .await;
             match written {
                 Ok(row) => {
-                    let _ = self.tx.send(Arc::new(BusEvent {
-                        id: Some(row.id),
-                        kind: kind.to_string(),
-                        machine,
-                        actor: actor.map(str::to_string),
-                        time: row.created_at,
-                        data,
-                    }));
+                    self.publish_row(row, data);
                     return;
                 }
                 Err(e) if e.code == "database_unavailable" => data,
@@ -235,14 +266,20 @@ impl EventBus {
     }
 
     pub fn transient(&self, kind: &str, machine: Option<i64>, data: serde_json::Value) {
-        let _ = self.tx.send(Arc::new(BusEvent {
+        let event = Arc::new(BusEvent {
             id: None,
             kind: kind.to_string(),
             machine,
             actor: None,
             time: now_ms(),
             data,
-        }));
+            node: self.store.node().map(str::to_string),
+        });
+        if let Some(shared) = &self.shared {
+            // Full: the database is slow or away; this status is superseded by the next one.
+            let _ = shared.outbox.try_send(event.clone());
+        }
+        let _ = self.tx.send(event);
     }
 
     pub fn subscribe(&self) -> broadcast::Receiver<Arc<BusEvent>> {
@@ -252,6 +289,147 @@ impl EventBus {
     /// Live event-stream subscribers (SSE clients and internal listeners).
     pub fn subscribers(&self) -> usize {
         self.tx.receiver_count()
+    }
+
+    /// Whether `e` happened on this node (an event from before nodes existed counts as ours):
+    /// integrations that act on events (webhooks, MQTT) act on their own node's only, so a
+    /// shared store does not deliver each event once per node.
+    pub fn is_local(&self, e: &BusEvent) -> bool {
+        match (&e.node, self.store.node()) {
+            (Some(theirs), Some(ours)) => theirs == ours,
+            _ => true,
+        }
+    }
+}
+
+/// On a store shared by nodes (PostgreSQL), follows the event table and fans every node's
+/// events out to this node's subscribers, in id order: the notification on `fresa_events` (or
+/// a local append) wakes it, the table is the source of truth, and a slow poll covers a lost
+/// notification or a reconnect. Also relays transient events between nodes. Does nothing on
+/// SQLite, where the bus fans out directly.
+pub fn spawn_tail(bus: EventBus, database_url: String, stop: tokio_util::sync::CancellationToken) {
+    let Some(shared) = bus.shared.clone() else {
+        return;
+    };
+    tokio::spawn(relay_transient(
+        bus.clone(),
+        database_url.clone(),
+        stop.clone(),
+    ));
+    tokio::spawn(async move {
+        const POLL: std::time::Duration = std::time::Duration::from_secs(1);
+        const PAGE: i64 = 500;
+        let mut cursor = match bus.store.last_event_id().await {
+            Ok(id) => id,
+            Err(e) => {
+                tracing::error!(error = %e, "event tail: cannot read the last event id; starting from 0");
+                0
+            }
+        };
+        let mut listener = listen(&database_url, &[crate::store::EVENTS_CHANNEL]).await;
+        loop {
+            tokio::select! {
+                _ = stop.cancelled() => return,
+                _ = shared.wake.notified() => {}
+                _ = tokio::time::sleep(POLL) => {}
+                n = next_notification(&mut listener) => {
+                    if n.is_none() {
+                        // The listening connection broke: listen again on the next round.
+                        listener = listen(&database_url, &[crate::store::EVENTS_CHANNEL]).await;
+                    }
+                }
+            }
+            loop {
+                match bus.store.events_after(cursor, PAGE).await {
+                    Ok(rows) => {
+                        let full = rows.len() as i64 == PAGE;
+                        for row in rows {
+                            cursor = row.id;
+                            let _ = bus.tx.send(Arc::new(BusEvent::from(row)));
+                        }
+                        if !full {
+                            break;
+                        }
+                    }
+                    Err(e) => {
+                        tracing::warn!(error = %e, "event tail: cannot read new events; retrying");
+                        break;
+                    }
+                }
+            }
+        }
+    });
+}
+
+/// Sends this node's transient events to the others and fans theirs out here.
+async fn relay_transient(
+    bus: EventBus,
+    database_url: String,
+    stop: tokio_util::sync::CancellationToken,
+) {
+    let Some(shared) = bus.shared.clone() else {
+        return;
+    };
+    let Some(mut outbox) = shared.outbox_rx.lock().await.take() else {
+        return;
+    };
+    let mut listener = listen(&database_url, &[TRANSIENT_CHANNEL]).await;
+    loop {
+        tokio::select! {
+            _ = stop.cancelled() => return,
+            e = outbox.recv() => {
+                let Some(e) = e else { return };
+                let Ok(payload) = serde_json::to_string(&*e) else { continue };
+                if payload.len() > MAX_NOTIFY_PAYLOAD {
+                    tracing::debug!(kind = %e.kind, bytes = payload.len(), "transient event too large to share with other nodes");
+                    continue;
+                }
+                if let Err(err) = bus.store.notify(TRANSIENT_CHANNEL, &payload).await {
+                    tracing::debug!(error = %err, "could not share a transient event with other nodes");
+                }
+            }
+            n = next_notification(&mut listener) => match n {
+                Some(payload) => match serde_json::from_str::<BusEvent>(&payload) {
+                    Ok(e) if !bus.is_local(&e) => { let _ = bus.tx.send(Arc::new(e)); }
+                    Ok(_) => {}
+                    Err(err) => tracing::warn!(error = %err, "unreadable transient event from another node; ignored"),
+                },
+                None => listener = listen(&database_url, &[TRANSIENT_CHANNEL]).await,
+            },
+        }
+    }
+}
+
+/// A PostgreSQL connection listening on `channels`, or `None` (logged) if it cannot be made now.
+async fn listen(url: &str, channels: &[&str]) -> Option<sqlx::postgres::PgListener> {
+    let attempt = async {
+        let mut l = sqlx::postgres::PgListener::connect(url).await?;
+        l.listen_all(channels.iter().copied()).await?;
+        Ok::<_, sqlx::Error>(l)
+    };
+    match attempt.await {
+        Ok(l) => Some(l),
+        Err(e) => {
+            tracing::debug!(error = %e, ?channels, "cannot listen for other nodes' events now; polling");
+            None
+        }
+    }
+}
+
+/// The next notification's payload; `None` when the connection broke (after a pause, so a
+/// database that is away is not hammered). Pending forever without a listener.
+async fn next_notification(listener: &mut Option<sqlx::postgres::PgListener>) -> Option<String> {
+    let Some(l) = listener.as_mut() else {
+        tokio::time::sleep(std::time::Duration::from_secs(1)).await;
+        return None;
+    };
+    match l.try_recv().await {
+        Ok(Some(n)) => Some(n.payload().to_string()),
+        Ok(None) | Err(_) => {
+            *listener = None;
+            tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+            None
+        }
     }
 }
 
@@ -268,6 +446,7 @@ pub const AUDIT_EVENT_TYPES: &[&str] = &[
     "machine.offsets",
     "machine.part_zero",
     "machine.alarm",
+    "machine.node",
     "pendant.created",
     "pendant.bound",
     "pendant.macro",

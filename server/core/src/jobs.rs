@@ -43,6 +43,22 @@ pub async fn store_program(
     let (lines, bytes) = (program.lines, program.bytes);
     let dir = app.settings.programs_dir();
     let (path, created) = program.place(&dir)?;
+    // Nodes sharing the store read each other's programs from it: the program is there before
+    // any node can see the job.
+    if app.store.dialect() == crate::store::Dialect::Postgres {
+        let saved = async {
+            let file = tokio::fs::File::open(&path)
+                .await
+                .map_err(sqlx::Error::Io)?;
+            app.store.save_program(&sha, file).await
+        };
+        if let Err(e) = saved.await {
+            if created {
+                let _ = std::fs::remove_file(&path);
+            }
+            return Err(e.into());
+        }
+    }
     let inserted = app
         .store
         .insert_job(NewJob {
@@ -131,7 +147,8 @@ pub async fn toolpath(app: &App, job_id: i64, max_vertices: usize) -> Result<Vec
         .await?
         .ok_or_else(|| Error::not_found("unknown_job", format!("no job with id {job_id}")))?;
     let unsupported = unsupported_policy(app, job.machine_id).await?;
-    let path = crate::programs::program_path(&app.settings.programs_dir(), &job.sha256);
+    let path =
+        crate::programs::local_copy(&app.store, &app.settings.programs_dir(), &job.sha256).await?;
     tokio::task::spawn_blocking(move || {
         let file = std::fs::File::open(&path).map_err(|e| {
             Error::internal(format!("program file {} is missing: {e}", path.display()))

@@ -9,6 +9,7 @@
 //! * [`events`]: the event bus and audit log. [`plugins`]: the plugin registry.
 //! * [`webhooks`]: webhook registrations; [`integrations`]: what webhook deliveries and the MQTT
 //!   bridge (crate `fresa-integrations`) count, for `/metrics`.
+//! * [`nodes`]: several nodes on one store: which node drives a machine, heartbeats.
 //! * [`app`]: the whole; `startup`: its start-up and shutdown. [`error`]: the core's errors.
 
 pub mod app;
@@ -20,6 +21,7 @@ pub mod events;
 pub mod integrations;
 pub mod jobs;
 pub mod machine;
+pub mod nodes;
 pub mod pendants;
 pub mod plugins;
 pub mod programs;

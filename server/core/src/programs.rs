@@ -238,6 +238,59 @@ pub fn program_path(programs_dir: &Path, sha256: &str) -> PathBuf {
     programs_dir.join(format!("{sha256}.nc"))
 }
 
+/// The local file of program `sha256`. A job uploaded on another node has its program only in
+/// the shared store: it is copied here (streamed, chunk by chunk), checked against its hash and
+/// kept, so every later read is local.
+pub async fn local_copy(
+    store: &crate::store::Store,
+    programs_dir: &Path,
+    sha256: &str,
+) -> Result<PathBuf> {
+    let dest = program_path(programs_dir, sha256);
+    if tokio::fs::try_exists(&dest).await.unwrap_or(false) {
+        return Ok(dest);
+    }
+    if !store.has_program(sha256).await? {
+        return Err(Error::internal(format!(
+            "program {sha256} is neither in {} nor in the store",
+            programs_dir.display()
+        )));
+    }
+    // The temporary name is the uploads' one, so a crash mid-copy leaves nothing at start-up.
+    let mut pending = PendingProgram::create(programs_dir, u64::MAX).await?;
+    let mut seq = 0;
+    while let Some(chunk) = store.program_chunk(sha256, seq).await? {
+        pending.hasher.update(&chunk);
+        pending
+            .file
+            .write_all(&chunk)
+            .await
+            .map_err(|e| Error::internal(format!("cannot write program copy: {e}")))?;
+        seq += 1;
+    }
+    let got = hex::encode(pending.hasher.clone().finalize());
+    if got != sha256 {
+        return Err(Error::internal(format!(
+            "the store's copy of program {sha256} is damaged (its sha256 is {got})"
+        )));
+    }
+    pending
+        .file
+        .sync_all()
+        .await
+        .map_err(|e| Error::internal(format!("cannot flush program copy: {e}")))?;
+    let tmp = pending
+        .tmp
+        .take()
+        .ok_or_else(|| Error::internal("program copy finished twice"))?;
+    std::fs::rename(&tmp, &dest).map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        Error::internal(format!("cannot store program as {}: {e}", dest.display()))
+    })?;
+    tracing::info!(sha256, "program copied from the shared store");
+    Ok(dest)
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]

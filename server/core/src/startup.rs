@@ -65,7 +65,20 @@ impl App {
             .map_err(|source| StartError::Store {
                 database: db.clone(),
                 source,
-            })?;
+            })?
+            .for_node(&settings.node.name);
+        let store_error = |source| StartError::Store {
+            database: db.clone(),
+            source,
+        };
+        let claimed = store
+            .claim_unowned(&settings.node.name)
+            .await
+            .map_err(store_error)?;
+        if claimed > 0 {
+            tracing::info!(node = %settings.node.name, machines = claimed, "machines made before nodes now belong to this node");
+        }
+        let node_secret = store.node_secret().await.map_err(store_error)?;
         tracing::info!(database = %db, dialect = store.dialect_name(), "store ready");
         // Once before serving, so a log that grew while the retention was looser is cut back
         // before anyone replays it; bounded, so a huge backlog cannot hold up the start (the
@@ -105,6 +118,9 @@ impl App {
             .health()
             .spawn_monitor(store.clone(), shutdown.clone());
         bus.spawn_delayed_writer(shutdown.clone());
+        if let Some(url) = &settings.database_url {
+            crate::events::spawn_tail(bus.clone(), url.clone(), shutdown.clone());
+        }
         crate::events::spawn_pruner(
             store.clone(),
             settings.event_retention.clone(),
@@ -120,10 +136,12 @@ impl App {
             shutdown,
             integrations: Default::default(),
             auth_required,
+            node_secret,
+            node_url: Default::default(),
             _lock: lock,
         });
         for run in store
-            .interrupt_active_runs()
+            .interrupt_active_runs_of(&app.settings.node.name)
             .await
             .map_err(|source| StartError::Store {
                 database: db.clone(),
@@ -150,24 +168,9 @@ impl App {
                 source,
             })?;
         for row in rows {
-            let backend = match app.plugins.get(&row.backend) {
-                Some(lib) => Machine::prepare(lib, row.config_json())
-                    .await
-                    .map_err(|e| format!("backend rejected its config: {e}")),
-                None => Err(format!("no plugin named {:?} is loaded", row.backend)),
-            };
-            let m = Machine::start(
-                row,
-                backend,
-                store.clone(),
-                bus.clone(),
-                &app.machine_options(),
-            )
-            .await;
-            if let Some(reason) = m.unavailable_reason() {
-                tracing::error!(machine = m.id, reason, "machine offline");
+            if row.node.as_deref() == Some(app.settings.node.name.as_str()) {
+                load_machine(&app, row).await;
             }
-            app.machines.insert(m).await;
         }
         if app.settings.demo {
             crate::demo::ensure_demo_pendant(&app).await;
@@ -187,7 +190,11 @@ impl App {
         }
         // Runs first: a backend reports a run it stops on shutdown as cancelled, and that
         // report must find the run already interrupted (so it is ignored).
-        match self.store.interrupt_active_runs().await {
+        match self
+            .store
+            .interrupt_active_runs_of(&self.settings.node.name)
+            .await
+        {
             Ok(rows) => {
                 for r in rows {
                     tracing::info!(
@@ -227,6 +234,29 @@ impl App {
             tracing::warn!("pendant transports did not stop within {limit:?}");
         }
     }
+}
+
+/// Starts the task and backend of a machine this node drives. A backend that cannot start
+/// leaves the machine listed, offline with the reason.
+pub(crate) async fn load_machine(app: &App, row: crate::store::MachineRow) {
+    let backend = match app.plugins.get(&row.backend) {
+        Some(lib) => Machine::prepare(lib, row.config_json())
+            .await
+            .map_err(|e| format!("backend rejected its config: {e}")),
+        None => Err(format!("no plugin named {:?} is loaded", row.backend)),
+    };
+    let m = Machine::start(
+        row,
+        backend,
+        app.store.clone(),
+        app.bus.clone(),
+        &app.machine_options(),
+    )
+    .await;
+    if let Some(reason) = m.unavailable_reason() {
+        tracing::error!(machine = m.id, reason, "machine offline");
+    }
+    app.machines.insert(m).await;
 }
 
 /// Removes `.upload-*.tmp` files a killed process left in `programs/` (a clean shutdown

@@ -108,11 +108,62 @@ pub fn redacted_uri(uri: &axum::http::Uri) -> String {
     }
 }
 
+// ---- requests forwarded by another node of the same store (see `forward`) ----
+
+/// The node secret, proving a request comes from a node of the same store.
+pub const NODE_TOKEN: &str = "x-fresa-node-token";
+/// The forwarding node's name.
+pub const FORWARDED_BY: &str = "x-fresa-forwarded-by";
+/// The original caller's token name and role, vouched for by the node secret.
+pub const CALLER_NAME: &str = "x-fresa-caller";
+pub const CALLER_ROLE: &str = "x-fresa-caller-role";
+/// On a forwarded answer: the node that carried the request out.
+pub const ANSWERED_BY: &str = "x-fresa-node";
+
+/// Set by the auth layer on a request another node forwarded.
+#[derive(Debug, Clone)]
+pub struct ForwardedBy(pub String);
+
+/// A request another node forwarded: the node secret vouches for the caller it names (that node
+/// checked the caller's token). `None`: not a forwarded request.
+fn forwarded_caller(app: &SharedApp, req: &Request) -> Option<Result<(Caller, String), ApiError>> {
+    let given = req.headers().get(NODE_TOKEN)?;
+    // Compared as digests: the time taken says nothing about the secret.
+    let valid = Sha256::digest(given.as_bytes()) == Sha256::digest(app.node_secret.as_bytes());
+    let header = |name: &str| {
+        req.headers()
+            .get(name)
+            .and_then(|v| v.to_str().ok())
+            .map(str::to_string)
+    };
+    let role = header(CALLER_ROLE).as_deref().and_then(Role::parse);
+    Some(match (valid, role) {
+        (true, Some(role)) => Ok((
+            Caller {
+                name: header(CALLER_NAME).unwrap_or_else(|| "node".into()),
+                role,
+            },
+            header(FORWARDED_BY).unwrap_or_default(),
+        )),
+        _ => Err(ApiError::new(
+            StatusCode::UNAUTHORIZED,
+            "invalid_node_token",
+            "forwarded request refused: the node token or the caller role is not valid              (nodes of one store share the secret in its `cluster` table)",
+        )),
+    })
+}
+
 pub async fn middleware(
     State(app): State<SharedApp>,
     mut req: Request,
     next: Next,
 ) -> Result<Response, ApiError> {
+    if let Some(forwarded) = forwarded_caller(&app, &req) {
+        let (caller, node) = forwarded?;
+        req.extensions_mut().insert(caller);
+        req.extensions_mut().insert(ForwardedBy(node));
+        return Ok(next.run(req).await);
+    }
     let caller =
         match bearer(&req)? {
             Some(secret) => match app.store.token_by_hash(&hash_token(&secret)).await? {

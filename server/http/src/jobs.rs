@@ -159,7 +159,7 @@ pub async fn gcode(
         .job(id)
         .await?
         .ok_or_else(|| ApiError::not_found("unknown_job", format!("no job with id {id}")))?;
-    let path = programs::program_path(&app.settings.programs_dir(), &job.sha256);
+    let path = programs::local_copy(&app.store, &app.settings.programs_dir(), &job.sha256).await?;
     let file = tokio::fs::File::open(&path).await.map_err(|e| {
         ApiError::internal(format!("program file {} is missing: {e}", path.display()))
     })?;

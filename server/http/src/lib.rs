@@ -4,6 +4,7 @@ pub mod auth;
 mod console;
 pub mod error;
 mod events;
+pub mod forward;
 mod guard;
 mod jobs;
 pub(crate) mod machines;
@@ -113,6 +114,13 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
         .routes(needs(Viewer, routes!(plugins)))
         .routes(needs(Viewer, routes!(whoami)))
         .routes(needs(Viewer, routes!(events::stream)))
+        .routes(needs(Viewer, routes!(nodes)))
+        .routes(needs(Admin, routes!(machines::set_node)))
+        // Inside auth (runs after it): forwarding needs to know the caller.
+        .layer(axum::middleware::from_fn_with_state(
+            forward::ForwardState::new(app.clone()),
+            forward::middleware,
+        ))
         .layer(axum::middleware::from_fn_with_state(
             app.clone(),
             auth::middleware,
@@ -154,6 +162,16 @@ pub type Service = guard::Guarded<Router>;
 /// wait in a compressor's buffer).
 fn compression() -> tower_http::compression::CompressionLayer {
     tower_http::compression::CompressionLayer::new()
+}
+
+/// The nodes sharing this server's store: each one's address, version, last heartbeat,
+/// whether it is reachable, and the machines it drives. A server on its own is one node.
+#[utoipa::path(get, path = "/nodes", tag = "server",
+    responses(
+        (status = 200, description = "Every node, by name: `name`, `url`, `version`, `started_at`, `last_heartbeat` (ms since the epoch), `reachable`, `this_node`, `machines` (ids)", body = [Object]),
+    ))]
+async fn nodes(State(app): State<SharedApp>) -> Result<Json<serde_json::Value>, error::ApiError> {
+    Ok(Json(serde_json::json!(app.nodes().await?)))
 }
 
 /// Who the caller is and whether this server needs a token: the console disables what the role

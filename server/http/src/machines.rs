@@ -5,6 +5,7 @@ use axum::extract::State;
 use axum::http::StatusCode;
 use axum::Extension;
 use fresa_core::machine::{limits, Machine};
+use fresa_core::store::MachineRow;
 use fresa_core::SharedApp;
 use fresa_plugin_api::contract::{
     Axis, AxisValues, Command, MachineState, MachineStatus, WorkOffset,
@@ -39,22 +40,36 @@ pub struct MachineView {
     reason: Option<String>,
     /// Milliseconds since the Unix epoch.
     created_at: i64,
+    /// The node that drives it (see `GET /nodes`); requests for it are carried out there.
+    node: Option<String>,
 }
 
 fn machine_json(m: &Machine) -> MachineView {
-    let row = m.row();
-    let status = m.status();
+    view(m.row(), m.status())
+}
+
+fn view(row: MachineRow, status: MachineStatus) -> MachineView {
     MachineView {
         id: row.id,
-        name: row.name.clone(),
-        backend: row.backend.clone(),
         config: row.config_json(),
+        name: row.name,
+        backend: row.backend,
         max_jog_mm: row.max_jog_mm,
         max_feed_mm_min: row.max_feed_mm_min,
         state: status.state,
         reason: status.reason,
         created_at: row.created_at,
+        node: row.node,
     }
+}
+
+/// A machine this node does not drive, from the store and its node's last heartbeat.
+async fn remote_view(app: &SharedApp, id: i64) -> Result<MachineView, ApiError> {
+    let row = app.store.machine(id).await?.ok_or_else(|| {
+        ApiError::not_found("unknown_machine", format!("no machine with id {id}"))
+    })?;
+    let status = app.remote_status(&row).await;
+    Ok(view(row, status))
 }
 
 /// `{"id": N}`: what a create answers with (201).
@@ -71,15 +86,19 @@ pub struct Done {
 
 #[utoipa::path(get, path = "/machines", tag = "machines",
     responses((status = 200, description = "Every machine", body = [MachineView])))]
-pub async fn list(State(app): State<SharedApp>) -> Json<Vec<MachineView>> {
-    Json(
-        app.machines
-            .all()
-            .await
-            .iter()
-            .map(|m| machine_json(m))
-            .collect(),
-    )
+pub async fn list(State(app): State<SharedApp>) -> Result<Json<Vec<MachineView>>, ApiError> {
+    // Every machine in the store: this node's live, the others' as of their node's heartbeat.
+    let mut out = Vec::new();
+    for row in app.store.list_machines().await? {
+        match app.machines.get(row.id).await {
+            Some(m) => out.push(machine_json(&m)),
+            None => {
+                let status = app.remote_status(&row).await;
+                out.push(view(row, status));
+            }
+        }
+    }
+    Ok(Json(out))
 }
 
 #[utoipa::path(get, path = "/machines/{id}", tag = "machines",
@@ -92,8 +111,10 @@ pub async fn get_one(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
 ) -> Result<Json<MachineView>, ApiError> {
-    let m = machine(&app, id).await?;
-    Ok(Json(machine_json(&m)))
+    match app.machines.get(id).await {
+        Some(m) => Ok(Json(machine_json(&m))),
+        None => remote_view(&app, id).await.map(Json),
+    }
 }
 
 #[derive(Deserialize, ToSchema)]
@@ -221,8 +242,76 @@ pub async fn status(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
 ) -> Result<Json<StatusView>, ApiError> {
-    let m = machine(&app, id).await?;
-    Ok(Json(status_json(&m, m.status())))
+    match app.machines.get(id).await {
+        Some(m) => Ok(Json(status_json(&m, m.status()))),
+        // Reached for another node's machine only while that node is unreachable (otherwise
+        // the request was forwarded): offline, and why.
+        None => {
+            let row = app.store.machine(id).await?.ok_or_else(|| {
+                ApiError::not_found("unknown_machine", format!("no machine with id {id}"))
+            })?;
+            Ok(Json(StatusView {
+                status: app.remote_status(&row).await,
+                machine: id,
+                job: None,
+            }))
+        }
+    }
+}
+
+#[derive(Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct NodeReq {
+    /// The node that drives the machine from now on (its `node_name`).
+    node: String,
+}
+
+/// Moves a machine to another node (the hardware moved): that node starts driving it within a
+/// heartbeat, and this one lets go. Refused while a run is active.
+#[utoipa::path(put, path = "/machines/{id}/node", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    request_body(content = NodeReq, example = json!({"node": "hall-2"})),
+    responses(
+        (status = 200, description = "Moved", body = MachineView),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+        (status = 409, description = "`machine_busy`: a run is active", body = ErrorBody),
+        (status = 422, description = "`invalid_field`", body = ErrorBody),
+    ))]
+pub async fn set_node(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Extension(caller): Extension<Caller>,
+    Json(req): Json<NodeReq>,
+) -> Result<Json<MachineView>, ApiError> {
+    if !fresa_core::config::NodeSettings::valid_name(&req.node) {
+        return Err(ApiError::unprocessable(
+            "invalid_field",
+            format!(
+                "node: {:?} is not a node name (1 to 63 letters, digits, '-', '_' or '.')",
+                req.node
+            ),
+        ));
+    }
+    let before = app.store.machine(id).await?.ok_or_else(|| {
+        ApiError::not_found("unknown_machine", format!("no machine with id {id}"))
+    })?;
+    if !app.store.set_machine_node(id, &req.node).await? {
+        return Err(ApiError::conflict(
+            "machine_busy",
+            format!(
+                "machine {id} has an active run; finish or cancel it before moving the machine"
+            ),
+        ));
+    }
+    app.bus
+        .record_or_log(
+            "machine.node",
+            Some(id),
+            Some(&caller.name),
+            json!({"from": before.node, "to": req.node}),
+        )
+        .await;
+    remote_view(&app, id).await.map(Json)
 }
 
 fn status_json(m: &Machine, status: MachineStatus) -> StatusView {

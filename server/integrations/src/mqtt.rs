@@ -202,6 +202,10 @@ async fn publish_events(
             }
             Err(RecvError::Closed) => return,
         };
+        // Each node's bridge publishes what happens on it (its own machines).
+        if !app.bus.is_local(&ev) {
+            continue;
+        }
         for (topic, qos, retain, payload) in messages(&app, &topics, &ev).await {
             offer(&app, &client, topic, qos, retain, payload);
         }

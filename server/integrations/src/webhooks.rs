@@ -82,6 +82,10 @@ async fn dispatch(app: SharedApp, mut rx: tokio::sync::broadcast::Receiver<Arc<B
                 if ev.kind == "webhook.created" || ev.kind == "webhook.deleted" {
                     sync_workers(&app, &client, &mut workers).await;
                 }
+                // On a store shared by nodes each node delivers its own events (once each).
+                if !app.bus.is_local(&ev) {
+                    continue;
+                }
                 for w in workers.values() {
                     if !fresa_core::webhooks::matches(&w.filter, &ev.kind) {
                         continue;

@@ -768,7 +768,16 @@ impl Task {
         expected_part_zero: Option<AxisValues>,
         ticket: u64,
     ) -> Result<RunRow> {
-        let path = crate::programs::program_path(&self.programs_dir, &job.sha256);
+        // A job uploaded on another node: its program comes from the shared store first.
+        let path =
+            match crate::programs::local_copy(&self.store, &self.programs_dir, &job.sha256).await {
+                Ok(p) => p,
+                Err(e) => {
+                    self.finish_run(run.id, RunState::Failed, Some(&e.message))
+                        .await;
+                    return Err(e);
+                }
+            };
         self.job.send_replace(Some(job.clone()));
         self.launched = Some(run.clone());
         self.publish_run(Some(RunView {

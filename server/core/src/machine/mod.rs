@@ -580,6 +580,10 @@ impl Machines {
     pub async fn get(&self, id: i64) -> Option<Arc<Machine>> {
         self.map.read().await.get(&id).cloned()
     }
+    /// Forgets a machine (moved to another node); the caller stops its backend.
+    pub async fn remove(&self, id: i64) -> Option<Arc<Machine>> {
+        self.map.write().await.remove(&id)
+    }
     pub async fn all(&self) -> Vec<Arc<Machine>> {
         let mut v: Vec<_> = self.map.read().await.values().cloned().collect();
         v.sort_by_key(|m| m.id);

@@ -168,7 +168,9 @@ pub async fn start_all(app: &Arc<App>) {
             return;
         }
     };
-    for row in rows {
+    // Each node talks to its own pendants (the ones on its network).
+    let me = app.settings.node.name.as_str();
+    for row in rows.into_iter().filter(|r| r.node.as_deref() == Some(me)) {
         let created = create_instance(app, &row).await;
         attach(app, row, created).await;
     }

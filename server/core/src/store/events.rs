@@ -12,11 +12,22 @@ pub struct EventRow {
     pub actor: Option<String>,
     pub data: String,
     pub created_at: i64,
+    /// The node it happened on (`None`: before nodes, or a tool).
+    pub node: Option<String>,
 }
+
+/// The PostgreSQL advisory lock key that orders event appends across nodes ("fresa" in ASCII).
+const EVENT_APPEND_LOCK: i64 = 0x0066_7265_7361;
+/// The PostgreSQL notification channel that says "new events were committed".
+pub const EVENTS_CHANNEL: &str = "fresa_events";
 
 impl Store {
     // ---- events ----
 
+    /// Appends an event. On PostgreSQL, appends from every node are serialised by a
+    /// transaction-level advisory lock, so ids are committed in increasing order: a node that
+    /// reads "everything after id N" never misses a lower id committed later. The `NOTIFY` in
+    /// the same transaction wakes every node's tail when it commits.
     pub async fn append_event(
         &self,
         kind: &str,
@@ -25,18 +36,40 @@ impl Store {
         data: &str,
     ) -> Result<EventRow> {
         let mut tx = self.begin().await?;
+        if self.dialect == super::Dialect::Postgres {
+            sqlx::query("SELECT pg_advisory_xact_lock($1)")
+                .bind(EVENT_APPEND_LOCK)
+                .execute(&mut *tx)
+                .await?;
+        }
         let row: EventRow = sqlx::query_as(
-            "INSERT INTO events (type, machine_id, actor, data, created_at) VALUES ($1, $2, $3, $4, $5) RETURNING *",
+            "INSERT INTO events (type, machine_id, actor, data, created_at, node) VALUES ($1, $2, $3, $4, $5, $6) RETURNING *",
         )
         .bind(kind)
         .bind(machine_id)
         .bind(actor)
         .bind(data)
         .bind(now_ms())
+        .bind(self.node())
         .fetch_one(&mut *tx)
         .await?;
+        if self.dialect == super::Dialect::Postgres {
+            sqlx::query(&format!("NOTIFY {EVENTS_CHANNEL}"))
+                .execute(&mut *tx)
+                .await?;
+        }
         tx.commit().await?;
         Ok(row)
+    }
+
+    /// A PostgreSQL notification (`pg_notify`) to every listening node.
+    pub async fn notify(&self, channel: &str, payload: &str) -> Result<()> {
+        sqlx::query("SELECT pg_notify($1, $2)")
+            .bind(channel)
+            .bind(payload)
+            .execute(&self.pool)
+            .await
+            .map(|_| ())
     }
 
     pub async fn events_after(&self, after_id: i64, limit: i64) -> Result<Vec<EventRow>> {

@@ -134,7 +134,7 @@ impl std::fmt::Display for RunState {
 }
 
 /// Run states that still own the machine, as SQL.
-const ACTIVE_RUN_STATES: &str = "('queued','running','paused')";
+pub(super) const ACTIVE_RUN_STATES: &str = "('queued','running','paused')";
 
 pub struct NewJob<'a> {
     pub name: &'a str,
@@ -304,22 +304,6 @@ impl Store {
         .bind(ids)
         .fetch_all(&self.pool)
         .await
-    }
-
-    /// At start-up nothing can be running: every run that was active when the previous process
-    /// died becomes `interrupted`, keeping its last acknowledged line for a resume.
-    pub async fn interrupt_active_runs(&self) -> Result<Vec<RunRow>> {
-        let mut tx = self.begin().await?;
-        let rows: Vec<RunRow> = sqlx::query_as(&format!(
-            "UPDATE job_runs SET state = 'interrupted', updated_at = $1, ended_at = $1,
-               message = 'server stopped while the run was ' || state
-             WHERE state IN {ACTIVE_RUN_STATES} RETURNING *"
-        ))
-        .bind(now_ms())
-        .fetch_all(&mut *tx)
-        .await?;
-        tx.commit().await?;
-        Ok(rows)
     }
 
     /// Puts an interrupted or paused-by-restart run back to `running` for a resume.

@@ -16,6 +16,8 @@ pub struct MachineRow {
     pub max_feed_mm_min: f64,
     pub active_offset: String,
     pub created_at: i64,
+    /// The node that drives it (`None`: not claimed yet; see `Store::claim_unowned`).
+    pub node: Option<String>,
 }
 
 impl MachineRow {
@@ -52,8 +54,8 @@ impl Store {
         let mut tx = self.begin().await?;
         let now = now_ms();
         let id: i64 = sqlx::query_scalar(
-            "INSERT INTO machines (name, backend, config, max_jog_mm, max_feed_mm_min, created_at)
-             VALUES ($1, $2, $3, $4, $5, $6) RETURNING id",
+            "INSERT INTO machines (name, backend, config, max_jog_mm, max_feed_mm_min, created_at, node)
+             VALUES ($1, $2, $3, $4, $5, $6, $7) RETURNING id",
         )
         .bind(name)
         .bind(backend)
@@ -61,6 +63,7 @@ impl Store {
         .bind(max_jog_mm)
         .bind(max_feed_mm_min)
         .bind(now)
+        .bind(self.node())
         .fetch_one(&mut *tx)
         .await?;
         for o in WorkOffset::ALL {

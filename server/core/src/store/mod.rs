@@ -34,6 +34,9 @@ pub struct Store {
     health: DbHealth,
     /// Tokens the database accepted, for authentication while it is unreachable.
     known_tokens: tokens::KnownTokens,
+    /// The node this process is (see [`Store::for_node`]): machines and pendants it creates
+    /// belong to it. `None` in tools and tests that are no node.
+    node: Option<std::sync::Arc<str>>,
 }
 
 mod backup;
@@ -41,6 +44,7 @@ mod events;
 pub mod health;
 mod jobs;
 mod machines;
+mod nodes;
 mod pendants;
 #[cfg(any(test, feature = "test-support"))]
 pub mod test_postgres;
@@ -50,10 +54,11 @@ mod tokens;
 mod webhooks;
 
 pub use backup::{backup_database, BackupError};
-pub use events::EventRow;
+pub use events::{EventRow, EVENTS_CHANNEL};
 pub use health::{DbHealth, DbState};
 pub use jobs::{JobRow, NewJob, RunRow, RunState};
 pub use machines::{MachineRow, PartZeroRow};
+pub use nodes::NodeRow;
 pub use pendants::{MacroAction, PendantRow};
 pub use tokens::{is_unique_violation, TokenInfo, TokenRow};
 pub use webhooks::{DeliveryOutcome, WebhookRow, WebhookTarget};
@@ -119,7 +124,19 @@ impl Store {
             dialect,
             health: DbHealth::new(redact_url(url)),
             known_tokens: Default::default(),
+            node: None,
         })
+    }
+
+    /// The same store, for the node `name`: what it creates belongs to that node.
+    pub fn for_node(mut self, name: &str) -> Store {
+        self.node = Some(name.into());
+        self
+    }
+
+    /// The node this store handle belongs to, if any.
+    pub fn node(&self) -> Option<&str> {
+        self.node.as_deref()
     }
 
     /// Whether the database answers (shared by every clone of this store).

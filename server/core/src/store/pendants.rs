@@ -15,6 +15,8 @@ pub struct PendantRow {
     #[serde(skip)]
     pub config: String,
     pub created_at: i64,
+    /// The node whose transport talks to it.
+    pub node: Option<String>,
 }
 
 impl PendantRow {
@@ -54,8 +56,8 @@ impl Store {
         let mut tx = self.begin().await?;
         let now = now_ms();
         let id: i64 = sqlx::query_scalar(
-            "INSERT INTO pendants (name, address, dialect, machine_id, config, created_at)
-             VALUES ($1, $2, $3, $4, $5, $6) RETURNING id",
+            "INSERT INTO pendants (name, address, dialect, machine_id, config, created_at, node)
+             VALUES ($1, $2, $3, $4, $5, $6, $7) RETURNING id",
         )
         .bind(name)
         .bind(address)
@@ -63,6 +65,7 @@ impl Store {
         .bind(machine)
         .bind(config.to_string())
         .bind(now)
+        .bind(self.node())
         .fetch_one(&mut *tx)
         .await?;
         for (slot, action) in macros {
@@ -79,13 +82,13 @@ impl Store {
     }
 
     pub async fn list_pendants(&self) -> Result<Vec<PendantRow>> {
-        sqlx::query_as("SELECT id, name, address, dialect, machine_id, config, created_at FROM pendants ORDER BY id")
+        sqlx::query_as("SELECT id, name, address, dialect, machine_id, config, created_at, node FROM pendants ORDER BY id")
             .fetch_all(self.pool())
             .await
     }
 
     pub async fn pendant(&self, id: i64) -> Result<Option<PendantRow>> {
-        sqlx::query_as("SELECT id, name, address, dialect, machine_id, config, created_at FROM pendants WHERE id = $1")
+        sqlx::query_as("SELECT id, name, address, dialect, machine_id, config, created_at, node FROM pendants WHERE id = $1")
             .bind(id)
             .fetch_optional(self.pool())
             .await

@@ -63,6 +63,7 @@ on_both!(
     second_start_on_a_busy_machine_is_refused,
     concurrent_starts_on_one_machine_let_exactly_one_win,
     restart_marks_active_runs_interrupted_and_keeps_last_line,
+    nodes_share_machines_secret_and_programs,
     latest_runs_gives_each_jobs_newest_run,
     a_run_keeps_the_part_zero_it_started_with,
     expired_and_revoked_tokens_are_not_found,
@@ -195,20 +196,134 @@ fn migrations_are_kept_in_step_on_both_databases() {
 }
 
 async fn restart_marks_active_runs_interrupted_and_keeps_last_line(s: &Store) {
-    let (m, j) = machine_with_job(s, 9).await;
+    // Two nodes share the store; node "a" restarts.
+    let (m, j) = machine_with_job(&s.clone().for_node("a"), 9).await;
+    let other = s
+        .clone()
+        .for_node("b")
+        .insert_machine("on-b", "sim-machine", &serde_json::json!({}), 50.0, 1000.0)
+        .await
+        .unwrap();
+    assert_eq!(
+        s.machine(other).await.unwrap().unwrap().node.as_deref(),
+        Some("b")
+    );
+    let j_other = s
+        .insert_job(NewJob {
+            name: "b",
+            machine_id: other,
+            sha256: "00",
+            size_bytes: 1,
+            line_count: 1,
+            analysis: None,
+            source: "http",
+        })
+        .await
+        .unwrap();
+    let run_other = s.start_run(j_other, other).await.unwrap().unwrap();
     let run = s.start_run(j, m).await.unwrap().unwrap();
     s.ack_line(run.id, 5).await.unwrap();
     s.ack_line(run.id, 3).await.unwrap(); // never backwards
-    let rows = s.interrupt_active_runs().await.unwrap();
+    let rows = s.interrupt_active_runs_of("a").await.unwrap();
     assert_eq!(rows.len(), 1);
+    assert_eq!(rows[0].id, run.id);
     assert_eq!(rows[0].state, RunState::Interrupted);
     assert_eq!(rows[0].last_line, 5);
+    // Node b's run is still running: it is b's to end.
+    assert_eq!(
+        s.run(run_other.id).await.unwrap().unwrap().state,
+        RunState::Running
+    );
     // A finished run cannot be moved by a late event.
     assert!(s
         .transition_run(run.id, &[RunState::Running], RunState::Completed, None)
         .await
         .unwrap()
         .is_none());
+}
+
+/// What nodes share: registration and heartbeats, claiming machines made before nodes, moving
+/// a machine (not while it runs), one secret, programs by content.
+async fn nodes_share_machines_secret_and_programs(s: &Store) {
+    s.register_node("a", "http://127.0.0.1:1", "0.1.0")
+        .await
+        .unwrap();
+    s.register_node("b", "http://127.0.0.1:2", "0.1.0")
+        .await
+        .unwrap();
+    s.node_heartbeat("a", r#"{"1":{"state":"idle"}}"#)
+        .await
+        .unwrap();
+    let nodes = s.list_nodes().await.unwrap();
+    assert_eq!(
+        nodes.iter().map(|n| n.name.as_str()).collect::<Vec<_>>(),
+        ["a", "b"]
+    );
+    assert_eq!(nodes[0].machines, r#"{"1":{"state":"idle"}}"#);
+    // Re-registering (a restart) keeps one row and takes the new URL.
+    s.register_node("a", "http://127.0.0.1:3", "0.1.0")
+        .await
+        .unwrap();
+    assert_eq!(
+        s.node_row("a").await.unwrap().unwrap().url,
+        "http://127.0.0.1:3"
+    );
+
+    let old = s
+        .insert_machine("old", "sim-machine", &serde_json::json!({}), 50.0, 1000.0)
+        .await
+        .unwrap();
+    assert_eq!(s.machine(old).await.unwrap().unwrap().node, None);
+    assert_eq!(s.claim_unowned("a").await.unwrap(), 1);
+    assert_eq!(s.claim_unowned("b").await.unwrap(), 0);
+    assert_eq!(
+        s.machine(old).await.unwrap().unwrap().node.as_deref(),
+        Some("a")
+    );
+
+    let (m, j) = machine_with_job(&s.clone().for_node("a"), 3).await;
+    let run = s.start_run(j, m).await.unwrap().unwrap();
+    assert!(
+        !s.set_machine_node(m, "b").await.unwrap(),
+        "moved while running"
+    );
+    s.transition_run(run.id, &[RunState::Running], RunState::Completed, None)
+        .await
+        .unwrap()
+        .unwrap();
+    assert!(s.set_machine_node(m, "b").await.unwrap());
+    assert_eq!(
+        s.machine(m).await.unwrap().unwrap().node.as_deref(),
+        Some("b")
+    );
+
+    let secret = s.node_secret().await.unwrap();
+    assert_eq!(secret.len(), 64);
+    assert_eq!(
+        s.node_secret().await.unwrap(),
+        secret,
+        "one secret for all nodes"
+    );
+
+    let program: Vec<u8> = (0..600_000u32)
+        .map(|i| b"G1 X1\n"[(i % 6) as usize])
+        .collect();
+    let read_back = |sha: &'static str| async move {
+        let mut all = Vec::new();
+        let mut seq = 0;
+        while let Some(chunk) = s.program_chunk(sha, seq).await.unwrap() {
+            all.extend(chunk);
+            seq += 1;
+        }
+        (seq, all)
+    };
+    assert!(!s.has_program("abc").await.unwrap());
+    s.save_program("abc", &program[..]).await.unwrap();
+    s.save_program("abc", &program[..]).await.unwrap(); // stored once
+    assert_eq!(read_back("abc").await, (3, program));
+    s.save_program("empty", &b""[..]).await.unwrap();
+    assert!(s.has_program("empty").await.unwrap());
+    assert_eq!(read_back("empty").await, (1, Vec::new()));
 }
 
 async fn latest_runs_gives_each_jobs_newest_run(s: &Store) {

@@ -1,0 +1,263 @@
+//! Several nodes on one store. Each process is a node with a name; a machine belongs to the node
+//! that drives it (the one next to its hardware). Every node lists every machine and job from
+//! the store; requests that need a remote machine's task are forwarded by the HTTP layer to its
+//! node, found here. Each node writes a heartbeat with its machines' status, so the others show
+//! those machines without asking, and `offline` ("node X unreachable since ...") once the
+//! heartbeat stops.
+
+use crate::app::{App, SharedApp};
+use crate::store::{now_ms, MachineRow, NodeRow};
+use fresa_plugin_api::contract::{MachineState, MachineStatus};
+use serde::Serialize;
+use std::collections::{BTreeMap, HashSet};
+use std::time::{Duration, UNIX_EPOCH};
+
+/// A node as `GET /api/v1/nodes` shows it.
+#[derive(Debug, Clone, Serialize)]
+pub struct NodeView {
+    pub name: String,
+    /// Where the other nodes reach it.
+    pub url: String,
+    pub version: String,
+    /// Milliseconds since the Unix epoch.
+    pub started_at: i64,
+    pub last_heartbeat: i64,
+    /// Whether its heartbeat is recent (within `node_offline_after_ms`).
+    pub reachable: bool,
+    /// The node answering this request.
+    pub this_node: bool,
+    /// Ids of the machines it drives.
+    pub machines: Vec<i64>,
+}
+
+/// Where a machine's requests go.
+#[derive(Debug, Clone)]
+pub enum Owner {
+    /// This node drives it.
+    Local,
+    /// Another node does.
+    Remote(RemoteNode),
+    /// No such machine.
+    Unknown,
+}
+
+#[derive(Debug, Clone)]
+pub struct RemoteNode {
+    pub name: String,
+    /// `None`: the node never registered (its machine was moved to a name no node has yet).
+    pub url: Option<String>,
+    /// `Some(ms)`: unreachable, with the time of its last heartbeat.
+    pub unreachable_since: Option<i64>,
+}
+
+impl RemoteNode {
+    /// "node hall-2 unreachable since Mon, 30 Nov 2026 21:40:05 GMT" (or "... has not started").
+    pub fn unreachable_reason(&self) -> Option<String> {
+        match (&self.url, self.unreachable_since) {
+            (None, _) => Some(format!("node {} has not started yet", self.name)),
+            (Some(_), Some(since)) => Some(format!(
+                "node {} unreachable since {}",
+                self.name,
+                http_date(since)
+            )),
+            (Some(_), None) => None,
+        }
+    }
+}
+
+fn http_date(ms: i64) -> String {
+    httpdate::fmt_http_date(UNIX_EPOCH + Duration::from_millis(ms.max(0) as u64))
+}
+
+impl App {
+    fn node_is_fresh(&self, row: &NodeRow) -> bool {
+        let limit = self.settings.node.offline_after.as_millis() as i64;
+        now_ms() - row.heartbeat_at <= limit
+    }
+
+    /// Which node drives machine `id`. A machine this node has loaded is local whatever the
+    /// store says a moment later (its task ends only once idle).
+    pub async fn machine_owner(&self, id: i64) -> crate::Result<Owner> {
+        if self.machines.get(id).await.is_some() {
+            return Ok(Owner::Local);
+        }
+        let Some(row) = self.store.machine(id).await? else {
+            return Ok(Owner::Unknown);
+        };
+        let node = row.node.unwrap_or_else(|| self.settings.node.name.clone());
+        if node == self.settings.node.name {
+            return Ok(Owner::Local);
+        }
+        Ok(Owner::Remote(self.remote_node(&node).await?))
+    }
+
+    async fn remote_node(&self, name: &str) -> crate::Result<RemoteNode> {
+        let row = self.store.node_row(name).await?;
+        Ok(match row {
+            None => RemoteNode {
+                name: name.to_string(),
+                url: None,
+                unreachable_since: None,
+            },
+            Some(r) => RemoteNode {
+                name: name.to_string(),
+                unreachable_since: (!self.node_is_fresh(&r)).then_some(r.heartbeat_at),
+                url: Some(r.url),
+            },
+        })
+    }
+
+    /// The status of a machine another node drives, as of that node's last heartbeat; offline
+    /// with the reason once the node is unreachable.
+    pub async fn remote_status(&self, row: &MachineRow) -> MachineStatus {
+        let offline = |reason: String| MachineStatus {
+            state: MachineState::Offline,
+            reason: Some(reason),
+            ..MachineStatus::default()
+        };
+        let Some(name) = row.node.as_deref() else {
+            return offline("no node drives this machine yet".into());
+        };
+        let node = match self.store.node_row(name).await {
+            Ok(n) => n,
+            Err(e) => return offline(format!("cannot read node {name} from the store: {e}")),
+        };
+        let Some(node) = node else {
+            return offline(format!("node {name} has not started yet"));
+        };
+        if !self.node_is_fresh(&node) {
+            return offline(format!(
+                "node {name} unreachable since {}",
+                http_date(node.heartbeat_at)
+            ));
+        }
+        serde_json::from_str::<BTreeMap<String, MachineStatus>>(&node.machines)
+            .ok()
+            .and_then(|mut m| m.remove(&row.id.to_string()))
+            .unwrap_or_else(|| offline(format!("node {name} does not report this machine")))
+    }
+
+    /// Every node in the store, with its machines.
+    pub async fn nodes(&self) -> crate::Result<Vec<NodeView>> {
+        let rows = self.store.list_nodes().await?;
+        let machines = self.store.list_machines().await?;
+        Ok(rows
+            .into_iter()
+            .map(|r| NodeView {
+                reachable: r.name == self.settings.node.name || self.node_is_fresh(&r),
+                this_node: r.name == self.settings.node.name,
+                machines: machines
+                    .iter()
+                    .filter(|m| m.node.as_deref() == Some(r.name.as_str()))
+                    .map(|m| m.id)
+                    .collect(),
+                name: r.name,
+                url: r.url,
+                version: r.version,
+                started_at: r.started_at,
+                last_heartbeat: r.heartbeat_at,
+            })
+            .collect())
+    }
+
+    /// Where the other nodes reach this one.
+    pub fn node_url(&self) -> &str {
+        self.node_url.get().map(String::as_str).unwrap_or("")
+    }
+}
+
+/// The URL other nodes use: `node_url` if set, else the bound address (the host name when
+/// bound to every address, which no other host can dial).
+pub fn url_for(configured: Option<&str>, bound: std::net::SocketAddr) -> String {
+    if let Some(u) = configured {
+        return u.to_string();
+    }
+    if bound.ip().is_unspecified() {
+        return format!("http://{}:{}", crate::config::host_name(), bound.port());
+    }
+    format!("http://{bound}")
+}
+
+/// Registers this node (with the address it is reachable at, known once bound) and starts its
+/// heartbeat, which also picks up machines moved to this node and lets go of machines moved
+/// away.
+pub async fn start(app: &SharedApp, bound: std::net::SocketAddr) -> crate::Result<()> {
+    let url = url_for(app.settings.node.url.as_deref(), bound);
+    let _ = app.node_url.set(url.clone());
+    app.store
+        .register_node(&app.settings.node.name, &url, env!("CARGO_PKG_VERSION"))
+        .await?;
+    tracing::info!(node = %app.settings.node.name, url = %url, "node registered");
+    let app = app.clone();
+    tokio::spawn(async move {
+        let mut tick = tokio::time::interval(app.settings.node.heartbeat);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let mut failing = false;
+        loop {
+            tokio::select! {
+                _ = app.shutdown.cancelled() => return,
+                _ = tick.tick() => {}
+            }
+            match beat(&app).await {
+                Ok(()) if failing => {
+                    failing = false;
+                    tracing::info!("node heartbeat written again");
+                }
+                Ok(()) => {}
+                Err(e) if !failing => {
+                    failing = true;
+                    tracing::error!(error = %e, "cannot write the node heartbeat: other nodes will show this node's machines offline");
+                }
+                Err(_) => {}
+            }
+        }
+    });
+    Ok(())
+}
+
+async fn beat(app: &SharedApp) -> crate::Result<()> {
+    let local = app.machines.all().await;
+    let statuses: BTreeMap<String, MachineStatus> = local
+        .iter()
+        .map(|m| (m.id.to_string(), m.status()))
+        .collect();
+    let json = serde_json::to_string(&statuses).unwrap_or_else(|_| "{}".into());
+    app.store
+        .node_heartbeat(&app.settings.node.name, &json)
+        .await?;
+    reconcile(app).await
+}
+
+/// Loads machines the store says are ours but are not running here (moved to this node), and
+/// lets go of idle machines moved to another node.
+async fn reconcile(app: &SharedApp) -> crate::Result<()> {
+    let me = app.settings.node.name.as_str();
+    let rows = app.store.list_machines().await?;
+    let ours: HashSet<i64> = rows
+        .iter()
+        .filter(|r| r.node.as_deref() == Some(me))
+        .map(|r| r.id)
+        .collect();
+    let loaded = app.machines.all().await;
+    let loaded_ids: HashSet<i64> = loaded.iter().map(|m| m.id).collect();
+    for row in rows {
+        if ours.contains(&row.id) && !loaded_ids.contains(&row.id) {
+            tracing::info!(machine = row.id, name = %row.name, "machine moved to this node: starting it");
+            crate::startup::load_machine(app, row).await;
+        }
+    }
+    for m in loaded {
+        if !ours.contains(&m.id) && m.run().is_none() {
+            tracing::info!(
+                machine = m.id,
+                "machine moved to another node: letting it go"
+            );
+            app.machines.remove(m.id).await;
+            m.close_gate();
+            if let Err(e) = m.shutdown_backend().await {
+                tracing::error!(machine = m.id, error = %e, "shutdown of a machine moved away failed");
+            }
+        }
+    }
+    Ok(())
+}

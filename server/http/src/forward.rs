@@ -1,0 +1,180 @@
+//! Requests for a machine another node drives go to that node: its task, backend and hardware
+//! are there. This layer runs after authentication; it forwards the request (streaming both
+//! ways) with the node secret and the caller's name and role, and answers with the owner's
+//! answer, so a client sees no difference. The owner checks the role again and writes the audit
+//! log under the caller's name. A forwarded request is never forwarded again.
+//!
+//! Served here from the shared store instead: lists, `GET /machines/{id}` (status as of the
+//! owner's last heartbeat), jobs and uploads (programs are in the store), `PUT
+//! /machines/{id}/node`, and a remote machine's status while its node is unreachable (offline,
+//! with the reason).
+
+use crate::auth::{
+    Caller, ForwardedBy, ANSWERED_BY, CALLER_NAME, CALLER_ROLE, FORWARDED_BY, NODE_TOKEN,
+};
+use crate::error::ApiError;
+use axum::body::Body;
+use axum::extract::{OriginalUri, Request, State};
+use axum::http::{HeaderMap, HeaderName, Method, StatusCode};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
+use fresa_core::nodes::{Owner, RemoteNode};
+use fresa_core::SharedApp;
+use std::time::Duration;
+
+#[derive(Clone)]
+pub struct ForwardState {
+    pub app: SharedApp,
+    client: reqwest::Client,
+}
+
+impl ForwardState {
+    pub fn new(app: SharedApp) -> ForwardState {
+        let client = reqwest::Client::builder()
+            .connect_timeout(Duration::from_secs(3))
+            // Longer than any call into a backend (their own timeout answers first).
+            .timeout(app.settings.plugin_call_timeout + Duration::from_secs(30))
+            .redirect(reqwest::redirect::Policy::none())
+            .build()
+            .unwrap_or_default();
+        ForwardState { app, client }
+    }
+}
+
+/// The machine a request acts on through its task, if it is one to forward.
+async fn target_machine(app: &SharedApp, method: &Method, path: &str) -> Option<i64> {
+    let path = path.strip_prefix("/api/v1").unwrap_or(path);
+    let parts: Vec<&str> = path.trim_matches('/').split('/').collect();
+    match parts.as_slice() {
+        // `node` is the store's business: any node moves a machine.
+        ["machines", id, sub, ..] if *sub != "node" => id.parse().ok(),
+        ["jobs", id, action] if method == Method::POST && *action != "toolpath" => {
+            let id: i64 = id.parse().ok()?;
+            // Guarded, with the running job known from memory: during a database outage a
+            // pause or cancel must not wait for the pool's timeout here.
+            fresa_core::jobs::job(app, id)
+                .await
+                .ok()
+                .map(|j| j.machine_id)
+        }
+        _ => None,
+    }
+}
+
+pub async fn middleware(State(st): State<ForwardState>, req: Request, next: Next) -> Response {
+    if req.extensions().get::<ForwardedBy>().is_some() {
+        return next.run(req).await;
+    }
+    let path = req
+        .extensions()
+        .get::<OriginalUri>()
+        .map(|u| u.0.clone())
+        .unwrap_or_else(|| req.uri().clone());
+    let Some(machine) = target_machine(&st.app, req.method(), path.path()).await else {
+        return next.run(req).await;
+    };
+    let node = match st.app.machine_owner(machine).await {
+        Ok(Owner::Remote(node)) => node,
+        Ok(Owner::Local | Owner::Unknown) => return next.run(req).await,
+        Err(e) => return ApiError::from(e).into_response(),
+    };
+    if let Some(reason) = node.unreachable_reason() {
+        // A status read still answers: the machine is offline, and why.
+        if req.method() == Method::GET && path.path().ends_with("/status") {
+            return next.run(req).await;
+        }
+        return unreachable(machine, &reason).into_response();
+    }
+    forward(
+        &st,
+        machine,
+        &node,
+        req,
+        path.path_and_query().map(|p| p.as_str()),
+    )
+    .await
+    .unwrap_or_else(IntoResponse::into_response)
+}
+
+fn unreachable(machine: i64, why: &str) -> ApiError {
+    ApiError::new(
+        StatusCode::SERVICE_UNAVAILABLE,
+        "node_unreachable",
+        format!("machine {machine}: {why}; nothing was sent to it"),
+    )
+}
+
+/// Headers that belong to one connection, or that this node has already checked (the owner
+/// must not judge the browser's origin against its own settings, nor see the client's token).
+fn skipped(name: &HeaderName) -> bool {
+    matches!(
+        name.as_str(),
+        "connection"
+            | "keep-alive"
+            | "proxy-connection"
+            | "transfer-encoding"
+            | "te"
+            | "trailer"
+            | "upgrade"
+            | "host"
+            | "content-length"
+            | "authorization"
+            | "cookie"
+            | "origin"
+            | "referer"
+            | "sec-fetch-site"
+            | "sec-fetch-mode"
+            | "sec-fetch-dest"
+    ) || name.as_str().starts_with("x-fresa-")
+}
+
+async fn forward(
+    st: &ForwardState,
+    machine: i64,
+    node: &RemoteNode,
+    req: Request,
+    path_and_query: Option<&str>,
+) -> Result<Response, ApiError> {
+    let base = node.url.as_deref().unwrap_or_default();
+    let url = format!("{base}{}", path_and_query.unwrap_or("/"));
+    let caller = req
+        .extensions()
+        .get::<Caller>()
+        .cloned()
+        .ok_or_else(|| ApiError::internal("forwarding without a caller: auth layer missing"))?;
+    let (parts, body) = req.into_parts();
+    let mut headers = HeaderMap::new();
+    for (k, v) in &parts.headers {
+        if !skipped(k) {
+            headers.append(k.clone(), v.clone());
+        }
+    }
+    let mut rb = st
+        .client
+        .request(parts.method.clone(), &url)
+        .headers(headers)
+        .header(NODE_TOKEN, &st.app.node_secret)
+        .header(FORWARDED_BY, &st.app.settings.node.name)
+        .header(CALLER_ROLE, caller.role.name());
+    // A token name is ASCII-safe by construction, but never fail a request over a header.
+    if let Ok(v) = axum::http::HeaderValue::from_str(&caller.name) {
+        rb = rb.header(CALLER_NAME, v);
+    }
+    let rb = rb.body(reqwest::Body::wrap_stream(body.into_data_stream()));
+    let answer = rb.send().await.map_err(|e| {
+        tracing::warn!(machine, node = %node.name, url = %url, error = %e, "forwarding failed");
+        unreachable(
+            machine,
+            &format!("node {} at {base} did not answer ({e})", node.name),
+        )
+    })?;
+    let mut out = Response::builder().status(answer.status().as_u16());
+    for (k, v) in answer.headers() {
+        if !skipped(k) {
+            out = out.header(k, v);
+        }
+    }
+    out.header(ANSWERED_BY, &node.name)
+        .body(Body::from_stream(answer.bytes_stream()))
+        .map_err(|e| ApiError::internal(format!("cannot pass on node {}'s answer: {e}", node.name)))
+}
