@@ -113,7 +113,38 @@ impl Error {
 impl From<sqlx::Error> for Error {
     fn from(e: sqlx::Error) -> Self {
         tracing::error!(error = %e, "database error");
+        if is_unreachable(&e) {
+            return Error::new(
+                ErrorKind::Unavailable,
+                "database_unavailable",
+                format!("the database is unreachable: {e}"),
+            );
+        }
         Error::internal(format!("database error: {e}"))
+    }
+}
+
+/// Whether an error means the database cannot be reached (as opposed to a refused statement):
+/// the connection or pool failed, PostgreSQL is shutting down or refusing connections
+/// (SQLSTATE classes 08 and 57P), or SQLite cannot write its file (full, I/O error, locked).
+pub fn is_unreachable(e: &sqlx::Error) -> bool {
+    match e {
+        sqlx::Error::Io(_)
+        | sqlx::Error::Tls(_)
+        | sqlx::Error::Protocol(_)
+        | sqlx::Error::PoolTimedOut
+        | sqlx::Error::PoolClosed
+        | sqlx::Error::WorkerCrashed => true,
+        sqlx::Error::Database(d) => {
+            let code = d.code().unwrap_or_default();
+            // SQLite reports its (extended) result code as a number; the primary code is the
+            // low byte: 5 BUSY, 6 LOCKED, 10 IOERR, 13 FULL, 14 CANTOPEN.
+            match code.parse::<i64>() {
+                Ok(n) => matches!(n & 0xff, 5 | 6 | 10 | 13 | 14),
+                Err(_) => code.starts_with("08") || code.starts_with("57P"),
+            }
+        }
+        _ => false,
     }
 }
 

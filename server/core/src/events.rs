@@ -5,6 +5,8 @@
 use crate::config::EventRetention;
 use crate::store::{now_ms, EventRow, Store};
 use serde::Serialize;
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
 use tokio::sync::{broadcast, Mutex};
 
@@ -52,11 +54,32 @@ const TRANSIENT_CHANNEL: &str = "fresa_transient";
 pub struct EventBus {
     store: Store,
     tx: broadcast::Sender<Arc<BusEvent>>,
-    /// Persist-then-send under one lock so live subscribers see ids in increasing order.
-    order: Arc<Mutex<()>>,
+    /// Persist-then-send under one lock so live subscribers see ids in increasing order. The
+    /// lock also guards the events recorded while the database was unreachable, oldest first:
+    /// they are written (and only then sent, with their ids) before any newer event.
+    order: Arc<Mutex<VecDeque<Delayed>>>,
     /// Set when the store is shared by nodes (PostgreSQL): persisted events reach subscribers
     /// only through the tail ([`spawn_tail`]), in id order, whichever node appended them.
     shared: Option<Shared>,
+    /// Delayed events dropped because the buffer was full (the oldest go first).
+    dropped: Arc<AtomicU64>,
+    /// How many events wait for the database now (for `/metrics`, without taking the lock).
+    waiting: Arc<AtomicUsize>,
+}
+
+/// At most this many events wait for the database; an outage longer than that loses the oldest
+/// ones (counted in `/metrics`), never blocks the caller.
+pub const MAX_DELAYED_EVENTS: usize = 10_000;
+
+/// An audit event recorded while the database was unreachable.
+struct Delayed {
+    kind: String,
+    machine: Option<i64>,
+    actor: Option<String>,
+    data: serde_json::Value,
+    /// When it happened (Unix ms); written into the data as `recorded_at` since the row's own
+    /// time is when it reached the database.
+    at: i64,
 }
 
 #[derive(Clone)]
@@ -82,8 +105,93 @@ impl EventBus {
         EventBus {
             store,
             tx,
-            order: Arc::new(Mutex::new(())),
+            order: Arc::new(Mutex::new(VecDeque::new())),
             shared,
+            dropped: Arc::new(AtomicU64::new(0)),
+            waiting: Arc::new(AtomicUsize::new(0)),
+        }
+    }
+
+    /// Events waiting for the database, and those dropped because too many waited.
+    pub fn delayed_counts(&self) -> (usize, u64) {
+        (
+            self.waiting.load(Ordering::Relaxed),
+            self.dropped.load(Ordering::Relaxed),
+        )
+    }
+
+    /// Writes the delayed events, oldest first, while the database takes them. Returns whether
+    /// none are left. Called with the order lock held.
+    async fn write_delayed(&self, delayed: &mut VecDeque<Delayed>) -> bool {
+        let health = self.store.health();
+        while let Some(d) = delayed.front() {
+            let mut data = d.data.clone();
+            if let Some(obj) = data.as_object_mut() {
+                obj.insert("recorded_at".into(), serde_json::json!(d.at));
+            }
+            let written = health
+                .guard(self.store.append_event(
+                    &d.kind,
+                    d.machine,
+                    d.actor.as_deref(),
+                    &data.to_string(),
+                ))
+                .await;
+            match written {
+                Ok(row) => {
+                    self.publish_row(row, data);
+                    delayed.pop_front();
+                }
+                Err(e) if e.code == "database_unavailable" => break,
+                Err(e) => {
+                    tracing::error!(kind = %d.kind, error = %e, "could not persist a delayed event; dropped");
+                    delayed.pop_front();
+                }
+            }
+        }
+        self.waiting.store(delayed.len(), Ordering::Relaxed);
+        delayed.is_empty()
+    }
+
+    /// Writes the events delayed by an outage as soon as the database is back, so they do not
+    /// wait for the next event to be recorded.
+    pub fn spawn_delayed_writer(&self, stop: tokio_util::sync::CancellationToken) {
+        let bus = self.clone();
+        let mut health = self.store.health().subscribe();
+        tokio::spawn(async move {
+            loop {
+                tokio::select! {
+                    _ = stop.cancelled() => return,
+                    r = health.wait_for(|s| *s == crate::store::DbState::Up) => if r.is_err() { return },
+                }
+                {
+                    let mut delayed = bus.order.lock().await;
+                    bus.write_delayed(&mut delayed).await;
+                }
+                tokio::select! {
+                    _ = stop.cancelled() => return,
+                    r = health.changed() => if r.is_err() { return },
+                }
+            }
+        });
+    }
+
+    /// A row just appended, to the subscribers: directly on a store of its own; through the tail
+    /// when the store is shared (it delivers every node's events in id order).
+    fn publish_row(&self, row: crate::store::EventRow, data: serde_json::Value) {
+        match &self.shared {
+            Some(shared) => shared.wake.notify_one(),
+            None => {
+                let _ = self.tx.send(Arc::new(BusEvent {
+                    id: Some(row.id),
+                    kind: row.kind,
+                    machine: row.machine_id,
+                    actor: row.actor,
+                    time: row.created_at,
+                    data,
+                    node: row.node,
+                }));
+            }
         }
     }
 
@@ -95,34 +203,22 @@ impl EventBus {
         actor: Option<&str>,
         data: serde_json::Value,
     ) -> Result<i64, sqlx::Error> {
-        if let Some(shared) = &self.shared {
-            let row = self
-                .store
-                .append_event(kind, machine, actor, &data.to_string())
-                .await?;
-            shared.wake.notify_one();
-            return Ok(row.id);
+        let mut delayed = self.order.lock().await;
+        if !delayed.is_empty() {
+            self.write_delayed(&mut delayed).await;
         }
-        let _guard = self.order.lock().await;
         let row = self
             .store
             .append_event(kind, machine, actor, &data.to_string())
             .await?;
         let id = row.id;
-        let _ = self.tx.send(Arc::new(BusEvent {
-            id: Some(id),
-            kind: kind.to_string(),
-            machine,
-            actor: actor.map(str::to_string),
-            time: row.created_at,
-            data,
-            node: row.node,
-        }));
+        self.publish_row(row, data);
         Ok(id)
     }
 
-    /// Like [`record`](Self::record) but logs instead of failing: for events whose loss must not
-    /// fail the action that caused them.
+    /// Like [`record`](Self::record) but never fails the action that caused the event: while the
+    /// database is unreachable the event waits in memory (at most [`MAX_DELAYED_EVENTS`]) and is
+    /// written, then sent with its id, when the database returns; other failures are logged.
     pub async fn record_or_log(
         &self,
         kind: &str,
@@ -130,9 +226,43 @@ impl EventBus {
         actor: Option<&str>,
         data: serde_json::Value,
     ) {
-        if let Err(e) = self.record(kind, machine, actor, data).await {
-            tracing::error!(kind, error = %e, "could not persist event");
+        let mut delayed = self.order.lock().await;
+        let health = self.store.health();
+        // Behind older delayed events, or while the database is down: wait in memory.
+        let caught_up = health.is_up() && self.write_delayed(&mut delayed).await;
+        let data = if caught_up {
+            let written = health
+                .guard(
+                    self.store
+                        .append_event(kind, machine, actor, &data.to_string()),
+                )
+                .await;
+            match written {
+                Ok(row) => {
+                    self.publish_row(row, data);
+                    return;
+                }
+                Err(e) if e.code == "database_unavailable" => data,
+                Err(e) => {
+                    tracing::error!(kind, error = %e, "could not persist event");
+                    return;
+                }
+            }
+        } else {
+            data
+        };
+        if delayed.len() >= MAX_DELAYED_EVENTS {
+            delayed.pop_front();
+            self.dropped.fetch_add(1, Ordering::Relaxed);
         }
+        delayed.push_back(Delayed {
+            kind: kind.to_string(),
+            machine,
+            actor: actor.map(str::to_string),
+            data,
+            at: now_ms(),
+        });
+        self.waiting.store(delayed.len(), Ordering::Relaxed);
     }
 
     pub fn transient(&self, kind: &str, machine: Option<i64>, data: serde_json::Value) {

@@ -191,12 +191,28 @@ pub fn job_json(job: &JobRow, run: Option<&RunRow>) -> serde_json::Value {
     })
 }
 
+/// A job by id: from the store, or, while the database is unreachable, from the machine that
+/// is running it (so its run can still be paused or cancelled).
+pub async fn job(app: &App, job_id: i64) -> Result<JobRow> {
+    let health = app.store.health();
+    match health.guard(app.store.job(job_id)).await {
+        Ok(job) => {
+            job.ok_or_else(|| Error::not_found("unknown_job", format!("no job with id {job_id}")))
+        }
+        Err(e) if e.code == "database_unavailable" => {
+            for m in app.machines.all().await {
+                if let Some(job) = m.current_job().filter(|j| j.id == job_id) {
+                    return Ok(job);
+                }
+            }
+            Err(e)
+        }
+        Err(e) => Err(e),
+    }
+}
+
 async fn load_job(app: &App, job_id: i64) -> Result<(JobRow, Arc<Machine>)> {
-    let job = app
-        .store
-        .job(job_id)
-        .await?
-        .ok_or_else(|| Error::not_found("unknown_job", format!("no job with id {job_id}")))?;
+    let job = job(app, job_id).await?;
     let machine = app.machines.get(job.machine_id).await.ok_or_else(|| {
         Error::conflict(
             "machine_unavailable",

@@ -113,6 +113,11 @@ impl App {
         }
         let bus = EventBus::new(store.clone(), 4096);
         let shutdown = CancellationToken::new();
+        // Before the machines start: their tasks read it to refuse new motion during an outage.
+        store
+            .health()
+            .spawn_monitor(store.clone(), shutdown.clone());
+        bus.spawn_delayed_writer(shutdown.clone());
         if let Some(url) = &settings.database_url {
             crate::events::spawn_tail(bus.clone(), url.clone(), shutdown.clone());
         }

@@ -62,8 +62,7 @@ impl From<Error> for ApiError {
 
 impl From<sqlx::Error> for ApiError {
     fn from(e: sqlx::Error) -> Self {
-        tracing::error!(error = %e, "database error");
-        ApiError::internal(format!("database error: {e}"))
+        Error::from(e).into()
     }
 }
 

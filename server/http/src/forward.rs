@@ -50,7 +50,12 @@ async fn target_machine(app: &SharedApp, method: &Method, path: &str) -> Option<
         ["machines", id, sub, ..] if *sub != "node" => id.parse().ok(),
         ["jobs", id, action] if method == Method::POST && *action != "toolpath" => {
             let id: i64 = id.parse().ok()?;
-            app.store.job(id).await.ok().flatten().map(|j| j.machine_id)
+            // Guarded, with the running job known from memory: during a database outage a
+            // pause or cancel must not wait for the pool's timeout here.
+            fresa_core::jobs::job(app, id)
+                .await
+                .ok()
+                .map(|j| j.machine_id)
         }
         _ => None,
     }

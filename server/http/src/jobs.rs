@@ -343,7 +343,7 @@ pub struct ResumeBody {
         (status = 404, description = "`unknown_job`, `unknown_action`", body = ErrorBody),
         (status = 409, description = "`machine_busy`, `not_started`, `not_running`, `not_resumable`, `not_cancellable`, `part_zero_changed`, `stopped`, `backend_rejected`", body = ErrorBody),
         (status = 422, description = "`backend_rejected` (e.g. the program leaves the travel)", body = ErrorBody),
-        (status = 503, description = "`machine_offline`, `machine_unresponsive`, `machine_unavailable`, `shutting_down`", body = ErrorBody),
+        (status = 503, description = "`machine_offline`, `machine_unresponsive`, `machine_unavailable`, `shutting_down`, `database_unavailable` (start and resume; pause and cancel of the running job still work)", body = ErrorBody),
     ))]
 pub async fn control(
     State(app): State<SharedApp>,
@@ -351,6 +351,9 @@ pub async fn control(
     Extension(caller): Extension<Caller>,
     body: axum::body::Bytes,
 ) -> Result<Json<Value>, ApiError> {
+    // Read first: while the database is unreachable the job is known from its machine only as
+    // long as its run is current, and a cancel ends that.
+    let job = core::job(&app, id).await?;
     let run = match action.as_str() {
         "start" => core::start(&app, id, &caller.name).await?,
         "pause" => core::pause(&app, id, &caller.name).await?,
@@ -372,11 +375,6 @@ pub async fn control(
             ))
         }
     };
-    let job = app
-        .store
-        .job(id)
-        .await?
-        .ok_or_else(|| ApiError::internal("job vanished"))?;
     Ok(Json(core::job_json(&job, Some(&run))))
 }
 

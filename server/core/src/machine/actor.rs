@@ -14,7 +14,7 @@ use fresa_plugin_api::contract::{
     ProgramLoaded, Request, RunAction, RunOutcome, WorkOffset,
 };
 use serde_json::{json, Value};
-use std::collections::HashMap;
+use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
 use std::sync::Arc;
 use tokio::sync::{mpsc, watch};
@@ -30,11 +30,46 @@ pub(super) struct Task {
     pub row: watch::Sender<MachineRow>,
     pub run: watch::Sender<Option<RunView>>,
     pub gate: Arc<Gate>,
-    /// Highest acknowledged line per run, not yet written.
-    pub acks: HashMap<i64, u32>,
+    /// The job of the current run, published so that pause and cancel find it while the
+    /// database is unreachable.
+    pub job: watch::Sender<Option<JobRow>>,
+    /// The current run's row as it was launched (the store's copy is the truth while it answers).
+    pub launched: Option<RunRow>,
+    /// Run writes not yet in the store: acknowledged lines (always, until the batch is flushed)
+    /// and, while the database is unreachable, run transitions.
+    pub pending: PendingWrites,
+}
+
+/// What the store has not been told yet. Written acks first, then transitions in the order they
+/// happened, so a run's last lines are stored before its end and nothing is written twice
+/// (acks only ever raise `last_line`; a transition is a compare-and-set).
+#[derive(Default)]
+pub(super) struct PendingWrites {
+    /// Highest acknowledged line per run.
+    pub acks: BTreeMap<i64, u32>,
+    pub transitions: VecDeque<PendingTransition>,
+}
+
+pub(super) struct PendingTransition {
+    run_id: i64,
+    from: &'static [RunState],
+    to: RunState,
+    message: Option<String>,
+    actor: Option<String>,
+}
+
+impl PendingWrites {
+    fn ack(&mut self, run: i64, line: u32) {
+        let e = self.acks.entry(run).or_insert(line);
+        *e = (*e).max(line);
+    }
+    fn is_empty(&self) -> bool {
+        self.acks.is_empty() && self.transitions.is_empty()
+    }
 }
 
 const ACTIVE: &[RunState] = &[RunState::Running, RunState::Paused, RunState::Queued];
+const UNAVAILABLE: &str = "database_unavailable";
 
 fn run_event(run: &RunRow) -> Value {
     json!({"job": run.job_id, "run": run.id, "state": run.state, "line": run.last_line, "message": run.message})
@@ -47,6 +82,8 @@ impl Task {
         mut events: Option<mpsc::UnboundedReceiver<Value>>,
     ) {
         let mut batch = Vec::new();
+        // The store's health lives as long as the store this task holds: never closed.
+        let mut health = self.store.health().subscribe();
         loop {
             let next_events = async {
                 match events.as_mut() {
@@ -67,7 +104,16 @@ impl Task {
                 msg = requests.recv() => {
                     let Some(msg) = msg else { return };
                     self.drain_events(&mut events).await;
+                    // Writes kept during an outage land before anything the request changes.
+                    if !self.pending.is_empty() {
+                        self.flush_pending().await;
+                    }
                     self.handle(msg).await;
+                }
+                Ok(()) = health.changed() => {
+                    if self.store.health().is_up() && !self.pending.is_empty() {
+                        self.flush_pending().await;
+                    }
                 }
             }
         }
@@ -99,6 +145,7 @@ impl Task {
                 reply,
             } => {
                 let r = async {
+                    self.store.health().check()?;
                     self.refuse_during_run("jogging")?;
                     self.motion(
                         ticket,
@@ -127,6 +174,7 @@ impl Task {
                 reply,
             } => {
                 let r = async {
+                    self.store.health().check()?;
                     self.refuse_during_run("MDI")?;
                     self.motion(ticket, &Request::Mdi { line: line.clone() })
                         .await?;
@@ -361,6 +409,10 @@ impl Task {
             command,
             Command::CycleStart | Command::Resume | Command::Home { .. } | Command::GoToZero
         );
+        // No new motion without the database, and no offset the store could not keep.
+        if starts_motion || matches!(command, Command::Zero { .. } | Command::SelectOffset { .. }) {
+            self.store.health().check()?;
+        }
 
         // Spindle and coolant belong to the program while it cuts; the operator may change them
         // once the run is held.
@@ -412,8 +464,13 @@ impl Task {
                 format!("offsets have an unexpected shape: {e}"),
             )
         })?;
-        self.store.set_offsets(self.id, &table.offsets).await?;
-        self.store.set_active_offset(self.id, table.active).await?;
+        let health = self.store.health();
+        health
+            .guard(self.store.set_offsets(self.id, &table.offsets))
+            .await?;
+        health
+            .guard(self.store.set_active_offset(self.id, table.active))
+            .await?;
         self.row
             .send_modify(|r| r.active_offset = table.active.name().to_string());
         self.bus
@@ -434,8 +491,13 @@ impl Task {
                 "offsets cannot change while the machine moves",
             ));
         }
+        // The store is the offsets' source of truth: no change it could not keep.
+        self.store.health().check()?;
         self.call(&Request::SetOffset { offset, values }).await?;
-        self.store.set_offsets(self.id, &[(offset, values)]).await?;
+        self.store
+            .health()
+            .guard(self.store.set_offsets(self.id, &[(offset, values)]))
+            .await?;
         self.record(
             "machine.offsets",
             actor,
@@ -448,44 +510,191 @@ impl Task {
 
     // ---- runs ----
 
-    fn publish_run(&self, run: Option<RunView>) {
+    fn publish_run(&mut self, run: Option<RunView>) {
+        if run.is_none() {
+            self.job.send_replace(None);
+            self.launched = None;
+        }
         self.run.send_replace(run);
     }
 
-    /// Moves a run in the store (compare-and-set on its state) and records the change.
+    /// Moves a run (compare-and-set on its state) and records the change. While the database is
+    /// unreachable the move is made in memory and kept pending for the store (returning the run
+    /// as the task remembers it); `None` when the run is not in a state of `from`.
     async fn transition(
-        &self,
+        &mut self,
         run_id: i64,
-        from: &[RunState],
+        from: &'static [RunState],
         to: RunState,
         message: Option<&str>,
         actor: Option<&str>,
     ) -> Result<Option<RunRow>> {
-        let row = self.store.transition_run(run_id, from, to, message).await?;
-        if let Some(row) = &row {
-            if self.run.borrow().is_some_and(|r| r.run_id == run_id) {
-                if row.state.is_active() {
-                    self.run.send_modify(|r| {
-                        if let Some(r) = r {
-                            r.state = row.state;
-                        }
-                    });
-                } else {
-                    self.publish_run(None);
-                }
-            }
-            self.bus
-                .record_or_log("job.state", Some(self.id), actor, run_event(row))
+        if self.pending.is_empty() {
+            let written = self
+                .store
+                .health()
+                .guard(self.store.transition_run(run_id, from, to, message))
                 .await;
+            match written {
+                Ok(row) => {
+                    if let Some(row) = &row {
+                        self.show_transition(run_id, row.state);
+                        self.record_transition(row, actor).await;
+                    }
+                    return Ok(row);
+                }
+                // It may have landed before the answer was lost: the compare-and-set on
+                // replay tells.
+                Err(e) if e.code == UNAVAILABLE => {}
+                Err(e) => return Err(e),
+            }
         }
-        Ok(row)
+        let remembered = self.remembered_run(run_id);
+        // The run's state as the store will have it once the pending writes land: a late or
+        // duplicate report (the backend's end of a run just cancelled) is ignored here as the
+        // compare-and-set would ignore it, so it is neither queued nor recorded twice.
+        let known = self
+            .pending
+            .transitions
+            .iter()
+            .rev()
+            .find(|t| t.run_id == run_id)
+            .map(|t| t.to)
+            .or(remembered.as_ref().map(|r| r.state));
+        if let Some(state) = known {
+            if !from.contains(&state) || !state.can_move_to(to) {
+                return Ok(None);
+            }
+        }
+        tracing::warn!(
+            machine = self.id,
+            run = run_id,
+            to = to.as_str(),
+            "database unreachable: run state kept in memory until it returns"
+        );
+        self.pending.transitions.push_back(PendingTransition {
+            run_id,
+            from,
+            to,
+            message: message.map(str::to_string),
+            actor: actor.map(str::to_string),
+        });
+        self.show_transition(run_id, to);
+        Ok(remembered.map(|mut r| {
+            r.state = to;
+            r.message = message.map(str::to_string);
+            r.updated_at = crate::store::now_ms();
+            if !to.is_active() {
+                r.ended_at = Some(r.updated_at);
+            }
+            r
+        }))
+    }
+
+    /// The current run as the task knows it (its row at launch, its state and line since), if
+    /// `run_id` is the current run.
+    fn remembered_run(&self, run_id: i64) -> Option<RunRow> {
+        let view = (*self.run.borrow()).filter(|v| v.run_id == run_id)?;
+        let mut row = self.launched.clone().filter(|r| r.id == run_id)?;
+        row.state = view.state;
+        row.last_line = row.last_line.max(view.line);
+        Some(row)
+    }
+
+    /// The published run follows a transition of the current run.
+    fn show_transition(&mut self, run_id: i64, to: RunState) {
+        if self.run.borrow().is_some_and(|r| r.run_id == run_id) {
+            if to.is_active() {
+                self.run.send_modify(|r| {
+                    if let Some(r) = r {
+                        r.state = to;
+                    }
+                });
+            } else {
+                self.publish_run(None);
+            }
+        }
+    }
+
+    async fn record_transition(&self, row: &RunRow, actor: Option<&str>) {
+        self.bus
+            .record_or_log("job.state", Some(self.id), actor, run_event(row))
+            .await;
     }
 
     /// Ends a run from a backend report. Late or duplicate reports are ignored.
-    async fn finish_run(&self, run_id: i64, to: RunState, message: Option<&str>) {
+    async fn finish_run(&mut self, run_id: i64, to: RunState, message: Option<&str>) {
         if let Err(e) = self.transition(run_id, ACTIVE, to, message, None).await {
             tracing::error!(machine = self.id, run = run_id, error = %e, "could not record end of run");
         }
+    }
+
+    /// Writes what the store has not been told yet: acknowledged lines, then run transitions in
+    /// order. Stops at the first sign the database is unreachable and keeps the rest; the
+    /// database's return (or the next request) tries again.
+    async fn flush_pending(&mut self) {
+        let health = self.store.health().clone();
+        while let Some((&run, &line)) = self.pending.acks.first_key_value() {
+            match health.guard(self.store.ack_line(run, line as i64)).await {
+                Ok(()) => {}
+                Err(e) if e.code == UNAVAILABLE => {
+                    // Progress is still shown from memory; the store catches up later.
+                    for (&run, &line) in &self.pending.acks {
+                        self.show_ack(run, line);
+                    }
+                    return;
+                }
+                Err(e) => {
+                    tracing::error!(machine = self.id, run, line, error = %e, "could not persist acknowledged line");
+                }
+            }
+            self.pending.acks.remove(&run);
+            self.show_ack(run, line);
+        }
+        while let Some(t) = self.pending.transitions.front() {
+            let written = health
+                .guard(
+                    self.store
+                        .transition_run(t.run_id, t.from, t.to, t.message.as_deref()),
+                )
+                .await;
+            let (run_id, to) = (t.run_id, t.to);
+            let actor = t.actor.clone();
+            match written {
+                Ok(Some(row)) => self.record_transition(&row, actor.as_deref()).await,
+                Ok(None) => {
+                    // Either it landed just before the outage cut off the answer, or the run
+                    // had moved on; only the former is ours to record.
+                    match health.guard(self.store.run(run_id)).await {
+                        Ok(Some(row)) if row.state == to => {
+                            self.record_transition(&row, actor.as_deref()).await
+                        }
+                        Err(e) if e.code == UNAVAILABLE => return,
+                        _ => tracing::warn!(
+                            machine = self.id,
+                            run = run_id,
+                            to = to.as_str(),
+                            "a run transition kept during an outage no longer applies; dropped"
+                        ),
+                    }
+                }
+                Err(e) if e.code == UNAVAILABLE => return,
+                Err(e) => {
+                    tracing::error!(machine = self.id, run = run_id, error = %e, "could not record a run transition; dropped")
+                }
+            }
+            self.pending.transitions.pop_front();
+        }
+    }
+
+    fn show_ack(&self, run: i64, line: u32) {
+        self.run.send_if_modified(|r| match r {
+            Some(r) if r.run_id == run && r.line < line as i64 => {
+                r.line = line as i64;
+                true
+            }
+            _ => false,
+        });
     }
 
     /// The machine's state if it is busy. The cached status can lag the backend's events, so
@@ -515,6 +724,7 @@ impl Task {
     }
 
     async fn start(&mut self, job: &JobRow, actor: &str, ticket: u64) -> Result<RunRow> {
+        self.store.health().check()?;
         if let Some(e) = self.busy_with_run() {
             return Err(e);
         }
@@ -568,6 +778,8 @@ impl Task {
                     return Err(e);
                 }
             };
+        self.job.send_replace(Some(job.clone()));
+        self.launched = Some(run.clone());
         self.publish_run(Some(RunView {
             run_id: run.id,
             job_id: job.id,
@@ -621,38 +833,76 @@ impl Task {
                 return Err(e);
             }
         };
+        let health = self.store.health().clone();
         // A controller that reports its own part zero: the run keeps the one it (re)started
         // with, for the check on the next resume.
         if let Some(zero) = answer
             .get("part_zero")
             .and_then(|z| serde_json::from_value::<AxisValues>(z.clone()).ok())
         {
-            self.store.set_run_part_zero(run.id, zero).await?;
+            // The program runs now: a database that went down meanwhile must not turn the
+            // answer into a failure (only the part-zero check of a later resume is lost).
+            if let Err(e) = health
+                .guard(self.store.set_run_part_zero(run.id, zero))
+                .await
+            {
+                tracing::error!(machine = self.id, run = run.id, error = %e, "could not store the run's part zero");
+            }
         }
-        Ok(self.store.run(run.id).await?.unwrap_or(run))
+        Ok(health
+            .guard(self.store.run(run.id))
+            .await
+            .ok()
+            .flatten()
+            .or_else(|| self.remembered_run(run.id))
+            .unwrap_or(run))
     }
 
+    /// The job's latest run: from the store, or, while the database is unreachable, the
+    /// current run as the task remembers it (so pause and cancel still work).
     async fn latest(&self, job_id: i64) -> Result<RunRow> {
-        self.store.latest_run(job_id).await?.ok_or_else(|| {
-            Error::conflict(
-                "not_started",
-                format!("job {job_id} has never been started"),
-            )
-        })
+        let stored = self
+            .store
+            .health()
+            .guard(self.store.latest_run(job_id))
+            .await;
+        match stored {
+            Ok(run) => run.ok_or_else(|| {
+                Error::conflict(
+                    "not_started",
+                    format!("job {job_id} has never been started"),
+                )
+            }),
+            Err(e) if e.code == UNAVAILABLE => self
+                .run
+                .borrow()
+                .filter(|v| v.job_id == job_id)
+                .and_then(|v| self.remembered_run(v.run_id))
+                .ok_or(e),
+            Err(e) => Err(e),
+        }
     }
 
     /// Moves a run and returns it; when the compare-and-set lost (the backend finished the run
     /// meanwhile) returns the run as it is now.
     async fn transition_or_current(
-        &self,
+        &mut self,
         run: &RunRow,
-        from: &[RunState],
+        from: &'static [RunState],
         to: RunState,
         actor: &str,
     ) -> Result<RunRow> {
         match self.transition(run.id, from, to, None, Some(actor)).await? {
             Some(row) => Ok(row),
-            None => Ok(self.store.run(run.id).await?.unwrap_or_else(|| run.clone())),
+            None => Ok(self
+                .store
+                .health()
+                .guard(self.store.run(run.id))
+                .await
+                .ok()
+                .flatten()
+                .or_else(|| self.remembered_run(run.id))
+                .unwrap_or_else(|| run.clone())),
         }
     }
 
@@ -679,6 +929,7 @@ impl Task {
         confirm_part_zero: bool,
         ticket: u64,
     ) -> Result<RunRow> {
+        self.store.health().check()?;
         let job_id = job.id;
         let run = self.latest(job_id).await?;
         match run.state {
@@ -787,10 +1038,7 @@ impl Task {
             };
             match event {
                 Event::Status(s) => self.publish_status(s),
-                Event::LineAcknowledged { run, line } => {
-                    let e = self.acks.entry(run).or_insert(line);
-                    *e = (*e).max(line);
-                }
+                Event::LineAcknowledged { run, line } => self.pending.ack(run, line),
                 Event::StateChanged { from, to } => {
                     self.status.send_modify(|s| s.state = to);
                     self.bus.transient(
@@ -813,7 +1061,8 @@ impl Task {
                     outcome,
                     message,
                 } => {
-                    self.flush_acks().await;
+                    // The run's last lines are stored (or kept) before its end.
+                    self.flush_pending().await;
                     let to = match outcome {
                         RunOutcome::Completed => RunState::Completed,
                         RunOutcome::Failed => RunState::Failed,
@@ -847,30 +1096,15 @@ impl Task {
                 }
             }
         }
-        self.flush_acks().await;
-    }
-
-    async fn flush_acks(&mut self) {
-        for (run, line) in std::mem::take(&mut self.acks) {
-            if let Err(e) = self.store.ack_line(run, line as i64).await {
-                tracing::error!(machine = self.id, run, line, error = %e, "could not persist acknowledged line");
-                continue;
-            }
-            self.run.send_if_modified(|r| match r {
-                Some(r) if r.run_id == run && r.line < line as i64 => {
-                    r.line = line as i64;
-                    true
-                }
-                _ => false,
-            });
-        }
+        self.flush_pending().await;
     }
 
     /// A controller's own part zero joins the history (source `robot`) when it differs from
     /// the latest record, so repeated reports of the same zero do not flood it.
     async fn record_reported_part_zero(&self, values: AxisValues, run: Option<i64>) {
         const SAME_MM: f64 = 1e-6;
-        match self.store.latest_part_zero(self.id).await {
+        let health = self.store.health();
+        match health.guard(self.store.latest_part_zero(self.id)).await {
             Ok(Some(last))
                 if last.source == "robot"
                     && [
@@ -891,9 +1125,11 @@ impl Task {
             }
         }
         let note = run.map(|r| format!("reported by the controller at the start of run {r}"));
-        match self
-            .store
-            .insert_part_zero(self.id, values, "robot", "robot", note.as_deref())
+        match health
+            .guard(
+                self.store
+                    .insert_part_zero(self.id, values, "robot", "robot", note.as_deref()),
+            )
             .await
         {
             Ok(row) => self.record("machine.part_zero", "robot", json!(row)).await,
@@ -925,4 +1161,232 @@ fn io_changes(before: &MachineStatus, after: &MachineStatus) -> Option<Value> {
     diff(&before.inputs, &after.inputs, &mut out);
     diff(&before.outputs, &after.outputs, &mut out);
     (!out.is_empty()).then_some(Value::Object(out))
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+    use super::*;
+    use crate::store::NewJob;
+    use fresa_plugin_api::contract::Axis;
+    use tokio::sync::oneshot;
+
+    /// A task with no backend on a SQLite store, with run `run` of a 10-line job current.
+    async fn task_with_run() -> (Task, RunRow, tempfile_dir::Dir) {
+        let dir = tempfile_dir::Dir::new();
+        let store = Store::open(&dir.0.join("t.db")).await.unwrap();
+        let m = store
+            .insert_machine("m", "sim-machine", &json!({}), 50.0, 1000.0)
+            .await
+            .unwrap();
+        let j = store
+            .insert_job(NewJob {
+                name: "a",
+                machine_id: m,
+                sha256: "x",
+                size_bytes: 1,
+                line_count: 10,
+                analysis: None,
+                source: "http",
+            })
+            .await
+            .unwrap();
+        let run = store.start_run(j, m).await.unwrap().unwrap();
+        let job = store.job(j).await.unwrap().unwrap();
+        let row = store.machine(m).await.unwrap().unwrap();
+        let view = RunView {
+            run_id: run.id,
+            job_id: j,
+            total_lines: 10,
+            state: run.state,
+            line: 0,
+        };
+        let task = Task {
+            id: m,
+            lanes: None,
+            unavailable: Some("no backend in this test".into()),
+            bus: EventBus::new(store.clone(), 16),
+            store,
+            programs_dir: dir.0.clone(),
+            status: watch::channel(MachineStatus::default()).0,
+            row: watch::channel(row).0,
+            run: watch::channel(Some(view)).0,
+            gate: Arc::new(Gate::default()),
+            job: watch::channel(Some(job)).0,
+            launched: Some(run.clone()),
+            pending: PendingWrites::default(),
+        };
+        (task, run, dir)
+    }
+
+    mod tempfile_dir {
+        pub struct Dir(pub std::path::PathBuf);
+        impl Dir {
+            pub fn new() -> Dir {
+                let p = std::env::temp_dir().join(format!(
+                    "fresa-actor-{}-{}",
+                    std::process::id(),
+                    rand::random::<u64>()
+                ));
+                std::fs::create_dir_all(&p).unwrap();
+                Dir(p)
+            }
+        }
+        impl Drop for Dir {
+            fn drop(&mut self) {
+                let _ = std::fs::remove_dir_all(&self.0);
+            }
+        }
+    }
+
+    fn ev(e: Event) -> Value {
+        serde_json::to_value(e).unwrap()
+    }
+
+    async fn job_state_events(store: &Store) -> Vec<Value> {
+        store
+            .events_after(0, 100)
+            .await
+            .unwrap()
+            .into_iter()
+            .filter(|e| e.kind == "job.state")
+            .map(|e| serde_json::from_str(&e.data).unwrap())
+            .collect()
+    }
+
+    #[tokio::test]
+    async fn acks_and_the_end_of_a_run_wait_for_the_database_and_land_once_in_order() {
+        let (mut task, run, _dir) = task_with_run().await;
+        let store = task.store.clone();
+        store.health().mark_down("test outage");
+
+        task.handle_events(vec![
+            ev(Event::LineAcknowledged {
+                run: run.id,
+                line: 3,
+            }),
+            ev(Event::LineAcknowledged {
+                run: run.id,
+                line: 5,
+            }),
+        ])
+        .await;
+        // Shown from memory, not written.
+        assert_eq!(task.run.borrow().map(|v| v.line), Some(5));
+        assert_eq!(store.run(run.id).await.unwrap().unwrap().last_line, 0);
+
+        // New motion is refused while the database is down, naming it.
+        let (reply, answer) = oneshot::channel();
+        task.handle(Msg::Jog {
+            axis: Axis::X,
+            distance: 1.0,
+            feed: None,
+            actor: "t".into(),
+            ticket: task.gate.ticket(),
+            reply,
+        })
+        .await;
+        let refused = answer.await.unwrap().unwrap_err();
+        assert_eq!(refused.code, "database_unavailable");
+        assert!(refused.message.contains("t.db"), "{}", refused.message);
+
+        task.handle_events(vec![
+            ev(Event::LineAcknowledged {
+                run: run.id,
+                line: 10,
+            }),
+            ev(Event::RunEnded {
+                run: run.id,
+                outcome: RunOutcome::Completed,
+                message: None,
+            }),
+        ])
+        .await;
+        // The machine is free in memory; the store has not heard of any of it.
+        assert!(task.run.borrow().is_none());
+        let stored = store.run(run.id).await.unwrap().unwrap();
+        assert_eq!((stored.state, stored.last_line), (RunState::Running, 0));
+        assert_eq!(task.pending.acks.get(&run.id), Some(&10));
+        assert_eq!(task.pending.transitions.len(), 1);
+        // A duplicate end reported during the outage is not kept twice.
+        task.handle_events(vec![ev(Event::RunEnded {
+            run: run.id,
+            outcome: RunOutcome::Cancelled,
+            message: None,
+        })])
+        .await;
+        assert_eq!(task.pending.transitions.len(), 1);
+
+        store.health().mark_up();
+        task.flush_pending().await;
+        let stored = store.run(run.id).await.unwrap().unwrap();
+        assert_eq!((stored.state, stored.last_line), (RunState::Completed, 10));
+        assert!(task.pending.is_empty());
+        let states = job_state_events(&store).await;
+        assert_eq!(states.len(), 1, "{states:?}");
+        assert_eq!(states[0]["state"], "completed");
+        assert_eq!(states[0]["line"], 10);
+
+        // Nothing is written twice: a late duplicate end is ignored.
+        task.handle_events(vec![ev(Event::RunEnded {
+            run: run.id,
+            outcome: RunOutcome::Completed,
+            message: None,
+        })])
+        .await;
+        assert_eq!(job_state_events(&store).await.len(), 1);
+    }
+
+    #[tokio::test]
+    async fn a_transition_that_landed_before_the_outage_cut_its_answer_is_recorded_once() {
+        let (mut task, run, _dir) = task_with_run().await;
+        let store = task.store.clone();
+        // The store already has it (the answer was lost); the task kept it pending.
+        store
+            .transition_run(run.id, ACTIVE, RunState::Cancelled, None)
+            .await
+            .unwrap()
+            .unwrap();
+        task.pending.transitions.push_back(PendingTransition {
+            run_id: run.id,
+            from: ACTIVE,
+            to: RunState::Cancelled,
+            message: None,
+            actor: Some("op".into()),
+        });
+        task.flush_pending().await;
+        assert!(task.pending.is_empty());
+        let states = job_state_events(&store).await;
+        assert_eq!(states.len(), 1, "{states:?}");
+        assert_eq!(states[0]["state"], "cancelled");
+    }
+
+    #[tokio::test]
+    async fn events_recorded_during_an_outage_are_written_in_order_when_it_ends() {
+        let (task, _run, _dir) = task_with_run().await;
+        let store = task.store.clone();
+        let bus = task.bus.clone();
+        store.health().mark_down("test outage");
+        bus.record_or_log("machine.command", Some(1), Some("op"), json!({"n": 1}))
+            .await;
+        bus.record_or_log("machine.command", Some(1), Some("op"), json!({"n": 2}))
+            .await;
+        assert_eq!(bus.delayed_counts(), (2, 0));
+        assert!(store.events_after(0, 10).await.unwrap().is_empty());
+        store.health().mark_up();
+        bus.record_or_log("machine.command", Some(1), Some("op"), json!({"n": 3}))
+            .await;
+        let written: Vec<Value> = store
+            .events_after(0, 10)
+            .await
+            .unwrap()
+            .into_iter()
+            .map(|e| serde_json::from_str(&e.data).unwrap())
+            .collect();
+        let order: Vec<i64> = written.iter().map(|d| d["n"].as_i64().unwrap()).collect();
+        assert_eq!(order, [1, 2, 3]);
+        assert!(written[0]["recorded_at"].is_i64());
+        assert!(written[2].get("recorded_at").is_none());
+        assert_eq!(bus.delayed_counts(), (0, 0));
+    }
 }

@@ -207,6 +207,8 @@ pub struct Machine {
     status: watch::Receiver<MachineStatus>,
     row: watch::Receiver<MachineRow>,
     run: watch::Receiver<Option<RunView>>,
+    /// The job of the current run.
+    job: watch::Receiver<Option<JobRow>>,
     gate: Arc<Gate>,
     bus: EventBus,
     timeout: Duration,
@@ -267,6 +269,7 @@ impl Machine {
         let (status_tx, status_rx) = watch::channel(status);
         let (row_tx, row_rx) = watch::channel(row.clone());
         let (run_tx, run_rx) = watch::channel(None);
+        let (job_tx, job_rx) = watch::channel(None);
         let (tx, rx) = mpsc::unbounded_channel();
         let gate = Arc::new(Gate::default());
         let m = Arc::new(Machine {
@@ -277,6 +280,7 @@ impl Machine {
             status: status_rx,
             row: row_rx,
             run: run_rx,
+            job: job_rx,
             gate: gate.clone(),
             bus: bus.clone(),
             timeout: opts.timeout,
@@ -292,7 +296,9 @@ impl Machine {
             row: row_tx,
             run: run_tx,
             gate,
-            acks: HashMap::new(),
+            job: job_tx,
+            launched: None,
+            pending: Default::default(),
         };
         tokio::spawn(task.run(rx, events));
         tokio::spawn(status_loop(m.clone(), bus, opts.status_interval));
@@ -329,6 +335,11 @@ impl Machine {
     /// The current run, if any.
     pub fn run(&self) -> Option<RunView> {
         *self.run.borrow()
+    }
+
+    /// The job of the current run, if any (known without the database).
+    pub fn current_job(&self) -> Option<JobRow> {
+        self.job.borrow().clone()
     }
 
     pub fn subscribe_status(&self) -> watch::Receiver<MachineStatus> {

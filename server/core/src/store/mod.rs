@@ -31,6 +31,9 @@ pub enum Dialect {
 pub struct Store {
     pool: AnyPool,
     dialect: Dialect,
+    health: DbHealth,
+    /// Tokens the database accepted, for authentication while it is unreachable.
+    known_tokens: tokens::KnownTokens,
     /// The node this process is (see [`Store::for_node`]): machines and pendants it creates
     /// belong to it. `None` in tools and tests that are no node.
     node: Option<std::sync::Arc<str>>,
@@ -38,6 +41,7 @@ pub struct Store {
 
 mod backup;
 mod events;
+pub mod health;
 mod jobs;
 mod machines;
 mod nodes;
@@ -51,6 +55,7 @@ mod webhooks;
 
 pub use backup::{backup_database, BackupError};
 pub use events::{EventRow, EVENTS_CHANNEL};
+pub use health::{DbHealth, DbState};
 pub use jobs::{JobRow, NewJob, RunRow, RunState};
 pub use machines::{MachineRow, PartZeroRow};
 pub use nodes::NodeRow;
@@ -117,6 +122,8 @@ impl Store {
         Ok(Store {
             pool,
             dialect,
+            health: DbHealth::new(redact_url(url)),
+            known_tokens: Default::default(),
             node: None,
         })
     }
@@ -130,6 +137,11 @@ impl Store {
     /// The node this store handle belongs to, if any.
     pub fn node(&self) -> Option<&str> {
         self.node.as_deref()
+    }
+
+    /// Whether the database answers (shared by every clone of this store).
+    pub fn health(&self) -> &DbHealth {
+        &self.health
     }
 
     pub fn dialect(&self) -> Dialect {

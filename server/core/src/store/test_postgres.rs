@@ -4,6 +4,9 @@
 //! a shell that holds a pipe from this process and stops it when the pipe closes), and its
 //! directory is removed then.
 //!
+//! A test that stops and restarts its database (an outage under a running job) gets a
+//! [`DedicatedPostgres`] of its own instead, so no other test loses the shared one.
+//!
 //! A missing PostgreSQL is a failure naming the package, never a skipped test.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
@@ -26,8 +29,13 @@ static SERVER: OnceLock<TestPostgres> = OnceLock::new();
 /// A new, empty database on the shared test server: its URL (`postgres://fresa@127.0.0.1:P/tN`).
 pub async fn fresh_database() -> String {
     let pg = SERVER.get_or_init(start);
+    create_database(pg.port).await
+}
+
+/// A new, empty database on the server at `port`: its URL.
+async fn create_database(port: u16) -> String {
     let name = format!("t{}_{}", std::process::id(), rand::random::<u32>());
-    let admin = format!("postgres://fresa@127.0.0.1:{}/postgres", pg.port);
+    let admin = format!("postgres://fresa@127.0.0.1:{port}/postgres");
     sqlx::any::install_default_drivers();
     // Listening is not ready: "the database system is starting up" until recovery is done.
     let deadline = Instant::now() + Duration::from_secs(60);
@@ -44,7 +52,77 @@ pub async fn fresh_database() -> String {
     sqlx::Executor::execute(&mut conn, format!("CREATE DATABASE {name}").as_str())
         .await
         .unwrap_or_else(|e| panic!("create database {name}: {e}"));
-    format!("postgres://fresa@127.0.0.1:{}/{name}", pg.port)
+    format!("postgres://fresa@127.0.0.1:{port}/{name}")
+}
+
+/// A PostgreSQL server of one test's own, which it may stop and start again (same data, same
+/// port). Stopped and removed when dropped; stopped in any case when the test process exits.
+pub struct DedicatedPostgres {
+    pub port: u16,
+    dir: PathBuf,
+    data: PathBuf,
+    keeper: Mutex<Option<Child>>,
+}
+
+impl DedicatedPostgres {
+    pub fn start() -> DedicatedPostgres {
+        let (dir, data) = init_cluster();
+        let port = free_port();
+        let keeper = launch(&dir, &data, port, false, true);
+        DedicatedPostgres {
+            port,
+            dir,
+            data,
+            keeper: Mutex::new(Some(keeper)),
+        }
+    }
+
+    /// A new, empty database on this server: its URL.
+    pub async fn fresh_database(&self) -> String {
+        create_database(self.port).await
+    }
+
+    /// Stops the server the way a crash does (`pg_ctl stop -m immediate`): connections drop at
+    /// once, and the next start recovers from the WAL.
+    pub fn stop(&self) {
+        let out = as_server_user(&binary("pg_ctl"))
+            .arg("-D")
+            .arg(&self.data)
+            .args(["stop", "-m", "immediate", "-w", "-t", "60"])
+            .output()
+            .unwrap_or_else(|e| panic!("run pg_ctl stop: {e}"));
+        assert!(
+            out.status.success(),
+            "pg_ctl stop failed: {}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        // Its keeper's shell has nothing left to stop; closing its stdin ends it.
+        if let Some(mut k) = self.keeper.lock().unwrap().take() {
+            drop(k.stdin.take());
+            let _ = k.wait();
+        }
+    }
+
+    /// Starts the stopped server again on the same port and data; returns once it listens.
+    pub fn restart(&self) {
+        let mut keeper = self.keeper.lock().unwrap();
+        assert!(keeper.is_none(), "the dedicated PostgreSQL is running");
+        *keeper = Some(launch(&self.dir, &self.data, self.port, false, true));
+    }
+}
+
+impl Drop for DedicatedPostgres {
+    fn drop(&mut self) {
+        if let Ok(mut keeper) = self.keeper.lock() {
+            if let Some(mut k) = keeper.take() {
+                // Closing stdin: the keeper stops the server and waits for it.
+                drop(k.stdin.take());
+                let _ = k.wait();
+            }
+        }
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
 }
 
 /// Where Debian keeps a PostgreSQL binary (`/usr/lib/postgresql/<version>/bin` is not on PATH).
@@ -93,7 +171,25 @@ fn as_server_user(program: &Path) -> Command {
 }
 
 fn start() -> TestPostgres {
-    let (initdb, postgres) = (binary("initdb"), binary("postgres"));
+    let (dir, data) = init_cluster();
+    let port = free_port();
+    let keeper = launch(&dir, &data, port, true, false);
+    TestPostgres {
+        port,
+        _keeper: Mutex::new(keeper),
+    }
+}
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .unwrap()
+}
+
+/// A new cluster in a temporary directory: (the directory, its data directory).
+fn init_cluster() -> (PathBuf, PathBuf) {
+    let initdb = binary("initdb");
     let dir = std::env::temp_dir().join(format!(
         "fresa-pg-{}-{}",
         std::process::id(),
@@ -125,16 +221,22 @@ fn start() -> TestPostgres {
         "initdb failed: {}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let port = TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map(|a| a.port())
-        .unwrap();
-    // The shell starts the server, then waits for its stdin to close (this process exiting,
-    // however it exits) and stops the server fast and removes the directory.
+    (dir, data)
+}
+
+/// Starts the server on `data` and returns once it listens on `port`. It runs under a keeper
+/// shell that holds a pipe from this process: when the pipe closes (the returned child's stdin
+/// dropped, or this process exiting however it exits) the keeper stops the server fast, and
+/// removes `dir` if `remove_dir`.
+/// `durable`: commits are on disk (the OS's) before they are answered, so a crash-like stop
+/// loses none; the shared server trades that for speed.
+fn launch(dir: &Path, data: &Path, port: u16, remove_dir: bool, durable: bool) -> Child {
+    let postgres = binary("postgres");
+    // The shell starts the server, then waits for its stdin to close and stops the server.
     let script = format!(
         "{runas} '{pg}' -D '{data}' -p {port} -k '{dir}' -c listen_addresses=127.0.0.1 \
-         -c fsync=off -c synchronous_commit=off -c full_page_writes=off -c max_connections=200 \
-         >'{dir}/log' 2>&1 & pid=$!; cat >/dev/null; kill -INT $pid; wait $pid; rm -rf '{dir}'",
+         -c fsync=off -c synchronous_commit={sync} -c full_page_writes=off -c max_connections=200 \
+         >>'{dir}/log' 2>&1 & pid=$!; cat >/dev/null; kill -INT $pid; wait $pid; {cleanup}",
         // setpriv execs the server itself, so `$!` is the server's pid (runuser would stay in
         // between and not pass the signal on).
         runas = if is_root() {
@@ -143,8 +245,14 @@ fn start() -> TestPostgres {
             ""
         },
         pg = postgres.display(),
+        sync = if durable { "on" } else { "off" },
         data = data.display(),
         dir = dir.display(),
+        cleanup = if remove_dir {
+            format!("rm -rf '{}'", dir.display())
+        } else {
+            String::new()
+        },
     );
     let mut keeper = Command::new("sh")
         .arg("-c")
@@ -168,8 +276,5 @@ fn start() -> TestPostgres {
         );
         std::thread::sleep(Duration::from_millis(20));
     }
-    TestPostgres {
-        port,
-        _keeper: Mutex::new(keeper),
-    }
+    keeper
 }

@@ -7,6 +7,16 @@ use sqlx::FromRow;
 /// Last use is written at most this often per token, so checking a token stays a read.
 const LAST_USED_GRANULARITY_MS: i64 = 60_000;
 
+/// While the database is unreachable, a token it accepted this recently still authenticates, so
+/// an operator's stop, pause or cancel over the network is not refused for want of the token
+/// table (a revocation made meanwhile by another process is seen once the database returns).
+const KNOWN_TOKEN_TTL_MS: i64 = 10 * 60_000;
+
+/// Tokens the database accepted: hash -> (row, expires_at, when it was accepted).
+pub(crate) type KnownTokens = std::sync::Arc<
+    std::sync::Mutex<std::collections::HashMap<String, (TokenRow, Option<i64>, i64)>>,
+>;
+
 #[derive(Debug, Clone, FromRow)]
 pub struct TokenRow {
     pub name: String,
@@ -66,17 +76,33 @@ impl Store {
     /// most once a minute).
     pub async fn token_by_hash(&self, hash: &str) -> Result<Option<TokenRow>> {
         let now = now_ms();
-        let row: Option<(String, String, Option<i64>)> = sqlx::query_as(
-            "SELECT name, role, last_used_at FROM tokens
+        if !self.health.is_up() {
+            return self.known_token(hash, now);
+        }
+        let row: Option<(String, String, Option<i64>, Option<i64>)> = match sqlx::query_as(
+            "SELECT name, role, last_used_at, expires_at FROM tokens
               WHERE hash = $1 AND (expires_at IS NULL OR expires_at > $2)",
         )
         .bind(hash)
         .bind(now)
         .fetch_optional(&self.pool)
-        .await?;
-        let Some((name, role, last_used)) = row else {
+        .await
+        {
+            Ok(row) => row,
+            Err(e) if self.health.observe(&e) => return self.known_token(hash, now),
+            Err(e) => return Err(e),
+        };
+        let Some((name, role, last_used, expires_at)) = row else {
+            self.forget_token(|h, _| h == hash);
             return Ok(None);
         };
+        if let Ok(mut known) = self.known_tokens.lock() {
+            let row = TokenRow {
+                name: name.clone(),
+                role: role.clone(),
+            };
+            known.insert(hash.to_string(), (row, expires_at, now));
+        }
         if last_used.is_none_or(|t| now - t >= LAST_USED_GRANULARITY_MS) {
             // Best effort: a busy database must not turn a valid token into an error.
             if let Err(e) = sqlx::query("UPDATE tokens SET last_used_at = $1 WHERE hash = $2")
@@ -89,6 +115,32 @@ impl Store {
             }
         }
         Ok(Some(TokenRow { name, role }))
+    }
+
+    /// A token the database accepted within [`KNOWN_TOKEN_TTL_MS`], while it is unreachable.
+    fn known_token(&self, hash: &str, now: i64) -> Result<Option<TokenRow>> {
+        let known = self
+            .known_tokens
+            .lock()
+            .ok()
+            .and_then(|k| k.get(hash).cloned());
+        match known {
+            Some((row, expires, accepted))
+                if now - accepted < KNOWN_TOKEN_TTL_MS && expires.is_none_or(|t| t > now) =>
+            {
+                Ok(Some(row))
+            }
+            _ => Err(sqlx::Error::Io(std::io::Error::new(
+                std::io::ErrorKind::NotConnected,
+                "the database is unreachable and this token was not checked recently",
+            ))),
+        }
+    }
+
+    fn forget_token(&self, mut which: impl FnMut(&str, &TokenRow) -> bool) {
+        if let Ok(mut known) = self.known_tokens.lock() {
+            known.retain(|h, (row, _, _)| !which(h, row));
+        }
     }
 
     /// Tokens that can still be used (not expired).
@@ -142,6 +194,7 @@ impl Store {
             .await?
             .rows_affected();
         tx.commit().await?;
+        self.forget_token(|_, row| row.name == name);
         Ok(n > 0)
     }
 }
