@@ -657,7 +657,13 @@ impl<R: BufRead> Interpreter<R> {
         if !self.flow.buffering {
             self.keep_line()?;
         }
-        self.params.sys = sys_view(&self.st, self.g92, self.g92_saved, self.g92_a, self.g92_saved_a);
+        self.params.sys = sys_view(
+            &self.st,
+            self.g92,
+            self.g92_saved,
+            self.g92_a,
+            self.g92_saved_a,
+        );
         let o = flow::parse(&self.line, at).map_err(|e| self.err_at(e))?;
         let mut i = o.rest;
         let b = &self.line;
@@ -1412,7 +1418,13 @@ impl<R: BufRead> Interpreter<R> {
         let pause_here = matches!(m_stop, Some((0 | 10, _)));
         let mut pause_msg = None;
         if let Some((s, e)) = blk.debug {
-            self.params.sys = sys_view(&self.st, self.g92, self.g92_saved, self.g92_a, self.g92_saved_a);
+            self.params.sys = sys_view(
+                &self.st,
+                self.g92,
+                self.g92_saved,
+                self.g92_a,
+                self.g92_saved_a,
+            );
             let text = expr::substitute(&self.line[s..e], &mut self.params)
                 .trim()
                 .to_string();
@@ -1762,9 +1774,10 @@ impl<R: BufRead> Interpreter<R> {
         // 20. motion
         if motion_here && target_a != st.a {
             let why = match st.motion {
-                MotionMode::Cw | MotionMode::Ccw => {
-                    Some((ErrorKind::Unsupported, "A axis motion with an arc (G2/G3) is not supported"))
-                }
+                MotionMode::Cw | MotionMode::Ccw => Some((
+                    ErrorKind::Unsupported,
+                    "A axis motion with an arc (G2/G3) is not supported",
+                )),
                 MotionMode::Cycle(_) => Some((ErrorKind::Invalid, "A axis word in a canned cycle")),
                 MotionMode::Spline(_) => Some((
                     ErrorKind::Invalid,

@@ -239,11 +239,7 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
                 let a_deg = num(a[3]) + g92_a;
                 let feed = if per_rev { feed * rpm } else { feed };
                 moves.push(if name == "STRAIGHT_FEED" {
-                    Canon::Feed {
-                        to,
-                        a: a_deg,
-                        feed,
-                    }
+                    Canon::Feed { to, a: a_deg, feed }
                 } else {
                     Canon::Rapid { to, a: a_deg }
                 });
@@ -350,9 +346,7 @@ fn run_fresa(file: &Path) -> Outcome {
             if spline_line == Some(*line) {
                 continue;
             }
-            let order = source
-                .get(*line as usize - 1)
-                .and_then(|l| spline_order(l));
+            let order = source.get(*line as usize - 1).and_then(|l| spline_order(l));
             if let Some(order) = order {
                 spline_line = Some(*line);
                 moves.push(Canon::Spline { order });
