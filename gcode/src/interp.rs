@@ -2813,7 +2813,7 @@ fn lenient_scan(b: &[u8]) -> Scan {
             b';' => break,
             c => {
                 let up = c & !0x20;
-                if up == b'G' || up == b'X' || up == b'Y' || up == b'Z' {
+                if up == b'G' || up == b'X' || up == b'Y' || up == b'Z' || up == b'A' {
                     let mut j = i + 1;
                     if let Ok(v) = crate::lex::parse_number(b, &mut j) {
                         if up == b'G' {

@@ -518,6 +518,9 @@ fn skipping_never_changes_what_later_lines_do() {
     // An incremental move cannot be skipped either.
     let e = run_cfg("G91\nG0 X1 B5\n", skip.clone()).unwrap_err();
     assert!(e.message.contains("incremental"), "{e}");
+    // Also when only A moves: skipping it would shift every later incremental A move.
+    let e = run_cfg("G91\nG0 A5 B5\n", skip.clone()).unwrap_err();
+    assert!(e.message.contains("incremental"), "{e}");
     // A skipped motion mode makes the following modal lines skip too.
     let mut it = Interpreter::new("G1 X1 F1\nG0 X5 B5\nX6\nG1 X7\n".as_bytes(), skip);
     let ends: Vec<Point> = it.by_ref().filter_map(|m| m.unwrap().end_point()).collect();
