@@ -300,3 +300,46 @@ fn a_linuxcnc_style_program_with_a_loop_a_cycle_and_g92_runs() {
     assert_eq!(st["work_position"]["x"], 30.0, "{st}");
     assert_eq!(st["work_position"]["z"], 10.0, "{st}");
 }
+
+/// The A axis: the upload's analysis gives its range and first line, the sim-machine turns
+/// it (the status shows A, through G92 and G91 as rs274 computes them), and a program that
+/// would turn A past the machine's travel is refused before anything moves, naming the line.
+#[test]
+fn sim_machine_runs_a_axis_moves_and_checks_a_travel() {
+    let s = Server::start();
+    let m = s.sim_with(
+        "rotary",
+        0.0,
+        json!({"config": {
+            "time_scale": 0.0,
+            "execution_log": s.data_dir().join("exec-rotary.log"),
+            "travel": {"a": [-360, 360]},
+        }}),
+    );
+    let program = "G21 G90\nG0 X5 A30\nG1 X10 A90 F600\nG91 G1 A-45\nG90 G92 A0\nG1 A10\nM2\n";
+    let up = s.upload(m.id, "rotary", program);
+    let a = &up["analysis"];
+    assert_eq!(a["first_a_line"], 2, "{a}");
+    assert_eq!(a["a_bounds"]["min"], 0.0, "{a}");
+    assert_eq!(a["a_bounds"]["max"], 90.0, "{a}");
+    assert_eq!(a["offset_changes"][0]["offset_a"], 45.0, "{a}");
+    let id = up["id"].as_i64().unwrap();
+    s.job_action(id, "start").expect(200);
+    s.wait_job_state(id, "completed", T);
+    // A30, A90, -45 -> 45, G92 A0 there (offset 45), A10 -> 55 in machine coordinates.
+    let st = s.status(m.id);
+    assert_eq!(st["machine_position"]["a"], 55.0, "{st}");
+    assert_eq!(st["machine_position"]["x"], 10.0, "{st}");
+
+    // Line 3 would turn A to 400 degrees, past the travel: nothing moves.
+    let executed = m.executed().len();
+    let job = s.upload(m.id, "too-far", "G21 G90\nG0 A100\nG1 X1 A400 F600\n")["id"]
+        .as_i64()
+        .unwrap();
+    let r = s.job_action(job, "start");
+    assert!(r.status >= 400, "{r:?}");
+    assert!(r.text.contains("line 3"), "{}", r.text);
+    let st = s.status(m.id);
+    assert_eq!(st["machine_position"]["a"], 55.0, "nothing moved: {st}");
+    assert_eq!(m.executed().len(), executed, "no line executed");
+}

@@ -247,6 +247,32 @@ fn envelope_violation(protocol: &str) {
     assert!(robot.moves().is_empty());
 }
 
+/// The robot has no A axis: a program that turns A is refused at job start, naming the line,
+/// and the robot receives nothing.
+#[test]
+fn a_axis_program_is_refused_naming_the_line_and_moves_nothing() {
+    let s = Server::start();
+    let robot = Robot::start(s.root(), "fresa-v1", &[]);
+    let m = machine(&s, &robot, "fresa-v1", json!({}));
+    let job = upload(
+        &s,
+        m,
+        "G21 G90\nG0 X0 Y0 Z5\nG1 X10 F600\nG1 X20 A90\nG1 X0\n",
+    );
+    let msg = s
+        .job_action(job, "start")
+        .expect_error(422, "backend_rejected");
+    assert!(msg.contains("line 4") && msg.contains("A axis"), "{msg}");
+    assert_eq!(s.job(job)["state"], "failed");
+    let received: Vec<_> = robot
+        .entries()
+        .into_iter()
+        .filter(|e| e.get("recv").is_some())
+        .collect();
+    assert!(received.is_empty(), "robot received {received:?}");
+    assert!(robot.moves().is_empty());
+}
+
 #[test]
 fn legacy_envelope_violation_moves_nothing() {
     envelope_violation("legacy");

@@ -270,6 +270,18 @@ fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode() {
         r.text
     );
     assert_eq!(dro(&mut mach, 800), 2.0, "nothing moved");
+
+    // The A axis: Mach3 turns it (its A DRO), and the status shows it.
+    let job = s.upload(m, "rotary", "G21 G90\nG1 X3 A45 F600\nG1 A90\nM30\n")["id"]
+        .as_i64()
+        .unwrap();
+    s.job_action(job, "start").expect(200);
+    s.wait_job_state(job, "completed", T);
+    assert_eq!(dro(&mut mach, 803), 90.0, "A DRO");
+    let st = s.wait_status(m, T, "work a 90", |st| {
+        pos(st, "work_position", "a") == 90.0
+    });
+    assert_eq!(pos(&st, "work_position", "x"), 3.0, "{st}");
 }
 
 #[test]

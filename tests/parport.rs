@@ -244,3 +244,29 @@ fn pause_resume_and_resume_after_a_crash_run_every_line_once() {
     assert!(j["line"].as_i64().unwrap() < LINES, "{j}");
     s.wait_machine_state(m, "idle", T);
 }
+
+/// Two steppers and a Z output have no A axis: a program that turns A is refused at job
+/// start naming the line, before any step (no line executed, the position unchanged).
+#[test]
+fn an_a_axis_program_is_refused_naming_the_line_before_anything_moves() {
+    let s = Server::start();
+    let m = parport_machine(&s, "no-a", json!({}));
+    s.wait_machine_state(m, "idle", T);
+    let log = s.data_dir().join("exec-no-a.log");
+    let job = s.upload(
+        m,
+        "rotary.nc",
+        "G21 G90\nG0 X5 Y5\nG1 X10 F600\nG1 X20 A45\nM2\n",
+    )["id"]
+        .as_i64()
+        .unwrap();
+    let msg = s
+        .job_action(job, "start")
+        .expect_error(422, "backend_rejected");
+    assert!(msg.contains("line 4") && msg.contains("A axis"), "{msg}");
+    assert_eq!(s.job(job)["state"], "failed");
+    assert!(read_exec_log(&log).is_empty(), "no line ran");
+    let st = s.status(m);
+    assert_eq!(axis(&st, "machine_position", "x"), 0.0, "{st}");
+    assert_eq!(axis(&st, "machine_position", "y"), 0.0, "{st}");
+}

@@ -392,7 +392,8 @@ fn main() {
 /// its time includes start-up; best of 3 wall-clock runs).
 fn parametric(budget: Duration, smoke: bool) {
     let dir = std::path::Path::new("/usr/share/linuxcnc/ncfiles");
-    let files = ["3D_Chips.ngc", "flowsnake.ngc"];
+    // daisy.ngc turns the A axis, systems.ngc draws with G5.1 splines.
+    let files = ["3D_Chips.ngc", "flowsnake.ngc", "daisy.ngc", "systems.ngc"];
     if !dir.is_dir() {
         println!("\n(parametric programs skipped: /usr/share/linuxcnc/ncfiles missing; apt-get install linuxcnc-uspace)");
         return;
@@ -419,6 +420,10 @@ fn parametric(budget: Duration, smoke: bool) {
             }
             (it.lines_executed(), n)
         };
+        if let Some(e) = Interpreter::new(&src[..], Config::default()).find_map(Result::err) {
+            println!("| {name} | not interpreted: {e} | | | | | |");
+            continue;
+        }
         let (executed, motions) = run();
         let t = measure(budget, || run().0).as_secs_f64();
         let rs = if smoke { None } else { rs274_seconds(&path) };

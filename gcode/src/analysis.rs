@@ -86,6 +86,19 @@ pub struct Analysis {
     /// the work system's frame.
     pub offset_changes: Vec<OffsetChangeNote>,
     pub offset_change_count: u64,
+    /// Range the rotary A axis moves over (degrees, program coordinates),
+    /// `None` if A never moves.
+    pub a_bounds: Option<RotaryBounds>,
+    /// First line with A motion: a machine without an A axis refuses the
+    /// program naming it.
+    pub first_a_line: Option<u32>,
+}
+
+/// Range of the A axis, degrees.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct RotaryBounds {
+    pub min: f64,
+    pub max: f64,
 }
 
 /// One origin change made by the program (see [`Analysis::offset_changes`]).
@@ -96,6 +109,13 @@ pub struct OffsetChangeNote {
     pub command: String,
     /// The offset in effect afterwards, mm (program = work frame - offset).
     pub offset: Point,
+    /// The A axis's offset afterwards, degrees (left out when 0).
+    #[serde(skip_serializing_if = "is_zero")]
+    pub offset_a: f64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 /// Settings for [`analyse`] (missing fields take their defaults when deserialised).
@@ -146,6 +166,8 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
         program_end: false,
         offset_changes: Vec::new(),
         offset_change_count: 0,
+        a_bounds: None,
+        first_a_line: None,
     };
     let rapid_rate = if opts.rapid_mm_min > 0.0 {
         opts.rapid_mm_min
@@ -179,6 +201,13 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
         if let Motion::WorkOffset { system, .. } = m {
             active_system = system;
         }
+        if let Some(r) = m.rotary() {
+            a.first_a_line.get_or_insert(line);
+            let (lo, hi) = (r.from.min(r.to), r.from.max(r.to));
+            let b = a.a_bounds.get_or_insert(RotaryBounds { min: lo, max: hi });
+            b.min = b.min.min(lo);
+            b.max = b.max.max(hi);
+        }
         match m {
             Motion::Rapid { from, to, .. } => {
                 a.rapid_moves += 1;
@@ -189,12 +218,17 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
                 from,
                 to,
                 feed_mm_min,
+                a: rotary,
                 ..
             } => {
                 a.linear_moves += 1;
                 let d = dist(from, to);
                 a.cutting_length_mm += d;
-                feed_minutes += d / feed_mm_min;
+                // A rotary-only move's feed is in degrees per minute.
+                feed_minutes += match rotary {
+                    Some(r) if d == 0.0 => (r.to - r.from).abs() / feed_mm_min,
+                    _ => d / feed_mm_min,
+                };
                 a.max_feed_mm_min = a.max_feed_mm_min.max(feed_mm_min);
                 grow(&mut a.cutting_bounds, from, to);
             }
@@ -217,7 +251,12 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
                 a.tools.push(tool);
             }
             Motion::ProgramEnd { .. } => a.program_end = true,
-            Motion::OffsetChange { line, code, offset } => {
+            Motion::OffsetChange {
+                line,
+                code,
+                offset,
+                offset_a,
+            } => {
                 a.offset_change_count += 1;
                 if a.offset_changes.len() < 100 {
                     a.offset_changes.push(OffsetChangeNote {
@@ -228,6 +267,7 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
                             format!("G{}.{}", code / 10, code % 10)
                         },
                         offset,
+                        offset_a,
                     });
                 }
             }

@@ -325,6 +325,7 @@ impl ArcRun {
             from,
             to,
             feed_mm_min: self.feed,
+            a: None,
         }
     }
 }

@@ -18,6 +18,12 @@ const TOLERANCE_EQUAL: f64 = 1e-4;
 #[derive(Debug, Clone, Copy, Default)]
 pub(crate) struct SysView {
     pub pos: Point,
+    /// A axis (degrees): position, G28/G30 stored, G92 in effect and stored.
+    pub pos_a: f64,
+    pub g28_a: f64,
+    pub g30_a: f64,
+    pub g92_a: f64,
+    pub g92_saved_a: f64,
     pub inch: bool,
     pub absolute: bool,
     /// 0..9 = G54..G59.3.
@@ -89,15 +95,18 @@ impl Params {
         let s = &self.sys;
         match n {
             5161..=5163 => s.g28[n - 5161] / u,
+            5164 => s.g28_a,
             5181..=5183 => s.g30[n - 5181] / u,
+            5184 => s.g30_a,
             5210 => {
-                if s.g92 == [0.0; 3] {
+                if s.g92 == [0.0; 3] && s.g92_a == 0.0 {
                     0.0
                 } else {
                     1.0
                 }
             }
             5211..=5213 => s.g92_saved[n - 5211] / u,
+            5214 => s.g92_saved_a,
             5220 => f64::from(s.coord) + 1.0,
             5221..=5399 => {
                 let k = (n - 5221) / 20;
@@ -110,7 +119,8 @@ impl Params {
             }
             5400 => f64::from(s.tool),
             5420..=5422 => s.pos[n - 5420] / u,
-            5423..=5428 => 0.0,
+            5423 => s.pos_a,
+            5424..=5428 => 0.0,
             _ => self.numbered.get(n).copied().unwrap_or(0.0),
         }
     }
@@ -155,7 +165,8 @@ impl Params {
             "x" => s.pos[0] / u,
             "y" => s.pos[1] / u,
             "z" => s.pos[2] / u,
-            "a" | "b" | "c" | "u" | "v" | "w" => 0.0,
+            "a" => s.pos_a,
+            "b" | "c" | "u" | "v" | "w" => 0.0,
             "metric" => b(!s.inch),
             "imperial" => b(s.inch),
             "absolute" => b(s.absolute),

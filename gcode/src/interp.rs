@@ -12,7 +12,8 @@ use crate::lex::{
     bit, column, lex_line, make_error, Block, LexError, LineKind, POLAR_A, POLAR_MASK, POLAR_R,
 };
 use crate::{
-    Config, ErrorKind, GcodeError, Motion, Plane, Point, SpindleDirection, Unsupported, Warning,
+    Config, ErrorKind, GcodeError, Motion, Plane, Point, RotaryMove, SpindleDirection, Unsupported,
+    Warning,
 };
 use std::f64::consts::TAU;
 use std::io::BufRead;
@@ -73,12 +74,12 @@ impl Queue {
         self.overflow.pop_front()
     }
     #[cold]
-    fn shift_all(&mut self, off: Point) {
+    fn shift_all(&mut self, off: Point, off_a: f64) {
         for m in self.items.iter_mut().flatten() {
-            shift(m, off);
+            shift(m, off, off_a);
         }
         for m in self.overflow.iter_mut() {
-            shift(m, off);
+            shift(m, off, off_a);
         }
     }
     fn clear(&mut self) {
@@ -110,6 +111,8 @@ enum MotionMode {
     Unsupported(u16),
     /// Canned cycle G73, G81, G82, G83, G85, G89 (code * 10).
     Cycle(u16),
+    /// G5 (cubic, 50) or G5.1 (quadratic, 51) spline in the XY plane.
+    Spline(u16),
 }
 
 /// Sticky values of canned cycles (LinuxCNC `cycle_*`), mm / seconds.
@@ -129,6 +132,8 @@ struct CycleState {
 #[derive(Debug, Clone, Copy)]
 struct State {
     pos: Point,
+    /// A axis, degrees, program coordinates.
+    a: f64,
     motion: MotionMode,
     plane: Plane,
     inch: bool,
@@ -149,12 +154,16 @@ struct State {
     coord: u8,
     g28: Point,
     g30: Point,
+    /// A of the G28 / G30 stored positions (degrees, work frame).
+    g28_a: f64,
+    g30_a: f64,
 }
 
 impl State {
     fn new(cfg: &Config) -> Self {
         State {
             pos: cfg.initial_position,
+            a: cfg.initial_a_deg,
             motion: MotionMode::None,
             plane: Plane::XY,
             inch: false,
@@ -170,6 +179,8 @@ impl State {
             coord: 0,
             g28: cfg.g28_position,
             g30: cfg.g30_position,
+            g28_a: 0.0,
+            g30_a: 0.0,
         }
     }
 }
@@ -197,7 +208,13 @@ pub struct Interpreter<R: BufRead> {
     g92: Point,
     /// The stored G92 values (#5211..), which G92.2 keeps and G92.3 restores.
     g92_saved: Point,
+    /// The same for the A axis (degrees).
+    g92_a: f64,
+    g92_saved_a: f64,
     g92_active: bool,
+    /// P and Q of the last G5 (end control point, relative to its end), for
+    /// a following G5 without I and J.
+    spline_pq: Option<(f64, f64)>,
     /// M70's saved modal state; M73's, per call depth, restored on return.
     saved_modal: Option<State>,
     auto_restore: Vec<(usize, State)>,
@@ -233,7 +250,10 @@ impl<R: BufRead> Interpreter<R> {
             },
             g92: [0.0; 3],
             g92_saved: [0.0; 3],
+            g92_a: 0.0,
+            g92_saved_a: 0.0,
             g92_active: false,
+            spline_pq: None,
             saved_modal: None,
             auto_restore: Vec::new(),
             cfg: config,
@@ -289,6 +309,10 @@ impl<R: BufRead> Interpreter<R> {
     /// motions of that line may still be waiting to be yielded.
     pub fn position(&self) -> Point {
         add(self.st.pos, self.g92)
+    }
+    /// A axis position (program coordinates, degrees), like [`Self::position`].
+    pub fn position_a(&self) -> f64 {
+        self.st.a + self.g92_a
     }
     /// The configuration in use.
     pub fn config(&self) -> &Config {
@@ -633,7 +657,13 @@ impl<R: BufRead> Interpreter<R> {
         if !self.flow.buffering {
             self.keep_line()?;
         }
-        self.params.sys = sys_view(&self.st, self.g92, self.g92_saved);
+        self.params.sys = sys_view(
+            &self.st,
+            self.g92,
+            self.g92_saved,
+            self.g92_a,
+            self.g92_saved_a,
+        );
         let o = flow::parse(&self.line, at).map_err(|e| self.err_at(e))?;
         let mut i = o.rest;
         let b = &self.line;
@@ -967,7 +997,8 @@ impl<R: BufRead> Interpreter<R> {
         }
         let st = &self.st;
         let (g92, g92_saved) = (&self.g92, &self.g92_saved);
-        let sys = || sys_view(st, *g92, *g92_saved);
+        let (g92_a, g92_saved_a) = (self.g92_a, self.g92_saved_a);
+        let sys = || sys_view(st, *g92, *g92_saved, g92_a, g92_saved_a);
         let kind = match lex_line(
             &self.line,
             self.cfg.block_delete,
@@ -1109,7 +1140,8 @@ impl<R: BufRead> Interpreter<R> {
         let mut st = self.st;
         // Written back with the state when the line succeeds.
         let mut cycle_new: Option<CycleState> = None;
-        let mut g92_new: Option<(Point, Point)> = None;
+        let mut g92_new: Option<(Point, Point, f64, f64)> = None;
+        let mut spline_pq_new: Option<Option<(f64, f64)>> = None;
 
         // --- classify G words into modal groups -------------------------
         let mut g_motion: Option<(u16, u32)> = None;
@@ -1126,7 +1158,7 @@ impl<R: BufRead> Interpreter<R> {
         let mut g_nonmodal: Option<(u16, u32)> = None;
         for &(code, off) in &blk.g[..blk.ng] {
             let slot = match code {
-                0 | 10 | 20 | 30 | 800 => &mut g_motion,
+                0 | 10 | 20 | 30 | 50 | 51 | 800 => &mut g_motion,
                 730 | 810 | 820 | 830 | 850 | 890 => &mut g_motion,
                 330 | 331 | 382..=385 | 760 | 840 | 860..=880 => {
                     // Remember it so that following modal lines are rejected
@@ -1221,7 +1253,7 @@ impl<R: BufRead> Interpreter<R> {
         }
 
         // --- which words are used --------------------------------------
-        let axis_mask = bit(b'X') | bit(b'Y') | bit(b'Z') | POLAR_MASK;
+        let axis_mask = bit(b'X') | bit(b'Y') | bit(b'Z') | bit(b'A') | POLAR_MASK;
         let has_axes = blk.mask & axis_mask != 0;
         let ijk_mask = bit(b'I') | bit(b'J') | bit(b'K');
         let has_ijk = blk.mask & ijk_mask != 0;
@@ -1260,6 +1292,7 @@ impl<R: BufRead> Interpreter<R> {
                 10 => MotionMode::Linear,
                 20 => MotionMode::Cw,
                 30 => MotionMode::Ccw,
+                50 | 51 => MotionMode::Spline(code),
                 730 | 810 | 820 | 830 | 850 | 890 => MotionMode::Cycle(code),
                 _ => MotionMode::None,
             };
@@ -1324,8 +1357,14 @@ impl<R: BufRead> Interpreter<R> {
         }
         // Words no command on this line uses.
         let arc_motion = motion_here && is_arc;
+        let spline = match st.motion {
+            MotionMode::Spline(code) if motion_here => Some(code),
+            _ => None,
+        };
         if has_r && cycle.is_some() {
             // R of a canned cycle.
+        } else if has_ijk && !has_r && spline.is_some() {
+            // Control point offsets of G5 / G5.1.
         } else if (has_ijk || has_r) && !arc_motion {
             return Err((
                 first_of(blk, ijk_mask | bit(b'R')),
@@ -1337,7 +1376,8 @@ impl<R: BufRead> Interpreter<R> {
             && !(nonmodal == Some(40)
                 || arc_motion
                 || g_path.is_some_and(|g| g.0 == 640)
-                || matches!(cycle, Some(820 | 890)))
+                || matches!(cycle, Some(820 | 890))
+                || spline == Some(50))
         {
             return Err((
                 blk.pos_of(b'P') as usize,
@@ -1348,6 +1388,7 @@ impl<R: BufRead> Interpreter<R> {
         if blk.has(b'Q')
             && g_path.map(|g| g.0) != Some(640)
             && !matches!(cycle, Some(730 | 830))
+            && spline != Some(50)
             && m_set_tool.is_none()
         {
             return Err((
@@ -1377,7 +1418,13 @@ impl<R: BufRead> Interpreter<R> {
         let pause_here = matches!(m_stop, Some((0 | 10, _)));
         let mut pause_msg = None;
         if let Some((s, e)) = blk.debug {
-            self.params.sys = sys_view(&self.st, self.g92, self.g92_saved);
+            self.params.sys = sys_view(
+                &self.st,
+                self.g92,
+                self.g92_saved,
+                self.g92_a,
+                self.g92_saved_a,
+            );
             let text = expr::substitute(&self.line[s..e], &mut self.params)
                 .trim()
                 .to_string();
@@ -1581,6 +1628,18 @@ impl<R: BufRead> Interpreter<R> {
             }
         }
 
+        // A: degrees whatever G20/G21 say; work systems have no A offset.
+        let mut target_a = st.a;
+        if let Some(v) = blk.get(b'A') {
+            target_a = if machine {
+                v - self.g92_a
+            } else if st.absolute {
+                v
+            } else {
+                st.a + v
+            };
+        }
+
         if blk.mask & POLAR_MASK != 0 && !matches!(st.motion, MotionMode::Cycle(_)) {
             if machine {
                 return Err((
@@ -1606,13 +1665,19 @@ impl<R: BufRead> Interpreter<R> {
                     },
                     self.g92,
                 );
-                let mut end;
+                let stored_a = if nonmodal == Some(280) {
+                    st.g28_a
+                } else {
+                    st.g30_a
+                } - self.g92_a;
+                let (mut end, mut end_a);
                 if has_axes {
-                    if target != st.pos {
+                    if target != st.pos || target_a != st.a {
                         queue.push_back(Motion::Rapid {
                             line,
                             from: st.pos,
                             to: target,
+                            a: RotaryMove::between(st.a, target_a),
                         });
                     }
                     end = target;
@@ -1621,18 +1686,31 @@ impl<R: BufRead> Interpreter<R> {
                             end[i] = stored[i];
                         }
                     }
+                    end_a = target_a;
+                    if blk.has(b'A') {
+                        end_a = stored_a;
+                    }
                 } else {
                     end = stored;
+                    end_a = stored_a;
                 }
                 queue.push_back(Motion::Rapid {
                     line,
                     from: target,
                     to: end,
+                    a: RotaryMove::between(target_a, end_a),
                 });
                 st.pos = end;
+                st.a = end_a;
             }
-            Some(281) => st.g28 = add(st.pos, self.g92),
-            Some(301) => st.g30 = add(st.pos, self.g92),
+            Some(281) => {
+                st.g28 = add(st.pos, self.g92);
+                st.g28_a = st.a + self.g92_a;
+            }
+            Some(301) => {
+                st.g30 = add(st.pos, self.g92);
+                st.g30_a = st.a + self.g92_a;
+            }
             // G92 family and G52: the origin moves; motions keep coming out
             // in the work system's frame (`Iterator::next` adds the offset),
             // so no backend has to know about it.
@@ -1665,17 +1743,52 @@ impl<R: BufRead> Interpreter<R> {
                     }
                     st.pos[i] = frame - g92[i];
                 }
-                g92_new = Some((g92, saved));
+                let (mut g92_a, mut saved_a) = (self.g92_a, self.g92_saved_a);
+                let frame_a = st.a + g92_a;
+                match code {
+                    920 | 520 => {
+                        if let Some(v) = blk.get(b'A') {
+                            g92_a = if code == 920 { frame_a - v } else { v };
+                            saved_a = g92_a;
+                        }
+                    }
+                    921 => {
+                        g92_a = 0.0;
+                        saved_a = 0.0;
+                    }
+                    922 => g92_a = 0.0,
+                    _ => g92_a = saved_a,
+                }
+                st.a = frame_a - g92_a;
+                g92_new = Some((g92, saved, g92_a, saved_a));
                 queue.push_back(Motion::OffsetChange {
                     line,
                     code,
                     offset: g92,
+                    offset_a: g92_a,
                 });
             }
             _ => {}
         }
 
         // 20. motion
+        if motion_here && target_a != st.a {
+            let why = match st.motion {
+                MotionMode::Cw | MotionMode::Ccw => Some((
+                    ErrorKind::Unsupported,
+                    "A axis motion with an arc (G2/G3) is not supported",
+                )),
+                MotionMode::Cycle(_) => Some((ErrorKind::Invalid, "A axis word in a canned cycle")),
+                MotionMode::Spline(_) => Some((
+                    ErrorKind::Invalid,
+                    "A axis word with a spline (G5/G5.1 move X and Y only)",
+                )),
+                _ => None,
+            };
+            if let Some((kind, why)) = why {
+                return Err((blk.pos_of(b'A') as usize, kind, why.to_string()));
+            }
+        }
         if motion_here {
             match st.motion {
                 MotionMode::Rapid => {
@@ -1683,19 +1796,53 @@ impl<R: BufRead> Interpreter<R> {
                         line,
                         from: st.pos,
                         to: target,
+                        a: RotaryMove::between(st.a, target_a),
                     });
                 }
                 MotionMode::Linear => {
                     let mut feed = feed_mm_min(&st, blk)?;
                     if st.feed_mode != FeedMode::PerMinute {
-                        feed = feed_in_mode(&st, blk, feed, len3(st.pos, target))?;
+                        // A rotary-only move's length is in degrees (LinuxCNC).
+                        let mut length = len3(st.pos, target);
+                        if length == 0.0 {
+                            length = (target_a - st.a).abs();
+                        }
+                        feed = feed_in_mode(&st, blk, feed, length)?;
                     }
                     queue.push_back(Motion::Linear {
                         line,
                         from: st.pos,
                         to: target,
                         feed_mm_min: feed,
+                        a: RotaryMove::between(st.a, target_a),
                     });
+                }
+                MotionMode::Spline(code) => {
+                    if machine {
+                        let off = g_nonmodal.map_or(0, |g| g.1);
+                        return Err((
+                            off as usize,
+                            ErrorKind::Invalid,
+                            "G53 with a spline".to_string(),
+                        ));
+                    }
+                    let feed = feed_mm_min(&st, blk)?;
+                    spline_pq_new = Some(spline_motion(
+                        &self.cfg,
+                        queue,
+                        &st,
+                        blk,
+                        code,
+                        target,
+                        feed,
+                        scale,
+                        line,
+                        if motion_before == MotionMode::Spline(50) {
+                            self.spline_pq
+                        } else {
+                            None
+                        },
+                    )?);
                 }
                 MotionMode::Cw | MotionMode::Ccw => {
                     if machine {
@@ -1744,6 +1891,7 @@ impl<R: BufRead> Interpreter<R> {
                 MotionMode::None | MotionMode::Unsupported(_) => {}
             }
             st.pos = target;
+            st.a = target_a;
         }
 
         // M70-M73: save, invalidate, restore the modal state (LinuxCNC).
@@ -1791,10 +1939,11 @@ impl<R: BufRead> Interpreter<R> {
             } else {
                 // M2/M30 reset (LinuxCNC): XY plane, absolute, G54, G94,
                 // spindle and coolant off; position is kept.
-                let keep = st.pos;
+                let (keep, keep_a) = (st.pos, st.a);
                 let inch = st.inch;
                 st = State::new(&self.cfg);
                 st.pos = keep;
+                st.a = keep_a;
                 st.inch = inch;
                 // G80 and G99 again; G92 offsets survive M2 (LinuxCNC).
                 cycle_new = Some(CycleState {
@@ -1807,19 +1956,158 @@ impl<R: BufRead> Interpreter<R> {
         if let Some(c) = cycle_new {
             self.cycle = c;
         }
-        if let Some((g92, saved)) = g92_new {
+        if let Some(pq) = spline_pq_new {
+            self.spline_pq = pq;
+        }
+        if let Some((g92, saved, g92_a, saved_a)) = g92_new {
             self.g92 = g92;
             self.g92_saved = saved;
-            self.g92_active = g92 != [0.0; 3];
+            self.g92_a = g92_a;
+            self.g92_saved_a = saved_a;
+            self.g92_active = g92 != [0.0; 3] || g92_a != 0.0;
         }
         if self.g92_active {
             // Into the work system's frame. Lines that change the offset
             // move nothing, so the offset after the line holds for all of
             // its motions.
-            self.queue.shift_all(self.g92);
+            self.queue.shift_all(self.g92, self.g92_a);
         }
         Ok(())
     }
+}
+
+/// Most chords one spline line may make: bounds the memory a line can take.
+const MAX_SPLINE_CHORDS: f64 = 1_000_000.0;
+
+/// G5 (cubic) / G5.1 (quadratic) spline in the XY plane as chords within
+/// the arc tolerance (LinuxCNC's NURBS_FEED of order 4 / 3: Bézier curves
+/// from the current point to X/Y, control points at I/J from the start and
+/// P/Q from the end). Returns the P/Q a following G5 continues from.
+#[cold]
+#[allow(clippy::too_many_arguments)]
+fn spline_motion(
+    cfg: &Config,
+    queue: &mut Queue,
+    st: &State,
+    blk: &Block,
+    code: u16,
+    to: Point,
+    feed: f64,
+    scale: f64,
+    line: u32,
+    continue_from: Option<(f64, f64)>,
+) -> Result<Option<(f64, f64)>, LexError> {
+    let name = if code == 50 { "G5" } else { "G5.1" };
+    let at = first_of(blk, bit(b'X') | bit(b'Y') | bit(b'I') | bit(b'J'));
+    let invalid = |at: usize, m: String| (at, ErrorKind::Invalid, m);
+    if st.plane != Plane::XY {
+        return Err(invalid(at, format!("{name} needs the XY plane (G17)")));
+    }
+    if blk.has(b'Z') {
+        return Err(invalid(
+            blk.pos_of(b'Z') as usize,
+            format!("{name} moves X and Y only (Z word given)"),
+        ));
+    }
+    if blk.mask & POLAR_MASK != 0 {
+        return Err(invalid(at, format!("polar coordinates with {name}")));
+    }
+    let from = st.pos;
+    let p0 = [from[0], from[1]];
+    let p3 = [to[0], to[1]];
+    let (ctrl, pq) = if code == 51 {
+        let (i, j) = (blk.get(b'I'), blk.get(b'J'));
+        let (i, j) = (i.unwrap_or(0.0) * scale, j.unwrap_or(0.0) * scale);
+        if i == 0.0 && j == 0.0 {
+            return Err(invalid(
+                at,
+                "G5.1 needs an I or J control point offset (not both zero)".to_string(),
+            ));
+        }
+        ([p0[0] + i, p0[1] + j], None)
+    } else {
+        let (Some(p), Some(q)) = (blk.get(b'P'), blk.get(b'Q')) else {
+            return Err(invalid(at, "G5 needs both P and Q".to_string()));
+        };
+        let (p, q) = (p * scale, q * scale);
+        let (i, j) = match (blk.get(b'I'), blk.get(b'J'), continue_from) {
+            (Some(i), Some(j), _) => (i * scale, j * scale),
+            (None, None, Some((p, q))) => (-p, -q),
+            (None, None, None) => {
+                return Err(invalid(
+                    at,
+                    "G5 needs I and J unless it continues a previous G5".to_string(),
+                ))
+            }
+            _ => return Err(invalid(at, "G5 needs both I and J, or neither".to_string())),
+        };
+        ([p0[0] + i, p0[1] + j], Some((p, q)))
+    };
+    // Bézier control polygon: cubic (p0, c1, c2, p3) or quadratic (p0, c1, p3).
+    let c2 = pq.map(|(p, q)| [p3[0] + p, p3[1] + q]);
+    let d2 = |a: [f64; 2], b: [f64; 2], c: [f64; 2]| {
+        len2(a[0] - 2.0 * b[0] + c[0], a[1] - 2.0 * b[1] + c[1])
+    };
+    // Largest second derivative over the curve: a chord of parameter step h
+    // deviates at most M h^2 / 8 from it.
+    let m = match c2 {
+        Some(c2) => 6.0 * d2(p0, ctrl, c2).max(d2(ctrl, c2, p3)),
+        None => 2.0 * d2(p0, ctrl, p3),
+    };
+    let tol = cfg.arc_tolerance_mm.max(crate::MIN_TOLERANCE_MM);
+    let n = (m / (8.0 * tol)).sqrt().ceil().max(1.0);
+    if !n.is_finite() || n > MAX_SPLINE_CHORDS {
+        return Err(invalid(
+            at,
+            format!("{name} would make more than {MAX_SPLINE_CHORDS} chords"),
+        ));
+    }
+    let n = n as u32;
+    let eval = |t: f64| -> [f64; 2] {
+        let u = 1.0 - t;
+        match c2 {
+            Some(c2) => {
+                let (b0, b1, b2, b3) = (u * u * u, 3.0 * u * u * t, 3.0 * u * t * t, t * t * t);
+                [
+                    b0 * p0[0] + b1 * ctrl[0] + b2 * c2[0] + b3 * p3[0],
+                    b0 * p0[1] + b1 * ctrl[1] + b2 * c2[1] + b3 * p3[1],
+                ]
+            }
+            None => {
+                let (b0, b1, b2) = (u * u, 2.0 * u * t, t * t);
+                [
+                    b0 * p0[0] + b1 * ctrl[0] + b2 * p3[0],
+                    b0 * p0[1] + b1 * ctrl[1] + b2 * p3[1],
+                ]
+            }
+        }
+    };
+    let point = |k: u32| -> Point {
+        if k == n {
+            return to;
+        }
+        let p = eval(f64::from(k) / f64::from(n));
+        [p[0], p[1], from[2]]
+    };
+    let feed = if st.feed_mode == FeedMode::PerMinute {
+        feed
+    } else {
+        let length: f64 = (1..=n).map(|k| len3(point(k - 1), point(k))).sum();
+        feed_in_mode(st, blk, feed, length)?
+    };
+    let mut prev = from;
+    for k in 1..=n {
+        let next = point(k);
+        queue.push_back(Motion::Linear {
+            line,
+            from: prev,
+            to: next,
+            feed_mm_min: feed,
+            a: None,
+        });
+        prev = next;
+    }
+    Ok(pq)
 }
 
 #[inline]
@@ -2011,6 +2299,7 @@ fn canned_cycle(
             line,
             from: *at,
             to,
+            a: None,
         });
         *at = to;
     };
@@ -2020,6 +2309,7 @@ fn canned_cycle(
             from: *at,
             to,
             feed_mm_min: feed,
+            a: None,
         });
         *at = to;
     };
@@ -2133,12 +2423,16 @@ fn restore_modal(cfg: &Config, queue: &mut Queue, st: &mut State, saved: &State,
             flood: saved.flood,
         });
     }
-    let (pos, tool, g28, g30) = (st.pos, st.tool, st.g28, st.g30);
+    let (pos, a, tool, g28, g30) = (st.pos, st.a, st.tool, st.g28, st.g30);
+    let (g28_a, g30_a) = (st.g28_a, st.g30_a);
     *st = *saved;
     st.pos = pos;
+    st.a = a;
     st.tool = tool;
     st.g28 = g28;
     st.g30 = g30;
+    st.g28_a = g28_a;
+    st.g30_a = g30_a;
 }
 
 /// X and Y of a move written with LinuxCNC's polar words (`@` radius, `^`
@@ -2197,11 +2491,15 @@ fn sub(a: Point, b: Point) -> Point {
 
 /// A motion from program coordinates into the work system's frame.
 #[cold]
-fn shift(m: &mut Motion, off: Point) {
+fn shift(m: &mut Motion, off: Point, off_a: f64) {
     match m {
-        Motion::Rapid { from, to, .. } | Motion::Linear { from, to, .. } => {
+        Motion::Rapid { from, to, a, .. } | Motion::Linear { from, to, a, .. } => {
             *from = add(*from, off);
             *to = add(*to, off);
+            if let Some(a) = a {
+                a.from += off_a;
+                a.to += off_a;
+            }
         }
         Motion::Arc {
             from, to, centre, ..
@@ -2215,9 +2513,14 @@ fn shift(m: &mut Motion, off: Point) {
 }
 
 /// What system parameters (#5420, `#<_x>`, ...) read.
-fn sys_view(st: &State, g92: Point, g92_saved: Point) -> SysView {
+fn sys_view(st: &State, g92: Point, g92_saved: Point, g92_a: f64, g92_saved_a: f64) -> SysView {
     SysView {
         pos: st.pos,
+        pos_a: st.a,
+        g28_a: st.g28_a,
+        g30_a: st.g30_a,
+        g92_a,
+        g92_saved_a,
         inch: st.inch,
         absolute: st.absolute,
         coord: st.coord,
@@ -2239,7 +2542,9 @@ fn sys_view(st: &State, g92: Point, g92_saved: Point) -> SysView {
             MotionMode::Cw => 20,
             MotionMode::Ccw => 30,
             MotionMode::None => 800,
-            MotionMode::Unsupported(c) | MotionMode::Cycle(c) => i32::from(c),
+            MotionMode::Unsupported(c) | MotionMode::Cycle(c) | MotionMode::Spline(c) => {
+                i32::from(c)
+            }
         },
     }
 }
@@ -2508,7 +2813,7 @@ fn lenient_scan(b: &[u8]) -> Scan {
             b';' => break,
             c => {
                 let up = c & !0x20;
-                if up == b'G' || up == b'X' || up == b'Y' || up == b'Z' {
+                if up == b'G' || up == b'X' || up == b'Y' || up == b'Z' || up == b'A' {
                     let mut j = i + 1;
                     if let Ok(v) = crate::lex::parse_number(b, &mut j) {
                         if up == b'G' {

@@ -262,6 +262,7 @@ fn number_expected(b: &[u8], j: usize) -> String {
 
 /// Letters the interpreter understands; others are unsupported words.
 const SUPPORTED: u32 = bit(b'N')
+    | bit(b'A')
     | bit(b'G')
     | bit(b'M')
     | bit(b'X')
@@ -527,9 +528,9 @@ fn unexpected(b: &[u8], i: usize) -> String {
 #[cold]
 fn unsupported_letter(up: u8) -> String {
     match up {
-        b'A' | b'B' | b'C' | b'U' | b'V' | b'W' => {
+        b'B' | b'C' | b'U' | b'V' | b'W' => {
             format!(
-                "axis word {} is not supported (3-axis X/Y/Z only)",
+                "axis word {} is not supported (X/Y/Z and the rotary A axis only)",
                 up as char
             )
         }

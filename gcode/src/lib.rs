@@ -52,7 +52,7 @@ mod flow;
 mod interp;
 mod lex;
 
-pub use analysis::{analyse, Analysis, AnalysisOptions, Bounds, OffsetChangeNote};
+pub use analysis::{analyse, Analysis, AnalysisOptions, Bounds, OffsetChangeNote, RotaryBounds};
 pub use arc::{linearise, segments_for, ArcGeometry, Linearise, MIN_TOLERANCE_MM};
 pub use interp::Interpreter;
 
@@ -61,8 +61,26 @@ use serde::{Deserialize, Serialize};
 /// X, Y, Z in millimetres.
 pub type Point = [f64; 3];
 
+/// Travel of the rotary A axis (degrees, program coordinates) during one
+/// move. Moves carry it only when A changes, so a consumer without an A axis
+/// refuses exactly the moves that need one. A moves linearly with the XYZ
+/// path, start to end, as in LinuxCNC.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct RotaryMove {
+    pub from: f64,
+    pub to: f64,
+}
+
+impl RotaryMove {
+    /// `Some` if A moves from `from` to `to`.
+    #[inline]
+    pub fn between(from: f64, to: f64) -> Option<Self> {
+        (from != to).then_some(RotaryMove { from, to })
+    }
+}
+
 /// What to do with words the interpreter does not implement (cutter
-/// compensation, G10, splines, A/B/C axes, probing, ...).
+/// compensation, G10, B/C/U/V/W axes, probing, ...).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub enum Unsupported {
     /// Stop with a [`GcodeError`] naming line and column (default: never guess).
@@ -91,6 +109,8 @@ pub struct Config {
     pub g30_position: Point,
     /// Position assumed before the first move (program coordinates, mm).
     pub initial_position: Point,
+    /// A axis position assumed before the first move (degrees).
+    pub initial_a_deg: f64,
     /// Machine-coordinate origin of G54..G59, G59.1..G59.3 (index 0..9), mm.
     /// Only used to convert G53 moves and work-system switches into program
     /// coordinates; all zeros (the default) means "same origin".
@@ -137,6 +157,7 @@ impl Default for Config {
             g28_position: [0.0; 3],
             g30_position: [0.0; 3],
             initial_position: [0.0; 3],
+            initial_a_deg: 0.0,
             work_offsets: [[0.0; 3]; 9],
             block_delete: true,
             stop_at_program_end: true,
@@ -195,14 +216,24 @@ pub enum SpindleDirection {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 #[serde(tag = "type")]
 pub enum Motion {
-    /// G0 (also G28/G30 legs and G53 G0).
-    Rapid { line: u32, from: Point, to: Point },
-    /// G1 or one chord of a linearised arc.
+    /// G0 (also G28/G30 legs and G53 G0). `a`: the A axis's travel, when it moves.
+    Rapid {
+        line: u32,
+        from: Point,
+        to: Point,
+        #[serde(skip_serializing_if = "Option::is_none")]
+        a: Option<RotaryMove>,
+    },
+    /// G1, one chord of a linearised arc, or of a G5/G5.1 spline. `a`: the
+    /// A axis's travel, when it moves; the feed is along XYZ, or in
+    /// degrees/min when only A moves (LinuxCNC's rule).
     Linear {
         line: u32,
         from: Point,
         to: Point,
         feed_mm_min: f64,
+        #[serde(skip_serializing_if = "Option::is_none")]
+        a: Option<RotaryMove>,
     },
     /// G2/G3. `centre` has the start's coordinate on the plane normal; the
     /// normal axis moves linearly with angle (helix). `sweep_rad` is the total
@@ -253,7 +284,18 @@ pub enum Motion {
     /// motion already include it (they stay in the active work system's
     /// frame), so a backend needs to do nothing; it is reported for the
     /// analysis and the operator.
-    OffsetChange { line: u32, code: u16, offset: Point },
+    /// `offset_a`: the same for the A axis (degrees), left out of JSON when 0.
+    OffsetChange {
+        line: u32,
+        code: u16,
+        offset: Point,
+        #[serde(skip_serializing_if = "is_zero")]
+        offset_a: f64,
+    },
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 impl Motion {
@@ -274,6 +316,15 @@ impl Motion {
             | Motion::Pause { line, .. }
             | Motion::OffsetChange { line, .. }
             | Motion::ProgramEnd { line } => *line,
+        }
+    }
+
+    /// The A axis's travel of a rapid or linear move, if A moves.
+    #[inline]
+    pub fn rotary(&self) -> Option<RotaryMove> {
+        match self {
+            Motion::Rapid { a, .. } | Motion::Linear { a, .. } => *a,
+            _ => None,
         }
     }
 

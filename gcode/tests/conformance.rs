@@ -80,25 +80,31 @@ const KNOWN: &[(&str, &str)] = &[
         "shared/cncjs-helical-thread-milling.gcode",
         "cutter radius compensation (G42 D08) not implemented yet",
     ),
-    ("ncfiles/daisy.ngc", "A axis not implemented yet"),
     (
         "ncfiles/mmount.ngc",
         "cutter radius compensation (G41) not implemented yet",
-    ),
-    (
-        "ncfiles/systems.ngc",
-        "G5.1 splines and G10 L2 (offsets written by the program) not implemented yet",
     ),
 ];
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Canon {
+    /// `a`: the A axis (degrees).
     Rapid {
         to: [f64; 3],
+        a: f64,
     },
     Feed {
         to: [f64; 3],
+        a: f64,
         feed: f64,
+    },
+    /// A G5/G5.1 spline: rs274 prints `NURBS_FEED(order, ...)` without its
+    /// points, Fresa its chords (collapsed here to one entry per line).
+    /// Compared by order; the end point shows in the moves that follow
+    /// (the focused spline programs continue with incremental moves), and
+    /// tests/splines.rs checks the chords against the curve.
+    Spline {
+        order: u8,
     },
     /// End and centre in XYZ; `rotation` > 0 counter-clockwise turns, < 0 clockwise.
     Arc {
@@ -174,6 +180,7 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
                                 // rs274 prints program coordinates (G92/G52 offset taken off); Fresa's
                                 // motions are in the work system's frame (offset included).
     let mut g92 = [0.0; 3];
+    let mut g92_a = 0.0;
     // G95: rs274 prints the feed per revolution; Fresa's motions carry mm/min.
     let (mut per_rev, mut rpm) = (false, 0.0);
     let mut plane = 0u8;
@@ -205,6 +212,7 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
             "SET_SPINDLE_SPEED" => rpm = num(a[1]),
             "SET_G92_OFFSET" => {
                 g92 = [num(a[0]) * scale, num(a[1]) * scale, num(a[2]) * scale];
+                g92_a = num(a[3]);
             }
             "SET_FEED_RATE" => {
                 feed = num(a[0]) * scale;
@@ -224,14 +232,16 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
                     num(a[1]) * scale + g92[1],
                     num(a[2]) * scale + g92[2],
                 ];
-                if a.len() > 3 && a[3..6].iter().any(|v| num(v) != 0.0) {
-                    other.push(format!("{name} with A/B/C"));
+                if a.len() > 3 && a[4..6].iter().any(|v| num(v) != 0.0) {
+                    other.push(format!("{name} with B/C"));
                 }
+                // A is in degrees whatever the length units.
+                let a_deg = num(a[3]) + g92_a;
                 let feed = if per_rev { feed * rpm } else { feed };
                 moves.push(if name == "STRAIGHT_FEED" {
-                    Canon::Feed { to, feed }
+                    Canon::Feed { to, a: a_deg, feed }
                 } else {
-                    Canon::Rapid { to }
+                    Canon::Rapid { to, a: a_deg }
                 });
             }
             "ARC_FEED" => {
@@ -264,7 +274,13 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
                     feed: if per_rev { feed * rpm } else { feed },
                 });
             }
-            "STRAIGHT_PROBE" | "NURBS_FEED" | "RIGID_TAP" => other.push(name.to_string()),
+            "NURBS_FEED" => {
+                feed_number = None;
+                moves.push(Canon::Spline {
+                    order: num(a[0]) as u8,
+                })
+            }
+            "STRAIGHT_PROBE" | "RIGID_TAP" => other.push(name.to_string()),
             _ => {}
         }
     }
@@ -291,17 +307,65 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
     }
 }
 
+/// Order of the spline a source line programs (G5: 4, G5.1: 3), if any.
+fn spline_order(line: &str) -> Option<u8> {
+    let t: String = line
+        .split(['(', ';'])
+        .next()
+        .unwrap_or("")
+        .chars()
+        .filter(|c| !c.is_whitespace())
+        .collect::<String>()
+        .to_uppercase();
+    let mut rest = t.as_str();
+    while let Some(i) = rest.find("G5") {
+        let after = &rest[i + 2..];
+        if after.starts_with(".1") {
+            return Some(3);
+        }
+        if !after.starts_with(|c: char| c.is_ascii_digit() || c == '.') {
+            return Some(4);
+        }
+        rest = after;
+    }
+    None
+}
+
 fn run_fresa(file: &Path) -> Outcome {
     let f = std::fs::File::open(file).unwrap();
+    let source: Vec<String> = String::from_utf8_lossy(&std::fs::read(file).unwrap())
+        .lines()
+        .map(str::to_string)
+        .collect();
     let mut moves = Vec::new();
     let mut error = None;
+    let mut a_deg = 0.0;
+    let mut spline_line = None;
     for m in Interpreter::new(std::io::BufReader::new(f), Config::default()) {
+        if let Ok(Motion::Linear { line, .. }) = &m {
+            if spline_line == Some(*line) {
+                continue;
+            }
+            let order = source.get(*line as usize - 1).and_then(|l| spline_order(l));
+            if let Some(order) = order {
+                spline_line = Some(*line);
+                moves.push(Canon::Spline { order });
+                continue;
+            }
+        }
+        spline_line = None;
+        if let Ok(m) = &m {
+            if let Some(r) = m.rotary() {
+                a_deg = r.to;
+            }
+        }
         match m {
-            Ok(Motion::Rapid { to, .. }) => moves.push(Canon::Rapid { to }),
+            Ok(Motion::Rapid { to, .. }) => moves.push(Canon::Rapid { to, a: a_deg }),
             Ok(Motion::Linear {
                 to, feed_mm_min, ..
             }) => moves.push(Canon::Feed {
                 to,
+                a: a_deg,
                 feed: feed_mm_min,
             }),
             Ok(Motion::Arc {
@@ -348,12 +412,18 @@ fn run_fresa(file: &Path) -> Outcome {
 fn normalise(moves: &[Canon]) -> Vec<Canon> {
     let mut out = Vec::with_capacity(moves.len());
     // Both start at program zero.
-    let mut at: Option<[f64; 3]> = Some([0.0; 3]);
+    let mut at: Option<[f64; 4]> = Some([0.0; 4]);
     for m in moves {
         let to = match *m {
-            Canon::Rapid { to } | Canon::Feed { to, .. } | Canon::Arc { to, .. } => to,
+            Canon::Rapid { to, a } | Canon::Feed { to, a, .. } => [to[0], to[1], to[2], a],
+            Canon::Arc { to, .. } => [to[0], to[1], to[2], at.map_or(0.0, |p| p[3])],
+            Canon::Spline { .. } => {
+                out.push(*m);
+                at = None;
+                continue;
+            }
         };
-        let still = at.is_some_and(|p| (0..3).all(|i| (p[i] - to[i]).abs() < 1e-9));
+        let still = at.is_some_and(|p| (0..4).all(|i| (p[i] - to[i]).abs() < 1e-9));
         if still && !matches!(m, Canon::Arc { .. }) {
             continue;
         }
@@ -372,10 +442,22 @@ fn compare(reference: &[Canon], ours: &[Canon], scale: f64) -> Option<String> {
     let pt = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| close(*x, *y, scale));
     for (i, (r, o)) in reference.iter().zip(ours).enumerate() {
         let same = match (r, o) {
-            (Canon::Rapid { to: a }, Canon::Rapid { to: b }) => pt(a, b),
-            (Canon::Feed { to: a, feed: fa }, Canon::Feed { to: b, feed: fb }) => {
-                pt(a, b) && close(*fa, *fb, scale)
+            (Canon::Rapid { to: a, a: aa }, Canon::Rapid { to: b, a: ab }) => {
+                pt(a, b) && close(*aa, *ab, 1.0)
             }
+            (
+                Canon::Feed {
+                    to: a,
+                    a: aa,
+                    feed: fa,
+                },
+                Canon::Feed {
+                    to: b,
+                    a: ab,
+                    feed: fb,
+                },
+            ) => pt(a, b) && close(*aa, *ab, 1.0) && close(*fa, *fb, scale),
+            (Canon::Spline { order: a }, Canon::Spline { order: b }) => a == b,
             (
                 Canon::Arc {
                     to: a,

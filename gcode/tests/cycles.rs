@@ -117,7 +117,7 @@ fn g92_and_g52_shift_the_origin_and_the_analysis_shows_it() {
     );
     assert!(matches!(
         m[1],
-        Motion::OffsetChange { line: 2, code: 920, offset } if offset == [10.0, 0.0, 0.0]
+        Motion::OffsetChange { line: 2, code: 920, offset, .. } if offset == [10.0, 0.0, 0.0]
     ));
     let a = analyse(src.as_bytes(), &AnalysisOptions::default()).unwrap();
     assert_eq!(a.offset_change_count, 5);

@@ -39,7 +39,8 @@ fn rapid_and_linear_with_modal_continuation() {
         Motion::Rapid {
             line: 1,
             from: [0.0; 3],
-            to: [1.0, 2.0, 0.0]
+            to: [1.0, 2.0, 0.0],
+            a: None
         }
     );
     assert_eq!(
@@ -47,7 +48,8 @@ fn rapid_and_linear_with_modal_continuation() {
         Motion::Rapid {
             line: 2,
             from: [1.0, 2.0, 0.0],
-            to: [1.0, 2.0, 3.0]
+            to: [1.0, 2.0, 3.0],
+            a: None
         }
     );
     assert_eq!(
@@ -56,7 +58,8 @@ fn rapid_and_linear_with_modal_continuation() {
             line: 4,
             from: [4.0, 2.0, 3.0],
             to: [4.0, 5.0, 3.0],
-            feed_mm_min: 100.0
+            feed_mm_min: 100.0,
+            a: None
         }
     );
 }
@@ -309,8 +312,14 @@ fn inverse_time_and_unsupported_words_are_clear_errors() {
     assert_eq!((e.column, e.kind), (5, ErrorKind::Syntax), "at the '['");
     let e = err("G0 X#<nope>\n");
     assert!(e.message.contains("not defined"), "{e}");
-    let e = err("G0 A5\n");
+    let e = err("G0 B5\n");
     assert_eq!(e.column, 4);
+    assert!(e.message.contains("axis word B"), "{e}");
+    for w in ["C", "U", "V", "W"] {
+        let e = err(&format!("G0 X1 {w}2\n"));
+        assert_eq!(e.column, 7);
+        assert!(e.message.contains(&format!("axis word {w}")), "{e}");
+    }
     assert!(err("G41 D1\n").message.contains("not supported"));
     assert!(err("G10 L2 P1 X0\n").message.contains("G10"));
     assert!(err("M62 P1\n").message.contains("M62"));
@@ -323,7 +332,7 @@ fn skip_with_warning_skips_whole_line_and_canned_cycle_lines() {
         ..Config::default()
     };
     let mut it = Interpreter::new(
-        "G0 X1\nG84 X5 Y5 Z-1 R1 F100\nX6\nG80\nG0 X2 A1\nG0 X3\n".as_bytes(),
+        "G0 X1\nG84 X5 Y5 Z-1 R1 F100\nX6\nG80\nG0 X2 B1\nG0 X3\n".as_bytes(),
         cfg,
     );
     let m: Vec<Motion> = it.by_ref().collect::<Result<_, _>>().unwrap();
@@ -502,15 +511,18 @@ fn skipping_never_changes_what_later_lines_do() {
         ..Config::default()
     };
     // A skipped line that sets a modal group later lines depend on is an error.
-    for src in ["G91 G0 X1 A5\n", "G20 A1\n", "G18 B1\n", "G55 C2\n"] {
+    for src in ["G91 G0 X1 B5\n", "G20 B1\n", "G18 B1\n", "G55 C2\n"] {
         let e = run_cfg(src, skip.clone()).unwrap_err();
         assert!(e.message.contains("cannot be skipped"), "{src}: {e}");
     }
     // An incremental move cannot be skipped either.
-    let e = run_cfg("G91\nG0 X1 A5\n", skip.clone()).unwrap_err();
+    let e = run_cfg("G91\nG0 X1 B5\n", skip.clone()).unwrap_err();
+    assert!(e.message.contains("incremental"), "{e}");
+    // Also when only A moves: skipping it would shift every later incremental A move.
+    let e = run_cfg("G91\nG0 A5 B5\n", skip.clone()).unwrap_err();
     assert!(e.message.contains("incremental"), "{e}");
     // A skipped motion mode makes the following modal lines skip too.
-    let mut it = Interpreter::new("G1 X1 F1\nG0 X5 A5\nX6\nG1 X7\n".as_bytes(), skip);
+    let mut it = Interpreter::new("G1 X1 F1\nG0 X5 B5\nX6\nG1 X7\n".as_bytes(), skip);
     let ends: Vec<Point> = it.by_ref().filter_map(|m| m.unwrap().end_point()).collect();
     assert_eq!(ends, vec![[1.0, 0.0, 0.0], [7.0, 0.0, 0.0]]);
     assert_eq!(it.warnings().len(), 2);

@@ -111,7 +111,7 @@ proptest! {
         let eps = 1e-9 * (1.0 + c.radius + centre.iter().fold(0.0f64, |m, v| m.max(v.abs())));
         let mut prev = from;
         for (k, m) in segs.iter().enumerate() {
-            let Motion::Linear { from: f, to: t, feed_mm_min, line } = *m else {
+            let Motion::Linear { from: f, to: t, feed_mm_min, line, a: _ } = *m else {
                 return Err(TestCaseError::fail("not a line"));
             };
             prop_assert_eq!(line, 7);

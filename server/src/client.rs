@@ -739,6 +739,12 @@ pub fn gcode(cmd: GcodeCmd) -> Res {
             );
             println!("  cutting bounds   {}", fmt_b(&a.cutting_bounds));
             println!("  rapid bounds     {}", fmt_b(&a.rapid_bounds));
+            if let (Some(b), Some(line)) = (a.a_bounds, a.first_a_line) {
+                println!(
+                    "  A axis           {:.3}..{:.3} deg (first A move on line {line})",
+                    b.min, b.max
+                );
+            }
             println!(
                 "  path length      {:.1} mm cutting, {:.1} mm rapid",
                 a.cutting_length_mm, a.rapid_length_mm

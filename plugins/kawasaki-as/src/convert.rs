@@ -230,6 +230,19 @@ impl Convert {
         for motion in linearise(&mut interp, self.arc_tolerance_mm) {
             let motion = motion?;
             let line = motion.line().clamp(1, lines.max(1));
+            // The robot's six joints place the tool in X/Y/Z only; a program that turns a
+            // rotary table is refused whole, before anything moves.
+            if let Some(a) = motion.rotary() {
+                return Err(GcodeError {
+                    line,
+                    column: 1,
+                    kind: fresa_gcode::ErrorKind::Unsupported,
+                    message: format!(
+                        "A axis motion (to A{}): the Kawasaki robot has no A axis",
+                        a.to
+                    ),
+                });
+            }
             match motion {
                 Motion::Rapid { to, .. } => cmds.push((
                     line,

@@ -94,8 +94,10 @@ impl Default for SimConfig {
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Step {
     /// To a point in program (work) coordinates; rapid when `feed` is `None`.
+    /// `a`: where the A axis ends (degrees), when the move turns it.
     Move {
         to: [f64; 3],
+        a: Option<f64>,
         feed: Option<f64>,
     },
     Dwell(f64),
@@ -290,10 +292,13 @@ impl State {
         self.cursor += 1;
         self.line = line.saturating_sub(1) as usize;
         match step {
-            Step::Move { to, feed } => {
+            Step::Move { to, a, feed } => {
                 let mut target = self.pos;
                 for i in 0..3 {
                     target[i] = to[i] + self.fixtures[self.fixture][i];
+                }
+                if let Some(a) = a {
+                    target[3] = a + self.fixtures[self.fixture][3];
                 }
                 if let Some(f) = feed {
                     self.feed = f;
@@ -496,6 +501,7 @@ impl State {
         })?;
         let mut config = fresa_gcode::Config {
             initial_position: [self.work(0), self.work(1), self.work(2)],
+            initial_a_deg: self.work(3),
             ..Default::default()
         };
         for (i, f) in self.fixtures.iter().enumerate() {
@@ -504,18 +510,28 @@ impl State {
         let mut steps = Vec::new();
         let mut estimate_s = 0.0;
         let mut at = config.initial_position;
+        let mut at_a = config.initial_a_deg;
         for m in linearise(Interpreter::new(text.as_bytes(), config), 0.01) {
             let m = m.map_err(|e| Mach3Error::invalid(e.to_string()))?;
             let line = m.line();
             let step = match m {
-                Motion::Rapid { to, .. } => Step::Move { to, feed: None },
+                Motion::Rapid { to, a, .. } => Step::Move {
+                    to,
+                    a: a.map(|a| a.to),
+                    feed: None,
+                },
                 Motion::Linear {
-                    to, feed_mm_min, ..
-                }
-                | Motion::Arc {
+                    to, feed_mm_min, a, ..
+                } => Step::Move {
+                    to,
+                    a: a.map(|a| a.to),
+                    feed: Some(feed_mm_min),
+                },
+                Motion::Arc {
                     to, feed_mm_min, ..
                 } => Step::Move {
                     to,
+                    a: None,
                     feed: Some(feed_mm_min),
                 },
                 Motion::Dwell { seconds, .. } => Step::Dwell(seconds.max(0.0)),
@@ -528,14 +544,16 @@ impl State {
                 Motion::ProgramEnd { .. } => Step::End,
                 _ => continue,
             };
-            if let Step::Move { to, feed } = step {
+            if let Step::Move { to, a, feed } = step {
                 let f = feed.unwrap_or(self.cfg.rapid_mm_min);
+                let a = a.unwrap_or(at_a);
                 estimate_s += seconds(
-                    &[at[0], at[1], at[2], 0.0, 0.0, 0.0],
-                    &[to[0], to[1], to[2], 0.0, 0.0, 0.0],
+                    &[at[0], at[1], at[2], at_a, 0.0, 0.0],
+                    &[to[0], to[1], to[2], a, 0.0, 0.0],
                     f,
                 );
                 at = to;
+                at_a = a;
             }
             steps.push((line, step));
         }

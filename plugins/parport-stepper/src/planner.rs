@@ -653,6 +653,14 @@ pub fn plan_program(
     for motion in linearise(interp, ARC_TOLERANCE_MM) {
         let motion = motion.map_err(|e| e.to_string())?;
         let line = motion.line().clamp(1, lines.max(1));
+        // Two steppers and a Z output: no A axis. Refused whole (wherever the run
+        // starts), before anything moves.
+        if let Some(a) = motion.rotary() {
+            return Err(format!(
+                "line {line}: A axis motion (to A{}): this machine has no A axis",
+                a.to
+            ));
+        }
         let run = line >= start_line;
         match motion {
             Motion::Rapid { to, .. } if run => {

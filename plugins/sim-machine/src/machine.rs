@@ -54,12 +54,20 @@ struct Core {
     kit: Kit,
 }
 
+/// Length a feed applies to (LinuxCNC's rule): the XYZ path, or the A turn in degrees when
+/// only A moves.
 fn distance(a: &[f64; 4], b: &[f64; 4]) -> f64 {
-    a.iter()
-        .zip(b)
+    let xyz = a[..3]
+        .iter()
+        .zip(&b[..3])
         .map(|(x, y)| (x - y) * (x - y))
         .sum::<f64>()
-        .sqrt()
+        .sqrt();
+    if xyz > 0.0 {
+        xyz
+    } else {
+        (a[3] - b[3]).abs()
+    }
 }
 
 impl Core {
@@ -160,10 +168,10 @@ impl Core {
 
     fn run_step(&self, step: &Step) -> Result<(), Interrupted> {
         match *step {
-            Step::Move { to, feed } => {
+            Step::Move { to, a, feed } => {
                 let target = {
                     let sh = self.kit.lock();
-                    program::machine_target(to, &sh.offsets[sh.active.index()], sh.pos[3])
+                    program::machine_target(to, a, &sh.offsets[sh.active.index()], sh.pos[3])
                 };
                 self.check(target)?;
                 self.move_to(target, feed.unwrap_or(self.cfg.rapid_mm_min))
@@ -356,7 +364,7 @@ impl MachineBackend for SimMachine {
         };
         let text = kit::read_program(&p.path)?;
         let xyz = offsets.map(|o| [o[0], o[1], o[2]]);
-        let plan = program::plan(&text, [work[0], work[1], work[2]], xyz)
+        let plan = program::plan(&text, work, xyz)
             .map_err(|e| PluginError::new("invalid_program", e.to_string()))?;
         plan.check_moves(&offsets, active, a, |p| self.core.cfg.check_travel(p))
             .map_err(|m| PluginError::new("out_of_travel", m))?;
@@ -405,7 +413,7 @@ impl MachineBackend for SimMachine {
                 "MDI takes exactly one line (no line breaks)",
             ));
         }
-        let (work, offsets, active, a) = {
+        let (work, offsets, active, mut a) = {
             let sh = self.kit().lock();
             sh.require_online()?;
             sh.require_no_alarm("run MDI")?;
@@ -417,17 +425,14 @@ impl MachineBackend for SimMachine {
                 sh.pos[3],
             )
         };
-        let plan = program::plan(
-            line,
-            [work[0], work[1], work[2]],
-            offsets.map(|o| [o[0], o[1], o[2]]),
-        )
-        .map_err(|e| PluginError::new("invalid_gcode", format!("MDI {line:?}: {e}")))?;
+        let plan = program::plan(line, work, offsets.map(|o| [o[0], o[1], o[2]]))
+            .map_err(|e| PluginError::new("invalid_gcode", format!("MDI {line:?}: {e}")))?;
         let mut moves = Vec::new();
         for (_, step) in &plan.steps {
             match step {
-                Step::Move { to, feed } => {
-                    let target = program::machine_target(*to, &offsets[active.index()], a);
+                Step::Move { to, a: to_a, feed } => {
+                    let target = program::machine_target(*to, *to_a, &offsets[active.index()], a);
+                    a = target[3];
                     self.core.cfg.check_travel(target).map_err(|m| {
                         PluginError::new("out_of_travel", format!("MDI {line:?} refused: {m}"))
                     })?;

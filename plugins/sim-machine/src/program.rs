@@ -10,7 +10,13 @@ pub const ARC_TOLERANCE_MM: f64 = 0.002;
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Step {
     /// Straight move to `to` (program coordinates, mm) at `feed` mm/min, or rapid when `None`.
-    Move { to: [f64; 3], feed: Option<f64> },
+    /// `a`: where the A axis ends (program degrees) when the move turns it; A and XYZ move
+    /// together, and the feed is along XYZ (degrees/min when only A moves), as in LinuxCNC.
+    Move {
+        to: [f64; 3],
+        a: Option<f64>,
+        feed: Option<f64>,
+    },
     /// G4: wait this many (unscaled) seconds.
     Dwell(f64),
     /// M0: pause the run until resumed.
@@ -29,15 +35,17 @@ pub struct Plan {
 }
 
 /// Interprets the whole program. `initial_position` is where the tool is, in program
-/// coordinates; `work_offsets` the machine origin of G54..G59 (XYZ).
+/// coordinates (X, Y, Z, A); `work_offsets` the machine origin of G54..G59 (XYZ).
 pub fn plan(
     text: &str,
-    initial_position: [f64; 3],
+    initial_position: [f64; 4],
     work_offsets: [[f64; 3]; 6],
 ) -> Result<Plan, GcodeError> {
     let lines = u32::try_from(text.lines().count()).unwrap_or(u32::MAX);
+    let [x, y, z, a] = initial_position;
     let mut config = fresa_gcode::Config {
-        initial_position,
+        initial_position: [x, y, z],
+        initial_a_deg: a,
         ..Default::default()
     };
     config.work_offsets[..6].copy_from_slice(&work_offsets);
@@ -47,11 +55,16 @@ pub fn plan(
         let motion = motion?;
         let line = motion.line().clamp(1, lines.max(1));
         let step = match motion {
-            Motion::Rapid { to, .. } => Step::Move { to, feed: None },
+            Motion::Rapid { to, a, .. } => Step::Move {
+                to,
+                a: a.map(|a| a.to),
+                feed: None,
+            },
             Motion::Linear {
-                to, feed_mm_min, ..
+                to, feed_mm_min, a, ..
             } => Step::Move {
                 to,
+                a: a.map(|a| a.to),
                 feed: Some(feed_mm_min),
             },
             // `linearise` turns every arc into chords; an arc here would be a bug there.
@@ -59,6 +72,7 @@ pub fn plan(
                 to, feed_mm_min, ..
             } => Step::Move {
                 to,
+                a: None,
                 feed: Some(feed_mm_min),
             },
             Motion::Dwell { seconds, .. } => Step::Dwell(seconds),
@@ -89,10 +103,12 @@ impl Plan {
         check: impl Fn([f64; 4]) -> Result<(), String>,
     ) -> Result<(), String> {
         let mut offset = offsets[active.index()];
+        let mut machine_a = start_a;
         for (line, step) in &self.steps {
             match step {
-                Step::Move { to, .. } => {
-                    let target = machine_target(*to, &offset, start_a);
+                Step::Move { to, a, .. } => {
+                    let target = machine_target(*to, *a, &offset, machine_a);
+                    machine_a = target[3];
                     check(target).map_err(|m| format!("line {line}: {m}"))?;
                 }
                 Step::UseOffset(o) => offset = offsets[o.index()],
@@ -103,7 +119,13 @@ impl Plan {
     }
 }
 
-/// Machine coordinates of program point `to` under `offset`; A stays at `a`.
-pub fn machine_target(to: [f64; 3], offset: &[f64; 4], a: f64) -> [f64; 4] {
-    [to[0] + offset[0], to[1] + offset[1], to[2] + offset[2], a]
+/// Machine coordinates of program point `to` (and program A `a`, when the move turns A)
+/// under `offset`; otherwise A stays at the machine's `current_a`.
+pub fn machine_target(to: [f64; 3], a: Option<f64>, offset: &[f64; 4], current_a: f64) -> [f64; 4] {
+    [
+        to[0] + offset[0],
+        to[1] + offset[1],
+        to[2] + offset[2],
+        a.map_or(current_a, |a| a + offset[3]),
+    ]
 }

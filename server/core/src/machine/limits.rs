@@ -132,6 +132,15 @@ pub fn check_mdi_line(line: &str) -> std::result::Result<(), String> {
                 ));
             }
         }
+        // A rotary axis: the same numeric bound, in degrees.
+        if let Some(a) = motion.rotary() {
+            if !(a.to.is_finite() && a.to.abs() <= MAX_COORDINATE_MM) {
+                return Err(format!(
+                    "{line:?}: A={} is beyond any machine's travel (at most {MAX_COORDINATE_MM} degrees)",
+                    a.to
+                ));
+            }
+        }
     }
     Ok(())
 }
@@ -216,5 +225,8 @@ mod tests {
             .unwrap_or_default();
         assert!(e.contains("Y="), "{e}");
         assert!(check_mdi_line("G0 X100 Y-50 Z5").is_ok());
+        let e = check_mdi_line("G0 A2000000").err().unwrap_or_default();
+        assert!(e.contains("A=2000000"), "{e}");
+        assert!(check_mdi_line("G0 A90").is_ok());
     }
 }
