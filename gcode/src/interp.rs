@@ -6,6 +6,7 @@
 //! skipped line leaves no trace). No allocation per line except for messages.
 
 use crate::arc::len2;
+use crate::comp::{Comp, CompError, Side};
 use crate::expr::{self, Params, SysView, SUB_PARAMS};
 use crate::flow::{self, BlockKind, Flow, Frame, Keyword, OpenBlock, PendingCall, Skip};
 use crate::lex::{
@@ -71,6 +72,42 @@ impl Queue {
     #[inline(never)]
     fn pop_overflow(&mut self) -> Option<Motion> {
         self.overflow.pop_front()
+    }
+    /// Events waiting.
+    #[inline]
+    fn count(&self) -> usize {
+        self.len + self.overflow.len()
+    }
+    /// Sets the XY start of the first move after the first `skip` events
+    /// (the first move of a line after G40).
+    #[cold]
+    fn patch_first_move_from(&mut self, skip: usize, xy: [f64; 2]) {
+        let ring = (skip.min(self.len)..self.len).map(|i| (self.head + i) % QUEUE_CAP);
+        let mut found = None;
+        for i in ring {
+            if self.items[i]
+                .as_ref()
+                .is_some_and(|m| m.end_point().is_some())
+            {
+                found = Some(i);
+                break;
+            }
+        }
+        let m = match found {
+            Some(i) => self.items[i].as_mut(),
+            None => self
+                .overflow
+                .iter_mut()
+                .skip(skip.saturating_sub(self.len))
+                .find(|m| m.end_point().is_some()),
+        };
+        if let Some(
+            Motion::Rapid { from, .. } | Motion::Linear { from, .. } | Motion::Arc { from, .. },
+        ) = m
+        {
+            from[0] = xy[0];
+            from[1] = xy[1];
+        }
     }
     #[cold]
     fn shift_all(&mut self, off: Point) {
@@ -145,6 +182,8 @@ struct State {
     mist: bool,
     flood: bool,
     tool: u32,
+    /// The tool in the spindle (M6, M61): G41/G42 without D use its radius.
+    spindle_tool: u32,
     /// 0..9 for G54..G59.3.
     coord: u8,
     g28: Point,
@@ -167,6 +206,7 @@ impl State {
             mist: false,
             flood: false,
             tool: 0,
+            spindle_tool: 0,
             coord: 0,
             g28: cfg.g28_position,
             g30: cfg.g30_position,
@@ -201,6 +241,8 @@ pub struct Interpreter<R: BufRead> {
     /// M70's saved modal state; M73's, per call depth, restored on return.
     saved_modal: Option<State>,
     auto_restore: Vec<(usize, State)>,
+    /// Cutter radius compensation (G41/G42) and the moves it holds back.
+    comp: Comp,
     params: Params,
     flow: Flow,
     blk: Block,
@@ -236,6 +278,7 @@ impl<R: BufRead> Interpreter<R> {
             g92_active: false,
             saved_modal: None,
             auto_restore: Vec::new(),
+            comp: Comp::default(),
             cfg: config,
             line: Vec::with_capacity(256),
             line_no: 0,
@@ -447,6 +490,15 @@ impl<R: BufRead> Interpreter<R> {
     /// End of input: fine unless a skip, call or block is still open.
     fn end_of_input(&mut self) -> Result<(), GcodeError> {
         self.done = true;
+        // Moves cutter compensation still holds end where they are.
+        if !self.comp.held.is_empty() {
+            let mut out = Vec::new();
+            self.comp.release(&mut out);
+            for mut m in out {
+                shift(&mut m, self.g92);
+                self.queue.push_back(m);
+            }
+        }
         let open = if let Some(skip) = &self.flow.skip {
             Some(format!(
                 "file ended while looking for o<{}> {} (from line {})",
@@ -1143,7 +1195,7 @@ impl<R: BufRead> Interpreter<R> {
                 901 | 911 => &mut g_arcdist,
                 930 | 940 | 950 => &mut g_feedmode,
                 200 | 210 => &mut g_units,
-                400 | 410 | 420 => &mut g_cutter,
+                400 | 410 | 420 | 411 | 421 => &mut g_cutter,
                 430 | 490 => &mut g_tlo,
                 540 | 550 | 560 | 570 | 580 | 590 | 591 | 592 | 593 => &mut g_coord,
                 610 | 611 | 640 => &mut g_path,
@@ -1241,14 +1293,23 @@ impl<R: BufRead> Interpreter<R> {
                 st.feed = None;
             }
         }
-        if let Some((code, off)) = g_cutter {
-            if code != 400 {
-                return Err(unsupported_g(
-                    code,
-                    off,
-                    "cutter radius compensation is not implemented",
-                ));
-            }
+        if blk.has(b'D') && !matches!(g_cutter, Some((410 | 420 | 411 | 421, _))) {
+            return Err((
+                blk.pos_of(b'D') as usize,
+                ErrorKind::Invalid,
+                "D word with no G41/G42/G41.1/G42.1 on the line".to_string(),
+            ));
+        }
+        // Cutter compensation state, copied only when a line touches it (it
+        // holds moves, so it is not part of the copied `State`).
+        let mut comp: Option<Comp> =
+            if g_cutter.is_some() || self.comp.side.is_some() || self.comp.arc_not_allowed {
+                Some(self.comp.clone())
+            } else {
+                None
+            };
+        if self.comp.side.is_some() {
+            comp_forbidden(&st, g_plane, g_units, g_coord, g_nonmodal, g_motion)?;
         }
 
         // Motion mode after this line; the previous one decides which cycle
@@ -1441,6 +1502,7 @@ impl<R: BufRead> Interpreter<R> {
             match blk.get(b'Q') {
                 Some(q) if q >= 0.0 && q.fract() == 0.0 && q <= f64::from(u32::MAX) => {
                     st.tool = q as u32;
+                    st.spindle_tool = st.tool;
                 }
                 _ => {
                     return Err((
@@ -1453,6 +1515,19 @@ impl<R: BufRead> Interpreter<R> {
         }
         // 6. tool change
         if m_tool {
+            st.spindle_tool = st.tool;
+            if let Some(c) = comp.as_mut() {
+                if !c.held.is_empty() {
+                    absorb(queue, c);
+                    release(queue, c);
+                }
+                // LinuxCNC reads the position back after a tool change:
+                // after G40 the tool is where compensation left it.
+                if let Some(d) = c.detached.take() {
+                    st.pos[0] = d[0];
+                    st.pos[1] = d[1];
+                }
+            }
             queue.push_back(Motion::ToolChange {
                 line,
                 tool: st.tool,
@@ -1516,6 +1591,19 @@ impl<R: BufRead> Interpreter<R> {
         }
         if st.inch {
             self.units_inch_seen = true;
+        }
+        // 13. cutter radius compensation
+        if let (Some((code, off)), Some(c)) = (g_cutter, comp.as_mut()) {
+            if code == 400 {
+                absorb(queue, c);
+                let mut out = Vec::new();
+                c.off(st.pos, &mut out);
+                for m in out {
+                    queue.push_back(m);
+                }
+            } else {
+                comp_on(c, &self.cfg, blk, &st, code, off as usize, scale)?;
+            }
         }
         // 14. tool length offset: program coordinates are unchanged.
         if let Some((code, _)) = g_tlo {
@@ -1676,7 +1764,28 @@ impl<R: BufRead> Interpreter<R> {
         }
 
         // 20. motion
-        if motion_here {
+        let comp_on = comp.as_ref().is_some_and(Comp::active);
+        if motion_here && comp_on {
+            if let Some(c) = comp.as_mut() {
+                let at = first_of(blk, axis_mask | ijk_mask | bit(b'R'));
+                compensated_move(
+                    &self.cfg, queue, c, &st, blk, target, machine, line, at, scale,
+                )?;
+                st.pos = target;
+            }
+        } else if motion_here {
+            let queued_before = queue.count();
+            if let Some(c) = comp.as_mut() {
+                if c.arc_not_allowed && is_arc {
+                    return Err((
+                        first_of(blk, axis_mask | ijk_mask | bit(b'R')),
+                        ErrorKind::Invalid,
+                        "the move just after turning cutter compensation off (G40) must be straight, not an arc"
+                            .to_string(),
+                    ));
+                }
+                c.arc_not_allowed = false;
+            }
             match st.motion {
                 MotionMode::Rapid => {
                     queue.push_back(Motion::Rapid {
@@ -1744,6 +1853,13 @@ impl<R: BufRead> Interpreter<R> {
                 MotionMode::None | MotionMode::Unsupported(_) => {}
             }
             st.pos = target;
+            // The first move after G40 leaves from the compensated point.
+            if let Some(d) = comp.as_mut().and_then(|c| c.detached.take()) {
+                queue.patch_first_move_from(queued_before, d);
+            }
+        } else if let Some(c) = comp.as_mut() {
+            // Events of a line without a move wait behind held moves.
+            absorb(queue, c);
         }
 
         // M70-M73: save, invalidate, restore the modal state (LinuxCNC).
@@ -1771,7 +1887,16 @@ impl<R: BufRead> Interpreter<R> {
             }
         }
 
-        // 21. stops
+        // 21. stops: what compensation holds is released first.
+        if m_stop.is_some() {
+            if let Some(c) = comp.as_mut() {
+                absorb(queue, c);
+                release(queue, c);
+                if !matches!(m_stop, Some((0 | 10, _))) {
+                    *c = Comp::default();
+                }
+            }
+        }
         let mut end = false;
         match m_stop {
             Some((0, _)) | Some((10, _)) => queue.push_back(Motion::Pause {
@@ -1804,6 +1929,9 @@ impl<R: BufRead> Interpreter<R> {
             }
         }
         self.st = st;
+        if let Some(c) = comp {
+            self.comp = c;
+        }
         if let Some(c) = cycle_new {
             self.cycle = c;
         }
@@ -1820,6 +1948,243 @@ impl<R: BufRead> Interpreter<R> {
         }
         Ok(())
     }
+}
+
+/// Moves this line's events so far behind the moves compensation holds.
+#[cold]
+fn absorb(queue: &mut Queue, c: &mut Comp) {
+    if !c.held.is_empty() {
+        while let Some(m) = queue.pop_front() {
+            c.hold_event(m);
+        }
+    }
+}
+
+/// Releases what compensation holds, unchanged, into the queue.
+#[cold]
+fn release(queue: &mut Queue, c: &mut Comp) {
+    let mut out = Vec::new();
+    c.release(&mut out);
+    for m in out {
+        queue.push_back(m);
+    }
+}
+
+fn comp_err(at: usize, e: CompError) -> LexError {
+    (at, e.0, e.1)
+}
+
+/// G41/G42 (D = tool number; without D the tool in the spindle) and
+/// G41.1/G42.1 (D = diameter), as LinuxCNC.
+#[cold]
+fn comp_on(
+    c: &mut Comp,
+    cfg: &Config,
+    blk: &Block,
+    st: &State,
+    code: u16,
+    off: usize,
+    scale: f64,
+) -> Result<(), LexError> {
+    let name = gname(code);
+    if st.plane != Plane::XY {
+        return Err((
+            off,
+            ErrorKind::Unsupported,
+            format!("{name}: cutter radius compensation is only supported in the XY plane (G17)"),
+        ));
+    }
+    if c.side.is_some() {
+        return Err((
+            off,
+            ErrorKind::Invalid,
+            format!("{name}: cutter radius compensation is already on (G40 first)"),
+        ));
+    }
+    let d_at = blk.pos_of(b'D') as usize;
+    let diameter = if matches!(code, 411 | 421) {
+        match blk.get(b'D') {
+            Some(d) => d * scale,
+            None => {
+                return Err((
+                    off,
+                    ErrorKind::Invalid,
+                    format!("{name} with no D word (the tool diameter)"),
+                ))
+            }
+        }
+    } else {
+        let tool = match blk.get(b'D') {
+            Some(d) if d >= 0.0 && d.fract() == 0.0 && d <= f64::from(u32::MAX) => Some(d as u32),
+            Some(_) => {
+                return Err((
+                    d_at,
+                    ErrorKind::Invalid,
+                    format!("{name}: D must be a tool number (a non-negative whole number)"),
+                ))
+            }
+            None => None,
+        };
+        match (tool, tool.or(Some(st.spindle_tool)).and_then(|t| cfg.tools.get(&t))) {
+            (_, Some(t)) => t.diameter_mm,
+            // Unsupported, not Invalid: the program is fine, the machine
+            // lacks the tool (the skip policy may skip the line).
+            (Some(t), None) => {
+                return Err((
+                    d_at,
+                    ErrorKind::Unsupported,
+                    format!(
+                        "{name} D{t}: tool {t} is not in the machine's tool table (cutter compensation needs its diameter)"
+                    ),
+                ))
+            }
+            // LinuxCNC: no tool in the spindle has no radius.
+            (None, None) if st.spindle_tool == 0 => 0.0,
+            (None, None) => {
+                return Err((
+                    off,
+                    ErrorKind::Unsupported,
+                    format!(
+                        "{name} without D uses the tool in the spindle, T{}, which is not in the tool table",
+                        st.spindle_tool
+                    ),
+                ))
+            }
+        }
+    };
+    let mut side = if matches!(code, 410 | 411) {
+        Side::Left
+    } else {
+        Side::Right
+    };
+    let mut radius = diameter / 2.0;
+    if radius < 0.0 {
+        radius = -radius;
+        side = if side == Side::Left {
+            Side::Right
+        } else {
+            Side::Left
+        };
+    }
+    c.side = Some(side);
+    c.radius = radius;
+    c.first = true;
+    c.tool = [st.pos[0], st.pos[1]];
+    Ok(())
+}
+
+/// What LinuxCNC refuses while cutter compensation is on.
+#[cold]
+fn comp_forbidden(
+    st: &State,
+    g_plane: Option<(u16, u32)>,
+    g_units: Option<(u16, u32)>,
+    g_coord: Option<(u16, u32)>,
+    g_nonmodal: Option<(u16, u32)>,
+    g_motion: Option<(u16, u32)>,
+) -> Result<(), LexError> {
+    let refuse = |g: (u16, u32), what: &str| {
+        Err((
+            g.1 as usize,
+            ErrorKind::Invalid,
+            format!(
+                "{}: cannot {what} with cutter radius compensation on (G40 first)",
+                gname(g.0)
+            ),
+        ))
+    };
+    if let Some(g) = g_plane.filter(|g| g.0 != 170) {
+        return refuse(g, "change planes");
+    }
+    if let Some(g) = g_units.filter(|g| (g.0 == 200) != st.inch) {
+        return refuse(g, "change units");
+    }
+    if let Some(g) = g_coord {
+        return refuse(g, "change the coordinate system");
+    }
+    if let Some(g) = g_nonmodal {
+        match g.0 {
+            280 | 300 | 281 | 301 => return refuse(g, "use G28/G30"),
+            530 => return refuse(g, "use G53"),
+            520 | 920..=923 => return refuse(g, "change axis offsets"),
+            _ => {}
+        }
+    }
+    if let Some(g) = g_motion.filter(|g| matches!(g.0, 730 | 810..=890)) {
+        return refuse(g, "use canned cycles");
+    }
+    Ok(())
+}
+
+/// A G0/G1/G2/G3 while cutter compensation is on.
+#[cold]
+#[allow(clippy::too_many_arguments)]
+fn compensated_move(
+    cfg: &Config,
+    queue: &mut Queue,
+    c: &mut Comp,
+    st: &State,
+    blk: &Block,
+    target: Point,
+    machine: bool,
+    line: u32,
+    at: usize,
+    scale: f64,
+) -> Result<(), LexError> {
+    if machine {
+        return Err((
+            at,
+            ErrorKind::Invalid,
+            "G53 with cutter radius compensation on".to_string(),
+        ));
+    }
+    absorb(queue, c);
+    let mut out = Vec::new();
+    match st.motion {
+        MotionMode::Rapid => c
+            .straight(line, true, 0.0, st.pos, target, st.inch, &mut out)
+            .map_err(|e| comp_err(at, e))?,
+        MotionMode::Linear => {
+            let mut feed = feed_mm_min(st, blk)?;
+            if st.feed_mode != FeedMode::PerMinute {
+                feed = feed_in_mode(st, blk, feed, len3(st.pos, target))?;
+            }
+            c.straight(line, false, feed, st.pos, target, st.inch, &mut out)
+                .map_err(|e| comp_err(at, e))?;
+        }
+        MotionMode::Cw | MotionMode::Ccw => {
+            let feed = feed_mm_min(st, blk)?;
+            let mut m = arc_motion_of(
+                cfg,
+                st,
+                blk,
+                target,
+                st.motion == MotionMode::Cw,
+                feed,
+                scale,
+                line,
+            )?;
+            if st.feed_mode != FeedMode::PerMinute {
+                let length = crate::ArcGeometry::from_motion(&m).map_or(0.0, |g| g.length());
+                let f = feed_in_mode(st, blk, feed, length)?;
+                if let Motion::Arc { feed_mm_min, .. } = &mut m {
+                    *feed_mm_min = f;
+                }
+            }
+            c.arc(&m, st.inch, &mut out).map_err(|e| comp_err(at, e))?;
+        }
+        _ => {
+            return Err((
+                at,
+                ErrorKind::Invalid,
+                "canned cycles with cutter radius compensation on".to_string(),
+            ));
+        }
+    }
+    for m in out {
+        queue.push_back(m);
+    }
+    Ok(())
 }
 
 #[inline]

@@ -47,6 +47,7 @@
 
 mod analysis;
 mod arc;
+mod comp;
 mod expr;
 mod flow;
 mod interp;
@@ -127,7 +128,27 @@ pub struct Config {
     /// or M98 on, the lines read are kept in memory, at most this many bytes
     /// (more is an error naming the line). Default 256 MiB.
     pub max_kept_program_bytes: usize,
+    /// The machine's tool table: the radius for cutter compensation
+    /// (`G41`/`G42` with `D`, or without `D` the tool in the spindle).
+    /// Empty by default: a G41/G42 that needs a tool is then an error naming
+    /// the line and the tool.
+    pub tools: ToolTable,
 }
+
+/// One tool of a [`ToolTable`], millimetres.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Tool {
+    /// Cutter diameter; cutter compensation offsets the path by half of it
+    /// (a negative diameter offsets to the other side, as in LinuxCNC).
+    pub diameter_mm: f64,
+    /// Tool length offset (G43). Carried for the controller; program
+    /// coordinates do not depend on it.
+    #[serde(default)]
+    pub length_mm: f64,
+}
+
+/// Tools by number (the `T` / `D` word).
+pub type ToolTable = std::collections::BTreeMap<u32, Tool>;
 
 impl Default for Config {
     fn default() -> Self {
@@ -149,6 +170,7 @@ impl Default for Config {
             max_call_depth: 10,
             max_loop_iterations: 10_000_000,
             max_kept_program_bytes: 256 * 1024 * 1024,
+            tools: ToolTable::new(),
         }
     }
 }

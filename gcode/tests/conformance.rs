@@ -17,7 +17,7 @@
 //! per-file table.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use fresa_gcode::{Config, Interpreter, Motion, Plane};
+use fresa_gcode::{Config, Interpreter, Motion, Plane, Tool, ToolTable};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -51,40 +51,15 @@ const KNOWN: &[(&str, &str)] = &[
         "ncfiles/threading.ngc",
         "G33 spindle-synchronised motion: no backend has a spindle encoder",
     ),
-    // Not implemented yet (issue #14, later steps).
     (
         "ncfiles/comp.ngc",
-        "cutter radius compensation (G41/G42, D) not implemented yet",
+        "G41/G42 in the XZ plane (G18, lathe-style compensation): only XY (G17) is supported",
     ),
-    (
-        "ncfiles/comp-g1.ngc",
-        "cutter radius compensation (G41/G42, D) not implemented yet",
-    ),
-    (
-        "ncfiles/comp311.ngc",
-        "cutter radius compensation (G41/G42, D) not implemented yet",
-    ),
-    (
-        "ncfiles/comp311_2.ngc",
-        "cutter radius compensation (G41/G42, D) not implemented yet",
-    ),
-    (
-        "ncfiles/gmoccapy_2_tools_with_cutter_radius_compensation.ngc",
-        "cutter radius compensation (G41/G42, D) not implemented yet",
-    ),
-    (
-        "ncfiles/useful-subroutines.ngc",
-        "cutter radius compensation (G41/G42, D) not implemented yet",
-    ),
-    (
-        "shared/cncjs-helical-thread-milling.gcode",
-        "cutter radius compensation (G42 D08) not implemented yet",
-    ),
-    ("ncfiles/daisy.ngc", "A axis not implemented yet"),
     (
         "ncfiles/mmount.ngc",
-        "cutter radius compensation (G41) not implemented yet",
+        "G33.1 rigid tapping: no backend has a spindle encoder (its G41/G42 parts match)",
     ),
+    ("ncfiles/daisy.ngc", "A axis not implemented yet"),
     (
         "ncfiles/systems.ngc",
         "G5.1 splines and G10 L2 (offsets written by the program) not implemented yet",
@@ -134,8 +109,10 @@ fn rs274() -> PathBuf {
     })
 }
 
-/// A tool table with tools 1..=99 (zero length, 0.1 mm diameter), so programs
-/// that change tools run as they would on a configured machine.
+/// A tool table with tools 1..=99 (zero length, diameter 0.1), so programs
+/// that change tools run as they would on a configured machine. rs274 reads
+/// the table in inches (its G41 offsets by 0.05 in = 1.27 mm); Fresa's is in
+/// mm ([`fresa_tools`]).
 fn tool_table(dir: &Path) -> PathBuf {
     let p = dir.join("fresa-conformance.tbl");
     let mut s = String::new();
@@ -158,6 +135,24 @@ fn args_of(line: &str) -> Option<(&str, Vec<&str>)> {
 }
 
 fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
+    let first = run_rs274_once(exe, table, dir, file);
+    if !first.1 {
+        return first.0;
+    }
+    // rs274 insists on M2/M30 or a closing `%`; Fresa (like grbl and CAM
+    // output in the wild) takes the end of the file as the end of the
+    // program, which (as M2 does) releases the moves cutter compensation
+    // still holds. Deliberate difference: such a program is compared with
+    // rs274's run of it with M2 appended.
+    let with_end = dir.join("with-m2.ngc");
+    let mut text = std::fs::read(file).unwrap();
+    text.extend_from_slice(b"\nM2\n");
+    std::fs::write(&with_end, text).unwrap();
+    run_rs274_once(exe, table, dir, &with_end).0
+}
+
+/// One run; also says whether the only complaint was a missing program end.
+fn run_rs274_once(exe: &Path, table: &Path, dir: &Path, file: &Path) -> (Outcome, bool) {
     let out = Command::new(exe)
         .arg("-t")
         .arg(table)
@@ -269,33 +264,54 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
         }
     }
     let stderr = String::from_utf8_lossy(&out.stderr);
-    // rs274 insists on M2/M30 or a closing `%`; Fresa (like grbl and CAM
-    // output in the wild) takes the end of the file as the end of the program.
-    // Deliberate difference: that error alone counts as a normal end.
     let eof_only = stderr.contains("File ended with no percent sign or program end");
     let error = if out.status.success() || eof_only {
         None
     } else {
-        Some(
+        Some(format!(
+            "{} ({})",
             stderr
                 .lines()
                 .filter(|l| !l.trim().is_empty() && l.trim() != "executing")
                 .collect::<Vec<_>>()
                 .join(" / "),
-        )
+            out.status
+        ))
     };
-    Outcome {
-        moves,
-        error,
-        other,
-    }
+    (
+        Outcome {
+            moves,
+            error,
+            other,
+        },
+        eof_only,
+    )
+}
+
+/// The same tool table as [`tool_table`], for Fresa (mm).
+fn fresa_tools() -> ToolTable {
+    (1..=99)
+        .map(|t| {
+            (
+                t,
+                Tool {
+                    diameter_mm: 0.1 * 25.4,
+                    length_mm: 0.0,
+                },
+            )
+        })
+        .collect()
 }
 
 fn run_fresa(file: &Path) -> Outcome {
     let f = std::fs::File::open(file).unwrap();
     let mut moves = Vec::new();
     let mut error = None;
-    for m in Interpreter::new(std::io::BufReader::new(f), Config::default()) {
+    let config = Config {
+        tools: fresa_tools(),
+        ..Config::default()
+    };
+    for m in Interpreter::new(std::io::BufReader::new(f), config) {
         match m {
             Ok(Motion::Rapid { to, .. }) => moves.push(Canon::Rapid { to }),
             Ok(Motion::Linear {
