@@ -127,6 +127,7 @@ pub const AUDIT_EVENT_TYPES: &[&str] = &[
     "machine.offsets",
     "machine.part_zero",
     "machine.alarm",
+    "machine.tools",
     "pendant.created",
     "pendant.bound",
     "pendant.macro",
