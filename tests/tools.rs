@@ -4,8 +4,9 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+use fresa_tests::serde_json;
 use fresa_tests::serde_json::{json, Value};
-use fresa_tests::{Opts, Server};
+use fresa_tests::{output_text, Opts, Server};
 use std::time::Duration;
 
 const T: Duration = Duration::from_secs(60);
@@ -164,4 +165,65 @@ fn uploads_use_their_machines_tool_table() {
     let id = b["id"].as_i64().unwrap();
     s.job_action(id, "start").expect(200);
     s.wait_job_state(id, "completed", T);
+}
+
+#[test]
+fn the_cli_loads_tool_tables_and_checks_programs_with_one() {
+    let s = Server::start();
+    let m = s.sim("m", 0.0).id;
+    let dir = s.root().join("cli-tools");
+    std::fs::create_dir_all(&dir).unwrap();
+    let table = dir.join("tools.json");
+    std::fs::write(
+        &table,
+        r#"[{"tool": 3, "diameter_mm": 4.0, "description": "4 mm end mill"}]"#,
+    )
+    .unwrap();
+    let m_str = m.to_string();
+    let out = s.cli(&[
+        "machine",
+        "tools",
+        &m_str,
+        "--load",
+        table.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", output_text(&out));
+    let listed = s.cli(&["machine", "tools", &m_str]);
+    let text = String::from_utf8_lossy(&listed.stdout);
+    assert!(
+        text.contains("4 mm end mill") && text.contains('3'),
+        "{text}"
+    );
+    assert_eq!(s.get(&tools_path(m)).expect(200)[0]["diameter_mm"], 4.0);
+
+    // `fresa gcode check --tools` takes the same file (and what the API gives).
+    let program = dir.join("p.ngc");
+    std::fs::write(&program, COMPENSATED).unwrap();
+    let check = |tools: Option<&std::path::Path>| {
+        let mut cmd = fresa_tests::fresa_cmd();
+        cmd.args(["gcode", "check", "--json"]).arg(&program);
+        if let Some(t) = tools {
+            cmd.arg("--tools").arg(t);
+        }
+        cmd.output().unwrap()
+    };
+    let ok = check(Some(&table));
+    assert!(ok.status.success(), "{}", output_text(&ok));
+    let a: Value = serde_json::from_slice(&ok.stdout).unwrap();
+    assert_eq!(a["cutting_bounds"]["max"][0], 38.0, "{a}");
+    let missing = check(None);
+    assert!(!missing.status.success());
+    let err = String::from_utf8_lossy(&missing.stderr);
+    assert!(
+        err.contains("line 3, column 5") && err.contains("D3"),
+        "{err}"
+    );
+    std::fs::write(&table, r#"{"tool": 3}"#).unwrap();
+    let bad = check(Some(&table));
+    assert!(!bad.status.success());
+    assert!(
+        String::from_utf8_lossy(&bad.stderr).contains("JSON array"),
+        "{}",
+        output_text(&bad)
+    );
 }

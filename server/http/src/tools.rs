@@ -68,7 +68,7 @@ pub struct ToolReq {
         (status = 200, description = "The tool table, by tool number", body = Vec<ToolView>),
         (status = 404, description = "`unknown_machine`", body = ErrorBody),
     ))]
-pub async fn list(
+pub async fn list_tools(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
 ) -> Result<Json<Vec<ToolView>>, ApiError> {
@@ -86,7 +86,7 @@ pub async fn list(
         (status = 404, description = "`unknown_machine`", body = ErrorBody),
         (status = 422, description = "`invalid_field` (names the field, e.g. `tools[1].diameter_mm`)", body = ErrorBody),
     ))]
-pub async fn replace(
+pub async fn replace_tools(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
     Extension(caller): Extension<Caller>,
@@ -106,7 +106,7 @@ pub async fn replace(
         (status = 404, description = "`unknown_machine`", body = ErrorBody),
         (status = 422, description = "`invalid_field`", body = ErrorBody),
     ))]
-pub async fn set(
+pub async fn set_tool(
     State(app): State<SharedApp>,
     Path((id, tool)): Path<(i64, i64)>,
     Extension(caller): Extension<Caller>,
@@ -129,7 +129,7 @@ pub async fn set(
         (status = 204, description = "Removed"),
         (status = 404, description = "`unknown_machine`, `unknown_tool`", body = ErrorBody),
     ))]
-pub async fn delete(
+pub async fn delete_tool(
     State(app): State<SharedApp>,
     Path((id, tool)): Path<(i64, i64)>,
     Extension(caller): Extension<Caller>,
