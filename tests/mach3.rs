@@ -270,6 +270,25 @@ fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode() {
         r.text
     );
     assert_eq!(dro(&mut mach, 800), 2.0, "nothing moved");
+
+    // Cutter compensation passes the upload check with Fresa's tool table, but Mach3 would
+    // compensate with its own: refused naming the line, before anything moves.
+    s.put(
+        &format!("/api/v1/machines/{m}/tools"),
+        &json!([{"tool": 1, "diameter_mm": 6.0}]),
+    )
+    .expect(200);
+    let job = s.upload(m, "comp", "G21 G90 F600\nG0 X-10 Y0\nG41 D1 G1 X0\nG1 X5\n")["id"]
+        .as_i64()
+        .unwrap();
+    let r = s.job_action(job, "start");
+    assert!(r.status >= 400, "{r:?}");
+    assert!(
+        r.text.contains("line 3") && r.text.contains("own tool table"),
+        "{}",
+        r.text
+    );
+    assert_eq!(dro(&mut mach, 800), 2.0, "nothing moved");
 }
 
 #[test]

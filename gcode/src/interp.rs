@@ -230,6 +230,8 @@ pub struct Interpreter<R: BufRead> {
     lines_read: u64,
     lines_executed: u64,
     linuxcnc_only: Option<u32>,
+    /// First line that turned cutter compensation on (G41/G42/G41.1/G42.1).
+    cutter_comp_line: Option<u32>,
     // Kept out of `State`, which is copied twice per line: these change only
     // on cycle and G92 lines, which write them back when the line succeeded.
     cycle: CycleState,
@@ -268,6 +270,7 @@ impl<R: BufRead> Interpreter<R> {
             reader_line_no: 0,
             lines_executed: 0,
             linuxcnc_only: None,
+            cutter_comp_line: None,
             // LinuxCNC's interpreter starts in G99 (retract to R).
             cycle: CycleState {
                 retract_to_r: true,
@@ -314,6 +317,12 @@ impl<R: BufRead> Interpreter<R> {
     /// to a controller with another dialect (Mach3) refuses it naming this line.
     pub fn linuxcnc_only_line(&self) -> Option<u32> {
         self.linuxcnc_only
+    }
+    /// First line that turned cutter radius compensation on (G41/G42,
+    /// G41.1/G42.1). A backend whose controller compensates with its own tool
+    /// table (Mach3) refuses the program naming this line.
+    pub fn cutter_comp_line(&self) -> Option<u32> {
+        self.cutter_comp_line
     }
     /// Lines run (or passed over) so far: like [`Self::lines_read`], but a
     /// loop body or subroutine counts every time it runs.
@@ -1931,6 +1940,9 @@ impl<R: BufRead> Interpreter<R> {
         self.st = st;
         if let Some(c) = comp {
             self.comp = c;
+            if self.cutter_comp_line.is_none() && self.comp.side.is_some() {
+                self.cutter_comp_line = Some(line);
+            }
         }
         if let Some(c) = cycle_new {
             self.cycle = c;
