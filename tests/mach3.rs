@@ -289,6 +289,18 @@ fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode() {
         r.text
     );
     assert_eq!(dro(&mut mach, 800), 2.0, "nothing moved");
+    // G10 would change Mach3's fixture table for good: refused the same way.
+    let job = s.upload(m, "g10", "G21 G90 F600\nG10 L2 P2 X5\nG1 X4\n")["id"]
+        .as_i64()
+        .unwrap();
+    let r = s.job_action(job, "start");
+    assert!(r.status >= 400, "{r:?}");
+    assert!(
+        r.text.contains("line 2") && r.text.contains("G10"),
+        "{}",
+        r.text
+    );
+    assert_eq!(dro(&mut mach, 800), 2.0, "nothing moved");
 }
 
 #[test]

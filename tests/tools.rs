@@ -227,3 +227,26 @@ fn the_cli_loads_tool_tables_and_checks_programs_with_one() {
         output_text(&bad)
     );
 }
+
+#[test]
+fn g10_offsets_are_folded_in_and_the_stored_analysis_shows_them() {
+    let s = Server::start();
+    let m = s.sim("m", 0.0).id;
+    let program =
+        "G21 G90 F600\nG0 X0 Y0 Z5\nG10 L2 P1 X10 Y5\nG1 X1 Y1\nG10 L20 P0 X0\nG1 X2\nM2\n";
+    let job = s.upload(m, "g10", program);
+    let notes = &job["analysis"]["offset_changes"];
+    assert_eq!(notes[0]["command"], "G10 L2 P1", "{job}");
+    assert_eq!(notes[0]["offset"], json!([10.0, 5.0, 0.0]), "{job}");
+    assert_eq!(notes[1]["command"], "G10 L20 P1", "{job}");
+    // X1 Y1 in the moved G54 is X11 Y6 in the machine's own; after L20 X0 there, X2 is X13.
+    assert_eq!(job["analysis"]["cutting_bounds"]["max"][0], 13.0, "{job}");
+    let id = job["id"].as_i64().unwrap();
+    s.job_action(id, "start").expect(200);
+    s.wait_job_state(id, "completed", T);
+    let st = s.status(m);
+    assert_eq!(st["work_position"]["x"], 13.0, "{st}");
+    // The machine's stored offsets are the store's, unchanged by the program.
+    let off = s.get(&format!("/api/v1/machines/{m}/offsets")).expect(200);
+    assert_eq!(off["offsets"]["G54"]["x"], 0.0, "{off}");
+}

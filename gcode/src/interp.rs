@@ -232,6 +232,8 @@ pub struct Interpreter<R: BufRead> {
     linuxcnc_only: Option<u32>,
     /// First line that turned cutter compensation on (G41/G42/G41.1/G42.1).
     cutter_comp_line: Option<u32>,
+    /// First G10 line (tool table or work offsets written by the program).
+    g10_line: Option<u32>,
     // Kept out of `State`, which is copied twice per line: these change only
     // on cycle and G92 lines, which write them back when the line succeeded.
     cycle: CycleState,
@@ -240,6 +242,9 @@ pub struct Interpreter<R: BufRead> {
     /// The stored G92 values (#5211..), which G92.2 keeps and G92.3 restores.
     g92_saved: Point,
     g92_active: bool,
+    /// G10 L2/L20 changed a work offset (`params.work_offsets` is then the
+    /// program's view, `cfg.work_offsets` still the machine's).
+    offsets_changed: bool,
     /// M70's saved modal state; M73's, per call depth, restored on return.
     saved_modal: Option<State>,
     auto_restore: Vec<(usize, State)>,
@@ -271,6 +276,7 @@ impl<R: BufRead> Interpreter<R> {
             lines_executed: 0,
             linuxcnc_only: None,
             cutter_comp_line: None,
+            g10_line: None,
             // LinuxCNC's interpreter starts in G99 (retract to R).
             cycle: CycleState {
                 retract_to_r: true,
@@ -279,6 +285,7 @@ impl<R: BufRead> Interpreter<R> {
             g92: [0.0; 3],
             g92_saved: [0.0; 3],
             g92_active: false,
+            offsets_changed: false,
             saved_modal: None,
             auto_restore: Vec::new(),
             comp: Comp::default(),
@@ -324,6 +331,12 @@ impl<R: BufRead> Interpreter<R> {
     pub fn cutter_comp_line(&self) -> Option<u32> {
         self.cutter_comp_line
     }
+    /// First G10 line (L1 tool table, L2/L20 work offsets). Fresa folds
+    /// them into the motions; a backend whose controller would execute the
+    /// text itself, and keep the change (Mach3), refuses the program naming it.
+    pub fn g10_line(&self) -> Option<u32> {
+        self.g10_line
+    }
     /// Lines run (or passed over) so far: like [`Self::lines_read`], but a
     /// loop body or subroutine counts every time it runs.
     pub fn lines_executed(&self) -> u64 {
@@ -340,7 +353,22 @@ impl<R: BufRead> Interpreter<R> {
     /// Position (program coordinates, mm) after the last line interpreted;
     /// motions of that line may still be waiting to be yielded.
     pub fn position(&self) -> Point {
-        add(self.st.pos, self.g92)
+        add(self.st.pos, self.frame())
+    }
+
+    /// From program coordinates to the frame motions are given in (the
+    /// active work system with the machine's own offsets): G92/G52 plus what
+    /// G10 L2/L20 changed in the active system's origin.
+    #[inline]
+    fn frame(&self) -> Point {
+        if !self.offsets_changed {
+            return self.g92;
+        }
+        let c = self.st.coord as usize;
+        add(
+            self.g92,
+            sub(self.params.work_offsets[c], self.cfg.work_offsets[c]),
+        )
     }
     /// The configuration in use.
     pub fn config(&self) -> &Config {
@@ -503,8 +531,9 @@ impl<R: BufRead> Interpreter<R> {
         if !self.comp.held.is_empty() {
             let mut out = Vec::new();
             self.comp.release(&mut out);
+            let frame = self.frame();
             for mut m in out {
-                shift(&mut m, self.g92);
+                shift(&mut m, frame);
                 self.queue.push_back(m);
             }
         }
@@ -675,7 +704,13 @@ impl<R: BufRead> Interpreter<R> {
         if self.auto_restore.last().is_some_and(|a| a.0 == depth) {
             if let Some((_, saved)) = self.auto_restore.pop() {
                 let mut st = self.st;
-                restore_modal(&self.cfg, &mut self.queue, &mut st, &saved, self.line_no);
+                restore_modal(
+                    &self.params.work_offsets,
+                    &mut self.queue,
+                    &mut st,
+                    &saved,
+                    self.line_no,
+                );
                 self.st = st;
             }
         }
@@ -1171,6 +1206,7 @@ impl<R: BufRead> Interpreter<R> {
         // Written back with the state when the line succeeds.
         let mut cycle_new: Option<CycleState> = None;
         let mut g92_new: Option<(Point, Point)> = None;
+        let mut g10_new: Option<([Point; 9], crate::ToolTable)> = None;
 
         // --- classify G words into modal groups -------------------------
         let mut g_motion: Option<(u16, u32)> = None;
@@ -1209,8 +1245,7 @@ impl<R: BufRead> Interpreter<R> {
                 540 | 550 | 560 | 570 | 580 | 590 | 591 | 592 | 593 => &mut g_coord,
                 610 | 611 | 640 => &mut g_path,
                 980 | 990 => &mut g_retract,
-                40 | 280 | 281 | 300 | 301 | 530 | 520 | 920..=923 => &mut g_nonmodal,
-                100 => return Err(unsupported_g(code, off, "it changes coordinate offsets")),
+                40 | 100 | 280 | 281 | 300 | 301 | 530 | 520 | 920..=923 => &mut g_nonmodal,
                 _ => return Err(unknown_g(code, off)),
             };
             if let Some((prev, _)) = *slot {
@@ -1345,7 +1380,7 @@ impl<R: BufRead> Interpreter<R> {
             _ => None,
         };
         let nonmodal = g_nonmodal.map(|g| g.0);
-        let uses_axes_nonmodal = matches!(nonmodal, Some(280 | 300 | 920 | 520));
+        let uses_axes_nonmodal = matches!(nonmodal, Some(100 | 280 | 300 | 920 | 520));
         if uses_axes_nonmodal && has_axes && g_motion.is_some_and(|g| g.0 != 800) {
             let (code, off) = g_nonmodal.unwrap_or((0, 0));
             return Err((
@@ -1394,8 +1429,8 @@ impl<R: BufRead> Interpreter<R> {
         }
         // Words no command on this line uses.
         let arc_motion = motion_here && is_arc;
-        if has_r && cycle.is_some() {
-            // R of a canned cycle.
+        if has_r && (cycle.is_some() || nonmodal == Some(100)) {
+            // R of a canned cycle, or G10 L1's radius.
         } else if (has_ijk || has_r) && !arc_motion {
             return Err((
                 first_of(blk, ijk_mask | bit(b'R')),
@@ -1404,7 +1439,7 @@ impl<R: BufRead> Interpreter<R> {
             ));
         }
         if blk.has(b'P')
-            && !(nonmodal == Some(40)
+            && !(matches!(nonmodal, Some(40 | 100))
                 || arc_motion
                 || g_path.is_some_and(|g| g.0 == 640)
                 || matches!(cycle, Some(820 | 890)))
@@ -1426,7 +1461,7 @@ impl<R: BufRead> Interpreter<R> {
                 "Q word is not supported here".to_string(),
             ));
         }
-        if blk.has(b'L') && cycle.is_none() {
+        if blk.has(b'L') && cycle.is_none() && nonmodal != Some(100) {
             return Err((
                 blk.pos_of(b'L') as usize,
                 ErrorKind::Unsupported,
@@ -1643,8 +1678,8 @@ impl<R: BufRead> Interpreter<R> {
                 593 => 8,
                 c => ((c - 540) / 10) as u8,
             };
-            let old = self.cfg.work_offsets[st.coord as usize];
-            let new = self.cfg.work_offsets[idx as usize];
+            let old = self.params.work_offsets[st.coord as usize];
+            let new = self.params.work_offsets[idx as usize];
             for i in 0..3 {
                 st.pos[i] += old[i] - new[i];
             }
@@ -1669,7 +1704,7 @@ impl<R: BufRead> Interpreter<R> {
         for (i, letter) in [b'X', b'Y', b'Z'].into_iter().enumerate() {
             if let Some(v) = blk.get(letter) {
                 target[i] = if machine {
-                    v * scale - self.cfg.work_offsets[st.coord as usize][i] - self.g92[i]
+                    v * scale - self.params.work_offsets[st.coord as usize][i] - self.g92[i]
                 } else if st.absolute {
                     v * scale
                 } else {
@@ -1727,6 +1762,22 @@ impl<R: BufRead> Interpreter<R> {
                     to: end,
                 });
                 st.pos = end;
+            }
+            Some(100) => {
+                let at = g_nonmodal.map_or(0, |g| g.1) as usize;
+                let comp_on = comp.as_ref().is_some_and(|c| c.side.is_some());
+                let mut offsets = self.params.work_offsets;
+                let mut tools = self.cfg.tools.clone();
+                let changed = g10(blk, &mut st, &mut offsets, &mut tools, comp_on, scale, at)?;
+                if let Some((l, system, origin)) = changed {
+                    queue.push_back(Motion::WorkOffsetChange {
+                        line,
+                        l,
+                        system,
+                        origin,
+                    });
+                }
+                g10_new = Some((offsets, tools));
             }
             Some(281) => st.g28 = add(st.pos, self.g92),
             Some(301) => st.g30 = add(st.pos, self.g92),
@@ -1884,7 +1935,7 @@ impl<R: BufRead> Interpreter<R> {
                             "M72 with no state saved by M70".to_string(),
                         ));
                     };
-                    restore_modal(&self.cfg, queue, &mut st, &saved, line);
+                    restore_modal(&self.params.work_offsets, queue, &mut st, &saved, line);
                 }
                 _ => {
                     // M73: restored when this subroutine returns.
@@ -1947,19 +1998,131 @@ impl<R: BufRead> Interpreter<R> {
         if let Some(c) = cycle_new {
             self.cycle = c;
         }
+        if let Some((offsets, tools)) = g10_new {
+            self.g10_line.get_or_insert(line);
+            if offsets != self.params.work_offsets {
+                self.offsets_changed = true;
+            }
+            self.params.work_offsets = offsets;
+            self.cfg.tools = tools;
+        }
         if let Some((g92, saved)) = g92_new {
             self.g92 = g92;
             self.g92_saved = saved;
             self.g92_active = g92 != [0.0; 3];
         }
-        if self.g92_active {
+        if self.g92_active || self.offsets_changed {
             // Into the work system's frame. Lines that change the offset
             // move nothing, so the offset after the line holds for all of
             // its motions.
-            self.queue.shift_all(self.g92);
+            let frame = self.frame();
+            if frame != [0.0; 3] {
+                self.queue.shift_all(frame);
+            }
         }
         Ok(())
     }
+}
+
+/// G10 L1 (tool table: `P` tool, `R` radius, `Z` length), L2 (work system
+/// `P` 1..9, 0 = the active one, origin set to X/Y/Z, absolute even in G91)
+/// and L20 (origin set so that the current position reads X/Y/Z), as
+/// LinuxCNC's convert_setup. Returns (L, system 1..9, new origin) for L2/L20.
+/// The tool table and offsets changed are the program's view only.
+#[cold]
+fn g10(
+    blk: &Block,
+    st: &mut State,
+    offsets: &mut [Point; 9],
+    tools: &mut crate::ToolTable,
+    comp_on: bool,
+    scale: f64,
+    at: usize,
+) -> Result<Option<(u8, u8, Point)>, LexError> {
+    let invalid = |at: usize, m: String| (at, ErrorKind::Invalid, m);
+    let l = match blk.get(b'L') {
+        Some(l) if l == 1.0 || l == 2.0 || l == 20.0 => l as u8,
+        Some(l) => {
+            return Err((
+                blk.pos_of(b'L') as usize,
+                ErrorKind::Unsupported,
+                format!("G10 L{l} is not supported (L1, L2 and L20 are)"),
+            ))
+        }
+        None => {
+            return Err(invalid(
+                at,
+                "G10 needs an L word (L1, L2 or L20)".to_string(),
+            ))
+        }
+    };
+    let p_at = blk.pos_of(b'P') as usize;
+    let p = match blk.get(b'P') {
+        Some(p) if p >= 0.0 && p.fract() == 0.0 && p <= f64::from(u32::MAX) => p as u32,
+        Some(_) => return Err(invalid(p_at, format!("G10 L{l} P must be a whole number"))),
+        None => return Err(invalid(at, format!("G10 L{l} needs P"))),
+    };
+    if l == 1 {
+        let Some(tool) = tools.get_mut(&p) else {
+            return Err((
+                p_at,
+                ErrorKind::Unsupported,
+                format!("G10 L1 P{p}: tool {p} is not in the machine's tool table"),
+            ));
+        };
+        if let Some(r) = blk.get(b'R') {
+            tool.diameter_mm = 2.0 * r * scale;
+        }
+        if let Some(z) = blk.get(b'Z') {
+            tool.length_mm = z * scale;
+        }
+        return Ok(None);
+    }
+    if blk.has(b'R') {
+        return Err((
+            blk.pos_of(b'R') as usize,
+            ErrorKind::Unsupported,
+            "G10 R (a rotated coordinate system) is not supported".to_string(),
+        ));
+    }
+    if p > 9 {
+        return Err(invalid(
+            p_at,
+            format!("G10 L{l} P{p}: P must be 0 (the active system) or 1..9 (G54..G59.3)"),
+        ));
+    }
+    let idx = if p == 0 {
+        st.coord as usize
+    } else {
+        p as usize - 1
+    };
+    if comp_on && idx == st.coord as usize {
+        return Err(invalid(
+            at,
+            "cannot change the active coordinate system with cutter radius compensation on"
+                .to_string(),
+        ));
+    }
+    let old = offsets[idx];
+    let mut new = old;
+    let active = offsets[st.coord as usize];
+    for (i, letter) in [b'X', b'Y', b'Z'].into_iter().enumerate() {
+        if let Some(v) = blk.get(letter) {
+            new[i] = if l == 2 {
+                v * scale
+            } else {
+                // The machine position (program's view) less the value.
+                st.pos[i] + active[i] - v * scale
+            };
+        }
+    }
+    if idx == st.coord as usize {
+        for i in 0..3 {
+            st.pos[i] += old[i] - new[i];
+        }
+    }
+    offsets[idx] = new;
+    Ok(Some((l, idx as u8 + 1, new)))
 }
 
 /// Moves this line's events so far behind the moves compensation holds.
@@ -2484,10 +2647,16 @@ fn canned_cycle(
 /// speed, spindle, coolant, work system and motion mode (position, stored
 /// G28/G30 positions and tool stay), with the events a change needs.
 #[cold]
-fn restore_modal(cfg: &Config, queue: &mut Queue, st: &mut State, saved: &State, line: u32) {
+fn restore_modal(
+    offsets: &[Point; 9],
+    queue: &mut Queue,
+    st: &mut State,
+    saved: &State,
+    line: u32,
+) {
     if saved.coord != st.coord {
-        let old = cfg.work_offsets[st.coord as usize];
-        let new = cfg.work_offsets[saved.coord as usize];
+        let old = offsets[st.coord as usize];
+        let new = offsets[saved.coord as usize];
         for i in 0..3 {
             st.pos[i] += old[i] - new[i];
         }

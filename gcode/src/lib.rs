@@ -276,6 +276,19 @@ pub enum Motion {
     /// frame), so a backend needs to do nothing; it is reported for the
     /// analysis and the operator.
     OffsetChange { line: u32, code: u16, offset: Point },
+    /// G10 L2 / L20 (`l` = 2 or 20): the program set work system `system`
+    /// (1..9 = G54..G59.3) to `origin` (machine coordinates, mm, as the
+    /// program sees them: `Config::work_offsets` plus what the program
+    /// changed). Like G92, the change is folded into the coordinates of every
+    /// later motion (they stay in the frame of the machine's own offsets), so
+    /// a backend needs to do nothing and the machine's stored offsets are not
+    /// changed; it is reported for the analysis and the operator.
+    WorkOffsetChange {
+        line: u32,
+        l: u8,
+        system: u8,
+        origin: Point,
+    },
 }
 
 impl Motion {
@@ -295,6 +308,7 @@ impl Motion {
             | Motion::Message { line, .. }
             | Motion::Pause { line, .. }
             | Motion::OffsetChange { line, .. }
+            | Motion::WorkOffsetChange { line, .. }
             | Motion::ProgramEnd { line } => *line,
         }
     }

@@ -312,7 +312,7 @@ fn inverse_time_and_unsupported_words_are_clear_errors() {
     let e = err("G0 A5\n");
     assert_eq!(e.column, 4);
     assert!(err("G41 D1\n").message.contains("tool table"));
-    assert!(err("G10 L2 P1 X0\n").message.contains("G10"));
+    assert!(err("G10 L10 P1 Z0\n").message.contains("G10 L10"));
     assert!(err("M62 P1\n").message.contains("M62"));
 }
 

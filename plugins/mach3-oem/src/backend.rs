@@ -756,6 +756,17 @@ impl Inner {
                 ),
             ));
         }
+        // Mach3 would write G10's offsets and tools into its own tables and keep them; the
+        // store is the source of truth for work offsets.
+        if let Some(line) = motions.inner().g10_line() {
+            return Err(PluginError::new(
+                "invalid_program",
+                format!(
+                    "line {line}: G10 would change Mach3's own offsets or tool table for good; \
+                     set work offsets through Fresa (PUT /machines/{{id}}/offsets) instead"
+                ),
+            ));
+        }
         if let Some(line) = motions.inner().linuxcnc_only_line() {
             return Err(PluginError::new(
                 "invalid_program",
