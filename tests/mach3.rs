@@ -282,6 +282,36 @@ fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode() {
         pos(st, "work_position", "a") == 90.0
     });
     assert_eq!(pos(&st, "work_position", "x"), 3.0, "{st}");
+    // Cutter compensation passes the upload check with Fresa's tool table, but Mach3 would
+    // compensate with its own: refused naming the line, before anything moves.
+    s.put(
+        &format!("/api/v1/machines/{m}/tools"),
+        &json!([{"tool": 1, "diameter_mm": 6.0}]),
+    )
+    .expect(200);
+    let job = s.upload(m, "comp", "G21 G90 F600\nG0 X-10 Y0\nG41 D1 G1 X0\nG1 X5\n")["id"]
+        .as_i64()
+        .unwrap();
+    let r = s.job_action(job, "start");
+    assert!(r.status >= 400, "{r:?}");
+    assert!(
+        r.text.contains("line 3") && r.text.contains("own tool table"),
+        "{}",
+        r.text
+    );
+    assert_eq!(dro(&mut mach, 800), 2.0, "nothing moved");
+    // G10 would change Mach3's fixture table for good: refused the same way.
+    let job = s.upload(m, "g10", "G21 G90 F600\nG10 L2 P2 X5\nG1 X4\n")["id"]
+        .as_i64()
+        .unwrap();
+    let r = s.job_action(job, "start");
+    assert!(r.status >= 400, "{r:?}");
+    assert!(
+        r.text.contains("line 2") && r.text.contains("G10"),
+        "{}",
+        r.text
+    );
+    assert_eq!(dro(&mut mach, 800), 2.0, "nothing moved");
 }
 
 #[test]

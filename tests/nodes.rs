@@ -281,4 +281,27 @@ fn an_admin_moves_a_machine_to_another_node() {
         e.event == "machine.node"
     });
     assert_eq!(e.data["data"], json!({"from": "hall-a", "to": "hall-b"}));
+
+    // The pendant bound to it moved along: B opens its link, A closes it.
+    let p = wait_for(T, "B to run the pendant", || {
+        let r = b.get(&format!("/api/v1/pendants/{pendant}"));
+        (r.status == 200).then_some(r.body)
+    });
+    assert_eq!(p["machine"], m.id, "{p}");
+    wait_for(T, "A to let the pendant go", || {
+        (a.get(&format!("/api/v1/pendants/{pendant}")).status == 404).then_some(())
+    });
+    // Carried back alone to A, it loses the binding: its machine is on B.
+    let moved = a
+        .put(
+            &format!("/api/v1/pendants/{pendant}/node"),
+            &json!({"node": "hall-a"}),
+        )
+        .expect(200);
+    assert_eq!(moved["machine"], Value::Null, "{moved}");
+    let p = wait_for(T, "A to run the pendant again", || {
+        let r = a.get(&format!("/api/v1/pendants/{pendant}"));
+        (r.status == 200).then_some(r.body)
+    });
+    assert_eq!(p["machine"], Value::Null, "{p}");
 }

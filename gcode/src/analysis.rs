@@ -105,9 +105,10 @@ pub struct RotaryBounds {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct OffsetChangeNote {
     pub line: u32,
-    /// `G92`, `G92.1`, `G92.2`, `G92.3` or `G52`.
+    /// `G92`, `G92.1`, `G92.2`, `G92.3`, `G52`, or `G10 L2 P1` / `G10 L20 P2`.
     pub command: String,
-    /// The offset in effect afterwards, mm (program = work frame - offset).
+    /// G92/G52: the offset in effect afterwards, mm (program = work frame -
+    /// offset). G10: the work system's new origin (machine coordinates, mm).
     pub offset: Point,
     /// The A axis's offset afterwards, degrees (left out when 0).
     #[serde(skip_serializing_if = "is_zero")]
@@ -251,6 +252,22 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
                 a.tools.push(tool);
             }
             Motion::ProgramEnd { .. } => a.program_end = true,
+            Motion::WorkOffsetChange {
+                line,
+                l,
+                system,
+                origin,
+            } => {
+                a.offset_change_count += 1;
+                if a.offset_changes.len() < 100 {
+                    a.offset_changes.push(OffsetChangeNote {
+                        line,
+                        command: format!("G10 L{l} P{system}"),
+                        offset: origin,
+                        offset_a: 0.0,
+                    });
+                }
+            }
             Motion::OffsetChange {
                 line,
                 code,

@@ -6,6 +6,7 @@
 //! skipped line leaves no trace). No allocation per line except for messages.
 
 use crate::arc::len2;
+use crate::comp::{Comp, CompError, Side};
 use crate::expr::{self, Params, SysView, SUB_PARAMS};
 use crate::flow::{self, BlockKind, Flow, Frame, Keyword, OpenBlock, PendingCall, Skip};
 use crate::lex::{
@@ -72,6 +73,42 @@ impl Queue {
     #[inline(never)]
     fn pop_overflow(&mut self) -> Option<Motion> {
         self.overflow.pop_front()
+    }
+    /// Events waiting.
+    #[inline]
+    fn count(&self) -> usize {
+        self.len + self.overflow.len()
+    }
+    /// Sets the XY start of the first move after the first `skip` events
+    /// (the first move of a line after G40).
+    #[cold]
+    fn patch_first_move_from(&mut self, skip: usize, xy: [f64; 2]) {
+        let ring = (skip.min(self.len)..self.len).map(|i| (self.head + i) % QUEUE_CAP);
+        let mut found = None;
+        for i in ring {
+            if self.items[i]
+                .as_ref()
+                .is_some_and(|m| m.end_point().is_some())
+            {
+                found = Some(i);
+                break;
+            }
+        }
+        let m = match found {
+            Some(i) => self.items[i].as_mut(),
+            None => self
+                .overflow
+                .iter_mut()
+                .skip(skip.saturating_sub(self.len))
+                .find(|m| m.end_point().is_some()),
+        };
+        if let Some(
+            Motion::Rapid { from, .. } | Motion::Linear { from, .. } | Motion::Arc { from, .. },
+        ) = m
+        {
+            from[0] = xy[0];
+            from[1] = xy[1];
+        }
     }
     #[cold]
     fn shift_all(&mut self, off: Point, off_a: f64) {
@@ -150,6 +187,8 @@ struct State {
     mist: bool,
     flood: bool,
     tool: u32,
+    /// The tool in the spindle (M6, M61): G41/G42 without D use its radius.
+    spindle_tool: u32,
     /// 0..9 for G54..G59.3.
     coord: u8,
     g28: Point,
@@ -176,6 +215,7 @@ impl State {
             mist: false,
             flood: false,
             tool: 0,
+            spindle_tool: 0,
             coord: 0,
             g28: cfg.g28_position,
             g30: cfg.g30_position,
@@ -201,6 +241,10 @@ pub struct Interpreter<R: BufRead> {
     lines_read: u64,
     lines_executed: u64,
     linuxcnc_only: Option<u32>,
+    /// First line that turned cutter compensation on (G41/G42/G41.1/G42.1).
+    cutter_comp_line: Option<u32>,
+    /// First G10 line (tool table or work offsets written by the program).
+    g10_line: Option<u32>,
     // Kept out of `State`, which is copied twice per line: these change only
     // on cycle and G92 lines, which write them back when the line succeeded.
     cycle: CycleState,
@@ -215,9 +259,14 @@ pub struct Interpreter<R: BufRead> {
     /// P and Q of the last G5 (end control point, relative to its end), for
     /// a following G5 without I and J.
     spline_pq: Option<(f64, f64)>,
+    /// G10 L2/L20 changed a work offset (`params.work_offsets` is then the
+    /// program's view, `cfg.work_offsets` still the machine's).
+    offsets_changed: bool,
     /// M70's saved modal state; M73's, per call depth, restored on return.
     saved_modal: Option<State>,
     auto_restore: Vec<(usize, State)>,
+    /// Cutter radius compensation (G41/G42) and the moves it holds back.
+    comp: Comp,
     params: Params,
     flow: Flow,
     blk: Block,
@@ -243,6 +292,8 @@ impl<R: BufRead> Interpreter<R> {
             reader_line_no: 0,
             lines_executed: 0,
             linuxcnc_only: None,
+            cutter_comp_line: None,
+            g10_line: None,
             // LinuxCNC's interpreter starts in G99 (retract to R).
             cycle: CycleState {
                 retract_to_r: true,
@@ -254,8 +305,10 @@ impl<R: BufRead> Interpreter<R> {
             g92_saved_a: 0.0,
             g92_active: false,
             spline_pq: None,
+            offsets_changed: false,
             saved_modal: None,
             auto_restore: Vec::new(),
+            comp: Comp::default(),
             cfg: config,
             line: Vec::with_capacity(256),
             line_no: 0,
@@ -292,6 +345,18 @@ impl<R: BufRead> Interpreter<R> {
     pub fn linuxcnc_only_line(&self) -> Option<u32> {
         self.linuxcnc_only
     }
+    /// First line that turned cutter radius compensation on (G41/G42,
+    /// G41.1/G42.1). A backend whose controller compensates with its own tool
+    /// table (Mach3) refuses the program naming this line.
+    pub fn cutter_comp_line(&self) -> Option<u32> {
+        self.cutter_comp_line
+    }
+    /// First G10 line (L1 tool table, L2/L20 work offsets). Fresa folds
+    /// them into the motions; a backend whose controller would execute the
+    /// text itself, and keep the change (Mach3), refuses the program naming it.
+    pub fn g10_line(&self) -> Option<u32> {
+        self.g10_line
+    }
     /// Lines run (or passed over) so far: like [`Self::lines_read`], but a
     /// loop body or subroutine counts every time it runs.
     pub fn lines_executed(&self) -> u64 {
@@ -308,7 +373,22 @@ impl<R: BufRead> Interpreter<R> {
     /// Position (program coordinates, mm) after the last line interpreted;
     /// motions of that line may still be waiting to be yielded.
     pub fn position(&self) -> Point {
-        add(self.st.pos, self.g92)
+        add(self.st.pos, self.frame())
+    }
+
+    /// From program coordinates to the frame motions are given in (the
+    /// active work system with the machine's own offsets): G92/G52 plus what
+    /// G10 L2/L20 changed in the active system's origin.
+    #[inline]
+    fn frame(&self) -> Point {
+        if !self.offsets_changed {
+            return self.g92;
+        }
+        let c = self.st.coord as usize;
+        add(
+            self.g92,
+            sub(self.params.work_offsets[c], self.cfg.work_offsets[c]),
+        )
     }
     /// A axis position (program coordinates, degrees), like [`Self::position`].
     pub fn position_a(&self) -> f64 {
@@ -471,6 +551,16 @@ impl<R: BufRead> Interpreter<R> {
     /// End of input: fine unless a skip, call or block is still open.
     fn end_of_input(&mut self) -> Result<(), GcodeError> {
         self.done = true;
+        // Moves cutter compensation still holds end where they are.
+        if !self.comp.held.is_empty() {
+            let mut out = Vec::new();
+            self.comp.release(&mut out);
+            let frame = self.frame();
+            for mut m in out {
+                shift(&mut m, frame, self.g92_a);
+                self.queue.push_back(m);
+            }
+        }
         let open = if let Some(skip) = &self.flow.skip {
             Some(format!(
                 "file ended while looking for o<{}> {} (from line {})",
@@ -638,7 +728,13 @@ impl<R: BufRead> Interpreter<R> {
         if self.auto_restore.last().is_some_and(|a| a.0 == depth) {
             if let Some((_, saved)) = self.auto_restore.pop() {
                 let mut st = self.st;
-                restore_modal(&self.cfg, &mut self.queue, &mut st, &saved, self.line_no);
+                restore_modal(
+                    &self.params.work_offsets,
+                    &mut self.queue,
+                    &mut st,
+                    &saved,
+                    self.line_no,
+                );
                 self.st = st;
             }
         }
@@ -1142,6 +1238,7 @@ impl<R: BufRead> Interpreter<R> {
         let mut cycle_new: Option<CycleState> = None;
         let mut g92_new: Option<(Point, Point, f64, f64)> = None;
         let mut spline_pq_new: Option<Option<(f64, f64)>> = None;
+        let mut g10_new: Option<([Point; 9], crate::ToolTable)> = None;
 
         // --- classify G words into modal groups -------------------------
         let mut g_motion: Option<(u16, u32)> = None;
@@ -1175,13 +1272,12 @@ impl<R: BufRead> Interpreter<R> {
                 901 | 911 => &mut g_arcdist,
                 930 | 940 | 950 => &mut g_feedmode,
                 200 | 210 => &mut g_units,
-                400 | 410 | 420 => &mut g_cutter,
+                400 | 410 | 420 | 411 | 421 => &mut g_cutter,
                 430 | 490 => &mut g_tlo,
                 540 | 550 | 560 | 570 | 580 | 590 | 591 | 592 | 593 => &mut g_coord,
                 610 | 611 | 640 => &mut g_path,
                 980 | 990 => &mut g_retract,
-                40 | 280 | 281 | 300 | 301 | 530 | 520 | 920..=923 => &mut g_nonmodal,
-                100 => return Err(unsupported_g(code, off, "it changes coordinate offsets")),
+                40 | 100 | 280 | 281 | 300 | 301 | 530 | 520 | 920..=923 => &mut g_nonmodal,
                 _ => return Err(unknown_g(code, off)),
             };
             if let Some((prev, _)) = *slot {
@@ -1273,14 +1369,23 @@ impl<R: BufRead> Interpreter<R> {
                 st.feed = None;
             }
         }
-        if let Some((code, off)) = g_cutter {
-            if code != 400 {
-                return Err(unsupported_g(
-                    code,
-                    off,
-                    "cutter radius compensation is not implemented",
-                ));
-            }
+        if blk.has(b'D') && !matches!(g_cutter, Some((410 | 420 | 411 | 421, _))) {
+            return Err((
+                blk.pos_of(b'D') as usize,
+                ErrorKind::Invalid,
+                "D word with no G41/G42/G41.1/G42.1 on the line".to_string(),
+            ));
+        }
+        // Cutter compensation state, copied only when a line touches it (it
+        // holds moves, so it is not part of the copied `State`).
+        let mut comp: Option<Comp> =
+            if g_cutter.is_some() || self.comp.side.is_some() || self.comp.arc_not_allowed {
+                Some(self.comp.clone())
+            } else {
+                None
+            };
+        if self.comp.side.is_some() {
+            comp_forbidden(&st, g_plane, g_units, g_coord, g_nonmodal, g_motion)?;
         }
 
         // Motion mode after this line; the previous one decides which cycle
@@ -1308,7 +1413,7 @@ impl<R: BufRead> Interpreter<R> {
             _ => None,
         };
         let nonmodal = g_nonmodal.map(|g| g.0);
-        let uses_axes_nonmodal = matches!(nonmodal, Some(280 | 300 | 920 | 520));
+        let uses_axes_nonmodal = matches!(nonmodal, Some(100 | 280 | 300 | 920 | 520));
         if uses_axes_nonmodal && has_axes && g_motion.is_some_and(|g| g.0 != 800) {
             let (code, off) = g_nonmodal.unwrap_or((0, 0));
             return Err((
@@ -1361,8 +1466,8 @@ impl<R: BufRead> Interpreter<R> {
             MotionMode::Spline(code) if motion_here => Some(code),
             _ => None,
         };
-        if has_r && cycle.is_some() {
-            // R of a canned cycle.
+        if has_r && (cycle.is_some() || nonmodal == Some(100)) {
+            // R of a canned cycle, or G10 L1's radius.
         } else if has_ijk && !has_r && spline.is_some() {
             // Control point offsets of G5 / G5.1.
         } else if (has_ijk || has_r) && !arc_motion {
@@ -1373,7 +1478,7 @@ impl<R: BufRead> Interpreter<R> {
             ));
         }
         if blk.has(b'P')
-            && !(nonmodal == Some(40)
+            && !(matches!(nonmodal, Some(40 | 100))
                 || arc_motion
                 || g_path.is_some_and(|g| g.0 == 640)
                 || matches!(cycle, Some(820 | 890))
@@ -1397,7 +1502,7 @@ impl<R: BufRead> Interpreter<R> {
                 "Q word is not supported here".to_string(),
             ));
         }
-        if blk.has(b'L') && cycle.is_none() {
+        if blk.has(b'L') && cycle.is_none() && nonmodal != Some(100) {
             return Err((
                 blk.pos_of(b'L') as usize,
                 ErrorKind::Unsupported,
@@ -1488,6 +1593,7 @@ impl<R: BufRead> Interpreter<R> {
             match blk.get(b'Q') {
                 Some(q) if q >= 0.0 && q.fract() == 0.0 && q <= f64::from(u32::MAX) => {
                     st.tool = q as u32;
+                    st.spindle_tool = st.tool;
                 }
                 _ => {
                     return Err((
@@ -1500,6 +1606,19 @@ impl<R: BufRead> Interpreter<R> {
         }
         // 6. tool change
         if m_tool {
+            st.spindle_tool = st.tool;
+            if let Some(c) = comp.as_mut() {
+                if !c.held.is_empty() {
+                    absorb(queue, c);
+                    release(queue, c);
+                }
+                // LinuxCNC reads the position back after a tool change:
+                // after G40 the tool is where compensation left it.
+                if let Some(d) = c.detached.take() {
+                    st.pos[0] = d[0];
+                    st.pos[1] = d[1];
+                }
+            }
             queue.push_back(Motion::ToolChange {
                 line,
                 tool: st.tool,
@@ -1564,6 +1683,19 @@ impl<R: BufRead> Interpreter<R> {
         if st.inch {
             self.units_inch_seen = true;
         }
+        // 13. cutter radius compensation
+        if let (Some((code, off)), Some(c)) = (g_cutter, comp.as_mut()) {
+            if code == 400 {
+                absorb(queue, c);
+                let mut out = Vec::new();
+                c.off(st.pos, &mut out);
+                for m in out {
+                    queue.push_back(m);
+                }
+            } else {
+                comp_on(c, &self.cfg, blk, &st, code, off as usize, scale)?;
+            }
+        }
         // 14. tool length offset: program coordinates are unchanged.
         if let Some((code, _)) = g_tlo {
             let tool = if code == 430 {
@@ -1593,8 +1725,8 @@ impl<R: BufRead> Interpreter<R> {
                 593 => 8,
                 c => ((c - 540) / 10) as u8,
             };
-            let old = self.cfg.work_offsets[st.coord as usize];
-            let new = self.cfg.work_offsets[idx as usize];
+            let old = self.params.work_offsets[st.coord as usize];
+            let new = self.params.work_offsets[idx as usize];
             for i in 0..3 {
                 st.pos[i] += old[i] - new[i];
             }
@@ -1619,7 +1751,7 @@ impl<R: BufRead> Interpreter<R> {
         for (i, letter) in [b'X', b'Y', b'Z'].into_iter().enumerate() {
             if let Some(v) = blk.get(letter) {
                 target[i] = if machine {
-                    v * scale - self.cfg.work_offsets[st.coord as usize][i] - self.g92[i]
+                    v * scale - self.params.work_offsets[st.coord as usize][i] - self.g92[i]
                 } else if st.absolute {
                     v * scale
                 } else {
@@ -1711,6 +1843,22 @@ impl<R: BufRead> Interpreter<R> {
                 st.g30 = add(st.pos, self.g92);
                 st.g30_a = st.a + self.g92_a;
             }
+            Some(100) => {
+                let at = g_nonmodal.map_or(0, |g| g.1) as usize;
+                let comp_on = comp.as_ref().is_some_and(|c| c.side.is_some());
+                let mut offsets = self.params.work_offsets;
+                let mut tools = self.cfg.tools.clone();
+                let changed = g10(blk, &mut st, &mut offsets, &mut tools, comp_on, scale, at)?;
+                if let Some((l, system, origin)) = changed {
+                    queue.push_back(Motion::WorkOffsetChange {
+                        line,
+                        l,
+                        system,
+                        origin,
+                    });
+                }
+                g10_new = Some((offsets, tools));
+            }
             // G92 family and G52: the origin moves; motions keep coming out
             // in the work system's frame (`Iterator::next` adds the offset),
             // so no backend has to know about it.
@@ -1772,6 +1920,7 @@ impl<R: BufRead> Interpreter<R> {
         }
 
         // 20. motion
+        let comp_on = comp.as_ref().is_some_and(Comp::active);
         if motion_here && target_a != st.a {
             let why = match st.motion {
                 MotionMode::Cw | MotionMode::Ccw => Some((
@@ -1783,13 +1932,37 @@ impl<R: BufRead> Interpreter<R> {
                     ErrorKind::Invalid,
                     "A axis word with a spline (G5/G5.1 move X and Y only)",
                 )),
+                _ if comp_on => Some((
+                    ErrorKind::Unsupported,
+                    "A axis motion with cutter compensation (G41/G42) is not supported",
+                )),
                 _ => None,
             };
             if let Some((kind, why)) = why {
                 return Err((blk.pos_of(b'A') as usize, kind, why.to_string()));
             }
         }
-        if motion_here {
+        if motion_here && comp_on {
+            if let Some(c) = comp.as_mut() {
+                let at = first_of(blk, axis_mask | ijk_mask | bit(b'R'));
+                compensated_move(
+                    &self.cfg, queue, c, &st, blk, target, machine, line, at, scale,
+                )?;
+                st.pos = target;
+            }
+        } else if motion_here {
+            let queued_before = queue.count();
+            if let Some(c) = comp.as_mut() {
+                if c.arc_not_allowed && is_arc {
+                    return Err((
+                        first_of(blk, axis_mask | ijk_mask | bit(b'R')),
+                        ErrorKind::Invalid,
+                        "the move just after turning cutter compensation off (G40) must be straight, not an arc"
+                            .to_string(),
+                    ));
+                }
+                c.arc_not_allowed = false;
+            }
             match st.motion {
                 MotionMode::Rapid => {
                     queue.push_back(Motion::Rapid {
@@ -1892,6 +2065,13 @@ impl<R: BufRead> Interpreter<R> {
             }
             st.pos = target;
             st.a = target_a;
+            // The first move after G40 leaves from the compensated point.
+            if let Some(d) = comp.as_mut().and_then(|c| c.detached.take()) {
+                queue.patch_first_move_from(queued_before, d);
+            }
+        } else if let Some(c) = comp.as_mut() {
+            // Events of a line without a move wait behind held moves.
+            absorb(queue, c);
         }
 
         // M70-M73: save, invalidate, restore the modal state (LinuxCNC).
@@ -1907,7 +2087,7 @@ impl<R: BufRead> Interpreter<R> {
                             "M72 with no state saved by M70".to_string(),
                         ));
                     };
-                    restore_modal(&self.cfg, queue, &mut st, &saved, line);
+                    restore_modal(&self.params.work_offsets, queue, &mut st, &saved, line);
                 }
                 _ => {
                     // M73: restored when this subroutine returns.
@@ -1919,7 +2099,16 @@ impl<R: BufRead> Interpreter<R> {
             }
         }
 
-        // 21. stops
+        // 21. stops: what compensation holds is released first.
+        if m_stop.is_some() {
+            if let Some(c) = comp.as_mut() {
+                absorb(queue, c);
+                release(queue, c);
+                if !matches!(m_stop, Some((0 | 10, _))) {
+                    *c = Comp::default();
+                }
+            }
+        }
         let mut end = false;
         match m_stop {
             Some((0, _)) | Some((10, _)) => queue.push_back(Motion::Pause {
@@ -1953,11 +2142,25 @@ impl<R: BufRead> Interpreter<R> {
             }
         }
         self.st = st;
+        if let Some(c) = comp {
+            self.comp = c;
+            if self.cutter_comp_line.is_none() && self.comp.side.is_some() {
+                self.cutter_comp_line = Some(line);
+            }
+        }
         if let Some(c) = cycle_new {
             self.cycle = c;
         }
         if let Some(pq) = spline_pq_new {
             self.spline_pq = pq;
+        }
+        if let Some((offsets, tools)) = g10_new {
+            self.g10_line.get_or_insert(line);
+            if offsets != self.params.work_offsets {
+                self.offsets_changed = true;
+            }
+            self.params.work_offsets = offsets;
+            self.cfg.tools = tools;
         }
         if let Some((g92, saved, g92_a, saved_a)) = g92_new {
             self.g92 = g92;
@@ -1966,11 +2169,14 @@ impl<R: BufRead> Interpreter<R> {
             self.g92_saved_a = saved_a;
             self.g92_active = g92 != [0.0; 3] || g92_a != 0.0;
         }
-        if self.g92_active {
+        if self.g92_active || self.offsets_changed {
             // Into the work system's frame. Lines that change the offset
             // move nothing, so the offset after the line holds for all of
             // its motions.
-            self.queue.shift_all(self.g92, self.g92_a);
+            let frame = self.frame();
+            if frame != [0.0; 3] || self.g92_a != 0.0 {
+                self.queue.shift_all(frame, self.g92_a);
+            }
         }
         Ok(())
     }
@@ -2108,6 +2314,344 @@ fn spline_motion(
         prev = next;
     }
     Ok(pq)
+}
+
+/// G10 L1 (tool table: `P` tool, `R` radius, `Z` length), L2 (work system
+/// `P` 1..9, 0 = the active one, origin set to X/Y/Z, absolute even in G91)
+/// and L20 (origin set so that the current position reads X/Y/Z), as
+/// LinuxCNC's convert_setup. Returns (L, system 1..9, new origin) for L2/L20.
+/// The tool table and offsets changed are the program's view only.
+#[cold]
+fn g10(
+    blk: &Block,
+    st: &mut State,
+    offsets: &mut [Point; 9],
+    tools: &mut crate::ToolTable,
+    comp_on: bool,
+    scale: f64,
+    at: usize,
+) -> Result<Option<(u8, u8, Point)>, LexError> {
+    let invalid = |at: usize, m: String| (at, ErrorKind::Invalid, m);
+    let l = match blk.get(b'L') {
+        Some(l) if l == 1.0 || l == 2.0 || l == 20.0 => l as u8,
+        Some(l) => {
+            return Err((
+                blk.pos_of(b'L') as usize,
+                ErrorKind::Unsupported,
+                format!("G10 L{l} is not supported (L1, L2 and L20 are)"),
+            ))
+        }
+        None => {
+            return Err(invalid(
+                at,
+                "G10 needs an L word (L1, L2 or L20)".to_string(),
+            ))
+        }
+    };
+    let p_at = blk.pos_of(b'P') as usize;
+    let p = match blk.get(b'P') {
+        Some(p) if p >= 0.0 && p.fract() == 0.0 && p <= f64::from(u32::MAX) => p as u32,
+        Some(_) => return Err(invalid(p_at, format!("G10 L{l} P must be a whole number"))),
+        None => return Err(invalid(at, format!("G10 L{l} needs P"))),
+    };
+    if l == 1 {
+        let Some(tool) = tools.get_mut(&p) else {
+            return Err((
+                p_at,
+                ErrorKind::Unsupported,
+                format!("G10 L1 P{p}: tool {p} is not in the machine's tool table"),
+            ));
+        };
+        if let Some(r) = blk.get(b'R') {
+            tool.diameter_mm = 2.0 * r * scale;
+        }
+        if let Some(z) = blk.get(b'Z') {
+            tool.length_mm = z * scale;
+        }
+        return Ok(None);
+    }
+    if blk.has(b'R') {
+        return Err((
+            blk.pos_of(b'R') as usize,
+            ErrorKind::Unsupported,
+            "G10 R (a rotated coordinate system) is not supported".to_string(),
+        ));
+    }
+    if p > 9 {
+        return Err(invalid(
+            p_at,
+            format!("G10 L{l} P{p}: P must be 0 (the active system) or 1..9 (G54..G59.3)"),
+        ));
+    }
+    let idx = if p == 0 {
+        st.coord as usize
+    } else {
+        p as usize - 1
+    };
+    if comp_on && idx == st.coord as usize {
+        return Err(invalid(
+            at,
+            "cannot change the active coordinate system with cutter radius compensation on"
+                .to_string(),
+        ));
+    }
+    let old = offsets[idx];
+    let mut new = old;
+    let active = offsets[st.coord as usize];
+    for (i, letter) in [b'X', b'Y', b'Z'].into_iter().enumerate() {
+        if let Some(v) = blk.get(letter) {
+            new[i] = if l == 2 {
+                v * scale
+            } else {
+                // The machine position (program's view) less the value.
+                st.pos[i] + active[i] - v * scale
+            };
+        }
+    }
+    if idx == st.coord as usize {
+        for i in 0..3 {
+            st.pos[i] += old[i] - new[i];
+        }
+    }
+    offsets[idx] = new;
+    Ok(Some((l, idx as u8 + 1, new)))
+}
+
+/// Moves this line's events so far behind the moves compensation holds.
+#[cold]
+fn absorb(queue: &mut Queue, c: &mut Comp) {
+    if !c.held.is_empty() {
+        while let Some(m) = queue.pop_front() {
+            c.hold_event(m);
+        }
+    }
+}
+
+/// Releases what compensation holds, unchanged, into the queue.
+#[cold]
+fn release(queue: &mut Queue, c: &mut Comp) {
+    let mut out = Vec::new();
+    c.release(&mut out);
+    for m in out {
+        queue.push_back(m);
+    }
+}
+
+fn comp_err(at: usize, e: CompError) -> LexError {
+    (at, e.0, e.1)
+}
+
+/// G41/G42 (D = tool number; without D the tool in the spindle) and
+/// G41.1/G42.1 (D = diameter), as LinuxCNC.
+#[cold]
+fn comp_on(
+    c: &mut Comp,
+    cfg: &Config,
+    blk: &Block,
+    st: &State,
+    code: u16,
+    off: usize,
+    scale: f64,
+) -> Result<(), LexError> {
+    let name = gname(code);
+    if st.plane != Plane::XY {
+        return Err((
+            off,
+            ErrorKind::Unsupported,
+            format!("{name}: cutter radius compensation is only supported in the XY plane (G17)"),
+        ));
+    }
+    if c.side.is_some() {
+        return Err((
+            off,
+            ErrorKind::Invalid,
+            format!("{name}: cutter radius compensation is already on (G40 first)"),
+        ));
+    }
+    let d_at = blk.pos_of(b'D') as usize;
+    let diameter = if matches!(code, 411 | 421) {
+        match blk.get(b'D') {
+            Some(d) => d * scale,
+            None => {
+                return Err((
+                    off,
+                    ErrorKind::Invalid,
+                    format!("{name} with no D word (the tool diameter)"),
+                ))
+            }
+        }
+    } else {
+        let tool = match blk.get(b'D') {
+            Some(d) if d >= 0.0 && d.fract() == 0.0 && d <= f64::from(u32::MAX) => Some(d as u32),
+            Some(_) => {
+                return Err((
+                    d_at,
+                    ErrorKind::Invalid,
+                    format!("{name}: D must be a tool number (a non-negative whole number)"),
+                ))
+            }
+            None => None,
+        };
+        match (tool, tool.or(Some(st.spindle_tool)).and_then(|t| cfg.tools.get(&t))) {
+            (_, Some(t)) => t.diameter_mm,
+            // Unsupported, not Invalid: the program is fine, the machine
+            // lacks the tool (the skip policy may skip the line).
+            (Some(t), None) => {
+                return Err((
+                    d_at,
+                    ErrorKind::Unsupported,
+                    format!(
+                        "{name} D{t}: tool {t} is not in the machine's tool table (cutter compensation needs its diameter)"
+                    ),
+                ))
+            }
+            // LinuxCNC: no tool in the spindle has no radius.
+            (None, None) if st.spindle_tool == 0 => 0.0,
+            (None, None) => {
+                return Err((
+                    off,
+                    ErrorKind::Unsupported,
+                    format!(
+                        "{name} without D uses the tool in the spindle, T{}, which is not in the tool table",
+                        st.spindle_tool
+                    ),
+                ))
+            }
+        }
+    };
+    let mut side = if matches!(code, 410 | 411) {
+        Side::Left
+    } else {
+        Side::Right
+    };
+    let mut radius = diameter / 2.0;
+    if radius < 0.0 {
+        radius = -radius;
+        side = if side == Side::Left {
+            Side::Right
+        } else {
+            Side::Left
+        };
+    }
+    c.side = Some(side);
+    c.radius = radius;
+    c.first = true;
+    c.tool = [st.pos[0], st.pos[1]];
+    Ok(())
+}
+
+/// What LinuxCNC refuses while cutter compensation is on.
+#[cold]
+fn comp_forbidden(
+    st: &State,
+    g_plane: Option<(u16, u32)>,
+    g_units: Option<(u16, u32)>,
+    g_coord: Option<(u16, u32)>,
+    g_nonmodal: Option<(u16, u32)>,
+    g_motion: Option<(u16, u32)>,
+) -> Result<(), LexError> {
+    let refuse = |g: (u16, u32), what: &str| {
+        Err((
+            g.1 as usize,
+            ErrorKind::Invalid,
+            format!(
+                "{}: cannot {what} with cutter radius compensation on (G40 first)",
+                gname(g.0)
+            ),
+        ))
+    };
+    if let Some(g) = g_plane.filter(|g| g.0 != 170) {
+        return refuse(g, "change planes");
+    }
+    if let Some(g) = g_units.filter(|g| (g.0 == 200) != st.inch) {
+        return refuse(g, "change units");
+    }
+    if let Some(g) = g_coord {
+        return refuse(g, "change the coordinate system");
+    }
+    if let Some(g) = g_nonmodal {
+        match g.0 {
+            280 | 300 | 281 | 301 => return refuse(g, "use G28/G30"),
+            530 => return refuse(g, "use G53"),
+            520 | 920..=923 => return refuse(g, "change axis offsets"),
+            _ => {}
+        }
+    }
+    if let Some(g) = g_motion.filter(|g| matches!(g.0, 730 | 810..=890)) {
+        return refuse(g, "use canned cycles");
+    }
+    Ok(())
+}
+
+/// A G0/G1/G2/G3 while cutter compensation is on.
+#[cold]
+#[allow(clippy::too_many_arguments)]
+fn compensated_move(
+    cfg: &Config,
+    queue: &mut Queue,
+    c: &mut Comp,
+    st: &State,
+    blk: &Block,
+    target: Point,
+    machine: bool,
+    line: u32,
+    at: usize,
+    scale: f64,
+) -> Result<(), LexError> {
+    if machine {
+        return Err((
+            at,
+            ErrorKind::Invalid,
+            "G53 with cutter radius compensation on".to_string(),
+        ));
+    }
+    absorb(queue, c);
+    let mut out = Vec::new();
+    match st.motion {
+        MotionMode::Rapid => c
+            .straight(line, true, 0.0, st.pos, target, st.inch, &mut out)
+            .map_err(|e| comp_err(at, e))?,
+        MotionMode::Linear => {
+            let mut feed = feed_mm_min(st, blk)?;
+            if st.feed_mode != FeedMode::PerMinute {
+                feed = feed_in_mode(st, blk, feed, len3(st.pos, target))?;
+            }
+            c.straight(line, false, feed, st.pos, target, st.inch, &mut out)
+                .map_err(|e| comp_err(at, e))?;
+        }
+        MotionMode::Cw | MotionMode::Ccw => {
+            let feed = feed_mm_min(st, blk)?;
+            let mut m = arc_motion_of(
+                cfg,
+                st,
+                blk,
+                target,
+                st.motion == MotionMode::Cw,
+                feed,
+                scale,
+                line,
+            )?;
+            if st.feed_mode != FeedMode::PerMinute {
+                let length = crate::ArcGeometry::from_motion(&m).map_or(0.0, |g| g.length());
+                let f = feed_in_mode(st, blk, feed, length)?;
+                if let Motion::Arc { feed_mm_min, .. } = &mut m {
+                    *feed_mm_min = f;
+                }
+            }
+            c.arc(&m, st.inch, &mut out).map_err(|e| comp_err(at, e))?;
+        }
+        _ => {
+            return Err((
+                at,
+                ErrorKind::Invalid,
+                "canned cycles with cutter radius compensation on".to_string(),
+            ));
+        }
+    }
+    for m in out {
+        queue.push_back(m);
+    }
+    Ok(())
 }
 
 #[inline]
@@ -2397,10 +2941,16 @@ fn canned_cycle(
 /// speed, spindle, coolant, work system and motion mode (position, stored
 /// G28/G30 positions and tool stay), with the events a change needs.
 #[cold]
-fn restore_modal(cfg: &Config, queue: &mut Queue, st: &mut State, saved: &State, line: u32) {
+fn restore_modal(
+    offsets: &[Point; 9],
+    queue: &mut Queue,
+    st: &mut State,
+    saved: &State,
+    line: u32,
+) {
     if saved.coord != st.coord {
-        let old = cfg.work_offsets[st.coord as usize];
-        let new = cfg.work_offsets[saved.coord as usize];
+        let old = offsets[st.coord as usize];
+        let new = offsets[saved.coord as usize];
         for i in 0..3 {
             st.pos[i] += old[i] - new[i];
         }

@@ -278,7 +278,8 @@ const SUPPORTED: u32 = bit(b'N')
     | bit(b'P')
     | bit(b'H')
     | bit(b'Q')
-    | bit(b'L');
+    | bit(b'L')
+    | bit(b'D');
 
 /// Lexes one line (no trailing newline) into `blk`. Parameters and
 /// expressions are evaluated with `params` (whose system values come from
@@ -534,7 +535,6 @@ fn unsupported_letter(up: u8) -> String {
                 up as char
             )
         }
-        b'D' => "D word (cutter compensation) is not supported".to_string(),
         b'E' => "E word (extruder) is not supported".to_string(),
         _ => format!("{} word is not supported", up as char),
     }

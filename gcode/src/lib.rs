@@ -47,6 +47,7 @@
 
 mod analysis;
 mod arc;
+mod comp;
 mod expr;
 mod flow;
 mod interp;
@@ -147,7 +148,27 @@ pub struct Config {
     /// or M98 on, the lines read are kept in memory, at most this many bytes
     /// (more is an error naming the line). Default 256 MiB.
     pub max_kept_program_bytes: usize,
+    /// The machine's tool table: the radius for cutter compensation
+    /// (`G41`/`G42` with `D`, or without `D` the tool in the spindle).
+    /// Empty by default: a G41/G42 that needs a tool is then an error naming
+    /// the line and the tool.
+    pub tools: ToolTable,
 }
+
+/// One tool of a [`ToolTable`], millimetres.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Tool {
+    /// Cutter diameter; cutter compensation offsets the path by half of it
+    /// (a negative diameter offsets to the other side, as in LinuxCNC).
+    pub diameter_mm: f64,
+    /// Tool length offset (G43). Carried for the controller; program
+    /// coordinates do not depend on it.
+    #[serde(default)]
+    pub length_mm: f64,
+}
+
+/// Tools by number (the `T` / `D` word).
+pub type ToolTable = std::collections::BTreeMap<u32, Tool>;
 
 impl Default for Config {
     fn default() -> Self {
@@ -170,6 +191,7 @@ impl Default for Config {
             max_call_depth: 10,
             max_loop_iterations: 10_000_000,
             max_kept_program_bytes: 256 * 1024 * 1024,
+            tools: ToolTable::new(),
         }
     }
 }
@@ -292,6 +314,19 @@ pub enum Motion {
         #[serde(skip_serializing_if = "is_zero")]
         offset_a: f64,
     },
+    /// G10 L2 / L20 (`l` = 2 or 20): the program set work system `system`
+    /// (1..9 = G54..G59.3) to `origin` (machine coordinates, mm, as the
+    /// program sees them: `Config::work_offsets` plus what the program
+    /// changed). Like G92, the change is folded into the coordinates of every
+    /// later motion (they stay in the frame of the machine's own offsets), so
+    /// a backend needs to do nothing and the machine's stored offsets are not
+    /// changed; it is reported for the analysis and the operator.
+    WorkOffsetChange {
+        line: u32,
+        l: u8,
+        system: u8,
+        origin: Point,
+    },
 }
 
 fn is_zero(v: &f64) -> bool {
@@ -315,6 +350,7 @@ impl Motion {
             | Motion::Message { line, .. }
             | Motion::Pause { line, .. }
             | Motion::OffsetChange { line, .. }
+            | Motion::WorkOffsetChange { line, .. }
             | Motion::ProgramEnd { line } => *line,
         }
     }

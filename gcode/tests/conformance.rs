@@ -17,7 +17,7 @@
 //! per-file table.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use fresa_gcode::{Config, Interpreter, Motion, Plane};
+use fresa_gcode::{Config, Interpreter, Motion, Plane, Tool, ToolTable};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -51,38 +51,13 @@ const KNOWN: &[(&str, &str)] = &[
         "ncfiles/threading.ngc",
         "G33 spindle-synchronised motion: no backend has a spindle encoder",
     ),
-    // Not implemented yet (issue #14, later steps).
     (
         "ncfiles/comp.ngc",
-        "cutter radius compensation (G41/G42, D) not implemented yet",
-    ),
-    (
-        "ncfiles/comp-g1.ngc",
-        "cutter radius compensation (G41/G42, D) not implemented yet",
-    ),
-    (
-        "ncfiles/comp311.ngc",
-        "cutter radius compensation (G41/G42, D) not implemented yet",
-    ),
-    (
-        "ncfiles/comp311_2.ngc",
-        "cutter radius compensation (G41/G42, D) not implemented yet",
-    ),
-    (
-        "ncfiles/gmoccapy_2_tools_with_cutter_radius_compensation.ngc",
-        "cutter radius compensation (G41/G42, D) not implemented yet",
-    ),
-    (
-        "ncfiles/useful-subroutines.ngc",
-        "cutter radius compensation (G41/G42, D) not implemented yet",
-    ),
-    (
-        "shared/cncjs-helical-thread-milling.gcode",
-        "cutter radius compensation (G42 D08) not implemented yet",
+        "G41/G42 in the XZ plane (G18, lathe-style compensation): deliberately only XY (G17), the plane a mill compensates in",
     ),
     (
         "ncfiles/mmount.ngc",
-        "cutter radius compensation (G41) not implemented yet",
+        "G33.1 rigid tapping: no backend has a spindle encoder (its G41/G42 parts match)",
     ),
 ];
 
@@ -140,8 +115,10 @@ fn rs274() -> PathBuf {
     })
 }
 
-/// A tool table with tools 1..=99 (zero length, 0.1 mm diameter), so programs
-/// that change tools run as they would on a configured machine.
+/// A tool table with tools 1..=99 (zero length, diameter 0.1), so programs
+/// that change tools run as they would on a configured machine. rs274 reads
+/// the table in inches (its G41 offsets by 0.05 in = 1.27 mm); Fresa's is in
+/// mm ([`fresa_tools`]).
 fn tool_table(dir: &Path) -> PathBuf {
     let p = dir.join("fresa-conformance.tbl");
     let mut s = String::new();
@@ -164,6 +141,24 @@ fn args_of(line: &str) -> Option<(&str, Vec<&str>)> {
 }
 
 fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
+    let first = run_rs274_once(exe, table, dir, file);
+    if !first.1 {
+        return first.0;
+    }
+    // rs274 insists on M2/M30 or a closing `%`; Fresa (like grbl and CAM
+    // output in the wild) takes the end of the file as the end of the
+    // program, which (as M2 does) releases the moves cutter compensation
+    // still holds. Deliberate difference: such a program is compared with
+    // rs274's run of it with M2 appended.
+    let with_end = dir.join("with-m2.ngc");
+    let mut text = std::fs::read(file).unwrap();
+    text.extend_from_slice(b"\nM2\n");
+    std::fs::write(&with_end, text).unwrap();
+    run_rs274_once(exe, table, dir, &with_end).0
+}
+
+/// One run; also says whether the only complaint was a missing program end.
+fn run_rs274_once(exe: &Path, table: &Path, dir: &Path, file: &Path) -> (Outcome, bool) {
     let out = Command::new(exe)
         .arg("-t")
         .arg(table)
@@ -181,6 +176,10 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
                                 // motions are in the work system's frame (offset included).
     let mut g92 = [0.0; 3];
     let mut g92_a = 0.0;
+    // Likewise the active work system's origin: Fresa's config has all
+    // offsets zero (the machine's own), so what G10 L2/L20 set is folded
+    // into its motions; rs274 prints coordinates without it.
+    let mut g5x = [0.0; 3];
     // G95: rs274 prints the feed per revolution; Fresa's motions carry mm/min.
     let (mut per_rev, mut rpm) = (false, 0.0);
     let mut plane = 0u8;
@@ -214,6 +213,9 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
                 g92 = [num(a[0]) * scale, num(a[1]) * scale, num(a[2]) * scale];
                 g92_a = num(a[3]);
             }
+            "SET_G5X_OFFSET" => {
+                g5x = [num(a[1]) * scale, num(a[2]) * scale, num(a[3]) * scale];
+            }
             "SET_FEED_RATE" => {
                 feed = num(a[0]) * scale;
                 feed_number = Some(num(a[0]));
@@ -228,9 +230,9 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
             "STRAIGHT_TRAVERSE" | "STRAIGHT_FEED" => {
                 feed_number = None;
                 let to = [
-                    num(a[0]) * scale + g92[0],
-                    num(a[1]) * scale + g92[1],
-                    num(a[2]) * scale + g92[2],
+                    num(a[0]) * scale + g92[0] + g5x[0],
+                    num(a[1]) * scale + g92[1] + g5x[1],
+                    num(a[2]) * scale + g92[2] + g5x[2],
                 ];
                 if a.len() > 3 && a[4..6].iter().any(|v| num(v) != 0.0) {
                     other.push(format!("{name} with B/C"));
@@ -259,8 +261,9 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
                     1 => (2, 0, 1),
                     _ => (1, 2, 0),
                 };
-                let (e1, e2, n) = (e1 + g92[i1], e2 + g92[i2], n + g92[i3]);
-                let (c1, c2) = (c1 + g92[i1], c2 + g92[i2]);
+                let off = [g92[0] + g5x[0], g92[1] + g5x[1], g92[2] + g5x[2]];
+                let (e1, e2, n) = (e1 + off[i1], e2 + off[i2], n + off[i3]);
+                let (c1, c2) = (c1 + off[i1], c2 + off[i2]);
                 let to = match plane {
                     0 => [e1, e2, n],
                     1 => [e2, n, e1],
@@ -285,26 +288,43 @@ fn run_rs274(exe: &Path, table: &Path, dir: &Path, file: &Path) -> Outcome {
         }
     }
     let stderr = String::from_utf8_lossy(&out.stderr);
-    // rs274 insists on M2/M30 or a closing `%`; Fresa (like grbl and CAM
-    // output in the wild) takes the end of the file as the end of the program.
-    // Deliberate difference: that error alone counts as a normal end.
     let eof_only = stderr.contains("File ended with no percent sign or program end");
     let error = if out.status.success() || eof_only {
         None
     } else {
-        Some(
+        Some(format!(
+            "{} ({})",
             stderr
                 .lines()
                 .filter(|l| !l.trim().is_empty() && l.trim() != "executing")
                 .collect::<Vec<_>>()
                 .join(" / "),
-        )
+            out.status
+        ))
     };
-    Outcome {
-        moves,
-        error,
-        other,
-    }
+    (
+        Outcome {
+            moves,
+            error,
+            other,
+        },
+        eof_only,
+    )
+}
+
+/// The same tool table as [`tool_table`], for Fresa (mm).
+fn fresa_tools() -> ToolTable {
+    (1..=99)
+        .map(|t| {
+            (
+                t,
+                Tool {
+                    diameter_mm: 0.1 * 25.4,
+                    length_mm: 0.0,
+                },
+            )
+        })
+        .collect()
 }
 
 /// Order of the spline a source line programs (G5: 4, G5.1: 3), if any.
@@ -339,9 +359,13 @@ fn run_fresa(file: &Path) -> Outcome {
         .collect();
     let mut moves = Vec::new();
     let mut error = None;
+    let config = Config {
+        tools: fresa_tools(),
+        ..Config::default()
+    };
     let mut a_deg = 0.0;
     let mut spline_line = None;
-    for m in Interpreter::new(std::io::BufReader::new(f), Config::default()) {
+    for m in Interpreter::new(std::io::BufReader::new(f), config) {
         if let Ok(Motion::Linear { line, .. }) = &m {
             if spline_line == Some(*line) {
                 continue;

@@ -46,10 +46,8 @@ fn expected(name: &str) -> Option<(u32, ErrorKind, &'static str)> {
         }
         // N55 "X.75" while G2 is still modal and no I/J: not a valid arc.
         "cncjs-full-circle-without-xyz.gcode" => Some((11, ErrorKind::Arc, "needs R or I/J")),
-        // G42 D08: cutter compensation is not implemented.
-        "cncjs-helical-thread-milling.gcode" => {
-            Some((5, ErrorKind::Unsupported, "cutter compensation"))
-        }
+        // G42 D08: tool 8 is not in the (default, empty) tool table.
+        "cncjs-helical-thread-milling.gcode" => Some((5, ErrorKind::Unsupported, "tool table")),
         _ => None,
     }
 }

@@ -132,10 +132,10 @@ fn g92_and_g52_shift_the_origin_and_the_analysis_shows_it() {
     let json = serde_json::to_value(&a).unwrap();
     assert_eq!(json["offset_changes"][0]["line"], 2);
     assert!(json["cutting_length_mm"].is_number(), "old fields stay");
-    // G92 needs an axis word; G10 (offsets written into the machine) is refused.
+    // G92 needs an axis word; G10 L10/L11 (tool table from the position) are refused.
     let e = err("G0 X1\nG92\n");
     assert_eq!((e.line, e.column), (2, 1));
-    let e = err("G10 L2 P1 X5\n");
+    let e = err("G10 L11 P1 Z5\n");
     assert_eq!(e.kind, ErrorKind::Unsupported);
 }
 

@@ -320,8 +320,8 @@ fn inverse_time_and_unsupported_words_are_clear_errors() {
         assert_eq!(e.column, 7);
         assert!(e.message.contains(&format!("axis word {w}")), "{e}");
     }
-    assert!(err("G41 D1\n").message.contains("not supported"));
-    assert!(err("G10 L2 P1 X0\n").message.contains("G10"));
+    assert!(err("G41 D1\n").message.contains("tool table"));
+    assert!(err("G10 L10 P1 Z0\n").message.contains("G10 L10"));
     assert!(err("M62 P1\n").message.contains("M62"));
 }
 

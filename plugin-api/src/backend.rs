@@ -21,6 +21,8 @@ pub struct LoadProgram {
     pub path: String,
     pub start_line: u32,
     pub expected_part_zero: Option<AxisValues>,
+    /// The machine's tool table (see [`Request::LoadProgram`]).
+    pub tools: Vec<crate::contract::ProgramTool>,
 }
 
 /// A machine backend. Methods may be called concurrently from several host threads (so that
@@ -175,12 +177,14 @@ pub fn dispatch<B: MachineBackend>(b: &B, request: Request) -> Result<Answer, Pl
             path,
             start_line,
             expected_part_zero,
+            tools,
         } => b
             .load_program(LoadProgram {
                 run,
                 path,
                 start_line,
                 expected_part_zero,
+                tools,
             })
             .map(Answer::Loaded),
         Request::Run { action } => b.run(action).map(Answer::Run),

@@ -396,6 +396,11 @@ pub enum Request {
         /// reported one differs. Absent on a first start or an operator-confirmed resume.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         expected_part_zero: Option<AxisValues>,
+        /// The machine's tool table (Fresa's database): what G41/G42 `D<n>` offset by. A
+        /// backend that interprets the program itself uses it, so it runs the path the upload
+        /// check validated. Absent: no tools.
+        #[serde(default, skip_serializing_if = "Vec::is_empty")]
+        tools: Vec<ProgramTool>,
     },
     /// Answer: `{}`.
     Run { action: RunAction },
@@ -452,6 +457,16 @@ pub struct Artifact {
 pub struct OffsetTable {
     pub active: WorkOffset,
     pub offsets: Vec<(WorkOffset, AxisValues)>,
+}
+
+/// One tool of [`Request::LoadProgram`]'s table, millimetres (the same shape as
+/// `fresa_gcode::Tool`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ProgramTool {
+    pub tool: u32,
+    pub diameter_mm: f64,
+    #[serde(default)]
+    pub length_mm: f64,
 }
 
 /// Answer to `load_program`.

@@ -28,6 +28,14 @@ pub enum MachineCmd {
     List,
     /// One machine's status: state, positions, run, and its inputs and outputs.
     Status { id: i64 },
+    /// A machine's tool table (what G41/G42 D<n> offset by); with --load, replace it first.
+    Tools {
+        id: i64,
+        /// A JSON file with the whole table, as `GET /api/v1/machines/{id}/tools` gives it:
+        /// `[{"tool": 1, "diameter_mm": 6.0, "length_mm": 0, "description": "..."}, ...]`.
+        #[arg(long)]
+        load: Option<PathBuf>,
+    },
 }
 
 /// Filters of `fresa events`.
@@ -128,6 +136,10 @@ pub enum GcodeCmd {
         /// Print the analysis as JSON.
         #[arg(long)]
         json: bool,
+        /// The tool table for G41/G42 D<n>: a JSON file as `fresa machine tools` loads and the
+        /// API gives (`[{"tool": 1, "diameter_mm": 6.0}, ...]`). Without it: no tools.
+        #[arg(long)]
+        tools: Option<PathBuf>,
     },
 }
 
@@ -202,8 +214,78 @@ pub async fn machine(server: ServerArgs, cmd: MachineCmd) -> Res {
                 .await?;
             print!("{}", status_text(&s));
         }
+        MachineCmd::Tools { id, load } => {
+            let path = format!("/api/v1/machines/{id}/tools");
+            let v = match load {
+                Some(file) => {
+                    let table = read_tool_file(&file)?;
+                    c.send(c.req(reqwest::Method::PUT, &path).json(&table))
+                        .await?
+                }
+                None => c.send(c.req(reqwest::Method::GET, &path)).await?,
+            };
+            let mut rows =
+                vec![["TOOL", "DIAMETER MM", "LENGTH MM", "DESCRIPTION"].map(String::from)];
+            for t in v.as_array().into_iter().flatten() {
+                rows.push([
+                    t["tool"].to_string(),
+                    t["diameter_mm"].to_string(),
+                    t["length_mm"].to_string(),
+                    t["description"].as_str().unwrap_or("").to_string(),
+                ]);
+            }
+            print!("{}", columns(&rows));
+        }
     }
     Ok(())
+}
+
+/// A tool-table file: the API's JSON array. Errors name the file and what is wrong.
+fn read_tool_file(file: &std::path::Path) -> Result<Value, Box<dyn std::error::Error>> {
+    let text = std::fs::read_to_string(file)
+        .map_err(|e| format!("cannot read {}: {e}", file.display()))?;
+    let v: Value = serde_json::from_str(&text)
+        .map_err(|e| format!("{}: not a JSON tool table: {e}", file.display()))?;
+    if !v.is_array() {
+        return Err(format!(
+            "{}: a tool table is a JSON array of {{\"tool\", \"diameter_mm\", ...}}",
+            file.display()
+        )
+        .into());
+    }
+    Ok(v)
+}
+
+/// A tool-table file as the interpreter takes it (for `fresa gcode check --tools`).
+fn gcode_tools(
+    file: &std::path::Path,
+) -> Result<fresa_gcode::ToolTable, Box<dyn std::error::Error>> {
+    #[derive(serde::Deserialize)]
+    #[serde(deny_unknown_fields)]
+    struct Entry {
+        tool: u32,
+        diameter_mm: f64,
+        #[serde(default)]
+        length_mm: f64,
+        #[serde(default)]
+        #[allow(dead_code)] // accepted so the API's own output loads
+        description: String,
+    }
+    let v = read_tool_file(file)?;
+    let entries: Vec<Entry> =
+        serde_json::from_value(v).map_err(|e| format!("{}: {e}", file.display()))?;
+    Ok(entries
+        .into_iter()
+        .map(|e| {
+            (
+                e.tool,
+                fresa_gcode::Tool {
+                    diameter_mm: e.diameter_mm,
+                    length_mm: e.length_mm,
+                },
+            )
+        })
+        .collect())
 }
 
 /// `fresa machine status`: what an operator reads at a glance, lamps last.
@@ -711,12 +793,24 @@ pub async fn backup(file: PathBuf, data: DataArgs) -> Res {
 
 pub fn gcode(cmd: GcodeCmd) -> Res {
     match cmd {
-        GcodeCmd::Check { file, rapid, json } => {
+        GcodeCmd::Check {
+            file,
+            rapid,
+            json,
+            tools,
+        } => {
+            let tools = match tools {
+                Some(t) => gcode_tools(&t)?,
+                None => fresa_gcode::ToolTable::new(),
+            };
             let f = std::fs::File::open(&file)
                 .map_err(|e| format!("cannot open {}: {e}", file.display()))?;
             let opts = fresa_gcode::AnalysisOptions {
                 rapid_mm_min: rapid,
-                ..Default::default()
+                config: fresa_gcode::Config {
+                    tools,
+                    ..Default::default()
+                },
             };
             let a = fresa_gcode::analyse(std::io::BufReader::with_capacity(1 << 16, f), &opts)
                 .map_err(|e| format!("{}: {e}", file.display()))?;

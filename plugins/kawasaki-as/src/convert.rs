@@ -217,10 +217,20 @@ pub struct Convert {
 impl Convert {
     /// Interprets the whole program. Errors name line and column.
     pub fn plan(&self, text: &str) -> Result<Plan, GcodeError> {
+        self.plan_with_tools(text, fresa_gcode::ToolTable::new())
+    }
+
+    /// [`Convert::plan`] with the machine's tool table (G41/G42 `D`).
+    pub fn plan_with_tools(
+        &self,
+        text: &str,
+        tools: fresa_gcode::ToolTable,
+    ) -> Result<Plan, GcodeError> {
         let lines = u32::try_from(text.lines().count()).unwrap_or(u32::MAX);
         let config = fresa_gcode::Config {
             arc_tolerance_mm: self.arc_tolerance_mm,
             unsupported: self.unsupported,
+            tools,
             ..Default::default()
         };
         let mut interp = Interpreter::new(text.as_bytes(), config);

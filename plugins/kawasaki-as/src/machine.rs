@@ -265,6 +265,7 @@ impl KawasakiMachine {
         path: &str,
         start_line: u32,
         expected_zero: Option<AxisValues>,
+        tools: fresa_gcode::ToolTable,
     ) -> Result<ProgramLoaded, PluginError> {
         if self.core.lock().busy {
             return Err(PluginError::new("busy", "a run is in progress"));
@@ -275,7 +276,7 @@ impl KawasakiMachine {
         let plan = self
             .core
             .convert
-            .plan(&text)
+            .plan_with_tools(&text, tools)
             .map_err(|e| PluginError::new("invalid_program", e.to_string()))?;
         if start_line == 0 || start_line > plan.lines.max(1) {
             return Err(PluginError::invalid(format!(
@@ -959,7 +960,20 @@ impl MachineBackend for KawasakiMachine {
     }
 
     fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {
-        self.load(p.run, &p.path, p.start_line, p.expected_part_zero)
+        let tools = p
+            .tools
+            .iter()
+            .map(|t| {
+                (
+                    t.tool,
+                    fresa_gcode::Tool {
+                        diameter_mm: t.diameter_mm,
+                        length_mm: t.length_mm,
+                    },
+                )
+            })
+            .collect();
+        self.load(p.run, &p.path, p.start_line, p.expected_part_zero, tools)
     }
 
     fn run(&self, action: RunAction) -> Result<RunAnswer, PluginError> {

@@ -720,6 +720,7 @@ impl Inner {
         run: i64,
         path: &str,
         start_line: u32,
+        tools: fresa_gcode::ToolTable,
     ) -> Result<ProgramLoaded, PluginError> {
         if start_line == 0 {
             return Err(PluginError::invalid(
@@ -731,7 +732,11 @@ impl Inner {
             PluginError::new("program_unreadable", format!("cannot read {path}: {e}"))
         })?;
         // Validate the whole program before anything reaches Mach3.
-        let interp = fresa_gcode::Interpreter::new(text.as_bytes(), Default::default());
+        let config = fresa_gcode::Config {
+            tools,
+            ..Default::default()
+        };
+        let interp = fresa_gcode::Interpreter::new(text.as_bytes(), config);
         let mut last_active_line = 1;
         let mut motions = fresa_gcode::linearise(interp, 0.01);
         for m in motions.by_ref() {
@@ -740,6 +745,28 @@ impl Inner {
         }
         // Mach3 gets the text itself, and it does not speak LinuxCNC's
         // O-word control flow or named parameters: refuse before it sees any.
+        // Mach3 would compensate with its own tool table, which Fresa does not know: the path
+        // it cuts could differ from the one checked here.
+        if let Some(line) = motions.inner().cutter_comp_line() {
+            return Err(PluginError::new(
+                "invalid_program",
+                format!(
+                    "line {line}: cutter radius compensation (G41/G42) is not sent to Mach3, \
+                     which would use its own tool table; compensate in CAM instead"
+                ),
+            ));
+        }
+        // Mach3 would write G10's offsets and tools into its own tables and keep them; the
+        // store is the source of truth for work offsets.
+        if let Some(line) = motions.inner().g10_line() {
+            return Err(PluginError::new(
+                "invalid_program",
+                format!(
+                    "line {line}: G10 would change Mach3's own offsets or tool table for good; \
+                     set work offsets through Fresa (PUT /machines/{{id}}/offsets) instead"
+                ),
+            ));
+        }
         if let Some(line) = motions.inner().linuxcnc_only_line() {
             return Err(PluginError::new(
                 "invalid_program",
@@ -986,7 +1013,20 @@ impl MachineBackend for Mach3Backend {
     }
 
     fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {
-        self.inner.load_program(p.run, &p.path, p.start_line)
+        let tools = p
+            .tools
+            .iter()
+            .map(|t| {
+                (
+                    t.tool,
+                    fresa_gcode::Tool {
+                        diameter_mm: t.diameter_mm,
+                        length_mm: t.length_mm,
+                    },
+                )
+            })
+            .collect();
+        self.inner.load_program(p.run, &p.path, p.start_line, tools)
     }
 
     fn run(&self, action: RunAction) -> Result<RunAnswer, PluginError> {

@@ -427,15 +427,21 @@ impl MachineBackend for Stepper {
             start(&sh)
         };
         let text = kit::read_program(&p.path)?;
-        let plan =
-            planner::plan_program(&self.core.cfg.machine, &text, &start, actual).map_err(|m| {
-                let code = if m.contains("outside the travel") {
-                    "out_of_travel"
-                } else {
-                    "invalid_program"
-                };
-                PluginError::new(code, m)
-            })?;
+        let plan = planner::plan_program_with_tools(
+            &self.core.cfg.machine,
+            &text,
+            &start,
+            actual,
+            gcode_tools(&p.tools),
+        )
+        .map_err(|m| {
+            let code = if m.contains("outside the travel") {
+                "out_of_travel"
+            } else {
+                "invalid_program"
+            };
+            PluginError::new(code, m)
+        })?;
         let lines = plan.lines;
         kit.install_plan(p.run, plan, lines, p.start_line, actual)
     }
@@ -683,4 +689,20 @@ impl Drop for Stepper {
         self.core.kit.end_motion_thread();
         self.worker.join();
     }
+}
+
+/// The host's tool table as the interpreter takes it.
+fn gcode_tools(tools: &[fresa_plugin_api::contract::ProgramTool]) -> fresa_gcode::ToolTable {
+    tools
+        .iter()
+        .map(|t| {
+            (
+                t.tool,
+                fresa_gcode::Tool {
+                    diameter_mm: t.diameter_mm,
+                    length_mm: t.length_mm,
+                },
+            )
+        })
+        .collect()
 }

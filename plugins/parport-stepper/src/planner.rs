@@ -632,6 +632,17 @@ pub fn plan_program(
     start: &Start,
     start_line: u32,
 ) -> Result<Plan, String> {
+    plan_program_with_tools(machine, text, start, start_line, Default::default())
+}
+
+/// [`plan_program`] with the machine's tool table (G41/G42 `D`).
+pub fn plan_program_with_tools(
+    machine: &Machine,
+    text: &str,
+    start: &Start,
+    start_line: u32,
+    tools: fresa_gcode::ToolTable,
+) -> Result<Plan, String> {
     let lines = u32::try_from(text.lines().count()).unwrap_or(u32::MAX);
     let off = start.offsets[start.active.index()];
     let work = [
@@ -642,6 +653,7 @@ pub fn plan_program(
     let mut config = fresa_gcode::Config {
         initial_position: work,
         arc_tolerance_mm: ARC_TOLERANCE_MM,
+        tools,
         ..Default::default()
     };
     for (i, o) in start.offsets.iter().enumerate() {

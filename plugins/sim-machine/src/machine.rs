@@ -364,7 +364,20 @@ impl MachineBackend for SimMachine {
         };
         let text = kit::read_program(&p.path)?;
         let xyz = offsets.map(|o| [o[0], o[1], o[2]]);
-        let plan = program::plan(&text, work, xyz)
+        let tools = p
+            .tools
+            .iter()
+            .map(|t| {
+                (
+                    t.tool,
+                    fresa_gcode::Tool {
+                        diameter_mm: t.diameter_mm,
+                        length_mm: t.length_mm,
+                    },
+                )
+            })
+            .collect();
+        let plan = program::plan(&text, work, xyz, tools)
             .map_err(|e| PluginError::new("invalid_program", e.to_string()))?;
         plan.check_moves(&offsets, active, a, |p| self.core.cfg.check_travel(p))
             .map_err(|m| PluginError::new("out_of_travel", m))?;
@@ -425,8 +438,13 @@ impl MachineBackend for SimMachine {
                 sh.pos[3],
             )
         };
-        let plan = program::plan(line, work, offsets.map(|o| [o[0], o[1], o[2]]))
-            .map_err(|e| PluginError::new("invalid_gcode", format!("MDI {line:?}: {e}")))?;
+        let plan = program::plan(
+            line,
+            work,
+            offsets.map(|o| [o[0], o[1], o[2]]),
+            fresa_gcode::ToolTable::new(),
+        )
+        .map_err(|e| PluginError::new("invalid_gcode", format!("MDI {line:?}: {e}")))?;
         let mut moves = Vec::new();
         for (_, step) in &plan.steps {
             match step {

@@ -35,17 +35,20 @@ pub struct Plan {
 }
 
 /// Interprets the whole program. `initial_position` is where the tool is, in program
-/// coordinates (X, Y, Z, A); `work_offsets` the machine origin of G54..G59 (XYZ).
+/// coordinates (X, Y, Z, A); `work_offsets` the machine origin of G54..G59 (XYZ); `tools` the
+/// machine's tool table (G41/G42 `D`).
 pub fn plan(
     text: &str,
     initial_position: [f64; 4],
     work_offsets: [[f64; 3]; 6],
+    tools: fresa_gcode::ToolTable,
 ) -> Result<Plan, GcodeError> {
     let lines = u32::try_from(text.lines().count()).unwrap_or(u32::MAX);
     let [x, y, z, a] = initial_position;
     let mut config = fresa_gcode::Config {
         initial_position: [x, y, z],
         initial_a_deg: a,
+        tools,
         ..Default::default()
     };
     config.work_offsets[..6].copy_from_slice(&work_offsets);

@@ -1,6 +1,7 @@
 //! `fresa serve --demo`: a simulated machine so a newcomer can try everything with curl.
 
 use crate::app::App;
+use crate::store::ToolRow;
 
 pub const DEMO_MACHINE: &str = "demo";
 
@@ -30,10 +31,29 @@ pub async fn ensure_demo_machine(app: &App) {
                 .insert_machine(DEMO_MACHINE, "sim-machine", &config, 50.0, 5000.0)
                 .await
             {
-                Ok(id) => tracing::info!(
-                    machine = id,
-                    "demo machine created (sim-machine, real time)"
-                ),
+                Ok(id) => {
+                    tracing::info!(
+                        machine = id,
+                        "demo machine created (sim-machine, real time)"
+                    );
+                    // A small tool table, so G41/G42 D1..D3 programs run on the demo.
+                    let tools: Vec<ToolRow> = [
+                        (1, 6.0, "6 mm flat end mill"),
+                        (2, 3.0, "3 mm flat end mill"),
+                        (3, 10.0, "10 mm flat end mill"),
+                    ]
+                    .into_iter()
+                    .map(|(tool, diameter_mm, d)| ToolRow {
+                        tool,
+                        diameter_mm,
+                        length_mm: 0.0,
+                        description: d.to_string(),
+                    })
+                    .collect();
+                    if let Err(e) = app.store.replace_tools(id, &tools).await {
+                        tracing::error!(error = %e, "could not store the demo tool table");
+                    }
+                }
                 Err(e) => tracing::error!(error = %e, "could not create the demo machine"),
             }
         }

@@ -447,6 +447,7 @@ pub const AUDIT_EVENT_TYPES: &[&str] = &[
     "machine.part_zero",
     "machine.alarm",
     "machine.node",
+    "machine.tools",
     "pendant.created",
     "pendant.bound",
     "pendant.macro",

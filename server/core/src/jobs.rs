@@ -38,7 +38,12 @@ pub async fn store_program(
         Some(n) if !n.is_empty() => n.to_string(),
         _ => format!("program-{}", &program.sha256[..12]),
     };
-    let analysis = analyse(&program, unsupported_policy(app, machine_id).await?).await?;
+    let config = fresa_gcode::Config {
+        unsupported: unsupported_policy(app, machine_id).await?,
+        tools: crate::tools::gcode_table(app, machine_id).await?,
+        ..fresa_gcode::Config::default()
+    };
+    let analysis = analyse(&program, config).await?;
     let sha = program.sha256.clone();
     let (lines, bytes) = (program.lines, program.bytes);
     let dir = app.settings.programs_dir();
@@ -109,11 +114,12 @@ async fn unsupported_policy(app: &App, machine_id: i64) -> Result<fresa_gcode::U
     })
 }
 
-/// Interprets the whole program before the job is stored: a program with an error never becomes
-/// a job, and the stored analysis (bounds, length, ETA) serves previews and progress.
+/// Interprets the whole program before the job is stored (with the machine's unsupported-word
+/// policy and tool table): a program with an error never becomes a job, and the stored analysis
+/// (bounds, length, ETA) serves previews and progress.
 async fn analyse(
     program: &StoredProgram,
-    unsupported: fresa_gcode::Unsupported,
+    config: fresa_gcode::Config,
 ) -> Result<Option<serde_json::Value>> {
     let path = program
         .temp_path()
@@ -122,8 +128,10 @@ async fn analyse(
     let result = tokio::task::spawn_blocking(move || {
         let file = std::fs::File::open(&path)?;
         let reader = std::io::BufReader::with_capacity(1 << 16, file);
-        let mut opts = fresa_gcode::AnalysisOptions::default();
-        opts.config.unsupported = unsupported;
+        let opts = fresa_gcode::AnalysisOptions {
+            config,
+            ..fresa_gcode::AnalysisOptions::default()
+        };
         Ok::<_, std::io::Error>(fresa_gcode::analyse(reader, &opts))
     })
     .await
@@ -147,6 +155,7 @@ pub async fn toolpath(app: &App, job_id: i64, max_vertices: usize) -> Result<Vec
         .await?
         .ok_or_else(|| Error::not_found("unknown_job", format!("no job with id {job_id}")))?;
     let unsupported = unsupported_policy(app, job.machine_id).await?;
+    let tools = crate::tools::gcode_table(app, job.machine_id).await?;
     let path =
         crate::programs::local_copy(&app.store, &app.settings.programs_dir(), &job.sha256).await?;
     tokio::task::spawn_blocking(move || {
@@ -156,6 +165,7 @@ pub async fn toolpath(app: &App, job_id: i64, max_vertices: usize) -> Result<Vec
         let reader = std::io::BufReader::with_capacity(1 << 16, file);
         let config = fresa_gcode::Config {
             unsupported,
+            tools,
             ..fresa_gcode::Config::default()
         };
         crate::toolpath::Toolpath::build(reader, config, max_vertices)

@@ -28,6 +28,7 @@ pub mod programs;
 mod startup;
 pub mod store;
 pub mod toolpath;
+pub mod tools;
 pub mod webhooks;
 
 pub use app::{App, SharedApp};

@@ -10,6 +10,7 @@ mod jobs;
 pub(crate) mod machines;
 pub mod openapi;
 mod pendants;
+mod tools;
 mod webhooks;
 
 use axum::extract::{DefaultBodyLimit, State};
@@ -86,6 +87,10 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
         .routes(needs(Viewer, routes!(machines::part_zeros)))
         .routes(needs(Operator, routes!(machines::record_part_zero)))
         .routes(needs(Viewer, routes!(machines::as_program)))
+        .routes(needs(Viewer, routes!(tools::list_tools)))
+        .routes(needs(Admin, routes!(tools::replace_tools)))
+        .routes(needs(Admin, routes!(tools::set_tool)))
+        .routes(needs(Admin, routes!(tools::delete_tool)))
         .routes(needs(Viewer, routes!(jobs::list)))
         .routes(needs(
             Operator,

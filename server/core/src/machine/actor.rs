@@ -791,12 +791,28 @@ impl Task {
         // can finish or fail the run (so it never shows `completed` or `failed` without it).
         self.record("job.state", actor, run_event(&run)).await;
         let started = async {
+            // The table the backend interprets with: the one the upload check used, unless it
+            // was edited since (then the backend's own check decides).
+            let tools = self
+                .store
+                .tools(self.id)
+                .await?
+                .iter()
+                .filter_map(|t| {
+                    Some(fresa_plugin_api::contract::ProgramTool {
+                        tool: u32::try_from(t.tool).ok()?,
+                        diameter_mm: t.diameter_mm,
+                        length_mm: t.length_mm,
+                    })
+                })
+                .collect();
             let v = self
                 .call(&Request::LoadProgram {
                     run: run.id,
                     path: path.to_string_lossy().into_owned(),
                     start_line,
                     expected_part_zero,
+                    tools,
                 })
                 .await?;
             if let Ok(l) = serde_json::from_value::<ProgramLoaded>(v) {

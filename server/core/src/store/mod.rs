@@ -51,6 +51,7 @@ pub mod test_postgres;
 #[cfg(test)]
 mod tests;
 mod tokens;
+mod tools;
 mod webhooks;
 
 pub use backup::{backup_database, BackupError};
@@ -61,6 +62,7 @@ pub use machines::{MachineRow, PartZeroRow};
 pub use nodes::NodeRow;
 pub use pendants::{MacroAction, PendantRow};
 pub use tokens::{is_unique_violation, TokenInfo, TokenRow};
+pub use tools::ToolRow;
 pub use webhooks::{DeliveryOutcome, WebhookRow, WebhookTarget};
 
 impl Store {

@@ -69,7 +69,36 @@ on_both!(
     expired_and_revoked_tokens_are_not_found,
     event_ids_rise_and_replay_in_order,
     pruning_keeps_audit_events_and_records_the_cut,
+    tool_tables_are_per_machine_and_replaced_whole,
 );
+
+async fn tool_tables_are_per_machine_and_replaced_whole(s: &Store) {
+    use super::ToolRow;
+    let tool = |n: i64, d: f64| ToolRow {
+        tool: n,
+        diameter_mm: d,
+        length_mm: 1.5,
+        description: format!("T{n}"),
+    };
+    let (a, _) = machine_with_job(s, 1).await;
+    let b = s
+        .insert_machine("b", "sim-machine", &serde_json::json!({}), 50.0, 1000.0)
+        .await
+        .unwrap();
+    s.replace_tools(a, &[tool(1, 6.0), tool(2, 3.0)])
+        .await
+        .unwrap();
+    s.upsert_tool(b, &tool(1, 10.0)).await.unwrap();
+    s.upsert_tool(a, &tool(2, 4.0)).await.unwrap();
+    assert_eq!(s.tools(a).await.unwrap(), vec![tool(1, 6.0), tool(2, 4.0)]);
+    assert_eq!(s.tools(b).await.unwrap(), vec![tool(1, 10.0)]);
+    s.replace_tools(a, &[tool(7, 2.0)]).await.unwrap();
+    assert_eq!(s.tools(a).await.unwrap(), vec![tool(7, 2.0)]);
+    assert!(s.delete_tool(a, 7).await.unwrap());
+    assert!(!s.delete_tool(a, 7).await.unwrap());
+    assert!(s.tools(a).await.unwrap().is_empty());
+    assert_eq!(s.tools(b).await.unwrap().len(), 1);
+}
 
 async fn machine_with_job(s: &Store, lines: i64) -> (i64, i64) {
     let m = s
