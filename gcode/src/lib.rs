@@ -170,6 +170,22 @@ pub struct Tool {
 /// Tools by number (the `T` / `D` word).
 pub type ToolTable = std::collections::BTreeMap<u32, Tool>;
 
+/// A tool table from `(tool, diameter_mm, length_mm)` rows, as the store, the plugin contract
+/// and tool files hold them.
+pub fn tool_table(rows: impl IntoIterator<Item = (u32, f64, f64)>) -> ToolTable {
+    rows.into_iter()
+        .map(|(tool, diameter_mm, length_mm)| {
+            (
+                tool,
+                Tool {
+                    diameter_mm,
+                    length_mm,
+                },
+            )
+        })
+        .collect()
+}
+
 impl Default for Config {
     fn default() -> Self {
         Config {

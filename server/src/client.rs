@@ -274,18 +274,11 @@ fn gcode_tools(
     let v = read_tool_file(file)?;
     let entries: Vec<Entry> =
         serde_json::from_value(v).map_err(|e| format!("{}: {e}", file.display()))?;
-    Ok(entries
-        .into_iter()
-        .map(|e| {
-            (
-                e.tool,
-                fresa_gcode::Tool {
-                    diameter_mm: e.diameter_mm,
-                    length_mm: e.length_mm,
-                },
-            )
-        })
-        .collect())
+    Ok(fresa_gcode::tool_table(
+        entries
+            .into_iter()
+            .map(|e| (e.tool, e.diameter_mm, e.length_mm)),
+    ))
 }
 
 /// `fresa machine status`: what an operator reads at a glance, lamps last.

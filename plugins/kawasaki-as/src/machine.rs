@@ -960,19 +960,8 @@ impl MachineBackend for KawasakiMachine {
     }
 
     fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {
-        let tools = p
-            .tools
-            .iter()
-            .map(|t| {
-                (
-                    t.tool,
-                    fresa_gcode::Tool {
-                        diameter_mm: t.diameter_mm,
-                        length_mm: t.length_mm,
-                    },
-                )
-            })
-            .collect();
+        let tools =
+            fresa_gcode::tool_table(p.tools.iter().map(|t| (t.tool, t.diameter_mm, t.length_mm)));
         self.load(p.run, &p.path, p.start_line, p.expected_part_zero, tools)
     }
 

@@ -693,16 +693,5 @@ impl Drop for Stepper {
 
 /// The host's tool table as the interpreter takes it.
 fn gcode_tools(tools: &[fresa_plugin_api::contract::ProgramTool]) -> fresa_gcode::ToolTable {
-    tools
-        .iter()
-        .map(|t| {
-            (
-                t.tool,
-                fresa_gcode::Tool {
-                    diameter_mm: t.diameter_mm,
-                    length_mm: t.length_mm,
-                },
-            )
-        })
-        .collect()
+    fresa_gcode::tool_table(tools.iter().map(|t| (t.tool, t.diameter_mm, t.length_mm)))
 }

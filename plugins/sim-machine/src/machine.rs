@@ -364,19 +364,8 @@ impl MachineBackend for SimMachine {
         };
         let text = kit::read_program(&p.path)?;
         let xyz = offsets.map(|o| [o[0], o[1], o[2]]);
-        let tools = p
-            .tools
-            .iter()
-            .map(|t| {
-                (
-                    t.tool,
-                    fresa_gcode::Tool {
-                        diameter_mm: t.diameter_mm,
-                        length_mm: t.length_mm,
-                    },
-                )
-            })
-            .collect();
+        let tools =
+            fresa_gcode::tool_table(p.tools.iter().map(|t| (t.tool, t.diameter_mm, t.length_mm)));
         let plan = program::plan(&text, work, xyz, tools)
             .map_err(|e| PluginError::new("invalid_program", e.to_string()))?;
         plan.check_moves(&offsets, active, a, |p| self.core.cfg.check_travel(p))

@@ -259,6 +259,17 @@ pub async fn status(
     }
 }
 
+/// A `node` field: a name a node could have (it need not have started yet).
+pub(crate) fn check_node_name(node: &str) -> Result<(), ApiError> {
+    if fresa_core::config::NodeSettings::valid_name(node) {
+        return Ok(());
+    }
+    Err(ApiError::unprocessable(
+        "invalid_field",
+        format!("node: {node:?} is not a node name (1 to 63 letters, digits, '-', '_' or '.')"),
+    ))
+}
+
 #[derive(Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct NodeReq {
@@ -283,15 +294,7 @@ pub async fn set_node(
     Extension(caller): Extension<Caller>,
     Json(req): Json<NodeReq>,
 ) -> Result<Json<MachineView>, ApiError> {
-    if !fresa_core::config::NodeSettings::valid_name(&req.node) {
-        return Err(ApiError::unprocessable(
-            "invalid_field",
-            format!(
-                "node: {:?} is not a node name (1 to 63 letters, digits, '-', '_' or '.')",
-                req.node
-            ),
-        ));
-    }
+    check_node_name(&req.node)?;
     let before = app.store.machine(id).await?.ok_or_else(|| {
         ApiError::not_found("unknown_machine", format!("no machine with id {id}"))
     })?;

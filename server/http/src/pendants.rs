@@ -441,15 +441,7 @@ pub async fn set_node(
     Extension(caller): Extension<Caller>,
     Json(req): Json<PendantNodeReq>,
 ) -> Result<Json<Value>, ApiError> {
-    if !fresa_core::config::NodeSettings::valid_name(&req.node) {
-        return Err(ApiError::unprocessable(
-            "invalid_field",
-            format!(
-                "node: {:?} is not a node name (1 to 63 letters, digits, '-', '_' or '.')",
-                req.node
-            ),
-        ));
-    }
+    crate::machines::check_node_name(&req.node)?;
     let before = app.store.pendant(id).await?.ok_or_else(|| {
         ApiError::not_found("unknown_pendant", format!("no pendant with id {id}"))
     })?;

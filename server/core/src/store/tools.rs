@@ -19,17 +19,10 @@ pub struct ToolRow {
 impl ToolRow {
     /// The interpreter's view of a table.
     pub fn to_gcode(rows: &[ToolRow]) -> fresa_gcode::ToolTable {
-        rows.iter()
-            .filter_map(|r| {
-                Some((
-                    u32::try_from(r.tool).ok()?,
-                    fresa_gcode::Tool {
-                        diameter_mm: r.diameter_mm,
-                        length_mm: r.length_mm,
-                    },
-                ))
-            })
-            .collect()
+        fresa_gcode::tool_table(
+            rows.iter()
+                .filter_map(|r| Some((u32::try_from(r.tool).ok()?, r.diameter_mm, r.length_mm))),
+        )
     }
 }
 
