@@ -282,6 +282,7 @@ fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode() {
         pos(st, "work_position", "a") == 90.0
     });
     assert_eq!(pos(&st, "work_position", "x"), 3.0, "{st}");
+    let x_before = dro(&mut mach, 800);
     // Cutter compensation passes the upload check with Fresa's tool table, but Mach3 would
     // compensate with its own: refused naming the line, before anything moves.
     s.put(
@@ -299,7 +300,7 @@ fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode() {
         "{}",
         r.text
     );
-    assert_eq!(dro(&mut mach, 800), 2.0, "nothing moved");
+    assert_eq!(dro(&mut mach, 800), x_before, "nothing moved");
     // G10 would change Mach3's fixture table for good: refused the same way.
     let job = s.upload(m, "g10", "G21 G90 F600\nG10 L2 P2 X5\nG1 X4\n")["id"]
         .as_i64()
@@ -311,7 +312,7 @@ fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode() {
         "{}",
         r.text
     );
-    assert_eq!(dro(&mut mach, 800), 2.0, "nothing moved");
+    assert_eq!(dro(&mut mach, 800), x_before, "nothing moved");
 }
 
 #[test]
