@@ -296,7 +296,9 @@ fn a_linuxcnc_style_program_with_a_loop_a_cycle_and_g92_runs() {
     s.job_action(id, "start").expect(200);
     s.wait_job_state(id, "completed", T);
     // G0 X20 after G92 X0 (set at X10) ends at work X30 (once the status has caught up).
-    let st = s.wait_status(m.id, T, "idle after the G92 job", |st| st["state"] == "idle");
+    let st = s.wait_status(m.id, T, "idle after the G92 job", |st| {
+        st["state"] == "idle"
+    });
     assert_eq!(st["work_position"]["x"], 30.0, "{st}");
     assert_eq!(st["work_position"]["z"], 10.0, "{st}");
 }
@@ -328,7 +330,9 @@ fn sim_machine_runs_a_axis_moves_and_checks_a_travel() {
     s.wait_job_state(id, "completed", T);
     // A30, A90, -45 -> 45, G92 A0 there (offset 45), A10 -> 55 in machine coordinates. The
     // status may still be on its way when the store says completed: wait for it to be idle.
-    let st = s.wait_status(m.id, T, "idle after the rotary job", |st| st["state"] == "idle");
+    let st = s.wait_status(m.id, T, "idle after the rotary job", |st| {
+        st["state"] == "idle"
+    });
     assert_eq!(st["machine_position"]["a"], 55.0, "{st}");
     assert_eq!(st["machine_position"]["x"], 10.0, "{st}");
 

@@ -244,7 +244,8 @@ fn g10_offsets_are_folded_in_and_the_stored_analysis_shows_them() {
     let id = job["id"].as_i64().unwrap();
     s.job_action(id, "start").expect(200);
     s.wait_job_state(id, "completed", T);
-    let st = s.status(m);
+    // The last status may still be on its way when the store says completed.
+    let st = s.wait_status(m, T, "idle after the G10 job", |st| st["state"] == "idle");
     assert_eq!(st["work_position"]["x"], 13.0, "{st}");
     // The machine's stored offsets are the store's, unchanged by the program.
     let off = s.get(&format!("/api/v1/machines/{m}/offsets")).expect(200);
