@@ -305,3 +305,57 @@ fn an_admin_moves_a_machine_to_another_node() {
     });
     assert_eq!(p["machine"], Value::Null, "{p}");
 }
+
+/// A forwarded request whose node never answers must not be reported as "nothing was sent":
+/// the node may have carried it out. One that cannot connect at all was never sent.
+#[test]
+fn a_node_that_takes_a_request_but_never_answers_is_not_reported_as_unreached() {
+    let db = fresh_database();
+    let b = node(&db, "hall-b");
+    let m = b.create_machine(
+        &json!({"name": "router", "backend": "sim-machine", "config": {"time_scale": 0.0}}),
+    );
+    // "ghost" is a node whose address accepts a connection, reads the request and hangs up.
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let ghost_url = format!("http://{}", listener.local_addr().unwrap());
+    std::thread::spawn(move || {
+        for conn in listener.incoming() {
+            let Ok(mut conn) = conn else { return };
+            let mut buf = [0u8; 4096];
+            let _ = std::io::Read::read(&mut conn, &mut buf);
+            drop(conn);
+        }
+    });
+    // A port nothing listens on: the connection is refused.
+    let closed_url = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        format!("http://{}", l.local_addr().unwrap())
+    };
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let store = rt.block_on(fresa_core::store::Store::connect(&db)).unwrap();
+    b.put(
+        &format!("/api/v1/machines/{m}/node"),
+        &json!({"node": "ghost"}),
+    )
+    .expect(200);
+    // B lets the machine go at its next heartbeat; from then on it forwards.
+    wait_for(T, "B to let the machine go to the ghost", || {
+        let v = machine_on(&b, m);
+        (v["reason"] == "node ghost has not started yet").then_some(())
+    });
+    // A registration is a fresh heartbeat: the ghost counts as reachable right after it.
+    rt.block_on(store.register_node("ghost", &ghost_url, "0"))
+        .unwrap();
+    let msg = b.jog(m, "X", 1.0).expect_error(504, "node_no_answer");
+    assert!(msg.contains("may have been carried out"), "{msg}");
+    rt.block_on(store.register_node("ghost", &closed_url, "0"))
+        .unwrap();
+    let msg = b.jog(m, "X", 1.0).expect_error(503, "node_unreachable");
+    assert!(
+        msg.contains("could not be reached") && msg.contains("nothing was sent"),
+        "{msg}"
+    );
+}

@@ -493,7 +493,7 @@ pub async fn events(server: ServerArgs, f: EventsArgs) -> Res {
             format!(
                 "{}{} {}{machine}{actor} {}",
                 id,
-                utc(ev["time"].as_i64().unwrap_or(0)),
+                fresa_core::store::utc_text(ev["time"].as_i64().unwrap_or(0), true),
                 ev["type"].as_str().unwrap_or("?"),
                 ev["data"]
             )
@@ -506,29 +506,6 @@ pub async fn events(server: ServerArgs, f: EventsArgs) -> Res {
         return Err("the server closed the event stream".into());
     }
     Ok(())
-}
-
-/// `2026-11-30T18:04:05.123Z` from milliseconds since the epoch.
-fn utc(ms: i64) -> String {
-    let secs = ms.div_euclid(1000);
-    let (days, rem) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
-    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = doy - (153 * mp + 2) / 5 + 1;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 };
-    let y = yoe + era * 400 + i64::from(m <= 2);
-    format!(
-        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}.{:03}Z",
-        rem / 3600,
-        rem / 60 % 60,
-        rem % 60,
-        ms.rem_euclid(1000)
-    )
 }
 
 fn is_terminal(state: &str) -> bool {

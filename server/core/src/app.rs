@@ -26,8 +26,6 @@ pub struct App {
     pub auth_required: bool,
     /// The secret nodes of one store vouch for forwarded requests with (from the store).
     pub node_secret: String,
-    /// Where other nodes reach this one; set once bound (see `nodes::start`).
-    pub node_url: std::sync::OnceLock<String>,
     /// Held while the process lives: one server per data directory.
     pub(crate) _lock: DataDirLock,
 }

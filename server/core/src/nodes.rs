@@ -6,11 +6,10 @@
 //! heartbeat stops.
 
 use crate::app::{App, SharedApp};
-use crate::store::{MachineRow, NodeRow};
+use crate::store::{utc_text, MachineRow, NodeRow};
 use fresa_plugin_api::contract::{MachineState, MachineStatus};
 use serde::Serialize;
 use std::collections::{BTreeMap, HashSet};
-use std::time::{Duration, UNIX_EPOCH};
 
 /// A node as `GET /api/v1/nodes` shows it.
 #[derive(Debug, Clone, Serialize)]
@@ -46,32 +45,27 @@ pub struct RemoteNode {
     pub name: String,
     /// `None`: the node never registered (its machine was moved to a name no node has yet).
     pub url: Option<String>,
-    /// `Some(ms)`: unreachable, with the time of its last heartbeat.
-    pub unreachable_since: Option<i64>,
-}
-
-impl RemoteNode {
-    /// "node hall-2 unreachable since Mon, 30 Nov 2026 21:40:05 GMT" (or "... has not started").
-    pub fn unreachable_reason(&self) -> Option<String> {
-        match (&self.url, self.unreachable_since) {
-            (None, _) => Some(format!("node {} has not started yet", self.name)),
-            (Some(_), Some(since)) => Some(format!(
-                "node {} unreachable since {}",
-                self.name,
-                http_date(since)
-            )),
-            (Some(_), None) => None,
-        }
-    }
-}
-
-fn http_date(ms: i64) -> String {
-    httpdate::fmt_http_date(UNIX_EPOCH + Duration::from_millis(ms.max(0) as u64))
+    /// Why it cannot be reached now ("node hall-2 unreachable since ..."); `None` when it can.
+    pub down: Option<String>,
 }
 
 impl App {
     fn node_is_fresh(&self, row: &NodeRow) -> bool {
         row.age_ms <= self.settings.node.offline_after.as_millis() as i64
+    }
+
+    /// Why node `name` (its row, if it ever registered) cannot be reached now; `None` when it
+    /// can. The one wording of "unreachable" for status, lists and refused requests.
+    fn node_down(&self, name: &str, row: Option<&NodeRow>) -> Option<String> {
+        match row {
+            None => Some(format!("node {name} has not started yet")),
+            Some(r) if !self.node_is_fresh(r) => Some(format!(
+                "node {name} unreachable since {} (no heartbeat in the store since then; \
+                 check that its fresa service runs and reaches the database)",
+                utc_text(r.heartbeat_at, false)
+            )),
+            Some(_) => None,
+        }
     }
 
     /// Which node drives machine `id`. A machine this node has loaded is local whatever the
@@ -83,55 +77,41 @@ impl App {
         let Some(row) = self.store.machine(id).await? else {
             return Ok(Owner::Unknown);
         };
-        let node = row.node.unwrap_or_else(|| self.settings.node.name.clone());
-        if node == self.settings.node.name {
+        let name = row.node.unwrap_or_else(|| self.settings.node.name.clone());
+        if name == self.settings.node.name {
             return Ok(Owner::Local);
         }
-        Ok(Owner::Remote(self.remote_node(&node).await?))
-    }
-
-    async fn remote_node(&self, name: &str) -> crate::Result<RemoteNode> {
-        let row = self.store.node_row(name).await?;
-        Ok(match row {
-            None => RemoteNode {
-                name: name.to_string(),
-                url: None,
-                unreachable_since: None,
-            },
-            Some(r) => RemoteNode {
-                name: name.to_string(),
-                unreachable_since: (!self.node_is_fresh(&r)).then_some(r.heartbeat_at),
-                url: Some(r.url),
-            },
-        })
+        let node = self.store.node_row(&name).await?;
+        Ok(Owner::Remote(RemoteNode {
+            down: self.node_down(&name, node.as_ref()),
+            url: node.map(|n| n.url),
+            name,
+        }))
     }
 
     /// The status of a machine another node drives, as of that node's last heartbeat; offline
     /// with the reason once the node is unreachable.
     pub async fn remote_status(&self, row: &MachineRow) -> MachineStatus {
-        let offline = |reason: String| MachineStatus {
-            state: MachineState::Offline,
-            reason: Some(reason),
-            ..MachineStatus::default()
+        let node = match row.node.as_deref() {
+            Some(name) => match self.store.node_row(name).await {
+                Ok(n) => n,
+                Err(e) => return offline(format!("cannot read node {name} from the store: {e}")),
+            },
+            None => None,
         };
+        self.remote_status_from(row, node.as_ref())
+    }
+
+    /// [`remote_status`](Self::remote_status) with the node's row already read (a list reads
+    /// every node once, not once per machine).
+    pub fn remote_status_from(&self, row: &MachineRow, node: Option<&NodeRow>) -> MachineStatus {
         let Some(name) = row.node.as_deref() else {
             return offline("no node drives this machine yet".into());
         };
-        let node = match self.store.node_row(name).await {
-            Ok(n) => n,
-            Err(e) => return offline(format!("cannot read node {name} from the store: {e}")),
-        };
-        let Some(node) = node else {
-            return offline(format!("node {name} has not started yet"));
-        };
-        if !self.node_is_fresh(&node) {
-            return offline(format!(
-                "node {name} unreachable since {}",
-                http_date(node.heartbeat_at)
-            ));
+        if let Some(why) = self.node_down(name, node) {
+            return offline(why);
         }
-        serde_json::from_str::<BTreeMap<String, MachineStatus>>(&node.machines)
-            .ok()
+        node.and_then(|n| serde_json::from_str::<BTreeMap<String, MachineStatus>>(&n.machines).ok())
             .and_then(|mut m| m.remove(&row.id.to_string()))
             .unwrap_or_else(|| offline(format!("node {name} does not report this machine")))
     }
@@ -158,11 +138,6 @@ impl App {
             })
             .collect())
     }
-
-    /// Where the other nodes reach this one.
-    pub fn node_url(&self) -> &str {
-        self.node_url.get().map(String::as_str).unwrap_or("")
-    }
 }
 
 /// The URL other nodes use: `node_url` if set, else the bound address (the host name when
@@ -182,7 +157,6 @@ pub fn url_for(configured: Option<&str>, bound: std::net::SocketAddr) -> String 
 /// away.
 pub async fn start(app: &SharedApp, bound: std::net::SocketAddr) -> crate::Result<()> {
     let url = url_for(app.settings.node.url.as_deref(), bound);
-    let _ = app.node_url.set(url.clone());
     app.store
         .register_node(&app.settings.node.name, &url, env!("CARGO_PKG_VERSION"))
         .await?;
@@ -287,4 +261,12 @@ async fn reconcile_pendants(app: &SharedApp) -> crate::Result<()> {
         }
     }
     Ok(())
+}
+
+fn offline(reason: String) -> MachineStatus {
+    MachineStatus {
+        state: MachineState::Offline,
+        reason: Some(reason),
+        ..MachineStatus::default()
+    }
 }

@@ -137,7 +137,6 @@ impl App {
             integrations: Default::default(),
             auth_required,
             node_secret,
-            node_url: Default::default(),
             _lock: lock,
         });
         for run in store

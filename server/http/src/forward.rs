@@ -78,12 +78,12 @@ pub async fn middleware(State(st): State<ForwardState>, req: Request, next: Next
         Ok(Owner::Local | Owner::Unknown) => return next.run(req).await,
         Err(e) => return ApiError::from(e).into_response(),
     };
-    if let Some(reason) = node.unreachable_reason() {
+    if let Some(reason) = &node.down {
         // A status read still answers: the machine is offline, and why.
         if req.method() == Method::GET && path.path().ends_with("/status") {
             return next.run(req).await;
         }
-        return unreachable(machine, &reason).into_response();
+        return unreachable(machine, reason).into_response();
     }
     forward(
         &st,
@@ -163,9 +163,23 @@ async fn forward(
     let rb = rb.body(reqwest::Body::wrap_stream(body.into_data_stream()));
     let answer = rb.send().await.map_err(|e| {
         tracing::warn!(machine, node = %node.name, url = %url, error = %e, "forwarding failed");
-        unreachable(
-            machine,
-            &format!("node {} at {base} did not answer ({e})", node.name),
+        if e.is_connect() {
+            return unreachable(
+                machine,
+                &format!("node {} at {base} could not be reached ({e})", node.name),
+            );
+        }
+        // The request may have arrived: saying "nothing was sent" could make someone repeat a
+        // motion that was carried out.
+        ApiError::new(
+            StatusCode::GATEWAY_TIMEOUT,
+            "node_no_answer",
+            format!(
+                "machine {machine}: node {} at {base} took the request but its answer did not \
+                 arrive ({e}); it may have been carried out: check \
+                 GET /api/v1/machines/{machine}/status before repeating it",
+                node.name
+            ),
         )
     })?;
     let mut out = Response::builder().status(answer.status().as_u16());

@@ -88,12 +88,20 @@ pub struct Done {
     responses((status = 200, description = "Every machine", body = [MachineView])))]
 pub async fn list(State(app): State<SharedApp>) -> Result<Json<Vec<MachineView>>, ApiError> {
     // Every machine in the store: this node's live, the others' as of their node's heartbeat.
+    let nodes: std::collections::HashMap<String, fresa_core::store::NodeRow> = app
+        .store
+        .list_nodes()
+        .await?
+        .into_iter()
+        .map(|n| (n.name.clone(), n))
+        .collect();
     let mut out = Vec::new();
     for row in app.store.list_machines().await? {
         match app.machines.get(row.id).await {
             Some(m) => out.push(machine_json(&m)),
             None => {
-                let status = app.remote_status(&row).await;
+                let node = row.node.as_deref().and_then(|n| nodes.get(n));
+                let status = app.remote_status_from(&row, node);
                 out.push(view(row, status));
             }
         }

@@ -111,7 +111,7 @@ impl DbHealth {
             format!(
                 "the database {} is unreachable since {} ({reason}); no new motion is started until it returns (stop, feed hold, pause and cancel still work)",
                 self.database,
-                format_utc(since)
+                super::utc_text(since, false)
             ),
         )
     }
@@ -169,40 +169,10 @@ impl DbHealth {
     }
 }
 
-/// `2026-11-30T21:14:03Z` for a Unix time in ms.
-pub fn format_utc(ms: i64) -> String {
-    let secs = ms.div_euclid(1000);
-    let (days, rem) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
-    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z.rem_euclid(146_097);
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let day = doy - (153 * mp + 2) / 5 + 1;
-    let month = if mp < 10 { mp + 3 } else { mp - 9 };
-    let year = yoe + era * 400 + i64::from(month <= 2);
-    format!(
-        "{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}Z",
-        rem / 3600,
-        rem % 3600 / 60,
-        rem % 60
-    )
-}
-
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
-
-    #[test]
-    fn utc_times_match_known_dates() {
-        assert_eq!(format_utc(0), "1970-01-01T00:00:00Z");
-        // `date -u -d @1796073243` = Mon Nov 30 21:14:03 UTC 2026
-        assert_eq!(format_utc(1_796_073_243_000), "2026-11-30T21:14:03Z");
-        assert_eq!(format_utc(951_782_400_000), "2000-02-29T00:00:00Z");
-    }
 
     #[test]
     fn an_outage_keeps_its_start_and_ends_only_when_marked_up() {

@@ -20,6 +20,47 @@ pub fn now_ms() -> i64 {
         .unwrap_or(0)
 }
 
+/// `2026-11-30T21:14:03Z` (with `.123` before the `Z` when `millis`) for a Unix time in ms:
+/// the one way times are written in messages, logs and the CLI.
+pub fn utc_text(ms: i64, millis: bool) -> String {
+    let secs = ms.div_euclid(1000);
+    let (days, rem) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
+    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z.rem_euclid(146_097);
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    let fraction = if millis {
+        format!(".{:03}", ms.rem_euclid(1000))
+    } else {
+        String::new()
+    };
+    format!(
+        "{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}{fraction}Z",
+        rem / 3600,
+        rem % 3600 / 60,
+        rem % 60
+    )
+}
+
+#[cfg(test)]
+#[test]
+fn utc_times_match_known_dates() {
+    assert_eq!(utc_text(0, false), "1970-01-01T00:00:00Z");
+    // `date -u -d @1796073243` = Mon Nov 30 21:14:03 UTC 2026
+    assert_eq!(utc_text(1_796_073_243_000, false), "2026-11-30T21:14:03Z");
+    assert_eq!(
+        utc_text(1_796_073_243_456, true),
+        "2026-11-30T21:14:03.456Z"
+    );
+    assert_eq!(utc_text(951_782_400_000, false), "2000-02-29T00:00:00Z");
+}
+
 /// Which database a store runs on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Dialect {
