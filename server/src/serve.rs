@@ -46,7 +46,7 @@ pub async fn run(
         bind(settings.listen).map_err(|e| format!("cannot listen on {}: {e}", settings.listen))?;
     let bound = listener.local_addr()?;
     let app = App::start(settings).await?;
-    fresa_core::nodes::start(&app, bound).await?;
+    let heartbeat = fresa_core::nodes::start(&app, bound).await?;
     let router = fresa_http::service(app.clone());
     let integrations = fresa_integrations::start(app.clone());
     // This exact phrase is what scripts and tests wait for.
@@ -69,6 +69,8 @@ pub async fn run(
         }
     }
     systemd::stopping();
+    // First: it could otherwise start a machine moved here while motion is being stopped.
+    heartbeat.stop().await;
     let limit = STOP_MOTION_LIMIT.min(app.settings.plugin_call_timeout);
     tracing::info!("shutting down: stopping all motion");
     app.stop_motion(limit).await;

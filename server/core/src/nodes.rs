@@ -155,23 +155,31 @@ pub fn url_for(configured: Option<&str>, bound: std::net::SocketAddr) -> String 
 /// Registers this node (with the address it is reachable at, known once bound) and starts its
 /// heartbeat, which also picks up machines moved to this node and lets go of machines moved
 /// away.
-pub async fn start(app: &SharedApp, bound: std::net::SocketAddr) -> crate::Result<()> {
+pub async fn start(app: &SharedApp, bound: std::net::SocketAddr) -> crate::Result<Heartbeat> {
     let url = url_for(app.settings.node.url.as_deref(), bound);
     app.store
         .register_node(&app.settings.node.name, &url, env!("CARGO_PKG_VERSION"))
         .await?;
     tracing::info!(node = %app.settings.node.name, url = %url, "node registered");
+    let stop = app.shutdown.child_token();
     let app = app.clone();
-    tokio::spawn(async move {
+    let cancelled = stop.clone();
+    let task = tokio::spawn(async move {
         let mut tick = tokio::time::interval(app.settings.node.heartbeat);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         let mut failing = false;
         loop {
             tokio::select! {
-                _ = app.shutdown.cancelled() => return,
+                _ = cancelled.cancelled() => return,
                 _ = tick.tick() => {}
             }
-            match beat(&app).await {
+            // Raced with the stop: a beat waiting on the database must not hold up shutdown
+            // (nor start a machine moved here once motion is being stopped).
+            let beat = tokio::select! {
+                _ = cancelled.cancelled() => return,
+                r = beat(&app) => r,
+            };
+            match beat {
                 Ok(()) if failing => {
                     failing = false;
                     tracing::info!("node heartbeat written again");
@@ -185,7 +193,22 @@ pub async fn start(app: &SharedApp, bound: std::net::SocketAddr) -> crate::Resul
             }
         }
     });
-    Ok(())
+    Ok(Heartbeat { stop, task })
+}
+
+/// The running heartbeat; [`Heartbeat::stop`] ends it before motion is stopped on shutdown.
+pub struct Heartbeat {
+    stop: tokio_util::sync::CancellationToken,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl Heartbeat {
+    /// Ends the heartbeat and waits for its task, which holds the `App` (and with it the data
+    /// directory's lock): once this returns, nothing of it runs any more.
+    pub async fn stop(self) {
+        self.stop.cancel();
+        let _ = self.task.await;
+    }
 }
 
 async fn beat(app: &SharedApp) -> crate::Result<()> {
