@@ -71,7 +71,37 @@ on_both!(
     pruning_keeps_audit_events_and_records_the_cut,
     tool_tables_are_per_machine_and_replaced_whole,
     a_transaction_the_database_ended_itself_leaves_the_pool_usable,
+    unstored_lines_mark_a_run_until_the_operator_confirms_its_line,
 );
+
+/// Issue 23: start-up marks a run the previous process could not store all acknowledged lines
+/// of; the operator's confirmed line raises `last_line` and clears the mark; finished runs are
+/// never marked.
+async fn unstored_lines_mark_a_run_until_the_operator_confirms_its_line(s: &Store) {
+    let (m, j) = machine_with_job(s, 62).await;
+    let run = s.start_run(j, m).await.unwrap().unwrap();
+    assert_eq!(run.unstored_line, None);
+    s.ack_line(run.id, 7).await.unwrap();
+    assert!(s.mark_unstored_line(run.id, 40).await.unwrap());
+    assert!(s.mark_unstored_line(run.id, 30).await.unwrap()); // never lowered
+    let r = s.run(run.id).await.unwrap().unwrap();
+    assert_eq!((r.last_line, r.unstored_line), (7, Some(40)));
+    let confirmed = s.confirm_run_line(run.id, 45).await.unwrap().unwrap();
+    assert_eq!((confirmed.last_line, confirmed.unstored_line), (45, None));
+    // An unreadable record marks the machine's active runs at their stored line.
+    assert_eq!(s.mark_unstored_active_runs(m).await.unwrap(), 1);
+    assert_eq!(
+        s.run(run.id).await.unwrap().unwrap().unstored_line,
+        Some(45)
+    );
+    s.transition_run(run.id, &[RunState::Running], RunState::Completed, None)
+        .await
+        .unwrap()
+        .unwrap();
+    s.confirm_run_line(run.id, 62).await.unwrap();
+    assert!(!s.mark_unstored_line(run.id, 62).await.unwrap());
+    assert_eq!(s.run(run.id).await.unwrap().unwrap().unstored_line, None);
+}
 
 /// Runs `sql` on every connection the pool may hand out (it holds at most 8): for per-connection
 /// settings such as SQLite's `max_page_count`.
