@@ -339,7 +339,6 @@ pub struct ResumeBody {
     /// stopped while acknowledged lines could not be stored): the last line that was executed,
     /// as the operator found it on the machine. The resume goes on from the next line.
     #[serde(default)]
-    #[schema(example = 40)]
     confirm_line: Option<i64>,
 }
 
