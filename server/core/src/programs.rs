@@ -348,4 +348,23 @@ mod tests {
         let c = ProgramChecker::default();
         assert_eq!(c.finish().unwrap_err().code, "empty_program");
     }
+
+    /// A full disk under an upload is 503 `disk_full` (issue 23), not 500: `/dev/full` answers
+    /// every write with ENOSPC, as a full filesystem does.
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn a_write_on_a_full_disk_is_disk_full() {
+        use std::io::Write;
+        let e = std::fs::OpenOptions::new()
+            .write(true)
+            .open("/dev/full")
+            .unwrap()
+            .write_all(b"G0 X1\n")
+            .unwrap_err();
+        let e = write_failed("cannot write program", e);
+        assert_eq!((e.kind, e.code), (ErrorKind::Unavailable, "disk_full"));
+        assert!(e.message.contains("the disk is full"), "{}", e.message);
+        let other = write_failed("cannot write program", std::io::Error::other("boom"));
+        assert_eq!(other.code, "internal");
+    }
 }
