@@ -38,6 +38,7 @@ impl App {
             timeout: self.settings.plugin_call_timeout,
             status_interval: self.settings.status_interval,
             programs_dir: self.settings.programs_dir(),
+            unstored_dir: self.settings.data_dir.join(crate::machine::unstored::DIR),
         }
     }
 }

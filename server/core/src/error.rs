@@ -124,28 +124,56 @@ impl From<sqlx::Error> for Error {
     }
 }
 
-/// Whether an error means the database cannot be reached (as opposed to a refused statement):
-/// the connection or pool failed, PostgreSQL is shutting down or refusing connections
-/// (SQLSTATE classes 08 and 57P), or SQLite cannot write its file (full, I/O error, locked).
+/// Whether an error means the database cannot take our writes (as opposed to a refused
+/// statement): see [`outage_reason`].
 pub fn is_unreachable(e: &sqlx::Error) -> bool {
-    match e {
+    outage_reason(e).is_some()
+}
+
+/// Why the database counts as down after `e`, as `/healthz` and refusals say it, or `None` for
+/// an error that is the statement's own (a constraint, a bad row). An outage: the connection or
+/// pool failed; PostgreSQL is shutting down or refusing connections (SQLSTATE classes 08 and
+/// 57P, 53300 too many connections), its disk is full (53100), an I/O error outside it (class
+/// 58) or it is a read-only standby (25006); SQLite cannot write its file: full (13), I/O error
+/// (10), read-only (8), cannot open it (14), locked past the busy timeout (5, 6).
+pub fn outage_reason(e: &sqlx::Error) -> Option<String> {
+    let class = match e {
         sqlx::Error::Io(_)
         | sqlx::Error::Tls(_)
         | sqlx::Error::Protocol(_)
         | sqlx::Error::PoolTimedOut
         | sqlx::Error::PoolClosed
-        | sqlx::Error::WorkerCrashed => true,
+        | sqlx::Error::WorkerCrashed => None,
         sqlx::Error::Database(d) => {
             let code = d.code().unwrap_or_default();
-            // SQLite reports its (extended) result code as a number; the primary code is the
-            // low byte: 5 BUSY, 6 LOCKED, 10 IOERR, 13 FULL, 14 CANTOPEN.
-            match code.parse::<i64>() {
-                Ok(n) => matches!(n & 0xff, 5 | 6 | 10 | 13 | 14),
-                Err(_) => code.starts_with("08") || code.starts_with("57P"),
+            // PostgreSQL's SQLSTATE is always five characters (and may be all digits: 53100);
+            // SQLite's (extended) result code is a number below 10000 whose low byte is the
+            // primary code.
+            if code.len() == 5 {
+                match code.as_ref() {
+                    "53100" => Some("disk full"),
+                    "25006" => Some("read-only"),
+                    c if c.starts_with("58") => Some("I/O error"),
+                    c if c.starts_with("08") || c.starts_with("57P") || c == "53300" => None,
+                    _ => return None,
+                }
+            } else {
+                match code.parse::<i64>().map(|n| n & 0xff) {
+                    Ok(13) => Some("disk full"),
+                    Ok(10) => Some("I/O error"),
+                    Ok(8) => Some("read-only"),
+                    Ok(14) => Some("cannot open the database file"),
+                    Ok(5 | 6) => Some("locked"),
+                    _ => return None,
+                }
             }
         }
-        _ => false,
-    }
+        _ => return None,
+    };
+    Some(match class {
+        Some(class) => format!("{class}: {e}"),
+        None => e.to_string(),
+    })
 }
 
 #[cfg(test)]
@@ -161,5 +189,61 @@ mod tests {
         assert!(Error::required_name("a\0b").is_err_and(|e| e.message.contains("U+0000")));
         assert!(Error::required_name("a\nb").is_err());
         assert!(Error::required_name("fresadora ñ").is_ok());
+    }
+
+    /// A database error with only a code, as the drivers report them.
+    #[derive(Debug)]
+    struct Coded(&'static str);
+    impl std::fmt::Display for Coded {
+        fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+            write!(f, "error {}", self.0)
+        }
+    }
+    impl std::error::Error for Coded {}
+    impl sqlx::error::DatabaseError for Coded {
+        fn message(&self) -> &str {
+            self.0
+        }
+        fn code(&self) -> Option<std::borrow::Cow<'_, str>> {
+            Some(self.0.into())
+        }
+        fn as_error(&self) -> &(dyn std::error::Error + Send + Sync + 'static) {
+            self
+        }
+        fn as_error_mut(&mut self) -> &mut (dyn std::error::Error + Send + Sync + 'static) {
+            self
+        }
+        fn into_error(self: Box<Self>) -> Box<dyn std::error::Error + Send + Sync + 'static> {
+            self
+        }
+        fn kind(&self) -> sqlx::error::ErrorKind {
+            sqlx::error::ErrorKind::Other
+        }
+    }
+
+    /// The outage reason for a database error with `code`, without sqlx's own prefix.
+    fn reason(code: &'static str) -> Option<String> {
+        outage_reason(&sqlx::Error::Database(Box::new(Coded(code))))
+            .map(|r| r.replace("error returned from database: ", ""))
+    }
+
+    #[test]
+    fn a_full_read_only_or_failing_disk_is_an_outage_named_by_its_cause() {
+        // SQLite: FULL, IOERR_WRITE (778), READONLY, CANTOPEN; PostgreSQL: disk_full, io_error.
+        assert_eq!(reason("13").as_deref(), Some("disk full: error 13"));
+        assert_eq!(reason("778").as_deref(), Some("I/O error: error 778"));
+        assert_eq!(reason("8").as_deref(), Some("read-only: error 8"));
+        assert!(reason("14").is_some_and(|r| r.starts_with("cannot open")));
+        assert_eq!(reason("53100").as_deref(), Some("disk full: error 53100"));
+        assert_eq!(reason("58030").as_deref(), Some("I/O error: error 58030"));
+        assert_eq!(reason("08006").as_deref(), Some("error 08006"));
+        assert_eq!(reason("57P01").as_deref(), Some("error 57P01"));
+        // SQLite's BUSY_SNAPSHOT (517): locked.
+        assert_eq!(reason("517").as_deref(), Some("locked: error 517"));
+        // A constraint is the statement's fault, not an outage: SQLite's CONSTRAINT_UNIQUE
+        // (2067), PostgreSQL's unique_violation.
+        assert_eq!(reason("2067"), None);
+        assert_eq!(reason("23505"), None);
+        assert_eq!(outage_reason(&sqlx::Error::RowNotFound), None);
     }
 }

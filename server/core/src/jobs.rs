@@ -52,21 +52,26 @@ pub async fn store_program(
     // any node can see the job.
     if app.store.dialect() == crate::store::Dialect::Postgres {
         let saved = async {
-            let file = tokio::fs::File::open(&path)
+            let file = tokio::fs::File::open(&path).await.map_err(|e| {
+                Error::internal(format!("cannot read the program {}: {e}", path.display()))
+            })?;
+            app.store
+                .health()
+                .guard(app.store.save_program(&sha, file))
                 .await
-                .map_err(sqlx::Error::Io)?;
-            app.store.save_program(&sha, file).await
         };
         if let Err(e) = saved.await {
             if created {
                 let _ = std::fs::remove_file(&path);
             }
-            return Err(e.into());
+            return Err(e);
         }
     }
+    // Through the health guard: a full disk found here is the store's outage like any other.
     let inserted = app
         .store
-        .insert_job(NewJob {
+        .health()
+        .guard(app.store.insert_job(NewJob {
             name: &name,
             machine_id,
             sha256: &sha,
@@ -74,7 +79,7 @@ pub async fn store_program(
             line_count: lines as i64,
             analysis: analysis.as_ref().map(|a| a.to_string()),
             source,
-        })
+        }))
         .await;
     let id = match inserted {
         Ok(id) => id,
@@ -82,7 +87,7 @@ pub async fn store_program(
             if created {
                 let _ = std::fs::remove_file(&path);
             }
-            return Err(e.into());
+            return Err(e);
         }
     };
     app.bus
@@ -245,15 +250,19 @@ pub async fn pause(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
 }
 
 /// `confirm_part_zero`: the operator accepts whatever part zero the controller reports now,
-/// instead of requiring the one the run started with.
+/// instead of requiring the one the run started with. `confirm_line`: for a run whose stored
+/// line may be behind (`unstored_line`), the last line executed, as the operator found it.
 pub async fn resume(
     app: &App,
     job_id: i64,
     actor: &str,
     confirm_part_zero: bool,
+    confirm_line: Option<i64>,
 ) -> Result<RunRow> {
     let (job, machine) = load_job(app, job_id).await?;
-    machine.resume_job(job, actor, confirm_part_zero).await
+    machine
+        .resume_job(job, actor, confirm_part_zero, confirm_line)
+        .await
 }
 
 pub async fn cancel(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {

@@ -110,6 +110,26 @@ impl ProgramChecker {
     }
 }
 
+/// A failed write of a program: a full disk is 503 `disk_full` (the upload can be sent again
+/// once there is room; nothing of it is kept), anything else an internal error.
+fn write_failed(what: &str, e: std::io::Error) -> Error {
+    // ENOSPC on Unix; ERROR_HANDLE_DISK_FULL and ERROR_DISK_FULL on Windows.
+    let full = if cfg!(windows) {
+        matches!(e.raw_os_error(), Some(39 | 112))
+    } else {
+        e.raw_os_error() == Some(28)
+    };
+    if full {
+        Error::new(
+            ErrorKind::Unavailable,
+            "disk_full",
+            format!("{what}: the disk is full ({e}); free some space and upload again"),
+        )
+    } else {
+        Error::internal(format!("{what}: {e}"))
+    }
+}
+
 /// A program being written to a temporary file. Dropping it without `commit` deletes the file,
 /// so a rejected or interrupted upload leaves nothing on disk.
 pub struct PendingProgram {
@@ -125,7 +145,7 @@ impl PendingProgram {
         let tmp = programs_dir.join(format!(".upload-{}.tmp", rand::random::<u64>()));
         let file = tokio::fs::File::create(&tmp)
             .await
-            .map_err(|e| Error::internal(format!("cannot create {}: {e}", tmp.display())))?;
+            .map_err(|e| write_failed(&format!("cannot create {}", tmp.display()), e))?;
         Ok(PendingProgram {
             tmp: Some(tmp),
             file,
@@ -151,7 +171,7 @@ impl PendingProgram {
         self.file
             .write_all(chunk)
             .await
-            .map_err(|e| Error::internal(format!("cannot write program: {e}")))
+            .map_err(|e| write_failed("cannot write program", e))
     }
 
     /// Finishes the file: flushes it to disk and returns (temp path, sha256, lines, bytes).
@@ -171,7 +191,7 @@ impl PendingProgram {
         self.file
             .sync_all()
             .await
-            .map_err(|e| Error::internal(format!("cannot flush program: {e}")))?;
+            .map_err(|e| write_failed("cannot flush program", e))?;
         let tmp = self
             .tmp
             .take()
@@ -327,5 +347,24 @@ mod tests {
         assert!(e.message.contains("line 1, column 3"), "{}", e.message);
         let c = ProgramChecker::default();
         assert_eq!(c.finish().unwrap_err().code, "empty_program");
+    }
+
+    /// A full disk under an upload is 503 `disk_full` (issue 23), not 500: `/dev/full` answers
+    /// every write with ENOSPC, as a full filesystem does.
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn a_write_on_a_full_disk_is_disk_full() {
+        use std::io::Write;
+        let e = std::fs::OpenOptions::new()
+            .write(true)
+            .open("/dev/full")
+            .unwrap()
+            .write_all(b"G0 X1\n")
+            .unwrap_err();
+        let e = write_failed("cannot write program", e);
+        assert_eq!((e.kind, e.code), (ErrorKind::Unavailable, "disk_full"));
+        assert!(e.message.contains("the disk is full"), "{}", e.message);
+        let other = write_failed("cannot write program", std::io::Error::other("boom"));
+        assert_eq!(other.code, "internal");
     }
 }

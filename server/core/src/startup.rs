@@ -42,6 +42,8 @@ pub enum StartError {
         programs: std::path::PathBuf,
         count: usize,
     },
+    #[error("cannot read the records of unstored acknowledged lines: {0}")]
+    Unstored(String),
 }
 
 impl App {
@@ -139,6 +141,19 @@ impl App {
             node_secret,
             _lock: lock,
         });
+        // Before they are interrupted, so the interruption says so.
+        mark_unstored_runs(
+            &store,
+            &app.settings.data_dir.join(crate::machine::unstored::DIR),
+        )
+        .await
+        .map_err(|e| match e {
+            Ok(source) => StartError::Store {
+                database: db.clone(),
+                source,
+            },
+            Err(message) => StartError::Unstored(message),
+        })?;
         for run in store
             .interrupt_active_runs_of(&app.settings.node.name)
             .await
@@ -147,13 +162,24 @@ impl App {
                 source,
             })?
         {
-            tracing::warn!(
-                run = run.id,
-                job = run.job_id,
-                last_line = run.last_line,
-                "run was interrupted by a restart; resume it with POST /api/v1/jobs/{}/resume",
-                run.job_id
-            );
+            match run.unstored_line {
+                Some(unstored) => tracing::warn!(
+                    run = run.id,
+                    job = run.job_id,
+                    last_line = run.last_line,
+                    unstored_line = unstored,
+                    "run was interrupted by a restart while lines up to at least {unstored} were acknowledged but not stored: its stored line {} may be behind; check the machine and resume with POST /api/v1/jobs/{}/resume {{\"confirm_line\": N}}",
+                    run.last_line,
+                    run.job_id
+                ),
+                None => tracing::warn!(
+                    run = run.id,
+                    job = run.job_id,
+                    last_line = run.last_line,
+                    "run was interrupted by a restart; resume it with POST /api/v1/jobs/{}/resume",
+                    run.job_id
+                ),
+            }
             record_interrupted(&bus, &run).await;
         }
         if app.settings.demo {
@@ -325,11 +351,51 @@ fn refuse_lost_database(
 }
 
 async fn record_interrupted(bus: &EventBus, run: &RunRow) {
-    bus.record_or_log(
-        "job.state",
-        Some(run.machine_id),
-        None,
-        serde_json::json!({"job": run.job_id, "run": run.id, "state": "interrupted", "line": run.last_line, "message": run.message}),
-    )
-    .await;
+    let mut data = serde_json::json!({"job": run.job_id, "run": run.id, "state": "interrupted", "line": run.last_line, "message": run.message});
+    if let Some(unstored) = run.unstored_line {
+        data["unstored_line"] = unstored.into();
+    }
+    bus.record_or_log("job.state", Some(run.machine_id), None, data)
+        .await;
+}
+
+/// Marks the runs the previous process left acknowledged lines of only in memory (its
+/// machines' records in `dir`, see `machine::unstored`), then clears those records. The error:
+/// the store's (`Ok`) or the records' (`Err`). A record that cannot be read marks every active
+/// run of its machine: which ones it named is unknown.
+async fn mark_unstored_runs(
+    store: &crate::store::Store,
+    dir: &std::path::Path,
+) -> Result<(), Result<sqlx::Error, String>> {
+    use crate::machine::unstored::{clear, LeftBehind};
+    for left in crate::machine::unstored::left_behind(dir).map_err(Err)? {
+        let path = match left {
+            LeftBehind::Record(path, record) => {
+                for r in &record.runs {
+                    if store.mark_unstored_line(r.run, r.line).await.map_err(Ok)? {
+                        tracing::warn!(
+                            machine = record.machine,
+                            run = r.run,
+                            unstored_line = r.line,
+                            "the previous process stopped with acknowledged lines of this run not stored (the database could not be written): its stored line may be behind"
+                        );
+                    }
+                }
+                path
+            }
+            LeftBehind::Unreadable {
+                path,
+                machine,
+                error,
+            } => {
+                let n = store.mark_unstored_active_runs(machine).await.map_err(Ok)?;
+                tracing::error!(file = %path.display(), error, machine, runs = n, "the record of unstored acknowledged lines is unreadable: the machine's active runs need their line confirmed before a resume");
+                path
+            }
+        };
+        if let Err(e) = clear(&path) {
+            tracing::error!(file = %path.display(), error = %e, "cannot clear the record of unstored lines; the next start marks its runs again");
+        }
+    }
+    Ok(())
 }

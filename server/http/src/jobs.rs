@@ -182,6 +182,7 @@ pub async fn gcode(
         (status = 408, description = "`upload_timeout`", body = ErrorBody),
         (status = 413, description = "`too_large`", body = ErrorBody),
         (status = 422, description = "`invalid_gcode` (line and column), `not_utf8`, `sha256_mismatch`", body = ErrorBody),
+        (status = 503, description = "`database_unavailable` (the store cannot be written: nothing is kept), `disk_full` (no room for the program)", body = ErrorBody),
     ))]
 pub async fn upload(
     State(app): State<SharedApp>,
@@ -194,6 +195,9 @@ pub async fn upload(
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
         .is_some_and(|v| v.starts_with("multipart/form-data"));
+    // A store that cannot be written could not keep the job: refused before any byte is read
+    // or written.
+    app.store.health().check()?;
     // Check the machine before reading a possibly huge body.
     if !is_multipart {
         check_machine(&app, params.machine).await?;
@@ -331,6 +335,11 @@ pub struct ResumeBody {
     /// Accept the part zero the controller reports now, even if it differs from the run's.
     #[serde(default)]
     confirm_part_zero: bool,
+    /// For a run whose stored line may be behind (its `unstored_line` is set: the server
+    /// stopped while acknowledged lines could not be stored): the last line that was executed,
+    /// as the operator found it on the machine. The resume goes on from the next line.
+    #[serde(default)]
+    confirm_line: Option<i64>,
 }
 
 #[utoipa::path(post, path = "/jobs/{id}/{action}", tag = "jobs",
@@ -341,8 +350,8 @@ pub struct ResumeBody {
         (status = 200, description = "Done: the job with its run (answered only once true: a `cancel` after motion stopped)", body = Job),
         (status = 400, description = "`invalid_json`", body = ErrorBody),
         (status = 404, description = "`unknown_job`, `unknown_action`", body = ErrorBody),
-        (status = 409, description = "`machine_busy`, `not_started`, `not_running`, `not_resumable`, `not_cancellable`, `part_zero_changed`, `stopped`, `backend_rejected`", body = ErrorBody),
-        (status = 422, description = "`backend_rejected` (e.g. the program leaves the travel)", body = ErrorBody),
+        (status = 409, description = "`machine_busy`, `not_started`, `not_running`, `not_resumable`, `not_cancellable`, `part_zero_changed`, `line_unconfirmed` (the stored line may be behind: resume with `confirm_line`), `stopped`, `backend_rejected`", body = ErrorBody),
+        (status = 422, description = "`backend_rejected` (e.g. the program leaves the travel), `invalid_field` (`confirm_line` out of range)", body = ErrorBody),
         (status = 503, description = "`machine_offline`, `machine_unresponsive`, `machine_unavailable`, `shutting_down`, `database_unavailable` (start and resume; pause and cancel of the running job still work)", body = ErrorBody),
     ))]
 pub async fn control(
@@ -365,7 +374,14 @@ pub async fn control(
                 serde_json::from_slice(&body)
                     .map_err(|e| ApiError::bad_request("invalid_json", format!("resume: {e}")))?
             };
-            core::resume(&app, id, &caller.name, body.confirm_part_zero).await?
+            core::resume(
+                &app,
+                id,
+                &caller.name,
+                body.confirm_part_zero,
+                body.confirm_line,
+            )
+            .await?
         }
         "cancel" => core::cancel(&app, id, &caller.name).await?,
         other => {

@@ -453,6 +453,8 @@ struct JogBody {
 struct ResumeBody {
     #[serde(default)]
     confirm_part_zero: bool,
+    #[serde(default)]
+    confirm_line: Option<i64>,
 }
 
 /// One command message: check the token and its role, then call the same core function the
@@ -546,7 +548,7 @@ async fn run_command(
                 "resume" => {
                     let r: ResumeBody = serde_json::from_value(body)
                         .map_err(|e| Error::invalid("invalid_field", format!("resume: {e}")))?;
-                    jobs::resume(app, id, &actor, r.confirm_part_zero).await?
+                    jobs::resume(app, id, &actor, r.confirm_part_zero, r.confirm_line).await?
                 }
                 other => {
                     return Err(Error::not_found(

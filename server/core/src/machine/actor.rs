@@ -38,6 +38,9 @@ pub(super) struct Task {
     /// Run writes not yet in the store: acknowledged lines (always, until the batch is flushed)
     /// and, while the database is unreachable, run transitions.
     pub pending: PendingWrites,
+    /// The runs whose acknowledged lines are only in `pending`, recorded beside the store so a
+    /// restart knows their stored line is behind.
+    pub unstored: super::unstored::Marker,
 }
 
 /// What the store has not been told yet. Written acks first, then transitions in the order they
@@ -231,10 +234,13 @@ impl Task {
                 job,
                 actor,
                 confirm_part_zero,
+                confirm_line,
                 ticket,
                 reply,
             } => {
-                let r = self.resume(&job, &actor, confirm_part_zero, ticket).await;
+                let r = self
+                    .resume(&job, &actor, (confirm_part_zero, confirm_line), ticket)
+                    .await;
                 let _ = reply.send(r);
             }
             Msg::Cancel {
@@ -629,10 +635,17 @@ impl Task {
         }
     }
 
-    /// Writes what the store has not been told yet: acknowledged lines, then run transitions in
-    /// order. Stops at the first sign the database is unreachable and keeps the rest; the
-    /// database's return (or the next request) tries again.
+    /// Writes what the store has not been told yet (see [`Task::write_pending`]), and records
+    /// beside the store which runs still have acknowledged lines only in memory.
     async fn flush_pending(&mut self) {
+        self.write_pending().await;
+        self.unstored.show(&self.pending.acks);
+    }
+
+    /// Writes acknowledged lines, then run transitions in order. Stops at the first sign the
+    /// database is unreachable and keeps the rest; the database's return (or the next request)
+    /// tries again.
+    async fn write_pending(&mut self) {
         let health = self.store.health().clone();
         while let Some((&run, &line)) = self.pending.acks.first_key_value() {
             match health.guard(self.store.ack_line(run, line as i64)).await {
@@ -942,7 +955,7 @@ impl Task {
         &mut self,
         job: &JobRow,
         actor: &str,
-        confirm_part_zero: bool,
+        (confirm_part_zero, confirm_line): (bool, Option<i64>),
         ticket: u64,
     ) -> Result<RunRow> {
         self.store.health().check()?;
@@ -970,6 +983,7 @@ impl Task {
                         format!("machine {} is {}", self.id, state.as_str()),
                     ));
                 }
+                let run = self.confirmed_line(job, run, confirm_line, actor).await?;
                 if run.last_line >= job.line_count {
                     // Everything was acknowledged before the interruption: nothing left to run.
                     return self
@@ -1008,6 +1022,64 @@ impl Task {
                 format!("job {job_id} is {other}; only paused, interrupted or failed jobs can be resumed (start it again for a new run)"),
             )),
         }
+    }
+
+    /// A run whose stored line may be behind (the server stopped while lines of it were
+    /// acknowledged only in memory, `unstored_line`) goes on only from the line the operator
+    /// confirms as the last one executed; a resume without it is refused with
+    /// `line_unconfirmed`, as a moved part zero is with `part_zero_changed`.
+    async fn confirmed_line(
+        &self,
+        job: &JobRow,
+        run: RunRow,
+        confirm_line: Option<i64>,
+        actor: &str,
+    ) -> Result<RunRow> {
+        let Some(unstored) = run.unstored_line else {
+            return match confirm_line {
+                Some(n) if n != run.last_line => Err(Error::invalid(
+                    "invalid_field",
+                    format!(
+                        "field `confirm_line`: the stored line of job {} is exact ({}); leave confirm_line out or give that line, got {n}",
+                        job.id, run.last_line
+                    ),
+                )),
+                _ => Ok(run),
+            };
+        };
+        // Acknowledged lines were executed: the last one executed is at least the highest.
+        let lowest = run.last_line.max(unstored);
+        let Some(line) = confirm_line else {
+            return Err(Error::conflict(
+                "line_unconfirmed",
+                format!(
+                    "job {} may have run past its stored line {}: the server stopped while lines up to at least {unstored} were acknowledged but could not be stored (the database could not be written). Check where the machine stopped, then resume with {{\"confirm_line\": N}}, N the last line executed ({lowest} to {}; {} completes the job without motion)",
+                    job.id, run.last_line, job.line_count, job.line_count
+                ),
+            ));
+        };
+        if line < lowest || line > job.line_count {
+            return Err(Error::invalid(
+                "invalid_field",
+                format!(
+                    "field `confirm_line` must be between {lowest} (lines up to it were acknowledged) and {} (the job's last line), got {line}",
+                    job.line_count
+                ),
+            ));
+        }
+        tracing::warn!(
+            machine = self.id,
+            run = run.id,
+            stored = run.last_line,
+            unstored_line = unstored,
+            confirmed = line,
+            actor,
+            "resume from a line the operator confirmed"
+        );
+        self.store
+            .confirm_run_line(run.id, line)
+            .await?
+            .ok_or_else(|| Error::internal(format!("run {} disappeared", run.id)))
     }
 
     async fn cancel(&mut self, job_id: i64, actor: &str) -> Result<RunRow> {
@@ -1231,6 +1303,7 @@ mod tests {
             job: watch::channel(Some(job)).0,
             launched: Some(run.clone()),
             pending: PendingWrites::default(),
+            unstored: super::super::unstored::Marker::start(&dir.0.join("unstored"), m),
         };
         (task, run, dir)
     }
@@ -1268,6 +1341,55 @@ mod tests {
             .filter(|e| e.kind == "job.state")
             .map(|e| serde_json::from_str(&e.data).unwrap())
             .collect()
+    }
+
+    /// The record in `DATA_DIR/unstored` once it satisfies `pred` (its writer is asynchronous).
+    async fn unstored_record(
+        dir: &std::path::Path,
+        what: &str,
+        pred: impl Fn(&[super::super::unstored::LeftBehind]) -> bool,
+    ) {
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
+        loop {
+            let left = super::super::unstored::left_behind(dir).unwrap();
+            if pred(&left) {
+                return;
+            }
+            assert!(std::time::Instant::now() < deadline, "{what}: {left:?}");
+            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+        }
+    }
+
+    /// Issue 23: acknowledged lines kept in memory during an outage are recorded beside the
+    /// store (so a restart knows the stored line is behind) and the record is cleared once they
+    /// landed.
+    #[tokio::test]
+    async fn acks_the_store_cannot_take_are_recorded_beside_it_until_they_land() {
+        use super::super::unstored::{LeftBehind, UnstoredRun};
+        let (mut task, run, dir) = task_with_run().await;
+        let unstored = dir.0.join("unstored");
+        let store = task.store.clone();
+        task.handle_events(vec![ev(Event::LineAcknowledged {
+            run: run.id,
+            line: 2,
+        })])
+        .await;
+        store.health().mark_down("test outage");
+        task.handle_events(vec![ev(Event::LineAcknowledged {
+            run: run.id,
+            line: 7,
+        })])
+        .await;
+        unstored_record(&unstored, "line 7 recorded", |left| {
+            matches!(left, [LeftBehind::Record(_, r)]
+                if r.runs == [UnstoredRun { run: run.id, line: 7 }])
+        })
+        .await;
+        assert_eq!(store.run(run.id).await.unwrap().unwrap().last_line, 2);
+        store.health().mark_up();
+        task.flush_pending().await;
+        assert_eq!(store.run(run.id).await.unwrap().unwrap().last_line, 7);
+        unstored_record(&unstored, "the record cleared", |left| left.is_empty()).await;
     }
 
     #[tokio::test]

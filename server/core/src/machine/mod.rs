@@ -7,6 +7,7 @@
 mod actor;
 mod lanes;
 pub mod limits;
+pub mod unstored;
 
 pub use lanes::{BackendError, Lane};
 
@@ -29,6 +30,9 @@ pub struct MachineOptions {
     pub timeout: Duration,
     pub status_interval: Duration,
     pub programs_dir: PathBuf,
+    /// Where each machine records acknowledged lines the store could not take
+    /// (`DATA_DIR/unstored`).
+    pub unstored_dir: PathBuf,
 }
 
 /// The current run as everyone but the machine's task sees it.
@@ -183,6 +187,7 @@ pub(crate) enum Msg {
         job: JobRow,
         actor: String,
         confirm_part_zero: bool,
+        confirm_line: Option<i64>,
         ticket: u64,
         reply: Reply<RunRow>,
     },
@@ -299,6 +304,7 @@ impl Machine {
             job: job_tx,
             launched: None,
             pending: Default::default(),
+            unstored: unstored::Marker::start(&opts.unstored_dir, row.id),
         };
         tokio::spawn(task.run(rx, events));
         tokio::spawn(status_loop(m.clone(), bus, opts.status_interval));
@@ -492,18 +498,21 @@ impl Machine {
     }
 
     /// `confirm_part_zero`: the operator accepts whatever part zero the controller reports
-    /// now, instead of requiring the one the run started with.
+    /// now, instead of requiring the one the run started with. `confirm_line`: the last line
+    /// that was executed, as the operator found it, for a run whose stored line may be behind.
     pub async fn resume_job(
         &self,
         job: JobRow,
         actor: &str,
         confirm_part_zero: bool,
+        confirm_line: Option<i64>,
     ) -> Result<RunRow> {
         let ticket = self.gate.ticket();
         self.ask(|reply| Msg::Resume {
             job,
             actor: actor.into(),
             confirm_part_zero,
+            confirm_line,
             ticket,
             reply,
         })

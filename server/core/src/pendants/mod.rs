@@ -448,7 +448,7 @@ async fn start_key(app: &Arc<App>, p: &Pendant, m: &Machine, actor: &str) -> Res
     if let Some(r) = m.run() {
         if r.state == RunState::Paused {
             // Never confirms a changed part zero: that decision belongs to the operator at the API.
-            return crate::jobs::resume(app, r.job_id, actor, false)
+            return crate::jobs::resume(app, r.job_id, actor, false, None)
                 .await
                 .map(|_| ());
         }

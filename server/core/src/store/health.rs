@@ -1,10 +1,11 @@
 //! Whether the database answers, as one `watch` every part of the node reads: the machine tasks
 //! start no new motion and keep their writes pending while it is down, the event bus buffers
 //! audit events, `/healthz` and `/metrics` report it. A monitor task pings the database with a
-//! short timeout; a write that fails for a connection reason marks it down at once. Down is left
-//! only when a ping succeeds, so a writer that saw the outage does not retry before it is over.
+//! short timeout; a write that fails for a connection or disk reason (full, I/O error, read-only)
+//! marks it down at once. Down is left only when a probe *write* commits: a read answers on a
+//! full or read-only disk too, and would end an outage that every write still meets (issue 23).
 
-pub use crate::error::is_unreachable;
+pub use crate::error::{is_unreachable, outage_reason};
 use crate::error::{Error, ErrorKind};
 use crate::store::{now_ms, Store};
 use std::future::Future;
@@ -89,14 +90,16 @@ impl DbHealth {
         }
     }
 
-    /// A failed store call: marks the database down when the error says it is unreachable.
-    /// Returns whether it did.
+    /// A failed store call: marks the database down when the error says it cannot take writes
+    /// (the reason names the cause: "disk full: ..."). Returns whether it did.
     pub fn observe(&self, e: &sqlx::Error) -> bool {
-        let unreachable = is_unreachable(e);
-        if unreachable {
-            self.mark_down(&e.to_string());
+        match outage_reason(e) {
+            Some(reason) => {
+                self.mark_down(&reason);
+                true
+            }
+            None => false,
         }
-        unreachable
     }
 
     /// The error for a request refused because the database is down.
@@ -109,7 +112,7 @@ impl DbHealth {
             ErrorKind::Unavailable,
             "database_unavailable",
             format!(
-                "the database {} is unreachable since {} ({reason}); no new motion is started until it returns (stop, feed hold, pause and cancel still work)",
+                "the database {} is unavailable since {} ({reason}); no new motion is started until it returns (stop, feed hold, pause and cancel still work)",
                 self.database,
                 super::utc_text(since, false)
             ),
@@ -144,8 +147,28 @@ impl DbHealth {
         }
     }
 
-    /// Pings the database every [`PING_INTERVAL`] until `shutdown`; a ping that fails or takes
-    /// longer than [`PING_TIMEOUT`] marks it down, one that succeeds marks it up.
+    /// One check of the monitor: while up, a ping (a read) that fails or takes longer than
+    /// [`PING_TIMEOUT`] marks the database down; while down, only a probe write that commits
+    /// within it marks it up again.
+    pub async fn probe(&self, store: &Store) {
+        let was_up = self.is_up();
+        let answer = if was_up {
+            tokio::time::timeout(PING_TIMEOUT, store.ping()).await
+        } else {
+            tokio::time::timeout(PING_TIMEOUT, store.probe_write()).await
+        };
+        match answer {
+            Ok(Ok(())) => self.mark_up(),
+            Ok(Err(e)) => self.mark_down(&outage_reason(&e).unwrap_or_else(|| e.to_string())),
+            Err(_) => self.mark_down(&format!(
+                "no answer to a {} within {} ms",
+                if was_up { "ping" } else { "probe write" },
+                PING_TIMEOUT.as_millis()
+            )),
+        }
+    }
+
+    /// Runs [`DbHealth::probe`] every [`PING_INTERVAL`] until `shutdown`.
     pub fn spawn_monitor(&self, store: Store, shutdown: CancellationToken) {
         let health = self.clone();
         tokio::spawn(async move {
@@ -156,14 +179,7 @@ impl DbHealth {
                     _ = shutdown.cancelled() => return,
                     _ = tick.tick() => {}
                 }
-                match tokio::time::timeout(PING_TIMEOUT, store.ping()).await {
-                    Ok(Ok(())) => health.mark_up(),
-                    Ok(Err(e)) => health.mark_down(&e.to_string()),
-                    Err(_) => health.mark_down(&format!(
-                        "no answer to a ping within {} ms",
-                        PING_TIMEOUT.as_millis()
-                    )),
-                }
+                health.probe(&store).await;
             }
         });
     }

@@ -30,6 +30,10 @@ pub struct RunRow {
     pub started_at: Option<i64>,
     pub ended_at: Option<i64>,
     pub updated_at: i64,
+    /// Set when the server stopped while lines of this run were acknowledged only in memory
+    /// (the database could not be written): the highest such line it recorded. `last_line` may
+    /// then be behind what ran, and a resume needs `confirm_line` (issue 23).
+    pub unstored_line: Option<i64>,
 }
 
 /// A run's state. The database keeps it as the lowercase name; only the machine's task moves a
@@ -329,6 +333,66 @@ impl Store {
         .await?;
         tx.commit().await?;
         Ok(Ok(row))
+    }
+
+    /// Records that lines of a run up to `line` were acknowledged but not stored before the
+    /// server stopped (start-up, from the machines' records; see `machine::unstored`). A run
+    /// that has ended for good (completed, cancelled) needs no resume and is left alone.
+    /// Returns whether a run was marked.
+    pub async fn mark_unstored_line(&self, run_id: i64, line: i64) -> Result<bool> {
+        let mut tx = self.begin().await?;
+        let marked = sqlx::query(self.pick(
+            "UPDATE job_runs SET unstored_line = MAX(COALESCE(unstored_line, 0), $1), updated_at = $2
+             WHERE id = $3 AND state NOT IN ('completed', 'cancelled')",
+            "UPDATE job_runs SET unstored_line = GREATEST(COALESCE(unstored_line, 0), $1), updated_at = $2
+             WHERE id = $3 AND state NOT IN ('completed', 'cancelled')",
+        ))
+        .bind(line)
+        .bind(now_ms())
+        .bind(run_id)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected()
+            > 0;
+        tx.commit().await?;
+        Ok(marked)
+    }
+
+    /// Marks every active run of `machine_id` as in [`Store::mark_unstored_line`], at its stored
+    /// line: for a machine whose record of unstored lines could not be read.
+    pub async fn mark_unstored_active_runs(&self, machine_id: i64) -> Result<u64> {
+        let mut tx = self.begin().await?;
+        let n = sqlx::query(&format!(
+            "UPDATE job_runs SET unstored_line = last_line, updated_at = $1
+             WHERE machine_id = $2 AND state IN {ACTIVE_RUN_STATES}"
+        ))
+        .bind(now_ms())
+        .bind(machine_id)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        tx.commit().await?;
+        Ok(n)
+    }
+
+    /// The operator's word on where a run whose stored line may be behind stopped: `line` is
+    /// its last executed line. Raises `last_line` to it (never lowers it) and clears
+    /// `unstored_line`, so the resume goes on from the next line. Returns the run.
+    pub async fn confirm_run_line(&self, run_id: i64, line: i64) -> Result<Option<RunRow>> {
+        let mut tx = self.begin().await?;
+        let row = sqlx::query_as(self.pick(
+            "UPDATE job_runs SET last_line = MAX(last_line, $1), unstored_line = NULL, updated_at = $2
+             WHERE id = $3 RETURNING *",
+            "UPDATE job_runs SET last_line = GREATEST(last_line, $1), unstored_line = NULL, updated_at = $2
+             WHERE id = $3 RETURNING *",
+        ))
+        .bind(line)
+        .bind(now_ms())
+        .bind(run_id)
+        .fetch_optional(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(row)
     }
 
     /// Number of job runs per state, for `/metrics`.

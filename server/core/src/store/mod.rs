@@ -130,6 +130,9 @@ impl Store {
             Dialect::Sqlite => {
                 AnyPoolOptions::new()
                     .max_connections(8)
+                    .before_acquire(|conn, _| {
+                        Box::pin(async move { Ok(outside_transaction(conn)) })
+                    })
                     .after_connect(|conn, _| {
                         Box::pin(async move {
                             // WAL: readers never wait for the writer. NORMAL in WAL mode
@@ -149,6 +152,9 @@ impl Store {
             Dialect::Postgres => {
                 AnyPoolOptions::new()
                     .max_connections(8)
+                    .before_acquire(|conn, _| {
+                        Box::pin(async move { Ok(outside_transaction(conn)) })
+                    })
                     .acquire_timeout(Duration::from_secs(10))
                     .connect_with(opts)
                     .await?
@@ -214,6 +220,17 @@ impl Store {
             .map(|_| ())
     }
 
+    /// A write the health monitor commits while the database is down: only a write tells
+    /// whether a full or read-only disk takes writes again.
+    pub async fn probe_write(&self) -> Result<()> {
+        let mut tx = self.begin().await?;
+        sqlx::query("UPDATE store_probe SET at_ms = $1 WHERE id = 1")
+            .bind(now_ms())
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await
+    }
+
     pub(crate) async fn begin(&self) -> Result<sqlx::Transaction<'static, sqlx::Any>> {
         match self.dialect {
             Dialect::Sqlite => self.pool.begin_with("BEGIN IMMEDIATE").await,
@@ -225,6 +242,23 @@ impl Store {
     pub(crate) fn pool(&self) -> &AnyPool {
         &self.pool
     }
+}
+
+/// Whether a pooled connection may be handed out: not if sqlx still counts it inside a
+/// transaction. A dropped `Transaction` queues a ROLLBACK, and sqlx-sqlite lowers its count only
+/// when that ROLLBACK succeeds; when SQLite has already ended the transaction itself (it rolls
+/// back the whole transaction when a COMMIT meets a full disk or an I/O error), the ROLLBACK
+/// fails with "no transaction is active", the count stays at 1, and every later `BEGIN
+/// IMMEDIATE` on that connection was refused ("attempted to call begin_with at non-zero
+/// transaction depth"): one connection in eight failed every write until a restart (issue 23).
+/// Such a connection is closed instead (which also rolls back anything SQLite might still hold
+/// open) and the pool opens a fresh one.
+fn outside_transaction(conn: &mut sqlx::AnyConnection) -> bool {
+    let inside = sqlx::Connection::is_in_transaction(conn);
+    if inside {
+        tracing::warn!("a pooled database connection was left inside a failed transaction; closed");
+    }
+    !inside
 }
 
 /// The URL of the SQLite file at `path`, created when missing. The `Any` driver parses it as a

@@ -70,7 +70,126 @@ on_both!(
     event_ids_rise_and_replay_in_order,
     pruning_keeps_audit_events_and_records_the_cut,
     tool_tables_are_per_machine_and_replaced_whole,
+    a_transaction_the_database_ended_itself_leaves_the_pool_usable,
+    unstored_lines_mark_a_run_until_the_operator_confirms_its_line,
 );
+
+/// Issue 23: start-up marks a run the previous process could not store all acknowledged lines
+/// of; the operator's confirmed line raises `last_line` and clears the mark; finished runs are
+/// never marked.
+async fn unstored_lines_mark_a_run_until_the_operator_confirms_its_line(s: &Store) {
+    let (m, j) = machine_with_job(s, 62).await;
+    let run = s.start_run(j, m).await.unwrap().unwrap();
+    assert_eq!(run.unstored_line, None);
+    s.ack_line(run.id, 7).await.unwrap();
+    assert!(s.mark_unstored_line(run.id, 40).await.unwrap());
+    assert!(s.mark_unstored_line(run.id, 30).await.unwrap()); // never lowered
+    let r = s.run(run.id).await.unwrap().unwrap();
+    assert_eq!((r.last_line, r.unstored_line), (7, Some(40)));
+    let confirmed = s.confirm_run_line(run.id, 45).await.unwrap().unwrap();
+    assert_eq!((confirmed.last_line, confirmed.unstored_line), (45, None));
+    // An unreadable record marks the machine's active runs at their stored line.
+    assert_eq!(s.mark_unstored_active_runs(m).await.unwrap(), 1);
+    assert_eq!(
+        s.run(run.id).await.unwrap().unwrap().unstored_line,
+        Some(45)
+    );
+    s.transition_run(run.id, &[RunState::Running], RunState::Completed, None)
+        .await
+        .unwrap()
+        .unwrap();
+    s.confirm_run_line(run.id, 62).await.unwrap();
+    assert!(!s.mark_unstored_line(run.id, 62).await.unwrap());
+    assert_eq!(s.run(run.id).await.unwrap().unwrap().unstored_line, None);
+}
+
+/// Runs `sql` on every connection the pool may hand out (it holds at most 8): for per-connection
+/// settings such as SQLite's `max_page_count`.
+async fn on_every_connection(s: &Store, sql: &str) {
+    let mut held = Vec::new();
+    for _ in 0..8 {
+        let mut c = s.pool().acquire().await.unwrap();
+        sqlx::Executor::execute(&mut *c, sql).await.unwrap();
+        held.push(c);
+    }
+}
+
+/// A few ordinary writes, each in its own transaction: all must succeed.
+async fn writes_succeed(s: &Store, m: i64, what: &str) {
+    for i in 0..20 {
+        s.insert_part_zero(
+            m,
+            AxisValues::default(),
+            "test",
+            "t",
+            Some(&format!("{what} {i}")),
+        )
+        .await
+        .unwrap_or_else(|e| panic!("write {i} {what}: {e}"));
+    }
+}
+
+/// Issue 23: a write that fails so that the database itself ends the transaction (SQLite rolls
+/// back the whole transaction on a full disk) must not leave the pooled connection believing it
+/// is still inside one; that connection refused every later `BEGIN IMMEDIATE` ("attempted to
+/// call begin_with at non-zero transaction depth"). On PostgreSQL a failed statement aborts the
+/// transaction instead; the pool must be as usable afterwards.
+async fn a_transaction_the_database_ended_itself_leaves_the_pool_usable(s: &Store) {
+    let (m, _) = machine_with_job(s, 1).await;
+    for _ in 0..3 {
+        let mut tx = s.begin().await.unwrap();
+        // A second machine named "m": SQLite's OR ROLLBACK ends the transaction in the engine,
+        // as a full disk does; PostgreSQL aborts it.
+        let e = sqlx::query(s.pick(
+            "INSERT OR ROLLBACK INTO machines (name, backend, config, created_at) VALUES ('m', 'x', '{}', 0)",
+            "INSERT INTO machines (name, backend, config, created_at) VALUES ('m', 'x', '{}', 0)",
+        ))
+        .execute(&mut *tx)
+        .await
+        .unwrap_err();
+        assert!(is_unique_violation(&e), "{e}");
+        drop(tx);
+    }
+    writes_succeed(s, m, "after a transaction ended by the database").await;
+}
+
+/// Issue 23, with a genuine SQLITE_FULL from the engine (`max_page_count` caps the file as a
+/// full disk would; it fails the statement, where a full disk fails the commit and ends the
+/// transaction, the case above): the error marks the store down as "disk full", a probe write
+/// ends the outage once there is room again, and writes succeed without a restart.
+#[tokio::test]
+async fn a_full_sqlite_database_is_an_outage_and_recovers_when_there_is_room() {
+    let scratch = sqlite_store().await;
+    let s = &scratch.store;
+    let (m, _) = machine_with_job(s, 1).await;
+    let pages: i64 = sqlx::query_scalar("PRAGMA page_count")
+        .fetch_one(s.pool())
+        .await
+        .unwrap();
+    on_every_connection(s, &format!("PRAGMA max_page_count = {pages}")).await;
+    let big = "x".repeat(64 * 1024);
+    let mut failed = None;
+    for _ in 0..10 {
+        let r = s
+            .health()
+            .guard(s.insert_part_zero(m, AxisValues::default(), "test", "t", Some(&big)))
+            .await;
+        if let Err(e) = r {
+            failed = Some(e);
+            break;
+        }
+    }
+    let e = failed.expect("a write into a full database failed");
+    assert_eq!(e.code, "database_unavailable", "{e}");
+    match s.health().state() {
+        DbState::Down { reason, .. } => assert!(reason.starts_with("disk full: "), "{reason}"),
+        DbState::Up => panic!("a full database is an outage"),
+    }
+    on_every_connection(s, "PRAGMA max_page_count = 1073741823").await;
+    s.health().probe(s).await;
+    assert!(s.health().is_up(), "{:?}", s.health().state());
+    writes_succeed(s, m, "after room was made").await;
+}
 
 async fn tool_tables_are_per_machine_and_replaced_whole(s: &Store) {
     use super::ToolRow;
