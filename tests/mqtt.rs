@@ -96,6 +96,8 @@ impl Sub {
         let id = format!("test-{}", rand_suffix());
         let mut opts = MqttOptions::new(id, "127.0.0.1", broker.port);
         opts.set_keep_alive(Duration::from_secs(30));
+        // Room for the oversized messages the tests send.
+        opts.set_max_packet_size(4 << 20, 4 << 20);
         let (client, mut conn) = Client::new(opts, 100);
         for f in filters {
             client.subscribe(*f, QoS::AtLeastOnce).unwrap();
@@ -149,10 +151,74 @@ impl Sub {
     }
 
     fn publish(&self, topic: &str, payload: &Value) {
+        self.publish_bytes(topic, false, payload.to_string().into_bytes());
+    }
+
+    fn publish_bytes(&self, topic: &str, retain: bool, payload: Vec<u8>) {
         self.client
-            .publish(topic, QoS::AtLeastOnce, false, payload.to_string())
+            .publish(topic, QoS::AtLeastOnce, retain, payload)
             .unwrap();
     }
+}
+
+/// Leaves a retained message on the broker, as anyone allowed to publish there could; returns
+/// once the broker has it (a subscriber got it).
+fn leave_retained(broker: &Broker, topic: &str, payload: Vec<u8>) {
+    let sub = Sub::new(broker, &[topic]);
+    sub.publish_bytes(topic, true, payload);
+    sub.until(topic, |_, _| true);
+}
+
+/// Knocks the bridge off the broker: a client connecting with the bridge's client id takes its
+/// place (MQTT 3.1.1, 3.1.4), then leaves at once, so the bridge reconnects and subscribes anew.
+fn take_over(broker: &Broker, client_id: &str) {
+    let mut opts = MqttOptions::new(client_id, "127.0.0.1", broker.port);
+    opts.set_keep_alive(Duration::from_secs(30));
+    let (client, mut conn) = Client::new(opts, 10);
+    for ev in conn.iter() {
+        match ev {
+            Ok(Event::Incoming(Packet::ConnAck(_))) => break,
+            Ok(_) => {}
+            Err(e) => panic!("taking over the bridge's client id: {e}"),
+        }
+    }
+    client.disconnect().unwrap();
+    for ev in conn.iter() {
+        match ev {
+            Ok(Event::Outgoing(rumqttc::Outgoing::Disconnect)) | Err(_) => break,
+            Ok(_) => {}
+        }
+    }
+}
+
+/// A demo server whose bridge takes commands, with a known client id; waits until the broker
+/// has its command subscriptions.
+fn commanded_demo(broker: &Broker, client_id: &str) -> (Server, String) {
+    let mut s = Server::unstarted(Opts {
+        demo: true,
+        ..Opts::default()
+    });
+    let operator = s.create_token("operator", "olga");
+    s.write_config(&format!(
+        "[mqtt]\nurl = \"{}\"\ntopic_prefix = \"t\"\ncommands = true\nclient_id = \"{client_id}\"\n",
+        broker.url()
+    ));
+    s.spawn().unwrap();
+    s.wait_machine_state(1, "idle", T);
+    wait_for(T, "command subscriptions confirmed", || {
+        (metric(&s, "fresa_mqtt_commands_ready") == 1.0).then_some(())
+    });
+    (s, operator)
+}
+
+/// Publishes a live (not retained) jog and waits for its answer on `cmd/results`.
+fn live_jog(c: &Sub, token: &str, axis: &str, distance: f64, request_id: &str) -> Value {
+    c.publish(
+        "t/cmd/machines/1/jog",
+        &json!({"axis": axis, "distance": distance, "request_id": request_id, "token": token}),
+    );
+    c.until("t/cmd/results", |v, _| v["request_id"] == request_id)
+        .0
 }
 
 fn rand_suffix() -> u64 {
@@ -562,4 +628,134 @@ fn tls_and_a_password_reach_a_broker_that_requires_both() {
     let log = s.wait_log(T, "MQTT connect failed");
     assert!(!log.is_empty());
     assert_eq!(metric(&s, "fresa_mqtt_connected"), 0.0);
+}
+
+#[test]
+fn retained_commands_are_never_run_even_across_reconnects() {
+    let broker = Broker::start();
+    // Left on the broker before the server starts, as anyone who can publish there (or who
+    // captured a command with its token) could: a retained jog with a valid operator token, and
+    // a retained message bigger than any command (and than the old client's 1 MiB packet limit).
+    let mut s = Server::unstarted(Opts {
+        demo: true,
+        ..Opts::default()
+    });
+    let operator = s.create_token("operator", "olga");
+    leave_retained(
+        &broker,
+        "t/cmd/machines/1/jog",
+        json!({"axis": "X", "distance": 2.0, "token": operator})
+            .to_string()
+            .into_bytes(),
+    );
+    leave_retained(&broker, "t/cmd/jobs/1/start", vec![b'x'; 2 << 20]);
+    let client_id = format!("fresa-retained-{}", rand_suffix());
+    s.write_config(&format!(
+        "[mqtt]\nurl = \"{}\"\ntopic_prefix = \"t\"\ncommands = true\nclient_id = \"{client_id}\"\n",
+        broker.url()
+    ));
+    s.spawn().unwrap();
+    s.wait_machine_state(1, "idle", T);
+    wait_for(T, "command subscriptions confirmed", || {
+        (metric(&s, "fresa_mqtt_commands_ready") == 1.0).then_some(())
+    });
+    let c = Sub::new(&broker, &["t/cmd/results"]);
+    // The broker sends retained messages right after each subscription's acknowledgement, so
+    // by the time a live command published now is answered, both retained ones were seen.
+    let answer = live_jog(&c, &operator, "Y", 1.0, "live-1");
+    assert_eq!(answer["ok"], true, "{answer}");
+    s.wait_status(1, T, "y = 1 after the live jog", |st| {
+        (st["machine_position"]["y"].as_f64().unwrap_or(f64::NAN) - 1.0).abs() < 1e-6
+    });
+    assert!(
+        x_is(&s.status(1), 0.0),
+        "the retained jog moved X: {}",
+        s.status(1)
+    );
+    assert_eq!(metric(&s, "fresa_mqtt_retained_ignored_total"), 2.0);
+    assert_eq!(metric(&s, "fresa_mqtt_reconnects_total"), 0.0);
+
+    // Knocked off and back: the broker replays both retained messages to the new subscription.
+    take_over(&broker, &client_id);
+    wait_for(T, "bridge reconnected and subscribed", || {
+        (metric(&s, "fresa_mqtt_reconnects_total") >= 1.0
+            && metric(&s, "fresa_mqtt_commands_ready") == 1.0)
+            .then_some(())
+    });
+    let answer = live_jog(&c, &operator, "Y", 1.0, "live-2");
+    assert_eq!(answer["ok"], true, "{answer}");
+    s.wait_status(1, T, "y = 2 after the second live jog", |st| {
+        (st["machine_position"]["y"].as_f64().unwrap_or(f64::NAN) - 2.0).abs() < 1e-6
+    });
+    assert!(
+        x_is(&s.status(1), 0.0),
+        "the retained jog moved X: {}",
+        s.status(1)
+    );
+    assert_eq!(metric(&s, "fresa_mqtt_retained_ignored_total"), 4.0);
+    // The retained oversized message did not knock the bridge off again.
+    assert_eq!(metric(&s, "fresa_mqtt_reconnects_total"), 1.0);
+    assert_eq!(metric(&s, "fresa_mqtt_connected"), 1.0);
+    // No command ran for a retained message: no refusals were answered for them either.
+    assert_eq!(metric(&s, "fresa_mqtt_commands_refused_total"), 0.0);
+
+    // The audit log has the two live jogs and nothing else.
+    let stream = s.events("types=machine.jog", Some(0));
+    let mut jogs = Vec::new();
+    stream.until(T, "the two live jogs", |e| {
+        if e.event == "machine.jog" {
+            jogs.push(e.data.clone());
+        }
+        jogs.len() >= 2
+    });
+    for j in &jogs {
+        assert_eq!(
+            (j["data"]["axis"].clone(), j["actor"].clone()),
+            (json!("Y"), json!("mqtt:olga")),
+            "{j}"
+        );
+    }
+    // Said once per topic, not on every replay.
+    let log = s.log();
+    for topic in ["t/cmd/machines/1/jog", "t/cmd/jobs/1/start"] {
+        let lines = log
+            .lines()
+            .filter(|l| l.contains("retained command message ignored") && l.contains(topic))
+            .count();
+        assert_eq!(lines, 1, "{topic}:\n{log}");
+    }
+}
+
+#[test]
+fn an_oversized_command_is_dropped_and_the_connection_kept() {
+    let broker = Broker::start();
+    let client_id = format!("fresa-oversized-{}", rand_suffix());
+    let (s, operator) = commanded_demo(&broker, &client_id);
+    let c = Sub::new(&broker, &["t/cmd/results"]);
+    // 2 MiB: past the bridge's command limit (and the old client's 1 MiB packet limit).
+    let mut big = json!({"axis": "X", "distance": 1.0, "token": operator}).to_string();
+    big.push_str(&" ".repeat(2 << 20));
+    c.publish_bytes("t/cmd/machines/1/jog", false, big.into_bytes());
+    let (answer, _) = c.until("t/cmd/results", |v, _| v["code"] == "payload_too_large");
+    assert_eq!(answer["ok"], false, "{answer}");
+    assert_eq!(answer["topic"], "t/cmd/machines/1/jog", "{answer}");
+    assert!(
+        answer["message"]
+            .as_str()
+            .unwrap()
+            .contains("max_command_bytes"),
+        "{answer}"
+    );
+    // The next command runs, over the same connection.
+    let answer = live_jog(&c, &operator, "X", 2.0, "after");
+    assert_eq!(answer["ok"], true, "{answer}");
+    s.wait_status(1, T, "x = 2 after the jog", |st| x_is(st, 2.0));
+    assert_eq!(metric(&s, "fresa_mqtt_oversized_dropped_total"), 1.0);
+    assert_eq!(metric(&s, "fresa_mqtt_reconnects_total"), 0.0);
+    assert_eq!(metric(&s, "fresa_mqtt_connected"), 1.0);
+    assert!(
+        !s.log().contains("MQTT bridge lost the broker"),
+        "{}",
+        s.log()
+    );
 }

@@ -52,7 +52,11 @@ struct Receiver {
 
 impl Receiver {
     fn start(answer: Answer) -> Receiver {
-        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+        Receiver::start_on("127.0.0.1".parse().unwrap(), 0, answer)
+    }
+
+    fn start_on(ip: std::net::IpAddr, port: u16, answer: Answer) -> Receiver {
+        let listener = TcpListener::bind((ip, port)).unwrap();
         let url = format!("http://{}/hook", listener.local_addr().unwrap());
         let got = Arc::new(Mutex::new(Vec::new()));
         let connections = Arc::new(Mutex::new(0));
@@ -178,7 +182,7 @@ fn demo_with(config: &str) -> Server {
 
 #[test]
 fn deliveries_are_signed_filtered_and_recorded() {
-    let s = demo_with("");
+    let s = demo_with(LOOPBACK_RECEIVERS);
     let rx = Receiver::start(Answer::Statuses(vec![200]));
     let created = s
         .post(
@@ -267,7 +271,7 @@ impl ReplaceLastDigit for Vec<u8> {
 
 #[test]
 fn bad_registrations_are_refused_naming_the_field() {
-    let s = demo_with("");
+    let s = demo_with(LOOPBACK_RECEIVERS);
     let msg = s
         .post("/api/v1/webhooks", &json!({"url": "ftp://x/y"}))
         .expect_error(422, "invalid_field");
@@ -288,7 +292,9 @@ fn bad_registrations_are_refused_naming_the_field() {
 
 #[test]
 fn a_failing_receiver_gets_retries_with_the_same_delivery_id() {
-    let s = demo_with("[webhooks]\nretry_initial_ms = 50\nmax_attempts = 3\n");
+    let s = demo_with(
+        "[webhooks]\nretry_initial_ms = 50\nmax_attempts = 3\nallowed_hosts = [\"127.0.0.1\"]\n",
+    );
     // Two failures then success; then a receiver that always fails.
     let flaky = Receiver::start(Answer::Statuses(vec![500, 503, 200]));
     let broken = Receiver::start(Answer::Statuses(vec![500]));
@@ -342,7 +348,8 @@ fn a_failing_receiver_gets_retries_with_the_same_delivery_id() {
 #[test]
 fn a_hanging_receiver_does_not_hold_up_status_events_or_machines() {
     // A long timeout and a tiny queue: the receiver holds its first delivery, the queue fills.
-    let s = demo_with("[webhooks]\ntimeout_ms = 60000\nqueue = 2\n");
+    let s =
+        demo_with("[webhooks]\ntimeout_ms = 60000\nqueue = 2\nallowed_hosts = [\"127.0.0.1\"]\n");
     let hung = Receiver::start(Answer::Hang);
     let ok = Receiver::start(Answer::Statuses(vec![200]));
     s.post("/api/v1/webhooks", &json!({"url": hung.url}))
@@ -389,4 +396,303 @@ fn a_hanging_receiver_does_not_hold_up_status_events_or_machines() {
         1,
         "one delivery held, none after it"
     );
+}
+
+/// The receivers in these tests listen on 127.0.0.1, which webhooks may target only when the
+/// config opts it in.
+const LOOPBACK_RECEIVERS: &str = "[webhooks]\nallowed_hosts = [\"127.0.0.1\"]\n";
+
+#[test]
+fn a_webhook_cannot_drive_this_servers_own_api() {
+    let s = demo_with("");
+    // Deliveries from loopback are the `local` admin: a hook on this server's own routes would
+    // start jobs (or anything else) whenever an event fires.
+    let job = s.upload(1, "short", "G21 G90\nG0 X1\nM2\n")["id"]
+        .as_i64()
+        .unwrap();
+    let url = s.url(&format!("/api/v1/jobs/{job}/start"));
+    let msg = s
+        .post(
+            "/api/v1/webhooks",
+            &json!({"url": url, "events": ["machine"]}),
+        )
+        .expect_error(422, "webhook_target_refused");
+    assert!(msg.contains("loopback"), "{msg}");
+    assert!(msg.contains("webhooks.allowed_hosts"), "{msg}");
+    assert_eq!(s.get("/api/v1/webhooks").expect(200), json!([]));
+    s.command(1, "zero", json!({"axis": "X"})).expect(200);
+    assert_eq!(s.job(job)["state"], "ready", "{}", s.job(job));
+}
+
+#[test]
+fn bad_webhook_urls_are_refused_with_their_codes() {
+    let s = demo_with("");
+    let refused = "webhook_target_refused";
+    let invalid = "invalid_field";
+    for (url, code, says) in [
+        (
+            "http://169.254.169.254/latest/meta-data/",
+            refused,
+            "link-local",
+        ),
+        ("http://[fe80::1]/", refused, "link-local"),
+        (
+            "http://metadata.google.internal/computeMetadata/v1/",
+            refused,
+            "metadata",
+        ),
+        ("http://METADATA.google.internal./x", refused, "metadata"),
+        (
+            "http://100.100.100.200/latest/meta-data/",
+            refused,
+            "metadata",
+        ),
+        (
+            "http://127.0.0.1:7878/api/v1/jobs/1/start",
+            refused,
+            "loopback",
+        ),
+        ("http://2130706433/", refused, "loopback"),
+        ("http://127.1/", refused, "loopback"),
+        ("http://0x7f.1/", refused, "loopback"),
+        ("http://017700000001/", refused, "loopback"),
+        ("http://%31%32%37.0.0.1/", refused, "loopback"),
+        ("http://[::1]:8080/", refused, "loopback"),
+        ("http://[::ffff:127.0.0.1]/", refused, "loopback"),
+        ("http://[::ffff:169.254.169.254]/", refused, "link-local"),
+        ("http://localhost:1/", refused, "loopback"),
+        ("http://erp.localhost/", refused, "loopback"),
+        ("http://0.0.0.0:7878/", refused, "unspecified"),
+        ("http://0/", refused, "unspecified"),
+        ("http://[::]/", refused, "unspecified"),
+        ("http://224.0.0.1/", refused, "multicast"),
+        ("http://[ff02::1]/", refused, "multicast"),
+        ("http://255.255.255.255/", refused, "broadcast"),
+        ("http:///api/v1/jobs/1/start", invalid, "host"),
+        ("http://:80/", invalid, "host"),
+        ("http://erp.example.com:99999/", invalid, "port"),
+        ("http://erp.example.com:0/", invalid, "port"),
+        ("ftp://erp.example.com/", invalid, "http"),
+        ("file:///etc/passwd", invalid, "http"),
+        ("http://user:pw@erp.example.com/", invalid, "user"),
+        ("http://erp.example.com@127.0.0.1/", invalid, "user"),
+        ("http://[::1/", invalid, "url"),
+    ] {
+        // An event type that never happens: even code that let one through sends it nothing.
+        let r = s.post(
+            "/api/v1/webhooks",
+            &json!({"url": url, "events": ["test.never"]}),
+        );
+        assert_eq!(
+            (r.status, r.body["code"].as_str()),
+            (422, Some(code)),
+            "{url}: {}",
+            r.text
+        );
+        let msg = r.body["message"].as_str().unwrap();
+        assert!(msg.contains(says) && msg.contains("url"), "{url}: {msg}");
+    }
+    assert_eq!(s.get("/api/v1/webhooks").expect(200), json!([]));
+    // The shop's LAN is the normal place for a receiver (an ERP): private addresses and names
+    // are accepted (and, filtered on that same event type, never sent anything).
+    for url in [
+        "http://10.0.0.5:8080/erp",
+        "http://172.16.0.1/hook",
+        "http://192.168.1.20/hook",
+        "http://[fd12::1]/hook",
+        "https://erp.example.com/hook",
+    ] {
+        let id = s
+            .post(
+                "/api/v1/webhooks",
+                &json!({"url": url, "events": ["test.never"]}),
+            )
+            .expect(201)["id"]
+            .as_i64()
+            .unwrap();
+        s.send(s.req(reqwest::Method::DELETE, &format!("/api/v1/webhooks/{id}")))
+            .expect(204);
+    }
+}
+
+#[test]
+fn the_allow_list_opts_one_loopback_host_in_and_nothing_else() {
+    let s = demo_with(LOOPBACK_RECEIVERS);
+    let rx = Receiver::start(Answer::Statuses(vec![200]));
+    s.post(
+        "/api/v1/webhooks",
+        &json!({"url": rx.url, "events": ["machine.jog"]}),
+    )
+    .expect(201);
+    for (url, says) in [
+        ("http://localhost:1/", "loopback"),
+        ("http://[::1]:1/", "loopback"),
+        ("http://169.254.169.254/", "link-local"),
+    ] {
+        let msg = s
+            .post(
+                "/api/v1/webhooks",
+                &json!({"url": url, "events": ["test.never"]}),
+            )
+            .expect_error(422, "webhook_target_refused");
+        assert!(msg.contains(says), "{url}: {msg}");
+    }
+    s.jog(1, "X", 1.0).expect(200);
+    assert_eq!(
+        rx.wait_deliveries(1)[0].header("Fresa-Event"),
+        "machine.jog"
+    );
+}
+
+/// The machine's host name, which the system resolver maps to this machine (here through
+/// /etc/hosts to a loopback address): a real name whose addresses only resolving shows.
+fn host_name_resolving_to_loopback() -> (String, std::net::IpAddr) {
+    use std::net::ToSocketAddrs;
+    let name = std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .unwrap()
+        .trim()
+        .to_string();
+    let addrs: Vec<_> = (name.as_str(), 0)
+        .to_socket_addrs()
+        .unwrap_or_else(|e| panic!("this test needs the host name {name:?} to resolve: {e}"))
+        .map(|a| a.ip())
+        .collect();
+    assert!(
+        !addrs.is_empty() && addrs.iter().all(|a| a.is_loopback()),
+        "this test needs the host name {name:?} to resolve to loopback only (as Debian's \
+         /etc/hosts has it); it resolves to {addrs:?}"
+    );
+    (name, addrs[0])
+}
+
+#[test]
+fn a_name_that_resolves_to_loopback_is_refused_at_delivery() {
+    let (name, ip) = host_name_resolving_to_loopback();
+    let s = demo_with("[webhooks]\nretry_initial_ms = 50\nmax_attempts = 3\n");
+    let listener = TcpListener::bind((ip, 0)).unwrap();
+    let port = listener.local_addr().unwrap().port();
+    drop(listener);
+    // A receiver on that address: what the old code would have delivered to.
+    let rx = Receiver::start_on(ip, port, Answer::Statuses(vec![200]));
+    let url = format!("http://{name}:{port}/hook");
+    // A name is not resolved at registration (its addresses can change before any delivery).
+    let id = s
+        .post(
+            "/api/v1/webhooks",
+            &json!({"url": url, "events": ["machine.jog"]}),
+        )
+        .expect(201)["id"]
+        .as_i64()
+        .unwrap();
+    s.jog(1, "X", 1.0).expect(200);
+    let hook = wait_for(T, "the delivery's outcome", || {
+        let h = s.get(&format!("/api/v1/webhooks/{id}")).expect(200);
+        (h["delivered"] != 0 || h["failed"] != 0).then_some(h)
+    });
+    assert_eq!(
+        (hook["delivered"].clone(), hook["failed"].clone()),
+        (json!(0), json!(1)),
+        "{hook}"
+    );
+    let error = hook["last_error"].as_str().unwrap();
+    assert!(
+        error.contains("refused") && error.contains("loopback") && error.contains(&ip.to_string()),
+        "{error}"
+    );
+    // Refused is final: not retried.
+    assert_eq!(hook["last_attempts"], 1, "{hook}");
+    assert_eq!(hook["last_status"], Value::Null, "{hook}");
+    assert_eq!(metric(&s, "fresa_webhook_refused_total"), 1);
+    assert_eq!(*rx.connections.lock().unwrap(), 0);
+    assert!(rx.deliveries().is_empty());
+}
+
+#[test]
+fn a_loopback_webhook_registered_before_is_refused_at_delivery() {
+    // Registered while the config allowed it (or by an older version that checked nothing).
+    let mut s = demo_with(LOOPBACK_RECEIVERS);
+    let rx = Receiver::start(Answer::Statuses(vec![200]));
+    let id = s
+        .post(
+            "/api/v1/webhooks",
+            &json!({"url": rx.url, "events": ["machine.jog"]}),
+        )
+        .expect(201)["id"]
+        .as_i64()
+        .unwrap();
+    s.kill();
+    s.write_config("");
+    s.spawn().unwrap();
+    s.wait_machine_state(1, "idle", T);
+    s.jog(1, "X", 1.0).expect(200);
+    let hook = wait_for(T, "the delivery's outcome", || {
+        let h = s.get(&format!("/api/v1/webhooks/{id}")).expect(200);
+        (h["delivered"] != 0 || h["failed"] != 0).then_some(h)
+    });
+    assert_eq!(hook["failed"], 1, "{hook}");
+    let error = hook["last_error"].as_str().unwrap();
+    assert!(
+        error.contains("refused") && error.contains("loopback"),
+        "{error}"
+    );
+    assert_eq!(*rx.connections.lock().unwrap(), 0);
+}
+
+/// This machine's own addresses other than loopback and link-local ones, from the kernel's
+/// tables (IPv4: the `/32 host LOCAL` entries; IPv6: the interface addresses).
+fn own_addresses() -> Vec<std::net::IpAddr> {
+    let mut out = Vec::new();
+    let trie = std::fs::read_to_string("/proc/net/fib_trie").unwrap_or_default();
+    let mut last = None;
+    for line in trie.lines() {
+        let t = line.trim();
+        if let Some(a) = t.strip_prefix("|-- ") {
+            last = a.parse::<std::net::Ipv4Addr>().ok();
+        } else if t.starts_with("/32 host LOCAL") {
+            if let Some(a) = last.filter(|a| !a.is_loopback()) {
+                out.push(std::net::IpAddr::V4(a));
+            }
+        }
+    }
+    let v6 = std::fs::read_to_string("/proc/net/if_inet6").unwrap_or_default();
+    for line in v6.lines() {
+        let Some(hex) = line.split_whitespace().next() else {
+            continue;
+        };
+        let Ok(bits) = u128::from_str_radix(hex, 16) else {
+            continue;
+        };
+        let a = std::net::Ipv6Addr::from(bits);
+        if !a.is_loopback() && a.segments()[0] & 0xffc0 != 0xfe80 {
+            out.push(std::net::IpAddr::V6(a));
+        }
+    }
+    out.sort();
+    out.dedup();
+    out
+}
+
+#[test]
+fn this_machines_own_addresses_are_refused_even_in_private_ranges() {
+    let own = own_addresses();
+    assert!(
+        !own.is_empty(),
+        "this test needs a non-loopback address on this machine (from /proc/net/fib_trie or \
+         /proc/net/if_inet6)"
+    );
+    let s = demo_with("");
+    for ip in own {
+        let host = match ip {
+            std::net::IpAddr::V4(a) => a.to_string(),
+            std::net::IpAddr::V6(a) => format!("[{a}]"),
+        };
+        let url = format!("http://{host}:7878/api/v1/jobs/1/start");
+        let msg = s
+            .post(
+                "/api/v1/webhooks",
+                &json!({"url": url, "events": ["test.never"]}),
+            )
+            .expect_error(422, "webhook_target_refused");
+        assert!(msg.contains("this server's own address"), "{url}: {msg}");
+    }
 }

@@ -68,6 +68,9 @@ pub struct WebhooksFile {
     pub retry_initial_ms: Option<u64>,
     pub timeout_ms: Option<u64>,
     pub queue: Option<usize>,
+    // Integrations (webhook targets): hosts a webhook may target although their addresses are
+    // refused by default (loopback, link-local, ...), e.g. a receiver on this machine.
+    pub allowed_hosts: Option<Vec<String>>,
 }
 
 /// `[mqtt]`: the bridge to an external broker (off unless `url` or `FRESA_MQTT_URL` is set).
@@ -85,6 +88,9 @@ pub struct MqttFile {
     /// Accept commands on `<prefix>/machines/<id>/commands/...` (each with a token).
     pub commands: Option<bool>,
     pub queue: Option<usize>,
+    // Integrations (MQTT commands): a command message's payload at most, in bytes; larger
+    // ones are dropped (and answered) without losing the connection.
+    pub max_command_bytes: Option<usize>,
 }
 
 /// Webhook delivery: attempts per event, the first retry's delay (doubling, at most 5 min),
@@ -95,6 +101,9 @@ pub struct WebhookSettings {
     pub retry_initial: Duration,
     pub timeout: Duration,
     pub queue: usize,
+    /// Hosts (as in a URL: a name, an IPv4 address or a bracketed IPv6 one) a webhook may
+    /// target although their addresses are refused by default.
+    pub allowed_hosts: Vec<String>,
 }
 
 impl Default for WebhookSettings {
@@ -104,9 +113,14 @@ impl Default for WebhookSettings {
             retry_initial: Duration::from_secs(1),
             timeout: Duration::from_secs(10),
             queue: 1000,
+            allowed_hosts: Vec::new(),
         }
     }
 }
+
+/// Command payloads larger than this are dropped by the MQTT bridge (a command's JSON is a
+/// few hundred bytes).
+pub const DEFAULT_MQTT_MAX_COMMAND_BYTES: usize = 64 * 1024;
 
 /// The MQTT bridge's settings, resolved.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -123,6 +137,7 @@ pub struct MqttSettings {
     pub node: String,
     pub commands: bool,
     pub queue: usize,
+    pub max_command_bytes: usize,
 }
 
 /// `mqtt://host[:1883]` or `mqtts://host[:8883]` (TLS).
@@ -248,7 +263,41 @@ fn webhooks(file: Option<&WebhooksFile>) -> Result<WebhookSettings, ConfigError>
             60_000,
         )?),
         queue: bounded("webhooks.queue", f.queue, d.queue, 1, 100_000)?,
+        allowed_hosts: f
+            .allowed_hosts
+            .iter()
+            .flatten()
+            .map(|h| webhook_allowed_host(h))
+            .collect::<Result<_, _>>()?,
     })
+}
+
+/// One `webhooks.allowed_hosts` entry in the form a URL's host takes once parsed (lower case,
+/// IPv4 in dotted form, IPv6 in brackets), so it compares with what the URL parser gives.
+fn webhook_allowed_host(entry: &str) -> Result<String, ConfigError> {
+    let bad = |why: &str| {
+        ConfigError::Invalid(format!(
+            "webhooks.allowed_hosts: {entry:?} {why} (expected a host name or an IP address, \
+             e.g. \"127.0.0.1\", \"::1\" or \"erp.lan\")"
+        ))
+    };
+    let trimmed = entry.trim().trim_end_matches('.');
+    let host = if trimmed.contains(':') && !trimmed.starts_with('[') {
+        format!("[{trimmed}]")
+    } else {
+        trimmed.to_string()
+    };
+    if host.is_empty() || host.contains(['/', '?', '#', '@']) {
+        return Err(bad("is not a host"));
+    }
+    let parsed = url::Url::parse(&format!("http://{host}/")).map_err(|e| bad(&e.to_string()))?;
+    if parsed.port().is_some() {
+        return Err(bad("has a port; list the host alone"));
+    }
+    parsed
+        .host_str()
+        .map(str::to_string)
+        .ok_or_else(|| bad("is not a host"))
 }
 
 fn mqtt(
@@ -291,6 +340,13 @@ fn mqtt(
         node,
         commands: file.commands.unwrap_or(false),
         queue: bounded("mqtt.queue", file.queue, 10_000, 1, 1_000_000)?,
+        max_command_bytes: bounded(
+            "mqtt.max_command_bytes",
+            file.max_command_bytes,
+            DEFAULT_MQTT_MAX_COMMAND_BYTES,
+            256,
+            16 << 20,
+        )?,
     }))
 }
 
@@ -877,10 +933,31 @@ mod tests {
             ),
             ("[mqtt]\nurl = \"mqtt://x\"\nqos = 1\n", "qos"),
             ("[webhooks]\nmax_attempts = 0\n", "webhooks.max_attempts"),
+            (
+                "[webhooks]\nallowed_hosts = [\"127.0.0.1:8080\"]\n",
+                "webhooks.allowed_hosts",
+            ),
+            (
+                "[webhooks]\nallowed_hosts = [\"http://erp/\"]\n",
+                "webhooks.allowed_hosts",
+            ),
+            (
+                "[mqtt]\nurl = \"mqtt://x\"\nmax_command_bytes = 10\n",
+                "mqtt.max_command_bytes",
+            ),
         ] {
             let e = resolve(toml).unwrap_err().to_string();
             assert!(e.contains(needle), "{toml}: {e}");
         }
+        assert_eq!(m.max_command_bytes, DEFAULT_MQTT_MAX_COMMAND_BYTES);
+        // Entries take the form the URL parser gives a host, so they compare with it.
+        let w = resolve("[webhooks]\nallowed_hosts = [\"127.0.0.1\", \"::1\", \"ERP.lan.\", \"[::ffff:127.0.0.2]\"]\n")
+            .unwrap()
+            .webhooks;
+        assert_eq!(
+            w.allowed_hosts,
+            ["127.0.0.1", "[::1]", "erp.lan", "[::ffff:7f00:2]"]
+        );
         std::fs::remove_dir_all(dir).ok();
     }
 

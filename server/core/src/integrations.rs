@@ -26,6 +26,12 @@ pub struct IntegrationStats {
     pub mqtt_reconnects: AtomicU64,
     /// Command messages refused (bad token, role, payload).
     pub mqtt_commands_refused: AtomicU64,
+    /// Webhook deliveries refused because the target's address is one webhooks may not reach.
+    pub webhook_refused: AtomicU64,
+    /// Retained messages on the command topics, ignored (a retained command is never fresh).
+    pub mqtt_retained_ignored: AtomicU64,
+    /// Command messages over `mqtt.max_command_bytes`, dropped.
+    pub mqtt_oversized_dropped: AtomicU64,
 }
 
 impl IntegrationStats {
@@ -77,6 +83,21 @@ impl IntegrationStats {
                 "fresa_mqtt_commands_refused_total",
                 "MQTT command messages refused.",
                 get(&self.mqtt_commands_refused),
+            ),
+            (
+                "fresa_webhook_refused_total",
+                "Webhook deliveries refused because the target address may not be reached.",
+                get(&self.webhook_refused),
+            ),
+            (
+                "fresa_mqtt_retained_ignored_total",
+                "Retained messages on the MQTT command topics, ignored.",
+                get(&self.mqtt_retained_ignored),
+            ),
+            (
+                "fresa_mqtt_oversized_dropped_total",
+                "MQTT command messages over mqtt.max_command_bytes, dropped.",
+                get(&self.mqtt_oversized_dropped),
             ),
         ] {
             out.push_str(&format!(

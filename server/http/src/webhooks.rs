@@ -103,10 +103,10 @@ pub async fn get_one(
 /// `Fresa-Signature: t=<unix seconds>,v1=<hex HMAC-SHA256(secret, "<t>.<body>")>`. A 2xx answer
 /// is a success; anything else is retried with doubling delays.
 #[utoipa::path(post, path = "/webhooks", tag = "webhooks",
-    request_body(content = NewWebhook, example = json!({"url": "http://127.0.0.1:9/fresa", "events": ["job.state"]})),
+    request_body(content = NewWebhook, example = json!({"url": "http://erp.lan:9000/fresa", "events": ["job.state"]})),
     responses(
         (status = 201, description = "Registered; the answer carries the signing `secret`, shown this once", body = CreatedWebhook),
-        (status = 422, description = "`invalid_field` (naming the field)", body = ErrorBody),
+        (status = 422, description = "`invalid_field` (naming the field); `webhook_target_refused`: the URL's host is this server, a loopback, link-local, unspecified, multicast or broadcast address or a cloud metadata service (see `webhooks.allowed_hosts`)", body = ErrorBody),
     ))]
 pub async fn create(
     State(app): State<SharedApp>,

@@ -74,7 +74,8 @@ fn broker() -> Broker {
 
 async fn app(dir: &std::path::Path, mqtt_port: Option<u16>) -> SharedApp {
     let conf = dir.join("fresa.toml");
-    let mut toml = String::from("[webhooks]\nqueue = 100000\n");
+    // The receivers are on loopback, which webhooks may target only when allowed.
+    let mut toml = String::from("[webhooks]\nqueue = 100000\nallowed_hosts = [\"127.0.0.1\"]\n");
     if let Some(p) = mqtt_port {
         toml.push_str(&format!(
             "[mqtt]\nurl = \"mqtt://127.0.0.1:{p}\"\ntopic_prefix = \"b\"\nqueue = 100000\n"

@@ -13,6 +13,10 @@
 //! `cmd/jobs/<id>/<start|pause|resume|cancel>`; the payload is the HTTP body plus `"token"` (an
 //! API token with the role the HTTP call needs: operator) and an optional `"request_id"`. They
 //! call the same core functions as the HTTP handlers; each answer goes to `cmd/results`.
+//! A retained message on a command topic is never run: it is not fresh (the broker hands it to
+//! every new subscription, so it would run again on each reconnect). Payloads over
+//! `max_command_bytes` are dropped and answered `payload_too_large`; the client accepts packets
+//! of any size MQTT allows, so no message can make it drop the connection.
 //!
 //! Nothing here waits for the broker: messages go into the client's bounded queue with
 //! `try_publish`; a full queue (broker slow or gone) drops the message and counts it.
@@ -35,6 +39,15 @@ const BACKOFF_FIRST: Duration = Duration::from_millis(200);
 const BACKOFF_MAX: Duration = Duration::from_secs(30);
 /// Command messages handled at once; more are refused (`busy`) rather than queued.
 const MAX_COMMANDS_IN_FLIGHT: usize = 16;
+/// MQTT 3.1.1's largest packet (remaining length 268,435,455). The client drops the connection
+/// on a packet over its limit, and nothing tells a 3.1.1 broker that limit: with any lower
+/// one, one big message from anyone who may publish knocks the bridge off, and a retained one
+/// keeps it off. So the client takes what MQTT allows (the broker's `message_size_limit`
+/// bounds it) and the bridge drops oversized commands itself.
+const MQTT_MAX_PACKET: usize = 268_435_455;
+/// Command topics whose ignored retained message was logged (each once); past this many, the
+/// rest are only counted.
+const MAX_RETAINED_TOPICS_LOGGED: usize = 1000;
 
 /// Topics, all under the configured prefix.
 #[derive(Clone)]
@@ -102,7 +115,7 @@ pub fn spawn(app: SharedApp, settings: MqttSettings) -> Vec<tokio::task::JoinHan
     let mut opts = MqttOptions::new(&settings.client_id, &settings.host, settings.port);
     opts.set_keep_alive(Duration::from_secs(15));
     opts.set_clean_session(true);
-    opts.set_max_packet_size(1 << 20, 1 << 20);
+    opts.set_max_packet_size(MQTT_MAX_PACKET, 1 << 20);
     opts.set_last_will(LastWill::new(
         topics.online(),
         online_payload(false, &settings.node),
@@ -326,6 +339,7 @@ async fn drive(
     // Subscription acknowledgements since the last connection.
     let mut sub_acks = 0u32;
     let in_flight = Arc::new(tokio::sync::Semaphore::new(MAX_COMMANDS_IN_FLIGHT));
+    let mut retained_logged: std::collections::HashSet<String> = Default::default();
     let stats = &app.integrations;
     loop {
         let polled = tokio::select! {
@@ -353,6 +367,37 @@ async fn drive(
                 }
             }
             Ok(Event::Incoming(Packet::Publish(p))) if settings.commands => {
+                if p.retain {
+                    // Sent because we (re)subscribed, not because someone commanded now.
+                    IntegrationStats::add(&stats.mqtt_retained_ignored, 1);
+                    if retained_logged.len() < MAX_RETAINED_TOPICS_LOGGED
+                        && retained_logged.insert(p.topic.clone())
+                    {
+                        tracing::warn!(topic = %p.topic, bytes = p.payload.len(),
+                            "retained command message ignored: a retained command is never \
+                             fresh (clear it on the broker with an empty retained message)");
+                    }
+                    continue;
+                }
+                if p.payload.is_empty() {
+                    // How a retained message is cleared; not a command.
+                    continue;
+                }
+                if p.payload.len() > settings.max_command_bytes {
+                    IntegrationStats::add(&stats.mqtt_oversized_dropped, 1);
+                    let answer = json!({"topic": p.topic, "ok": false, "code": "payload_too_large",
+                        "message": format!("the command payload has {} bytes; at most {} \
+                            (mqtt.max_command_bytes)", p.payload.len(), settings.max_command_bytes)});
+                    offer(
+                        &app,
+                        &client,
+                        topics.results(),
+                        QoS::AtLeastOnce,
+                        false,
+                        answer.to_string().into_bytes(),
+                    );
+                    continue;
+                }
                 let Ok(permit) = in_flight.clone().try_acquire_owned() else {
                     IntegrationStats::add(&stats.mqtt_commands_refused, 1);
                     let answer = json!({"topic": p.topic, "ok": false, "code": "busy",

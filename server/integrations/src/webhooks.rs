@@ -4,6 +4,13 @@
 //! delivers its queue in order, retrying with doubling delays; a hanging receiver holds up only
 //! its own queue, for at most the request timeout per attempt.
 //!
+//! Targets: deliveries go only where [`TargetPolicy`] allows (no loopback, link-local, metadata
+//! services, ... unless `webhooks.allowed_hosts` lists the host). Names are resolved by
+//! [`GuardedResolver`], which refuses a name if any of its addresses is refused, and the client
+//! connects to the addresses it checked; addresses written in the URL are checked before each
+//! attempt (the client does not resolve them). Deliveries use no proxy, so what is checked is
+//! what is connected to.
+//!
 //! Signature: `Fresa-Signature: t=<unix seconds>,v1=<hex HMAC-SHA256(key, "<t>.<body>")>`,
 //! where the key is the webhook's secret string (UTF-8 bytes, `whsec_...` included).
 
@@ -11,6 +18,7 @@ use fresa_core::config::WebhookSettings;
 use fresa_core::events::BusEvent;
 use fresa_core::integrations::IntegrationStats;
 use fresa_core::store::{DeliveryOutcome, WebhookTarget};
+use fresa_core::webhooks::{refusal_message, TargetPolicy};
 use fresa_core::SharedApp;
 use hmac::{Hmac, Mac};
 use sha2::Sha256;
@@ -53,11 +61,86 @@ pub fn spawn(app: SharedApp) -> tokio::task::JoinHandle<()> {
     tokio::spawn(dispatch(app, rx))
 }
 
+/// A delivery's target was refused by the [`TargetPolicy`]; carried through the HTTP client's
+/// error so the outcome can say why.
+#[derive(Debug)]
+struct Refused(String);
+
+impl std::fmt::Display for Refused {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for Refused {}
+
+/// Resolves delivery host names with the system resolver and refuses a name any of whose
+/// addresses is refused; the client connects only to the addresses returned here, so a name
+/// that changes between the check and the connection (DNS rebinding) gains nothing.
+struct GuardedResolver {
+    policy: Arc<TargetPolicy>,
+}
+
+impl reqwest::dns::Resolve for GuardedResolver {
+    fn resolve(&self, name: reqwest::dns::Name) -> reqwest::dns::Resolving {
+        let policy = self.policy.clone();
+        let host = name.as_str().to_string();
+        Box::pin(async move {
+            let addrs: Vec<std::net::SocketAddr> =
+                tokio::net::lookup_host((host.as_str(), 0)).await?.collect();
+            if !policy.host_allowed(&host) {
+                for a in &addrs {
+                    if let Some(why) = policy.refused_address(a.ip()) {
+                        let refused: Box<dyn std::error::Error + Send + Sync> =
+                            Box::new(Refused(format!("{host} resolves to {why}")));
+                        return Err(refused);
+                    }
+                }
+            }
+            let addrs: reqwest::dns::Addrs = Box::new(addrs.into_iter());
+            Ok(addrs)
+        })
+    }
+}
+
+/// The refusal in a failed request's causes, if the resolver refused its target.
+fn refusal_in(e: &reqwest::Error) -> Option<String> {
+    let mut cause = std::error::Error::source(e);
+    while let Some(c) = cause {
+        if let Some(r) = c.downcast_ref::<Refused>() {
+            return Some(r.0.clone());
+        }
+        cause = c.source();
+    }
+    None
+}
+
+/// Why the target is refused before connecting: an address written in the URL (the client
+/// connects to it without resolving), or a name refused as such (`localhost`).
+fn refused_as_written(policy: &TargetPolicy, url: &str) -> Option<String> {
+    let parsed = reqwest::Url::parse(url).ok()?;
+    policy.refused_host(&parsed.host()?)
+}
+
+/// The HTTP client of every delivery, and the policy its resolver applies.
+#[derive(Clone)]
+struct Sender {
+    http: reqwest::Client,
+    policy: Arc<TargetPolicy>,
+}
+
 async fn dispatch(app: SharedApp, mut rx: tokio::sync::broadcast::Receiver<Arc<BusEvent>>) {
+    let policy = Arc::new(TargetPolicy::new(&app.settings));
     let client = match reqwest::Client::builder()
         .user_agent(concat!("fresa/", env!("CARGO_PKG_VERSION")))
         // A signed delivery goes where it was registered, not where a redirect points.
         .redirect(reqwest::redirect::Policy::none())
+        // Through a proxy the proxy would resolve and connect: the checked address would not
+        // be the one reached.
+        .no_proxy()
+        .dns_resolver(Arc::new(GuardedResolver {
+            policy: policy.clone(),
+        }))
         .build()
     {
         Ok(c) => c,
@@ -67,6 +150,10 @@ async fn dispatch(app: SharedApp, mut rx: tokio::sync::broadcast::Receiver<Arc<B
         }
     };
     let mut workers: HashMap<i64, Worker> = HashMap::new();
+    let client = Sender {
+        http: client,
+        policy,
+    };
     sync_workers(&app, &client, &mut workers).await;
     loop {
         let ev = tokio::select! {
@@ -112,11 +199,7 @@ async fn dispatch(app: SharedApp, mut rx: tokio::sync::broadcast::Receiver<Arc<B
 }
 
 /// Starts a worker for every new webhook and stops the workers of deleted ones.
-async fn sync_workers(
-    app: &SharedApp,
-    client: &reqwest::Client,
-    workers: &mut HashMap<i64, Worker>,
-) {
+async fn sync_workers(app: &SharedApp, client: &Sender, workers: &mut HashMap<i64, Worker>) {
     let targets = match app.store.webhook_targets().await {
         Ok(t) => t,
         Err(e) => {
@@ -152,7 +235,7 @@ async fn sync_workers(
 
 async fn work(
     app: SharedApp,
-    client: reqwest::Client,
+    client: Sender,
     target: WebhookTarget,
     settings: WebhookSettings,
     mut rx: mpsc::Receiver<Arc<BusEvent>>,
@@ -183,7 +266,7 @@ async fn work(
 /// One event to one webhook, with retries. None: stopped (deleted or shutting down).
 async fn deliver(
     app: &SharedApp,
-    client: &reqwest::Client,
+    client: &Sender,
     target: &WebhookTarget,
     settings: &WebhookSettings,
     ev: &BusEvent,
@@ -218,11 +301,22 @@ async fn deliver(
             delay = (delay * 2).min(MAX_RETRY_DELAY);
         }
         outcome.attempts = attempt;
+        // Refused is final: retrying would ask for the same address again.
+        let refuse = |mut outcome: DeliveryOutcome, why: &str| {
+            IntegrationStats::add(&app.integrations.webhook_refused, 1);
+            outcome.status = None;
+            outcome.error = Some(refusal_message(why));
+            Some(outcome)
+        };
+        if let Some(why) = refused_as_written(&client.policy, &target.url) {
+            return refuse(outcome, &why);
+        }
         let now = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map(|d| d.as_secs())
             .unwrap_or(0);
         let request = client
+            .http
             .post(&target.url)
             .timeout(settings.timeout)
             .header(reqwest::header::CONTENT_TYPE, "application/json")
@@ -247,6 +341,9 @@ async fn deliver(
                 outcome.error = Some(format!("answered {}", r.status()));
             }
             Err(e) => {
+                if let Some(why) = refusal_in(&e) {
+                    return refuse(outcome, &why);
+                }
                 outcome.status = None;
                 outcome.error = Some(if e.is_timeout() {
                     format!("no answer within {} ms", settings.timeout.as_millis())
