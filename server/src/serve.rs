@@ -10,6 +10,7 @@
 use axum::body::Body;
 use fresa_core::config::Settings;
 use fresa_core::App;
+use fresa_http::admission::{Admission, ConnectionSlot};
 use hyper::body::Incoming;
 use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
 use hyper_util::server::conn::auto;
@@ -47,7 +48,8 @@ pub async fn run(
     let bound = listener.local_addr()?;
     let app = App::start(settings).await?;
     let heartbeat = fresa_core::nodes::start(&app, bound).await?;
-    let router = fresa_http::service(app.clone());
+    let admission = fresa_http::admission::Admission::new(&app.settings.edges);
+    let router = fresa_http::service(app.clone(), admission.clone());
     let integrations = fresa_integrations::start(app.clone());
     // This exact phrase is what scripts and tests wait for.
     tracing::info!("listening on http://{bound}");
@@ -59,7 +61,13 @@ pub async fn run(
     warn_if_too_few_files(app.settings.max_connections);
     let drain = tokio_util::sync::CancellationToken::new();
     let limits = ConnLimits::from(&app.settings);
-    let mut server = tokio::spawn(accept_loop(listener, router, limits, drain.clone()));
+    let mut server = tokio::spawn(accept_loop(
+        listener,
+        router,
+        admission,
+        limits,
+        drain.clone(),
+    ));
     ready(bound);
     tokio::select! {
         _ = shutdown => {}
@@ -246,11 +254,13 @@ impl From<&Settings> for ConnLimits {
 async fn accept_loop(
     listener: TcpListener,
     router: fresa_http::Service,
+    admission: Arc<Admission>,
     limits: ConnLimits,
     drain: CancellationToken,
 ) {
     let max = limits.max_connections;
     let permits = Arc::new(Semaphore::new(max));
+    let lingering = Arc::new(Semaphore::new(MAX_LINGERING_REFUSALS));
     // HTTP/1 only (as before): `auto` would otherwise first wait for a 24-byte HTTP/2 preface,
     // a wait the header read timeout does not cover.
     let mut builder = auto::Builder::new(TokioExecutor::new()).http1_only();
@@ -302,16 +312,26 @@ async fn accept_loop(
             }
         };
         match accepted {
-            Ok((stream, _peer)) => {
+            Ok((stream, peer)) => {
                 let _ = stream.set_nodelay(true);
-                tokio::spawn(serve_connection(
-                    builder.clone(),
-                    stream,
-                    router.clone(),
-                    limits.idle_timeout,
-                    drain.clone(),
-                    p,
-                ));
+                match admission.open_connection(peer.ip()) {
+                    Ok(slot) => {
+                        tokio::spawn(serve_connection(
+                            builder.clone(),
+                            stream,
+                            peer,
+                            router.clone(),
+                            limits.idle_timeout,
+                            drain.clone(),
+                            (p, slot),
+                        ));
+                    }
+                    Err(answer) => {
+                        // Its permit goes straight back: a refusal holds no connection slot.
+                        permit = Some(p);
+                        refuse(stream, answer, &lingering);
+                    }
+                }
             }
             Err(e) => {
                 permit = Some(p);
@@ -338,6 +358,34 @@ async fn accept_loop(
     drop(permit);
     // Every open connection holds a permit: all of them back means all closed.
     let _ = permits.acquire_many(max as u32).await;
+}
+
+/// Refused connections (`max_connections_per_client`) being answered at once; beyond it a
+/// refused connection is closed without an answer.
+const MAX_LINGERING_REFUSALS: usize = 32;
+/// How long a refused connection is kept to deliver its answer.
+const REFUSAL_LINGER: Duration = Duration::from_secs(1);
+
+/// Answers a connection refused before its request was read, then closes it: the answer is
+/// written, our side shut, and what the client sends read away (briefly) so that closing does
+/// not reset the connection before the client has read the answer.
+fn refuse(stream: TcpStream, answer: Vec<u8>, lingering: &Arc<Semaphore>) {
+    let Ok(permit) = lingering.clone().try_acquire_owned() else {
+        return;
+    };
+    tokio::spawn(async move {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let _permit = permit;
+        let mut stream = stream;
+        let _ = tokio::time::timeout(REFUSAL_LINGER, async {
+            stream.write_all(&answer).await?;
+            stream.shutdown().await?;
+            let mut buf = [0u8; 1024];
+            while stream.read(&mut buf).await? > 0 {}
+            Ok::<_, io::Error>(())
+        })
+        .await;
+    });
 }
 
 /// How long to wait before accepting again after an accept error such as EMFILE.
@@ -376,10 +424,11 @@ impl AcceptErrors {
 async fn serve_connection(
     builder: Arc<auto::Builder<TokioExecutor>>,
     stream: TcpStream,
+    peer: std::net::SocketAddr,
     router: fresa_http::Service,
     idle: Duration,
     drain: CancellationToken,
-    _permit: OwnedSemaphorePermit,
+    _held: (OwnedSemaphorePermit, ConnectionSlot),
 ) {
     let activity = Arc::new(Activity::new());
     let io = TokioIo::new(Tracked {
@@ -391,7 +440,11 @@ async fn serve_connection(
         let router = router.clone();
         let guard = InFlight::enter(in_flight.clone());
         async move {
-            let resp = tower::ServiceExt::oneshot(router, req.map(axum::body::Body::new)).await?;
+            let mut req = req.map(axum::body::Body::new);
+            // Who is calling, for the per-address limits (see `fresa_http::admission`).
+            req.extensions_mut()
+                .insert(axum::extract::ConnectInfo(peer));
+            let resp = tower::ServiceExt::oneshot(router, req).await?;
             Ok::<_, std::convert::Infallible>(resp.map(|inner| CountedBody {
                 inner,
                 _guard: guard,
