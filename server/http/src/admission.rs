@@ -72,6 +72,7 @@ struct Counters {
     streams_refused_server: AtomicU64,
     streams_refused_client: AtomicU64,
     connections_refused: AtomicU64,
+    connections_closed_at_cap: AtomicU64,
     auth_failures: AtomicU64,
     auth_rate_limited: AtomicU64,
 }
@@ -301,6 +302,14 @@ impl Admission {
         }
     }
 
+    /// The accept loop closed a connection with no request in progress to make room at
+    /// `max_connections`.
+    pub fn count_closed_at_cap(&self) {
+        self.counters
+            .connections_closed_at_cap
+            .fetch_add(1, Ordering::Relaxed);
+    }
+
     // ---- failed tokens ----
 
     fn per_second(&self) -> f64 {
@@ -404,6 +413,10 @@ impl Admission {
              # HELP fresa_connections_refused_total Connections refused at \
              max_connections_per_client.\n# TYPE fresa_connections_refused_total counter\n\
              fresa_connections_refused_total {}\n\
+             # HELP fresa_connections_closed_at_cap_total Connections with no request in \
+             progress closed to make room for a new one at max_connections.\n\
+             # TYPE fresa_connections_closed_at_cap_total counter\n\
+             fresa_connections_closed_at_cap_total {}\n\
              # HELP fresa_auth_failures_total Requests refused for a wrong token or node secret.\n\
              # TYPE fresa_auth_failures_total counter\nfresa_auth_failures_total {}\n\
              # HELP fresa_auth_rate_limited_total Requests with a token refused unchecked \
@@ -412,6 +425,7 @@ impl Admission {
             get(&c.streams_refused_server),
             get(&c.streams_refused_client),
             get(&c.connections_refused),
+            get(&c.connections_closed_at_cap),
             get(&c.auth_failures),
             get(&c.auth_rate_limited),
         );
