@@ -722,3 +722,23 @@ impl AsyncWrite for Tracked {
         Pin::new(&mut self.inner).poll_shutdown(cx)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn at_the_cap_the_oldest_quiet_connection_gives_way() {
+        let open = OpenConnections::default();
+        let (a, b, c) = (open.register(), open.register(), open.register());
+        // `a` is answering a request (an event stream, say): never closed to make room.
+        let _busy = InFlight::enter(a.activity.clone());
+        assert!(open.close_oldest_quiet());
+        assert!(!a.close.is_cancelled() && b.close.is_cancelled() && !c.close.is_cancelled());
+        assert!(open.close_oldest_quiet());
+        assert!(c.close.is_cancelled());
+        assert!(!open.close_oldest_quiet(), "only the busy one is left");
+        drop((b, c));
+        assert_eq!(open.list().conns.len(), 1);
+    }
+}
