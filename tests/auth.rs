@@ -316,3 +316,100 @@ fn an_expired_token_gets_invalid_token() {
         output_text(&out)
     );
 }
+
+#[test]
+fn the_bearer_scheme_is_case_insensitive() {
+    let mut s = Server::unstarted(network_opts());
+    let viewer = s.create_token("viewer", "v");
+    s.spawn().unwrap();
+    let http = reqwest::blocking::Client::new();
+    let get = |authorization: String| {
+        let r = http
+            .get(s.url("/api/v1/machines"))
+            .header("authorization", authorization)
+            .send()
+            .unwrap();
+        let status = r.status().as_u16();
+        (status, r.text().unwrap())
+    };
+    for scheme in ["Bearer", "bearer", "BEARER", "bEaReR"] {
+        let (status, text) = get(format!("{scheme} {viewer}"));
+        assert_eq!(status, 200, "{scheme}: {text}");
+    }
+    // The token after a lower-case scheme is checked, not ignored.
+    let (status, text) = get("bearer fresa_wrong".into());
+    assert_eq!(status, 401, "{text}");
+    assert!(text.contains("invalid_token"), "{text}");
+}
+
+/// A client whose connections come from `source` (any 127.x address is this host's on Linux).
+#[cfg(target_os = "linux")]
+fn client_from(source: [u8; 4]) -> reqwest::blocking::Client {
+    reqwest::blocking::Client::builder()
+        .local_address(std::net::IpAddr::from(source))
+        .timeout(Duration::from_secs(30))
+        .build()
+        .unwrap()
+}
+
+#[test]
+#[cfg(target_os = "linux")]
+fn wrong_tokens_are_rate_limited_per_address_counted_and_logged_without_the_token() {
+    let mut s = Server::unstarted(network_opts());
+    let admin = s.create_token("admin", "alice");
+    s.spawn().unwrap();
+    let attacker = client_from([127, 0, 0, 2]);
+    let try_token = |token: &str| {
+        let r = attacker
+            .get(s.url("/api/v1/machines"))
+            .bearer_auth(token)
+            .send()
+            .unwrap();
+        let status = r.status().as_u16();
+        let retry = r.headers().get("retry-after").cloned();
+        (status, retry, r.text().unwrap())
+    };
+    // The default: 20 failed attempts a minute from one address, then 429 until it slows down.
+    for i in 0..20 {
+        let (status, _, text) = try_token(&format!("fresa_guess_{i}"));
+        assert_eq!(status, 401, "attempt {i}: {text}");
+    }
+    let (status, retry, text) = try_token("fresa_guess_20");
+    assert_eq!(status, 429, "{text}");
+    assert!(text.contains("too_many_auth_failures"), "{text}");
+    assert!(text.contains("max_auth_failures_per_minute"), "{text}");
+    let retry: u64 = retry
+        .expect("Retry-After")
+        .to_str()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!((1..=60).contains(&retry), "Retry-After: {retry}");
+    // That address's tokens are not looked up meanwhile, valid or not.
+    assert_eq!(try_token(&admin).0, 429);
+
+    // The operator at another address is not locked out.
+    let operator_get = |path: &str| s.send(s.req(reqwest::Method::GET, path).bearer_auth(&admin));
+    operator_get("/api/v1/machines").expect(200);
+    let metrics = operator_get("/metrics");
+    assert_eq!(metrics.status, 200);
+    let sample = |name: &str| -> f64 {
+        metrics
+            .text
+            .lines()
+            .find_map(|l| l.strip_prefix(name)?.trim().parse().ok())
+            .unwrap_or_else(|| panic!("no {name} in\n{}", metrics.text))
+    };
+    assert_eq!(sample("fresa_auth_failures_total"), 20.0);
+    assert_eq!(sample("fresa_auth_rate_limited_total"), 2.0);
+    // Logged without the tokens, naming the address.
+    let line = s.wait_log(T, "failed token attempt");
+    assert!(line.contains("127.0.0.2"), "{line}");
+    s.wait_log(T, "too many failed token attempts");
+    assert!(!s.log().contains("fresa_guess_"), "{}", s.log());
+
+    // Once it slows down, that address gets in with a valid token.
+    fresa_tests::wait_for(T, "the limited address to be let in again", || {
+        (try_token(&admin).0 == 200).then_some(())
+    });
+}

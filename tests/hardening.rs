@@ -281,3 +281,123 @@ fn loose_inputs_are_refused_naming_what_is_wrong() {
         "{path}"
     );
 }
+
+/// Sends `head` (and `body`) on a fresh connection as written, with `Connection: close`, and
+/// returns the status and the answer's JSON body: for requests reqwest cannot send (two Host
+/// headers, none, an absolute-form target).
+fn raw(s: &Server, head: &str, body: &str) -> (u16, Value) {
+    use std::io::{Read, Write};
+    let mut c = std::net::TcpStream::connect(("127.0.0.1", port(s))).unwrap();
+    c.set_read_timeout(Some(std::time::Duration::from_secs(30)))
+        .unwrap();
+    let length = if body.is_empty() {
+        String::new()
+    } else {
+        format!(
+            "Content-Type: application/json\r\nContent-Length: {}\r\n",
+            body.len()
+        )
+    };
+    write!(c, "{head}{length}Connection: close\r\n\r\n{body}").unwrap();
+    let mut answer = String::new();
+    c.read_to_string(&mut answer).unwrap();
+    let status = answer
+        .get(9..12)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("not an HTTP answer: {answer:?}"));
+    let json = answer
+        .split_once("\r\n\r\n")
+        .and_then(|(_, b)| serde_json_body(b))
+        .unwrap_or(Value::Null);
+    (status, json)
+}
+
+/// The JSON of a body that may be chunked.
+fn serde_json_body(body: &str) -> Option<Value> {
+    fresa_tests::serde_json::from_str(body).ok().or_else(|| {
+        let start = body.find('{')?;
+        let end = body.rfind('}')?;
+        fresa_tests::serde_json::from_str(&body[start..=end]).ok()
+    })
+}
+
+#[track_caller]
+fn expect_raw_error(got: (u16, Value), status: u16, code: &str) -> String {
+    assert_eq!(got.0, status, "expected {status} {code}: {}", got.1);
+    assert_eq!(got.1["code"], code, "{}", got.1);
+    got.1["message"].as_str().unwrap().to_string()
+}
+
+#[test]
+fn one_host_that_names_this_server_and_agrees_with_an_absolute_target() {
+    let s = Server::start();
+    let m = s.sim("m", 0.0).id;
+    let own = format!("127.0.0.1:{}", port(&s));
+    let list = "/api/v1/machines";
+    let get = |target: &str, hosts: &[&str]| {
+        let hosts: String = hosts.iter().map(|h| format!("Host: {h}\r\n")).collect();
+        raw(&s, &format!("GET {target} HTTP/1.1\r\n{hosts}"), "")
+    };
+    assert_eq!(get(list, &[&own]).0, 200, "the plain request works");
+
+    // Two Host headers, whichever comes first (and even when both are right).
+    for hosts in [
+        [own.as_str(), "evil.example"],
+        ["evil.example", &own],
+        [&own, &own],
+    ] {
+        let msg = expect_raw_error(get(list, &hosts), 400, "duplicate_host");
+        assert!(msg.contains("Host"), "{msg}");
+    }
+
+    // An absolute-form target: its authority is what the request is addressed to.
+    let msg = expect_raw_error(
+        get(&format!("http://evil.example{list}"), &[&own]),
+        403,
+        "host_not_allowed",
+    );
+    assert!(msg.contains("evil.example"), "{msg}");
+    expect_raw_error(
+        get(&format!("http://evil.example{list}"), &["evil.example"]),
+        403,
+        "host_not_allowed",
+    );
+    // Naming this server, but not as the Host header does.
+    let localhost = format!("localhost:{}", port(&s));
+    let msg = expect_raw_error(
+        get(&format!("http://{localhost}{list}"), &[&own]),
+        400,
+        "host_mismatch",
+    );
+    assert!(msg.contains(&localhost) && msg.contains(&own), "{msg}");
+    assert_eq!(get(&format!("http://{own}{list}"), &[&own]).0, 200);
+
+    // No Host at all: HTTP/1.1 requires one, and without it there is no name to check.
+    expect_raw_error(get(list, &[]), 400, "host_required");
+
+    // None of the refused motion requests moves the machine: only the last jog does.
+    let jog = format!("/api/v1/machines/{m}/jog");
+    let body = r#"{"axis": "X", "distance": 1.0}"#;
+    let post = |target: &str, hosts: &[&str]| {
+        let hosts: String = hosts.iter().map(|h| format!("Host: {h}\r\n")).collect();
+        raw(&s, &format!("POST {target} HTTP/1.1\r\n{hosts}"), body)
+    };
+    expect_raw_error(post(&jog, &[]), 400, "host_required");
+    expect_raw_error(post(&jog, &[&own, "evil.example"]), 400, "duplicate_host");
+    expect_raw_error(
+        post(&format!("http://evil.example{jog}"), &[&own]),
+        403,
+        "host_not_allowed",
+    );
+    let half = r#"{"axis": "X", "distance": 0.5}"#;
+    let ok = raw(&s, &format!("POST {jog} HTTP/1.1\r\nHost: {own}\r\n"), half);
+    assert_eq!(ok.0, 200, "{}", ok.1);
+    let st = s.wait_status(m, std::time::Duration::from_secs(30), "idle, moved", |st| {
+        st["state"] == "idle" && st["work_position"]["x"].as_f64().is_some_and(|x| x > 0.25)
+    });
+    let x = st["work_position"]["x"].as_f64().unwrap();
+    assert!(
+        (x - 0.5).abs() < 1e-9,
+        "x = {x}: a refused jog moved the machine"
+    );
+}

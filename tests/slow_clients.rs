@@ -175,3 +175,282 @@ fn reaching_the_connection_cap_is_logged_and_so_is_clearing_it() {
     s.wait_log(T, "connection limit cleared");
     s.get("/healthz").expect(200);
 }
+
+// ---- Event streams cannot take the connection slots a stop needs (issue 23) ----
+
+/// Event streams the tests open: more than `max_connections` (512) at its default.
+const STREAMS: usize = 600;
+/// `max_event_streams` at the defaults: half of `max_connections`.
+const DEFAULT_MAX_EVENT_STREAMS: usize = 256;
+
+/// A raw `GET /api/v1/events` on its own connection (no reader thread: hundreds are cheap).
+fn raw_stream(s: &Server, extra_headers: &str) -> TcpStream {
+    let a = addr(s);
+    let mut c = TcpStream::connect_timeout(&a, T).expect("connect");
+    write!(
+        c,
+        "GET /api/v1/events HTTP/1.1\r\nHost: {a}\r\n{extra_headers}\r\n"
+    )
+    .expect("send the stream request");
+    c.set_read_timeout(Some(Duration::from_millis(5))).unwrap();
+    c
+}
+
+/// What a raw stream request got: its status, and what arrived of the answer by then (for a
+/// refusal: all of it, since the server closes the connection after it).
+#[derive(Debug)]
+struct Answer {
+    status: u16,
+    text: String,
+}
+
+/// Reads every connection's answer head; a refused one (not 200) is read to its end, which
+/// also checks that the server closes it. Panics after the deadline naming how many got none.
+fn answers(conns: &mut [TcpStream], deadline: Duration) -> Vec<Answer> {
+    let start = std::time::Instant::now();
+    let mut got: Vec<Vec<u8>> = vec![Vec::new(); conns.len()];
+    let mut done: Vec<Option<Answer>> = (0..conns.len()).map(|_| None).collect();
+    let mut buf = [0u8; 4096];
+    while done.iter().any(Option::is_none) {
+        let left = done.iter().filter(|d| d.is_none()).count();
+        assert!(
+            start.elapsed() < deadline,
+            "{left} of {} stream requests got no answer within {deadline:?}",
+            conns.len()
+        );
+        for (i, c) in conns.iter_mut().enumerate() {
+            if done[i].is_some() {
+                continue;
+            }
+            let closed = match c.read(&mut buf) {
+                Ok(0) => true,
+                Ok(n) => {
+                    got[i].extend_from_slice(&buf[..n]);
+                    false
+                }
+                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => false,
+                Err(e) if e.kind() == ErrorKind::ConnectionReset => true,
+                Err(e) => panic!("reading a stream's answer: {e}"),
+            };
+            let text = String::from_utf8_lossy(&got[i]).into_owned();
+            if !text.contains("\r\n\r\n") {
+                assert!(!closed, "closed without an answer: {text:?}");
+                continue;
+            }
+            let status: u16 = text
+                .get(9..12)
+                .and_then(|s| s.parse().ok())
+                .unwrap_or_else(|| panic!("not an HTTP answer: {text:?}"));
+            if status == 200 || closed {
+                done[i] = Some(Answer { status, text });
+            }
+        }
+    }
+    done.into_iter().map(Option::unwrap).collect()
+}
+
+/// Reads a raw stream until `needle` arrives.
+fn read_until(c: &mut TcpStream, needle: &str, what: &str) -> String {
+    let mut got = Vec::new();
+    wait_for(T, what, || {
+        let mut buf = [0u8; 4096];
+        match c.read(&mut buf) {
+            Ok(0) => panic!("stream closed while waiting for {what}"),
+            Ok(n) => got.extend_from_slice(&buf[..n]),
+            Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {}
+            Err(e) => panic!("reading the stream: {e}"),
+        }
+        let text = String::from_utf8_lossy(&got);
+        text.contains(needle).then(|| text.into_owned())
+    })
+}
+
+/// A client whose every request must be answered within a generous 5 s (a stop that waits in
+/// the listen backlog behind event streams never is).
+fn prompt_client() -> reqwest::blocking::Client {
+    reqwest::blocking::Client::builder()
+        .pool_max_idle_per_host(0)
+        .timeout(Duration::from_secs(5))
+        .build()
+        .unwrap()
+}
+
+#[test]
+fn a_stop_is_answered_with_600_event_streams_open_at_the_defaults() {
+    let s = Server::start();
+    let m = s.sim("m", 0.0);
+    let mut conns: Vec<TcpStream> = (0..STREAMS).map(|_| raw_stream(&s, "")).collect();
+    let got = answers(&mut conns, Duration::from_secs(60));
+    let open: Vec<usize> = (0..STREAMS).filter(|&i| got[i].status == 200).collect();
+    assert_eq!(
+        open.len(),
+        DEFAULT_MAX_EVENT_STREAMS,
+        "streams accepted at the defaults"
+    );
+    for a in got.iter().filter(|a| a.status != 200) {
+        assert!(
+            a.text.starts_with("HTTP/1.1 503")
+                && a.text.contains("\"code\":\"too_many_streams\"")
+                && a.text.contains("max_event_streams")
+                && a.text.to_ascii_lowercase().contains("retry-after:"),
+            "a stream beyond the cap: {:?}",
+            a.text
+        );
+    }
+
+    // Every stream is still open, and control gets through.
+    let http = prompt_client();
+    let r = http.get(s.url("/healthz")).send().expect("GET /healthz");
+    assert_eq!(r.status().as_u16(), 200);
+    let r = http
+        .post(s.url(&format!("/api/v1/machines/{}/commands", m.id)))
+        .json(&json!({"command": "stop"}))
+        .send()
+        .expect("POST stop with 600 event streams open");
+    assert_eq!(r.status().as_u16(), 200, "stop: {:?}", r.text());
+    // The audit log says it was carried out, on a stream that was open all along.
+    let first = &mut conns[open[0]];
+    let seen = read_until(first, "event: machine.command", "the stop's audit event");
+    assert!(seen.contains("\"stop\""), "{seen}");
+
+    // A closed stream's slot is free again.
+    for &i in &open[..8] {
+        let _ = conns[i].shutdown(std::net::Shutdown::Both);
+    }
+    wait_for(T, "a new stream once others closed", || {
+        let mut c = [raw_stream(&s, "")];
+        let a = answers(&mut c, T).pop().unwrap();
+        (a.status == 200).then_some(())
+    });
+    assert!(
+        s.log().contains("event stream limit reached"),
+        "{}",
+        s.log()
+    );
+}
+
+#[test]
+fn a_stop_is_answered_while_streams_and_silent_clients_hold_every_connection() {
+    // The defaults: 512 connections, 256 of them streams, a 30 s header read timeout.
+    let s = Server::start();
+    let m = s.sim("m", 0.0);
+    let mut streams: Vec<TcpStream> = (0..300).map(|_| raw_stream(&s, "")).collect();
+    let got = answers(&mut streams, Duration::from_secs(60));
+    let open: Vec<usize> = (0..got.len()).filter(|&i| got[i].status == 200).collect();
+    assert_eq!(open.len(), DEFAULT_MAX_EVENT_STREAMS);
+    // More silent connections than the rest of the slots: every one is taken, and more wait.
+    let silent: Vec<TcpStream> = (0..600).map(|_| stalled(&s, b"")).collect();
+    s.wait_log(T, "connection limit reached");
+
+    let http = prompt_client();
+    let r = http
+        .post(s.url(&format!("/api/v1/machines/{}/commands", m.id)))
+        .json(&json!({"command": "stop"}))
+        .send()
+        .expect("POST stop while every connection is held");
+    assert_eq!(r.status().as_u16(), 200, "stop: {:?}", r.text());
+    let r = http.get(s.url("/healthz")).send().expect("GET /healthz");
+    assert_eq!(r.status().as_u16(), 200);
+    let seen = read_until(
+        &mut streams[open[0]],
+        "event: machine.command",
+        "the stop's audit event",
+    );
+    assert!(seen.contains("\"stop\""), "{seen}");
+    // Room was made by closing silent connections, never a stream, and the server holds
+    // about the cap.
+    let sockets = server_sockets(&s);
+    assert!(sockets <= 512 + 40, "{sockets} sockets open");
+    let metrics = http.get(s.url("/metrics")).send().unwrap().text().unwrap();
+    assert!(metrics.contains("fresa_event_streams 256\n"), "{metrics}");
+    assert!(
+        !metrics.contains("fresa_connections_closed_at_cap_total 0\n"),
+        "{metrics}"
+    );
+    drop(silent);
+}
+
+#[test]
+fn one_token_cannot_take_every_event_stream() {
+    let s = Server::start();
+    let viewer = s.create_token("viewer", "screens");
+    let auth = format!("Authorization: Bearer {viewer}\r\n");
+    let mut conns: Vec<TcpStream> = (0..33).map(|_| raw_stream(&s, &auth)).collect();
+    let got = answers(&mut conns, T);
+    let statuses: Vec<u16> = got.iter().map(|a| a.status).collect();
+    assert_eq!(
+        statuses.iter().filter(|&&c| c == 200).count(),
+        32,
+        "{statuses:?}"
+    );
+    let refused = got.iter().find(|a| a.status != 200).unwrap();
+    assert!(
+        refused.text.starts_with("HTTP/1.1 429")
+            && refused.text.contains("\"code\":\"too_many_streams\"")
+            && refused.text.contains("max_event_streams_per_client")
+            && refused.text.contains("screens"),
+        "{:?}",
+        refused.text
+    );
+    // Others still stream.
+    let mut other = [raw_stream(&s, "")];
+    assert_eq!(answers(&mut other, T)[0].status, 200);
+}
+
+/// Not a test: STOP latency with nothing else open, with 600 event streams, and with 300
+/// streams and 600 silent connections (the figures in issue 23).
+/// Run with `cargo test -p fresa-tests --test slow_clients -- --ignored --nocapture stop_latency`.
+#[test]
+#[ignore]
+fn stop_latency_with_600_event_streams_open() {
+    for (streams, silent) in [(0, 0), (STREAMS, 0), (300, 600)] {
+        let s = Server::start();
+        let m = s.sim("m", 0.0);
+        let conns: Vec<TcpStream> = (0..streams).map(|_| raw_stream(&s, "")).collect();
+        let quiet: Vec<TcpStream> = (0..silent).map(|_| stalled(&s, b"")).collect();
+        if streams > 0 {
+            // Until the server has taken what it will of them.
+            wait_for(T, "a connection or stream limit reached", || {
+                let log = s.log();
+                (log.contains("connection limit reached")
+                    || log.contains("event stream limit reached"))
+                .then_some(())
+            });
+        }
+        let http = reqwest::blocking::Client::builder()
+            .pool_max_idle_per_host(0)
+            .timeout(Duration::from_secs(10))
+            .build()
+            .unwrap();
+        let mut took = Vec::new();
+        let mut unanswered = 0;
+        for _ in 0..100 {
+            let t = std::time::Instant::now();
+            let r = http
+                .post(s.url(&format!("/api/v1/machines/{}/commands", m.id)))
+                .json(&json!({"command": "stop"}))
+                .send();
+            match r {
+                Ok(r) if r.status().is_success() => took.push(t.elapsed()),
+                _ => {
+                    unanswered += 1;
+                    if unanswered == 3 {
+                        break;
+                    }
+                }
+            }
+        }
+        took.sort();
+        let pct = |p: usize| took.get((took.len() * p / 100).min(took.len().saturating_sub(1)));
+        println!(
+            "STOP with {streams} event streams and {silent} silent connections open: {} \
+             answered, {unanswered} not within 10 s; \
+             p50 {:?}, p99 {:?}, max {:?}",
+            took.len(),
+            pct(50),
+            pct(99),
+            took.last()
+        );
+        drop((conns, quiet));
+    }
+}

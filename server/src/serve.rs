@@ -10,13 +10,15 @@
 use axum::body::Body;
 use fresa_core::config::Settings;
 use fresa_core::App;
+use fresa_http::admission::{Admission, ConnectionSlot};
 use hyper::body::Incoming;
 use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
 use hyper_util::server::conn::auto;
+use std::collections::BTreeMap;
 use std::io;
 use std::pin::Pin;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
@@ -47,7 +49,8 @@ pub async fn run(
     let bound = listener.local_addr()?;
     let app = App::start(settings).await?;
     let heartbeat = fresa_core::nodes::start(&app, bound).await?;
-    let router = fresa_http::service(app.clone());
+    let admission = fresa_http::admission::Admission::new(&app.settings.edges);
+    let router = fresa_http::service(app.clone(), admission.clone());
     let integrations = fresa_integrations::start(app.clone());
     // This exact phrase is what scripts and tests wait for.
     tracing::info!("listening on http://{bound}");
@@ -59,7 +62,13 @@ pub async fn run(
     warn_if_too_few_files(app.settings.max_connections);
     let drain = tokio_util::sync::CancellationToken::new();
     let limits = ConnLimits::from(&app.settings);
-    let mut server = tokio::spawn(accept_loop(listener, router, limits, drain.clone()));
+    let mut server = tokio::spawn(accept_loop(
+        listener,
+        router,
+        admission,
+        limits,
+        drain.clone(),
+    ));
     ready(bound);
     tokio::select! {
         _ = shutdown => {}
@@ -239,18 +248,24 @@ impl From<&Settings> for ConnLimits {
 
 /// Accepts connections until `drain` is cancelled, then waits for the open ones to finish.
 ///
-/// Each connection holds a permit; at the cap we stop calling `accept`, so further clients wait
-/// in the kernel's listen backlog (costing us no file descriptor) instead of being accepted and
-/// dropped. This is what keeps `/healthz` answerable under a slowloris flood: a stalled client
-/// is closed by the header or idle timeout and its permit goes to the next one in line.
+/// Each connection holds a permit. At the cap a new client is still accepted (one at a time),
+/// and the connection that has been open longest with no request in progress (one that sends
+/// nothing, half a head, or sits idle between requests) is closed to make room for it; while
+/// every connection has a request in progress (event streams are capped below the cap, see
+/// `fresa_http::admission`), further clients wait in the kernel's listen backlog (costing us no
+/// file descriptor). So a slowloris flood cannot keep a stop out for a whole header read or
+/// idle timeout: a new client's head usually arrives with it, long before the flood has closed
+/// every connection older than it.
 async fn accept_loop(
     listener: TcpListener,
     router: fresa_http::Service,
+    admission: Arc<Admission>,
     limits: ConnLimits,
     drain: CancellationToken,
 ) {
     let max = limits.max_connections;
     let permits = Arc::new(Semaphore::new(max));
+    let lingering = Arc::new(Semaphore::new(MAX_LINGERING_REFUSALS));
     // HTTP/1 only (as before): `auto` would otherwise first wait for a 24-byte HTTP/2 preface,
     // a wait the header read timeout does not cover.
     let mut builder = auto::Builder::new(TokioExecutor::new()).http1_only();
@@ -265,32 +280,74 @@ async fn accept_loop(
     // cap only counts as cleared once a tenth of it is free, so the log says it once each way.
     let clear_at = (max / 10).max(1);
     let mut at_cap = false;
+    let open = OpenConnections::default();
+    let start = |stream: TcpStream, peer, (permit, slot)| {
+        let _ = stream.set_nodelay(true);
+        tokio::spawn(serve_connection(
+            builder.clone(),
+            stream,
+            peer,
+            router.clone(),
+            limits.idle_timeout,
+            drain.clone(),
+            (permit, slot, open.register()),
+        ));
+    };
     loop {
         if at_cap && permits.available_permits() + usize::from(permit.is_some()) >= clear_at {
             at_cap = false;
             tracing::info!("connection limit cleared: accepting connections again");
         }
-        let p = match permit.take() {
-            Some(p) => p,
-            None => match permits.clone().try_acquire_owned() {
-                Ok(p) => p,
-                Err(_) => {
-                    if !at_cap {
-                        at_cap = true;
-                        tracing::warn!(
-                            "connection limit reached: {max} connections open \
-                             (max_connections); new connections wait in the listen backlog"
-                        );
-                    }
-                    let p = tokio::select! {
-                        p = permits.clone().acquire_owned() => p,
-                        _ = drain.cancelled() => break,
-                    };
+        let free = match permit.take() {
+            Some(p) => Ok(p),
+            None => permits.clone().try_acquire_owned(),
+        };
+        let Ok(p) = free else {
+            if !at_cap {
+                at_cap = true;
+                tracing::warn!(
+                    "connection limit reached: {max} connections open (max_connections); \
+                     a new one takes the place of the oldest with no request in progress, \
+                     or waits in the listen backlog"
+                );
+            }
+            let accepted = tokio::select! {
+                p = permits.clone().acquire_owned() => {
                     // The semaphore is never closed, so this is always a permit.
                     let Ok(p) = p else { break };
-                    p
+                    permit = Some(p);
+                    continue;
                 }
-            },
+                r = listener.accept() => r,
+                _ = drain.cancelled() => break,
+            };
+            let (stream, peer) = match accepted {
+                Ok(a) => a,
+                Err(e) => {
+                    if !accept_failed(&e, &mut errors, &drain).await {
+                        break;
+                    }
+                    continue;
+                }
+            };
+            let slot = match admission.open_connection(peer.ip()) {
+                Ok(slot) => slot,
+                Err(answer) => {
+                    refuse(stream, answer, &lingering);
+                    continue;
+                }
+            };
+            // Room for it: that connection's permit comes back once its task has ended.
+            if open.close_oldest_quiet() {
+                admission.count_closed_at_cap();
+            }
+            let p = tokio::select! {
+                p = permits.clone().acquire_owned() => p,
+                _ = drain.cancelled() => break,
+            };
+            let Ok(p) = p else { break };
+            start(stream, peer, (p, slot));
+            continue;
         };
         let accepted = tokio::select! {
             r = listener.accept() => r,
@@ -302,33 +359,18 @@ async fn accept_loop(
             }
         };
         match accepted {
-            Ok((stream, _peer)) => {
-                let _ = stream.set_nodelay(true);
-                tokio::spawn(serve_connection(
-                    builder.clone(),
-                    stream,
-                    router.clone(),
-                    limits.idle_timeout,
-                    drain.clone(),
-                    p,
-                ));
-            }
+            Ok((stream, peer)) => match admission.open_connection(peer.ip()) {
+                Ok(slot) => start(stream, peer, (p, slot)),
+                Err(answer) => {
+                    // Its permit goes straight back: a refusal holds no connection slot.
+                    permit = Some(p);
+                    refuse(stream, answer, &lingering);
+                }
+            },
             Err(e) => {
                 permit = Some(p);
-                errors.log(&e);
-                // Out of descriptors or memory: accepting again at once would fail again and
-                // spin; give the open connections a moment to close. A connection that died
-                // in the backlog is not our problem, so carry on at once.
-                if !matches!(
-                    e.kind(),
-                    io::ErrorKind::ConnectionAborted
-                        | io::ErrorKind::ConnectionReset
-                        | io::ErrorKind::Interrupted
-                ) {
-                    tokio::select! {
-                        _ = tokio::time::sleep(ACCEPT_BACKOFF) => {}
-                        _ = drain.cancelled() => break,
-                    }
+                if !accept_failed(&e, &mut errors, &drain).await {
+                    break;
                 }
             }
         }
@@ -338,6 +380,59 @@ async fn accept_loop(
     drop(permit);
     // Every open connection holds a permit: all of them back means all closed.
     let _ = permits.acquire_many(max as u32).await;
+}
+
+/// Refused connections (`max_connections_per_client`) being answered at once; beyond it a
+/// refused connection is closed without an answer.
+const MAX_LINGERING_REFUSALS: usize = 32;
+/// How long a refused connection is kept to deliver its answer.
+const REFUSAL_LINGER: Duration = Duration::from_secs(1);
+
+/// Answers a connection refused before its request was read, then closes it: the answer is
+/// written, our side shut, and what the client sends read away (briefly) so that closing does
+/// not reset the connection before the client has read the answer.
+fn refuse(stream: TcpStream, answer: Vec<u8>, lingering: &Arc<Semaphore>) {
+    let Ok(permit) = lingering.clone().try_acquire_owned() else {
+        return;
+    };
+    tokio::spawn(async move {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let _permit = permit;
+        let mut stream = stream;
+        let _ = tokio::time::timeout(REFUSAL_LINGER, async {
+            stream.write_all(&answer).await?;
+            stream.shutdown().await?;
+            let mut buf = [0u8; 1024];
+            while stream.read(&mut buf).await? > 0 {}
+            Ok::<_, io::Error>(())
+        })
+        .await;
+    });
+}
+
+/// Logs an accept error and backs off if accepting again at once would fail again; false if
+/// the server is draining.
+async fn accept_failed(
+    e: &io::Error,
+    errors: &mut AcceptErrors,
+    drain: &CancellationToken,
+) -> bool {
+    errors.log(e);
+    // Out of descriptors or memory: accepting again at once would fail again and spin; give
+    // the open connections a moment to close. A connection that died in the backlog is not our
+    // problem, so carry on at once.
+    if matches!(
+        e.kind(),
+        io::ErrorKind::ConnectionAborted
+            | io::ErrorKind::ConnectionReset
+            | io::ErrorKind::Interrupted
+    ) {
+        return true;
+    }
+    tokio::select! {
+        _ = tokio::time::sleep(ACCEPT_BACKOFF) => true,
+        _ = drain.cancelled() => false,
+    }
 }
 
 /// How long to wait before accepting again after an accept error such as EMFILE.
@@ -376,12 +471,15 @@ impl AcceptErrors {
 async fn serve_connection(
     builder: Arc<auto::Builder<TokioExecutor>>,
     stream: TcpStream,
+    peer: std::net::SocketAddr,
     router: fresa_http::Service,
     idle: Duration,
     drain: CancellationToken,
-    _permit: OwnedSemaphorePermit,
+    held: (OwnedSemaphorePermit, ConnectionSlot, OpenConnection),
 ) {
-    let activity = Arc::new(Activity::new());
+    // Held until the connection ends: its permit, its address's count, its entry in the list.
+    let (_permit, _slot, me) = held;
+    let activity = me.activity.clone();
     let io = TokioIo::new(Tracked {
         inner: stream,
         activity: activity.clone(),
@@ -391,7 +489,11 @@ async fn serve_connection(
         let router = router.clone();
         let guard = InFlight::enter(in_flight.clone());
         async move {
-            let resp = tower::ServiceExt::oneshot(router, req.map(axum::body::Body::new)).await?;
+            let mut req = req.map(axum::body::Body::new);
+            // Who is calling, for the per-address limits (see `fresa_http::admission`).
+            req.extensions_mut()
+                .insert(axum::extract::ConnectInfo(peer));
+            let resp = tower::ServiceExt::oneshot(router, req).await?;
             Ok::<_, std::convert::Infallible>(resp.map(|inner| CountedBody {
                 inner,
                 _guard: guard,
@@ -417,6 +519,10 @@ async fn serve_connection(
                 draining = true;
                 conn.as_mut().graceful_shutdown();
             }
+            _ = me.close.cancelled() => {
+                tracing::debug!("closing a quiet connection to make room at the connection cap");
+                break;
+            }
             _ = check.tick() => {
                 let now = activity.moves();
                 if !activity.in_flight() && now == seen {
@@ -426,6 +532,72 @@ async fn serve_connection(
                 seen = now;
             }
         }
+    }
+}
+
+/// The open connections in the order they were accepted, so that at the cap the oldest with no
+/// request in progress can be closed to make room.
+#[derive(Clone, Default)]
+struct OpenConnections(Arc<Mutex<OpenList>>);
+
+#[derive(Default)]
+struct OpenList {
+    next: u64,
+    conns: BTreeMap<u64, (Arc<Activity>, CancellationToken)>,
+}
+
+impl OpenConnections {
+    fn list(&self) -> std::sync::MutexGuard<'_, OpenList> {
+        self.0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    fn register(&self) -> OpenConnection {
+        let activity = Arc::new(Activity::new());
+        let close = CancellationToken::new();
+        let mut list = self.list();
+        let id = list.next;
+        list.next += 1;
+        list.conns.insert(id, (activity.clone(), close.clone()));
+        OpenConnection {
+            id,
+            open: self.clone(),
+            activity,
+            close,
+        }
+    }
+
+    /// Closes the connection open longest that has no request in progress (it sent nothing,
+    /// half a head, or sits between requests); false if every one has a request in progress.
+    fn close_oldest_quiet(&self) -> bool {
+        let mut list = self.list();
+        let oldest = list
+            .conns
+            .iter()
+            .find(|(_, (activity, _))| !activity.in_flight())
+            .map(|(id, _)| *id);
+        match oldest.and_then(|id| list.conns.remove(&id)) {
+            Some((_, close)) => {
+                close.cancel();
+                true
+            }
+            None => false,
+        }
+    }
+}
+
+/// One connection's entry in [`OpenConnections`]; `close` is cancelled to close it.
+struct OpenConnection {
+    id: u64,
+    open: OpenConnections,
+    activity: Arc<Activity>,
+    close: CancellationToken,
+}
+
+impl Drop for OpenConnection {
+    fn drop(&mut self) {
+        self.open.list().conns.remove(&self.id);
     }
 }
 
@@ -548,5 +720,25 @@ impl AsyncWrite for Tracked {
     }
     fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
         Pin::new(&mut self.inner).poll_shutdown(cx)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn at_the_cap_the_oldest_quiet_connection_gives_way() {
+        let open = OpenConnections::default();
+        let (a, b, c) = (open.register(), open.register(), open.register());
+        // `a` is answering a request (an event stream, say): never closed to make room.
+        let _busy = InFlight::enter(a.activity.clone());
+        assert!(open.close_oldest_quiet());
+        assert!(!a.close.is_cancelled() && b.close.is_cancelled() && !c.close.is_cancelled());
+        assert!(open.close_oldest_quiet());
+        assert!(c.close.is_cancelled());
+        assert!(!open.close_oldest_quiet(), "only the busy one is left");
+        drop((b, c));
+        assert_eq!(open.list().conns.len(), 1);
     }
 }

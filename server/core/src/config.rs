@@ -58,6 +58,15 @@ pub struct FileConfig {
     pub cors_origins: Option<Vec<String>>,
     pub webhooks: Option<WebhooksFile>,
     pub mqtt: Option<MqttFile>,
+    // ---- HTTP edges (issue 23): what one client may hold, so control always gets through ----
+    /// Event streams open at once; below `max_connections` so the rest stay for short requests.
+    pub max_event_streams: Option<usize>,
+    /// Event streams one token may hold (tokenless local callers count only against the cap).
+    pub max_event_streams_per_client: Option<usize>,
+    /// Connections one non-loopback address may hold.
+    pub max_connections_per_client: Option<usize>,
+    /// Failed token attempts one address may make a minute before it is refused for a while.
+    pub max_auth_failures_per_minute: Option<u32>,
 }
 
 /// `[webhooks]`: how deliveries are retried.
@@ -402,6 +411,79 @@ pub struct Settings {
     /// What the config file says that deserves a word in the log; resolved before logging is
     /// set up (the log filter comes from the file), so `serve` logs them.
     pub warnings: Vec<String>,
+    // ---- HTTP edges (issue 23) ----
+    pub edges: EdgeLimits,
+}
+
+/// What one client may hold of the server (issue 23): a stop or feed hold must always find a
+/// connection slot, whatever else is open.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct EdgeLimits {
+    /// Event streams open at once, always below `max_connections`: a stream holds its
+    /// connection for as long as it lasts, so the difference is kept for everything else.
+    pub max_event_streams: usize,
+    /// Event streams one token may hold.
+    pub max_event_streams_per_client: usize,
+    /// Connections one address may hold (loopback addresses are not counted: every local
+    /// process and a local reverse proxy share them).
+    pub max_connections_per_client: usize,
+    /// Failed token attempts an address may make a minute (a burst of this many, then one every
+    /// 60/N s); beyond it its requests that carry a token get 429 without being looked up.
+    pub max_auth_failures_per_minute: u32,
+}
+
+struct EdgeKeys {
+    max_event_streams: Option<usize>,
+    max_event_streams_per_client: Option<usize>,
+    max_connections_per_client: Option<usize>,
+    max_auth_failures_per_minute: Option<u32>,
+}
+
+pub const DEFAULT_MAX_EVENT_STREAMS_PER_CLIENT: usize = 32;
+pub const DEFAULT_MAX_CONNECTIONS_PER_CLIENT: usize = 64;
+pub const DEFAULT_MAX_AUTH_FAILURES_PER_MINUTE: u32 = 20;
+
+/// Half the connections may be event streams (256 of the default 512): plenty for a shop's
+/// screens (one stream each), and the other half is kept for short requests.
+/// `file`: the four keys as the config file gives them.
+fn edge_limits(file: EdgeKeys, max_connections: usize) -> Result<EdgeLimits, ConfigError> {
+    let max_event_streams = bounded(
+        "max_event_streams",
+        file.max_event_streams,
+        max_connections / 2,
+        0,
+        max_connections.saturating_sub(1),
+    )
+    .map_err(|e| {
+        ConfigError::Invalid(format!(
+            "{e} (it must stay below max_connections = {max_connections}, so that a stop \
+             always finds a connection)"
+        ))
+    })?;
+    Ok(EdgeLimits {
+        max_event_streams,
+        max_event_streams_per_client: bounded(
+            "max_event_streams_per_client",
+            file.max_event_streams_per_client,
+            DEFAULT_MAX_EVENT_STREAMS_PER_CLIENT.min(max_event_streams.max(1)),
+            1,
+            MAX_MAX_CONNECTIONS,
+        )?,
+        max_connections_per_client: bounded(
+            "max_connections_per_client",
+            file.max_connections_per_client,
+            DEFAULT_MAX_CONNECTIONS_PER_CLIENT.min(max_connections),
+            1,
+            MAX_MAX_CONNECTIONS,
+        )?,
+        max_auth_failures_per_minute: bounded(
+            "max_auth_failures_per_minute",
+            file.max_auth_failures_per_minute,
+            DEFAULT_MAX_AUTH_FAILURES_PER_MINUTE,
+            1,
+            100_000,
+        )?,
+    })
 }
 
 /// This process among the nodes that share one store.
@@ -712,6 +794,15 @@ impl Settings {
             1,
             MAX_MAX_CONNECTIONS,
         )?;
+        let edges = edge_limits(
+            EdgeKeys {
+                max_event_streams: file.max_event_streams,
+                max_event_streams_per_client: file.max_event_streams_per_client,
+                max_connections_per_client: file.max_connections_per_client,
+                max_auth_failures_per_minute: file.max_auth_failures_per_minute,
+            },
+            max_connections,
+        )?;
         Ok(Settings {
             listen,
             data_dir,
@@ -739,6 +830,7 @@ impl Settings {
             webhooks: webhooks(file.webhooks.as_ref())?,
             mqtt: mqtt(file.mqtt, o.mqtt_url)?,
             warnings,
+            edges,
         })
     }
 
@@ -900,6 +992,45 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("event_retention_count"), "{e}");
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn edge_limits_keep_connections_for_control() {
+        let (dir, resolve) = toml_resolver("fresa-cfg-edges");
+        let e = resolve("").unwrap().edges;
+        assert_eq!(
+            e,
+            EdgeLimits {
+                max_event_streams: 256,
+                max_event_streams_per_client: 32,
+                max_connections_per_client: 64,
+                max_auth_failures_per_minute: 20,
+            }
+        );
+        // Follows a smaller connection cap, always below it.
+        let e = resolve("max_connections = 8\n").unwrap().edges;
+        assert_eq!((e.max_event_streams, e.max_connections_per_client), (4, 8));
+        let e = resolve("max_connections = 1\n").unwrap().edges;
+        assert_eq!(e.max_event_streams, 0);
+        for (toml, needle) in [
+            ("max_event_streams = 512\n", "below max_connections = 512"),
+            (
+                "max_event_streams_per_client = 0\n",
+                "max_event_streams_per_client",
+            ),
+            (
+                "max_connections_per_client = 0\n",
+                "max_connections_per_client",
+            ),
+            (
+                "max_auth_failures_per_minute = 0\n",
+                "max_auth_failures_per_minute",
+            ),
+        ] {
+            let e = resolve(toml).unwrap_err().to_string();
+            assert!(e.contains(needle), "{toml}: {e}");
+        }
         std::fs::remove_dir_all(dir).ok();
     }
 

@@ -5,7 +5,7 @@ use super::error::ApiError;
 use axum::extract::{Request, State};
 use axum::http::StatusCode;
 use axum::middleware::Next;
-use axum::response::Response;
+use axum::response::{IntoResponse, Response};
 use axum::routing::MethodRouter;
 use fresa_core::SharedApp;
 use sha2::{Digest, Sha256};
@@ -57,11 +57,7 @@ pub fn new_secret() -> String {
 /// in logs, proxies and browser history) is refused.
 fn bearer(req: &Request) -> Result<Option<String>, ApiError> {
     if let Some(v) = req.headers().get(axum::http::header::AUTHORIZATION) {
-        return Ok(v
-            .to_str()
-            .ok()
-            .and_then(|s| s.strip_prefix("Bearer "))
-            .map(|s| s.trim().to_string()));
+        return Ok(v.to_str().ok().and_then(bearer_token).map(str::to_string));
     }
     let Some(token) = query_token(req.uri()) else {
         return Ok(None);
@@ -79,6 +75,15 @@ fn bearer(req: &Request) -> Result<Option<String>, ApiError> {
             "`access_token` in the URL is accepted only on GET /api/v1/events; send `Authorization: Bearer <token>`",
         ))
     }
+}
+
+/// The token of an `Authorization: Bearer <token>` value; the scheme is case-insensitive
+/// (RFC 9110 11.1), so `bearer` and `BEARER` are the same. Other schemes carry no token.
+fn bearer_token(value: &str) -> Option<&str> {
+    let (scheme, token) = value.trim().split_once(' ')?;
+    scheme
+        .eq_ignore_ascii_case("bearer")
+        .then(|| token.trim_start_matches(' ').trim_end())
 }
 
 fn query_token(uri: &axum::http::Uri) -> Option<String> {
@@ -153,32 +158,67 @@ fn forwarded_caller(app: &SharedApp, req: &Request) -> Option<Result<(Caller, St
     })
 }
 
+/// Set on a request whose caller a token (or a node's secret) names, rather than a tokenless
+/// local caller: the event stream counts its streams against that name.
+#[derive(Debug, Clone, Copy)]
+pub struct ByToken;
+
 pub async fn middleware(
     State(app): State<SharedApp>,
     mut req: Request,
     next: Next,
 ) -> Result<Response, ApiError> {
+    // Wrong secrets are counted and limited per address (see `admission`).
+    let admission = req
+        .extensions()
+        .get::<std::sync::Arc<crate::admission::Admission>>()
+        .cloned();
+    let peer = crate::admission::peer(&req);
+    let may_check = || match &admission {
+        Some(a) => a.may_check_token(peer),
+        None => Ok(()),
+    };
+    let failed = |e: ApiError| {
+        if let Some(a) = &admission {
+            a.token_failed(peer, e.code);
+        }
+        e
+    };
+    if req.headers().contains_key(NODE_TOKEN) {
+        if let Err(refused) = may_check() {
+            return Ok(refused.into_response());
+        }
+    }
     if let Some(forwarded) = forwarded_caller(&app, &req) {
-        let (caller, node) = forwarded?;
+        let (caller, node) = forwarded.map_err(failed)?;
         req.extensions_mut().insert(caller);
         req.extensions_mut().insert(ForwardedBy(node));
+        req.extensions_mut().insert(ByToken);
         return Ok(next.run(req).await);
     }
     let caller =
         match bearer(&req)? {
-            Some(secret) => match app.store.token_by_hash(&hash_token(&secret)).await? {
-                Some(t) => Caller {
-                    name: t.name,
-                    role: Role::parse(&t.role).unwrap_or(Role::Viewer),
-                },
-                None => {
-                    return Err(ApiError::new(
-                        StatusCode::UNAUTHORIZED,
-                        "invalid_token",
-                        "the API token is not valid",
-                    ))
+            Some(secret) => {
+                if let Err(refused) = may_check() {
+                    return Ok(refused.into_response());
                 }
-            },
+                match app.store.token_by_hash(&hash_token(&secret)).await? {
+                    Some(t) => {
+                        req.extensions_mut().insert(ByToken);
+                        Caller {
+                            name: t.name,
+                            role: Role::parse(&t.role).unwrap_or(Role::Viewer),
+                        }
+                    }
+                    None => {
+                        return Err(failed(ApiError::new(
+                            StatusCode::UNAUTHORIZED,
+                            "invalid_token",
+                            "the API token is not valid",
+                        )))
+                    }
+                }
+            }
             None if app.auth_required => return Err(ApiError::new(
                 StatusCode::UNAUTHORIZED,
                 "token_required",

@@ -4,14 +4,19 @@
 //! whose `Last-Event-ID` is older than what retention has deleted, then what remains.
 
 use super::error::{ApiError, Query};
+use crate::admission::Admission;
+use crate::auth::{ByToken, Caller};
 use axum::extract::State;
 use axum::http::HeaderMap;
 use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use axum::Extension;
 use fresa_core::events::BusEvent;
 use fresa_core::SharedApp;
 use futures_util::Stream;
 use serde::Deserialize;
 use std::convert::Infallible;
+use std::sync::Arc;
 use tokio::sync::broadcast::error::RecvError;
 
 #[derive(Deserialize, Default, utoipa::IntoParams)]
@@ -63,12 +68,17 @@ fn to_sse(e: &BusEvent) -> Event {
         (status = 200, description = "Server-Sent Events: `event: <type>`, `id: <id>` (persisted events), `data: Event` as JSON. A client that fell behind, or resumes across pruned events, first gets `event: resync` (`{\"reason\", \"missed\"|\"pruned_through\", \"after\"}`).",
             content_type = "text/event-stream", body = crate::openapi::EventDoc),
         (status = 400, description = "`invalid_header`, `invalid_query`, `token_in_query`", body = crate::openapi::ErrorBody),
+        (status = 429, description = "`too_many_streams`: this token holds `max_event_streams_per_client` streams (with `Retry-After`; the connection is closed)", body = crate::openapi::ErrorBody),
+        (status = 503, description = "`too_many_streams`: `max_event_streams` are open (with `Retry-After`; the connection is closed)", body = crate::openapi::ErrorBody),
     ))]
 pub async fn stream(
     State(app): State<SharedApp>,
     headers: HeaderMap,
     Query(f): Query<Filter>,
-) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
+    Extension(caller): Extension<Caller>,
+    by_token: Option<Extension<ByToken>>,
+    admission: Option<Extension<Arc<Admission>>>,
+) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, Response> {
     let last_id = match headers.get("last-event-id") {
         Some(v) => Some(
             v.to_str()
@@ -79,6 +89,7 @@ pub async fn stream(
                         "invalid_header",
                         "Last-Event-ID must be an integer event id",
                     )
+                    .into_response()
                 })?,
         ),
         None => f.after,
@@ -95,6 +106,16 @@ pub async fn stream(
             })
             .unwrap_or_default(),
         machine: f.machine,
+    };
+    // A stream holds its connection while it lasts, so it needs one of the stream slots,
+    // which are fewer than the connections (see `admission`); freed when the body is dropped.
+    // Counted per token; tokenless local callers only against the server's cap.
+    let slot = match admission {
+        Some(Extension(a)) => Some(
+            a.open_stream(by_token.map(|_| caller.name.as_str()))
+                .map_err(IntoResponse::into_response)?,
+        ),
+        None => None,
     };
     // Subscribe before replaying so nothing falls between the replay and the live stream.
     let mut rx = app.bus.subscribe();
@@ -124,6 +145,8 @@ pub async fn stream(
         loop {
             tokio::select! {
                 _ = shutdown.cancelled() => return,
+                // The client went away: let go of the bus now, not at the next matching event.
+                _ = tx.closed() => return,
                 r = rx.recv() => match r {
                     Ok(e) => {
                         if let Some(id) = e.id {
@@ -145,6 +168,10 @@ pub async fn stream(
                 }
             }
         }
+    });
+    let s = futures_util::StreamExt::map(s, move |e| {
+        let _held = &slot;
+        e
     });
     Ok(Sse::new(s).keep_alive(KeepAlive::new().interval(keepalive)))
 }

@@ -3,7 +3,9 @@
 //! without a token; and a DNS-rebinding page reaches it under a name of its own. So:
 //!
 //! * `Host` must name this server: an IP literal of the listen address (any IP literal when
-//!   bound to every address), `localhost`, or a name listed in `allowed_hosts`;
+//!   bound to every address), `localhost`, or a name listed in `allowed_hosts`; there must be
+//!   exactly one, and an absolute-form target's authority must name this server too and agree
+//!   with it;
 //! * a state-changing request (not GET/HEAD/OPTIONS) that carries an `Origin` other than the
 //!   server's own, or one listed in `cors_origins`, is refused, and so is one a browser marks
 //!   `Sec-Fetch-Site: cross-site`. Requests without these headers (curl, scripts, the CLI) are
@@ -14,7 +16,7 @@
 
 use crate::error::ApiError;
 use axum::extract::Request;
-use axum::http::{header, HeaderMap, Method, StatusCode};
+use axum::http::{header, HeaderMap, Method, StatusCode, Uri};
 use axum::response::Response;
 use fresa_core::config::Settings;
 use std::net::IpAddr;
@@ -58,7 +60,10 @@ where
     fn call(&mut self, req: Request) -> Self::Future {
         use axum::response::IntoResponse;
         use futures_util::future::Either;
-        match uri_length(&req).and_then(|()| check(&self.settings, req.method(), req.headers())) {
+        match uri_length(&req)
+            .and_then(|()| one_host(&self.settings, req.uri(), req.headers()))
+            .and_then(|()| check(&self.settings, req.method(), req.headers()))
+        {
             Ok(()) => Either::Left(self.inner.call(req)),
             Err(e) => Either::Right(std::future::ready(Ok(e.into_response()))),
         }
@@ -81,17 +86,65 @@ fn uri_length(req: &Request) -> Result<(), ApiError> {
     Ok(())
 }
 
+/// Exactly one `Host`, as text, and (for an absolute-form target, `GET http://name/...`) a
+/// target authority that names this server and agrees with it: a proxy or cache in between may
+/// route by either, so both must be checked and be the same name. A request without `Host` is
+/// refused whatever its method: HTTP/1.1 requires one (RFC 9112 3.2), every client we know sends
+/// it (browsers, curl, reqwest and so the CLI), and without it there is no name to check.
+fn one_host(settings: &Settings, uri: &Uri, headers: &HeaderMap) -> Result<(), ApiError> {
+    let mut hosts = headers.get_all(header::HOST).iter();
+    let host = hosts.next();
+    let more = hosts.count();
+    if more > 0 {
+        return Err(ApiError::bad_request(
+            "duplicate_host",
+            format!(
+                "the request has {} Host headers; exactly one is accepted",
+                more + 1
+            ),
+        ));
+    }
+    let Some(host) = host else {
+        return Err(ApiError::bad_request(
+            "host_required",
+            "the request has no Host header (HTTP/1.1 requires one): it must name this server",
+        ));
+    };
+    let Ok(host) = host.to_str() else {
+        return Err(ApiError::bad_request(
+            "invalid_host",
+            "the Host header is not plain text",
+        ));
+    };
+    if let Some(authority) = uri.authority().map(|a| a.as_str()) {
+        if !host_allowed(settings, authority) {
+            return Err(host_not_allowed(authority));
+        }
+        if !authority.eq_ignore_ascii_case(host.trim()) {
+            return Err(ApiError::bad_request(
+                "host_mismatch",
+                format!("the request target names {authority:?} but Host says {host:?}; they must agree"),
+            ));
+        }
+    }
+    Ok(())
+}
+
+fn host_not_allowed(host: &str) -> ApiError {
+    ApiError::new(
+        StatusCode::FORBIDDEN,
+        "host_not_allowed",
+        format!(
+            "Host {host:?} does not name this server; add it to `allowed_hosts` in the config if it does"
+        ),
+    )
+}
+
 fn check(settings: &Settings, method: &Method, headers: &HeaderMap) -> Result<(), ApiError> {
     let host = headers.get(header::HOST).and_then(|h| h.to_str().ok());
     if let Some(host) = host {
         if !host_allowed(settings, host) {
-            return Err(ApiError::new(
-                StatusCode::FORBIDDEN,
-                "host_not_allowed",
-                format!(
-                    "Host {host:?} does not name this server; add it to `allowed_hosts` in the config if it does"
-                ),
-            ));
+            return Err(host_not_allowed(host));
         }
     }
     if matches!(*method, Method::GET | Method::HEAD | Method::OPTIONS) {
@@ -227,6 +280,34 @@ mod tests {
         let any = settings("0.0.0.0:7878", &[], &[]);
         assert!(host_allowed(&any, "192.168.1.5:7878"));
         assert!(!host_allowed(&any, "evil.example:7878"));
+    }
+
+    #[test]
+    fn one_host_agreeing_with_an_absolute_target() {
+        let s = settings("127.0.0.1:7878", &[], &[]);
+        let uri = |u: &str| u.parse::<Uri>().unwrap();
+        let code = |u: &str, h: &HeaderMap| one_host(&s, &uri(u), h).map_err(|e| e.code);
+        let own = headers(&[("host", "127.0.0.1:7878")]);
+        assert_eq!(code("/api/v1/machines", &own), Ok(()));
+        assert_eq!(code("http://127.0.0.1:7878/api/v1/machines", &own), Ok(()));
+        assert_eq!(
+            code("http://evil.example/api/v1/machines", &own),
+            Err("host_not_allowed")
+        );
+        assert_eq!(
+            code("http://localhost:7878/api/v1/machines", &own),
+            Err("host_mismatch")
+        );
+        assert_eq!(code("/", &HeaderMap::new()), Err("host_required"));
+        let mut two = own.clone();
+        two.append("host", "evil.example".parse().unwrap());
+        assert_eq!(code("/", &two), Err("duplicate_host"));
+        let mut binary = HeaderMap::new();
+        binary.insert(
+            "host",
+            axum::http::HeaderValue::from_bytes(b"h\xffst").unwrap(),
+        );
+        assert_eq!(code("/", &binary), Err("invalid_host"));
     }
 
     #[test]

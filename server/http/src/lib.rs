@@ -1,5 +1,6 @@
 //! HTTP API v1. See the README's endpoint table.
 
+pub mod admission;
 pub mod auth;
 mod console;
 pub mod error;
@@ -154,11 +155,12 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
 }
 
 /// The whole HTTP service: the router behind the cross-site and rebinding guard. The guard wraps
-/// the router once (not each route), so a request pays for it once.
-pub fn service(app: SharedApp) -> Service {
+/// the router once (not each route), so a request pays for it once. `admission` is shared with
+/// the accept loop (per-client connections) and read by auth, the event stream and `/metrics`.
+pub fn service(app: SharedApp, admission: std::sync::Arc<admission::Admission>) -> Service {
     use tower::Layer;
     let settings = std::sync::Arc::new(app.settings.clone());
-    guard::Guard(settings).layer(router(app))
+    guard::Guard(settings).layer(router(app).layer(axum::Extension(admission)))
 }
 
 /// What `service` returns: serve it with hyper (requests with an axum `Body`).
@@ -281,7 +283,10 @@ async fn healthz(State(app): State<SharedApp>) -> impl IntoResponse {
         (status = 200, description = "Prometheus text: machine states, job runs by state, plugins, event subscribers, integration queues and drops", content_type = "text/plain", body = String),
         (status = 500, description = "`internal` (the database failed)", body = ErrorBody),
     ))]
-async fn metrics(State(app): State<SharedApp>) -> Result<impl IntoResponse, error::ApiError> {
+async fn metrics(
+    State(app): State<SharedApp>,
+    admission: Option<axum::Extension<std::sync::Arc<admission::Admission>>>,
+) -> Result<impl IntoResponse, error::ApiError> {
     use std::fmt::Write;
     let mut out = String::new();
     let _ = writeln!(
@@ -361,6 +366,9 @@ async fn metrics(State(app): State<SharedApp>) -> Result<impl IntoResponse, erro
         app.bus.subscribers()
     );
     out.push_str(&app.integrations.prometheus());
+    if let Some(axum::Extension(a)) = admission {
+        out.push_str(&a.prometheus());
+    }
     Ok((
         [(
             axum::http::header::CONTENT_TYPE,
