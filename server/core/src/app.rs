@@ -22,6 +22,8 @@ pub struct App {
     pub shutdown: CancellationToken,
     /// Counters of the webhook deliveries and the MQTT bridge, for `/metrics`.
     pub integrations: crate::integrations::IntegrationStats,
+    /// Toolpath previews: cached, bounded, abandoned when their clients leave.
+    pub previews: crate::previews::Previews,
     /// Whether requests must carry a token (any non-loopback bind).
     pub auth_required: bool,
     /// The secret nodes of one store vouch for forwarded requests with (from the store).
@@ -38,6 +40,7 @@ impl App {
             timeout: self.settings.plugin_call_timeout,
             status_interval: self.settings.status_interval,
             programs_dir: self.settings.programs_dir(),
+            max_program_segments: self.settings.max_program_segments,
         }
     }
 }

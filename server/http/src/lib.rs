@@ -361,6 +361,7 @@ async fn metrics(State(app): State<SharedApp>) -> Result<impl IntoResponse, erro
         app.bus.subscribers()
     );
     out.push_str(&app.integrations.prometheus());
+    out.push_str(&app.previews.prometheus());
     Ok((
         [(
             axum::http::header::CONTENT_TYPE,
