@@ -27,6 +27,8 @@ pub struct PreviewStats {
     pub computed: AtomicU64,
     /// Computations abandoned because every client waiting for them had gone.
     pub abandoned: AtomicU64,
+    /// Computations running now.
+    pub computing: AtomicU64,
 }
 
 struct Flight {
@@ -162,8 +164,11 @@ impl Previews {
                 Ok(_) if flag.load(Ordering::Relaxed) => Ok(None),
                 Ok(permit) => {
                     let flag = Arc::clone(&flag);
+                    let stats = Arc::clone(&stats);
                     tokio::task::spawn_blocking(move || {
+                        stats.computing.fetch_add(1, Ordering::Relaxed);
                         let r = compute(&flag);
+                        stats.computing.fetch_sub(1, Ordering::Relaxed);
                         drop(permit);
                         r
                     })
@@ -257,6 +262,8 @@ impl Previews {
              # TYPE fresa_toolpath_computed_total counter\nfresa_toolpath_computed_total {}\n\
              # HELP fresa_toolpath_abandoned_total Toolpath computations abandoned because their clients left.\n\
              # TYPE fresa_toolpath_abandoned_total counter\nfresa_toolpath_abandoned_total {}\n\
+             # HELP fresa_toolpath_computing Toolpath computations running now.\n\
+             # TYPE fresa_toolpath_computing gauge\nfresa_toolpath_computing {}\n\
              # HELP fresa_toolpath_cache_entries Toolpaths kept in memory.\n\
              # TYPE fresa_toolpath_cache_entries gauge\nfresa_toolpath_cache_entries {entries}\n\
              # HELP fresa_toolpath_cache_bytes Bytes of the toolpaths kept in memory.\n\
@@ -264,6 +271,7 @@ impl Previews {
             get(&self.stats.hits),
             get(&self.stats.computed),
             get(&self.stats.abandoned),
+            get(&self.stats.computing),
         )
     }
 }
