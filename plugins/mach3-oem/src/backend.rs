@@ -1236,6 +1236,7 @@ mod tests {
     use super::Chunks;
 
     #[test]
+    #[allow(clippy::unwrap_used)]
     fn chunks_split_on_char_boundaries() {
         let chunks = |text: &str, max: usize| {
             let mut c = Chunks::new(text.as_bytes(), max);

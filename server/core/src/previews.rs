@@ -302,11 +302,12 @@ mod tests {
         // b (4 bytes) and c (4 bytes) fit beside a? 12 > 10: a, the oldest, goes.
         p.get("b".into(), |_| Ok(Some(vec![2; 4]))).await.unwrap();
         p.get("c".into(), |_| Ok(Some(vec![3; 4]))).await.unwrap();
-        let inner = lock(&p.inner);
-        let keys: Vec<_> = inner.cache.iter().map(|(k, _)| k.as_str()).collect();
-        assert_eq!(keys, ["c", "b"]);
-        assert_eq!(inner.cache_bytes, 8);
-        drop(inner);
+        {
+            let inner = lock(&p.inner);
+            let keys: Vec<_> = inner.cache.iter().map(|(k, _)| k.as_str()).collect();
+            assert_eq!(keys, ["c", "b"]);
+            assert_eq!(inner.cache_bytes, 8);
+        }
         // Larger than the whole cache: served, not kept.
         p.get("d".into(), |_| Ok(Some(vec![4; 11]))).await.unwrap();
         assert_eq!(lock(&p.inner).cache.len(), 2);
