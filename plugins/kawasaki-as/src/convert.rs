@@ -181,6 +181,11 @@ impl Envelope {
     }
 }
 
+/// Most robot motions one program may convert to (moves, and arc chords at
+/// `arc_tolerance_mm`): the converted program is held in memory (about 40 bytes a command, so
+/// at most about 400 MB), and at the robot's tens of moves a second it would run for days.
+pub const MAX_COMMANDS: u64 = 10_000_000;
+
 /// One thing the streamer does.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Cmd {

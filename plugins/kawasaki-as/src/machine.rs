@@ -279,6 +279,16 @@ impl KawasakiMachine {
             .convert
             .plan_bounded(&text, tools, max_segments)
             .map_err(|e| match e.kind {
+                fresa_gcode::ErrorKind::Budget if max_segments == crate::convert::MAX_COMMANDS => {
+                    PluginError::new(
+                        "work_budget_exceeded",
+                        format!(
+                            "{e}; kawasaki-as converts at most {} robot motions a program \
+                             (split the program)",
+                            crate::convert::MAX_COMMANDS
+                        ),
+                    )
+                }
                 fresa_gcode::ErrorKind::Budget => PluginError::new(
                     "work_budget_exceeded",
                     format!("{e}; the budget is the server's `max_program_segments`"),
@@ -969,7 +979,12 @@ impl MachineBackend for KawasakiMachine {
     fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {
         let tools =
             fresa_gcode::tool_table(p.tools.iter().map(|t| (t.tool, t.diameter_mm, t.length_mm)));
-        let budget = p.max_segments.unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS);
+        // The converted program is kept whole (the run and resumes index its commands), about
+        // 40 bytes a command: at most MAX_COMMANDS of them, whatever the host's budget.
+        let budget = p
+            .max_segments
+            .unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS)
+            .min(crate::convert::MAX_COMMANDS);
         self.load(
             p.run,
             &p.path,
