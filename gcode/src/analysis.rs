@@ -1,6 +1,6 @@
 //! Whole-program analysis in one streaming pass (constant memory).
 
-use crate::arc::ArcGeometry;
+use crate::arc::{ArcGeometry, WorkBudget};
 use crate::{Config, GcodeError, Interpreter, Motion, Point, SpindleDirection, Warning};
 use serde::{Deserialize, Serialize};
 use std::io::BufRead;
@@ -92,6 +92,10 @@ pub struct Analysis {
     /// First line with A motion: a machine without an A axis refuses the
     /// program naming it.
     pub first_a_line: Option<u32>,
+    /// Segments the program linearises to (moves, and arcs as chords at
+    /// [`Config::arc_tolerance_mm`]): the work it causes, at most
+    /// [`AnalysisOptions::max_segments`].
+    pub segments: u64,
 }
 
 /// Range of the A axis, degrees.
@@ -126,6 +130,11 @@ pub struct AnalysisOptions {
     /// Speed assumed for rapids, mm/min (default 5000).
     pub rapid_mm_min: f64,
     pub config: Config,
+    /// The work budget: a program that linearises to more segments is an
+    /// [`crate::ErrorKind::Budget`] error at the line where it ran out (counted
+    /// from each arc's radius and sweep, so the check stays cheap for a huge arc).
+    /// Default [`crate::DEFAULT_MAX_SEGMENTS`].
+    pub max_segments: u64,
 }
 
 impl Default for AnalysisOptions {
@@ -133,6 +142,7 @@ impl Default for AnalysisOptions {
         AnalysisOptions {
             rapid_mm_min: 5000.0,
             config: Config::default(),
+            max_segments: crate::DEFAULT_MAX_SEGMENTS,
         }
     }
 }
@@ -169,7 +179,9 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
         offset_change_count: 0,
         a_bounds: None,
         first_a_line: None,
+        segments: 0,
     };
+    let mut budget = WorkBudget::new(opts.max_segments, opts.config.arc_tolerance_mm);
     let rapid_rate = if opts.rapid_mm_min > 0.0 {
         opts.rapid_mm_min
     } else {
@@ -184,6 +196,7 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
     let mut mixed_at = None;
     for m in it.by_ref() {
         let m = m?;
+        budget.charge(&m)?;
         let line = m.line();
         let is_move = matches!(
             m,
@@ -292,6 +305,7 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
         }
     }
     a.estimated_seconds = (a.rapid_length_mm / rapid_rate + feed_minutes) * 60.0 + a.dwell_seconds;
+    a.segments = budget.used();
     a.lines = it.lines_read();
     a.units_inch_seen = it.units_inch_seen();
     a.warnings = it.warnings().to_vec();

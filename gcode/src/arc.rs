@@ -1,6 +1,6 @@
 //! Arc geometry (points, bounds, length) and the linearisation adapter.
 
-use crate::{GcodeError, Motion, Plane, Point};
+use crate::{ErrorKind, GcodeError, Motion, Plane, Point};
 use std::f64::consts::{FRAC_PI_2, TAU};
 
 /// Length of (x, y). `f64::hypot` guards against overflow near 1e154 at
@@ -190,6 +190,131 @@ pub fn segments_for(radius: f64, sweep_rad: f64, tolerance: f64) -> u64 {
         1_000_000_000_000
     } else {
         n as u64
+    }
+}
+
+/// Segments `m` becomes when linearised at `tolerance_mm`: 1 for a rapid or straight move, the
+/// number of chords [`linearise`] makes of an arc (computed from its radius, sweep and the
+/// tolerance, without making them), 0 for anything that does not move.
+pub fn segments_of(m: &Motion, tolerance_mm: f64) -> u64 {
+    match m {
+        Motion::Rapid { .. } | Motion::Linear { .. } => 1,
+        Motion::Arc { .. } => ArcGeometry::from_motion(m).map_or(1, |g| {
+            segments_for(g.effective_radius(), g.sweep, tolerance_mm)
+        }),
+        _ => 0,
+    }
+}
+
+/// The work budget [`crate::analyse`] applies by default, in segments (see [`WorkBudget`]).
+pub const DEFAULT_MAX_SEGMENTS: u64 = 100_000_000;
+
+/// How much work a program may cause: at most `limit` segments (moves, and the chords of arcs
+/// at `tolerance_mm`), counted as the motions arrive, before any chord is made. Streaming
+/// consumers stay flat in memory whatever the program; the budget bounds their time, and a
+/// 72-byte `G2 I999999 P10000` (half a billion chords) is refused at its line instead.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WorkBudget {
+    limit: u64,
+    tolerance_mm: f64,
+    used: u64,
+}
+
+impl WorkBudget {
+    pub fn new(limit: u64, tolerance_mm: f64) -> WorkBudget {
+        WorkBudget {
+            limit,
+            tolerance_mm: sanitize(tolerance_mm),
+            used: 0,
+        }
+    }
+
+    /// The most segments allowed.
+    pub fn limit(&self) -> u64 {
+        self.limit
+    }
+
+    /// Segments counted so far.
+    pub fn used(&self) -> u64 {
+        self.used
+    }
+
+    /// Counts `m`'s segments; an [`ErrorKind::Budget`] error at its line once the total would
+    /// pass the limit (nothing is counted then).
+    pub fn charge(&mut self, m: &Motion) -> Result<(), GcodeError> {
+        let n = segments_of(m, self.tolerance_mm);
+        let total = self.used.saturating_add(n);
+        if total > self.limit {
+            return Err(GcodeError {
+                line: m.line(),
+                column: 1,
+                kind: ErrorKind::Budget,
+                message: format!(
+                    "work budget exceeded: this move makes {n} segments (arcs as chords of {} mm) \
+                     on top of the {} before it, more than the budget of {} segments",
+                    self.tolerance_mm, self.used, self.limit
+                ),
+            });
+        }
+        self.used = total;
+        Ok(())
+    }
+}
+
+/// Passes `motions` through, charging each to `budget` first: the motion that would exceed it
+/// becomes an [`ErrorKind::Budget`] error and ends the stream. Put it before [`linearise`] so a
+/// huge arc is refused before its first chord.
+pub fn budgeted<I>(motions: I, budget: WorkBudget) -> Budgeted<I>
+where
+    I: Iterator<Item = Result<Motion, GcodeError>>,
+{
+    Budgeted {
+        inner: motions,
+        budget,
+        failed: false,
+    }
+}
+
+/// Iterator returned by [`budgeted`].
+pub struct Budgeted<I> {
+    inner: I,
+    budget: WorkBudget,
+    failed: bool,
+}
+
+impl<I> Budgeted<I> {
+    /// The budget and what has been counted so far.
+    pub fn budget(&self) -> &WorkBudget {
+        &self.budget
+    }
+    /// The wrapped iterator (e.g. to read an interpreter's warnings).
+    pub fn inner(&self) -> &I {
+        &self.inner
+    }
+    pub fn into_inner(self) -> I {
+        self.inner
+    }
+}
+
+impl<I> Iterator for Budgeted<I>
+where
+    I: Iterator<Item = Result<Motion, GcodeError>>,
+{
+    type Item = Result<Motion, GcodeError>;
+
+    #[inline]
+    fn next(&mut self) -> Option<Self::Item> {
+        if self.failed {
+            return None;
+        }
+        let item = self.inner.next()?;
+        if let Ok(m) = &item {
+            if let Err(e) = self.budget.charge(m) {
+                self.failed = true;
+                return Some(Err(e));
+            }
+        }
+        Some(item)
     }
 }
 

@@ -54,7 +54,10 @@ mod interp;
 mod lex;
 
 pub use analysis::{analyse, Analysis, AnalysisOptions, Bounds, OffsetChangeNote, RotaryBounds};
-pub use arc::{linearise, segments_for, ArcGeometry, Linearise, MIN_TOLERANCE_MM};
+pub use arc::{
+    budgeted, linearise, segments_for, segments_of, ArcGeometry, Budgeted, Linearise, WorkBudget,
+    DEFAULT_MAX_SEGMENTS, MIN_TOLERANCE_MM,
+};
 pub use interp::Interpreter;
 
 use serde::{Deserialize, Serialize};
@@ -407,6 +410,8 @@ pub enum ErrorKind {
     Utf8,
     /// The reader failed, or a line is too long.
     Io,
+    /// The program would cause more work than its [`WorkBudget`] allows.
+    Budget,
 }
 
 /// An error with the source position (1-based line and character column).

@@ -238,3 +238,127 @@ fn absurd_radius_and_turns_are_rejected() {
     assert!(e.message.contains("limit"), "{e}");
     assert!(err("G0 X5\nG3 I-5 P20000 F100").message.contains("turns"));
 }
+
+/// Every move's analytic segment count against what `linearise` actually makes of it.
+fn assert_counts_match(src: &str, tolerance: f64) -> u64 {
+    let motions: Vec<Motion> = Interpreter::new(src.as_bytes(), Config::default())
+        .collect::<Result<_, _>>()
+        .unwrap();
+    let mut total = 0;
+    for m in &motions {
+        let made = linearise(std::iter::once(Ok(m.clone())), tolerance)
+            .filter(|c| matches!(c, Ok(Motion::Linear { .. } | Motion::Rapid { .. })))
+            .count() as u64;
+        assert_eq!(
+            segments_of(m, tolerance),
+            made,
+            "{src:?} at {tolerance}: {m:?}"
+        );
+        total += made;
+    }
+    total
+}
+
+#[test]
+fn analytic_segment_counts_equal_the_linearisation() {
+    let programs = [
+        // Quarter, half and three-quarter arcs, both directions, R and IJK.
+        "G0 X10\nG3 X0 Y10 I-10 F100\nG2 X10 Y0 R10\nG3 X0 Y-10 R-10\n",
+        // Full circles (no axis words), several turns, all planes.
+        "G0 X5\nG2 I-5 F100\nG3 I-5 P3\nG18 G2 X5 Z0 I-5 K0\nG19 G0 X0 Y5 Z0\nG2 J-5 K0 P2\n",
+        // Helices: the normal axis rises with the angle.
+        "G0 X3\nG3 I-3 Z-10 P5 F100\nG18 G0 X0 Y0 Z3\nG2 K-3 Y-4 P2\n",
+        // Tiny radii: fewer than four chords never, one quarter turn at most per chord.
+        "G0 X0.0001\nG2 I-0.0001 F100\nG0 X0.001\nG3 X0 Y0.001 I-0.001\n",
+        // Huge radii (the interpreter's limit is 1e6 mm).
+        "G0 X999999\nG3 X0 Y999999 I-999999 F100\nG0 X0 Y0\nG2 X0 Y0.002 J0.001\n",
+        // A spiral: start and end radius differ within the tolerance.
+        "G0 X10\nG3 X-10.004 Y0 I-10 F100\n",
+        // Straight moves and things that do not move.
+        "G0 X1\nG1 X2 F100\nG4 P1\nM3 S1000\nG1 Y3\nM30\n",
+    ];
+    for src in programs {
+        for tolerance in [0.002, 0.01, 0.1, 1.0, 0.0] {
+            assert_counts_match(src, tolerance);
+        }
+    }
+    // Counted through a whole program the same way (the analysis's `segments`).
+    for src in programs {
+        let a = analyse(src.as_bytes(), &AnalysisOptions::default()).unwrap();
+        let made = Interpreter::new(src.as_bytes(), Config::default())
+            .linearised()
+            .filter(|m| matches!(m, Ok(Motion::Linear { .. } | Motion::Rapid { .. })))
+            .count() as u64;
+        assert_eq!(a.segments, made, "{src:?}");
+    }
+}
+
+#[test]
+fn a_huge_arc_is_refused_at_its_line_before_any_chord() {
+    // ~5e8 chords at 0.002 mm: counted from radius, sweep and tolerance, never made.
+    let src = "G21 G90\nG0 X0 Y0\nG1 F100\nG2 X0 Y0 I999999 J0 P10000\nG0 X1\n";
+    let n = match arcs(src).pop().unwrap() {
+        m @ Motion::Arc { .. } => segments_of(&m, 0.002),
+        _ => unreachable!(),
+    };
+    assert!(n > 400_000_000, "{n}");
+    let e = analyse(src.as_bytes(), &AnalysisOptions::default()).unwrap_err();
+    assert_eq!((e.line, e.column, e.kind), (4, 1, ErrorKind::Budget), "{e}");
+    assert!(e.message.contains(&n.to_string()), "{e}");
+    assert!(e.message.contains(&DEFAULT_MAX_SEGMENTS.to_string()), "{e}");
+    // In front of `linearise`, the stream ends with the error in place of the first chord.
+    let out: Vec<_> = linearise(
+        budgeted(
+            Interpreter::new(src.as_bytes(), Config::default()),
+            WorkBudget::new(1000, 0.002),
+        ),
+        0.002,
+    )
+    .collect();
+    assert_eq!(out.len(), 2, "{out:?}");
+    assert!(matches!(&out[1], Err(e) if e.kind == ErrorKind::Budget && e.line == 4));
+}
+
+#[test]
+fn the_budget_counts_every_segment_and_names_the_line_that_passes_it() {
+    // Line 1: one rapid; line 2: a full circle of 4 chords at a coarse tolerance; line 3: one.
+    let src = "G0 X1\nG2 I-1 F100\nG1 X2\n";
+    let tol = 1.0;
+    let opts = |max_segments| AnalysisOptions {
+        max_segments,
+        config: Config {
+            arc_tolerance_mm: tol,
+            ..Config::default()
+        },
+        ..AnalysisOptions::default()
+    };
+    let a = analyse(src.as_bytes(), &opts(6)).unwrap();
+    assert_eq!(a.segments, 6);
+    for (limit, line) in [(5, 3), (4, 2), (1, 2), (0, 1)] {
+        let e = analyse(src.as_bytes(), &opts(limit)).unwrap_err();
+        assert_eq!((e.line, e.kind), (line, ErrorKind::Budget), "{limit}: {e}");
+    }
+    // Loops count every pass.
+    let looped = "#1=0\nO100 while [#1 LT 10]\nG0 X#1\n#1=[#1+1]\nO100 endwhile\n";
+    let a = analyse(looped.as_bytes(), &opts(10)).unwrap();
+    assert_eq!(a.segments, 10);
+    let e = analyse(looped.as_bytes(), &opts(9)).unwrap_err();
+    assert_eq!((e.line, e.kind), (3, ErrorKind::Budget), "{e}");
+    // Canned cycles: every rapid and feed of every hole.
+    let drill = "G0 X0 Y0 Z5\nG81 X1 Y1 Z-1 R1 F100\nX2\nG80\n";
+    let made = Interpreter::new(drill.as_bytes(), Config::default())
+        .filter(|m| matches!(m, Ok(Motion::Linear { .. } | Motion::Rapid { .. })))
+        .count() as u64;
+    assert_eq!(
+        analyse(drill.as_bytes(), &opts(u64::MAX)).unwrap().segments,
+        made
+    );
+    // Splines: every chord.
+    let spline = "G0 X0 Y0\nG5.1 X10 Y0 I5 J5 F100\n";
+    let made = Interpreter::new(spline.as_bytes(), Config::default())
+        .filter(|m| matches!(m, Ok(Motion::Linear { .. })))
+        .count() as u64;
+    assert!(made > 10, "{made}");
+    let a = analyse(spline.as_bytes(), &AnalysisOptions::default()).unwrap();
+    assert_eq!(a.segments, made + 1);
+}

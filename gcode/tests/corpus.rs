@@ -387,6 +387,12 @@ fn analysis_bounds_equal_streamed_bounds() {
         }
         assert!((a.cutting_length_mm - cl).abs() < 1e-6);
         assert!(a.estimated_seconds > 0.0);
+        // The work budget's count, from each arc's geometry, is what linearising makes.
+        let made = linearise(Interpreter::new(open(&p), Config::default()), 0.002)
+            .map(Result::unwrap)
+            .filter(|m| matches!(m, Motion::Linear { .. } | Motion::Rapid { .. }))
+            .count() as u64;
+        assert_eq!(a.segments, made, "{name}");
     }
 }
 

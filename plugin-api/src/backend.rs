@@ -23,6 +23,8 @@ pub struct LoadProgram {
     pub expected_part_zero: Option<AxisValues>,
     /// The machine's tool table (see [`Request::LoadProgram`]).
     pub tools: Vec<crate::contract::ProgramTool>,
+    /// The work budget (see [`Request::LoadProgram`]).
+    pub max_segments: Option<u64>,
 }
 
 /// A machine backend. Methods may be called concurrently from several host threads (so that
@@ -178,6 +180,7 @@ pub fn dispatch<B: MachineBackend>(b: &B, request: Request) -> Result<Answer, Pl
             start_line,
             expected_part_zero,
             tools,
+            max_segments,
         } => b
             .load_program(LoadProgram {
                 run,
@@ -185,6 +188,7 @@ pub fn dispatch<B: MachineBackend>(b: &B, request: Request) -> Result<Answer, Pl
                 start_line,
                 expected_part_zero,
                 tools,
+                max_segments,
             })
             .map(Answer::Loaded),
         Request::Run { action } => b.run(action).map(Answer::Run),

@@ -401,6 +401,11 @@ pub enum Request {
         /// check validated. Absent: no tools.
         #[serde(default, skip_serializing_if = "Vec::is_empty")]
         tools: Vec<ProgramTool>,
+        /// The work budget: most segments (moves, and arcs as chords) the program may linearise
+        /// to; a backend that interprets it refuses more (`work_budget_exceeded`, naming the
+        /// line) before any motion. Absent: the backend's default (`DEFAULT_MAX_SEGMENTS`).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        max_segments: Option<u64>,
     },
     /// Answer: `{}`.
     Run { action: RunAction },

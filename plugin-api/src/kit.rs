@@ -110,6 +110,68 @@ pub fn read_program(path: &str) -> Result<String, PluginError> {
     })
 }
 
+/// Opens a program file to be read as it runs: checks that all of it is UTF-8 text (the error
+/// names the first line that is not) and counts its lines as `str::lines` does, reading it in
+/// blocks, so memory does not grow with the program. The file comes back rewound; keeping it
+/// open from load to run means the run reads the program that was checked.
+pub fn open_program(path: &str) -> Result<(std::fs::File, u32), PluginError> {
+    use std::io::{Read, Seek};
+    let unreadable = |e: std::io::Error| {
+        PluginError::new("program_unreadable", format!("cannot read {path}: {e}"))
+    };
+    let mut file = std::fs::File::open(path).map_err(unreadable)?;
+    let mut buf = vec![0u8; 1 << 16];
+    // Bytes of a UTF-8 sequence split by the block boundary, moved to the front of `buf`
+    // (never a newline: those are single bytes).
+    let mut carry = 0;
+    let mut newlines: u64 = 0;
+    let mut last = None;
+    loop {
+        let n = match file.read(&mut buf[carry..]) {
+            Ok(n) => n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(unreadable(e)),
+        };
+        let not_utf8 = |line: u64| {
+            PluginError::new(
+                "invalid_program",
+                format!("line {line}: {path} is not UTF-8 text"),
+            )
+        };
+        if n == 0 {
+            if carry > 0 {
+                return Err(not_utf8(newlines + 1));
+            }
+            break;
+        }
+        let before = newlines;
+        newlines += buf[carry..carry + n]
+            .iter()
+            .filter(|b| **b == b'\n')
+            .count() as u64;
+        last = Some(buf[carry + n - 1]);
+        let block = &buf[..carry + n];
+        carry = match std::str::from_utf8(block) {
+            Ok(_) => 0,
+            Err(e) if e.error_len().is_none() => {
+                // An unfinished sequence at the end: completed by the next block (or not).
+                let valid = e.valid_up_to();
+                let len = block.len();
+                buf.copy_within(valid..len, 0);
+                len - valid
+            }
+            Err(e) => {
+                let valid = &block[..e.valid_up_to()];
+                let line = before + valid.iter().filter(|b| **b == b'\n').count() as u64 + 1;
+                return Err(not_utf8(line));
+            }
+        };
+    }
+    let lines = newlines + u64::from(last.is_some_and(|b| b != b'\n'));
+    file.rewind().map_err(unreadable)?;
+    Ok((file, u32::try_from(lines).unwrap_or(u32::MAX)))
+}
+
 /// Refuses a start line past the program's end (one past the last line is a finished run).
 pub fn check_start_line(start_line: u32, lines: u32) -> Result<(), PluginError> {
     if start_line > lines.saturating_add(1) {
@@ -1116,6 +1178,43 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
     use serde_json::json;
+
+    #[test]
+    fn open_program_counts_lines_like_str_lines_and_names_the_line_that_is_not_utf8() {
+        let dir = std::env::temp_dir().join(format!("fresa-kit-open-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("p.nc");
+        let p = path.to_str().unwrap();
+        // A multi-byte character straddling the 64 KiB block boundary, CRLF, no final newline.
+        let mut long = "G0 X1\r\n".repeat(65536 / 7);
+        while long.len() < 65535 {
+            long.push(' ');
+        }
+        long.push_str("é\nG1 X2 F1\n\nG0 X3");
+        for text in ["", "\n", "a", "a\n", "a\nb", "a\r\nb\r\n", long.as_str()] {
+            std::fs::write(&path, text).unwrap();
+            let (mut f, lines) = open_program(p).unwrap();
+            assert_eq!(lines as usize, text.lines().count(), "{text:?}");
+            let mut back = String::new();
+            std::io::Read::read_to_string(&mut f, &mut back).unwrap();
+            assert_eq!(back, text, "rewound");
+            assert_eq!(read_program(p).unwrap(), text);
+        }
+        let mut bad = long.clone().into_bytes();
+        bad.extend_from_slice(b"\nG0 \xff\n");
+        std::fs::write(&path, &bad).unwrap();
+        let e = open_program(p).unwrap_err();
+        let expected = read_program(p).unwrap_err();
+        assert_eq!(
+            (e.code.as_str(), e.message.as_str()),
+            (expected.code.as_str(), expected.message.as_str())
+        );
+        // A sequence cut short by the end of the file.
+        std::fs::write(&path, b"G0 X1\n\xc3").unwrap();
+        let e = open_program(p).unwrap_err();
+        assert!(e.message.starts_with("line 2: "), "{e:?}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     #[test]
     fn travel_refuses_huge_and_non_finite_targets_without_limits() {

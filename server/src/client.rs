@@ -140,6 +140,10 @@ pub enum GcodeCmd {
         /// API gives (`[{"tool": 1, "diameter_mm": 6.0}, ...]`). Without it: no tools.
         #[arg(long)]
         tools: Option<PathBuf>,
+        /// The work budget: most segments (moves, and arcs as 0.002 mm chords) the program
+        /// may linearise to; the server's `max_program_segments`.
+        #[arg(long, default_value_t = fresa_gcode::DEFAULT_MAX_SEGMENTS)]
+        max_segments: u64,
     },
 }
 
@@ -768,6 +772,7 @@ pub fn gcode(cmd: GcodeCmd) -> Res {
             rapid,
             json,
             tools,
+            max_segments,
         } => {
             let tools = match tools {
                 Some(t) => gcode_tools(&t)?,
@@ -781,9 +786,17 @@ pub fn gcode(cmd: GcodeCmd) -> Res {
                     tools,
                     ..Default::default()
                 },
+                max_segments,
             };
             let a = fresa_gcode::analyse(std::io::BufReader::with_capacity(1 << 16, f), &opts)
-                .map_err(|e| format!("{}: {e}", file.display()))?;
+                .map_err(|e| match e.kind {
+                    fresa_gcode::ErrorKind::Budget => format!(
+                        "{}: {e}; raise it with --max-segments (on the server: \
+                         max_program_segments)",
+                        file.display()
+                    ),
+                    _ => format!("{}: {e}", file.display()),
+                })?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&a)?);
                 return Ok(());
@@ -800,6 +813,10 @@ pub fn gcode(cmd: GcodeCmd) -> Res {
             println!(
                 "  moves            {} rapid, {} linear, {} arc",
                 a.rapid_moves, a.linear_moves, a.arc_moves
+            );
+            println!(
+                "  segments         {} (moves and arc chords; budget {max_segments})",
+                a.segments
             );
             println!("  cutting bounds   {}", fmt_b(&a.cutting_bounds));
             println!("  rapid bounds     {}", fmt_b(&a.rapid_bounds));

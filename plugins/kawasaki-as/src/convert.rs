@@ -181,6 +181,11 @@ impl Envelope {
     }
 }
 
+/// Most robot motions one program may convert to (moves, and arc chords at
+/// `arc_tolerance_mm`): the converted program is held in memory (about 40 bytes a command, so
+/// at most about 400 MB), and at the robot's tens of moves a second it would run for days.
+pub const MAX_COMMANDS: u64 = 10_000_000;
+
 /// One thing the streamer does.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Cmd {
@@ -226,6 +231,19 @@ impl Convert {
         text: &str,
         tools: fresa_gcode::ToolTable,
     ) -> Result<Plan, GcodeError> {
+        self.plan_bounded(text, tools, fresa_gcode::DEFAULT_MAX_SEGMENTS)
+    }
+
+    /// [`Convert::plan_with_tools`] within a work budget of `max_segments` robot motions (moves,
+    /// and arcs as chords at `arc_tolerance_mm`), counted before any is made: a program over
+    /// it is an [`fresa_gcode::ErrorKind::Budget`] error naming its line, so the commands kept
+    /// are bounded by the budget whatever one arc asks for.
+    pub fn plan_bounded(
+        &self,
+        text: &str,
+        tools: fresa_gcode::ToolTable,
+        max_segments: u64,
+    ) -> Result<Plan, GcodeError> {
         let lines = u32::try_from(text.lines().count()).unwrap_or(u32::MAX);
         let config = fresa_gcode::Config {
             arc_tolerance_mm: self.arc_tolerance_mm,
@@ -237,7 +255,9 @@ impl Convert {
         let mut cmds = Vec::new();
         let mut speed = None;
         let mut warnings = Vec::new();
-        for motion in linearise(&mut interp, self.arc_tolerance_mm) {
+        let budget = fresa_gcode::WorkBudget::new(max_segments, self.arc_tolerance_mm);
+        let motions = fresa_gcode::budgeted(&mut interp, budget);
+        for motion in linearise(motions, self.arc_tolerance_mm) {
             let motion = motion?;
             let line = motion.line().clamp(1, lines.max(1));
             // The robot's six joints place the tool in X/Y/Z only; a program that turns a
@@ -379,6 +399,29 @@ mod tests {
         assert_eq!(m.describe(), "X=X, Y=-Y, Z=-Z");
         let m = Mapping::from_json(&json!({"x": "-Y", "y": "+X"})).unwrap();
         assert_eq!(m.map([1.0, 2.0, 3.0]), [-2.0, 1.0, -3.0]);
+    }
+
+    #[test]
+    fn a_program_over_the_work_budget_is_refused_before_its_commands_are_made() {
+        // ~2 x 10^8 chords at 0.01 mm: refused at its line, no command kept.
+        let huge = "G0 X0 Y0\nG2 X0 Y0 I999999 J0 P10000 F100\n";
+        let e = conv()
+            .plan_bounded(huge, Default::default(), 1_000_000)
+            .unwrap_err();
+        assert_eq!((e.line, e.kind), (2, fresa_gcode::ErrorKind::Budget), "{e}");
+        // Within it: every chord is a command.
+        let p = conv()
+            .plan_bounded("G0 X5\nG2 I-5 F100\n", Default::default(), 1_000)
+            .unwrap();
+        let moves = p
+            .cmds
+            .iter()
+            .filter(|(_, c)| matches!(c, Cmd::Move { .. }))
+            .count() as u64;
+        assert_eq!(
+            moves,
+            1 + fresa_gcode::segments_for(5.0, std::f64::consts::TAU, 0.01)
+        );
     }
 
     #[test]

@@ -266,6 +266,7 @@ impl KawasakiMachine {
         start_line: u32,
         expected_zero: Option<AxisValues>,
         tools: fresa_gcode::ToolTable,
+        max_segments: u64,
     ) -> Result<ProgramLoaded, PluginError> {
         if self.core.lock().busy {
             return Err(PluginError::new("busy", "a run is in progress"));
@@ -276,8 +277,24 @@ impl KawasakiMachine {
         let plan = self
             .core
             .convert
-            .plan_with_tools(&text, tools)
-            .map_err(|e| PluginError::new("invalid_program", e.to_string()))?;
+            .plan_bounded(&text, tools, max_segments)
+            .map_err(|e| match e.kind {
+                fresa_gcode::ErrorKind::Budget if max_segments == crate::convert::MAX_COMMANDS => {
+                    PluginError::new(
+                        "work_budget_exceeded",
+                        format!(
+                            "{e}; kawasaki-as converts at most {} robot motions a program \
+                             (split the program)",
+                            crate::convert::MAX_COMMANDS
+                        ),
+                    )
+                }
+                fresa_gcode::ErrorKind::Budget => PluginError::new(
+                    "work_budget_exceeded",
+                    format!("{e}; the budget is the server's `max_program_segments`"),
+                ),
+                _ => PluginError::new("invalid_program", e.to_string()),
+            })?;
         if start_line == 0 || start_line > plan.lines.max(1) {
             return Err(PluginError::invalid(format!(
                 "start_line {start_line} is outside the program's lines 1..{}",
@@ -962,7 +979,20 @@ impl MachineBackend for KawasakiMachine {
     fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {
         let tools =
             fresa_gcode::tool_table(p.tools.iter().map(|t| (t.tool, t.diameter_mm, t.length_mm)));
-        self.load(p.run, &p.path, p.start_line, p.expected_part_zero, tools)
+        // The converted program is kept whole (the run and resumes index its commands), about
+        // 40 bytes a command: at most MAX_COMMANDS of them, whatever the host's budget.
+        let budget = p
+            .max_segments
+            .unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS)
+            .min(crate::convert::MAX_COMMANDS);
+        self.load(
+            p.run,
+            &p.path,
+            p.start_line,
+            p.expected_part_zero,
+            tools,
+            budget,
+        )
     }
 
     fn run(&self, action: RunAction) -> Result<RunAnswer, PluginError> {

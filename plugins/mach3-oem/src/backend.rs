@@ -721,6 +721,7 @@ impl Inner {
         path: &str,
         start_line: u32,
         tools: fresa_gcode::ToolTable,
+        max_segments: u64,
     ) -> Result<ProgramLoaded, PluginError> {
         if start_line == 0 {
             return Err(PluginError::invalid(
@@ -728,26 +729,39 @@ impl Inner {
             ));
         }
         self.require("load a program", &[MachineState::Idle, MachineState::Alarm])?;
-        let text = std::fs::read_to_string(path).map_err(|e| {
+        // Read from the file (checked, then sent in chunks), never held whole.
+        let (file, lines) = fresa_plugin_api::kit::open_program(path)?;
+        let unreadable = |e: std::io::Error| {
             PluginError::new("program_unreadable", format!("cannot read {path}: {e}"))
-        })?;
-        // Validate the whole program before anything reaches Mach3.
+        };
+        // Validate the whole program before anything reaches Mach3 (which linearises it
+        // itself: the work budget bounds what that costs it).
         let config = fresa_gcode::Config {
             tools,
             ..Default::default()
         };
-        let interp = fresa_gcode::Interpreter::new(text.as_bytes(), config);
+        let reader =
+            std::io::BufReader::with_capacity(1 << 16, file.try_clone().map_err(unreadable)?);
+        let interp = fresa_gcode::Interpreter::new(reader, config);
         let mut last_active_line = 1;
-        let mut motions = fresa_gcode::linearise(interp, 0.01);
+        let budget = fresa_gcode::WorkBudget::new(max_segments, 0.002);
+        let mut motions = fresa_gcode::budgeted(interp, budget);
         for m in motions.by_ref() {
-            let m = m.map_err(|e| PluginError::new("invalid_program", e.to_string()))?;
+            let m = m.map_err(|e| match e.kind {
+                fresa_gcode::ErrorKind::Budget => PluginError::new(
+                    "work_budget_exceeded",
+                    format!("{e}; the budget is the server's `max_program_segments`"),
+                ),
+                _ => PluginError::new("invalid_program", e.to_string()),
+            })?;
             last_active_line = last_active_line.max(m.line());
         }
         // Mach3 gets the text itself, and it does not speak LinuxCNC's
         // O-word control flow or named parameters: refuse before it sees any.
         // Mach3 would compensate with its own tool table, which Fresa does not know: the path
         // it cuts could differ from the one checked here.
-        if let Some(line) = motions.inner().cutter_comp_line() {
+        let interp = motions.inner();
+        if let Some(line) = interp.cutter_comp_line() {
             return Err(PluginError::new(
                 "invalid_program",
                 format!(
@@ -758,7 +772,7 @@ impl Inner {
         }
         // Mach3 would write G10's offsets and tools into its own tables and keep them; the
         // store is the source of truth for work offsets.
-        if let Some(line) = motions.inner().g10_line() {
+        if let Some(line) = interp.g10_line() {
             return Err(PluginError::new(
                 "invalid_program",
                 format!(
@@ -767,7 +781,7 @@ impl Inner {
                 ),
             ));
         }
-        if let Some(line) = motions.inner().linuxcnc_only_line() {
+        if let Some(line) = interp.linuxcnc_only_line() {
             return Err(PluginError::new(
                 "invalid_program",
                 format!(
@@ -776,28 +790,35 @@ impl Inner {
                 ),
             ));
         }
-        let lines = u32::try_from(text.lines().count()).unwrap_or(u32::MAX);
         if start_line > lines.saturating_add(1) {
             return Err(PluginError::invalid(format!(
                 "start_line {start_line} is past the end of the program ({lines} lines)"
             )));
         }
         let name = format!("fresa-run-{run}.nc");
-        let chunks = chunk(&text, PROGRAM_CHUNK_BYTES);
-        let last = chunks.len() - 1;
-        let mut stored = Value::Null;
-        for (i, data) in chunks.into_iter().enumerate() {
+        let mut file = file;
+        std::io::Seek::rewind(&mut file).map_err(unreadable)?;
+        let mut chunks = Chunks::new(file, PROGRAM_CHUNK_BYTES);
+        let mut next = chunks.next_chunk().map_err(unreadable)?;
+        let mut first = true;
+        let stored = loop {
+            let data = next.unwrap_or_default();
+            next = chunks.next_chunk().map_err(unreadable)?;
+            let last = next.is_none();
             let v = self.exec(
                 vec![Call::WriteProgram {
                     name: name.clone(),
-                    data: data.to_string(),
-                    first: i == 0,
-                    last: i == last,
+                    data,
+                    first,
+                    last,
                 }],
                 false,
             )?;
-            stored = v.into_iter().next().unwrap_or(Value::Null);
-        }
+            first = false;
+            if last {
+                break v.into_iter().next().unwrap_or(Value::Null);
+            }
+        };
         let stored = stored.as_str().map(str::to_owned).ok_or_else(|| {
             PluginError::new(
                 "mach3_error",
@@ -945,20 +966,70 @@ impl Inner {
 }
 
 /// Splits `text` into pieces of at most `max` bytes, on character boundaries; never empty.
-fn chunk(text: &str, max: usize) -> Vec<&str> {
-    let mut out = Vec::new();
-    let mut rest = text;
-    while rest.len() > max {
-        let mut cut = max;
-        while !rest.is_char_boundary(cut) {
-            cut -= 1;
+/// A UTF-8 program file (checked already) in pieces of at most `max` bytes, cut on character
+/// boundaries, read as they are taken: memory is one piece, whatever the program's length.
+struct Chunks<R> {
+    reader: R,
+    max: usize,
+    /// Bytes read but not yet handed out (the start of a character cut by the last read).
+    carry: Vec<u8>,
+    done: bool,
+    started: bool,
+}
+
+impl<R: std::io::Read> Chunks<R> {
+    fn new(reader: R, max: usize) -> Chunks<R> {
+        Chunks {
+            reader,
+            max: max.max(4),
+            carry: Vec::new(),
+            done: false,
+            started: false,
         }
-        let (a, b) = rest.split_at(cut);
-        out.push(a);
-        rest = b;
     }
-    out.push(rest);
-    out
+
+    /// The next piece; `None` after the last. An empty file is one empty piece.
+    fn next_chunk(&mut self) -> std::io::Result<Option<String>> {
+        if self.done {
+            return Ok(None);
+        }
+        let mut buf = std::mem::take(&mut self.carry);
+        let had = buf.len();
+        buf.resize(self.max, 0);
+        let mut len = had;
+        while len < self.max {
+            match self.reader.read(&mut buf[len..]) {
+                Ok(0) => break,
+                Ok(n) => len += n,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e),
+            }
+        }
+        buf.truncate(len);
+        if len < self.max {
+            self.done = true;
+            // The end of a file whose length is a multiple of `max`: no empty last piece.
+            if len == 0 && self.started {
+                return Ok(None);
+            }
+        } else {
+            // Cut before a character the piece's end splits: its bytes start the next piece.
+            let mut cut = len;
+            while cut > 0 && (buf[cut - 1] & 0xC0) == 0x80 {
+                cut -= 1;
+            }
+            if cut > 0 && buf[cut - 1] >= 0xC0 {
+                cut -= 1;
+            } else {
+                cut = len;
+            }
+            self.carry = buf.split_off(cut);
+        }
+        self.started = true;
+        String::from_utf8(buf)
+            .map(Some)
+            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, e))
+    }
 }
 
 impl Mach3Backend {
@@ -1015,7 +1086,9 @@ impl MachineBackend for Mach3Backend {
     fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {
         let tools =
             fresa_gcode::tool_table(p.tools.iter().map(|t| (t.tool, t.diameter_mm, t.length_mm)));
-        self.inner.load_program(p.run, &p.path, p.start_line, tools)
+        let budget = p.max_segments.unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS);
+        self.inner
+            .load_program(p.run, &p.path, p.start_line, tools, budget)
     }
 
     fn run(&self, action: RunAction) -> Result<RunAnswer, PluginError> {
@@ -1160,12 +1233,28 @@ impl Drop for Mach3Backend {
 
 #[cfg(test)]
 mod tests {
-    use super::chunk;
+    use super::Chunks;
 
     #[test]
+    #[allow(clippy::unwrap_used)]
     fn chunks_split_on_char_boundaries() {
-        assert_eq!(chunk("", 4), vec![""]);
-        assert_eq!(chunk("abcdefgh", 4), vec!["abcd", "efgh"]);
-        assert_eq!(chunk("aé bc", 2), vec!["a", "é", " b", "c"]);
+        let chunks = |text: &str, max: usize| {
+            let mut c = Chunks::new(text.as_bytes(), max);
+            let mut out = Vec::new();
+            while let Some(piece) = c.next_chunk().unwrap() {
+                out.push(piece);
+            }
+            out
+        };
+        assert_eq!(chunks("", 4), vec![""]);
+        assert_eq!(chunks("abcdefgh", 4), vec!["abcd", "efgh"]);
+        assert_eq!(chunks("abcdefghi", 4), vec!["abcd", "efgh", "i"]);
+        // A character cut by the end of a piece goes whole into the next one.
+        assert_eq!(chunks("abcé bc", 4), vec!["abc", "é b", "c"]);
+        assert_eq!(chunks("ab€cdefg", 4), vec!["ab", "€c", "defg"]);
+        // Reassembled, they are the program.
+        let text = "G1 X1 (é€)\n".repeat(1000);
+        assert_eq!(chunks(&text, 64).concat(), text);
+        assert!(chunks(&text, 64).iter().all(|c| c.len() <= 64));
     }
 }

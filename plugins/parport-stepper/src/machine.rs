@@ -4,7 +4,7 @@
 
 use crate::config::{Config, Input, PortSpec};
 use crate::output::{realtime_priority, Output, Pacer};
-use crate::planner::{self, Action, Builder, Plan, Start};
+use crate::planner::{self, Action, Builder, Item, PlanEnd, ProgramStream, Start};
 use crate::port::{Port, SharedSimPort, SimPort};
 use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
 use fresa_plugin_api::contract::{
@@ -47,8 +47,45 @@ struct Drive {
     estop: Option<String>,
 }
 
-type Kit = kit::Kit<Plan, Drive>;
-type State = kit::State<Plan, Drive>;
+type Kit = kit::Kit<Program, Drive>;
+type State = kit::State<Program, Drive>;
+
+/// A program checked whole at load (every line interpreted and planned, nothing kept), planned
+/// again as it runs: from the file kept open since, from where the machine was at load.
+#[derive(Debug)]
+pub struct Program {
+    file: std::fs::File,
+    lines: u32,
+    start: Start,
+    start_line: u32,
+    tools: fresa_gcode::ToolTable,
+    max_segments: u64,
+    /// Length and end state of the plan, from the check.
+    end: PlanEnd,
+}
+
+/// Items planned ahead of the output thread (a few ms of motion at least): the planner runs on
+/// a thread of its own, so a slow line never holds up a step.
+const PLAN_QUEUE: usize = 1024;
+
+/// What `execute` needs to know of a plan besides its items.
+struct Summary {
+    lines: u32,
+    total_ticks: u64,
+    end_z: f64,
+    end_lift: bool,
+}
+
+impl Summary {
+    fn of(plan: &planner::Plan) -> Summary {
+        Summary {
+            lines: plan.lines,
+            total_ticks: plan.total_ticks,
+            end_z: plan.end_z,
+            end_lift: plan.end_lift,
+        }
+    }
+}
 
 pub struct Stepper {
     core: Arc<Core>,
@@ -181,7 +218,7 @@ impl Core {
         std::thread::sleep(Duration::from_millis(100));
     }
 
-    fn finish_job(&self, out: &mut Output, job: Job<Plan>) {
+    fn finish_job(&self, out: &mut Output, job: Job<Program>) {
         let run = job.run();
         out.pacer.restart();
         let result = catch_unwind(AssertUnwindSafe(|| self.run_job(out, job)))
@@ -201,7 +238,7 @@ impl Core {
         });
     }
 
-    fn run_job(&self, out: &mut Output, job: Job<Plan>) -> Result<(), Interrupted> {
+    fn run_job(&self, out: &mut Output, job: Job<Program>) -> Result<(), Interrupted> {
         let m = &self.cfg.machine;
         match job {
             Job::Jog(jog) => {
@@ -213,7 +250,9 @@ impl Core {
                 let mut b = Builder::new(m, &start);
                 b.move_to(0, [to[0], to[1]], to[2], Some(jog.feed))
                     .map_err(|e| Interrupted::Alarm(format!("soft limit: {e}")))?;
-                self.execute(out, &b.finish(0), None)
+                let plan = b.finish(0);
+                let summary = Summary::of(&plan);
+                self.execute(out, plan.items.into_iter().map(Ok), summary, None)
             }
             Job::GoToZero => {
                 let (start, path) = {
@@ -225,13 +264,23 @@ impl Core {
                 path.into_iter()
                     .try_for_each(|p| b.move_to(0, [p[0], p[1]], p[2], rapid))
                     .map_err(|e| Interrupted::Alarm(format!("soft limit: {e}")))?;
-                self.execute(out, &b.finish(0), None)
+                let plan = b.finish(0);
+                let summary = Summary::of(&plan);
+                self.execute(out, plan.items.into_iter().map(Ok), summary, None)
             }
             // Not queued by this backend (no MDI); refused rather than ignored.
             Job::Mdi(_) => Err(Interrupted::Failed("parport-stepper runs no MDI".into())),
             Job::Program(l) => {
                 let run = (l.run, l.start_line);
-                self.execute(out, &l.plan, Some(run))
+                let p = &l.plan;
+                let summary = Summary {
+                    lines: p.lines,
+                    total_ticks: p.end.total_ticks,
+                    end_z: p.end.z,
+                    end_lift: p.end.lift,
+                };
+                let items = self.planned(p)?;
+                self.execute(out, items, summary, Some(run))
             }
         }
     }
@@ -264,11 +313,61 @@ impl Core {
         }
     }
 
-    /// Executes a plan on the tick grid. `run` = (run id, first line to acknowledge).
+    /// The items of a loaded program, planned on a thread of its own as the output thread
+    /// takes them (at most [`PLAN_QUEUE`] ahead). Waiting for one (the planner fell behind)
+    /// still sees a stop; the planner ends when the job does.
+    fn planned<'a>(
+        &'a self,
+        p: &Program,
+    ) -> Result<impl Iterator<Item = Result<Item, Interrupted>> + 'a, Interrupted> {
+        let failed =
+            |e: std::io::Error| Interrupted::Failed(format!("cannot read the program again: {e}"));
+        let mut file = p.file.try_clone().map_err(failed)?;
+        std::io::Seek::rewind(&mut file).map_err(failed)?;
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Result<Item, String>>(PLAN_QUEUE);
+        let machine = self.cfg.machine.clone();
+        let (lines, start, start_line) = (p.lines, p.start, p.start_line);
+        let (tools, max_segments) = (p.tools.clone(), p.max_segments);
+        std::thread::Builder::new()
+            .name("parport planner".into())
+            .spawn(move || {
+                let reader = std::io::BufReader::with_capacity(1 << 16, file);
+                let stream = ProgramStream::new(
+                    &machine,
+                    reader,
+                    lines,
+                    &start,
+                    start_line,
+                    tools,
+                    max_segments,
+                );
+                for item in stream {
+                    // The job ended (or was stopped): nobody takes the rest.
+                    if tx.send(item).is_err() {
+                        return;
+                    }
+                }
+            })
+            .map_err(failed)?;
+        Ok(std::iter::from_fn(move || loop {
+            match rx.recv_timeout(Duration::from_millis(1)) {
+                Ok(item) => return Some(item.map_err(Interrupted::Failed)),
+                Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
+                    if self.kit.aborted() {
+                        return Some(Err(Interrupted::Aborted));
+                    }
+                }
+                Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => return None,
+            }
+        }))
+    }
+
+    /// Executes a plan's items on the tick grid. `run` = (run id, first line to acknowledge).
     fn execute(
         &self,
         out: &mut Output,
-        plan: &Plan,
+        items: impl Iterator<Item = Result<Item, Interrupted>>,
+        plan: Summary,
         run: Option<(i64, u32)>,
     ) -> Result<(), Interrupted> {
         let mut tl = Timeline::new(&self.cfg);
@@ -283,11 +382,19 @@ impl Core {
             out.coils_off();
             return Err(tripped(&input));
         }
-        for item in &plan.items {
+        for item in items {
+            let item = item?;
             if let Some((run, _)) = run {
                 // The first item of a later line: every line before it is done.
                 if item.line > next_ack {
-                    self.line_done(run, item.line - 1, &mut next_ack, &mut line_dev, tl.t, plan)?;
+                    self.line_done(
+                        run,
+                        item.line - 1,
+                        &mut next_ack,
+                        &mut line_dev,
+                        tl.t,
+                        &plan,
+                    )?;
                     self.kit.with(|sh, _| sh.line = Some(item.line));
                 }
             }
@@ -364,7 +471,7 @@ impl Core {
             sync_pos(sh, &self.cfg);
         });
         if let Some((run, _)) = run {
-            self.line_done(run, plan.lines, &mut next_ack, &mut line_dev, tl.t, plan)?;
+            self.line_done(run, plan.lines, &mut next_ack, &mut line_dev, tl.t, &plan)?;
         }
         Ok(())
     }
@@ -378,7 +485,7 @@ impl Core {
         next_ack: &mut u32,
         line_dev: &mut Option<(u32, f64)>,
         t: u64,
-        plan: &Plan,
+        plan: &Summary,
     ) -> Result<(), Interrupted> {
         let total = plan.total_ticks.max(1) as f64;
         let percent = ((t as f64 / total) * 100.0).min(100.0);
@@ -426,24 +533,51 @@ impl MachineBackend for Stepper {
             sh.require_still("load a program")?;
             start(&sh)
         };
-        let text = kit::read_program(&p.path)?;
-        let plan = planner::plan_program_with_tools(
-            &self.core.cfg.machine,
-            &text,
+        let (file, lines) = kit::open_program(&p.path)?;
+        let tools = gcode_tools(&p.tools);
+        let max_segments = p.max_segments.unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS);
+        // The whole program planned once, to check it before anything moves; nothing of the
+        // plan is kept but its length and end (it is planned again as it runs).
+        let unreadable = |e: std::io::Error| {
+            PluginError::new("program_unreadable", format!("cannot read {}: {e}", p.path))
+        };
+        let reader =
+            std::io::BufReader::with_capacity(1 << 16, file.try_clone().map_err(unreadable)?);
+        let machine = &self.core.cfg.machine;
+        let mut stream = ProgramStream::new(
+            machine,
+            reader,
+            lines,
             &start,
             actual,
-            gcode_tools(&p.tools),
-        )
-        .map_err(|m| {
-            let code = if m.contains("outside the travel") {
+            tools.clone(),
+            max_segments,
+        );
+        if let Some(Err(m)) = stream.by_ref().find(Result::is_err) {
+            let code = if m.contains("work budget exceeded") {
+                "work_budget_exceeded"
+            } else if m.contains("outside the travel") {
                 "out_of_travel"
             } else {
                 "invalid_program"
             };
-            PluginError::new(code, m)
-        })?;
-        let lines = plan.lines;
-        kit.install_plan(p.run, plan, lines, p.start_line, actual)
+            let m = if code == "work_budget_exceeded" {
+                format!("{m}; the budget is the server's `max_program_segments`")
+            } else {
+                m
+            };
+            return Err(PluginError::new(code, m));
+        }
+        let program = Program {
+            file,
+            lines,
+            start,
+            start_line: actual,
+            tools,
+            max_segments,
+            end: stream.end(),
+        };
+        kit.install_plan(p.run, program, lines, p.start_line, actual)
     }
 
     fn reset(&self) -> Result<(), PluginError> {

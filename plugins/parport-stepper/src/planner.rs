@@ -6,8 +6,10 @@
 //! major step the minor axis is within half a step of the ideal line, and both end on the exact
 //! step counts. Z is a tool lift (on/off), not interpolated.
 
-use fresa_gcode::{linearise, Interpreter, Motion};
+use fresa_gcode::{budgeted, linearise, Budgeted, Interpreter, Linearise, Motion, WorkBudget};
 use fresa_plugin_api::contract::WorkOffset;
+use std::collections::VecDeque;
+use std::io::BufRead;
 
 /// Chord tolerance for arcs, mm.
 pub const ARC_TOLERANCE_MM: f64 = 0.002;
@@ -412,15 +414,223 @@ pub struct Start {
     pub active: WorkOffset,
 }
 
+/// Moves of one chain (consecutive moves with nothing between them) held back at most, waiting
+/// for the moves after them to show how fast they may end. Junction speeds are exact as soon as
+/// the moves ahead leave room to slow down (a few moves on any real program); only a chain of
+/// more than this many moves too short to do so is planned as if it stopped at the end of the
+/// look-ahead, which is slower but always safe.
+pub const LOOKAHEAD_MOVES: usize = 4096;
+
+/// A move waiting in the look-ahead, with what the junction planner needs of it.
+#[derive(Debug)]
+struct Pending {
+    item: Item,
+    /// Top, no-ramp and acceleration path speeds (mm/s, mm/s²), and length (mm).
+    limits: (f64, f64, f64),
+    length_mm: f64,
+    unit: [f64; 2],
+    /// Sum of `2 a L` over the chain's moves up to this one: the square of the speed a move
+    /// can slow down from to a stop by the end of the look-ahead is the difference of two.
+    room: f64,
+    /// The junction to the next move (once it has arrived): its cap, the highest speed the
+    /// corner allows, and the backward pass's value, set when it is released.
+    cap: f64,
+    back: f64,
+}
+
+/// Lets consecutive moves flow into each other instead of stopping at every junction (the
+/// chords of an arc, a polyline): the speed at a junction is the highest at which no axis's
+/// velocity jumps by more than its no-ramp `start_rate`, never above either move's top speed
+/// nor below the stop-to-stop speed, then lowered by a backward and a forward pass so that
+/// every move can reach its exit speed from its entry speed at its acceleration. Anything
+/// between moves (lift, dwell, pause, offset change) is a full stop.
+///
+/// Items go in as they are planned and come out (in order) once their timing is final, with a
+/// look-ahead of at most [`LOOKAHEAD_MOVES`] moves. The backward pass can only raise a
+/// junction's value as more moves arrive, never above its cap; a junction whose cap the moves
+/// ahead can already slow down from (even if they then stopped) has its final value, and so
+/// has every junction before it: those moves are released, their values computed by the same
+/// backward and forward passes as over whole chains, so the plan is the same as blending whole
+/// chains at once. Which junction that is comes from running sums (`room`), in constant time
+/// per move.
+#[derive(Debug)]
+struct Blender {
+    start_mm: [f64; 2],
+    window: VecDeque<Pending>,
+    /// Number of moves ever released: the window's first move has this index.
+    base: u64,
+    /// `room` of the window's newest move.
+    room: f64,
+    /// Junctions (by move index) that could be the newest final one, with the `room` they need
+    /// (`room` before them plus their cap squared): increasing in both, since a later junction
+    /// that needs no more room makes an earlier one irrelevant.
+    candidates: VecDeque<(u64, f64)>,
+    /// Moves of the current chain released so far.
+    released: usize,
+    /// The entry speed of the window's first move, once moves of its chain were released.
+    entry: f64,
+    ready: VecDeque<Item>,
+}
+
+/// Margin on the room a junction needs before it counts as final: the running sums are not
+/// the nested square roots of the backward pass bit for bit.
+const ROOM_MARGIN: f64 = 1e-9;
+
+impl Blender {
+    fn new(machine: &Machine) -> Blender {
+        Blender {
+            start_mm: [
+                machine.axes[0].start_rate / machine.axes[0].steps_per_mm,
+                machine.axes[1].start_rate / machine.axes[1].steps_per_mm,
+            ],
+            window: VecDeque::new(),
+            base: 0,
+            room: 0.0,
+            candidates: VecDeque::new(),
+            released: 0,
+            entry: 0.0,
+            ready: VecDeque::new(),
+        }
+    }
+
+    fn push(&mut self, item: Item) {
+        let Action::Move(m) = &item.action else {
+            self.flush();
+            self.ready.push_back(item);
+            return;
+        };
+        let limits = m.path_limits();
+        let (length_mm, unit) = (m.length_mm, m.unit);
+        let before = self.room;
+        self.room += 2.0 * limits.2 * length_mm;
+        self.window.push_back(Pending {
+            item,
+            limits,
+            length_mm,
+            unit,
+            room: self.room,
+            cap: 0.0,
+            back: 0.0,
+        });
+        let n = self.window.len();
+        if n < 2 {
+            return;
+        }
+        let (a, b) = (&self.window[n - 2], &self.window[n - 1]);
+        let mut cap = a.limits.0.min(b.limits.0);
+        for (ax, start) in self.start_mm.iter().enumerate() {
+            let jump = (a.unit[ax] - b.unit[ax]).abs();
+            if jump > 1e-12 {
+                cap = cap.min(start / jump);
+            }
+        }
+        let cap = cap.max(a.limits.1.min(b.limits.1));
+        self.window[n - 2].cap = cap;
+        let needs = before + cap * cap * (1.0 + ROOM_MARGIN);
+        while self.candidates.back().is_some_and(|c| c.1 >= needs) {
+            self.candidates.pop_back();
+        }
+        self.candidates.push_back((self.base + n as u64 - 2, needs));
+        // The newest junction the moves ahead leave room to slow down from.
+        let have = self.room * (1.0 - ROOM_MARGIN);
+        let mut last_final = None;
+        while let Some(&(j, _)) = self.candidates.front().filter(|c| c.1 <= have) {
+            last_final = Some(j);
+            self.candidates.pop_front();
+        }
+        if let Some(j) = last_final {
+            let k = usize::try_from(j - self.base).unwrap_or(0);
+            // Its value is its cap; the backward pass from it gives the ones before it.
+            self.window[k].back = self.window[k].cap;
+            for i in (0..k).rev() {
+                let after = &self.window[i + 1];
+                let reach =
+                    (after.back * after.back + 2.0 * after.limits.2 * after.length_mm).sqrt();
+                let p = &mut self.window[i];
+                p.back = p.cap.min(reach);
+            }
+            for _ in 0..=k {
+                self.release_first();
+            }
+        }
+        if self.window.len() > LOOKAHEAD_MOVES {
+            // Out of look-ahead: the first junction gets the value it would have if the moves
+            // seen so far then stopped (lower than its final one, so always safe).
+            let first = &self.window[0];
+            let room = (self.room - first.room).max(0.0) * (1.0 - ROOM_MARGIN);
+            let back = first.cap.min(room.sqrt());
+            self.window[0].back = back;
+            if self.candidates.front().is_some_and(|c| c.0 == self.base) {
+                self.candidates.pop_front();
+            }
+            self.release_first();
+        }
+    }
+
+    /// Releases the window's first move, which has a move after it: its exit speed is the
+    /// forward pass's value at its junction.
+    fn release_first(&mut self) {
+        let Some(mut p) = self.window.pop_front() else {
+            return;
+        };
+        self.base += 1;
+        let v_in = if self.released == 0 {
+            p.limits.1
+        } else {
+            self.entry
+        };
+        let reach = (v_in * v_in + 2.0 * p.limits.2 * p.length_mm).sqrt();
+        let v_out = p.back.min(reach);
+        if let Action::Move(m) = &mut p.item.action {
+            m.set_junction_speeds(v_in, v_out);
+        }
+        self.entry = v_out;
+        self.released += 1;
+        self.ready.push_back(p.item);
+    }
+
+    /// The chain ends here: everything waiting is released, the last move ending at its no-ramp
+    /// speed (a chain of one move keeps the profile it was made with).
+    fn flush(&mut self) {
+        // The backward pass from the chain's true end.
+        let n = self.window.len();
+        if let Some(last) = self.window.back() {
+            let mut next = last.limits.1;
+            for k in (0..n - 1).rev() {
+                let after = &self.window[k + 1];
+                let reach = (next * next + 2.0 * after.limits.2 * after.length_mm).sqrt();
+                let p = &mut self.window[k];
+                p.back = p.cap.min(reach);
+                next = p.back;
+            }
+        }
+        while self.window.len() > 1 {
+            self.release_first();
+        }
+        if let Some(mut p) = self.window.pop_front() {
+            self.base += 1;
+            if self.released > 0 {
+                if let Action::Move(m) = &mut p.item.action {
+                    m.set_junction_speeds(self.entry, p.limits.1);
+                }
+            }
+            self.ready.push_back(p.item);
+        }
+        self.released = 0;
+        self.room = 0.0;
+        self.candidates.clear();
+    }
+}
+
 /// Builds plans; keeps the running position between items.
 pub struct Builder<'a> {
     machine: &'a Machine,
-    plan: Plan,
+    blender: Blender,
     steps: [i64; 2],
     z: f64,
     lift: bool,
     offset: [f64; 4],
-    tick: u64,
+    end_offset: Option<WorkOffset>,
     /// Programmed XY end of the last move, machine mm (unquantised): the next ideal line
     /// starts here.
     ideal_xy: [f64; 2],
@@ -430,12 +640,12 @@ impl<'a> Builder<'a> {
     pub fn new(machine: &'a Machine, start: &Start) -> Builder<'a> {
         Builder {
             machine,
-            plan: Plan::default(),
+            blender: Blender::new(machine),
             steps: start.steps,
             z: start.z,
             lift: start.lift,
             offset: start.offsets[start.active.index()],
-            tick: 0,
+            end_offset: None,
             ideal_xy: [
                 start.steps[0] as f64 / machine.axes[0].steps_per_mm,
                 start.steps[1] as f64 / machine.axes[1].steps_per_mm,
@@ -444,13 +654,12 @@ impl<'a> Builder<'a> {
     }
 
     fn push(&mut self, line: u32, action: Action) {
-        let ticks = action.ticks();
-        self.plan.items.push(Item {
+        // Timed when it leaves the look-ahead.
+        self.blender.push(Item {
             line,
-            start_tick: self.tick,
+            start_tick: 0,
             action,
         });
-        self.tick += ticks;
     }
 
     /// The kit's soft-limit check (shared with jogs): also refuses non-finite or huge targets.
@@ -530,7 +739,7 @@ impl<'a> Builder<'a> {
 
     pub fn use_offset(&mut self, line: u32, o: WorkOffset, offsets: &[[f64; 4]; 6]) {
         self.offset = offsets[o.index()];
-        self.plan.end_offset = Some(o);
+        self.end_offset = Some(o);
         self.push(line, Action::UseOffset(o));
     }
 
@@ -538,88 +747,25 @@ impl<'a> Builder<'a> {
         (self.steps, self.z)
     }
 
+    /// The whole plan (jogs, go to zero: a few moves).
     pub fn finish(mut self, lines: u32) -> Plan {
-        blend_junctions(self.machine, &mut self.plan.items);
+        self.blender.flush();
+        let mut plan = Plan {
+            lines,
+            ..Plan::default()
+        };
         let mut tick = 0;
-        for item in &mut self.plan.items {
+        for mut item in self.blender.ready.drain(..) {
             item.start_tick = tick;
             tick += item.action.ticks();
+            plan.items.push(item);
         }
-        self.tick = tick;
-        self.plan.lines = lines;
-        self.plan.total_ticks = self.tick;
-        self.plan.end_steps = self.steps;
-        self.plan.end_z = self.z;
-        self.plan.end_lift = self.lift;
-        self.plan
-    }
-}
-
-/// Lets consecutive moves flow into each other instead of stopping at every junction (the
-/// chords of an arc, a polyline): the speed at a junction is the highest at which no axis's
-/// velocity jumps by more than its no-ramp `start_rate`, never above either move's top speed
-/// nor below the stop-to-stop speed, then lowered by a backward and a forward pass so that
-/// every move can reach its exit speed from its entry speed at its acceleration. Anything
-/// between moves (lift, dwell, pause, offset change) is a full stop.
-fn blend_junctions(machine: &Machine, items: &mut [Item]) {
-    let mut i = 0;
-    while i < items.len() {
-        let run = items[i..]
-            .iter()
-            .take_while(|it| matches!(it.action, Action::Move(_)))
-            .count();
-        if run >= 2 {
-            let moves: Vec<&mut Move> = items[i..i + run]
-                .iter_mut()
-                .filter_map(|it| match &mut it.action {
-                    Action::Move(m) => Some(m),
-                    _ => None,
-                })
-                .collect();
-            blend_chain(machine, moves);
-        }
-        i += run.max(1);
-    }
-}
-
-fn blend_chain(machine: &Machine, mut moves: Vec<&mut Move>) {
-    let n = moves.len();
-    let limits: Vec<(f64, f64, f64)> = moves.iter().map(|m| m.path_limits()).collect();
-    let start_mm = [
-        machine.axes[0].start_rate / machine.axes[0].steps_per_mm,
-        machine.axes[1].start_rate / machine.axes[1].steps_per_mm,
-    ];
-    let mut junction: Vec<f64> = (0..n - 1)
-        .map(|k| {
-            let (a, b) = (&moves[k], &moves[k + 1]);
-            let mut v = limits[k].0.min(limits[k + 1].0);
-            for (ax, start) in start_mm.iter().enumerate() {
-                let jump = (a.unit[ax] - b.unit[ax]).abs();
-                if jump > 1e-12 {
-                    v = v.min(start / jump);
-                }
-            }
-            v.max(limits[k].1.min(limits[k + 1].1))
-        })
-        .collect();
-    // Backward: each move must be able to slow down to its exit speed.
-    let mut next = limits[n - 1].1;
-    for k in (0..n - 1).rev() {
-        let reach = (next * next + 2.0 * limits[k + 1].2 * moves[k + 1].length_mm).sqrt();
-        junction[k] = junction[k].min(reach);
-        next = junction[k];
-    }
-    // Forward: each move must be able to speed up to its exit speed.
-    let mut prev = limits[0].1;
-    for k in 0..n - 1 {
-        let reach = (prev * prev + 2.0 * limits[k].2 * moves[k].length_mm).sqrt();
-        junction[k] = junction[k].min(reach);
-        prev = junction[k];
-    }
-    for (k, m) in moves.iter_mut().enumerate() {
-        let v_in = if k == 0 { limits[0].1 } else { junction[k - 1] };
-        let v_out = if k == n - 1 { limits[k].1 } else { junction[k] };
-        m.set_junction_speeds(v_in, v_out);
+        plan.total_ticks = tick;
+        plan.end_steps = self.steps;
+        plan.end_z = self.z;
+        plan.end_lift = self.lift;
+        plan.end_offset = self.end_offset;
+        plan
     }
 }
 
@@ -635,7 +781,8 @@ pub fn plan_program(
     plan_program_with_tools(machine, text, start, start_line, Default::default())
 }
 
-/// [`plan_program`] with the machine's tool table (G41/G42 `D`).
+/// [`plan_program`] with the machine's tool table (G41/G42 `D`): the items of
+/// [`ProgramStream`] collected.
 pub fn plan_program_with_tools(
     machine: &Machine,
     text: &str,
@@ -644,26 +791,115 @@ pub fn plan_program_with_tools(
     tools: fresa_gcode::ToolTable,
 ) -> Result<Plan, String> {
     let lines = u32::try_from(text.lines().count()).unwrap_or(u32::MAX);
-    let off = start.offsets[start.active.index()];
-    let work = [
-        start.steps[0] as f64 / machine.axes[0].steps_per_mm - off[0],
-        start.steps[1] as f64 / machine.axes[1].steps_per_mm - off[1],
-        start.z - off[2],
-    ];
-    let mut config = fresa_gcode::Config {
-        initial_position: work,
-        arc_tolerance_mm: ARC_TOLERANCE_MM,
+    let mut stream = ProgramStream::new(
+        machine,
+        text.as_bytes(),
+        lines,
+        start,
+        start_line,
         tools,
-        ..Default::default()
+        fresa_gcode::DEFAULT_MAX_SEGMENTS,
+    );
+    let mut plan = Plan {
+        lines,
+        ..Plan::default()
     };
-    for (i, o) in start.offsets.iter().enumerate() {
-        config.work_offsets[i] = [o[0], o[1], o[2]];
+    for item in stream.by_ref() {
+        plan.items.push(item?);
     }
-    let interp = Interpreter::new(text.as_bytes(), config);
-    let mut b = Builder::new(machine, start);
-    let mut offsets_now = off;
-    for motion in linearise(interp, ARC_TOLERANCE_MM) {
-        let motion = motion.map_err(|e| e.to_string())?;
+    let end = stream.end();
+    plan.total_ticks = end.total_ticks;
+    plan.end_steps = end.steps;
+    plan.end_z = end.z;
+    plan.end_lift = end.lift;
+    plan.end_offset = end.offset;
+    Ok(plan)
+}
+
+/// Where a program leaves the machine, and how long it takes: what [`ProgramStream::end`]
+/// knows once the stream has ended.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlanEnd {
+    pub total_ticks: u64,
+    pub steps: [i64; 2],
+    pub z: f64,
+    pub lift: bool,
+    pub offset: Option<WorkOffset>,
+}
+
+/// A program planned as it is read: the items of [`plan_program`], in order, each timed on the
+/// plan's timeline, with memory bounded by the look-ahead whatever the program's length (its
+/// moves and arc chords within a work budget of `max_segments`). Lines before `start_line` are
+/// interpreted for their modal state but not executed. Ends after the first error (named by
+/// line; what was planned before it comes out first, ending at rest).
+pub struct ProgramStream<'m, R: BufRead> {
+    machine: &'m Machine,
+    motions: Linearise<Budgeted<Interpreter<R>>>,
+    builder: Builder<'m>,
+    lines: u32,
+    start_line: u32,
+    offsets: [[f64; 4]; 6],
+    offsets_now: [f64; 4],
+    tick: u64,
+    error: Option<String>,
+    done: bool,
+}
+
+impl<'m, R: BufRead> ProgramStream<'m, R> {
+    pub fn new(
+        machine: &'m Machine,
+        reader: R,
+        lines: u32,
+        start: &Start,
+        start_line: u32,
+        tools: fresa_gcode::ToolTable,
+        max_segments: u64,
+    ) -> ProgramStream<'m, R> {
+        let off = start.offsets[start.active.index()];
+        let work = [
+            start.steps[0] as f64 / machine.axes[0].steps_per_mm - off[0],
+            start.steps[1] as f64 / machine.axes[1].steps_per_mm - off[1],
+            start.z - off[2],
+        ];
+        let mut config = fresa_gcode::Config {
+            initial_position: work,
+            arc_tolerance_mm: ARC_TOLERANCE_MM,
+            tools,
+            ..Default::default()
+        };
+        for (i, o) in start.offsets.iter().enumerate() {
+            config.work_offsets[i] = [o[0], o[1], o[2]];
+        }
+        let interp = Interpreter::new(reader, config);
+        let budget = WorkBudget::new(max_segments, ARC_TOLERANCE_MM);
+        ProgramStream {
+            machine,
+            motions: linearise(budgeted(interp, budget), ARC_TOLERANCE_MM),
+            builder: Builder::new(machine, start),
+            lines,
+            start_line,
+            offsets: start.offsets,
+            offsets_now: off,
+            tick: 0,
+            error: None,
+            done: false,
+        }
+    }
+
+    /// The plan's length and where it leaves the machine (complete once the stream has ended).
+    pub fn end(&self) -> PlanEnd {
+        PlanEnd {
+            total_ticks: self.tick,
+            steps: self.builder.steps,
+            z: self.builder.z,
+            lift: self.builder.lift,
+            offset: self.builder.end_offset,
+        }
+    }
+
+    /// Plans one motion.
+    fn take(&mut self, motion: Motion) -> Result<(), String> {
+        let lines = self.lines;
         let line = motion.line().clamp(1, lines.max(1));
         // Two steppers and a Z output: no A axis. Refused whole (wherever the run
         // starts), before anything moves.
@@ -673,11 +909,13 @@ pub fn plan_program_with_tools(
                 a.to
             ));
         }
-        let run = line >= start_line;
+        let run = line >= self.start_line;
+        let off = self.offsets_now;
+        let b = &mut self.builder;
         match motion {
             Motion::Rapid { to, .. } if run => {
-                let m = [to[0] + offsets_now[0], to[1] + offsets_now[1]];
-                b.move_to(line, m, to[2] + offsets_now[2], Some(machine.rapid_mm_min))
+                let m = [to[0] + off[0], to[1] + off[1]];
+                b.move_to(line, m, to[2] + off[2], Some(self.machine.rapid_mm_min))
                     .map_err(|e| format!("line {line}: {e}"))?;
             }
             Motion::Linear {
@@ -686,8 +924,8 @@ pub fn plan_program_with_tools(
             | Motion::Arc {
                 to, feed_mm_min, ..
             } if run => {
-                let m = [to[0] + offsets_now[0], to[1] + offsets_now[1]];
-                b.move_to(line, m, to[2] + offsets_now[2], Some(feed_mm_min))
+                let m = [to[0] + off[0], to[1] + off[1]];
+                b.move_to(line, m, to[2] + off[2], Some(feed_mm_min))
                     .map_err(|e| format!("line {line}: {e}"))?;
             }
             Motion::Dwell { seconds, .. } if run => b.dwell(line, seconds),
@@ -699,18 +937,359 @@ pub fn plan_program_with_tools(
                     .checked_sub(1)
                     .and_then(|i| WorkOffset::ALL.get(i))
                 {
-                    offsets_now = start.offsets[o.index()];
+                    self.offsets_now = self.offsets[o.index()];
                     if run {
-                        b.use_offset(line, *o, &start.offsets);
+                        b.use_offset(line, *o, &self.offsets);
                     } else {
-                        b.offset = offsets_now;
+                        b.offset = self.offsets_now;
                     }
                 }
             }
             _ => {}
         }
+        Ok(())
     }
-    Ok(b.finish(lines))
+}
+
+impl<R: BufRead> Iterator for ProgramStream<'_, R> {
+    type Item = Result<Item, String>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        loop {
+            if let Some(mut item) = self.builder.blender.ready.pop_front() {
+                item.start_tick = self.tick;
+                self.tick += item.action.ticks();
+                return Some(Ok(item));
+            }
+            if self.done {
+                return self.error.take().map(Err);
+            }
+            let taken = match self.motions.next() {
+                None => {
+                    self.done = true;
+                    Ok(())
+                }
+                Some(Ok(m)) => self.take(m),
+                Some(Err(e)) => Err(e.to_string()),
+            };
+            if let Err(e) = taken {
+                self.error = Some(e);
+                self.done = true;
+            }
+            if self.done {
+                self.builder.blender.flush();
+            }
+        }
+    }
+}
+
+/// The planner as it was before it streamed (whole chains blended at once), kept as the
+/// reference the streaming planner must equal.
+#[cfg(test)]
+#[allow(dead_code)]
+mod reference {
+    use super::*;
+
+    /// Builds plans; keeps the running position between items.
+    pub struct Builder<'a> {
+        machine: &'a Machine,
+        plan: Plan,
+        steps: [i64; 2],
+        z: f64,
+        lift: bool,
+        offset: [f64; 4],
+        tick: u64,
+        /// Programmed XY end of the last move, machine mm (unquantised): the next ideal line
+        /// starts here.
+        ideal_xy: [f64; 2],
+    }
+
+    impl<'a> Builder<'a> {
+        pub fn new(machine: &'a Machine, start: &Start) -> Builder<'a> {
+            Builder {
+                machine,
+                plan: Plan::default(),
+                steps: start.steps,
+                z: start.z,
+                lift: start.lift,
+                offset: start.offsets[start.active.index()],
+                tick: 0,
+                ideal_xy: [
+                    start.steps[0] as f64 / machine.axes[0].steps_per_mm,
+                    start.steps[1] as f64 / machine.axes[1].steps_per_mm,
+                ],
+            }
+        }
+
+        fn push(&mut self, line: u32, action: Action) {
+            let ticks = action.ticks();
+            self.plan.items.push(Item {
+                line,
+                start_tick: self.tick,
+                action,
+            });
+            self.tick += ticks;
+        }
+
+        /// The kit's soft-limit check (shared with jogs): also refuses non-finite or huge targets.
+        fn check_travel(&self, machine_xy: [f64; 2], z: f64) -> Result<(), String> {
+            let [x, y] = self.machine.travel;
+            fresa_plugin_api::kit::check_travel(
+                &[x, y, None, None],
+                [machine_xy[0], machine_xy[1], z, 0.0],
+            )
+        }
+
+        fn set_lift(&mut self, line: u32, on: bool, z: f64) {
+            if on != self.lift {
+                self.lift = on;
+                self.push(
+                    line,
+                    Action::Lift {
+                        on,
+                        settle: self.machine.lift_settle_ticks,
+                        z,
+                    },
+                );
+            }
+        }
+
+        /// A straight move to machine XY `to` (mm) and machine Z `z`. Lifting happens before the XY
+        /// motion, lowering after it (Z is not interpolated).
+        pub fn move_to(
+            &mut self,
+            line: u32,
+            to: [f64; 2],
+            z: f64,
+            feed_mm_min: Option<f64>,
+        ) -> Result<(), String> {
+            self.check_travel(to, z)?;
+            let lift = z - self.offset[2] > self.machine.lift_above_mm;
+            if lift {
+                self.set_lift(line, true, z);
+            }
+            let spm = [
+                self.machine.axes[0].steps_per_mm,
+                self.machine.axes[1].steps_per_mm,
+            ];
+            let target = [
+                (to[0] * spm[0]).round() as i64,
+                (to[1] * spm[1]).round() as i64,
+            ];
+            if target != self.steps {
+                let m = Move::new(
+                    self.machine,
+                    self.steps,
+                    target,
+                    [self.ideal_xy, to],
+                    feed_mm_min,
+                );
+                self.steps = target;
+                self.push(line, Action::Move(m));
+            }
+            self.ideal_xy = to;
+            if !lift {
+                self.set_lift(line, false, z);
+            }
+            self.z = z;
+            Ok(())
+        }
+
+        pub fn dwell(&mut self, line: u32, seconds: f64) {
+            let ticks = (seconds.max(0.0) * self.machine.tick_hz).round() as u64;
+            if ticks > 0 {
+                self.push(line, Action::Dwell(ticks));
+            }
+        }
+
+        pub fn pause(&mut self, line: u32) {
+            self.push(line, Action::Pause);
+        }
+
+        pub fn use_offset(&mut self, line: u32, o: WorkOffset, offsets: &[[f64; 4]; 6]) {
+            self.offset = offsets[o.index()];
+            self.plan.end_offset = Some(o);
+            self.push(line, Action::UseOffset(o));
+        }
+
+        pub fn position(&self) -> ([i64; 2], f64) {
+            (self.steps, self.z)
+        }
+
+        pub fn finish(mut self, lines: u32) -> Plan {
+            blend_junctions(self.machine, &mut self.plan.items);
+            let mut tick = 0;
+            for item in &mut self.plan.items {
+                item.start_tick = tick;
+                tick += item.action.ticks();
+            }
+            self.tick = tick;
+            self.plan.lines = lines;
+            self.plan.total_ticks = self.tick;
+            self.plan.end_steps = self.steps;
+            self.plan.end_z = self.z;
+            self.plan.end_lift = self.lift;
+            self.plan
+        }
+    }
+
+    /// Lets consecutive moves flow into each other instead of stopping at every junction (the
+    /// chords of an arc, a polyline): the speed at a junction is the highest at which no axis's
+    /// velocity jumps by more than its no-ramp `start_rate`, never above either move's top speed
+    /// nor below the stop-to-stop speed, then lowered by a backward and a forward pass so that
+    /// every move can reach its exit speed from its entry speed at its acceleration. Anything
+    /// between moves (lift, dwell, pause, offset change) is a full stop.
+    fn blend_junctions(machine: &Machine, items: &mut [Item]) {
+        let mut i = 0;
+        while i < items.len() {
+            let run = items[i..]
+                .iter()
+                .take_while(|it| matches!(it.action, Action::Move(_)))
+                .count();
+            if run >= 2 {
+                let moves: Vec<&mut Move> = items[i..i + run]
+                    .iter_mut()
+                    .filter_map(|it| match &mut it.action {
+                        Action::Move(m) => Some(m),
+                        _ => None,
+                    })
+                    .collect();
+                blend_chain(machine, moves);
+            }
+            i += run.max(1);
+        }
+    }
+
+    fn blend_chain(machine: &Machine, mut moves: Vec<&mut Move>) {
+        let n = moves.len();
+        let limits: Vec<(f64, f64, f64)> = moves.iter().map(|m| m.path_limits()).collect();
+        let start_mm = [
+            machine.axes[0].start_rate / machine.axes[0].steps_per_mm,
+            machine.axes[1].start_rate / machine.axes[1].steps_per_mm,
+        ];
+        let mut junction: Vec<f64> = (0..n - 1)
+            .map(|k| {
+                let (a, b) = (&moves[k], &moves[k + 1]);
+                let mut v = limits[k].0.min(limits[k + 1].0);
+                for (ax, start) in start_mm.iter().enumerate() {
+                    let jump = (a.unit[ax] - b.unit[ax]).abs();
+                    if jump > 1e-12 {
+                        v = v.min(start / jump);
+                    }
+                }
+                v.max(limits[k].1.min(limits[k + 1].1))
+            })
+            .collect();
+        // Backward: each move must be able to slow down to its exit speed.
+        let mut next = limits[n - 1].1;
+        for k in (0..n - 1).rev() {
+            let reach = (next * next + 2.0 * limits[k + 1].2 * moves[k + 1].length_mm).sqrt();
+            junction[k] = junction[k].min(reach);
+            next = junction[k];
+        }
+        // Forward: each move must be able to speed up to its exit speed.
+        let mut prev = limits[0].1;
+        for k in 0..n - 1 {
+            let reach = (prev * prev + 2.0 * limits[k].2 * moves[k].length_mm).sqrt();
+            junction[k] = junction[k].min(reach);
+            prev = junction[k];
+        }
+        for (k, m) in moves.iter_mut().enumerate() {
+            let v_in = if k == 0 { limits[0].1 } else { junction[k - 1] };
+            let v_out = if k == n - 1 { limits[k].1 } else { junction[k] };
+            m.set_junction_speeds(v_in, v_out);
+        }
+    }
+
+    /// Plans a whole G-code program, validating all of it first. Lines before `start_line` are
+    /// interpreted for their modal state but not executed: the first executed move starts from
+    /// where the machine is. Errors name the line (and column for G-code errors).
+    pub fn _plan_program(
+        machine: &Machine,
+        text: &str,
+        start: &Start,
+        start_line: u32,
+    ) -> Result<Plan, String> {
+        plan_program_with_tools(machine, text, start, start_line, Default::default())
+    }
+
+    /// [`plan_program`] with the machine's tool table (G41/G42 `D`).
+    pub fn plan_program_with_tools(
+        machine: &Machine,
+        text: &str,
+        start: &Start,
+        start_line: u32,
+        tools: fresa_gcode::ToolTable,
+    ) -> Result<Plan, String> {
+        let lines = u32::try_from(text.lines().count()).unwrap_or(u32::MAX);
+        let off = start.offsets[start.active.index()];
+        let work = [
+            start.steps[0] as f64 / machine.axes[0].steps_per_mm - off[0],
+            start.steps[1] as f64 / machine.axes[1].steps_per_mm - off[1],
+            start.z - off[2],
+        ];
+        let mut config = fresa_gcode::Config {
+            initial_position: work,
+            arc_tolerance_mm: ARC_TOLERANCE_MM,
+            tools,
+            ..Default::default()
+        };
+        for (i, o) in start.offsets.iter().enumerate() {
+            config.work_offsets[i] = [o[0], o[1], o[2]];
+        }
+        let interp = Interpreter::new(text.as_bytes(), config);
+        let mut b = Builder::new(machine, start);
+        let mut offsets_now = off;
+        for motion in linearise(interp, ARC_TOLERANCE_MM) {
+            let motion = motion.map_err(|e| e.to_string())?;
+            let line = motion.line().clamp(1, lines.max(1));
+            // Two steppers and a Z output: no A axis. Refused whole (wherever the run
+            // starts), before anything moves.
+            if let Some(a) = motion.rotary() {
+                return Err(format!(
+                    "line {line}: A axis motion (to A{}): this machine has no A axis",
+                    a.to
+                ));
+            }
+            let run = line >= start_line;
+            match motion {
+                Motion::Rapid { to, .. } if run => {
+                    let m = [to[0] + offsets_now[0], to[1] + offsets_now[1]];
+                    b.move_to(line, m, to[2] + offsets_now[2], Some(machine.rapid_mm_min))
+                        .map_err(|e| format!("line {line}: {e}"))?;
+                }
+                Motion::Linear {
+                    to, feed_mm_min, ..
+                }
+                | Motion::Arc {
+                    to, feed_mm_min, ..
+                } if run => {
+                    let m = [to[0] + offsets_now[0], to[1] + offsets_now[1]];
+                    b.move_to(line, m, to[2] + offsets_now[2], Some(feed_mm_min))
+                        .map_err(|e| format!("line {line}: {e}"))?;
+                }
+                Motion::Dwell { seconds, .. } if run => b.dwell(line, seconds),
+                Motion::Pause {
+                    optional: false, ..
+                } if run => b.pause(line),
+                Motion::WorkOffset { system, .. } => {
+                    if let Some(o) = usize::from(system)
+                        .checked_sub(1)
+                        .and_then(|i| WorkOffset::ALL.get(i))
+                    {
+                        offsets_now = start.offsets[o.index()];
+                        if run {
+                            b.use_offset(line, *o, &start.offsets);
+                        } else {
+                            b.offset = offsets_now;
+                        }
+                    }
+                }
+                _ => {}
+            }
+        }
+        Ok(b.finish(lines))
+    }
 }
 
 #[cfg(test)]
@@ -945,7 +1524,159 @@ mod tests {
         assert_eq!(plan.end_steps, [280, 0]);
     }
 
+    /// The streaming planner against the whole-chain planner of before, item by item (bit for
+    /// bit: the same floats come out of the same formulas).
+    fn same_as_before(m: &Machine, text: &str, start: &Start, start_line: u32) {
+        let new = plan_program(m, text, start, start_line);
+        let old =
+            reference::plan_program_with_tools(m, text, start, start_line, Default::default());
+        if let (Ok(a), Ok(b)) = (&new, &old) {
+            let first = a.items.iter().zip(&b.items).position(|(x, y)| x != y);
+            assert!(
+                first.is_none() && a.items.len() == b.items.len(),
+                "{text:.60}: {} vs {} items, first difference at {first:?}: {:?} vs {:?}",
+                a.items.len(),
+                b.items.len(),
+                first.map(|i| &a.items[i]),
+                first.map(|i| &b.items[i])
+            );
+        }
+        assert_eq!(new, old, "{text:.200}");
+    }
+
+    /// The programs of this crate's tests (these and tests/sim_port.rs) and the shared corpus.
+    fn test_programs() -> Vec<String> {
+        let mut v: Vec<String> = [
+            "G21 G90\nG0 X10 Y0\nG2 X0 Y-10 I-10 J0 F300\n",
+            "G0 X10\nG2 X10 Y0 I-10 J0 F600\n",
+            "G1 X20 F6000\nG1 Y20\n",
+            "G1 X20 F6000\nG1 X40\n",
+            "G0 Z5\nG0 X1\nG1 X2 Z-1 F100\n",
+            "G0 X10\nG1 X20\n",
+            "G91\nG0 X1\nG0 X1\n",
+            "G21 G90\nG1 X60 Y30 F600\nG1 X-7.5 Y12.25\n",
+            "G21 G90\nG0 X10 Y0\nG3 X-10 Y0 I-10 J0 F600\n",
+            "G1 X50 Y5 F600\n",
+            "G1 X100 Y20 F60000\n",
+            "G0 X1\nG4 P0.5\nG1 X2 F100\nM0\nG1 X3\nG55\nG1 X4\nG0 Z3\nG1 X5\nG1 Z-1\n",
+        ]
+        .map(String::from)
+        .to_vec();
+        v.push(
+            (0..2000)
+                .map(|i| format!("G1 X{} F60000\n(comment)\n", (i % 2) as f64 * 0.5))
+                .collect(),
+        );
+        let corpus =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/corpus/gcode");
+        for e in std::fs::read_dir(&corpus).unwrap() {
+            v.push(std::fs::read_to_string(e.unwrap().path()).unwrap());
+        }
+        v
+    }
+
+    #[test]
+    fn the_streaming_planner_plans_what_the_whole_chain_planner_did() {
+        let m = machine();
+        let mut offsets = [[0.0; 4]; 6];
+        offsets[1] = [5.0, -3.0, 0.0, 0.0];
+        let shifted = Start {
+            steps: [140, -70],
+            offsets,
+            ..start()
+        };
+        let mut fast = machine();
+        for ax in &mut fast.axes {
+            ax.max_rate = 10_000.0;
+            ax.start_rate = 50.0;
+            ax.accel = 500.0;
+        }
+        fast.lift_above_mm = 0.5;
+        for text in test_programs() {
+            for start_line in [1, 3] {
+                same_as_before(&m, &text, &start(), start_line);
+                same_as_before(&fast, &text, &shifted, start_line);
+            }
+        }
+    }
+
+    #[test]
+    fn the_look_ahead_is_bounded_and_what_it_cuts_short_stays_safe() {
+        // A fast machine with slow acceleration on a straight line of short moves: braking
+        // from full speed takes metres, far more than the look-ahead's 4096 moves of 0.03 mm.
+        let mut m = machine();
+        for ax in &mut m.axes {
+            ax.max_rate = 10_000.0;
+            ax.start_rate = 100.0;
+            ax.accel = 50.0;
+        }
+        let prog: String = (1..=3 * LOOKAHEAD_MOVES)
+            .map(|i| format!("G1 X{} F100000\n", i as f64 * 0.03))
+            .collect();
+        let lines = prog.lines().count() as u32;
+        let mut stream = ProgramStream::new(
+            &m,
+            prog.as_bytes(),
+            lines,
+            &start(),
+            1,
+            Default::default(),
+            u64::MAX,
+        );
+        let mut items = Vec::new();
+        while let Some(item) = stream.next() {
+            assert!(stream.builder.blender.window.len() <= LOOKAHEAD_MOVES);
+            items.push(item.unwrap());
+        }
+        assert_eq!(items.len(), 3 * LOOKAHEAD_MOVES);
+        // Every junction is entered at the speed the move before it left with, and each move
+        // can go from its entry to its exit speed within its length.
+        let mut exit: Option<f64> = None;
+        for item in &items {
+            let Action::Move(mv) = &item.action else {
+                panic!("{item:?}")
+            };
+            let p = mv.profile;
+            if let Some(e) = exit {
+                let k = mv.steps_per_path_mm();
+                let entry = p.entry_rate() / k;
+                assert!((entry - e).abs() <= 1e-6 * e.max(1.0), "{entry} vs {e}");
+            }
+            let reach = (p.entry_rate().powi(2) + 2.0 * mv.accel * p.n as f64).sqrt();
+            assert!(p.exit_rate() <= reach + 1e-9);
+            exit = Some(p.exit_rate() / mv.steps_per_path_mm());
+        }
+        // The whole-chain planner went faster; the bounded one, planning a stop at the end of
+        // what it can see, is slower (never faster).
+        let whole =
+            reference::plan_program_with_tools(&m, &prog, &start(), 1, Default::default()).unwrap();
+        let (ours, theirs): (u64, u64) = (
+            items.iter().map(|i| i.action.ticks()).sum(),
+            whole.total_ticks,
+        );
+        assert!(ours > theirs, "{ours} <= {theirs}");
+    }
+
     proptest! {
+        #[test]
+        fn streamed_polylines_equal_the_whole_chain_plan(
+            pts in proptest::collection::vec((-50i32..50, -50i32..50, 0u8..4), 2..40),
+        ) {
+            let m = machine();
+            let mut prog = String::from("G1 F3000\n");
+            for (x, y, kind) in &pts {
+                prog.push_str(&match kind {
+                    0 => format!("G1 X{} Y{}\n", *x as f64 / 7.0, *y as f64 / 3.0),
+                    1 => format!("G0 X{} Y{}\n", *x as f64 / 5.0, *y as f64 / 9.0),
+                    2 => format!("G2 X{} Y{} R40\n", *x as f64 / 7.0, *y as f64 / 3.0),
+                    _ => "G4 P0.01\n".to_string(),
+                });
+            }
+            let new = plan_program(&m, &prog, &start(), 1);
+            let old = reference::plan_program_with_tools(&m, &prog, &start(), 1, Default::default());
+            prop_assert_eq!(new, old);
+        }
+
         #[test]
         fn blended_polylines_at_the_top_rate_keep_one_step_per_tick(
             pts in proptest::collection::vec((-50i32..50, -50i32..50), 2..6),

@@ -4,7 +4,7 @@
 //! slice.
 
 use crate::config::Config;
-use crate::program::{self, Plan, Step};
+use crate::program::{self, Plan, Refusal, Step};
 use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
 use fresa_plugin_api::contract::{
     io, Axis, IoValue, MachineState, MachineStatus, OutputName, ProgramLoaded,
@@ -18,6 +18,9 @@ use std::sync::{Arc, MutexGuard};
 use std::time::{Duration, Instant};
 
 pub use fresa_plugin_api::kit::EventSink;
+
+/// Most segments one MDI line may make: its moves are all checked, then queued together.
+const MDI_MAX_SEGMENTS: u64 = 1_000_000;
 
 /// Longest time the motion thread goes without looking at stop / feed hold.
 const SLICE: Duration = Duration::from_millis(5);
@@ -139,27 +142,31 @@ impl Core {
     }
 
     fn run_program(&self, l: Loaded<Plan>) -> Result<(), Interrupted> {
-        let steps = &l.plan.steps;
-        // Lines before the start line are interpreted (done at load) but not executed: only
-        // their modal effects carry over.
-        let skip = steps.partition_point(|(line, _)| *line < l.start_line);
-        self.kit.with(|sh, _| {
-            for (_, step) in &steps[..skip] {
-                match step {
-                    Step::Move { feed: Some(f), .. } => sh.feed = *f,
-                    Step::UseOffset(o) => sh.active = *o,
-                    _ => {}
-                }
+        // Interpreted again as it runs (it was checked whole at load): memory stays flat.
+        let failed = |e: fresa_gcode::GcodeError| Interrupted::Failed(e.to_string());
+        let mut steps = l.plan.steps().map_err(failed)?.peekable();
+        // Lines before the start line are interpreted but not executed: only their modal
+        // effects carry over.
+        while let Some(Ok((line, _))) = steps.peek() {
+            if *line >= l.start_line {
+                break;
             }
-        });
-        let mut cursor = skip;
+            if let Some(Ok((_, step))) = steps.next() {
+                self.kit.with(|sh, _| match step {
+                    Step::Move { feed: Some(f), .. } => sh.feed = f,
+                    Step::UseOffset(o) => sh.active = o,
+                    _ => {}
+                });
+            }
+        }
         for line in l.start_line..=l.plan.lines {
             // No new line starts while held or after a stop, even one without motion.
             self.kit.line_gate()?;
             self.kit.with(|sh, _| sh.line = Some(line));
-            while let Some((_, step)) = steps.get(cursor).filter(|(sl, _)| *sl <= line) {
-                self.run_step(step)?;
-                cursor += 1;
+            while let Some(next) = steps.next_if(|s| s.as_ref().map_or(true, |(sl, _)| *sl <= line))
+            {
+                let (_, step) = next.map_err(failed)?;
+                self.run_step(&step)?;
             }
             self.kit.lines_done(l.run, line..=line, Vec::new())?;
         }
@@ -362,15 +369,21 @@ impl MachineBackend for SimMachine {
                 sh.pos[3],
             )
         };
-        let text = kit::read_program(&p.path)?;
+        let (file, lines) = kit::open_program(&p.path)?;
         let xyz = offsets.map(|o| [o[0], o[1], o[2]]);
         let tools =
             fresa_gcode::tool_table(p.tools.iter().map(|t| (t.tool, t.diameter_mm, t.length_mm)));
-        let plan = program::plan(&text, work, xyz, tools)
-            .map_err(|e| PluginError::new("invalid_program", e.to_string()))?;
-        plan.check_moves(&offsets, active, a, |p| self.core.cfg.check_travel(p))
-            .map_err(|m| PluginError::new("out_of_travel", m))?;
-        let lines = plan.lines;
+        let budget = p.max_segments.unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS);
+        let plan = program::plan_file(file, lines, work, xyz, tools, budget);
+        plan.check(&offsets, active, a, |p| self.core.cfg.check_travel(p))
+            .map_err(|r| match r {
+                Refusal::Gcode(e) if e.kind == fresa_gcode::ErrorKind::Budget => PluginError::new(
+                    "work_budget_exceeded",
+                    format!("{e}; the budget is the server's `max_program_segments`"),
+                ),
+                Refusal::Gcode(e) => PluginError::new("invalid_program", e.to_string()),
+                Refusal::Travel(m) => PluginError::new("out_of_travel", m),
+            })?;
         kit.install_plan(p.run, plan, lines, p.start_line, start)
     }
 
@@ -433,12 +446,16 @@ impl MachineBackend for SimMachine {
             offsets.map(|o| [o[0], o[1], o[2]]),
             fresa_gcode::ToolTable::new(),
         )
-        .map_err(|e| PluginError::new("invalid_gcode", format!("MDI {line:?}: {e}")))?;
+        .with_max_segments(MDI_MAX_SEGMENTS);
+        let invalid = |e: fresa_gcode::GcodeError| {
+            PluginError::new("invalid_gcode", format!("MDI {line:?}: {e}"))
+        };
         let mut moves = Vec::new();
-        for (_, step) in &plan.steps {
+        for step in plan.steps().map_err(invalid)? {
+            let (_, step) = step.map_err(invalid)?;
             match step {
                 Step::Move { to, a: to_a, feed } => {
-                    let target = program::machine_target(*to, *to_a, &offsets[active.index()], a);
+                    let target = program::machine_target(to, to_a, &offsets[active.index()], a);
                     a = target[3];
                     self.core.cfg.check_travel(target).map_err(|m| {
                         PluginError::new("out_of_travel", format!("MDI {line:?} refused: {m}"))

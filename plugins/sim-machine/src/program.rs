@@ -1,7 +1,9 @@
-//! A loaded program, interpreted once up front into the steps the machine executes.
+//! A loaded program: checked whole at load, then interpreted again as it runs, step by step, so
+//! memory does not grow with the program (or with one huge arc).
 
-use fresa_gcode::{linearise, GcodeError, Interpreter, Motion};
+use fresa_gcode::{budgeted, linearise, Budgeted, GcodeError, Interpreter, Linearise, Motion};
 use fresa_plugin_api::contract::WorkOffset;
+use std::io::{BufRead, Seek};
 
 /// Chord tolerance for arcs, mm.
 pub const ARC_TOLERANCE_MM: f64 = 0.002;
@@ -25,25 +27,95 @@ pub enum Step {
     UseOffset(WorkOffset),
 }
 
-/// A whole program, ready to run.
-#[derive(Debug, Clone, PartialEq)]
+/// Where a plan's text comes from: the program file, kept open from load to run (so the run
+/// reads what was checked), or a string (MDI lines, tests).
+#[derive(Debug)]
+enum Source {
+    File(std::fs::File),
+    Text(String),
+}
+
+/// A program, ready to run: what it needs to be interpreted again, step by step.
+#[derive(Debug)]
 pub struct Plan {
     /// Number of source lines (every one is acknowledged).
     pub lines: u32,
-    /// Steps in execution order, each with its 1-based source line (<= `lines`).
-    pub steps: Vec<(u32, Step)>,
+    source: Source,
+    config: fresa_gcode::Config,
+    max_segments: u64,
 }
 
-/// Interprets the whole program. `initial_position` is where the tool is, in program
+/// Why a program cannot run here.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Refusal {
+    /// A G-code error (the work budget's included), with line and column.
+    Gcode(GcodeError),
+    /// A move outside the travel: `line L: message`.
+    Travel(String),
+}
+
+/// The steps of a [`Plan`] in execution order, each with its 1-based source line (<= `lines`).
+pub struct Steps<'a> {
+    motions: Linearise<Budgeted<Interpreter<Box<dyn BufRead + 'a>>>>,
+    lines: u32,
+}
+
+impl Iterator for Steps<'_> {
+    type Item = Result<(u32, Step), GcodeError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        loop {
+            let motion = match self.motions.next()? {
+                Ok(m) => m,
+                Err(e) => return Some(Err(e)),
+            };
+            let line = motion.line().clamp(1, self.lines.max(1));
+            let step = match motion {
+                Motion::Rapid { to, a, .. } => Step::Move {
+                    to,
+                    a: a.map(|a| a.to),
+                    feed: None,
+                },
+                Motion::Linear {
+                    to, feed_mm_min, a, ..
+                } => Step::Move {
+                    to,
+                    a: a.map(|a| a.to),
+                    feed: Some(feed_mm_min),
+                },
+                // `linearise` turns every arc into chords; an arc here would be a bug there.
+                Motion::Arc {
+                    to, feed_mm_min, ..
+                } => Step::Move {
+                    to,
+                    a: None,
+                    feed: Some(feed_mm_min),
+                },
+                Motion::Dwell { seconds, .. } => Step::Dwell(seconds),
+                Motion::Pause {
+                    optional: false, ..
+                } => Step::Pause,
+                Motion::WorkOffset { system, .. } => match system {
+                    1..=6 => Step::UseOffset(WorkOffset::ALL[usize::from(system) - 1]),
+                    _ => continue,
+                },
+                // Spindle, coolant, tool changes, messages, M1 (optional stop off) and the end
+                // of the program do not move the simulated machine.
+                _ => continue,
+            };
+            return Some(Ok((line, step)));
+        }
+    }
+}
+
+/// The interpreter settings of a plan. `initial_position` is where the tool is, in program
 /// coordinates (X, Y, Z, A); `work_offsets` the machine origin of G54..G59 (XYZ); `tools` the
 /// machine's tool table (G41/G42 `D`).
-pub fn plan(
-    text: &str,
+fn config(
     initial_position: [f64; 4],
     work_offsets: [[f64; 3]; 6],
     tools: fresa_gcode::ToolTable,
-) -> Result<Plan, GcodeError> {
-    let lines = u32::try_from(text.lines().count()).unwrap_or(u32::MAX);
+) -> fresa_gcode::Config {
     let [x, y, z, a] = initial_position;
     let mut config = fresa_gcode::Config {
         initial_position: [x, y, z],
@@ -52,73 +124,106 @@ pub fn plan(
         ..Default::default()
     };
     config.work_offsets[..6].copy_from_slice(&work_offsets);
-    let interp = Interpreter::new(text.as_bytes(), config);
-    let mut steps = Vec::new();
-    for motion in linearise(interp, ARC_TOLERANCE_MM) {
-        let motion = motion?;
-        let line = motion.line().clamp(1, lines.max(1));
-        let step = match motion {
-            Motion::Rapid { to, a, .. } => Step::Move {
-                to,
-                a: a.map(|a| a.to),
-                feed: None,
-            },
-            Motion::Linear {
-                to, feed_mm_min, a, ..
-            } => Step::Move {
-                to,
-                a: a.map(|a| a.to),
-                feed: Some(feed_mm_min),
-            },
-            // `linearise` turns every arc into chords; an arc here would be a bug there.
-            Motion::Arc {
-                to, feed_mm_min, ..
-            } => Step::Move {
-                to,
-                a: None,
-                feed: Some(feed_mm_min),
-            },
-            Motion::Dwell { seconds, .. } => Step::Dwell(seconds),
-            Motion::Pause {
-                optional: false, ..
-            } => Step::Pause,
-            Motion::WorkOffset { system, .. } => match system {
-                1..=6 => Step::UseOffset(WorkOffset::ALL[usize::from(system) - 1]),
-                _ => continue,
-            },
-            // Spindle, coolant, tool changes, messages, M1 (optional stop off) and the end of
-            // the program do not move the simulated machine.
-            _ => continue,
-        };
-        steps.push((line, step));
+    config
+}
+
+/// A plan of `text` (an MDI line, a test program), within the default work budget.
+pub fn plan(
+    text: &str,
+    initial_position: [f64; 4],
+    work_offsets: [[f64; 3]; 6],
+    tools: fresa_gcode::ToolTable,
+) -> Plan {
+    Plan {
+        lines: u32::try_from(text.lines().count()).unwrap_or(u32::MAX),
+        source: Source::Text(text.to_string()),
+        config: config(initial_position, work_offsets, tools),
+        max_segments: fresa_gcode::DEFAULT_MAX_SEGMENTS,
     }
-    Ok(Plan { lines, steps })
+}
+
+/// A plan of the program `file` of `lines` lines (see `kit::open_program`), within a work
+/// budget of `max_segments`.
+pub fn plan_file(
+    file: std::fs::File,
+    lines: u32,
+    initial_position: [f64; 4],
+    work_offsets: [[f64; 3]; 6],
+    tools: fresa_gcode::ToolTable,
+    max_segments: u64,
+) -> Plan {
+    Plan {
+        lines,
+        source: Source::File(file),
+        config: config(initial_position, work_offsets, tools),
+        max_segments,
+    }
 }
 
 impl Plan {
-    /// Checks every move against `check` (given machine coordinates), using `offsets` (the
-    /// machine origins of G54..G59) starting in `active`. Returns `line L: message`.
-    pub fn check_moves(
+    /// The same plan within another work budget.
+    pub fn with_max_segments(self, max_segments: u64) -> Plan {
+        Plan {
+            max_segments,
+            ..self
+        }
+    }
+
+    /// The steps from the start of the program, interpreted as they are taken.
+    pub fn steps(&self) -> Result<Steps<'_>, GcodeError> {
+        let reader: Box<dyn BufRead + '_> = match &self.source {
+            Source::File(f) => {
+                let mut f = f;
+                f.rewind().map_err(|e| GcodeError {
+                    line: 1,
+                    column: 1,
+                    kind: fresa_gcode::ErrorKind::Io,
+                    message: format!("cannot read the program again: {e}"),
+                })?;
+                Box::new(std::io::BufReader::with_capacity(1 << 16, f))
+            }
+            Source::Text(t) => Box::new(t.as_bytes()),
+        };
+        let interp = Interpreter::new(reader, self.config.clone());
+        let budget = fresa_gcode::WorkBudget::new(self.max_segments, ARC_TOLERANCE_MM);
+        Ok(Steps {
+            motions: linearise(budgeted(interp, budget), ARC_TOLERANCE_MM),
+            lines: self.lines,
+        })
+    }
+
+    /// Interprets the whole program once and checks every move against `check` (given machine
+    /// coordinates), using `offsets` (the machine origins of G54..G59) starting in `active`.
+    /// A G-code error anywhere wins over a move outside the travel (as when the program was
+    /// interpreted whole before its moves were checked).
+    pub fn check(
         &self,
         offsets: &[[f64; 4]; 6],
         active: WorkOffset,
         start_a: f64,
         check: impl Fn([f64; 4]) -> Result<(), String>,
-    ) -> Result<(), String> {
+    ) -> Result<(), Refusal> {
         let mut offset = offsets[active.index()];
         let mut machine_a = start_a;
-        for (line, step) in &self.steps {
+        let mut outside = None;
+        for step in self.steps().map_err(Refusal::Gcode)? {
+            let (line, step) = step.map_err(Refusal::Gcode)?;
+            if outside.is_some() {
+                continue;
+            }
             match step {
                 Step::Move { to, a, .. } => {
-                    let target = machine_target(*to, *a, &offset, machine_a);
+                    let target = machine_target(to, a, &offset, machine_a);
                     machine_a = target[3];
-                    check(target).map_err(|m| format!("line {line}: {m}"))?;
+                    if let Err(m) = check(target) {
+                        outside = Some(format!("line {line}: {m}"));
+                    }
                 }
                 Step::UseOffset(o) => offset = offsets[o.index()],
                 _ => {}
             }
         }
-        Ok(())
+        outside.map_or(Ok(()), |m| Err(Refusal::Travel(m)))
     }
 }
 
@@ -131,4 +236,155 @@ pub fn machine_target(to: [f64; 3], a: Option<f64>, offset: &[f64; 4], current_a
         to[2] + offset[2],
         a.map_or(current_a, |a| a + offset[3]),
     ]
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    /// The planner as it was before it streamed: every step of the program in one vector.
+    fn whole(text: &str, start: [f64; 4], offsets: [[f64; 3]; 6]) -> Vec<(u32, Step)> {
+        let lines = u32::try_from(text.lines().count()).unwrap_or(u32::MAX);
+        let interp = Interpreter::new(text.as_bytes(), config(start, offsets, Default::default()));
+        let mut steps = Vec::new();
+        for motion in linearise(interp, ARC_TOLERANCE_MM) {
+            let motion = motion.unwrap();
+            let line = motion.line().clamp(1, lines.max(1));
+            let step = match motion {
+                Motion::Rapid { to, a, .. } => Step::Move {
+                    to,
+                    a: a.map(|a| a.to),
+                    feed: None,
+                },
+                Motion::Linear {
+                    to, feed_mm_min, a, ..
+                } => Step::Move {
+                    to,
+                    a: a.map(|a| a.to),
+                    feed: Some(feed_mm_min),
+                },
+                Motion::Arc {
+                    to, feed_mm_min, ..
+                } => Step::Move {
+                    to,
+                    a: None,
+                    feed: Some(feed_mm_min),
+                },
+                Motion::Dwell { seconds, .. } => Step::Dwell(seconds),
+                Motion::Pause {
+                    optional: false, ..
+                } => Step::Pause,
+                Motion::WorkOffset { system, .. } => match system {
+                    1..=6 => Step::UseOffset(WorkOffset::ALL[usize::from(system) - 1]),
+                    _ => continue,
+                },
+                _ => continue,
+            };
+            steps.push((line, step));
+        }
+        steps
+    }
+
+    /// The programs of the sim-machine's tests (tests/sim.rs and the black-box tests) and the
+    /// shared corpus.
+    fn programs() -> Vec<String> {
+        let mut v: Vec<String> = [
+            "G21 G90\nG0 X10 Y5 Z2\nG1 Z-1 F300\nG2 X20 Y5 I5 J0\nG3 X10 Y5 R5\nG4 P0.5\nM0\nG1 X0\nM30\n",
+            "G90 G0 X1\nG55\nG0 X2\nG54 G1 X3 F100\nG59.1 G0 X4\nG56\nG0 A90 X1\nG1 A0 F3600\n",
+            "G0 X5\nG2 I-5 P3 Z-3 F600\nG18 G3 X0 Z2 I-5 K0\nG19 G91 G2 Y10 J5 K0\nG90\n",
+            "G91 G0 X1\nG0 X1\nG90 G81 X5 Y5 Z-1 R1 F100\nX6\nG80\n",
+        ]
+        .map(String::from)
+        .to_vec();
+        let mut back = String::from("G21 G90\n");
+        for i in 0..200 {
+            back.push_str(&format!("G1 X{} F600\n", i % 2));
+        }
+        v.push(back);
+        let corpus =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/corpus/gcode");
+        for e in std::fs::read_dir(&corpus).unwrap() {
+            let text = std::fs::read_to_string(e.unwrap().path()).unwrap();
+            // Only what interprets to the end (errors are compared below, by line).
+            let ok = Interpreter::new(text.as_bytes(), Default::default()).all(|m| m.is_ok());
+            if ok {
+                v.push(text);
+            }
+        }
+        v
+    }
+
+    #[test]
+    fn streamed_steps_are_the_whole_plan_of_before() {
+        let start = [1.0, -2.0, 3.0, 0.0];
+        let offsets = [
+            [0.0; 3],
+            [10.0, 0.0, 0.0],
+            [0.0; 3],
+            [0.0; 3],
+            [0.0; 3],
+            [0.0; 3],
+        ];
+        for text in programs() {
+            let plan = plan(&text, start, offsets, Default::default());
+            let streamed: Vec<_> = plan.steps().unwrap().map(Result::unwrap).collect();
+            assert_eq!(streamed, whole(&text, start, offsets), "{text:.80}");
+            // A second pass (the run after the load's check) yields the same again.
+            let again: Vec<_> = plan.steps().unwrap().map(Result::unwrap).collect();
+            assert_eq!(again, streamed);
+        }
+        // From a file too.
+        let dir = std::env::temp_dir().join(format!("fresa-sim-plan-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("p.nc");
+        let text = &programs()[0];
+        std::fs::write(&path, text).unwrap();
+        let (file, lines) = fresa_plugin_api::kit::open_program(path.to_str().unwrap()).unwrap();
+        let plan = plan_file(file, lines, start, offsets, Default::default(), 1000);
+        for _ in 0..2 {
+            let streamed: Vec<_> = plan.steps().unwrap().map(Result::unwrap).collect();
+            assert_eq!(streamed, whole(text, start, offsets));
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_check_refuses_the_budget_gcode_errors_and_travel_naming_the_line() {
+        let offsets = [[0.0; 4]; 6];
+        let travel = |p: [f64; 4]| {
+            if p[0] > 100.0 {
+                Err(format!("X={} is outside the travel", p[0]))
+            } else {
+                Ok(())
+            }
+        };
+        let check = |text: &str| {
+            plan(text, [0.0; 4], [[0.0; 3]; 6], Default::default()).check(
+                &offsets,
+                WorkOffset::G54,
+                0.0,
+                travel,
+            )
+        };
+        assert_eq!(check("G0 X10\nG1 X20 F100\n"), Ok(()));
+        assert_eq!(
+            check("G0 X10\nG0 X200\n"),
+            Err(Refusal::Travel(
+                "line 2: X=200 is outside the travel".into()
+            ))
+        );
+        // A G-code error later in the program wins, as before.
+        match check("G0 X200\nG1 X1 Q3 F1\n") {
+            Err(Refusal::Gcode(e)) => assert_eq!(e.line, 2),
+            other => panic!("{other:?}"),
+        }
+        // ~5e8 chords: refused at its line before the first chord, in constant memory.
+        match check("G0 X0 Y0\nG2 X0 Y0 I999999 J0 P10000 F100\n") {
+            Err(Refusal::Gcode(e)) => {
+                assert_eq!((e.line, e.kind), (2, fresa_gcode::ErrorKind::Budget), "{e}")
+            }
+            other => panic!("{other:?}"),
+        }
+    }
 }

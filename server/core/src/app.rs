@@ -22,6 +22,8 @@ pub struct App {
     pub shutdown: CancellationToken,
     /// Counters of the webhook deliveries and the MQTT bridge, for `/metrics`.
     pub integrations: crate::integrations::IntegrationStats,
+    /// Toolpath previews: cached, bounded, abandoned when their clients leave.
+    pub previews: crate::previews::Previews,
     /// Whether requests must carry a token (any non-loopback bind).
     pub auth_required: bool,
     /// The secret nodes of one store vouch for forwarded requests with (from the store).
@@ -39,6 +41,7 @@ impl App {
             status_interval: self.settings.status_interval,
             programs_dir: self.settings.programs_dir(),
             unstored_dir: self.settings.data_dir.join(crate::machine::unstored::DIR),
+            max_program_segments: self.settings.max_program_segments,
         }
     }
 }

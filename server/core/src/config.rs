@@ -67,6 +67,15 @@ pub struct FileConfig {
     pub max_connections_per_client: Option<usize>,
     /// Failed token attempts one address may make a minute before it is refused for a while.
     pub max_auth_failures_per_minute: Option<u32>,
+    // Work budget and toolpath previews (issue #23, work budget).
+    /// Most segments (moves, and arcs as chords at 0.002 mm) a program may linearise to:
+    /// checked at upload, by the backend at start and by the toolpath.
+    pub max_program_segments: Option<u64>,
+    /// Toolpaths kept in memory, at most this many bytes and this many entries.
+    pub toolpath_cache_bytes: Option<u64>,
+    pub toolpath_cache_entries: Option<usize>,
+    /// Toolpath computations at a time; more requests wait for one to finish.
+    pub toolpath_max_concurrent: Option<usize>,
 }
 
 /// `[webhooks]`: how deliveries are retried.
@@ -411,6 +420,10 @@ pub struct Settings {
     /// What the config file says that deserves a word in the log; resolved before logging is
     /// set up (the log filter comes from the file), so `serve` logs them.
     pub warnings: Vec<String>,
+    // Work budget and toolpath previews (issue #23, work budget).
+    /// `max_program_segments`: the work budget of one program.
+    pub max_program_segments: u64,
+    pub toolpath: ToolpathSettings,
     // ---- HTTP edges (issue 23) ----
     pub edges: EdgeLimits,
 }
@@ -485,6 +498,31 @@ fn edge_limits(file: EdgeKeys, max_connections: usize) -> Result<EdgeLimits, Con
         )?,
     })
 }
+
+/// How toolpath previews are computed and kept.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ToolpathSettings {
+    pub cache_bytes: u64,
+    pub cache_entries: usize,
+    pub max_concurrent: usize,
+}
+
+impl Default for ToolpathSettings {
+    fn default() -> Self {
+        ToolpathSettings {
+            cache_bytes: DEFAULT_TOOLPATH_CACHE_BYTES,
+            cache_entries: DEFAULT_TOOLPATH_CACHE_ENTRIES,
+            max_concurrent: DEFAULT_TOOLPATH_MAX_CONCURRENT,
+        }
+    }
+}
+
+/// The largest toolpath (2,000,000 vertices, 34 MB) fits twice; a typical one (250,000
+/// vertices, 4.25 MB) about 15 times.
+pub const DEFAULT_TOOLPATH_CACHE_BYTES: u64 = 64 << 20;
+pub const DEFAULT_TOOLPATH_CACHE_ENTRIES: usize = 32;
+/// One core of the usual two for previews, one left for everything else.
+pub const DEFAULT_TOOLPATH_MAX_CONCURRENT: usize = 1;
 
 /// This process among the nodes that share one store.
 #[derive(Debug, Clone)]
@@ -803,6 +841,37 @@ impl Settings {
             },
             max_connections,
         )?;
+        let max_program_segments = bounded(
+            "max_program_segments",
+            file.max_program_segments,
+            fresa_gcode::DEFAULT_MAX_SEGMENTS,
+            1,
+            1_000_000_000_000,
+        )?;
+        let t = ToolpathSettings::default();
+        let toolpath = ToolpathSettings {
+            cache_bytes: bounded(
+                "toolpath_cache_bytes",
+                file.toolpath_cache_bytes,
+                t.cache_bytes,
+                0,
+                1 << 40,
+            )?,
+            cache_entries: bounded(
+                "toolpath_cache_entries",
+                file.toolpath_cache_entries,
+                t.cache_entries,
+                0,
+                100_000,
+            )?,
+            max_concurrent: bounded(
+                "toolpath_max_concurrent",
+                file.toolpath_max_concurrent,
+                t.max_concurrent,
+                1,
+                64,
+            )?,
+        };
         Ok(Settings {
             listen,
             data_dir,
@@ -831,6 +900,8 @@ impl Settings {
             mqtt: mqtt(file.mqtt, o.mqtt_url)?,
             warnings,
             edges,
+            max_program_segments,
+            toolpath,
         })
     }
 
@@ -1108,6 +1179,31 @@ mod tests {
             ("idle_timeout_secs = 4000\n", "idle_timeout_secs"),
             ("upload_idle_timeout_secs = 0\n", "upload_idle_timeout_secs"),
             ("max_connections = 0\n", "max_connections"),
+        ] {
+            let e = resolve(toml).unwrap_err().to_string();
+            assert!(e.contains(key), "{toml}: {e}");
+        }
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn work_budget_and_toolpath_settings_have_defaults_and_bounds() {
+        let (dir, resolve) = toml_resolver("fresa-cfg5");
+        let s = resolve("").unwrap();
+        assert_eq!(s.max_program_segments, fresa_gcode::DEFAULT_MAX_SEGMENTS);
+        assert_eq!(s.toolpath, ToolpathSettings::default());
+        let s = resolve("max_program_segments = 1000\ntoolpath_max_concurrent = 3\ntoolpath_cache_entries = 0\n")
+            .unwrap();
+        assert_eq!(s.max_program_segments, 1000);
+        assert_eq!(s.toolpath.max_concurrent, 3);
+        assert_eq!(s.toolpath.cache_entries, 0);
+        for (toml, key) in [
+            ("max_program_segments = 0\n", "max_program_segments"),
+            ("toolpath_max_concurrent = 0\n", "toolpath_max_concurrent"),
+            (
+                "toolpath_cache_entries = 1000000\n",
+                "toolpath_cache_entries",
+            ),
         ] {
             let e = resolve(toml).unwrap_err().to_string();
             assert!(e.contains(key), "{toml}: {e}");

@@ -43,7 +43,7 @@ pub async fn store_program(
         tools: crate::tools::gcode_table(app, machine_id).await?,
         ..fresa_gcode::Config::default()
     };
-    let analysis = analyse(&program, config).await?;
+    let analysis = analyse(&program, config, app.settings.max_program_segments).await?;
     let sha = program.sha256.clone();
     let (lines, bytes) = (program.lines, program.bytes);
     let dir = app.settings.programs_dir();
@@ -125,6 +125,7 @@ async fn unsupported_policy(app: &App, machine_id: i64) -> Result<fresa_gcode::U
 async fn analyse(
     program: &StoredProgram,
     config: fresa_gcode::Config,
+    max_segments: u64,
 ) -> Result<Option<serde_json::Value>> {
     let path = program
         .temp_path()
@@ -135,6 +136,7 @@ async fn analyse(
         let reader = std::io::BufReader::with_capacity(1 << 16, file);
         let opts = fresa_gcode::AnalysisOptions {
             config,
+            max_segments,
             ..fresa_gcode::AnalysisOptions::default()
         };
         Ok::<_, std::io::Error>(fresa_gcode::analyse(reader, &opts))
@@ -144,16 +146,15 @@ async fn analyse(
     .map_err(|e| Error::internal(format!("cannot read the stored program: {e}")))?;
     match result {
         Ok(a) => Ok(Some(json!(a))),
-        Err(e) => Err(Error::invalid(
-            "invalid_gcode",
-            format!("G-code error at {e}"),
-        )),
+        Err(e) => Err(gcode_error(&e, max_segments)),
     }
 }
 
 /// A job's toolpath in the preview format of [`crate::toolpath`], at most `max_vertices`
-/// vertices, interpreted with the same unsupported-word policy as its upload.
-pub async fn toolpath(app: &App, job_id: i64, max_vertices: usize) -> Result<Vec<u8>> {
+/// vertices, interpreted with the same unsupported-word policy and tool table as its upload and
+/// within the work budget. Computed once and cached (see [`crate::previews`]); abandoned when
+/// the caller stops waiting for it.
+pub async fn toolpath(app: &App, job_id: i64, max_vertices: usize) -> Result<Arc<Vec<u8>>> {
     let job = app
         .store
         .job(job_id)
@@ -161,24 +162,57 @@ pub async fn toolpath(app: &App, job_id: i64, max_vertices: usize) -> Result<Vec
         .ok_or_else(|| Error::not_found("unknown_job", format!("no job with id {job_id}")))?;
     let unsupported = unsupported_policy(app, job.machine_id).await?;
     let tools = crate::tools::gcode_table(app, job.machine_id).await?;
+    let max_segments = app.settings.max_program_segments;
+    let key = {
+        use std::fmt::Write;
+        let mut k = format!(
+            "{}|{max_vertices}|{unsupported:?}|{max_segments}|",
+            job.sha256
+        );
+        for (n, t) in &tools {
+            let _ = write!(k, "{n}:{:?}:{:?};", t.diameter_mm, t.length_mm);
+        }
+        k
+    };
     let path =
         crate::programs::local_copy(&app.store, &app.settings.programs_dir(), &job.sha256).await?;
-    tokio::task::spawn_blocking(move || {
-        let file = std::fs::File::open(&path).map_err(|e| {
-            Error::internal(format!("program file {} is missing: {e}", path.display()))
-        })?;
-        let reader = std::io::BufReader::with_capacity(1 << 16, file);
-        let config = fresa_gcode::Config {
-            unsupported,
-            tools,
-            ..fresa_gcode::Config::default()
-        };
-        crate::toolpath::Toolpath::build(reader, config, max_vertices)
-            .map(|t| t.encode())
-            .map_err(|e| Error::invalid("invalid_gcode", format!("G-code error at {e}")))
-    })
-    .await
-    .map_err(|e| Error::internal(format!("toolpath failed: {e}")))?
+    app.previews
+        .get(key, move |cancel| {
+            let file = std::fs::File::open(&path).map_err(|e| {
+                Error::internal(format!("program file {} is missing: {e}", path.display()))
+            })?;
+            let reader = std::io::BufReader::with_capacity(1 << 16, file);
+            let config = fresa_gcode::Config {
+                unsupported,
+                tools,
+                ..fresa_gcode::Config::default()
+            };
+            crate::toolpath::Toolpath::build_bounded(
+                reader,
+                config,
+                max_vertices,
+                max_segments,
+                cancel,
+            )
+            .map(|t| t.map(|t| t.encode()))
+            .map_err(|e| gcode_error(&e, max_segments))
+        })
+        .await
+}
+
+/// A G-code error as the API answers it: a program over the work budget gets its own code and
+/// says how to raise the budget.
+pub fn gcode_error(e: &fresa_gcode::GcodeError, max_segments: u64) -> Error {
+    match e.kind {
+        fresa_gcode::ErrorKind::Budget => Error::invalid(
+            "work_budget_exceeded",
+            format!(
+                "G-code error at {e}; the budget is the server's `max_program_segments` \
+                 ({max_segments}): raise it in the config file to accept such programs"
+            ),
+        ),
+        _ => Error::invalid("invalid_gcode", format!("G-code error at {e}")),
+    }
 }
 
 /// Job as the API shows it: the job row, its analysis and its latest run.

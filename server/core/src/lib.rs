@@ -4,7 +4,8 @@
 //! * [`machine`]: a task per machine that owns its run lifecycle, and the lanes its backend
 //!   calls travel on.
 //! * [`programs`]: uploaded programs on disk. [`jobs`]: from a program to a job; run control
-//!   goes to the job's machine; [`toolpath`]: a program's path for previews.
+//!   goes to the job's machine; [`toolpath`]: a program's path for previews, [`previews`]: their
+//!   cache, concurrency bound and cancellation.
 //! * [`pendants`]: handwheel pendants; their keys call the same functions the HTTP layer does.
 //! * [`events`]: the event bus and audit log. [`plugins`]: the plugin registry.
 //! * [`webhooks`]: webhook registrations; [`integrations`]: what webhook deliveries and the MQTT
@@ -24,6 +25,7 @@ pub mod machine;
 pub mod nodes;
 pub mod pendants;
 pub mod plugins;
+pub mod previews;
 pub mod programs;
 mod startup;
 pub mod store;

@@ -128,6 +128,7 @@ impl App {
             settings.event_retention.clone(),
             shutdown.clone(),
         );
+        let previews = crate::previews::Previews::new(settings.toolpath);
         let app = Arc::new(App {
             settings,
             store: store.clone(),
@@ -137,6 +138,7 @@ impl App {
             pendants: Default::default(),
             shutdown,
             integrations: Default::default(),
+            previews,
             auth_required,
             node_secret,
             _lock: lock,

@@ -17,8 +17,9 @@
 //! 48+16n  n   u8    kind of the move that ends at the vertex: 0 start, 1 rapid, 2 cut
 //! ```
 
-use fresa_gcode::{Config, GcodeError, Interpreter, Motion};
+use fresa_gcode::{budgeted, linearise, Config, GcodeError, Interpreter, Motion, WorkBudget};
 use std::io::BufRead;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 pub const MAGIC: &[u8; 4] = b"FTP1";
 pub const HEADER_BYTES: usize = 48;
@@ -64,10 +65,32 @@ impl Toolpath {
     /// Interprets the whole program (arcs as chords) and keeps at most `max_vertices` vertices.
     pub fn build<R: BufRead>(
         reader: R,
-        mut config: Config,
+        config: Config,
         max_vertices: usize,
     ) -> Result<Toolpath, GcodeError> {
+        let never = AtomicBool::new(false);
+        Self::build_bounded(
+            reader,
+            config,
+            max_vertices,
+            fresa_gcode::DEFAULT_MAX_SEGMENTS,
+            &never,
+        )
+        .map(|t| t.unwrap_or_default())
+    }
+
+    /// [`Toolpath::build`] within a work budget of `max_segments` (an
+    /// [`fresa_gcode::ErrorKind::Budget`] error naming the line where it ran out), abandoned
+    /// (`Ok(None)`) soon after `cancel` is set: the client that asked for it has gone.
+    pub fn build_bounded<R: BufRead>(
+        reader: R,
+        mut config: Config,
+        max_vertices: usize,
+        max_segments: u64,
+        cancel: &AtomicBool,
+    ) -> Result<Option<Toolpath>, GcodeError> {
         config.arc_tolerance_mm = config.arc_tolerance_mm.max(PREVIEW_ARC_TOLERANCE_MM);
+        let budget = WorkBudget::new(max_segments, config.arc_tolerance_mm);
         let start = config.initial_position;
         let max = max_vertices.max(2);
         let mut t = Toolpath {
@@ -80,7 +103,16 @@ impl Toolpath {
             line: 0,
             kind: Kind::Start,
         });
-        for m in Interpreter::new(reader, config).linearised() {
+        let tolerance = config.arc_tolerance_mm;
+        let motions = linearise(
+            budgeted(Interpreter::new(reader, config), budget),
+            tolerance,
+        );
+        for (i, m) in motions.enumerate() {
+            // Often enough to stop within a millisecond or so, rarely enough to cost nothing.
+            if i % 4096 == 0 && cancel.load(Ordering::Relaxed) {
+                return Ok(None);
+            }
             let (to, kind, line) = match m? {
                 Motion::Rapid { to, line, .. } => (to, Kind::Rapid, line),
                 Motion::Linear { to, line, .. } | Motion::Arc { to, line, .. } => {
@@ -103,7 +135,7 @@ impl Toolpath {
                 t.coarsen();
             }
         }
-        Ok(t)
+        Ok(Some(t))
     }
 
     pub fn len(&self) -> usize {
@@ -280,6 +312,20 @@ mod tests {
         }
         let t = Toolpath::build(prog.as_bytes(), Config::default(), 1000).unwrap();
         assert!(t.len() <= 1000, "{}", t.len());
+    }
+
+    #[test]
+    fn the_work_budget_bounds_it_and_a_cancelled_build_stops() {
+        let huge = "G0 X0 Y0\nG2 X0 Y0 I999999 J0 P10000 F100\n";
+        let go = AtomicBool::new(false);
+        let e = Toolpath::build_bounded(huge.as_bytes(), Config::default(), 1000, 1_000_000, &go)
+            .unwrap_err();
+        assert_eq!((e.line, e.kind), (2, fresa_gcode::ErrorKind::Budget), "{e}");
+        // Within the budget but cancelled: abandoned at the next check, not built.
+        let stop = AtomicBool::new(true);
+        let t = Toolpath::build_bounded(huge.as_bytes(), Config::default(), 1000, u64::MAX, &stop)
+            .unwrap();
+        assert!(t.is_none());
     }
 
     #[test]

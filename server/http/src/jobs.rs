@@ -181,7 +181,7 @@ pub async fn gcode(
         (status = 404, description = "`unknown_machine`", body = ErrorBody),
         (status = 408, description = "`upload_timeout`", body = ErrorBody),
         (status = 413, description = "`too_large`", body = ErrorBody),
-        (status = 422, description = "`invalid_gcode` (line and column), `not_utf8`, `sha256_mismatch`", body = ErrorBody),
+        (status = 422, description = "`invalid_gcode` (line and column), `work_budget_exceeded` (the line where the program passed `max_program_segments`), `not_utf8`, `sha256_mismatch`", body = ErrorBody),
         (status = 503, description = "`database_unavailable` (the store cannot be written: nothing is kept), `disk_full` (no room for the program)", body = ErrorBody),
     ))]
 pub async fn upload(
@@ -411,6 +411,7 @@ pub struct ToolpathParams {
         (status = 200, description = "The path: a 48-byte `FTP1` header, then per vertex float32 x, y, z, u32 source line, u8 kind (README: Toolpath format)", content_type = "application/octet-stream"),
         (status = 400, description = "`invalid_query`: max_vertices out of range", body = ErrorBody),
         (status = 404, description = "`unknown_job`", body = ErrorBody),
+        (status = 422, description = "`invalid_gcode`, or `work_budget_exceeded`: the program (stored before the budget was checked at upload) linearises to more than `max_program_segments`", body = ErrorBody),
     ))]
 pub async fn toolpath(
     State(app): State<SharedApp>,
@@ -426,6 +427,8 @@ pub async fn toolpath(
         ));
     }
     let bytes = core::toolpath(&app, id, max).await?;
+    // The cache keeps its copy; the body gets its own (a few MB at most, once per request).
+    let bytes = bytes.as_ref().clone();
     Ok((
         [
             (header::CONTENT_TYPE, "application/octet-stream"),

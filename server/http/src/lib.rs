@@ -369,6 +369,7 @@ async fn metrics(
     if let Some(axum::Extension(a)) = admission {
         out.push_str(&a.prometheus());
     }
+    out.push_str(&app.previews.prometheus());
     Ok((
         [(
             axum::http::header::CONTENT_TYPE,

@@ -26,6 +26,7 @@ pub(super) struct Task {
     pub store: Store,
     pub bus: EventBus,
     pub programs_dir: PathBuf,
+    pub max_program_segments: u64,
     pub status: watch::Sender<MachineStatus>,
     pub row: watch::Sender<MachineRow>,
     pub run: watch::Sender<Option<RunView>>,
@@ -826,6 +827,7 @@ impl Task {
                     start_line,
                     expected_part_zero,
                     tools,
+                    max_segments: Some(self.max_program_segments),
                 })
                 .await?;
             if let Ok(l) = serde_json::from_value::<ProgramLoaded>(v) {
@@ -1296,6 +1298,7 @@ mod tests {
             bus: EventBus::new(store.clone(), 16),
             store,
             programs_dir: dir.0.clone(),
+            max_program_segments: fresa_gcode::DEFAULT_MAX_SEGMENTS,
             status: watch::channel(MachineStatus::default()).0,
             row: watch::channel(row).0,
             run: watch::channel(Some(view)).0,

@@ -16,6 +16,10 @@ pub const MAX_FEED_MM_MIN: f64 = 100_000.0;
 pub const MAX_COORDINATE_MM: f64 = 1_000_000.0;
 /// Longest MDI line accepted, bytes.
 pub const MAX_MDI_LINE: usize = 256;
+/// Most segments (moves, and arcs as 0.002 mm chords) one MDI line may make: a backend checks
+/// all of an MDI line's moves before the first, so it holds them (a circle of 1 m radius is
+/// about 1,600 chords).
+pub const MAX_MDI_SEGMENTS: u64 = 1_000_000;
 
 /// A configured limit: finite, positive and at most `max`, or an error naming the field.
 pub fn check_configured(field: &str, value: f64, max: f64) -> Result<f64> {
@@ -119,7 +123,8 @@ pub fn check_mdi_line(line: &str) -> std::result::Result<(), String> {
         ));
     }
     let interp = fresa_gcode::Interpreter::new(line.as_bytes(), fresa_gcode::Config::default());
-    for motion in interp {
+    let budget = fresa_gcode::WorkBudget::new(MAX_MDI_SEGMENTS, 0.002);
+    for motion in fresa_gcode::budgeted(interp, budget) {
         let motion = motion.map_err(|e| format!("{line:?}: column {}: {}", e.column, e.message))?;
         let to = match &motion {
             Motion::Rapid { to, .. } | Motion::Linear { to, .. } | Motion::Arc { to, .. } => to,
@@ -228,5 +233,10 @@ mod tests {
         let e = check_mdi_line("G0 A2000000").err().unwrap_or_default();
         assert!(e.contains("A=2000000"), "{e}");
         assert!(check_mdi_line("G0 A90").is_ok());
+        // Half a billion chords from one short line: refused before any are made.
+        let e = check_mdi_line("G2 X0 Y0 I999999 J0 P10000 F100")
+            .err()
+            .unwrap_or_default();
+        assert!(e.contains("work budget exceeded"), "{e}");
     }
 }

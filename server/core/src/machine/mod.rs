@@ -33,6 +33,8 @@ pub struct MachineOptions {
     /// Where each machine records acknowledged lines the store could not take
     /// (`DATA_DIR/unstored`).
     pub unstored_dir: PathBuf,
+    /// The work budget sent with every `load_program` (`max_program_segments`).
+    pub max_program_segments: u64,
 }
 
 /// The current run as everyone but the machine's task sees it.
@@ -297,6 +299,7 @@ impl Machine {
             store,
             bus: bus.clone(),
             programs_dir: opts.programs_dir.clone(),
+            max_program_segments: opts.max_program_segments,
             status: status_tx,
             row: row_tx,
             run: run_tx,
