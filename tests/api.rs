@@ -332,3 +332,136 @@ fn metrics_report_machine_states_and_job_runs_in_prometheus_text() {
     assert!(text.contains("fresa_plugin_load_failures 0"), "{text}");
     assert!(text.contains("# TYPE fresa_job_runs gauge"), "{text}");
 }
+
+/// Machine X positions and states read across `span` (several polls).
+fn positions_across(s: &Server, m: i64, span: Duration) -> Vec<(f64, String)> {
+    let end = std::time::Instant::now() + span;
+    let mut seen = Vec::new();
+    loop {
+        let st = s.status(m);
+        seen.push((
+            axis(&st["machine_position"], "x"),
+            st["state"].as_str().unwrap_or("").to_string(),
+        ));
+        if std::time::Instant::now() >= end {
+            return seen;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
+#[test]
+fn jog_cancel_stops_the_jog_under_way_and_drops_the_queued_taps() {
+    let s = Server::start();
+    // Real time: each 10 mm tap at 600 mm/min takes a second.
+    let m = s.sim("mill", 1.0);
+    s.wait_machine_state(m.id, "idle", T);
+    for _ in 0..3 {
+        s.post(
+            &format!("/api/v1/machines/{}/jog", m.id),
+            &json!({"axis": "X", "distance": 10.0, "feed": 600.0}),
+        )
+        .expect(200);
+    }
+    let r = s
+        .post_empty(&format!("/api/v1/machines/{}/jog/cancel", m.id))
+        .expect(200);
+    assert_eq!(r["ok"], true, "{r}");
+    assert_eq!(r["stopped"], true, "a jog was under way: {r}");
+    // Answered once motion stopped: the next status is already still.
+    let st = s.status(m.id);
+    assert_eq!(st["state"], "idle", "{st}");
+    let x = axis(&st["machine_position"], "x");
+    assert!(x < 30.0, "three taps would be 30 mm; x = {x}");
+    let seen = positions_across(&s, m.id, Duration::from_secs(2));
+    assert!(
+        seen.iter()
+            .all(|(sx, state)| (sx - x).abs() < 1e-9 && state == "idle"),
+        "a queued tap moved the machine after jog/cancel (x was {x}): {seen:?}"
+    );
+    // Recorded, under the caller's name.
+    let events = s.events("types=machine.jog_cancel", Some(0));
+    let e = events
+        .until(T, "the jog cancel event", |e| {
+            e.event == "machine.jog_cancel"
+        })
+        .pop()
+        .unwrap();
+    assert_eq!(e.data["actor"], "local", "{e:?}");
+    assert_eq!(e.data["machine"], m.id, "{e:?}");
+    // Nothing to cancel: still 200, and it says so.
+    let r = s
+        .post_empty(&format!("/api/v1/machines/{}/jog/cancel", m.id))
+        .expect(200);
+    assert_eq!(r["stopped"], false, "{r}");
+    s.post_empty("/api/v1/machines/999/jog/cancel")
+        .expect_error(404, "unknown_machine");
+    // The CLI's verb for it.
+    let out = s.cli(&["machine", "jog-cancel", &m.id.to_string()]);
+    let text = fresa_tests::output_text(&out);
+    assert!(out.status.success(), "{text}");
+    assert!(text.contains("queued jogs dropped"), "{text}");
+}
+
+#[test]
+fn part_zero_zeroing_and_offsets_are_refused_while_the_machine_moves() {
+    let s = Server::start();
+    let m = s.sim("mill", 1.0);
+    s.wait_machine_state(m.id, "idle", T);
+    // 50 mm at 100 mm/min: half a minute of motion, ample for the refusals below.
+    s.post(
+        &format!("/api/v1/machines/{}/jog", m.id),
+        &json!({"axis": "X", "distance": 50.0, "feed": 100.0}),
+    )
+    .expect(200);
+    let base = format!("/api/v1/machines/{}", m.id);
+    let mut refusals = vec![
+        s.post_empty(&format!("{base}/part-zero")),
+        s.post(
+            &format!("{base}/part-zero"),
+            &json!({"position": {"x": 1.0, "y": 2.0, "z": 3.0, "a": 0.0}}),
+        ),
+        s.command(m.id, "zero", json!({"axis": "X"})),
+        s.command(m.id, "zero", json!({})),
+        s.command(m.id, "select_offset", json!({"offset": "G55"})),
+    ];
+    refusals.push(s.put(&format!("{base}/offsets/G55"), &json!({"x": 1.0})));
+    let still_moving = s.status(m.id)["state"] == "jogging";
+    for r in refusals {
+        let msg = r.expect_error(409, "machine_moving");
+        assert!(msg.contains("jogging"), "{msg}");
+    }
+    assert!(
+        still_moving,
+        "the jog ended before the refusals were checked"
+    );
+    s.post_empty(&format!("{base}/jog/cancel")).expect(200);
+
+    // Nothing was recorded: no part zero, offsets as they were, no audit event for either.
+    let hist = s.get(&format!("{base}/part-zero")).expect(200);
+    assert_eq!(hist.as_array().unwrap().len(), 0, "{hist}");
+    let off = s.get(&format!("{base}/offsets")).expect(200);
+    assert_eq!(off["active"], "G54", "{off}");
+    assert_close(axis(&off["offsets"]["G54"], "x"), 0.0, "G54.x");
+    let g55x = off["offsets"]["G55"]["x"].as_f64().unwrap_or(0.0);
+    assert_close(g55x, 0.0, "G55.x");
+    let seen = s
+        .events("", Some(0))
+        .until(T, "the jog cancel", |e| e.event == "machine.jog_cancel");
+    let recorded: Vec<&str> = seen
+        .iter()
+        .filter(|e| {
+            matches!(
+                e.event.as_str(),
+                "machine.part_zero" | "machine.offsets" | "machine.command"
+            )
+        })
+        .map(|e| e.event.as_str())
+        .collect();
+    assert!(recorded.is_empty(), "recorded while moving: {recorded:?}");
+
+    // Standing still, the same requests are carried out.
+    let row = s.post_empty(&format!("{base}/part-zero")).expect(201);
+    assert!(row["x"].as_f64().unwrap() > 0.0, "{row}");
+    s.command(m.id, "zero", json!({"axis": "X"})).expect(200);
+}

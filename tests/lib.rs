@@ -835,6 +835,17 @@ pub fn thread_count(pid: u32) -> usize {
         .unwrap_or_else(|| panic!("no Threads: line in /proc/{pid}/status"))
 }
 
+/// The resident set size of process `pid` in KiB (`VmRSS:` in `/proc/PID/status`).
+pub fn rss_kib(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .unwrap_or_else(|e| panic!("cannot read /proc/{pid}/status: {e}"));
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        .unwrap_or_else(|| panic!("no VmRSS: line in /proc/{pid}/status"))
+}
+
 /// A small deterministic pseudo-random generator (xorshift64*), so a failing randomised test
 /// can be replayed from the seed it prints.
 #[derive(Debug, Clone)]

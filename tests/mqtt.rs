@@ -447,6 +447,30 @@ fn commands_need_a_token_with_the_operator_role() {
     let stream = s.events("types=machine.jog", Some(0));
     let ev = stream.until(T, "the jog event", |e| e.event == "machine.jog");
     assert_eq!(ev.last().unwrap().data["actor"], "mqtt:olga");
+
+    // While a jog runs a zero is refused as over HTTP, and jog/cancel ends the jog.
+    c.publish(
+        jog,
+        &json!({"axis": "X", "distance": 40.0, "feed": 100.0, "request_id": "f", "token": operator}),
+    );
+    let (answer, _) = c.until("t/cmd/results", |v, _| v["request_id"] == "f");
+    assert_eq!(answer["ok"], true, "{answer}");
+    c.publish(
+        "t/cmd/machines/1/commands",
+        &json!({"command": "zero", "axis": "X", "request_id": "g", "token": operator}),
+    );
+    let (answer, _) = c.until("t/cmd/results", |v, _| v["request_id"] == "g");
+    assert_eq!(answer["code"], "machine_moving", "{answer}");
+    c.publish(
+        "t/cmd/machines/1/jog/cancel",
+        &json!({"request_id": "h", "token": operator}),
+    );
+    let (answer, _) = c.until("t/cmd/results", |v, _| v["request_id"] == "h");
+    assert_eq!(answer["ok"], true, "{answer}");
+    assert_eq!(answer["result"]["stopped"], true, "{answer}");
+    let st = s.status(1);
+    assert_eq!(st["state"], "idle", "stopped before the answer: {st}");
+    assert!(st["machine_position"]["x"].as_f64().unwrap() < 42.0, "{st}");
 }
 
 #[test]

@@ -250,7 +250,10 @@ impl PluginLibrary {
     ) -> Result<Instance, CallError> {
         let config = serde_json::to_vec(config).map_err(|e| CallError::Protocol(e.to_string()))?;
         // The context lives in a Box whose address is stable for the instance's life.
-        let ctx = Box::new(SinkCtx { sink });
+        let ctx = Box::new(SinkCtx {
+            sink,
+            quiet: crate::quiet::Quiet::per_minute(),
+        });
         let mut table = Box::new(FrHost {
             struct_size: std::mem::size_of::<FrHost>(),
             ctx: std::ptr::null_mut(),
@@ -315,6 +318,8 @@ fn decode_error(status: i32, bytes: &[u8]) -> CallError {
 
 struct SinkCtx {
     sink: std::sync::Arc<dyn HostSink>,
+    /// A plugin that emits garbage does it per event: logged once a minute with a count.
+    quiet: crate::quiet::Quiet,
 }
 
 unsafe extern "C" fn host_emit_event(ctx: *mut c_void, json: *const u8, len: usize) {
@@ -332,10 +337,13 @@ unsafe extern "C" fn host_emit_event(ctx: *mut c_void, json: *const u8, len: usi
     let _ = std::panic::catch_unwind(std::panic::AssertUnwindSafe(
         || match serde_json::from_slice(bytes) {
             Ok(v) => ctx.sink.event(v),
-            Err(e) => ctx.sink.log(
-                abi::LOG_WARN,
-                &format!("plugin emitted an event that is not JSON ({e}); dropped"),
-            ),
+            Err(e) => {
+                if let Some(line) = ctx.quiet.admit("not-json", || {
+                    format!("plugin emitted an event that is not JSON ({e}); dropped")
+                }) {
+                    ctx.sink.log(abi::LOG_WARN, &line)
+                }
+            }
         },
     ));
 }

@@ -10,6 +10,8 @@
 //! * [`config_fields`]: for Rust plugins: config values read with errors naming the key.
 //! * [`exec_log`]: for Rust machine backends: the execution log behind idempotent resume.
 //! * [`host`]: for the server: load a library, check it, create and call instances.
+//! * [`quiet`]: rate-limited warnings (first one, then one a minute with a count), for plugins
+//!   and the server.
 
 pub mod abi;
 pub mod backend;
@@ -20,6 +22,7 @@ pub mod exec_log;
 pub mod host;
 pub mod kit;
 pub mod plugin;
+pub mod quiet;
 
 pub use backend::MachineBackend;
 pub use error::PluginError;

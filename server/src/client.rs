@@ -28,6 +28,9 @@ pub enum MachineCmd {
     List,
     /// One machine's status: state, positions, run, and its inputs and outputs.
     Status { id: i64 },
+    /// End the jog under way and drop every jog still queued for the machine (from anyone);
+    /// returns once motion has stopped.
+    JogCancel { id: i64 },
     /// A machine's tool table (what G41/G42 D<n> offset by); with --load, replace it first.
     Tools {
         id: i64,
@@ -217,6 +220,19 @@ pub async fn machine(server: ServerArgs, cmd: MachineCmd) -> Res {
                 ))
                 .await?;
             print!("{}", status_text(&s));
+        }
+        MachineCmd::JogCancel { id } => {
+            let v = c
+                .send(c.req(
+                    reqwest::Method::POST,
+                    &format!("/api/v1/machines/{id}/jog/cancel"),
+                ))
+                .await?;
+            if v["stopped"] == true {
+                println!("machine {id}: jog stopped, queued jogs dropped");
+            } else {
+                println!("machine {id}: was not moving; queued jogs dropped");
+            }
         }
         MachineCmd::Tools { id, load } => {
             let path = format!("/api/v1/machines/{id}/tools");

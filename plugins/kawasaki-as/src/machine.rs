@@ -51,6 +51,8 @@ struct Core {
     log: LogSink,
     sh: Mutex<Shared>,
     cv: Condvar,
+    /// Malformed or unexpected robot messages can come with every reply: rate-limited.
+    quiet: fresa_plugin_api::quiet::Quiet,
 }
 
 struct Loaded {
@@ -213,6 +215,7 @@ impl KawasakiMachine {
                 log,
                 sh: Mutex::new(Shared::default()),
                 cv: Condvar::new(),
+                quiet: fresa_plugin_api::quiet::Quiet::per_minute(),
             }),
             worker: Mutex::new(None),
         })
@@ -784,7 +787,9 @@ impl Core {
                         link.expect_done(cfg.reply_timeout, "`done` after a motion")
                     });
                     for g in link.garbage.drain(..) {
-                        self.warn(&format!("skipped a malformed robot message: {g:?}"));
+                        self.warn_quiet("malformed", || {
+                            format!("skipped a malformed robot message: {g:?}")
+                        });
                     }
                     if let Err(e) = sent {
                         link.close();
@@ -891,7 +896,9 @@ impl Core {
             }
             let msg = link.recv(cfg.reply_timeout, "`done` of a command");
             for g in link.garbage.drain(..) {
-                self.warn(&format!("skipped a malformed robot message: {g}"));
+                self.warn_quiet("malformed", || {
+                    format!("skipped a malformed robot message: {g}")
+                });
             }
             match msg {
                 Ok(V1Msg::Done(seq)) => {
@@ -924,7 +931,9 @@ impl Core {
                     link.close();
                     return Ended::Failed(format!("the robot refused command {seq}: {message}"));
                 }
-                Ok(other) => self.warn(&format!("unexpected robot message {other:?}; skipped")),
+                Ok(other) => self.warn_quiet("unexpected", || {
+                    format!("unexpected robot message {other:?}; skipped")
+                }),
                 Err(e) => {
                     link.close();
                     let line = inflight
@@ -942,6 +951,12 @@ impl Core {
 
     fn warn(&self, message: &str) {
         (self.log)(message);
+    }
+
+    fn warn_quiet(&self, kind: &str, message: impl FnOnce() -> String) {
+        if let Some(line) = self.quiet.admit(kind, message) {
+            self.warn(&line);
+        }
     }
 }
 

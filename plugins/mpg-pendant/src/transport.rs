@@ -3,7 +3,8 @@
 //! and declare the pendant lost when it closes the link or stays silent too long.
 
 use crate::codec::{Decoded, Decoder, Dialect, Frame, Info, FRAME_LEN};
-use fresa_plugin_api::contract::{AxisValues, PendantEvent, PendantJob};
+use fresa_plugin_api::contract::{Axis, AxisValues, PendantEvent, PendantJob};
+use fresa_plugin_api::quiet::Quiet;
 use serde::Deserialize;
 use std::io::{ErrorKind, Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpStream, ToSocketAddrs};
@@ -111,7 +112,6 @@ pub type LogFn = Box<dyn Fn(u32, &str) + Send + Sync>;
 struct Cache {
     positions: [u8; FRAME_LEN],
     progress: [u8; FRAME_LEN],
-    last_note: Option<String>,
 }
 
 struct Shared {
@@ -126,6 +126,9 @@ struct Shared {
     wake: (Mutex<()>, Condvar),
     emit: EmitFn,
     log: LogFn,
+    /// Warnings that can come once per frame or per status push (a clamped LCD field,
+    /// garbage on the link) are logged once, then at most once a minute with a count.
+    quiet: Quiet,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -138,6 +141,12 @@ impl Shared {
     }
     fn warn(&self, msg: &str) {
         (self.log)(fresa_plugin_api::abi::LOG_WARN, &self.label(msg))
+    }
+    /// A warning that may repeat per frame: rate-limited per `kind`.
+    fn warn_quiet(&self, kind: &str, msg: impl FnOnce() -> String) {
+        if let Some(line) = self.quiet.admit(kind, msg) {
+            self.warn(&line);
+        }
     }
     fn label(&self, msg: &str) -> String {
         match self.cfg.pendant {
@@ -189,7 +198,6 @@ impl Transport {
             cache: Mutex::new(Cache {
                 positions: Frame::Positions(AxisValues::default()).encode(),
                 progress: Frame::Progress(PendantJob::default()).encode(),
-                last_note: None,
             }),
             link: Mutex::new(None),
             connected: AtomicBool::new(false),
@@ -197,6 +205,7 @@ impl Transport {
             wake: (Mutex::new(()), Condvar::new()),
             emit,
             log,
+            quiet: Quiet::per_minute(),
         });
         let s = shared.clone();
         let thread = std::thread::Builder::new()
@@ -221,17 +230,19 @@ impl Transport {
     pub fn set_status(&self, position: AxisValues, job: Option<PendantJob>) {
         let (pos, n1) = Frame::Positions(position).encode_checked();
         let (prog, n2) = Frame::Progress(job.unwrap_or_default()).encode_checked();
-        let note = n1.or(n2);
-        let mut c = lock(&self.shared.cache);
-        c.positions = pos;
-        c.progress = prog;
-        // Log a clamp once, not on every status push.
-        if note.is_some() && note != c.last_note {
-            if let Some(n) = &note {
-                self.shared.warn(n);
-            }
+        {
+            let mut c = lock(&self.shared.cache);
+            c.positions = pos;
+            c.progress = prog;
         }
-        c.last_note = note;
+        // Pushed up to 20 times a second, and the elapsed time in an N52 note changes every
+        // second: rate-limited per frame type, not per text.
+        if let Some(n) = n1 {
+            self.shared.warn_quiet("n51-clamp", || n);
+        }
+        if let Some(n) = n2 {
+            self.shared.warn_quiet("n52-clamp", || n);
+        }
     }
 
     /// Sends N53 for `upload` if it is the one waiting and the link is up.
@@ -419,8 +430,23 @@ fn session(s: &Shared, mut stream: TcpStream) -> Result<String, String> {
             Ok(n) => {
                 last_rx = Instant::now();
                 decoder.push(&buf[..n]);
+                let mut wheel = WheelRun::default();
                 while let Some(d) = decoder.pop() {
+                    // Consecutive wheel frames of one read become one event with their exact
+                    // sum: a flood costs one emit per read, not one per frame.
+                    if let Decoded::Frame(Frame::Jog { step, axis, count }) = d {
+                        if let Some(full) = wheel.add(axis, step, count) {
+                            emit_jog(s, full);
+                        }
+                        continue;
+                    }
+                    if let Some(run) = wheel.take() {
+                        emit_jog(s, run);
+                    }
                     handle(s, d, &mut upload, &mut next_upload_id);
+                }
+                if let Some(run) = wheel.take() {
+                    emit_jog(s, run);
                 }
             }
             Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {}
@@ -489,9 +515,7 @@ fn handle(s: &Shared, d: Decoded, upload: &mut Option<Upload>, next_id: &mut u64
             };
             s.send(&frame);
         }
-        Decoded::Frame(Frame::Jog { step, axis, count }) => {
-            (s.emit)(&PendantEvent::Jog { axis, count, step })
-        }
+        Decoded::Frame(Frame::Jog { step, axis, count }) => emit_jog(s, (axis, step, count)),
         Decoded::Frame(Frame::Key(key)) => (s.emit)(&PendantEvent::Key { key }),
         Decoded::Frame(Frame::UploadStart { lines }) => {
             // A new START replaces an upload that never finished.
@@ -542,7 +566,9 @@ fn handle(s: &Shared, d: Decoded, upload: &mut Option<Upload>, next_id: &mut u64
         }
         Decoded::Frame(Frame::UploadEnd { chars }) => {
             let Some(u) = upload.take() else {
-                s.warn("N03FIN without N03START; ignored");
+                s.warn_quiet("fin-without-start", || {
+                    "N03FIN without N03START; ignored".into()
+                });
                 return;
             };
             if u.reported {
@@ -581,15 +607,66 @@ fn handle(s: &Shared, d: Decoded, upload: &mut Option<Upload>, next_id: &mut u64
             }
             None => (s.emit)(&PendantEvent::UploadFailed { reason }),
         },
-        Decoded::Skipped { bytes, reason } => {
+        Decoded::Skipped { bytes, reason } => s.warn_quiet("skipped", || {
             let shown: String = String::from_utf8_lossy(&bytes).chars().take(120).collect();
-            s.warn(&format!(
+            format!(
                 "skipped {} bytes that are not a valid frame ({reason}): {shown:?}",
                 bytes.len()
-            ));
+            )
+        }),
+        Decoded::Frame(other) => s.warn_quiet("unexpected-frame", || {
+            format!("unexpected frame from a pendant: {other:?}; ignored")
+        }),
+    }
+}
+
+/// Wheel frames of one read not emitted yet: axis, step and the sum of their detent counts.
+#[derive(Default)]
+struct WheelRun(Option<(Axis, f64, i32)>);
+
+impl WheelRun {
+    /// Adds one frame; answers the run to emit first when this frame cannot join it (another
+    /// axis or step, or a sum that would not fit the event's count).
+    fn add(&mut self, axis: Axis, step: f64, count: i32) -> Option<(Axis, f64, i32)> {
+        if let Some((a, st, sum)) = &mut self.0 {
+            if *a == axis && *st == step {
+                if let Some(total) = sum.checked_add(count) {
+                    *sum = total;
+                    return None;
+                }
+            }
         }
-        Decoded::Frame(other) => s.warn(&format!(
-            "unexpected frame from a pendant: {other:?}; ignored"
-        )),
+        self.0.replace((axis, step, count))
+    }
+
+    fn take(&mut self) -> Option<(Axis, f64, i32)> {
+        self.0.take()
+    }
+}
+
+fn emit_jog(s: &Shared, (axis, step, count): (Axis, f64, i32)) {
+    // Turns that cancel out within one read move nothing.
+    if count != 0 {
+        (s.emit)(&PendantEvent::Jog { axis, count, step });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_run_of_wheel_frames_keeps_its_exact_sum_and_breaks_on_another_axis_or_step() {
+        let mut w = WheelRun::default();
+        assert_eq!(w.add(Axis::X, 0.01, 1), None);
+        assert_eq!(w.add(Axis::X, 0.01, 9999), None);
+        assert_eq!(w.add(Axis::X, 0.01, -3), None);
+        assert_eq!(w.add(Axis::Y, 0.01, 2), Some((Axis::X, 0.01, 9997)));
+        assert_eq!(w.add(Axis::Y, 0.1, 2), Some((Axis::Y, 0.01, 2)));
+        assert_eq!(w.add(Axis::Y, 0.1, i32::MAX), Some((Axis::Y, 0.1, 2)));
+        // A sum that would overflow the count starts a new run instead of wrapping.
+        assert_eq!(w.add(Axis::Y, 0.1, 1), Some((Axis::Y, 0.1, i32::MAX)));
+        assert_eq!(w.take(), Some((Axis::Y, 0.1, 1)));
+        assert_eq!(w.take(), None);
     }
 }

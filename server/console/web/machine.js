@@ -61,6 +61,13 @@ export async function machinePage(page, { id }, events) {
   const jogPad = h('div', { class: 'jog' }, AXES.map((a) => h('div', { class: 'jog-axis' },
     h('button', { dataset: { need: 'motion', jog: a.toUpperCase() + '-' }, onclick: jog(a, -1) }, a.toUpperCase() + '−'),
     h('button', { dataset: { need: 'motion', jog: a.toUpperCase() + '+' }, onclick: jog(a, 1) }, a.toUpperCase() + '+'))));
+  // Ends the jog under way and drops every jog still queued (taps, pendant wheel); like STOP,
+  // it needs no live stream.
+  const jogCancel = h('button', { id: 'jog-cancel', class: 'hold', dataset: { need: 'operator' }, onclick: (ev) => {
+    jogError.textContent = '';
+    act(ev.currentTarget, () => api('POST', `/machines/${id}/jog/cancel`), 'Jog cancelled')
+      .catch((e) => { jogError.textContent = errorText(e); });
+  } }, 'Cancel jog');
 
   const button = (label, command, need, extra) => h('button', { dataset: { need, cmd: command },
     onclick: (ev) => act(ev.currentTarget, () => cmd(command, extra), label + ' sent').catch(() => {}) }, label);
@@ -160,7 +167,7 @@ export async function machinePage(page, { id }, events) {
       h('section', { class: 'card' }, h('h2', {}, 'Jog'),
         h('div', { class: 'row wrap' }, h('label', {}, 'Step ', stepSel), h('label', {}, 'Feed ', feed, ' mm/min')),
         h('p', { class: 'muted small' }, `At most ${m.max_jog_mm} mm per step and ${m.max_feed_mm_min} mm/min.`),
-        jogPad, jogError)),
+        jogPad, h('div', { class: 'row' }, jogCancel), jogError)),
     h('div', { class: 'cols' },
       h('section', { class: 'card' }, h('h2', {}, 'Cycle'), cycle, zeros, outputs),
       h('section', { class: 'card' }, h('h2', {}, 'MDI'), mdiForm, mdiError)),

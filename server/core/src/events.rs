@@ -374,6 +374,7 @@ async fn relay_transient(
         return;
     };
     let mut listener = listen(&database_url, &[TRANSIENT_CHANNEL]).await;
+    let quiet = fresa_plugin_api::quiet::Quiet::per_minute();
     loop {
         tokio::select! {
             _ = stop.cancelled() => return,
@@ -392,7 +393,13 @@ async fn relay_transient(
                 Some(payload) => match serde_json::from_str::<BusEvent>(&payload) {
                     Ok(e) if !bus.is_local(&e) => { let _ = bus.tx.send(Arc::new(e)); }
                     Ok(_) => {}
-                    Err(err) => tracing::warn!(error = %err, "unreadable transient event from another node; ignored"),
+                    Err(err) => {
+                        if let Some(line) = quiet.admit("unreadable", || {
+                            format!("unreadable transient event from another node; ignored: {err}")
+                        }) {
+                            tracing::warn!("{line}");
+                        }
+                    }
                 },
                 None => listener = listen(&database_url, &[TRANSIENT_CHANNEL]).await,
             },

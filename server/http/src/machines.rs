@@ -368,6 +368,38 @@ pub async fn jog(
     Ok(Json(Done { ok: true }))
 }
 
+/// `{"ok": true, "stopped": bool}`: whether a motion was under way when the cancel came.
+#[derive(Serialize, ToSchema)]
+pub struct JogCancelled {
+    ok: bool,
+    stopped: bool,
+}
+
+/// Ends the jog under way and drops every jog still queued for the machine (HTTP, MQTT, CLI,
+/// pendant wheel moves and macros); answered once the backend confirmed motion stopped.
+#[utoipa::path(post, path = "/machines/{id}/jog/cancel", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    responses(
+        (status = 200, description = "Stopped; nothing queued before it will move the machine", body = JogCancelled),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+        (status = 409, description = "`machine_busy`: a job runs (pause or cancel the job instead), `backend_rejected` (`stop_unconfirmed`)", body = ErrorBody),
+        (status = 502, description = "`backend_error`", body = ErrorBody),
+        (status = 503, description = "`machine_offline`, `machine_unresponsive`", body = ErrorBody),
+        (status = 504, description = "`backend_timeout`", body = ErrorBody),
+    ))]
+pub async fn jog_cancel(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Extension(caller): Extension<Caller>,
+) -> Result<Json<JogCancelled>, ApiError> {
+    let m = machine(&app, id).await?;
+    let answer = m.cancel_jogs(&caller.name).await?;
+    Ok(Json(JogCancelled {
+        ok: true,
+        stopped: answer["stopped"].as_bool().unwrap_or(false),
+    }))
+}
+
 #[derive(Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct MdiReq {
@@ -412,7 +444,7 @@ pub struct CommandDone {
     responses(
         (status = 200, description = "The command was carried out", body = CommandDone),
         (status = 404, description = "`unknown_machine`", body = ErrorBody),
-        (status = 409, description = "`machine_busy`, `stopped`, `backend_rejected`", body = ErrorBody),
+        (status = 409, description = "`machine_busy`, `machine_moving` (zero, select_offset while the machine moves), `stopped`, `backend_rejected`", body = ErrorBody),
         (status = 422, description = "`invalid_command`, `backend_rejected`", body = ErrorBody),
         (status = 502, description = "`backend_error`", body = ErrorBody),
         (status = 503, description = "`machine_offline`, `machine_unresponsive`, `shutting_down`", body = ErrorBody),
@@ -488,7 +520,7 @@ pub struct OffsetSet {
     responses(
         (status = 200, description = "Set in the backend and stored", body = OffsetSet),
         (status = 404, description = "`unknown_machine`, `unknown_offset`", body = ErrorBody),
-        (status = 409, description = "`machine_busy`, `backend_rejected`", body = ErrorBody),
+        (status = 409, description = "`machine_moving`, `backend_rejected`", body = ErrorBody),
         (status = 422, description = "`invalid_field`", body = ErrorBody),
         (status = 503, description = "`machine_offline`, `machine_unresponsive`", body = ErrorBody),
     ))]
@@ -556,7 +588,8 @@ pub struct PartZeroReq {
         (status = 201, description = "Recorded: `id`, `machine_id`, `x`, `y`, `z`, `a`, `source`, `actor`, `note`, `created_at`", body = Object),
         (status = 400, description = "`invalid_json`", body = ErrorBody),
         (status = 404, description = "`unknown_machine`", body = ErrorBody),
-        (status = 503, description = "`machine_offline`, `machine_unresponsive`", body = ErrorBody),
+        (status = 409, description = "`machine_moving`: nothing is recorded while the machine moves (or holds a paused job)", body = ErrorBody),
+        (status = 503, description = "`machine_offline`, `machine_unresponsive`, `database_unavailable`", body = ErrorBody),
     ))]
 pub async fn record_part_zero(
     State(app): State<SharedApp>,
@@ -572,23 +605,10 @@ pub async fn record_part_zero(
         serde_json::from_slice(&body)
             .map_err(|e| ApiError::bad_request("invalid_json", format!("part zero: {e}")))?
     };
-    let at = match req.position {
-        Some(p) => p,
-        None => m.refresh_status().await?.machine_position,
-    };
     let source = req.source.unwrap_or_else(|| "api".into());
-    let row = app
-        .store
-        .insert_part_zero(id, at, &source, &caller.name, req.note.as_deref())
+    let row = m
+        .record_part_zero(req.position, &source, req.note.as_deref(), &caller.name)
         .await?;
-    app.bus
-        .record_or_log(
-            "machine.part_zero",
-            Some(id),
-            Some(&caller.name),
-            json!(row),
-        )
-        .await;
     Ok((StatusCode::CREATED, Json(json!(row))))
 }
 

@@ -9,8 +9,9 @@
 //! * `nodes/<node>/online` (retained, QoS 1): `{"online": true, ...}` after connecting; the broker
 //!   publishes the last will `{"online": false}` if the link dies, and a clean shutdown sends it.
 //!
-//! Commands (only with `commands = true`): `cmd/machines/<id>/jog`, `cmd/machines/<id>/commands`,
-//! `cmd/jobs/<id>/<start|pause|resume|cancel>`; the payload is the HTTP body plus `"token"` (an
+//! Commands (only with `commands = true`): `cmd/machines/<id>/jog`, `cmd/machines/<id>/jog/cancel`
+//! (ends the jog under way and drops queued ones, like `POST .../jog/cancel`),
+//! `cmd/machines/<id>/commands`, `cmd/jobs/<id>/<start|pause|resume|cancel>`; the payload is the HTTP body plus `"token"` (an
 //! API token with the role the HTTP call needs: operator) and an optional `"request_id"`. They
 //! call the same core functions as the HTTP handlers; each answer goes to `cmd/results`.
 //! A retained message on a command topic is never run: it is not fresh (the broker hands it to
@@ -578,6 +579,10 @@ async fn run_command(
             m.jog(j.axis, j.distance, j.feed, &actor).await?;
             Ok(json!(null))
         }
+        ["machines", id, "jog", "cancel"] => {
+            let m = machine(app, id_of(id)?).await?;
+            m.cancel_jogs(&actor).await
+        }
         ["machines", id, "commands"] => {
             let m = machine(app, id_of(id)?).await?;
             let cmd = fresa_core::machine::limits::parse_command(&body)?;
@@ -606,7 +611,7 @@ async fn run_command(
         }
         _ => Err(Error::not_found(
             "unknown_topic",
-            format!("{topic:?} is not a command topic (cmd/machines/<id>/jog, cmd/machines/<id>/commands, cmd/jobs/<id>/<action>)"),
+            format!("{topic:?} is not a command topic (cmd/machines/<id>/jog, cmd/machines/<id>/jog/cancel, cmd/machines/<id>/commands, cmd/jobs/<id>/<action>)"),
         )),
     }
 }

@@ -155,6 +155,8 @@ async fn dispatch(app: SharedApp, mut rx: tokio::sync::broadcast::Receiver<Arc<B
         policy,
     };
     sync_workers(&app, &client, &mut workers).await;
+    // A stuck receiver makes every event a drop: one line a minute, with the count.
+    let quiet = fresa_plugin_api::quiet::Quiet::per_minute();
     loop {
         let ev = tokio::select! {
             _ = app.shutdown.cancelled() => break,
@@ -173,13 +175,17 @@ async fn dispatch(app: SharedApp, mut rx: tokio::sync::broadcast::Receiver<Arc<B
                 if !app.bus.is_local(&ev) {
                     continue;
                 }
-                for w in workers.values() {
+                for (id, w) in &workers {
                     if !fresa_core::webhooks::matches(&w.filter, &ev.kind) {
                         continue;
                     }
                     if w.queue.try_send(ev.clone()).is_err() {
                         IntegrationStats::add(&app.integrations.webhook_dropped, 1);
-                        tracing::warn!(event = ?ev.id, "webhook queue full: event dropped");
+                        if let Some(line) = quiet.admit(&format!("full-{id}"), || {
+                            format!("webhook {id} queue full: event {:?} dropped", ev.id)
+                        }) {
+                            tracing::warn!("{line}");
+                        }
                     }
                 }
             }

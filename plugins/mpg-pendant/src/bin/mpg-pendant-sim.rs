@@ -4,6 +4,10 @@
 //!
 //! ```text
 //! jog AXIS COUNT STEP        e.g. `jog X 25 0.01`, `jog Z -100 0.0001` (split into <=9999 detents)
+//! flood AXIS FRAMES COUNT STEP
+//!                            FRAMES wheel frames of COUNT detents each, back to back as fast as
+//!                            the link takes them (a misbehaving pendant), e.g.
+//!                            `flood X 300000 1 0.01`
 //! key WORD                   Zero ZeroX ZeroY ZeroZ ZeroA Reset Stop Rewind Start Pause HOME M1..M4
 //! upload PATH [gap=50-70] [end=none|lf] [lines+=N] [chars+=N] [blank=send|drop]
 //!        [stop-after=N] [wrap8]
@@ -263,6 +267,22 @@ fn command(sim: &Sim, line: &str) -> Result<(), String> {
             }
             Ok(())
         }
+        ["flood", axis, frames, count, step] => {
+            let axis = parse_axis(axis)?;
+            let frames: u64 = frames.parse().map_err(|_| format!("frames {frames:?} is not a count"))?;
+            let count: i32 = count.parse().map_err(|_| format!("count {count:?} is not an integer"))?;
+            let step: f64 = step.parse().map_err(|_| format!("step {step:?} is not a number"))?;
+            let frame = Frame::Jog { step, axis, count }.encode();
+            // 1000 frames a write: fast, without holding the whole flood in memory.
+            let chunk: Vec<u8> = frame.iter().copied().cycle().take(frame.len() * 1000).collect();
+            let mut left = frames;
+            while left > 0 {
+                let n = left.min(1000);
+                sim.send(&chunk[..frame.len() * n as usize])?;
+                left -= n;
+            }
+            Ok(())
+        }
         ["key", word] => {
             let key = parse_key_word(word).ok_or_else(|| format!("unknown key {word:?}"))?;
             sim.send(&Frame::Key(key).encode())
@@ -294,7 +314,7 @@ fn command(sim: &Sim, line: &str) -> Result<(), String> {
             std::thread::sleep(Duration::from_millis(ms));
             Ok(())
         }
-        _ => Err("unknown command (jog, key, upload, poll, poll-job, raw, wait-connected, drop, sleep, quit)".into()),
+        _ => Err("unknown command (jog, flood, key, upload, poll, poll-job, raw, wait-connected, drop, sleep, quit)".into()),
     }
 }
 

@@ -8,7 +8,7 @@ use super::lanes::{BackendError, Lanes};
 use super::{Gate, Msg, RunView};
 use crate::error::{Error, Result};
 use crate::events::EventBus;
-use crate::store::{JobRow, MachineRow, RunRow, RunState, Store};
+use crate::store::{JobRow, MachineRow, PartZeroRow, RunRow, RunState, Store};
 use fresa_plugin_api::contract::{
     AxisValues, Command, Event, MachineState, MachineStatus, OffsetTable, OutputName,
     ProgramLoaded, Request, RunAction, RunOutcome, WorkOffset,
@@ -42,6 +42,8 @@ pub(super) struct Task {
     /// The runs whose acknowledged lines are only in `pending`, recorded beside the store so a
     /// restart knows their stored line is behind.
     pub unstored: super::unstored::Marker,
+    /// Warnings that can repeat per backend event: rate-limited.
+    pub quiet: fresa_plugin_api::quiet::Quiet,
 }
 
 /// What the store has not been told yet. Written acks first, then transitions in the order they
@@ -205,6 +207,18 @@ impl Task {
                 reply,
             } => {
                 let r = self.set_offset(offset, values, &actor).await;
+                let _ = reply.send(r);
+            }
+            Msg::PartZero {
+                position,
+                source,
+                note,
+                actor,
+                reply,
+            } => {
+                let r = self
+                    .record_part_zero(position, &source, note.as_deref(), &actor)
+                    .await;
                 let _ = reply.send(r);
             }
             Msg::RefreshStatus { reply } => {
@@ -416,9 +430,15 @@ impl Task {
             command,
             Command::CycleStart | Command::Resume | Command::Home { .. } | Command::GoToZero
         );
+        let changes_offsets =
+            matches!(command, Command::Zero { .. } | Command::SelectOffset { .. });
         // No new motion without the database, and no offset the store could not keep.
-        if starts_motion || matches!(command, Command::Zero { .. } | Command::SelectOffset { .. }) {
+        if starts_motion || changes_offsets {
             self.store.health().check()?;
+        }
+        if changes_offsets {
+            self.refuse_while_moving("zeroing or selecting a work offset")
+                .await?;
         }
 
         // Spindle and coolant belong to the program while it cuts; the operator may change them
@@ -492,14 +512,9 @@ impl Task {
         values: AxisValues,
         actor: &str,
     ) -> Result<()> {
-        if self.status.borrow().state.is_busy() {
-            return Err(Error::conflict(
-                "machine_busy",
-                "offsets cannot change while the machine moves",
-            ));
-        }
         // The store is the offsets' source of truth: no change it could not keep.
         self.store.health().check()?;
+        self.refuse_while_moving("changing a work offset").await?;
         self.call(&Request::SetOffset { offset, values }).await?;
         self.store
             .health()
@@ -513,6 +528,66 @@ impl Task {
         .await;
         let _ = self.refresh_status().await;
         Ok(())
+    }
+
+    /// The one check before a part zero is recorded, an axis zeroed or a work offset changed
+    /// or selected: refused with 409 `machine_moving` while the machine moves (or holds a paused
+    /// job), judged on a fresh status (the published one can lag the backend), or the last
+    /// one when the backend cannot answer. Every path (HTTP, MQTT, pendant keys) comes here.
+    async fn refuse_while_moving(&self, what: &str) -> Result<()> {
+        let st = match self.refresh_status().await {
+            Ok(s) => s,
+            Err(_) => self.status.borrow().clone(),
+        };
+        Self::standing_still(self.id, &st, what)
+    }
+
+    fn standing_still(id: i64, st: &MachineStatus, what: &str) -> Result<()> {
+        if st.state.is_busy() {
+            return Err(Error::conflict(
+                "machine_moving",
+                format!(
+                    "machine {} is {}: {what} must wait until it stands still (stop it or let \
+                     the motion end first)",
+                    id,
+                    st.state.as_str()
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    async fn record_part_zero(
+        &self,
+        position: Option<AxisValues>,
+        source: &str,
+        note: Option<&str>,
+        actor: &str,
+    ) -> Result<PartZeroRow> {
+        self.store.health().check()?;
+        let what = "recording a part zero";
+        let at = match position {
+            Some(p) => {
+                self.refuse_while_moving(what).await?;
+                p
+            }
+            // Where it stands, as the backend says now.
+            None => {
+                let st = self.refresh_status().await?;
+                Self::standing_still(self.id, &st, what)?;
+                st.machine_position
+            }
+        };
+        let row = self
+            .store
+            .health()
+            .guard(
+                self.store
+                    .insert_part_zero(self.id, at, source, actor, note),
+            )
+            .await?;
+        self.record("machine.part_zero", actor, json!(row)).await;
+        Ok(row)
     }
 
     // ---- runs ----
@@ -1122,7 +1197,11 @@ impl Task {
             let event: Event = match serde_json::from_value(raw.clone()) {
                 Ok(e) => e,
                 Err(e) => {
-                    tracing::warn!(machine = self.id, error = %e, event = %raw, "unknown backend event; ignored");
+                    if let Some(line) = self.quiet.admit("unknown-event", || {
+                        format!("unknown backend event {raw}; ignored: {e}")
+                    }) {
+                        tracing::warn!(machine = self.id, "{line}");
+                    }
                     continue;
                 }
             };
@@ -1307,6 +1386,7 @@ mod tests {
             launched: Some(run.clone()),
             pending: PendingWrites::default(),
             unstored: super::super::unstored::Marker::start(&dir.0.join("unstored"), m),
+            quiet: fresa_plugin_api::quiet::Quiet::per_minute(),
         };
         (task, run, dir)
     }

@@ -13,7 +13,7 @@ pub use lanes::{BackendError, Lane};
 
 use crate::error::{Error, Result};
 use crate::events::EventBus;
-use crate::store::{JobRow, MachineRow, RunRow, RunState, Store};
+use crate::store::{JobRow, MachineRow, PartZeroRow, RunRow, RunState, Store};
 use fresa_plugin_api::contract::{
     Axis, AxisValues, Command, MachineState, MachineStatus, Request, WorkOffset,
 };
@@ -73,7 +73,7 @@ impl Gate {
     pub(crate) fn ticket(&self) -> u64 {
         self.epoch.load(Ordering::SeqCst)
     }
-    fn overtake(&self) {
+    pub(crate) fn overtake(&self) {
         self.epoch.fetch_add(1, Ordering::SeqCst);
     }
     fn close(&self) {
@@ -166,6 +166,14 @@ pub(crate) enum Msg {
         values: AxisValues,
         actor: String,
         reply: Reply<()>,
+    },
+    /// Records a part zero (at `position`, or where the machine stands), refused while it moves.
+    PartZero {
+        position: Option<AxisValues>,
+        source: String,
+        note: Option<String>,
+        actor: String,
+        reply: Reply<PartZeroRow>,
     },
     RefreshStatus {
         reply: Reply<MachineStatus>,
@@ -308,6 +316,7 @@ impl Machine {
             launched: None,
             pending: Default::default(),
             unstored: unstored::Marker::start(&opts.unstored_dir, row.id),
+            quiet: fresa_plugin_api::quiet::Quiet::per_minute(),
         };
         tokio::spawn(task.run(rx, events));
         tokio::spawn(status_loop(m.clone(), bus, opts.status_interval));
@@ -369,6 +378,11 @@ impl Machine {
             .map_err(|_| Error::internal(format!("machine {} dropped the request", self.id)))?
     }
 
+    /// The gate stops and feed holds move: queued inputs (a pendant's) keep its ticket.
+    pub(crate) fn gate(&self) -> &Arc<Gate> {
+        &self.gate
+    }
+
     /// Bounds-checks one jog against the machine's limits, sends it and records it.
     pub async fn jog(
         &self,
@@ -377,8 +391,21 @@ impl Machine {
         feed: Option<f64>,
         actor: &str,
     ) -> Result<()> {
+        self.jog_ticketed(axis, distance, feed, actor, self.gate.ticket())
+            .await
+    }
+
+    /// A jog asked for when the gate gave `ticket` (it waited in a queue since): refused with
+    /// `stopped` if a stop or feed hold came after that.
+    pub(crate) async fn jog_ticketed(
+        &self,
+        axis: Axis,
+        distance: f64,
+        feed: Option<f64>,
+        actor: &str,
+        ticket: u64,
+    ) -> Result<()> {
         limits::check_jog(&self.row(), distance, feed)?;
-        let ticket = self.gate.ticket();
         self.ask(|reply| Msg::Jog {
             axis,
             distance,
@@ -392,9 +419,13 @@ impl Machine {
 
     /// One MDI line: checked like a program line, refused while a job runs.
     pub async fn mdi(&self, line: &str, actor: &str) -> Result<()> {
+        self.mdi_ticketed(line, actor, self.gate.ticket()).await
+    }
+
+    /// An MDI line that waited in a queue since the gate gave `ticket` (see `jog_ticketed`).
+    pub(crate) async fn mdi_ticketed(&self, line: &str, actor: &str, ticket: u64) -> Result<()> {
         limits::check_mdi_line(line)
             .map_err(|e| Error::invalid("invalid_gcode", format!("field `line`: {e}")))?;
-        let ticket = self.gate.ticket();
         self.ask(|reply| Msg::Mdi {
             line: line.into(),
             actor: actor.into(),
@@ -409,14 +440,8 @@ impl Machine {
     /// carried out); the rest are ordered by the task.
     pub async fn command(&self, command: Command, actor: &str) -> Result<Value> {
         if !command.is_urgent() {
-            let ticket = self.gate.ticket();
             return self
-                .ask(|reply| Msg::Command {
-                    command,
-                    actor: actor.into(),
-                    ticket,
-                    reply,
-                })
+                .command_ticketed(command, actor, self.gate.ticket())
                 .await;
         }
         if matches!(command, Command::Stop | Command::FeedHold) {
@@ -440,6 +465,79 @@ impl Machine {
             let _ = tokio::time::timeout(bound, done).await;
         }
         Ok(answer)
+    }
+
+    /// A command that is not urgent and waited in a queue since the gate gave `ticket` (see
+    /// `jog_ticketed`).
+    pub(crate) async fn command_ticketed(
+        &self,
+        command: Command,
+        actor: &str,
+        ticket: u64,
+    ) -> Result<Value> {
+        debug_assert!(!command.is_urgent());
+        self.ask(|reply| Msg::Command {
+            command,
+            actor: actor.into(),
+            ticket,
+            reply,
+        })
+        .await
+    }
+
+    /// Ends the jog under way and every jog still queued for it, from anyone (HTTP, MQTT, the
+    /// CLI, pendants' wheel moves and macros): the gate moves first, so nothing queued before
+    /// this starts afterwards, then a stop on the urgent lane, answered once the backend
+    /// confirmed motion stopped. A running job is not a jog: refused with `machine_busy`
+    /// (pause or cancel the job).
+    pub async fn cancel_jogs(&self, actor: &str) -> Result<Value> {
+        if let Some(r) = self.run() {
+            return Err(Error::conflict(
+                "machine_busy",
+                format!(
+                    "machine {} is running job {} (run {}); a job is paused or cancelled, not                      jog-cancelled",
+                    self.id, r.job_id, r.run_id
+                ),
+            ));
+        }
+        self.gate.overtake();
+        let was = self.status().state;
+        self.urgent(&Request::Command(Command::Stop)).await?;
+        self.bus
+            .record_or_log(
+                "machine.jog_cancel",
+                Some(self.id),
+                Some(actor),
+                json!({"state_before": was}),
+            )
+            .await;
+        // The status the caller sees next is the stopped one.
+        let (reply, done) = oneshot::channel();
+        if self.tx.send(Msg::RefreshStatus { reply }).is_ok() {
+            let bound = self.timeout.min(Duration::from_secs(2));
+            let _ = tokio::time::timeout(bound, done).await;
+        }
+        Ok(json!({"stopped": was.is_busy()}))
+    }
+
+    /// Records a part zero at `position` (machine coordinates) or, without one, where the
+    /// machine stands now. Refused with `machine_moving` while it moves, like zeroing and
+    /// offset changes.
+    pub async fn record_part_zero(
+        &self,
+        position: Option<AxisValues>,
+        source: &str,
+        note: Option<&str>,
+        actor: &str,
+    ) -> Result<PartZeroRow> {
+        self.ask(|reply| Msg::PartZero {
+            position,
+            source: source.into(),
+            note: note.map(str::to_string),
+            actor: actor.into(),
+            reply,
+        })
+        .await
     }
 
     /// A call on the urgent lane, outside the task.

@@ -12,11 +12,10 @@ use fresa_plugin_api::contract::{
     Axis, Command, MachineState, PendantEvent, PendantJob, PendantKey, PendantRequest,
 };
 use fresa_plugin_api::host::Instance;
+use fresa_plugin_api::quiet::Quiet;
 use serde_json::{json, Value};
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex as StdMutex};
 use std::time::{Duration, Instant};
-use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 
 /// The plugin that speaks the MPG pendants' protocol.
@@ -27,7 +26,9 @@ const STATUS_PUSH: Duration = Duration::from_millis(50);
 /// Settings the core reads from a pendant's `config` (the rest goes to the transport plugin).
 const CORE_KEYS: [&str; 1] = ["stop_program_on_lost"];
 
+pub mod inbox;
 pub mod registry;
+use inbox::{Binding, Inbox, Input, Urgent};
 use registry::{lock, Sink};
 pub use registry::{Pendant, Pendants};
 
@@ -46,8 +47,11 @@ pub async fn discovered(app: &App) -> Result<Value, Error> {
                         format!("no plugin named {TRANSPORT_PLUGIN:?} is loaded"),
                     )
                 })?;
-                let (tx, _) = mpsc::unbounded_channel();
-                let sink = Arc::new(Sink { tx, id: 0 });
+                let sink = Arc::new(Sink {
+                    inbox: Arc::new(Inbox::new(0)),
+                    id: 0,
+                    quiet: Quiet::per_minute(),
+                });
                 let lib = lib.clone();
                 let i = tokio::task::spawn_blocking(move || {
                     lib.create(&json!({"discover": true}), sink)
@@ -108,7 +112,7 @@ pub fn transport_config(row: &PendantRow) -> Value {
     cfg
 }
 
-type Created = (Instance, mpsc::UnboundedReceiver<Value>);
+type Created = (Instance, Arc<Inbox>);
 
 /// Creates the transport instance for `row`; it starts connecting at once. An error is the
 /// plugin's verdict on the config (or the plugin is missing).
@@ -118,29 +122,34 @@ pub async fn create_instance(app: &App, row: &PendantRow) -> Result<Created, Str
         .get(TRANSPORT_PLUGIN)
         .ok_or_else(|| format!("no plugin named {TRANSPORT_PLUGIN:?} is loaded"))?
         .clone();
-    let (tx, rx) = mpsc::unbounded_channel();
-    let sink = Arc::new(Sink { tx, id: row.id });
+    let inbox = Arc::new(Inbox::new(row.id));
+    let sink = Arc::new(Sink {
+        inbox: inbox.clone(),
+        id: row.id,
+        quiet: Quiet::per_minute(),
+    });
     let config = transport_config(row);
     let instance = tokio::task::spawn_blocking(move || lib.create(&config, sink))
         .await
         .map_err(|e| format!("transport create failed: {e}"))?
         .map_err(|e| e.to_string())?;
-    Ok((instance, rx))
+    Ok((instance, inbox))
 }
 
 /// Makes `row` live with its transport (or without one, keeping the reason so the operator
-/// sees it), and starts the tasks that route its events and push its status cache.
+/// sees it), and starts its tasks: one for STOP, feed hold, reset and link changes, one for
+/// everything else (so the first never waits behind a jog), and the status cache push.
 pub async fn attach(
     app: &Arc<App>,
     row: PendantRow,
     created: Result<Created, String>,
 ) -> Arc<Pendant> {
     let macros = app.store.pendant_macros(row.id).await.unwrap_or_default();
-    let (instance, rx, unavailable) = match created {
-        Ok((i, rx)) => (Some(Arc::new(i)), rx, None),
+    let (instance, inbox, unavailable) = match created {
+        Ok((i, inbox)) => (Some(Arc::new(i)), inbox, None),
         Err(e) => {
             tracing::error!(pendant = row.id, error = %e, "pendant transport not available");
-            (None, mpsc::unbounded_channel().1, Some(e))
+            (None, Arc::new(Inbox::new(row.id)), Some(e))
         }
     };
     let p = Arc::new(Pendant {
@@ -148,15 +157,27 @@ pub async fn attach(
         row: StdMutex::new(row),
         instance: StdMutex::new(instance),
         unavailable,
-        connected: AtomicBool::new(false),
+        inbox,
         macros: StdMutex::new(macros),
         started_run: StdMutex::new(None),
         stop: CancellationToken::new(),
+        quiet: Quiet::per_minute(),
     });
+    bind(&p, bound_machine(app, &p).await.as_deref());
     app.pendants.map.write().await.insert(p.id, p.clone());
-    tokio::spawn(event_loop(app.clone(), p.clone(), rx));
+    tokio::spawn(urgent_loop(app.clone(), p.clone()));
+    tokio::spawn(input_loop(app.clone(), p.clone()));
     tokio::spawn(status_loop(app.clone(), p.clone()));
     p
+}
+
+/// Tells the inbox which machine (and whose gate) new inputs are for.
+fn bind(p: &Pendant, m: Option<&Machine>) {
+    p.inbox.bind(m.map(|m| Binding {
+        machine: m.id,
+        gate: m.gate().clone(),
+        max_jog_mm: m.row().max_jog_mm,
+    }));
 }
 
 /// Starts every stored pendant. A pendant whose transport cannot start is logged and skipped.
@@ -176,56 +197,162 @@ pub async fn start_all(app: &Arc<App>) {
     }
 }
 
-async fn event_loop(app: Arc<App>, p: Arc<Pendant>, mut rx: mpsc::UnboundedReceiver<Value>) {
-    let mut batch = Vec::new();
+/// STOP, feed hold, reset and link changes, in order, never behind an ordinary input.
+async fn urgent_loop(app: Arc<App>, p: Arc<Pendant>) {
     loop {
-        let n = tokio::select! {
+        while let Some(u) = p.inbox.pop_urgent() {
+            match u {
+                Urgent::Connected { address } => {
+                    let m = p.row().machine_id;
+                    app.bus
+                        .record_or_log(
+                            "pendant.connected",
+                            m,
+                            Some(&p.actor()),
+                            json!({"pendant": p.id, "address": address}),
+                        )
+                        .await;
+                }
+                Urgent::Lost { reason } => {
+                    let stopped = stop_motion_of_lost(&app, &p).await;
+                    let m = p.row().machine_id;
+                    app.bus
+                        .record_or_log(
+                            "pendant.lost",
+                            m,
+                            Some(&p.actor()),
+                            json!({"pendant": p.id, "reason": reason, "stopped": stopped}),
+                        )
+                        .await;
+                }
+                Urgent::Key(key) => key_pressed(&app, &p, key, None).await,
+            }
+        }
+        tokio::select! {
             _ = p.stop.cancelled() => return,
             _ = app.shutdown.cancelled() => return,
-            n = rx.recv_many(&mut batch, 256) => n,
-        };
-        if n == 0 {
-            return;
-        }
-        let events: Vec<PendantEvent> = batch
-            .drain(..)
-            .filter_map(|raw| match serde_json::from_value(raw.clone()) {
-                Ok(e) => Some(e),
-                Err(e) => {
-                    tracing::warn!(pendant = p.id, error = %e, event = %raw, "unknown pendant event; ignored");
-                    None
-                }
-            })
-            .collect();
-        // Motion asked for just before the link died is not started: nobody can stop it from
-        // that pendant any more. Stop, pause and reset still go through.
-        let lost_at = events
-            .iter()
-            .rposition(|e| matches!(e, PendantEvent::Lost { .. }));
-        for (i, ev) in events.into_iter().enumerate() {
-            if lost_at.is_some_and(|l| i < l) && starts_motion(&ev) {
-                tracing::warn!(pendant = p.id, event = ?ev, "input dropped: the pendant was lost right after sending it");
-                continue;
-            }
-            if matches!(ev, PendantEvent::Upload { .. }) {
-                // Storing a long program takes a while; it must not delay a lost-pendant stop.
-                let (app, p) = (app.clone(), p.clone());
-                tokio::spawn(async move { handle(&app, &p, ev).await });
-                continue;
-            }
-            handle(&app, &p, ev).await;
+            _ = p.inbox.urgent_ready.notified() => {}
         }
     }
 }
 
-fn starts_motion(ev: &PendantEvent) -> bool {
-    match ev {
-        PendantEvent::Jog { .. } => true,
-        PendantEvent::Key { key } => !matches!(
-            key,
-            PendantKey::Stop | PendantKey::Pause | PendantKey::Reset
-        ),
-        _ => false,
+/// Everything else, in order. A wheel move waits while the machine still jogs (the previous
+/// one, or anyone's), and wheel counts arriving meanwhile join it: one jog of one tap never
+/// waits behind a backlog, and a backlog is one pending move a stop drops.
+async fn input_loop(app: Arc<App>, p: Arc<Pendant>) {
+    loop {
+        let work = async {
+            match p.inbox.next_is_wheel() {
+                Some(true) => wheel(&app, &p).await,
+                Some(false) => {
+                    if let Some(input) = p.inbox.pop_other() {
+                        other_input(&app, &p, input).await
+                    }
+                }
+                None => p.inbox.ordinary_ready.notified().await,
+            }
+        };
+        tokio::select! {
+            _ = p.stop.cancelled() => return,
+            _ = app.shutdown.cancelled() => return,
+            _ = work => {}
+        }
+    }
+}
+
+/// One wheel move: at most `max_jog_mm` of the queued counts, once the machine no longer jogs.
+async fn wheel(app: &Arc<App>, p: &Arc<Pendant>) {
+    let m = bound_machine(app, p).await;
+    if let Some(m) = &m {
+        let mut status = m.subscribe_status();
+        if status
+            .wait_for(|s| s.state != MachineState::Jogging)
+            .await
+            .is_err()
+        {
+            return;
+        }
+    }
+    let max = m.as_ref().map_or(f64::INFINITY, |m| m.row().max_jog_mm);
+    let Some(j) = p.inbox.take_wheel(max) else {
+        return;
+    };
+    let input = json!({"jog": {"axis": j.axis, "count": j.count, "step": j.step}});
+    let Some(m) = ready_machine(app, p, &input).await else {
+        return;
+    };
+    let ticket = match j.ticket {
+        Some(t) if t.machine == m.id => t.epoch,
+        // Meant for the machine the pendant was bound to before.
+        Some(_) => return,
+        None => m.gate().ticket(),
+    };
+    if !claim_motion(app, p, &m) {
+        return;
+    }
+    let distance = j.count as f64 * j.step;
+    match m
+        .jog_ticketed(j.axis, distance, None, &p.actor(), ticket)
+        .await
+    {
+        // The task has seen the backend start the jog before the next move waits for its end.
+        Ok(()) => m.sync().await,
+        Err(e) if e.code == "stopped" => {
+            tracing::debug!(
+                pendant = p.id,
+                "a queued wheel move was overtaken by a stop"
+            )
+        }
+        Err(e) => refuse(app, p, Some(m.id), input, e.code, &e.message).await,
+    }
+}
+
+/// Marks the pendant as the one moving `m` and checks the link is still up: a loss handled
+/// after this sees the mark and stops the machine; one before it is seen here.
+fn claim_motion(app: &App, p: &Pendant, m: &Machine) -> bool {
+    app.pendants.last_mover_set(m.id, p.id);
+    if p.inbox.connected() {
+        return true;
+    }
+    app.pendants.last_mover_take_if(m.id, p.id);
+    tracing::info!(
+        pendant = p.id,
+        "input dropped: the pendant was lost right after sending it"
+    );
+    false
+}
+
+async fn other_input(app: &Arc<App>, p: &Arc<Pendant>, input: Input) {
+    match input {
+        Input::Key { key, ticket } => key_pressed(app, p, key, ticket).await,
+        Input::Other(PendantEvent::Upload {
+            upload,
+            lines,
+            declared_lines,
+            declared_chars,
+        }) => {
+            // Storing a long program takes a while; later keys need not wait for it.
+            let (app, p) = (app.clone(), p.clone());
+            tokio::spawn(async move {
+                receive_upload(&app, &p, upload, lines, declared_lines, declared_chars).await
+            });
+        }
+        Input::Other(PendantEvent::UploadFailed { reason }) => {
+            let m = p.row().machine_id;
+            app.bus
+                .record_or_log(
+                    "pendant.upload_rejected",
+                    m,
+                    Some(&p.actor()),
+                    json!({"pendant": p.id, "reason": reason}),
+                )
+                .await;
+        }
+        // Link events and wheel moves never reach here (the inbox routes them).
+        Input::Other(other) => {
+            tracing::debug!(pendant = p.id, event = ?other, "pendant event ignored")
+        }
+        Input::Jog { .. } => {}
     }
 }
 
@@ -243,7 +370,12 @@ async fn refuse(
     code: &str,
     reason: &str,
 ) {
-    tracing::warn!(pendant = p.id, %input, code, reason, "pendant input refused");
+    if let Some(line) = p
+        .quiet
+        .admit(code, || format!("pendant input refused: {input}: {reason}"))
+    {
+        tracing::warn!(pendant = p.id, code, "{line}");
+    }
     app.bus
         .record_or_log(
             "pendant.refused",
@@ -252,65 +384,6 @@ async fn refuse(
             json!({"pendant": p.id, "input": input, "code": code, "reason": reason}),
         )
         .await;
-}
-
-async fn handle(app: &Arc<App>, p: &Arc<Pendant>, ev: PendantEvent) {
-    match ev {
-        PendantEvent::Connected { address } => {
-            p.connected.store(true, Ordering::Relaxed);
-            let m = p.row().machine_id;
-            app.bus
-                .record_or_log(
-                    "pendant.connected",
-                    m,
-                    Some(&p.actor()),
-                    json!({"pendant": p.id, "address": address}),
-                )
-                .await;
-        }
-        PendantEvent::Lost { reason } => {
-            p.connected.store(false, Ordering::Relaxed);
-            let stopped = stop_motion_of_lost(app, p).await;
-            let m = p.row().machine_id;
-            app.bus
-                .record_or_log(
-                    "pendant.lost",
-                    m,
-                    Some(&p.actor()),
-                    json!({"pendant": p.id, "reason": reason, "stopped": stopped}),
-                )
-                .await;
-        }
-        PendantEvent::Jog { axis, count, step } => {
-            let input = json!({"jog": {"axis": axis, "count": count, "step": step}});
-            let Some(m) = ready_machine(app, p, &input).await else {
-                return;
-            };
-            let distance = count as f64 * step;
-            app.pendants.last_mover_set(m.id, p.id);
-            if let Err(e) = m.jog(axis, distance, None, &p.actor()).await {
-                refuse(app, p, Some(m.id), input, e.code, &e.message).await;
-            }
-        }
-        PendantEvent::Key { key } => key_pressed(app, p, key).await,
-        PendantEvent::Upload {
-            upload,
-            lines,
-            declared_lines,
-            declared_chars,
-        } => receive_upload(app, p, upload, lines, declared_lines, declared_chars).await,
-        PendantEvent::UploadFailed { reason } => {
-            let m = p.row().machine_id;
-            app.bus
-                .record_or_log(
-                    "pendant.upload_rejected",
-                    m,
-                    Some(&p.actor()),
-                    json!({"pendant": p.id, "reason": reason}),
-                )
-                .await;
-        }
-    }
 }
 
 /// The bound machine if it may move; otherwise records why not and returns None.
@@ -372,7 +445,13 @@ async fn stop_motion_of_lost(app: &Arc<App>, p: &Pendant) -> bool {
     stopped
 }
 
-async fn key_pressed(app: &Arc<App>, p: &Arc<Pendant>, key: PendantKey) {
+/// `ticket`: for a motion key, the gate ticket from when it arrived (a stop since then drops it).
+async fn key_pressed(
+    app: &Arc<App>,
+    p: &Arc<Pendant>,
+    key: PendantKey,
+    ticket: Option<inbox::Ticket>,
+) {
     let input = json!({"key": key});
     let actor = p.actor();
     // Stop, pause and reset never wait for anything and are allowed in alarm.
@@ -402,6 +481,20 @@ async fn key_pressed(app: &Arc<App>, p: &Arc<Pendant>, key: PendantKey) {
             None => return,
         }
     };
+    let ticket = match ticket {
+        Some(t) if t.machine != m.id => return,
+        Some(t) => t.epoch,
+        None => m.gate().ticket(),
+    };
+    if inbox::moves(key) {
+        if m.gate().check(ticket).is_err() {
+            tracing::debug!(pendant = p.id, ?key, "a queued key was overtaken by a stop");
+            return;
+        }
+        if !claim_motion(app, p, &m) {
+            return;
+        }
+    }
     let zero = |axis| Some(Command::Zero { axis });
     let command = match key {
         PendantKey::Zero => zero(None),
@@ -411,14 +504,12 @@ async fn key_pressed(app: &Arc<App>, p: &Arc<Pendant>, key: PendantKey) {
         PendantKey::ZeroA => zero(Some(Axis::A)),
         PendantKey::Reset => Some(Command::Reset),
         PendantKey::Stop => Some(Command::Stop),
-        PendantKey::Home => {
-            app.pendants.last_mover_set(m.id, p.id);
-            Some(Command::GoToZero)
-        }
+        PendantKey::Home => Some(Command::GoToZero),
         _ => None,
     };
     let result: Result<(), Error> = match (command, key) {
-        (Some(c), _) => m.command(c, &actor).await.map(|_| ()),
+        (Some(c), _) if c.is_urgent() => m.command(c, &actor).await.map(|_| ()),
+        (Some(c), _) => m.command_ticketed(c, &actor, ticket).await.map(|_| ()),
         (None, PendantKey::Pause) => match m.run() {
             Some(r) => crate::jobs::pause(app, r.job_id, &actor).await.map(|_| ()),
             None => m.command(Command::FeedHold, &actor).await.map(|_| ()),
@@ -436,7 +527,7 @@ async fn key_pressed(app: &Arc<App>, p: &Arc<Pendant>, key: PendantKey) {
                 .await;
             Ok(())
         }
-        (None, k) => run_macro(app, p, &m, k, &actor).await,
+        (None, k) => run_macro(p, &m, k, &actor, ticket).await,
     };
     if let Err(e) = result {
         refuse(app, p, Some(m.id), input, e.code, &e.message).await;
@@ -472,11 +563,11 @@ async fn start_key(app: &Arc<App>, p: &Pendant, m: &Machine, actor: &str) -> Res
 }
 
 async fn run_macro(
-    app: &Arc<App>,
     p: &Pendant,
     m: &Machine,
     key: PendantKey,
     actor: &str,
+    ticket: u64,
 ) -> Result<(), Error> {
     let slot = match key {
         PendantKey::M1 => 1,
@@ -491,24 +582,20 @@ async fn run_macro(
         )
     })?;
     match action {
-        MacroAction::Command { command } => {
-            if matches!(command, Command::GoToZero | Command::Home { .. }) {
-                app.pendants.last_mover_set(m.id, p.id);
-            }
+        MacroAction::Command { command } if command.is_urgent() => {
             m.command(command, actor).await.map(|_| ())
         }
+        MacroAction::Command { command } => {
+            m.command_ticketed(command, actor, ticket).await.map(|_| ())
+        }
         MacroAction::Jog { axis, distance } => {
-            app.pendants.last_mover_set(m.id, p.id);
-            m.jog(axis, distance, None, actor).await
+            m.jog_ticketed(axis, distance, None, actor, ticket).await
         }
         MacroAction::Toggle { output } => m
-            .command(Command::ToggleOutput { name: output }, actor)
+            .command_ticketed(Command::ToggleOutput { name: output }, actor, ticket)
             .await
             .map(|_| ()),
-        MacroAction::Mdi { line } => {
-            app.pendants.last_mover_set(m.id, p.id);
-            m.mdi(&line, actor).await
-        }
+        MacroAction::Mdi { line } => m.mdi_ticketed(&line, actor, ticket).await,
     }
 }
 
@@ -647,6 +734,7 @@ async fn status_loop(app: Arc<App>, p: Arc<Pendant>) {
             _ = tick.tick() => {}
         }
         let m = bound_machine(&app, &p).await;
+        bind(&p, m.as_deref());
         let (position, job) = match &m {
             Some(m) => {
                 let st = m.status();
@@ -688,7 +776,14 @@ async fn status_loop(app: Arc<App>, p: Arc<Pendant>) {
             // The plugin only swaps its cache under a lock: cheap enough to call inline.
             match i.call(&req) {
                 Ok(_) => last = Some(req),
-                Err(e) => tracing::warn!(pendant = p.id, error = %e, "status push failed"),
+                Err(e) => {
+                    if let Some(line) = p
+                        .quiet
+                        .admit("status-push", || format!("status push failed: {e}"))
+                    {
+                        tracing::warn!(pendant = p.id, "{line}");
+                    }
+                }
             }
         }
     }

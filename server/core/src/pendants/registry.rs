@@ -1,13 +1,15 @@
 //! The live pendants, by id: each one's row, plugin instance, macros and link state. Only the
 //! data; what a pendant's input does is in the parent module.
 
+use super::inbox::Inbox;
 use crate::store::{MacroAction, PendantRow};
+use fresa_plugin_api::contract::PendantEvent;
 use fresa_plugin_api::host::{HostSink, Instance};
+use fresa_plugin_api::quiet::Quiet;
 use serde_json::Value;
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex as StdMutex};
-use tokio::sync::{mpsc, RwLock};
+use tokio::sync::RwLock;
 use tokio_util::sync::CancellationToken;
 
 pub struct Pendant {
@@ -16,11 +18,14 @@ pub struct Pendant {
     pub(super) instance: StdMutex<Option<Arc<Instance>>>,
     /// Why there is no instance (plugin missing, config rejected).
     pub unavailable: Option<String>,
-    pub(super) connected: AtomicBool,
+    /// Inputs not carried out yet, and the link state (see [`Inbox`]).
+    pub(super) inbox: Arc<Inbox>,
     pub(super) macros: StdMutex<[Option<MacroAction>; 4]>,
     /// Run this pendant started (Start key), for the lost-pendant policy.
     pub(super) started_run: StdMutex<Option<i64>>,
     pub(super) stop: CancellationToken,
+    /// Refusals and failed status pushes can repeat per wheel event or per push: rate-limited.
+    pub(super) quiet: Quiet,
 }
 
 pub(super) fn lock<T>(m: &StdMutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -31,8 +36,9 @@ impl Pendant {
     pub fn row(&self) -> PendantRow {
         lock(&self.row).clone()
     }
+    /// The link, as the transport reports it (not delayed by inputs still waiting).
     pub fn connected(&self) -> bool {
-        self.connected.load(Ordering::Relaxed)
+        self.inbox.connected()
     }
     pub fn macros(&self) -> [Option<MacroAction>; 4] {
         lock(&self.macros).clone()
@@ -43,7 +49,11 @@ impl Pendant {
         }
     }
     pub fn set_machine(&self, machine: Option<i64>) {
-        lock(&self.row).machine_id = machine;
+        let before = std::mem::replace(&mut lock(&self.row).machine_id, machine);
+        if before != machine {
+            // Queued motion was meant for the old machine; the status task binds the new one.
+            self.inbox.bind(None);
+        }
     }
     pub(super) fn actor(&self) -> String {
         format!("pendant:{}", self.id)
@@ -117,13 +127,25 @@ pub(super) async fn shut(p: &Pendant) {
 }
 
 pub(super) struct Sink {
-    pub(super) tx: mpsc::UnboundedSender<Value>,
+    pub(super) inbox: Arc<Inbox>,
     pub(super) id: i64,
+    pub(super) quiet: Quiet,
 }
 
 impl HostSink for Sink {
+    /// On the plugin's thread: decoded and queued at once (bounded, never blocks).
     fn event(&self, event: Value) {
-        let _ = self.tx.send(event);
+        use serde::Deserialize;
+        match PendantEvent::deserialize(&event) {
+            Ok(e) => self.inbox.push(e),
+            Err(e) => {
+                if let Some(line) = self.quiet.admit("unknown-event", || {
+                    format!("unknown pendant event {event}; ignored: {e}")
+                }) {
+                    tracing::warn!(pendant = self.id, "{line}");
+                }
+            }
+        }
     }
     fn log(&self, level: u32, message: &str) {
         use fresa_plugin_api::abi::*;
