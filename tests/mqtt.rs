@@ -686,16 +686,23 @@ fn retained_commands_are_never_run_even_across_reconnects() {
     let c = Sub::new(&broker, &["t/cmd/results"]);
     // The broker sends retained messages right after each subscription's acknowledgement, so
     // by the time a live command published now is answered, both retained ones were seen.
-    let answer = live_jog(&c, &operator, "Y", 1.0, "live-1");
-    assert_eq!(answer["ok"], true, "{answer}");
-    s.wait_status(1, T, "y = 1 after the live jog", |st| {
-        (st["machine_position"]["y"].as_f64().unwrap_or(f64::NAN) - 1.0).abs() < 1e-6
-    });
-    assert!(
-        x_is(&s.status(1), 0.0),
-        "the retained jog moved X: {}",
-        s.status(1)
-    );
+    // A live jog of Y runs (to `y`); the retained jog of X never did.
+    let live_jog_runs = |request_id: &str, y: f64| {
+        let answer = live_jog(&c, &operator, "Y", 1.0, request_id);
+        assert_eq!(answer["ok"], true, "{answer}");
+        s.wait_status(
+            1,
+            T,
+            &format!("y = {y} after the live jog {request_id}"),
+            |st| (st["machine_position"]["y"].as_f64().unwrap_or(f64::NAN) - y).abs() < 1e-6,
+        );
+        assert!(
+            x_is(&s.status(1), 0.0),
+            "the retained jog moved X: {}",
+            s.status(1)
+        );
+    };
+    live_jog_runs("live-1", 1.0);
     assert_eq!(metric(&s, "fresa_mqtt_retained_ignored_total"), 2.0);
     assert_eq!(metric(&s, "fresa_mqtt_reconnects_total"), 0.0);
 
@@ -706,16 +713,7 @@ fn retained_commands_are_never_run_even_across_reconnects() {
             && metric(&s, "fresa_mqtt_commands_ready") == 1.0)
             .then_some(())
     });
-    let answer = live_jog(&c, &operator, "Y", 1.0, "live-2");
-    assert_eq!(answer["ok"], true, "{answer}");
-    s.wait_status(1, T, "y = 2 after the second live jog", |st| {
-        (st["machine_position"]["y"].as_f64().unwrap_or(f64::NAN) - 2.0).abs() < 1e-6
-    });
-    assert!(
-        x_is(&s.status(1), 0.0),
-        "the retained jog moved X: {}",
-        s.status(1)
-    );
+    live_jog_runs("live-2", 2.0);
     assert_eq!(metric(&s, "fresa_mqtt_retained_ignored_total"), 4.0);
     // The retained oversized message did not knock the bridge off again.
     assert_eq!(metric(&s, "fresa_mqtt_reconnects_total"), 1.0);

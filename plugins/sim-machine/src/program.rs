@@ -70,42 +70,50 @@ impl Iterator for Steps<'_> {
                 Err(e) => return Some(Err(e)),
             };
             let line = motion.line().clamp(1, self.lines.max(1));
-            let step = match motion {
-                Motion::Rapid { to, a, .. } => Step::Move {
-                    to,
-                    a: a.map(|a| a.to),
-                    feed: None,
-                },
-                Motion::Linear {
-                    to, feed_mm_min, a, ..
-                } => Step::Move {
-                    to,
-                    a: a.map(|a| a.to),
-                    feed: Some(feed_mm_min),
-                },
-                // `linearise` turns every arc into chords; an arc here would be a bug there.
-                Motion::Arc {
-                    to, feed_mm_min, ..
-                } => Step::Move {
-                    to,
-                    a: None,
-                    feed: Some(feed_mm_min),
-                },
-                Motion::Dwell { seconds, .. } => Step::Dwell(seconds),
-                Motion::Pause {
-                    optional: false, ..
-                } => Step::Pause,
-                Motion::WorkOffset { system, .. } => match system {
-                    1..=6 => Step::UseOffset(WorkOffset::ALL[usize::from(system) - 1]),
-                    _ => continue,
-                },
-                // Spindle, coolant, tool changes, messages, M1 (optional stop off) and the end
-                // of the program do not move the simulated machine.
-                _ => continue,
+            let Some(step) = step_of(motion) else {
+                continue;
             };
             return Some(Ok((line, step)));
         }
     }
+}
+
+/// What a linearised motion does to the simulated machine; `None` for what does not move it.
+fn step_of(motion: Motion) -> Option<Step> {
+    let step = match motion {
+        Motion::Rapid { to, a, .. } => Step::Move {
+            to,
+            a: a.map(|a| a.to),
+            feed: None,
+        },
+        Motion::Linear {
+            to, feed_mm_min, a, ..
+        } => Step::Move {
+            to,
+            a: a.map(|a| a.to),
+            feed: Some(feed_mm_min),
+        },
+        // `linearise` turns every arc into chords; an arc here would be a bug there.
+        Motion::Arc {
+            to, feed_mm_min, ..
+        } => Step::Move {
+            to,
+            a: None,
+            feed: Some(feed_mm_min),
+        },
+        Motion::Dwell { seconds, .. } => Step::Dwell(seconds),
+        Motion::Pause {
+            optional: false, ..
+        } => Step::Pause,
+        Motion::WorkOffset {
+            system: system @ 1..=6,
+            ..
+        } => Step::UseOffset(WorkOffset::ALL[usize::from(system) - 1]),
+        // Spindle, coolant, tool changes, messages, M1 (optional stop off), other work offset
+        // systems and the end of the program do not move the simulated machine.
+        _ => return None,
+    };
+    Some(step)
 }
 
 /// The interpreter settings of a plan. `initial_position` is where the tool is, in program
@@ -251,35 +259,8 @@ mod tests {
         for motion in linearise(interp, ARC_TOLERANCE_MM) {
             let motion = motion.unwrap();
             let line = motion.line().clamp(1, lines.max(1));
-            let step = match motion {
-                Motion::Rapid { to, a, .. } => Step::Move {
-                    to,
-                    a: a.map(|a| a.to),
-                    feed: None,
-                },
-                Motion::Linear {
-                    to, feed_mm_min, a, ..
-                } => Step::Move {
-                    to,
-                    a: a.map(|a| a.to),
-                    feed: Some(feed_mm_min),
-                },
-                Motion::Arc {
-                    to, feed_mm_min, ..
-                } => Step::Move {
-                    to,
-                    a: None,
-                    feed: Some(feed_mm_min),
-                },
-                Motion::Dwell { seconds, .. } => Step::Dwell(seconds),
-                Motion::Pause {
-                    optional: false, ..
-                } => Step::Pause,
-                Motion::WorkOffset { system, .. } => match system {
-                    1..=6 => Step::UseOffset(WorkOffset::ALL[usize::from(system) - 1]),
-                    _ => continue,
-                },
-                _ => continue,
+            let Some(step) = step_of(motion) else {
+                continue;
             };
             steps.push((line, step));
         }

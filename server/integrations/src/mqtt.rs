@@ -342,6 +342,17 @@ async fn drive(
     let in_flight = Arc::new(tokio::sync::Semaphore::new(MAX_COMMANDS_IN_FLIGHT));
     let mut retained_logged: std::collections::HashSet<String> = Default::default();
     let stats = &app.integrations;
+    // A command refused before it runs is answered on the results topic at once.
+    let refuse = |answer: serde_json::Value| {
+        offer(
+            &app,
+            &client,
+            topics.results(),
+            QoS::AtLeastOnce,
+            false,
+            answer.to_string().into_bytes(),
+        )
+    };
     loop {
         let polled = tokio::select! {
             _ = app.shutdown.cancelled() => break,
@@ -389,28 +400,14 @@ async fn drive(
                     let answer = json!({"topic": p.topic, "ok": false, "code": "payload_too_large",
                         "message": format!("the command payload has {} bytes; at most {} \
                             (mqtt.max_command_bytes)", p.payload.len(), settings.max_command_bytes)});
-                    offer(
-                        &app,
-                        &client,
-                        topics.results(),
-                        QoS::AtLeastOnce,
-                        false,
-                        answer.to_string().into_bytes(),
-                    );
+                    refuse(answer);
                     continue;
                 }
                 let Ok(permit) = in_flight.clone().try_acquire_owned() else {
                     IntegrationStats::add(&stats.mqtt_commands_refused, 1);
                     let answer = json!({"topic": p.topic, "ok": false, "code": "busy",
                         "message": format!("more than {MAX_COMMANDS_IN_FLIGHT} commands in flight")});
-                    offer(
-                        &app,
-                        &client,
-                        topics.results(),
-                        QoS::AtLeastOnce,
-                        false,
-                        answer.to_string().into_bytes(),
-                    );
+                    refuse(answer);
                     continue;
                 };
                 let (app, client, topics) = (app.clone(), client.clone(), topics.clone());
