@@ -180,6 +180,18 @@ pub(crate) enum BlockKind {
     Repeat,
 }
 
+impl BlockKind {
+    /// The O-word that opens the block.
+    pub fn keyword(self) -> &'static str {
+        match self {
+            BlockKind::If { .. } => "if",
+            BlockKind::While => "while",
+            BlockKind::Do => "do",
+            BlockKind::Repeat => "repeat",
+        }
+    }
+}
+
 /// An open if/loop: its name, kind, the index of its opening line, and
 /// (repeat) how many passes are left.
 #[derive(Debug, Clone)]
