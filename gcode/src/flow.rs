@@ -259,7 +259,7 @@ pub(crate) struct Flow {
     pub frames: Vec<Frame>,
     pub blocks: Vec<OpenBlock>,
     pub skip: Option<Skip>,
-    /// Backward jumps so far (loop passes, M98 repeats), bounded by
+    /// Backward jumps and calls so far (loop passes, M98 repeats, calls), bounded by
     /// `Config::max_loop_iterations`.
     pub jumps: u64,
 }

@@ -648,18 +648,26 @@ impl<R: BufRead> Interpreter<R> {
     /// Goes back to line index `idx` (a loop pass or an M98 repeat), counted
     /// against `Config::max_loop_iterations`.
     fn jump_back(&mut self, idx: usize) -> Result<(), GcodeError> {
+        self.count_pass(0)?;
+        self.flow.pc = idx;
+        Ok(())
+    }
+
+    /// One more loop pass or subroutine call (the O-word at `at`), at most
+    /// `Config::max_loop_iterations` in all: a call runs its body again as a pass does, and
+    /// uncounted, ten levels of a thousand calls each multiplied into 10^27 lines from 80 KB.
+    fn count_pass(&mut self, at: usize) -> Result<(), GcodeError> {
         self.flow.jumps += 1;
         if self.flow.jumps > self.cfg.max_loop_iterations {
             return Err(self.err_at((
-                0,
+                at,
                 ErrorKind::Invalid,
                 format!(
-                    "more than {} loop passes (Config::max_loop_iterations)",
+                    "more than {} loop passes and subroutine calls (Config::max_loop_iterations)",
                     self.cfg.max_loop_iterations
                 ),
             )));
         }
-        self.flow.pc = idx;
         Ok(())
     }
 
@@ -682,6 +690,7 @@ impl<R: BufRead> Interpreter<R> {
                 ),
             )));
         }
+        self.count_pass(at)?;
         let call = PendingCall {
             args,
             return_to: self.flow.cur + 1,
@@ -2328,7 +2337,14 @@ fn check_motion_reach(m: &Motion, blk: &Block) -> Result<(), LexError> {
         }
         Motion::Arc { to, centre, .. } => {
             check_reach("the arc ends at", to, None, blk)?;
-            check_reach("the arc centre is at", centre, None, blk)
+            check_reach("the arc centre is at", centre, None, blk)?;
+            // Its chords go where the arc bulges, beyond both ends.
+            if let Some(g) = crate::ArcGeometry::from_motion(m) {
+                let (lo, hi) = g.bounds();
+                check_reach("the arc reaches", &lo, None, blk)?;
+                check_reach("the arc reaches", &hi, None, blk)?;
+            }
+            Ok(())
         }
         Motion::OffsetChange {
             offset, offset_a, ..

@@ -162,7 +162,7 @@ pub struct Config {
     /// Most nesting levels, the main program included (O-word `call`,
     /// `M98`); deeper is an error naming the line. Default 10, LinuxCNC's.
     pub max_call_depth: usize,
-    /// Most loop passes (`while`, `do`, `repeat`, M98 `L`) in one program;
+    /// Most loop passes (`while`, `do`, `repeat`, M98 `L`) and subroutine calls in one program;
     /// more is an error naming the line, so a runaway loop cannot hang an
     /// upload check. Default 10,000,000.
     pub max_loop_iterations: u64,

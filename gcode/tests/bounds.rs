@@ -230,6 +230,14 @@ fn positions_and_offsets_that_add_up_beyond_reach_are_refused_at_the_line() {
         ),
         // Canned-cycle repeats stepping out.
         ("G0 Z5\nG91 G81 X300000 Z-1 R1 L4 F100", 2, 9, "X=1200000"),
+        // An arc that bulges out of reach although its ends and centre do not.
+        ("G0 X0\nG2 I600000 F100", 2, 4, "the arc reaches X=1200000"),
+        (
+            "G0 Y-900000\nG18 G2 Y-900000 K-600000 F100",
+            2,
+            8,
+            "the arc reaches Z=-1200000",
+        ),
         // An arc whose centre is out of reach although its ends are not.
         (
             "G0 X900000\nG2 X900000 Y1 I900000 J0.5 F100",
@@ -310,6 +318,43 @@ fn o_word_blocks_nest_at_most_the_limit() {
     assert_eq!(e.line, MAX_BLOCK_NESTING as u32 + 1, "{e}");
     assert!(
         e.message.contains("o<64> do") && e.message.contains("limit of 64"),
+        "{e}"
+    );
+}
+
+#[test]
+fn nested_calls_count_against_the_loop_budget_and_cannot_multiply() {
+    // Eight levels of 1,000 calls each: 10^21 lines if calls were free.
+    let mut src = String::new();
+    for i in 0..8 {
+        src.push_str(&format!("o<s{i}> sub\n"));
+        let body = if i < 7 {
+            format!("o<s{}> call\n", i + 1).repeat(1000)
+        } else {
+            "G0 X1\n".to_string()
+        };
+        src.push_str(&body);
+        src.push_str(&format!("o<s{i}> endsub\n"));
+    }
+    src.push_str("o<s0> call\nM30\n");
+    let cfg = Config {
+        max_loop_iterations: 10_000,
+        ..Config::default()
+    };
+    let r: Result<Vec<Motion>, GcodeError> = Interpreter::new(src.as_bytes(), cfg).collect();
+    let e = r.unwrap_err();
+    assert!(
+        e.message
+            .contains("more than 10000 loop passes and subroutine calls"),
+        "{e}"
+    );
+    // The 10,001st call is on a line of s6's body, at its O-word.
+    assert_eq!(e.column, 1, "{e}");
+    assert!(
+        src.lines()
+            .nth(e.line as usize - 1)
+            .unwrap()
+            .contains("call"),
         "{e}"
     );
 }
