@@ -564,6 +564,15 @@ impl<R: BufRead> Interpreter<R> {
             let frame = self.frame();
             for mut m in out {
                 shift(&mut m, frame, self.g92_a);
+                // Checked like every line's events (the line's own check saw them held).
+                if let Err((_, kind, message)) = check_motion_reach(&m, &Block::new()) {
+                    return Err(GcodeError {
+                        line: m.line(),
+                        column: 1,
+                        kind,
+                        message,
+                    });
+                }
                 self.queue.push_back(m);
             }
         }
@@ -655,7 +664,7 @@ impl<R: BufRead> Interpreter<R> {
 
     /// One more loop pass or subroutine call (the O-word at `at`), at most
     /// `Config::max_loop_iterations` in all: a call runs its body again as a pass does, and
-    /// uncounted, ten levels of a thousand calls each multiplied into 10^27 lines from 80 KB.
+    /// uncounted, nine levels of a thousand calls each (about 100 KB) multiply into 10^27 lines.
     fn count_pass(&mut self, at: usize) -> Result<(), GcodeError> {
         self.flow.jumps += 1;
         if self.flow.jumps > self.cfg.max_loop_iterations {

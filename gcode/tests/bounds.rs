@@ -255,6 +255,11 @@ fn positions_and_offsets_that_add_up_beyond_reach_are_refused_at_the_line() {
             "{src}: {e}"
         );
     }
+    // A move that cutter compensation holds to the end of the file, in a frame that a G10
+    // shifted (found by the grammar fuzz target).
+    let e = err("G10 L20 P0 Y-1000000\nG42.1 D2\nG0 Y1\n");
+    assert_eq!((e.line, e.column), (3, 1), "{e}");
+    assert!(e.message.contains("the move ends at Y=1000001 mm"), "{e}");
     // Nothing of the refused line comes out.
     let m: Vec<_> = Interpreter::new(
         "G91 G0 X600000\nM3 S100 X600000\n".as_bytes(),
