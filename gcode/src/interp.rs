@@ -14,7 +14,8 @@ use crate::lex::{
 };
 use crate::{
     Config, ErrorKind, GcodeError, Motion, Plane, Point, RotaryMove, SpindleDirection, Unsupported,
-    Warning, MAX_BLOCK_NESTING, MAX_COORDINATE_MM, MAX_DWELL_SECONDS, MAX_FEED, MAX_SPINDLE_RPM,
+    Warning, MAX_BLOCK_NESTING, MAX_COORDINATE_MM, MAX_DWELL_SECONDS, MAX_FEED, MAX_HELD_EVENTS,
+    MAX_SPINDLE_RPM,
 };
 use std::f64::consts::TAU;
 use std::io::BufRead;
@@ -1658,7 +1659,7 @@ impl<R: BufRead> Interpreter<R> {
             st.spindle_tool = st.tool;
             if let Some(c) = comp.as_mut() {
                 if !c.held.is_empty() {
-                    absorb(queue, c);
+                    absorb(queue, c)?;
                     release(queue, c);
                 }
                 // LinuxCNC reads the position back after a tool change:
@@ -1729,7 +1730,7 @@ impl<R: BufRead> Interpreter<R> {
         // 13. cutter radius compensation
         if let (Some((code, off)), Some(c)) = (g_cutter, comp.as_mut()) {
             if code == 400 {
-                absorb(queue, c);
+                absorb(queue, c)?;
                 let mut out = Vec::new();
                 c.off(st.pos, &mut out);
                 for m in out {
@@ -2114,7 +2115,7 @@ impl<R: BufRead> Interpreter<R> {
             }
         } else if let Some(c) = comp.as_mut() {
             // Events of a line without a move wait behind held moves.
-            absorb(queue, c);
+            absorb(queue, c)?;
         }
 
         // M70-M73: save, invalidate, restore the modal state (LinuxCNC).
@@ -2145,7 +2146,7 @@ impl<R: BufRead> Interpreter<R> {
         // 21. stops: what compensation holds is released first.
         if m_stop.is_some() {
             if let Some(c) = comp.as_mut() {
-                absorb(queue, c);
+                absorb(queue, c)?;
                 release(queue, c);
                 if !matches!(m_stop, Some((0 | 10, _))) {
                     *c = Comp::default();
@@ -2640,12 +2641,22 @@ fn g10(
 
 /// Moves this line's events so far behind the moves compensation holds.
 #[cold]
-fn absorb(queue: &mut Queue, c: &mut Comp) {
+fn absorb(queue: &mut Queue, c: &mut Comp) -> Result<(), LexError> {
     if !c.held.is_empty() {
         while let Some(m) = queue.pop_front() {
             c.hold_event(m);
         }
+        if c.held.len() > MAX_HELD_EVENTS {
+            return Err((
+                0,
+                ErrorKind::Invalid,
+                format!(
+                    "more than {MAX_HELD_EVENTS} events wait for the next move under cutter compensation (G41/G42): program a move or G40"
+                ),
+            ));
+        }
     }
+    Ok(())
 }
 
 /// Releases what compensation holds, unchanged, into the queue.
@@ -2826,7 +2837,7 @@ fn compensated_move(
             "G53 with cutter radius compensation on".to_string(),
         ));
     }
-    absorb(queue, c);
+    absorb(queue, c)?;
     let mut out = Vec::new();
     match st.motion {
         MotionMode::Rapid => c

@@ -78,6 +78,10 @@ pub const MAX_DWELL_SECONDS: f64 = 86_400.0;
 pub const MAX_FEED: f64 = 100_000_000.0;
 /// Largest S word (rpm).
 pub const MAX_SPINDLE_RPM: f64 = 1_000_000.0;
+/// Most events (messages, spindle, coolant, dwells, ...) that may wait behind the moves cutter
+/// compensation holds until the next move: a loop of messages with no move would otherwise pile
+/// them up without end (memory), and every line under compensation copies them (time).
+pub const MAX_HELD_EVENTS: usize = 1000;
 
 use serde::{Deserialize, Serialize};
 

@@ -6,7 +6,7 @@
 
 use fresa_gcode::{
     analyse, AnalysisOptions, Config, GcodeError, Interpreter, Motion, MAX_BLOCK_NESTING,
-    MAX_EXPRESSION_DEPTH,
+    MAX_EXPRESSION_DEPTH, MAX_HELD_EVENTS,
 };
 
 fn run(src: &str) -> Result<Vec<Motion>, GcodeError> {
@@ -360,6 +360,30 @@ fn nested_calls_count_against_the_loop_budget_and_cannot_multiply() {
             .nth(e.line as usize - 1)
             .unwrap()
             .contains("call"),
+        "{e}"
+    );
+}
+
+#[test]
+fn events_waiting_behind_compensated_moves_are_bounded() {
+    // Found by the grammar fuzz target: a loop of messages with compensation on and no move
+    // piled up every message behind the held move, and each line copied them all (minutes).
+    let program = |n: usize| {
+        format!(
+            "G0 X-10 Y-10\nG42.1 D2\nG0 X0 Y0\nG1 X10 F100\no1 repeat [{n}]\n(msg, hi)\no1 endrepeat\nG1 X20\nG40 G0 X30\n"
+        )
+    };
+    let m = run(&program(MAX_HELD_EVENTS - 10)).unwrap();
+    let messages = m
+        .iter()
+        .filter(|m| matches!(m, Motion::Message { .. }))
+        .count();
+    assert_eq!(messages, MAX_HELD_EVENTS - 10);
+    let e = err(&program(MAX_HELD_EVENTS + 10));
+    assert_eq!(e.line, 6, "{e}");
+    assert!(
+        e.message
+            .contains("more than 1000 events wait for the next move under cutter compensation"),
         "{e}"
     );
 }
