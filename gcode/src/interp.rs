@@ -555,28 +555,35 @@ impl<R: BufRead> Interpreter<R> {
         make_error(self.line_no, &self.line, e)
     }
 
+    /// Moves cutter compensation still holds end where they are, at the end of the program
+    /// or of the input, before the program's end.
+    fn release_held(&mut self) -> Result<(), GcodeError> {
+        if self.comp.held.is_empty() {
+            return Ok(());
+        }
+        let mut out = Vec::new();
+        self.comp.release(&mut out);
+        let frame = self.frame();
+        for mut m in out {
+            shift(&mut m, frame, self.g92_a);
+            // Checked like every line's events (the line's own check saw them held).
+            if let Err((_, kind, message)) = check_motion_reach(&m, &Block::new()) {
+                return Err(GcodeError {
+                    line: m.line(),
+                    column: 1,
+                    kind,
+                    message,
+                });
+            }
+            self.queue.push_back(m);
+        }
+        Ok(())
+    }
+
     /// End of input: fine unless a skip, call or block is still open.
     fn end_of_input(&mut self) -> Result<(), GcodeError> {
         self.done = true;
-        // Moves cutter compensation still holds end where they are.
-        if !self.comp.held.is_empty() {
-            let mut out = Vec::new();
-            self.comp.release(&mut out);
-            let frame = self.frame();
-            for mut m in out {
-                shift(&mut m, frame, self.g92_a);
-                // Checked like every line's events (the line's own check saw them held).
-                if let Err((_, kind, message)) = check_motion_reach(&m, &Block::new()) {
-                    return Err(GcodeError {
-                        line: m.line(),
-                        column: 1,
-                        kind,
-                        message,
-                    });
-                }
-                self.queue.push_back(m);
-            }
-        }
+        self.release_held()?;
         let open = if let Some(skip) = &self.flow.skip {
             Some(format!(
                 "file ended while looking for o<{}> {} (from line {})",
@@ -1171,6 +1178,11 @@ impl<R: BufRead> Interpreter<R> {
                 if !self.words_seen && !self.percent_open {
                     self.percent_open = true;
                 } else {
+                    // Like M2/M30: what compensation holds comes out first, and it ends
+                    // (found by the grammar fuzz target: the held move came after the end, or
+                    // with the stream stopping there, never).
+                    self.release_held()?;
+                    self.comp = Comp::default();
                     self.queue
                         .push_back(Motion::ProgramEnd { line: self.line_no });
                     if self.cfg.stop_at_program_end {

@@ -387,3 +387,20 @@ fn events_waiting_behind_compensated_moves_are_bounded() {
         "{e}"
     );
 }
+
+#[test]
+fn a_closing_percent_releases_what_compensation_holds_like_m2() {
+    // Found by the grammar fuzz target: the move compensation held came out after the
+    // ProgramEnd of a closing '%' or, as the stream stops there by default, never.
+    let src = "%\nG0 X-10 Y-10\nG42.1 D2\nG0 X0 Y0\nG1 X10 F100\nM5\n%\n";
+    let m = run(src).unwrap();
+    let lines: Vec<u32> = m.iter().map(Motion::line).collect();
+    assert_eq!(m.last(), Some(&Motion::ProgramEnd { line: 7 }), "{m:?}");
+    assert!(
+        lines.contains(&5),
+        "the held G1 X10 of line 5 is lost: {m:?}"
+    );
+    assert!(lines.windows(2).all(|w| w[0] <= w[1]), "{lines:?}");
+    let m2 = run(&src.replace("M5\n%", "M5\nM2")).unwrap();
+    assert_eq!(m.len(), m2.len(), "{m:?} / {m2:?}");
+}
