@@ -1292,6 +1292,20 @@ impl<R: BufRead> Interpreter<R> {
     /// at the end, so an error or a skipped line changes nothing.
     #[inline(always)]
     fn execute(&mut self) -> Result<(), LexError> {
+        let mut comp = None;
+        let r = self.execute_line(&mut comp);
+        // Not committed: what the line did to compensation is undone.
+        if let Some(mut c) = comp {
+            c.rollback();
+            self.comp = c;
+        }
+        r
+    }
+
+    /// [`Interpreter::execute`]; `comp` holds the compensation state while the line runs (taken
+    /// from `self.comp`, and put back by the commit at the end).
+    #[inline(always)]
+    fn execute_line(&mut self, comp: &mut Option<Comp>) -> Result<(), LexError> {
         let blk = &self.blk;
         let line = self.line_no;
         let mut st = self.st;
@@ -1437,15 +1451,18 @@ impl<R: BufRead> Interpreter<R> {
                 "D word with no G41/G42/G41.1/G42.1 on the line".to_string(),
             ));
         }
-        // Cutter compensation state, copied only when a line touches it (it
-        // holds moves, so it is not part of the copied `State`).
-        let mut comp: Option<Comp> =
-            if g_cutter.is_some() || self.comp.side.is_some() || self.comp.arc_not_allowed {
-                Some(self.comp.clone())
-            } else {
-                None
-            };
-        if self.comp.side.is_some() {
+        // Cutter compensation state, taken only when a line touches it (it
+        // holds moves, so it is not part of the copied `State`); it records
+        // what the line changes, so that `execute` can undo it.
+        let comp_was_on = self.comp.side.is_some();
+        *comp = if g_cutter.is_some() || comp_was_on || self.comp.arc_not_allowed {
+            let mut c = std::mem::take(&mut self.comp);
+            c.begin_line();
+            Some(c)
+        } else {
+            None
+        };
+        if comp_was_on {
             comp_forbidden(&st, g_plane, g_units, g_coord, g_nonmodal, g_motion)?;
         }
 
@@ -2198,7 +2215,8 @@ impl<R: BufRead> Interpreter<R> {
             }
         }
         self.st = st;
-        if let Some(c) = comp {
+        if let Some(mut c) = comp.take() {
+            c.commit();
             self.comp = c;
             if self.cutter_comp_line.is_none() && self.comp.side.is_some() {
                 self.cutter_comp_line = Some(line);
