@@ -269,3 +269,154 @@ fn bad_uploads_are_refused_and_leave_no_job_and_no_file() {
     let keys: Vec<&String> = r.as_object().unwrap().keys().collect();
     assert_eq!(keys, ["code", "message"]);
 }
+
+/// Programs that once killed the server (the reader recursed once per nesting level, and 3,000
+/// to 12,000 levels overflowed the upload thread's stack) with the line and column where the
+/// level past `MAX_EXPRESSION_DEPTH` (64) starts.
+fn nesting_bombs() -> Vec<(String, String, &'static str)> {
+    let closed = |open: &str, close: &str, n: usize| {
+        format!("G1 X{}1{} F100\n", open.repeat(n), close.repeat(n))
+    };
+    vec![
+        (
+            "[[..]] x4000".into(),
+            closed("[", "]", 4000),
+            "line 1, column 69",
+        ),
+        (
+            "#[#[..]] x4000".into(),
+            closed("#[", "]", 4000),
+            "line 1, column 69",
+        ),
+        (
+            "abs[abs[..]] x4000".into(),
+            closed("abs[", "]", 4000),
+            "line 1, column 264",
+        ),
+        (
+            "o1 if [[..]] x4000".into(),
+            format!(
+                "o1 if [{}1{}]\nG0 X1\no1 endif\n",
+                "[".repeat(4000),
+                "]".repeat(4000)
+            ),
+            "line 1, column 71",
+        ),
+        (
+            "#### x12000".into(),
+            format!("G1 X{}1 F100\n", "#".repeat(12_000)),
+            "line 1, column 69",
+        ),
+        (
+            "[1+[1+..]] x10000".into(),
+            closed("[1+", "]", 10_000),
+            "line 1, column 197",
+        ),
+        // As deep as a line may be long (64 KiB): the closing brackets never come.
+        (
+            "[ x50000".into(),
+            format!("G1 X{}1\n", "[".repeat(50_000)),
+            "line 1, column 69",
+        ),
+        (
+            "#[ x25000".into(),
+            format!("G1 X{}1\n", "#[".repeat(25_000)),
+            "line 1, column 69",
+        ),
+        (
+            "# x50000".into(),
+            format!("G1 X{}1\n", "#".repeat(50_000)),
+            "line 1, column 69",
+        ),
+        (
+            "-[ x25000".into(),
+            format!("G1 X{}1\n", "-[".repeat(25_000)),
+            "line 1, column 69",
+        ),
+        (
+            "abs[ x15000".into(),
+            format!("G1 X{}1\n", "abs[".repeat(15_000)),
+            "line 1, column 264",
+        ),
+        (
+            "bomb after good lines".into(),
+            format!("G21 G90\nG0 X1\n#1 = {}1\n", "[".repeat(50_000)),
+            "line 3, column 70",
+        ),
+    ]
+}
+
+#[test]
+fn nesting_bombs_are_refused_at_upload_and_a_running_job_carries_on() {
+    let s = Server::start();
+    // A job on another machine runs for the whole test: 300 moves of 1 mm at 600 mm/min.
+    let busy = s.sim("busy", 1.0);
+    let (job, run) = s.upload_and_start(
+        busy.id,
+        "busy",
+        &fresa_tests::back_and_forth(300, 1.0, 600.0),
+    );
+    s.wait_job_state(job, "running", std::time::Duration::from_secs(60));
+    let target = s.sim("target", 0.0).id;
+    let files = s.program_files();
+    let upload = |body: &str| {
+        s.post_bytes(
+            &format!("/api/v1/jobs?machine={target}&name=bad"),
+            body.to_string(),
+        )
+    };
+    let alive = |what: &str| {
+        s.get("/healthz").expect(200);
+        let st = s.status(busy.id);
+        assert_eq!(st["state"], "running", "after {what}: {st}");
+        assert_eq!(s.job(job)["state"], "running", "after {what}");
+    };
+    for (what, program, at) in nesting_bombs() {
+        let msg = upload(&program).expect_error(422, "invalid_gcode");
+        contains(&msg, &[at, "limit of 64 levels"]);
+        alive(&what);
+    }
+    // Nothing of any of them was stored.
+    let jobs = s.get("/api/v1/jobs").expect(200);
+    assert_eq!(jobs.as_array().unwrap().len(), 1, "jobs: {jobs}");
+    assert_eq!(s.program_files(), files, "stray files in programs/");
+    // The running job was never disturbed: it ends with every line run once.
+    s.wait_job_state(job, "completed", std::time::Duration::from_secs(120));
+    fresa_tests::assert_every_line_once(&busy.executed(), run, 300);
+}
+
+#[test]
+fn absurd_numbers_are_refused_at_upload_naming_the_word_not_at_job_start() {
+    let f = Fixture::new();
+    // Numbers no machine can run: refused at upload, naming the word, not at job start.
+    for (program, parts) in [
+        (
+            "G21 G90\nG1 X[10**300*10**300] F100\n",
+            &["line 2, column 13", "'*'", "not a finite number"][..],
+        ),
+        (
+            "G21 G90\nG4 P[10**300]\n",
+            &["line 2, column 4", "P=1e300", "86400 s"],
+        ),
+        ("G4 P100000\n", &["line 1, column 4", "86400 s"]),
+        (
+            "G0 X[10**300]\n",
+            &["line 1, column 4", "X=1e300 mm", "1000000 mm"],
+        ),
+        ("G0 Y2000000\n", &["line 1, column 4", "Y=2000000 mm"]),
+        (
+            "G91 G0 Z-600000\nZ-600000\n",
+            &["line 2, column 1", "Z=-1200000 mm"],
+        ),
+        ("G1 X1 F[10**20]\n", &["line 1, column 7", "F=1e20 mm/min"]),
+        ("S[10**300] M3\n", &["line 1, column 1", "S=1e300 rpm"]),
+        (
+            "G0 X1\nG92 X[-10**7]\n",
+            &["line 2, column 5", "X=-10000000 mm"],
+        ),
+    ] {
+        let msg = f.upload_to_m(program).expect_error(422, "invalid_gcode");
+        contains(&msg, parts);
+        f.assert_untouched(program);
+    }
+}

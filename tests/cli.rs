@@ -287,3 +287,63 @@ fn events_follows_the_stream_with_filters() {
     assert!(words[2].starts_with("machine."), "{first}");
     assert_eq!(words[3], "machine=1", "{first}");
 }
+
+#[test]
+fn gcode_check_refuses_nesting_bombs_and_absurd_numbers_without_aborting() {
+    let dir = tempfile::tempdir().unwrap();
+    let check = |name: &str, text: String| {
+        let path = dir.path().join(name);
+        std::fs::write(&path, text).unwrap();
+        fresa_cmd()
+            .args(["gcode", "check"])
+            .arg(&path)
+            .output()
+            .unwrap()
+    };
+    for (name, text, parts) in [
+        // As deep as a line may be (64 KiB): before the nesting bound, `gcode check` overflowed
+        // its 8 MiB main thread from about 20,000 levels and died of SIGABRT.
+        (
+            "deep.nc",
+            format!(
+                "G21\nG1 X{}1{} F100\n",
+                "[".repeat(30_000),
+                "]".repeat(30_000)
+            ),
+            &["line 2, column 69", "limit of 64 levels"][..],
+        ),
+        (
+            "deeper.nc",
+            format!("G21\nG1 X{}1 F100\n", "-[".repeat(32_000)),
+            &["line 2, column 69", "limit of 64 levels"],
+        ),
+        // 100,000 levels do not fit in one line: the line limit answers first.
+        (
+            "deepest.nc",
+            format!(
+                "G21\nG1 X{}1{} F100\n",
+                "[".repeat(100_000),
+                "]".repeat(100_000)
+            ),
+            &["line 2, column 1", "longer than 65536 bytes"],
+        ),
+        (
+            "inf.nc",
+            "G21 G90\nG1 X[10**300*10**300] F100\n".to_string(),
+            &["line 2, column 13", "not a finite number"],
+        ),
+        (
+            "dwell.nc",
+            "G21 G90\nG4 P[10**300]\n".to_string(),
+            &["line 2, column 4", "86400 s"],
+        ),
+    ] {
+        let out = check(name, text);
+        let text = output_text(&out);
+        assert_eq!(out.status.code(), Some(1), "{name}: {text}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        for p in parts {
+            assert!(err.contains(p), "{name}: no {p:?} in {text}");
+        }
+    }
+}

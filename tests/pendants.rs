@@ -1211,3 +1211,64 @@ fn zero_keys_while_the_machine_moves_are_refused_as_machine_moving() {
     let g54x = off["offsets"]["G54"]["x"].as_f64().unwrap_or(0.0);
     assert!(close(g54x, 0.0), "{off}");
 }
+
+#[test]
+fn a_nesting_bomb_uploaded_from_the_sd_card_is_refused_and_the_server_and_link_live_on() {
+    let UploadRig {
+        s,
+        m,
+        mut sim,
+        prog,
+        _dir,
+        ..
+    } = upload_rig(20, json!({}));
+    let dir = tempfile::tempdir().unwrap();
+    // 4,000 and 50,000 levels: a pendant needs no credentials, and before the nesting bound
+    // either one overflowed the upload thread's stack and aborted the whole server.
+    let bombs = [
+        (
+            "brackets.nc",
+            format!(
+                "G21 G90\nG1 X{}1{} F100\n",
+                "[".repeat(4000),
+                "]".repeat(4000)
+            ),
+            "line 2, column 69",
+        ),
+        (
+            "hashes.nc",
+            format!("G21 G90\nG1 X{}1 F100\n", "#".repeat(50_000)),
+            "line 2, column 69",
+        ),
+    ];
+    for (i, (name, text, at)) in bombs.iter().enumerate() {
+        let file = dir.path().join(name);
+        std::fs::write(&file, text).unwrap();
+        sim.cmd(&format!("upload {} gap=0 end=lf", file.display()));
+        // Replayed from the start: this bomb's rejection is the (i+1)-th.
+        let mut n = 0;
+        let seen = s.events("", Some(0)).until(T, "the bomb's rejection", |e| {
+            n += usize::from(e.event == "pendant.upload_rejected");
+            n == i + 1
+        });
+        let e = seen.last().unwrap();
+        assert_eq!(e.data["data"]["code"], "invalid_gcode", "{e:?}");
+        let reason = e.data["data"]["reason"].as_str().unwrap();
+        assert!(
+            reason.contains(at) && reason.contains("limit of 64 levels"),
+            "{name}: {reason}"
+        );
+        s.get("/healthz").expect(200);
+        s.assert_no_jobs();
+    }
+    assert_eq!(sim.received("N53"), 0);
+    // The server and the link are fine: the wheel moves the machine and a good file loads.
+    sim.cmd("jog X 3 0.1");
+    wait_work(&s, m, "x = 0.3", |w| close(w[0], 0.3));
+    sim.cmd(&format!("upload {} gap=0 end=lf", prog.display()));
+    sim.wait_line_from(0, "N53", |l| l.starts_with("recv N53Confirm"));
+    assert_eq!(
+        s.get("/api/v1/jobs").expect(200).as_array().unwrap().len(),
+        1
+    );
+}

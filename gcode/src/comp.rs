@@ -60,6 +60,20 @@ pub(crate) struct Comp {
     pub arc_not_allowed: bool,
     /// After G40: the tool's XY, where the next move starts from.
     pub detached: Option<[f64; 2]>,
+    /// While a line runs (from [`Comp::begin_line`]), what [`Comp::rollback`] restores.
+    undo: Option<Box<Undo>>,
+}
+
+/// The state before a line: all but the held events, how many were held, and those events
+/// themselves only once the line changes or releases them. A line that only adds events (as
+/// every line without a move does) so costs the same however many wait: copying them all for
+/// every line made a program of 1,000 messages behind a held move quadratic (found by the
+/// grammar fuzz target's CPU budget).
+#[derive(Debug, Clone)]
+struct Undo {
+    before: Comp,
+    held_len: usize,
+    held: Option<Vec<Held>>,
 }
 
 /// An error of this module: message (the caller adds line and column).
@@ -70,6 +84,60 @@ fn gouge(msg: &str) -> CompError {
 }
 
 impl Comp {
+    /// A line starts: until [`Comp::commit`], [`Comp::rollback`] undoes what it does.
+    pub fn begin_line(&mut self) {
+        let before = Comp {
+            side: self.side,
+            radius: self.radius,
+            first: self.first,
+            tool: self.tool,
+            held: Vec::new(),
+            endpoint: self.endpoint,
+            arc_not_allowed: self.arc_not_allowed,
+            detached: self.detached,
+            undo: None,
+        };
+        self.undo = Some(Box::new(Undo {
+            before,
+            held_len: self.held.len(),
+            held: None,
+        }));
+    }
+
+    /// The line succeeded: what it did stays.
+    pub fn commit(&mut self) {
+        self.undo = None;
+    }
+
+    /// The line failed or was skipped: back to the state before it.
+    pub fn rollback(&mut self) {
+        if let Some(u) = self.undo.take() {
+            let Undo {
+                before,
+                held_len,
+                held,
+            } = *u;
+            let held = match held {
+                Some(h) => h,
+                None => {
+                    let mut h = std::mem::take(&mut self.held);
+                    h.truncate(held_len);
+                    h
+                }
+            };
+            *self = Comp { held, ..before };
+        }
+    }
+
+    /// Saves the events held before this line, before the line changes or releases them.
+    fn save_held(&mut self) {
+        if let Some(u) = self.undo.as_mut() {
+            if u.held.is_none() {
+                u.held = Some(self.held[..u.held_len.min(self.held.len())].to_vec());
+            }
+        }
+    }
+
     /// Compensation is on with a radius: moves are offset.
     #[inline]
     pub fn active(&self) -> bool {
@@ -104,6 +172,7 @@ impl Comp {
 
     /// Releases everything waiting, unchanged (LinuxCNC `dequeue_canons`).
     pub fn release(&mut self, out: &mut Vec<Motion>) {
+        self.save_held();
         self.endpoint = None;
         out.extend(self.held.drain(..).map(|h| h.m));
     }
@@ -119,6 +188,7 @@ impl Comp {
         if self.held.is_empty() {
             return Ok(());
         }
+        self.save_held();
         let valid = self.endpoint;
         let mut prev_end: Option<Point> = None;
         for h in &mut self.held {

@@ -3,7 +3,7 @@
 //! programs never touch this module, so their path stays allocation-free.
 
 use crate::lex::{parse_number, LexError};
-use crate::{ErrorKind, Point};
+use crate::{ErrorKind, Point, MAX_EXPRESSION_DEPTH};
 use std::collections::HashMap;
 
 /// Numbered parameters #1..#5601 (LinuxCNC's RS274NGC_MAX_PARAMETERS).
@@ -64,6 +64,8 @@ pub(crate) struct Params {
     /// A `#<name>` was read or written since the interpreter last looked.
     pub named_used: bool,
     name_buf: String,
+    /// Nesting levels of the value being read (see [`nested`]).
+    depth: usize,
 }
 
 impl Params {
@@ -222,6 +224,55 @@ fn err(at: usize, kind: ErrorKind, msg: impl Into<String>) -> LexError {
     (at, kind, msg.into())
 }
 
+/// Runs `read` one nesting level deeper: every `[`, `#` and unary sign that holds a further
+/// value is one level. The reader recurses once per level, so without this bound the input
+/// would decide how deep the stack goes (`X[[[[...` 4,000 deep overflowed a 2 MiB thread).
+#[inline]
+fn nested<T>(
+    p: &mut Params,
+    at: usize,
+    read: impl FnOnce(&mut Params) -> Result<T, LexError>,
+) -> Result<T, LexError> {
+    if p.depth >= MAX_EXPRESSION_DEPTH {
+        return Err(too_deep(at));
+    }
+    p.depth += 1;
+    let r = read(p);
+    p.depth -= 1;
+    r
+}
+
+#[cold]
+fn too_deep(at: usize) -> LexError {
+    err(
+        at,
+        ErrorKind::Invalid,
+        format!(
+            "expression nested deeper than the limit of {MAX_EXPRESSION_DEPTH} levels (each '[', '#' and unary sign counts one)"
+        ),
+    )
+}
+
+/// An operator's or function's result that overflowed: no value that is not finite gets
+/// into a word, a parameter or a condition.
+#[inline]
+fn finite(v: f64, at: usize, what: impl FnOnce() -> String) -> Result<f64, LexError> {
+    if v.is_finite() {
+        Ok(v)
+    } else {
+        Err(overflow(at, what()))
+    }
+}
+
+#[cold]
+fn overflow(at: usize, what: String) -> LexError {
+    err(
+        at,
+        ErrorKind::Invalid,
+        format!("{what} overflows: the result is not a finite number"),
+    )
+}
+
 /// Reads `<name>` at `*i` (just after `#`), lower-cased and without blanks
 /// (LinuxCNC ignores both), into `out`.
 fn read_name(b: &[u8], i: &mut usize, out: &mut String) -> Result<(), LexError> {
@@ -275,7 +326,7 @@ fn param_target(b: &[u8], i: &mut usize, p: &mut Params, at: usize) -> Result<Ta
         r?;
         Ok(Target::Named(t))
     } else {
-        let v = real_value(b, i, p)?;
+        let v = nested(p, at, |p| real_value(b, i, p))?;
         Ok(Target::Numbered(param_index(v, at)?))
     }
 }
@@ -283,6 +334,10 @@ fn param_target(b: &[u8], i: &mut usize, p: &mut Params, at: usize) -> Result<Ta
 /// Reads a parameter reference starting at `#` and returns its value.
 fn read_param(b: &[u8], i: &mut usize, p: &mut Params) -> Result<f64, LexError> {
     let at = *i;
+    nested(p, at, |p| read_param_in(b, i, p, at))
+}
+
+fn read_param_in(b: &[u8], i: &mut usize, p: &mut Params, at: usize) -> Result<f64, LexError> {
     *i += 1;
     skip_blanks(b, i);
     if *i < b.len() && b[*i] == b'<' {
@@ -355,7 +410,7 @@ pub(crate) fn real_value(b: &[u8], i: &mut usize, p: &mut Params) -> Result<f64,
                 return parse_number(b, i);
             }
             *i = j;
-            let v = real_value(b, i, p)?;
+            let v = nested(p, at, |p| real_value(b, i, p))?;
             Ok(if c == b'-' { -v } else { v })
         }
         b'0'..=b'9' | b'.' => parse_number(b, i),
@@ -371,6 +426,10 @@ pub(crate) fn real_value(b: &[u8], i: &mut usize, p: &mut Params) -> Result<f64,
 /// `[ ... ]` at `b[*i] == '['`.
 pub(crate) fn expression(b: &[u8], i: &mut usize, p: &mut Params) -> Result<f64, LexError> {
     let open = *i;
+    nested(p, open, |p| expression_in(b, i, p, open))
+}
+
+fn expression_in(b: &[u8], i: &mut usize, p: &mut Params, open: usize) -> Result<f64, LexError> {
     *i += 1;
     let v = binary(b, i, p, 0)?;
     skip_blanks(b, i);
@@ -411,6 +470,26 @@ enum Op {
 }
 
 impl Op {
+    fn symbol(self) -> &'static str {
+        match self {
+            Op::Pow => "**",
+            Op::Mul => "*",
+            Op::Div => "/",
+            Op::Mod => "MOD",
+            Op::Add => "+",
+            Op::Sub => "-",
+            Op::Eq => "EQ",
+            Op::Ne => "NE",
+            Op::Gt => "GT",
+            Op::Ge => "GE",
+            Op::Lt => "LT",
+            Op::Le => "LE",
+            Op::And => "AND",
+            Op::Or => "OR",
+            Op::Xor => "XOR",
+        }
+    }
+
     /// LinuxCNC's precedence (interp_internal.cc `precedence`).
     fn prec(self) -> u8 {
         match self {
@@ -476,6 +555,11 @@ fn truth(c: bool) -> f64 {
 }
 
 fn apply(op: Op, l: f64, r: f64, at: usize) -> Result<f64, LexError> {
+    let v = apply_in(op, l, r, at)?;
+    finite(v, at, || format!("'{}'", op.symbol()))
+}
+
+fn apply_in(op: Op, l: f64, r: f64, at: usize) -> Result<f64, LexError> {
     Ok(match op {
         Op::Pow => {
             if l < 0.0 && r.fract() != 0.0 {
@@ -588,6 +672,22 @@ fn function(b: &[u8], i: &mut usize, p: &mut Params) -> Result<f64, LexError> {
     let arg_at = *i;
     let v = expression(b, i, p)?;
     let domain = |what: &str| err(arg_at, ErrorKind::Invalid, what.to_string());
+    let v = function_of(name, v, b, i, p, at, domain, unknown)?;
+    finite(v, at, || String::from_utf8_lossy(word).to_uppercase())
+}
+
+/// The value of function `name` (lower case) of `v`; ATAN reads its second argument.
+#[allow(clippy::too_many_arguments)]
+fn function_of(
+    name: &[u8],
+    v: f64,
+    b: &[u8],
+    i: &mut usize,
+    p: &mut Params,
+    at: usize,
+    domain: impl Fn(&str) -> LexError,
+    unknown: impl Fn() -> LexError,
+) -> Result<f64, LexError> {
     Ok(match name {
         b"abs" => v.abs(),
         b"acos" => {

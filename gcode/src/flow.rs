@@ -180,6 +180,18 @@ pub(crate) enum BlockKind {
     Repeat,
 }
 
+impl BlockKind {
+    /// The O-word that opens the block.
+    pub fn keyword(self) -> &'static str {
+        match self {
+            BlockKind::If { .. } => "if",
+            BlockKind::While => "while",
+            BlockKind::Do => "do",
+            BlockKind::Repeat => "repeat",
+        }
+    }
+}
+
 /// An open if/loop: its name, kind, the index of its opening line, and
 /// (repeat) how many passes are left.
 #[derive(Debug, Clone)]
@@ -247,7 +259,7 @@ pub(crate) struct Flow {
     pub frames: Vec<Frame>,
     pub blocks: Vec<OpenBlock>,
     pub skip: Option<Skip>,
-    /// Backward jumps so far (loop passes, M98 repeats), bounded by
+    /// Backward jumps and calls so far (loop passes, M98 repeats, calls), bounded by
     /// `Config::max_loop_iterations`.
     pub jumps: u64,
 }

@@ -14,7 +14,8 @@ use crate::lex::{
 };
 use crate::{
     Config, ErrorKind, GcodeError, Motion, Plane, Point, RotaryMove, SpindleDirection, Unsupported,
-    Warning,
+    Warning, MAX_BLOCK_NESTING, MAX_COORDINATE_MM, MAX_DWELL_SECONDS, MAX_FEED, MAX_HELD_EVENTS,
+    MAX_SPINDLE_RPM,
 };
 use std::f64::consts::TAU;
 use std::io::BufRead;
@@ -73,6 +74,12 @@ impl Queue {
     #[inline(never)]
     fn pop_overflow(&mut self) -> Option<Motion> {
         self.overflow.pop_front()
+    }
+    /// Events waiting, in order.
+    fn iter(&self) -> impl Iterator<Item = &Motion> {
+        (0..self.len)
+            .filter_map(|i| self.items[(self.head + i) % QUEUE_CAP].as_ref())
+            .chain(self.overflow.iter())
     }
     /// Events waiting.
     #[inline]
@@ -548,19 +555,35 @@ impl<R: BufRead> Interpreter<R> {
         make_error(self.line_no, &self.line, e)
     }
 
+    /// Moves cutter compensation still holds end where they are, at the end of the program
+    /// or of the input, before the program's end.
+    fn release_held(&mut self) -> Result<(), GcodeError> {
+        if self.comp.held.is_empty() {
+            return Ok(());
+        }
+        let mut out = Vec::new();
+        self.comp.release(&mut out);
+        let frame = self.frame();
+        for mut m in out {
+            shift(&mut m, frame, self.g92_a);
+            // Checked like every line's events (the line's own check saw them held).
+            if let Err((_, kind, message)) = check_motion_reach(&m, &Block::new()) {
+                return Err(GcodeError {
+                    line: m.line(),
+                    column: 1,
+                    kind,
+                    message,
+                });
+            }
+            self.queue.push_back(m);
+        }
+        Ok(())
+    }
+
     /// End of input: fine unless a skip, call or block is still open.
     fn end_of_input(&mut self) -> Result<(), GcodeError> {
         self.done = true;
-        // Moves cutter compensation still holds end where they are.
-        if !self.comp.held.is_empty() {
-            let mut out = Vec::new();
-            self.comp.release(&mut out);
-            let frame = self.frame();
-            for mut m in out {
-                shift(&mut m, frame, self.g92_a);
-                self.queue.push_back(m);
-            }
-        }
+        self.release_held()?;
         let open = if let Some(skip) = &self.flow.skip {
             Some(format!(
                 "file ended while looking for o<{}> {} (from line {})",
@@ -579,12 +602,7 @@ impl<R: BufRead> Interpreter<R> {
                 format!(
                     "file ended inside o<{}> {} (line {line})",
                     b.name,
-                    match b.kind {
-                        BlockKind::If { .. } => "if",
-                        BlockKind::While => "while",
-                        BlockKind::Do => "do",
-                        BlockKind::Repeat => "repeat",
-                    }
+                    b.kind.keyword()
                 )
             })
         };
@@ -647,18 +665,26 @@ impl<R: BufRead> Interpreter<R> {
     /// Goes back to line index `idx` (a loop pass or an M98 repeat), counted
     /// against `Config::max_loop_iterations`.
     fn jump_back(&mut self, idx: usize) -> Result<(), GcodeError> {
+        self.count_pass(0)?;
+        self.flow.pc = idx;
+        Ok(())
+    }
+
+    /// One more loop pass or subroutine call (the O-word at `at`), at most
+    /// `Config::max_loop_iterations` in all: a call runs its body again as a pass does, and
+    /// uncounted, nine levels of a thousand calls each (about 100 KB) multiply into 10^27 lines.
+    fn count_pass(&mut self, at: usize) -> Result<(), GcodeError> {
         self.flow.jumps += 1;
         if self.flow.jumps > self.cfg.max_loop_iterations {
             return Err(self.err_at((
-                0,
+                at,
                 ErrorKind::Invalid,
                 format!(
-                    "more than {} loop passes (Config::max_loop_iterations)",
+                    "more than {} loop passes and subroutine calls (Config::max_loop_iterations)",
                     self.cfg.max_loop_iterations
                 ),
             )));
         }
-        self.flow.pc = idx;
         Ok(())
     }
 
@@ -681,6 +707,7 @@ impl<R: BufRead> Interpreter<R> {
                 ),
             )));
         }
+        self.count_pass(at)?;
         let call = PendingCall {
             args,
             return_to: self.flow.cur + 1,
@@ -746,6 +773,23 @@ impl<R: BufRead> Interpreter<R> {
         }
         self.params.value = value.unwrap_or(0.0);
         self.params.value_returned = value.is_some();
+    }
+
+    /// Opens an O-word block, at most [`MAX_BLOCK_NESTING`] deep per call level.
+    fn open_block(&mut self, at: usize, b: OpenBlock) -> Result<(), GcodeError> {
+        if self.flow.blocks.len() >= MAX_BLOCK_NESTING {
+            return Err(self.err_at((
+                at,
+                ErrorKind::Invalid,
+                format!(
+                    "o<{}> {}: O-word blocks nested deeper than the limit of {MAX_BLOCK_NESTING}",
+                    b.name,
+                    b.kind.keyword()
+                ),
+            )));
+        }
+        self.flow.blocks.push(b);
+        Ok(())
     }
 
     /// Runs the O-word at `self.line[at]`.
@@ -858,12 +902,15 @@ impl<R: BufRead> Interpreter<R> {
             }
             Keyword::Call => self.call(name, args, None, at),
             Keyword::If => {
-                self.flow.blocks.push(OpenBlock {
-                    name: name.clone(),
-                    kind: BlockKind::If { taken: truth },
-                    start: cur,
-                    left: 0.0,
-                });
+                self.open_block(
+                    at,
+                    OpenBlock {
+                        name: name.clone(),
+                        kind: BlockKind::If { taken: truth },
+                        start: cur,
+                        left: 0.0,
+                    },
+                )?;
                 if !truth {
                     self.skip_to(
                         name,
@@ -903,12 +950,15 @@ impl<R: BufRead> Interpreter<R> {
                 Ok(())
             }
             Keyword::Do => {
-                self.flow.blocks.push(OpenBlock {
-                    name,
-                    kind: BlockKind::Do,
-                    start: cur,
-                    left: 0.0,
-                });
+                self.open_block(
+                    at,
+                    OpenBlock {
+                        name,
+                        kind: BlockKind::Do,
+                        start: cur,
+                        left: 0.0,
+                    },
+                )?;
                 Ok(())
             }
             Keyword::While => {
@@ -925,12 +975,15 @@ impl<R: BufRead> Interpreter<R> {
                 });
                 if truth {
                     if !again {
-                        self.flow.blocks.push(OpenBlock {
-                            name,
-                            kind: BlockKind::While,
-                            start: cur,
-                            left: 0.0,
-                        });
+                        self.open_block(
+                            at,
+                            OpenBlock {
+                                name,
+                                kind: BlockKind::While,
+                                start: cur,
+                                left: 0.0,
+                            },
+                        )?;
                     }
                 } else {
                     if again {
@@ -950,12 +1003,15 @@ impl<R: BufRead> Interpreter<R> {
             Keyword::Repeat => {
                 let n = value.unwrap_or(0.0).round();
                 if n >= 1.0 {
-                    self.flow.blocks.push(OpenBlock {
-                        name,
-                        kind: BlockKind::Repeat,
-                        start: cur,
-                        left: n,
-                    });
+                    self.open_block(
+                        at,
+                        OpenBlock {
+                            name,
+                            kind: BlockKind::Repeat,
+                            start: cur,
+                            left: n,
+                        },
+                    )?;
                 } else {
                     self.skip_to(name, &[Keyword::EndRepeat], true);
                 }
@@ -1122,6 +1178,11 @@ impl<R: BufRead> Interpreter<R> {
                 if !self.words_seen && !self.percent_open {
                     self.percent_open = true;
                 } else {
+                    // Like M2/M30: what compensation holds comes out first, and it ends
+                    // (found by the grammar fuzz target: the held move came after the end, or
+                    // with the stream stopping there, never).
+                    self.release_held()?;
+                    self.comp = Comp::default();
                     self.queue
                         .push_back(Motion::ProgramEnd { line: self.line_no });
                     if self.cfg.stop_at_program_end {
@@ -1231,6 +1292,20 @@ impl<R: BufRead> Interpreter<R> {
     /// at the end, so an error or a skipped line changes nothing.
     #[inline(always)]
     fn execute(&mut self) -> Result<(), LexError> {
+        let mut comp = None;
+        let r = self.execute_line(&mut comp);
+        // Not committed: what the line did to compensation is undone.
+        if let Some(mut c) = comp {
+            c.rollback();
+            self.comp = c;
+        }
+        r
+    }
+
+    /// [`Interpreter::execute`]; `comp` holds the compensation state while the line runs (taken
+    /// from `self.comp`, and put back by the commit at the end).
+    #[inline(always)]
+    fn execute_line(&mut self, comp: &mut Option<Comp>) -> Result<(), LexError> {
         let blk = &self.blk;
         let line = self.line_no;
         let mut st = self.st;
@@ -1376,15 +1451,18 @@ impl<R: BufRead> Interpreter<R> {
                 "D word with no G41/G42/G41.1/G42.1 on the line".to_string(),
             ));
         }
-        // Cutter compensation state, copied only when a line touches it (it
-        // holds moves, so it is not part of the copied `State`).
-        let mut comp: Option<Comp> =
-            if g_cutter.is_some() || self.comp.side.is_some() || self.comp.arc_not_allowed {
-                Some(self.comp.clone())
-            } else {
-                None
-            };
-        if self.comp.side.is_some() {
+        // Cutter compensation state, taken only when a line touches it (it
+        // holds moves, so it is not part of the copied `State`); it records
+        // what the line changes, so that `execute` can undo it.
+        let comp_was_on = self.comp.side.is_some();
+        *comp = if g_cutter.is_some() || comp_was_on || self.comp.arc_not_allowed {
+            let mut c = std::mem::take(&mut self.comp);
+            c.begin_line();
+            Some(c)
+        } else {
+            None
+        };
+        if comp_was_on {
             comp_forbidden(&st, g_plane, g_units, g_coord, g_nonmodal, g_motion)?;
         }
 
@@ -1549,6 +1627,7 @@ impl<R: BufRead> Interpreter<R> {
             st.inch = code == 200;
         }
         let scale = Self::scale(st.inch);
+        check_word_ranges(blk, scale, st.feed_mode)?;
         // 3. feed
         if let Some(f) = blk.get(b'F') {
             if f < 0.0 {
@@ -1609,7 +1688,7 @@ impl<R: BufRead> Interpreter<R> {
             st.spindle_tool = st.tool;
             if let Some(c) = comp.as_mut() {
                 if !c.held.is_empty() {
-                    absorb(queue, c);
+                    absorb(queue, c)?;
                     release(queue, c);
                 }
                 // LinuxCNC reads the position back after a tool change:
@@ -1663,13 +1742,7 @@ impl<R: BufRead> Interpreter<R> {
                     "G4 needs P (seconds)".to_string(),
                 ));
             };
-            if p < 0.0 {
-                return Err((
-                    blk.pos_of(b'P') as usize,
-                    ErrorKind::Invalid,
-                    "negative dwell time".to_string(),
-                ));
-            }
+            let p = dwell_seconds(p, blk.pos_of(b'P') as usize)?;
             queue.push_back(Motion::Dwell { line, seconds: p });
         }
         // 11. plane
@@ -1686,7 +1759,7 @@ impl<R: BufRead> Interpreter<R> {
         // 13. cutter radius compensation
         if let (Some((code, off)), Some(c)) = (g_cutter, comp.as_mut()) {
             if code == 400 {
-                absorb(queue, c);
+                absorb(queue, c)?;
                 let mut out = Vec::new();
                 c.off(st.pos, &mut out);
                 for m in out {
@@ -2071,7 +2144,7 @@ impl<R: BufRead> Interpreter<R> {
             }
         } else if let Some(c) = comp.as_mut() {
             // Events of a line without a move wait behind held moves.
-            absorb(queue, c);
+            absorb(queue, c)?;
         }
 
         // M70-M73: save, invalidate, restore the modal state (LinuxCNC).
@@ -2102,7 +2175,7 @@ impl<R: BufRead> Interpreter<R> {
         // 21. stops: what compensation holds is released first.
         if m_stop.is_some() {
             if let Some(c) = comp.as_mut() {
-                absorb(queue, c);
+                absorb(queue, c)?;
                 release(queue, c);
                 if !matches!(m_stop, Some((0 | 10, _))) {
                     *c = Comp::default();
@@ -2142,7 +2215,8 @@ impl<R: BufRead> Interpreter<R> {
             }
         }
         self.st = st;
-        if let Some(c) = comp {
+        if let Some(mut c) = comp.take() {
+            c.commit();
             self.comp = c;
             if self.cutter_comp_line.is_none() && self.comp.side.is_some() {
                 self.cutter_comp_line = Some(line);
@@ -2178,8 +2252,186 @@ impl<R: BufRead> Interpreter<R> {
                 self.queue.shift_all(frame, self.g92_a);
             }
         }
+        // What the words add up to (G91 steps, offsets, cycle repeats, compensation) stays
+        // within reach too; checked before any event of the line comes out.
+        for m in self.queue.iter() {
+            check_motion_reach(m, &self.blk)?;
+        }
+        // Moves that cutter compensation holds back come out later: their programmed end.
+        check_reach(
+            "the programmed position is",
+            &self.st.pos,
+            Some(self.st.a),
+            &self.blk,
+        )?;
         Ok(())
     }
+}
+
+/// Words whose value is a length (mm after G20/G21): coordinates, arc centre offsets and
+/// radius (also a canned cycle's R level and G10 L1's tool radius), the polar radius `@`.
+const LENGTH_WORDS: u32 = bit(b'X')
+    | bit(b'Y')
+    | bit(b'Z')
+    | bit(b'I')
+    | bit(b'J')
+    | bit(b'K')
+    | bit(b'R')
+    | (1 << POLAR_R);
+/// Words in degrees: the A axis and the polar angle `^`.
+const ANGLE_WORDS: u32 = bit(b'A') | (1 << POLAR_A);
+
+/// Every number a line gives within the crate's bounds ([`MAX_COORDINATE_MM`], [`MAX_FEED`],
+/// [`MAX_SPINDLE_RPM`]), named at its word: a value no machine can run is a typo or an attack,
+/// and must fail the upload check, not the job.
+#[inline]
+fn check_word_ranges(blk: &Block, scale: f64, feed_mode: FeedMode) -> Result<(), LexError> {
+    let present = blk.mask & (LENGTH_WORDS | ANGLE_WORDS | bit(b'F') | bit(b'S'));
+    if present == 0 {
+        return Ok(());
+    }
+    for i in 0..blk.vals.len() {
+        if present & (1 << i) == 0 {
+            continue;
+        }
+        let v = blk.vals[i];
+        let bit_i = 1u32 << i;
+        let (value, limit, unit) = if bit_i & LENGTH_WORDS != 0 {
+            (v * scale, MAX_COORDINATE_MM, "mm")
+        } else if bit_i & ANGLE_WORDS != 0 {
+            (v, MAX_COORDINATE_MM, "degrees")
+        } else if bit_i == bit(b'F') {
+            match feed_mode {
+                // Inverse time is 1/minutes, no length: not scaled by G20.
+                FeedMode::InverseTime => (v, MAX_FEED, "/min (G93)"),
+                FeedMode::PerRevolution => (v * scale, MAX_FEED, "mm/rev"),
+                FeedMode::PerMinute => (v * scale, MAX_FEED, "mm/min"),
+            }
+        } else {
+            (v, MAX_SPINDLE_RPM, "rpm")
+        };
+        if value.is_nan() || value.abs() > limit {
+            return Err(out_of_range(blk, i, value, limit, unit));
+        }
+    }
+    Ok(())
+}
+
+#[cold]
+fn out_of_range(blk: &Block, i: usize, value: f64, limit: f64, unit: &str) -> LexError {
+    let letter = match i {
+        POLAR_R => '@',
+        POLAR_A => '^',
+        _ => (b'A' + i as u8) as char,
+    };
+    let why = if unit == "mm" || unit == "degrees" {
+        " (no machine reaches that far from its origin)"
+    } else {
+        ""
+    };
+    (
+        blk.pos[i] as usize,
+        ErrorKind::Invalid,
+        format!(
+            "{letter}={} {unit} is beyond the limit of {} {unit}{why}",
+            show(value),
+            show(limit)
+        ),
+    )
+}
+
+/// A number for a message: plain up to 1e15, then with an exponent (not 300 digits).
+fn show(v: f64) -> String {
+    if v.abs() < 1e15 {
+        format!("{v}")
+    } else {
+        format!("{v:e}")
+    }
+}
+
+/// A dwell time (G4 P, G82/G89 P) at word offset `at`: from 0 to [`MAX_DWELL_SECONDS`].
+fn dwell_seconds(p: f64, at: usize) -> Result<f64, LexError> {
+    if p < 0.0 {
+        return Err((at, ErrorKind::Invalid, "negative dwell time".to_string()));
+    }
+    if p > MAX_DWELL_SECONDS {
+        return Err((
+            at,
+            ErrorKind::Invalid,
+            format!(
+                "dwell P={} s is longer than the limit of {} s (24 h)",
+                show(p),
+                show(MAX_DWELL_SECONDS)
+            ),
+        ));
+    }
+    Ok(p)
+}
+
+/// The points and offsets of one event within [`MAX_COORDINATE_MM`].
+#[inline]
+fn check_motion_reach(m: &Motion, blk: &Block) -> Result<(), LexError> {
+    match m {
+        Motion::Rapid { to, a, .. } | Motion::Linear { to, a, .. } => {
+            check_reach("the move ends at", to, a.map(|a| a.to), blk)
+        }
+        Motion::Arc { to, centre, .. } => {
+            check_reach("the arc ends at", to, None, blk)?;
+            check_reach("the arc centre is at", centre, None, blk)?;
+            // Its chords go where the arc bulges, beyond both ends.
+            if let Some(g) = crate::ArcGeometry::from_motion(m) {
+                let (lo, hi) = g.bounds();
+                check_reach("the arc reaches", &lo, None, blk)?;
+                check_reach("the arc reaches", &hi, None, blk)?;
+            }
+            Ok(())
+        }
+        Motion::OffsetChange {
+            offset, offset_a, ..
+        } => check_reach("the origin offset is", offset, Some(*offset_a), blk),
+        Motion::WorkOffsetChange { origin, .. } => {
+            check_reach("the work offset is", origin, None, blk)
+        }
+        _ => Ok(()),
+    }
+}
+
+#[inline]
+fn check_reach(what: &str, p: &Point, a: Option<f64>, blk: &Block) -> Result<(), LexError> {
+    let within = |v: f64| v.abs() <= MAX_COORDINATE_MM;
+    if p.iter().all(|&v| within(v)) && a.map_or(true, within) {
+        return Ok(());
+    }
+    Err(beyond_reach(what, p, a, blk))
+}
+
+#[cold]
+fn beyond_reach(what: &str, p: &Point, a: Option<f64>, blk: &Block) -> LexError {
+    let axes = [(b'X', p[0]), (b'Y', p[1]), (b'Z', p[2])];
+    let (letter, v, unit) = axes
+        .into_iter()
+        .map(|(l, v)| (l, v, "mm"))
+        .chain(a.map(|v| (b'A', v, "degrees")))
+        .find(|&(_, v, _)| v.is_nan() || v.abs() > MAX_COORDINATE_MM)
+        .unwrap_or((b'X', p[0], "mm"));
+    // At that axis's word if the line has one, else at its first coordinate or G word.
+    let at = if blk.has(letter) {
+        blk.pos_of(letter) as usize
+    } else if blk.mask & (LENGTH_WORDS | ANGLE_WORDS) != 0 || blk.ng == 0 {
+        first_of(blk, LENGTH_WORDS | ANGLE_WORDS)
+    } else {
+        blk.g[0].1 as usize
+    };
+    (
+        at,
+        ErrorKind::Invalid,
+        format!(
+            "{what} {}={} {unit}, beyond the limit of {} {unit} (no machine reaches that far from its origin)",
+            letter as char,
+            show(v),
+            show(MAX_COORDINATE_MM)
+        ),
+    )
 }
 
 /// Most chords one spline line may make: bounds the memory a line can take.
@@ -2419,12 +2671,22 @@ fn g10(
 
 /// Moves this line's events so far behind the moves compensation holds.
 #[cold]
-fn absorb(queue: &mut Queue, c: &mut Comp) {
+fn absorb(queue: &mut Queue, c: &mut Comp) -> Result<(), LexError> {
     if !c.held.is_empty() {
         while let Some(m) = queue.pop_front() {
             c.hold_event(m);
         }
+        if c.held.len() > MAX_HELD_EVENTS {
+            return Err((
+                0,
+                ErrorKind::Invalid,
+                format!(
+                    "more than {MAX_HELD_EVENTS} events wait for the next move under cutter compensation (G41/G42): program a move or G40"
+                ),
+            ));
+        }
     }
+    Ok(())
 }
 
 /// Releases what compensation holds, unchanged, into the queue.
@@ -2605,7 +2867,7 @@ fn compensated_move(
             "G53 with cutter radius compensation on".to_string(),
         ));
     }
-    absorb(queue, c);
+    absorb(queue, c)?;
     let mut out = Vec::new();
     match st.motion {
         MotionMode::Rapid => c
@@ -2781,13 +3043,7 @@ fn canned_cycle(
     let mut dwell = 0.0;
     if matches!(code, 820 | 890) {
         dwell = match blk.get(b'P') {
-            Some(v) if v >= 0.0 => v,
-            Some(_) => {
-                return Err(invalid(
-                    blk.pos_of(b'P') as usize,
-                    "negative dwell time".to_string(),
-                ))
-            }
+            Some(v) => dwell_seconds(v, blk.pos_of(b'P') as usize)?,
             None if !first => cyc.p,
             None => return Err(invalid(here, format!("{name} needs P (dwell seconds)"))),
         };

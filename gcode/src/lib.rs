@@ -60,6 +60,32 @@ pub use arc::{
 };
 pub use interp::Interpreter;
 
+// Input bounds: whatever a program says, it cannot make the reader recurse without end or put
+// a number no machine can run into a motion. Each is an error naming line, column and limit.
+
+/// Deepest nesting of one value: every `[`, `#` (parameter indirection) and unary sign that
+/// holds a further value is one level (`#[#[1]]` is four, `ABS[ABS[1]]` two). LinuxCNC allows
+/// a few dozen; real programs use a handful. Bounds the reader's stack use on any thread.
+pub const MAX_EXPRESSION_DEPTH: usize = 64;
+/// Most O-word blocks (`if`, `while`, `do`, `repeat`) open at once within one call level.
+pub const MAX_BLOCK_NESTING: usize = 64;
+/// No machine reaches further from its origin than this (mm; degrees for A): a coordinate,
+/// arc centre or offset beyond it is a typo or an attack (`X[10**300]`), refused where the
+/// program says it. The server's MDI and upload checks use the same bound.
+pub const MAX_COORDINATE_MM: f64 = 1_000_000.0;
+/// Longest dwell (G4 P, G82/G89 P), seconds: 24 h.
+pub const MAX_DWELL_SECONDS: f64 = 86_400.0;
+/// Largest F word in its own units after G20/G21 (mm/min; 1/min in G93, mm/rev in G95).
+/// Far above any machine: a machine runs a faster feed at its own maximum, and programs do ask
+/// for that (LinuxCNC's sample `3D_Chips.ngc` programs 2,250,000 mm/min).
+pub const MAX_FEED: f64 = 100_000_000.0;
+/// Largest S word (rpm).
+pub const MAX_SPINDLE_RPM: f64 = 1_000_000.0;
+/// Most events (messages, spindle, coolant, dwells, ...) that may wait behind the moves cutter
+/// compensation holds until the next move: a loop of messages with no move would otherwise pile
+/// them up without end (memory), and every line under compensation copies them (time).
+pub const MAX_HELD_EVENTS: usize = 1000;
+
 use serde::{Deserialize, Serialize};
 
 /// X, Y, Z in millimetres.
@@ -143,7 +169,7 @@ pub struct Config {
     /// Most nesting levels, the main program included (O-word `call`,
     /// `M98`); deeper is an error naming the line. Default 10, LinuxCNC's.
     pub max_call_depth: usize,
-    /// Most loop passes (`while`, `do`, `repeat`, M98 `L`) in one program;
+    /// Most loop passes (`while`, `do`, `repeat`, M98 `L`) and subroutine calls in one program;
     /// more is an error naming the line, so a runaway loop cannot hang an
     /// upload check. Default 10,000,000.
     pub max_loop_iterations: u64,

@@ -236,6 +236,12 @@ fn g18_direction_matches_the_smoothieware_fix_example() {
 fn absurd_radius_and_turns_are_rejected() {
     let e = err("G2 X2000000000 I1000000000 F100");
     assert!(e.message.contains("limit"), "{e}");
+    // Every word within reach, the radius not: a full circle of radius 1.27e6 mm.
+    let e = err("G2 I900000 J900000 F100");
+    assert!(
+        e.message.contains("arc radius") && e.message.contains("limit"),
+        "{e}"
+    );
     assert!(err("G0 X5\nG3 I-5 P20000 F100").message.contains("turns"));
 }
 

@@ -151,6 +151,32 @@ fn errors_while_compensation_is_on() {
 }
 
 #[test]
+fn a_skipped_line_leaves_what_compensation_holds_as_it_was() {
+    // Line 6 changes the tool (which releases the held move and message) and then moves A,
+    // which compensation does not support: skipped, it must change nothing, so the stream is
+    // that of the program without it. Compensation undoes a line without copying what it holds.
+    let with = "G21 F100\nG0 X-10 Y-10\nG41.1 D2 G1 X0 Y0\nG1 X10\n(msg, held)\nM6 T1 A10\n\
+                (msg, after)\nG1 X10 Y10\nG40 G1 X20 Y20\nM2\n";
+    let without = with.replace("M6 T1 A10", "");
+    let interp = |program: &str| {
+        let cfg = Config {
+            unsupported: fresa_gcode::Unsupported::SkipWithWarning,
+            ..Config::default()
+        };
+        let mut it = Interpreter::new(program.as_bytes(), cfg);
+        let motions: Vec<Motion> = it.by_ref().collect::<Result<_, _>>().unwrap();
+        (motions, it.warnings().len())
+    };
+    let (skipped, warnings) = interp(with);
+    assert_eq!(
+        warnings, 1,
+        "the A move under compensation is skipped with a warning"
+    );
+    assert_eq!(skipped, interp(&without).0);
+    assert!(skipped.iter().any(|m| matches!(m, Motion::Message { .. })));
+}
+
+#[test]
 fn the_tool_table_deserialises_from_settings() {
     let cfg: Config = serde_json::from_str(r#"{"tools": {"3": {"diameter_mm": 6.0}}}"#).unwrap();
     assert_eq!(cfg.tools[&3].diameter_mm, 6.0);

@@ -1,7 +1,9 @@
 //! Replays a crate's saved fuzz inputs through its fuzz target's check function, so an input
 //! that once found a bug keeps being checked by `cargo test` on stable Rust:
-//! `fuzz/corpus/<target>` (the minimised corpus) and `fuzz/regressions` (inputs that crashed,
-//! named after what they found). Included with `#[path]` by each crate's `tests/fuzz_corpus.rs`.
+//! `fuzz/corpus/<target>` (the minimised corpus), `fuzz/regressions/<target>` and the files
+//! directly in `fuzz/regressions` (inputs that crashed, named after what they found; the flat
+//! ones are replayed through every target of the crate). Included with `#[path]` by each
+//! crate's `tests/fuzz_corpus.rs`.
 
 use std::path::Path;
 
@@ -10,7 +12,11 @@ use std::path::Path;
 pub fn replay(crate_dir: &str, target: &str, what: &str, check: fn(&[u8])) {
     let root = Path::new(crate_dir).join("fuzz");
     let mut n = 0;
-    for dir in [format!("corpus/{target}"), "regressions".to_string()] {
+    for dir in [
+        format!("corpus/{target}"),
+        format!("regressions/{target}"),
+        "regressions".to_string(),
+    ] {
         let Ok(entries) = std::fs::read_dir(root.join(dir)) else {
             continue;
         };

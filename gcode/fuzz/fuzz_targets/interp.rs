@@ -6,4 +6,7 @@
 #[path = "../check.rs"]
 mod check;
 
-libfuzzer_sys::fuzz_target!(|data: &[u8]| check::interp(data));
+libfuzzer_sys::fuzz_target!(|data: &[u8]| check::interp_within(
+    data,
+    Some(check::budget::FUZZ_CPU_BUDGET)
+));

@@ -15,3 +15,13 @@ fn the_saved_fuzz_inputs_still_pass() {
         check::codec,
     );
 }
+
+#[test]
+fn the_saved_upload_fuzz_inputs_still_pass() {
+    fuzz_replay::replay(
+        env!("CARGO_MANIFEST_DIR"),
+        "upload",
+        "the pendant decoder and the G-code analysis of what it uploads",
+        check::upload,
+    );
+}

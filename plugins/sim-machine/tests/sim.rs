@@ -857,11 +857,18 @@ fn huge_or_overflowing_targets_are_refused_without_travel() {
     for (req, what) in [
         (json!({"op":"jog","axis":"X","distance":1e308}), "jog"),
         (json!({"op":"jog","axis":"A","distance":-2e6}), "jog"),
-        (json!({"op":"mdi","line":"G0 X99999999999"}), "MDI"),
-        (json!({"op":"mdi","line":"G1 Y2000000 F100"}), "MDI"),
     ] {
         let e = rig.m.request(req.clone()).unwrap_err();
         assert_eq!(e.code, "out_of_travel", "{req}: {e}");
+        assert!(e.message.contains(what), "{e}");
+    }
+    // The G-code reader refuses coordinates beyond any machine's reach before the travel check.
+    for (line, what) in [
+        ("G0 X99999999999", "X=99999999999 mm"),
+        ("G1 Y2000000 F100", "Y=2000000 mm"),
+    ] {
+        let e = rig.m.request(json!({"op":"mdi","line":line})).unwrap_err();
+        assert_eq!(e.code, "invalid_gcode", "{line}: {e}");
         assert!(e.message.contains(what), "{e}");
     }
     // Two jogs that are each in range but overflow together: the second is refused.
@@ -877,7 +884,8 @@ fn huge_or_overflowing_targets_are_refused_without_travel() {
         .m
         .request(json!({"op":"load_program","run":1,"path":path,"start_line":1}))
         .unwrap_err();
-    assert_eq!(e.code, "out_of_travel");
+    assert_eq!(e.code, "invalid_program", "{e}");
+    assert!(e.message.contains("line 2, column 4: X=10000000 mm"), "{e}");
     // The motion thread is alive: a normal jog still completes.
     rig.call(json!({"op":"jog","axis":"X","distance":1.0}));
     rig.wait_idle();

@@ -12,8 +12,9 @@ pub const MAX_JOG_MM: f64 = 1000.0;
 /// Largest `max_feed_mm_min`: well above any spindle machine's rapid rate.
 pub const MAX_FEED_MM_MIN: f64 = 100_000.0;
 /// No machine's work envelope reaches further from its origin than this (mm); a coordinate
-/// beyond it is a typo or an attack (`G0 X1e30`), refused before any backend sees it.
-pub const MAX_COORDINATE_MM: f64 = 1_000_000.0;
+/// beyond it is a typo or an attack (`G0 X1e30`), refused before any backend sees it. The
+/// G-code interpreter's own bound, so MDI lines, uploads and `fresa gcode check` share one rule.
+pub const MAX_COORDINATE_MM: f64 = fresa_gcode::MAX_COORDINATE_MM;
 /// Longest MDI line accepted, bytes.
 pub const MAX_MDI_LINE: usize = 256;
 /// Most segments (moves, and arcs as 0.002 mm chords) one MDI line may make: a backend checks
@@ -106,10 +107,10 @@ pub fn check_jog(row: &MachineRow, distance: f64, feed: Option<f64>) -> Result<(
     Ok(())
 }
 
-/// One non-empty G-code line the interpreter accepts (what the backend will check again), with
-/// every target coordinate within [`MAX_COORDINATE_MM`].
+/// One non-empty G-code line the interpreter accepts (what the backend will check again). The
+/// interpreter refuses every target, centre and offset beyond [`MAX_COORDINATE_MM`], and
+/// dwells, feeds and speeds beyond its limits, naming the word.
 pub fn check_mdi_line(line: &str) -> std::result::Result<(), String> {
-    use fresa_gcode::Motion;
     if line.trim().is_empty() {
         return Err("an MDI line must not be empty".into());
     }
@@ -124,28 +125,9 @@ pub fn check_mdi_line(line: &str) -> std::result::Result<(), String> {
     }
     let interp = fresa_gcode::Interpreter::new(line.as_bytes(), fresa_gcode::Config::default());
     let budget = fresa_gcode::WorkBudget::new(MAX_MDI_SEGMENTS, 0.002);
+    // The reader refuses coordinates beyond MAX_COORDINATE_MM (and A beyond as many degrees).
     for motion in fresa_gcode::budgeted(interp, budget) {
-        let motion = motion.map_err(|e| format!("{line:?}: column {}: {}", e.column, e.message))?;
-        let to = match &motion {
-            Motion::Rapid { to, .. } | Motion::Linear { to, .. } | Motion::Arc { to, .. } => to,
-            _ => continue,
-        };
-        for (axis, v) in ["X", "Y", "Z"].iter().zip(to) {
-            if !(v.is_finite() && v.abs() <= MAX_COORDINATE_MM) {
-                return Err(format!(
-                    "{line:?}: {axis}={v} is beyond any machine's travel (at most {MAX_COORDINATE_MM} mm from the origin)"
-                ));
-            }
-        }
-        // A rotary axis: the same numeric bound, in degrees.
-        if let Some(a) = motion.rotary() {
-            if !(a.to.is_finite() && a.to.abs() <= MAX_COORDINATE_MM) {
-                return Err(format!(
-                    "{line:?}: A={} is beyond any machine's travel (at most {MAX_COORDINATE_MM} degrees)",
-                    a.to
-                ));
-            }
-        }
+        motion.map_err(|e| format!("{line:?}: column {}: {}", e.column, e.message))?;
     }
     Ok(())
 }
@@ -238,5 +220,20 @@ mod tests {
             .err()
             .unwrap_or_default();
         assert!(e.contains("work budget exceeded"), "{e}");
+        // Expression results: overflow, huge values, dwells and nesting.
+        let e = check_mdi_line("G0 X[10**300*10**300]")
+            .err()
+            .unwrap_or_default();
+        assert!(
+            e.contains("column 13") && e.contains("not a finite number"),
+            "{e}"
+        );
+        let e = check_mdi_line("G0 X[10**300]").err().unwrap_or_default();
+        assert!(e.contains("X=1e300") && e.contains("1000000"), "{e}");
+        let e = check_mdi_line("G4 P[10**300]").err().unwrap_or_default();
+        assert!(e.contains("column 4") && e.contains("86400 s"), "{e}");
+        let deep = format!("G0 X{}1{}", "[".repeat(100), "]".repeat(100));
+        let e = check_mdi_line(&deep).err().unwrap_or_default();
+        assert!(e.contains("column 69") && e.contains("64 levels"), "{e}");
     }
 }
