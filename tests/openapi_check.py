@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Checks Fresa's OpenAPI description with real validators (used by tests/openapi.rs).
+"""Checks Fresa's OpenAPI description with real validators (used by tests/clients/openapi.rs).
 
     openapi_check.py DOC.json [RESPONSES.json]
 

@@ -1,5 +1,5 @@
 //! Running the cross-built Windows programs (`fresa.exe`, `fresa-mach3-agent.exe`, the
-//! `fresa_*.dll` plugins) under Wine, for `tests/wine.rs`.
+//! `fresa_*.dll` plugins) under Wine, for `tests/backends/wine.rs`.
 //!
 //! The programs are built by `tests/run` (`cargo build --workspace --target
 //! x86_64-pc-windows-gnu`) before `cargo test`; a test fails naming that command when they are

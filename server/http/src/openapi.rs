@@ -5,7 +5,7 @@
 //! *and* its operation to the description: a route cannot be served without being described.
 //! [`needs`] then wraps it with the role check and writes the same role into the description
 //! (`x-fresa-role`, the security requirement, 401/403 answers), so the role is stated once, next
-//! to the route. `tests/openapi.rs` checks the served document against the running server.
+//! to the route. `tests/clients/openapi.rs` checks the served document against the running server.
 
 use crate::auth::{self, Role};
 use axum::response::IntoResponse;

@@ -4,7 +4,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-#[path = "support/browser.rs"]
+#[path = "../support/browser.rs"]
 mod browser;
 
 use browser::Browser;

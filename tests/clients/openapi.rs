@@ -21,7 +21,7 @@ const T: Duration = Duration::from_secs(60);
 const NOT_ON_THE_DEMO: &[(&str, &str, &str)] = &[(
     "get",
     "/api/v1/machines/{id}/as-program",
-    "only a kawasaki-as fresa-v1 machine has one (tests/kawasaki.rs downloads it)",
+    "only a kawasaki-as fresa-v1 machine has one (tests/backends/kawasaki.rs downloads it)",
 )];
 
 struct Op {

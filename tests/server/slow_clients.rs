@@ -399,7 +399,7 @@ fn one_token_cannot_take_every_event_stream() {
 
 /// Not a test: STOP latency with nothing else open, with 600 event streams, and with 300
 /// streams and 600 silent connections (the figures in issue 23).
-/// Run with `cargo test -p fresa-tests --test slow_clients -- --ignored --nocapture stop_latency`.
+/// Run with `cargo test -p fresa-tests --test blackbox -- --ignored --nocapture server::slow_clients::stop_latency`.
 #[test]
 #[ignore]
 fn stop_latency_with_600_event_streams_open() {

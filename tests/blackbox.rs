@@ -1,0 +1,84 @@
+//! The black-box tests: each starts the real `fresa` binary (and real plugins, simulators,
+//! brokers, databases or browsers) and talks to it as its users do. They are one test binary,
+//! grouped by feature, so the dependency tree is linked once and `fresa` built once
+//! (`fresa_tests`, `lib.rs`, holds the shared helpers).
+//!
+//! Where a new test goes, by what it is about (not by how it tests it):
+//!
+//! | module | what its tests are about |
+//! |---|---|
+//! | `machine::api` | a machine over the REST API: listing, jog, zero, work offsets, part zero, MDI |
+//! | `machine::limits` | what is refused before anything moves: soft limits, jog/feed limits, the work a program may cause |
+//! | `machine::tools` | tool tables and cutter compensation with them |
+//! | `machine::io` | inputs and outputs: switches, alarms, `machine.io` |
+//! | `jobs::runs` | upload, run to completion, download, pause / resume / cancel of a job |
+//! | `jobs::races` | cancel, stop and pause racing a running job: nothing moves after the answer |
+//! | `jobs::chaos` | many clients sending random run control at once: the run state machine holds |
+//! | `jobs::resume` | a server killed or stopped mid-job: the run comes back and resumes exactly once |
+//! | `backends::mach3`, `parport`, `kawasaki`, `wine` | one backend (or the Windows build) end to end against its simulator |
+//! | `pendants` | MPG pendants: the plugin, its simulator, keys, wheel, uploads, a lost link |
+//! | `server::auth` | tokens and roles |
+//! | `server::hardening` | hostile web pages, secrets in logs, loose fields and paths |
+//! | `server::bad_input` | refused input names the problem and leaves nothing half-written |
+//! | `server::slow_clients` | connection, stream and header limits: STOP always gets through |
+//! | `server::lifecycle` | SIGTERM, a second server on one data directory |
+//! | `server::faults` | a plugin that hangs or misbehaves |
+//! | `store::db_outage` | the database or its disk failing under a running job |
+//! | `store::nodes` | several nodes on one PostgreSQL |
+//! | `store::retention`, `leftovers` | event pruning; what a crash leaves behind, backups |
+//! | `integrations::events`, `webhooks`, `mqtt` | what goes out: SSE, webhooks, the MQTT bridge |
+//! | `clients::cli`, `console`, `openapi` | the CLI, the web console (real Chromium), the OpenAPI description |
+//!
+//! Run one group with `cargo test -p fresa-tests --test blackbox pendants::` (a module path is a
+//! test-name filter).
+
+mod machine {
+    mod api;
+    mod io;
+    mod limits;
+    mod tools;
+}
+
+mod jobs {
+    mod chaos;
+    mod races;
+    mod resume;
+    mod runs;
+}
+
+mod backends {
+    mod kawasaki;
+    mod mach3;
+    mod parport;
+    mod wine;
+}
+
+mod pendants;
+
+mod server {
+    mod auth;
+    mod bad_input;
+    mod faults;
+    mod hardening;
+    mod lifecycle;
+    mod slow_clients;
+}
+
+mod store {
+    mod db_outage;
+    mod leftovers;
+    mod nodes;
+    mod retention;
+}
+
+mod integrations {
+    mod events;
+    mod mqtt;
+    mod webhooks;
+}
+
+mod clients {
+    mod cli;
+    mod console;
+    mod openapi;
+}
