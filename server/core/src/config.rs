@@ -1188,7 +1188,7 @@ mod tests {
 
     #[test]
     fn work_budget_and_toolpath_settings_have_defaults_and_bounds() {
-        let (dir, resolve) = toml_resolver("fresa-cfg5");
+        let (dir, resolve) = toml_resolver("fresa-cfg-budget");
         let s = resolve("").unwrap();
         assert_eq!(s.max_program_segments, fresa_gcode::DEFAULT_MAX_SEGMENTS);
         assert_eq!(s.toolpath, ToolpathSettings::default());
