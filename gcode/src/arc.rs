@@ -212,7 +212,7 @@ pub const DEFAULT_MAX_SEGMENTS: u64 = 100_000_000;
 /// How much work a program may cause: at most `limit` segments (moves, and the chords of arcs
 /// at `tolerance_mm`), counted as the motions arrive, before any chord is made. Streaming
 /// consumers stay flat in memory whatever the program; the budget bounds their time, and a
-/// 72-byte `G2 I999999 P10000` (half a billion chords) is refused at its line instead.
+/// short `G2 I400000 P10000` (3 x 10^8 chords) is refused at its line instead.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct WorkBudget {
     limit: u64,

@@ -151,9 +151,13 @@ fn spindle_and_coolant_cannot_be_toggled_during_a_cutting_run_but_can_once_pause
     s.job_action(job, "cancel").expect(200);
 }
 
-/// 72 bytes that linearise to about 5 x 10^8 chords at 0.002 mm (a circle of 1 km radius, 10,000
-/// turns): before the work budget it was accepted, and its start took the server's memory.
-const HUGE_ARC: &str = "G21 G90\nG0 X0 Y0\nG1 F1000\nG2 X0 Y0 I999999 J0 P10000\nM30\n";
+/// A short program that linearises to about 3 x 10^8 chords at 0.002 mm (a circle of 400 m
+/// radius, 10,000 turns, within reach). The issue's own `G2 I999999 P10000` (5 x 10^8 chords)
+/// bulges 2 km from the origin and is now refused for that first (see below); before the work
+/// budget both were accepted, and their start took the server's memory.
+const HUGE_ARC: &str = "G21 G90\nG0 X0 Y0\nG1 F1000\nG2 X0 Y0 I400000 J0 P10000\nM30\n";
+/// The 72 bytes of issue #23.
+const ISSUE_ARC: &str = "G2 X0 Y0 I999999 J0 P10000\n";
 
 /// The default `max_program_segments`.
 const DEFAULT_BUDGET: u64 = 100_000_000;
@@ -190,8 +194,19 @@ fn rss_mib(s: &Server) -> (u64, u64) {
 fn a_program_over_the_work_budget_is_refused_at_upload_naming_the_line_and_the_server_lives() {
     let s = Server::start();
     let m = s.sim("m", 1.0);
-    let n = chords(999_999.0, 10_000, 0.002);
+    let n = chords(400_000.0, 10_000, 0.002);
     assert!(n > DEFAULT_BUDGET, "{n}");
+    // The issue's program: refused at upload too, for where the arc reaches.
+    let msg = s
+        .post_bytes(
+            &format!("/api/v1/jobs?machine={}&name=issue", m.id),
+            ISSUE_ARC,
+        )
+        .expect_error(422, "invalid_gcode");
+    assert!(
+        msg.contains("line 1") && msg.contains("1000000 mm"),
+        "{msg}"
+    );
     let msg = s
         .post_bytes(
             &format!("/api/v1/jobs?machine={}&name=huge", m.id),

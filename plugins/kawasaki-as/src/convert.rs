@@ -404,7 +404,7 @@ mod tests {
     #[test]
     fn a_program_over_the_work_budget_is_refused_before_its_commands_are_made() {
         // ~2 x 10^8 chords at 0.01 mm: refused at its line, no command kept.
-        let huge = "G0 X0 Y0\nG2 X0 Y0 I999999 J0 P10000 F100\n";
+        let huge = "G0 X0 Y0\nG2 X0 Y0 I400000 J0 P10000 F100\n";
         let e = conv()
             .plan_bounded(huge, Default::default(), 1_000_000)
             .unwrap_err();

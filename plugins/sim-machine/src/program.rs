@@ -360,8 +360,8 @@ mod tests {
             Err(Refusal::Gcode(e)) => assert_eq!(e.line, 2),
             other => panic!("{other:?}"),
         }
-        // ~5e8 chords: refused at its line before the first chord, in constant memory.
-        match check("G0 X0 Y0\nG2 X0 Y0 I999999 J0 P10000 F100\n") {
+        // ~3e8 chords: refused at its line before the first chord, in constant memory.
+        match check("G0 X0 Y0\nG2 X0 Y0 I400000 J0 P10000 F100\n") {
             Err(Refusal::Gcode(e)) => {
                 assert_eq!((e.line, e.kind), (2, fresa_gcode::ErrorKind::Budget), "{e}")
             }

@@ -316,7 +316,7 @@ mod tests {
 
     #[test]
     fn the_work_budget_bounds_it_and_a_cancelled_build_stops() {
-        let huge = "G0 X0 Y0\nG2 X0 Y0 I999999 J0 P10000 F100\n";
+        let huge = "G0 X0 Y0\nG2 X0 Y0 I400000 J0 P10000 F100\n";
         let go = AtomicBool::new(false);
         let e = Toolpath::build_bounded(huge.as_bytes(), Config::default(), 1000, 1_000_000, &go)
             .unwrap_err();

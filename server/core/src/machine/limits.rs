@@ -216,7 +216,7 @@ mod tests {
         assert!(e.contains("A=2000000"), "{e}");
         assert!(check_mdi_line("G0 A90").is_ok());
         // Half a billion chords from one short line: refused before any are made.
-        let e = check_mdi_line("G2 X0 Y0 I999999 J0 P10000 F100")
+        let e = check_mdi_line("G2 X0 Y0 I400000 J0 P10000 F100")
             .err()
             .unwrap_or_default();
         assert!(e.contains("work budget exceeded"), "{e}");
