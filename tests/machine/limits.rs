@@ -156,8 +156,8 @@ fn spindle_and_coolant_cannot_be_toggled_during_a_cutting_run_but_can_once_pause
 /// bulges 2 km from the origin and is now refused for that first (see below); before the work
 /// budget both were accepted, and their start took the server's memory.
 const HUGE_ARC: &str = "G21 G90\nG0 X0 Y0\nG1 F1000\nG2 X0 Y0 I400000 J0 P10000\nM30\n";
-/// The 72 bytes of issue #23.
-const ISSUE_ARC: &str = "G2 X0 Y0 I999999 J0 P10000\n";
+/// The arc of issue #23 (after a feed, as in its program).
+const ISSUE_ARC: &str = "G1 F100\nG2 X0 Y0 I999999 J0 P10000\n";
 
 /// The default `max_program_segments`.
 const DEFAULT_BUDGET: u64 = 100_000_000;
@@ -204,7 +204,7 @@ fn a_program_over_the_work_budget_is_refused_at_upload_naming_the_line_and_the_s
         )
         .expect_error(422, "invalid_gcode");
     assert!(
-        msg.contains("line 1") && msg.contains("1000000 mm"),
+        msg.contains("line 2") && msg.contains("1000000 mm"),
         "{msg}"
     );
     let msg = s
