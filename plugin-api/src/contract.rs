@@ -342,13 +342,6 @@ impl OutputName {
     }
 }
 
-impl Command {
-    /// Commands that must overtake any queue of pending calls.
-    pub fn is_urgent(&self) -> bool {
-        matches!(self, Command::FeedHold | Command::Stop | Command::Reset)
-    }
-}
-
 /// Program run control.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -428,15 +421,47 @@ pub enum Request {
 impl Request {
     /// Decodes a request from the host; a malformed or unknown one is an `invalid_request` error
     /// that says what serde found wrong.
+    ///
+    /// An operation this build of the contract does not know (a newer host's `op` or
+    /// `command`) is `unsupported`, as an operation the backend does not implement is: a plugin
+    /// built against an older contract then answers a new operation the way the host expects.
     pub fn from_json(request: serde_json::Value) -> Result<Request, crate::PluginError> {
-        serde_json::from_value(request)
-            .map_err(|e| crate::PluginError::invalid(format!("invalid request: {e}")))
+        serde_json::from_value(request.clone()).map_err(|e| refused(&request, &e))
     }
 
-    /// [`Request::from_json`] straight from the bytes of a call, with no `Value` in between.
+    /// [`Request::from_json`] straight from the bytes of a call, with no `Value` in between
+    /// (one is parsed only to explain a refusal).
     pub fn from_slice(request: &[u8]) -> Result<Request, crate::PluginError> {
-        serde_json::from_slice(request)
-            .map_err(|e| crate::PluginError::invalid(format!("invalid request: {e}")))
+        serde_json::from_slice(request).map_err(|e| {
+            let parsed = serde_json::from_slice(request).unwrap_or(serde_json::Value::Null);
+            refused(&parsed, &e)
+        })
+    }
+}
+
+/// Why a request was not decoded: `unsupported` when serde's complaint is exactly that the
+/// request's `op` (or its command's `command`) is a variant this contract does not have,
+/// otherwise `invalid_request` with serde's own words.
+fn refused(request: &serde_json::Value, e: &serde_json::Error) -> crate::PluginError {
+    let op = request.get("op").and_then(serde_json::Value::as_str);
+    let name = match op {
+        Some("command") => request.get("command").and_then(serde_json::Value::as_str),
+        other => other,
+    };
+    match name {
+        Some(name)
+            if e.to_string()
+                .starts_with(&format!("unknown variant `{name}`")) =>
+        {
+            crate::PluginError::new(
+                "unsupported",
+                format!(
+                    "this machine backend does not know `{name}` (it was built against an \
+                     older plugin contract)"
+                ),
+            )
+        }
+        _ => crate::PluginError::invalid(format!("invalid request: {e}")),
     }
 }
 
@@ -637,8 +662,14 @@ mod tests {
     #[test]
     fn a_malformed_request_is_an_invalid_request_naming_the_problem() {
         let e = Request::from_json(json!({"op": "fly"})).unwrap_err();
-        assert_eq!(e.code, "invalid_request");
+        assert_eq!(e.code, "unsupported");
         assert!(e.message.contains("fly"), "{e}");
+        let e = Request::from_json(json!({"op": "command", "command": "fly"})).unwrap_err();
+        assert_eq!(e.code, "unsupported");
+        // A known operation with a field that is unknown or wrong is malformed.
+        let e = Request::from_json(json!({"op": "command", "command": "home", "axis": "fly"}))
+            .unwrap_err();
+        assert_eq!(e.code, "invalid_request", "{e}");
         let e = Request::from_json(json!({"op": "jog", "axis": "Q", "distance": 1})).unwrap_err();
         assert!(e.message.contains('Q'), "{e}");
         assert_eq!(

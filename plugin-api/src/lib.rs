@@ -2,6 +2,8 @@
 //!
 //! * [`abi`]: the raw `repr(C)` contract, mirrored by `include/fresa_plugin.h`.
 //! * [`contract`]: the JSON requests, responses and events of a machine backend.
+//! * [`operation`]: how the host treats each request and command (lane, stop gate, store, ...),
+//!   decided once per operation.
 //! * [`backend`]: for machine backends in Rust: the typed [`MachineBackend`] trait and
 //!   [`export_machine_backend!`] (request decoding and dispatch done once).
 //! * [`kit`]: for Rust backends that plan motion locally: the shared state machine, run
@@ -21,6 +23,7 @@ mod error;
 pub mod exec_log;
 pub mod host;
 pub mod kit;
+pub mod operation;
 pub mod plugin;
 pub mod quiet;
 

@@ -141,10 +141,38 @@ fn malformed_requests_are_invalid_requests_on_both_paths() {
     let m = Exported(Minimal::new());
     for bad in [
         &b"{"[..],
-        br#"{"op":"fly"}"#,
         br#"{"op":"jog","axis":"Q","distance":1}"#,
+        br#"{"op":"jog"}"#,
+        br#"{"op":"command","command":"home","axis":"Q"}"#,
+        br#"{"op":7}"#,
     ] {
         let e = m.call_bytes(bad).unwrap_err();
         assert_eq!(e.code, "invalid_request", "{e}");
+        let e = m
+            .call(serde_json::from_slice(bad).unwrap_or_default())
+            .unwrap_err();
+        assert_eq!(e.code, "invalid_request", "{e}");
+    }
+}
+
+/// A host newer than the plugin sends operations the plugin's contract does not have: the
+/// plugin answers `unsupported`, as for an operation it does not implement, on both paths.
+#[test]
+fn operations_a_plugin_does_not_know_are_unsupported() {
+    let m = Exported(Minimal::new());
+    for (unknown, name) in [
+        (&br#"{"op":"probe","axis":"Z","distance":-10}"#[..], "probe"),
+        (
+            br#"{"op":"command","command":"tool_change","tool":3}"#,
+            "tool_change",
+        ),
+    ] {
+        let e = m.call_bytes(unknown).unwrap_err();
+        assert_eq!(e.code, "unsupported", "{e}");
+        assert!(e.message.contains(name), "{e}");
+        let e = m
+            .call(serde_json::from_slice(unknown).unwrap())
+            .unwrap_err();
+        assert_eq!(e.code, "unsupported", "{e}");
     }
 }

@@ -159,9 +159,12 @@ fn status_shape_before_and_after_connect() {
         serde_json::from_value(m.request(json!({"op": "get_offsets"})).unwrap()).unwrap();
     assert_eq!(table.offsets.len(), 6);
 
+    // An operation of a newer contract: unsupported, not malformed.
     let e = m.request(json!({"op": "fly"})).unwrap_err();
-    assert_eq!(e.code, "invalid_request");
+    assert_eq!(e.code, "unsupported");
     assert!(e.message.contains("fly"), "{}", e.message);
+    let e = m.request(json!({"op": "jog", "axis": "Q"})).unwrap_err();
+    assert_eq!(e.code, "invalid_request");
 }
 
 #[test]

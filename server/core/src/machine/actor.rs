@@ -74,7 +74,7 @@ impl PendingWrites {
     }
 }
 
-const ACTIVE: &[RunState] = &[RunState::Running, RunState::Paused, RunState::Queued];
+const ACTIVE: &[RunState] = &[RunState::Running, RunState::Paused];
 const UNAVAILABLE: &str = "database_unavailable";
 
 fn run_event(run: &RunRow) -> Value {
@@ -142,62 +142,13 @@ impl Task {
                 self.restore().await;
                 let _ = reply.send(());
             }
-            Msg::Jog {
-                axis,
-                distance,
-                feed,
+            Msg::Call {
+                request,
                 actor,
                 ticket,
                 reply,
             } => {
-                let r = async {
-                    self.store.health().check()?;
-                    self.refuse_during_run("jogging")?;
-                    self.motion(
-                        ticket,
-                        &Request::Jog {
-                            axis,
-                            distance,
-                            feed,
-                        },
-                    )
-                    .await?;
-                    self.record(
-                        "machine.jog",
-                        &actor,
-                        json!({"axis": axis, "distance": distance, "feed": feed}),
-                    )
-                    .await;
-                    Ok(())
-                }
-                .await;
-                let _ = reply.send(r);
-            }
-            Msg::Mdi {
-                line,
-                actor,
-                ticket,
-                reply,
-            } => {
-                let r = async {
-                    self.store.health().check()?;
-                    self.refuse_during_run("MDI")?;
-                    self.motion(ticket, &Request::Mdi { line: line.clone() })
-                        .await?;
-                    self.record("machine.mdi", &actor, json!({"line": line}))
-                        .await;
-                    Ok(())
-                }
-                .await;
-                let _ = reply.send(r);
-            }
-            Msg::Command {
-                command,
-                actor,
-                ticket,
-                reply,
-            } => {
-                let r = self.command(command, &actor, ticket).await;
+                let r = self.operate(request, &actor, ticket).await;
                 let _ = reply.send(r);
             }
             Msg::SetOffset {
@@ -425,25 +376,27 @@ impl Task {
         Ok(())
     }
 
-    async fn command(&mut self, command: Command, actor: &str, ticket: u64) -> Result<Value> {
-        let starts_motion = matches!(
-            command,
-            Command::CycleStart | Command::Resume | Command::Home { .. } | Command::GoToZero
-        );
-        let changes_offsets =
-            matches!(command, Command::Zero { .. } | Command::SelectOffset { .. });
-        // No new motion without the database, and no offset the store could not keep.
-        if starts_motion || changes_offsets {
+    /// One operation, as its declared properties say (`fresa_plugin_api::operation`): no new
+    /// motion or kept change without the database, nothing that a running job or a moving
+    /// machine forbids, motion through the stop gate, offsets it changed stored, then its audit
+    /// record.
+    async fn operate(&mut self, request: Request, actor: &str, ticket: u64) -> Result<Value> {
+        let op = request.operation();
+        if op.needs_store {
             self.store.health().check()?;
         }
-        if changes_offsets {
-            self.refuse_while_moving("zeroing or selecting a work offset")
+        if op.refused_during_run {
+            self.refuse_during_run(&format!("`{}`", op.name))?;
+        }
+        if op.changes_offsets {
+            self.refuse_while_moving(&format!("`{}` (it changes the work offsets)", op.name))
                 .await?;
         }
-
         // Spindle and coolant belong to the program while it cuts; the operator may change them
         // once the run is held.
-        if let Command::SetOutput { name, .. } | Command::ToggleOutput { name } = command {
+        if let Request::Command(Command::SetOutput { name, .. } | Command::ToggleOutput { name }) =
+            request
+        {
             let cutting = self
                 .run
                 .borrow()
@@ -458,27 +411,24 @@ impl Task {
                 ));
             }
         }
-        let answer = if starts_motion {
-            self.motion(ticket, &Request::Command(command)).await?
+        let answer = if op.starts_motion {
+            self.motion(ticket, &request).await?
         } else {
-            self.call(&Request::Command(command)).await?
+            self.call(&request).await?
         };
-        // Commands that change offsets: the backend computed them; persist what it now has.
-        if matches!(command, Command::Zero { .. } | Command::SelectOffset { .. }) {
+        // The backend computed the new offsets; persist what it now has.
+        if op.changes_offsets {
             self.persist_backend_offsets().await?;
         }
-        let mut recorded = json!(command);
-        // An output's new state (as the backend reports it) belongs in the audit log.
-        if matches!(
-            command,
-            Command::SetOutput { .. } | Command::ToggleOutput { .. }
-        ) {
-            if let Some(on) = answer.get("on").and_then(Value::as_bool) {
-                recorded["on"] = json!(on);
-            }
+        if let Some(event) = op.audit {
+            self.record(event, actor, audit_data(&request, &answer))
+                .await;
         }
-        self.record("machine.command", actor, recorded).await;
-        let _ = self.refresh_status().await;
+        // A command changes what the status shows (state, offsets, outputs): show it before
+        // the answer. A jog or MDI line reports its own progress as it moves.
+        if matches!(request, Request::Command(_)) {
+            let _ = self.refresh_status().await;
+        }
         Ok(answer)
     }
 
@@ -1073,8 +1023,11 @@ impl Task {
                         .await;
                 }
                 self.gate.check(ticket)?;
-                let reopened = match self.store.reopen_run(run.id, self.id).await? {
+                let from = [RunState::Interrupted, RunState::Failed];
+                let reopened = match self.store.reopen_run(run.id, self.id, &from).await? {
                     Ok(r) => r,
+                    // Another resume or a cancel moved it meanwhile: the run as it is now.
+                    Err(now) if now.id == run.id => return Ok(now),
                     Err(busy) => {
                         return Err(Error::conflict(
                             "machine_busy",
@@ -1162,7 +1115,7 @@ impl Task {
     async fn cancel(&mut self, job_id: i64, actor: &str) -> Result<RunRow> {
         let run = self.latest(job_id).await?;
         match run.state {
-            RunState::Running | RunState::Paused | RunState::Queued => {
+            RunState::Running | RunState::Paused => {
                 // The backend answers only once motion has stopped; only then is the run
                 // cancelled.
                 self.call(&Request::Run {
@@ -1332,6 +1285,32 @@ fn io_changes(before: &MachineStatus, after: &MachineStatus) -> Option<Value> {
     (!out.is_empty()).then_some(Value::Object(out))
 }
 
+/// What an operation's audit event says: its fields as the API took them, and for an output
+/// its new state as the backend reports it.
+fn audit_data(request: &Request, answer: &Value) -> Value {
+    match request {
+        Request::Jog {
+            axis,
+            distance,
+            feed,
+        } => json!({"axis": axis, "distance": distance, "feed": feed}),
+        Request::Mdi { line } => json!({"line": line}),
+        Request::Command(command) => {
+            let mut recorded = json!(command);
+            if matches!(
+                command,
+                Command::SetOutput { .. } | Command::ToggleOutput { .. }
+            ) {
+                if let Some(on) = answer.get("on").and_then(Value::as_bool) {
+                    recorded["on"] = json!(on);
+                }
+            }
+            recorded
+        }
+        other => json!(other),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used, clippy::expect_used)]
@@ -1498,10 +1477,12 @@ mod tests {
 
         // New motion is refused while the database is down, naming it.
         let (reply, answer) = oneshot::channel();
-        task.handle(Msg::Jog {
-            axis: Axis::X,
-            distance: 1.0,
-            feed: None,
+        task.handle(Msg::Call {
+            request: Request::Jog {
+                axis: Axis::X,
+                distance: 1.0,
+                feed: None,
+            },
             actor: "t".into(),
             ticket: task.gate.ticket(),
             reply,

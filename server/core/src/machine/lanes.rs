@@ -8,6 +8,7 @@
 use crate::error::{Error, ErrorKind};
 use fresa_plugin_api::contract::Request;
 use fresa_plugin_api::host::{CallError, Instance};
+pub use fresa_plugin_api::operation::Lane;
 use serde_json::Value;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc as std_mpsc;
@@ -29,28 +30,6 @@ pub enum BackendError {
 }
 
 type Job = Box<dyn FnOnce() + Send>;
-
-/// Which lane a request travels on.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Lane {
-    Ordinary,
-    Urgent,
-}
-
-impl Lane {
-    /// Urgent requests stop or hold motion; they must overtake everything else.
-    pub fn of(request: &Request) -> Lane {
-        use fresa_plugin_api::contract::RunAction;
-        match request {
-            Request::Command(c) if c.is_urgent() => Lane::Urgent,
-            Request::Shutdown
-            | Request::Run {
-                action: RunAction::Cancel | RunAction::Pause,
-            } => Lane::Urgent,
-            _ => Lane::Ordinary,
-        }
-    }
-}
 
 struct Worker {
     tx: std_mpsc::Sender<Job>,
@@ -74,20 +53,6 @@ impl Worker {
 
     fn overdue(&self) -> Option<String> {
         self.overdue.lock().ok().and_then(|o| o.clone())
-    }
-}
-
-/// The request's `op` name, for messages.
-fn request_name(request: &Request) -> String {
-    match request {
-        Request::Command(c) => serde_json::to_value(c)
-            .ok()
-            .and_then(|v| v.get("command").and_then(Value::as_str).map(str::to_string))
-            .unwrap_or_else(|| "command".into()),
-        other => serde_json::to_value(other)
-            .ok()
-            .and_then(|v| v.get("op").and_then(Value::as_str).map(str::to_string))
-            .unwrap_or_else(|| "call".into()),
     }
 }
 
@@ -116,7 +81,7 @@ impl Lanes {
 
     /// Calls the backend on the request's lane and waits at most the call timeout.
     pub async fn call(&self, request: &Request) -> Result<Value, BackendError> {
-        let lane = Lane::of(request);
+        let lane = request.lane();
         let worker = match lane {
             Lane::Ordinary => &self.ordinary,
             Lane::Urgent => &self.urgent,
@@ -153,7 +118,7 @@ impl Lanes {
             Err(_) => {
                 let what = format!(
                     "backend call `{}` has not returned after {:?} (the plugin seems hung)",
-                    request_name(request),
+                    request.operation().name,
                     self.timeout
                 );
                 if let Ok(mut o) = worker.overdue.lock() {

@@ -141,22 +141,10 @@ pub(crate) enum Msg {
     Restore {
         reply: oneshot::Sender<()>,
     },
-    Jog {
-        axis: Axis,
-        distance: f64,
-        feed: Option<f64>,
-        actor: String,
-        ticket: u64,
-        reply: Reply<()>,
-    },
-    Mdi {
-        line: String,
-        actor: String,
-        ticket: u64,
-        reply: Reply<()>,
-    },
-    Command {
-        command: Command,
+    /// One operation of the contract (a jog, an MDI line, a command), handled by the one path
+    /// its declared properties drive (`fresa_plugin_api::operation`).
+    Call {
+        request: Request,
         actor: String,
         ticket: u64,
         reply: Reply<Value>,
@@ -406,15 +394,18 @@ impl Machine {
         ticket: u64,
     ) -> Result<()> {
         limits::check_jog(&self.row(), distance, feed)?;
-        self.ask(|reply| Msg::Jog {
-            axis,
-            distance,
-            feed,
+        self.ask(|reply| Msg::Call {
+            request: Request::Jog {
+                axis,
+                distance,
+                feed,
+            },
             actor: actor.into(),
             ticket,
             reply,
         })
         .await
+        .map(drop)
     }
 
     /// One MDI line: checked like a program line, refused while a job runs.
@@ -426,13 +417,14 @@ impl Machine {
     pub(crate) async fn mdi_ticketed(&self, line: &str, actor: &str, ticket: u64) -> Result<()> {
         limits::check_mdi_line(line)
             .map_err(|e| Error::invalid("invalid_gcode", format!("field `line`: {e}")))?;
-        self.ask(|reply| Msg::Mdi {
-            line: line.into(),
+        self.ask(|reply| Msg::Call {
+            request: Request::Mdi { line: line.into() },
             actor: actor.into(),
             ticket,
             reply,
         })
         .await
+        .map(drop)
     }
 
     /// One immediate command. Stop, feed hold and reset go straight to the backend's urgent
@@ -476,8 +468,8 @@ impl Machine {
         ticket: u64,
     ) -> Result<Value> {
         debug_assert!(!command.is_urgent());
-        self.ask(|reply| Msg::Command {
-            command,
+        self.ask(|reply| Msg::Call {
+            request: Request::Command(command),
             actor: actor.into(),
             ticket,
             reply,
@@ -495,7 +487,8 @@ impl Machine {
             return Err(Error::conflict(
                 "machine_busy",
                 format!(
-                    "machine {} is running job {} (run {}); a job is paused or cancelled, not                      jog-cancelled",
+                    "machine {} is running job {} (run {}); a job is paused or cancelled, not \
+                     jog-cancelled",
                     self.id, r.job_id, r.run_id
                 ),
             ));

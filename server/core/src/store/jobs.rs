@@ -37,11 +37,15 @@ pub struct RunRow {
 }
 
 /// A run's state. The database keeps it as the lowercase name; only the machine's task moves a
-/// live run between states (see `machine::actor`), and `can_move_to` is the state machine.
+/// live run between states (see `machine::actor`), and `can_move_to` is the state machine: every
+/// write of a run's state checks it inside its transaction (`start_run` creates a run in
+/// `running`, its entry state; `transition_run` and `reopen_run` are compare-and-sets;
+/// `interrupt_active_runs_of` moves active runs to `interrupted`, which every active state may).
+/// There is no `queued` state until there is a queue (the databases' CHECK still allows the
+/// name, so adding it back needs no migration).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum RunState {
-    Queued,
     Running,
     Paused,
     Completed,
@@ -53,7 +57,6 @@ pub enum RunState {
 impl RunState {
     pub fn as_str(self) -> &'static str {
         match self {
-            RunState::Queued => "queued",
             RunState::Running => "running",
             RunState::Paused => "paused",
             RunState::Completed => "completed",
@@ -65,10 +68,7 @@ impl RunState {
 
     /// The run still owns its machine.
     pub fn is_active(self) -> bool {
-        matches!(
-            self,
-            RunState::Queued | RunState::Running | RunState::Paused
-        )
+        matches!(self, RunState::Running | RunState::Paused)
     }
 
     /// Nothing follows these (a new run is a new row).
@@ -82,9 +82,8 @@ impl RunState {
     pub fn can_move_to(self, to: RunState) -> bool {
         use RunState::*;
         match (self, to) {
-            (Queued, Running) => true,
             (Running, Paused) | (Paused, Running) => true,
-            (Queued | Running | Paused, Completed | Failed | Cancelled | Interrupted) => true,
+            (Running | Paused, Completed | Failed | Cancelled | Interrupted) => true,
             (Failed | Interrupted, Running | Cancelled) => true,
             // A resume that finds every line already acknowledged: nothing left to run.
             (Interrupted | Failed, Completed) => true,
@@ -121,8 +120,7 @@ impl<'r> sqlx::Decode<'r, sqlx::Any> for RunState {
     }
 }
 
-const ALL_RUN_STATES: [RunState; 7] = [
-    RunState::Queued,
+pub(super) const ALL_RUN_STATES: [RunState; 6] = [
     RunState::Running,
     RunState::Paused,
     RunState::Completed,
@@ -137,8 +135,9 @@ impl std::fmt::Display for RunState {
     }
 }
 
-/// Run states that still own the machine, as SQL.
-pub(super) const ACTIVE_RUN_STATES: &str = "('queued','running','paused')";
+/// Run states that still own the machine (`RunState::is_active`), as SQL; a test keeps the two
+/// equal.
+pub(super) const ACTIVE_RUN_STATES: &str = "('running','paused')";
 
 pub struct NewJob<'a> {
     pub name: &'a str,
@@ -310,11 +309,16 @@ impl Store {
         .await
     }
 
-    /// Puts an interrupted or paused-by-restart run back to `running` for a resume.
+    /// Puts a run back to `running` for a resume, only if it is in one of `from` (a
+    /// compare-and-set like [`Store::transition_run`], so two resumes or a resume racing a
+    /// cancel cannot both win) and the machine has no other active run (checked in the same
+    /// transaction). `Err(row)`: the other active run, or this run as it is now if it was no
+    /// longer in `from`.
     pub async fn reopen_run(
         &self,
         run_id: i64,
         machine_id: i64,
+        from: &[RunState],
     ) -> Result<std::result::Result<RunRow, RunRow>> {
         let mut tx = self.begin().await?;
         if let Some(b) = self
@@ -322,6 +326,16 @@ impl Store {
             .await?
         {
             return Ok(Err(b));
+        }
+        let current: RunRow = sqlx::query_as(self.pick(
+            "SELECT * FROM job_runs WHERE id = $1",
+            "SELECT * FROM job_runs WHERE id = $1 FOR UPDATE",
+        ))
+        .bind(run_id)
+        .fetch_one(&mut *tx)
+        .await?;
+        if !from.contains(&current.state) || !current.state.can_move_to(RunState::Running) {
+            return Ok(Err(current));
         }
         let row: RunRow = sqlx::query_as(
             "UPDATE job_runs SET state = 'running', message = NULL, ended_at = NULL, updated_at = $1

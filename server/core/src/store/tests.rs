@@ -527,22 +527,30 @@ async fn a_run_keeps_the_part_zero_it_started_with(s: &Store) {
 #[test]
 fn run_state_machine_never_leaves_a_final_state() {
     use RunState::*;
-    let all = [
-        Queued,
-        Running,
-        Paused,
-        Completed,
-        Failed,
-        Cancelled,
-        Interrupted,
-    ];
-    for to in all {
+    for to in super::jobs::ALL_RUN_STATES {
         assert!(!Cancelled.can_move_to(to), "cancelled -> {to}");
         assert!(!Completed.can_move_to(to), "completed -> {to}");
     }
     assert!(Paused.can_move_to(Running));
     assert!(Interrupted.can_move_to(Running));
-    assert!(!Running.can_move_to(Queued));
+    assert!(!Running.can_move_to(Running));
+    // The bulk writes follow the same rule: the SQL list of active states is `is_active`, and
+    // every active state may become interrupted (start-up and shutdown interrupt them so).
+    let active: Vec<String> = super::jobs::ALL_RUN_STATES
+        .into_iter()
+        .filter(|s| s.is_active())
+        .map(|s| format!("'{s}'"))
+        .collect();
+    assert_eq!(
+        super::jobs::ACTIVE_RUN_STATES,
+        format!("({})", active.join(","))
+    );
+    for s in super::jobs::ALL_RUN_STATES
+        .into_iter()
+        .filter(|s| s.is_active())
+    {
+        assert!(s.can_move_to(Interrupted), "{s}");
+    }
 }
 
 /// Migration 0004 makes token names unique; an older database with repeated names must
