@@ -182,6 +182,23 @@ fn tls_config(settings: &MqttSettings) -> Result<rumqttc::TlsConfiguration, Stri
 }
 
 /// Hands a message to the client's queue, or drops and counts it.
+/// A command's answer, on the results topic.
+fn answer_on_results(
+    app: &SharedApp,
+    client: &AsyncClient,
+    topics: &Topics,
+    answer: &serde_json::Value,
+) {
+    offer(
+        app,
+        client,
+        topics.results(),
+        QoS::AtLeastOnce,
+        false,
+        answer.to_string().into_bytes(),
+    );
+}
+
 fn offer(
     app: &SharedApp,
     client: &AsyncClient,
@@ -343,16 +360,7 @@ async fn drive(
     let mut retained_logged: std::collections::HashSet<String> = Default::default();
     let stats = &app.integrations;
     // A command refused before it runs is answered on the results topic at once.
-    let refuse = |answer: serde_json::Value| {
-        offer(
-            &app,
-            &client,
-            topics.results(),
-            QoS::AtLeastOnce,
-            false,
-            answer.to_string().into_bytes(),
-        )
-    };
+    let refuse = |answer: serde_json::Value| answer_on_results(&app, &client, &topics, &answer);
     loop {
         let polled = tokio::select! {
             _ = app.shutdown.cancelled() => break,
@@ -416,14 +424,7 @@ async fn drive(
                     if answer["ok"] != true {
                         IntegrationStats::add(&app.integrations.mqtt_commands_refused, 1);
                     }
-                    offer(
-                        &app,
-                        &client,
-                        topics.results(),
-                        QoS::AtLeastOnce,
-                        false,
-                        answer.to_string().into_bytes(),
-                    );
+                    answer_on_results(&app, &client, &topics, &answer);
                     drop(permit);
                 });
             }
