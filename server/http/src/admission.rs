@@ -23,6 +23,7 @@ use axum::extract::ConnectInfo;
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use fresa_core::config::EdgeLimits;
+use fresa_plugin_api::quiet::Quiet;
 use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::net::{IpAddr, Ipv6Addr, SocketAddr};
@@ -41,7 +42,8 @@ pub struct Admission {
     streams: Mutex<Streams>,
     connections: Mutex<HashMap<IpAddr, usize>>,
     failures: Mutex<Failures>,
-    connection_log: Mutex<LogEvery>,
+    /// Refusal and failure warnings: at most one a second of each kind, with a count.
+    log: Quiet,
     counters: Counters,
 }
 
@@ -50,13 +52,11 @@ struct Streams {
     open: usize,
     per_client: HashMap<String, usize>,
     at_cap: bool,
-    client_log: LogEvery,
 }
 
 #[derive(Default)]
 struct Failures {
     peers: HashMap<IpAddr, Bucket>,
-    log: LogEvery,
 }
 
 /// Failed token attempts an address may still make: refills at `per_minute` a minute.
@@ -75,37 +75,6 @@ struct Counters {
     connections_closed_at_cap: AtomicU64,
     auth_failures: AtomicU64,
     auth_rate_limited: AtomicU64,
-}
-
-/// At most one log line a second; says how many it left out.
-#[derive(Default)]
-struct LogEvery {
-    last: Option<Instant>,
-    suppressed: u64,
-}
-
-impl LogEvery {
-    /// `Some(left out since the last line)` if a line may be logged now.
-    fn allow(&mut self) -> Option<u64> {
-        let now = Instant::now();
-        if self
-            .last
-            .is_some_and(|t| now.duration_since(t) < Duration::from_secs(1))
-        {
-            self.suppressed += 1;
-            return None;
-        }
-        self.last = Some(now);
-        Some(std::mem::take(&mut self.suppressed))
-    }
-}
-
-fn more(n: u64) -> String {
-    if n == 0 {
-        String::new()
-    } else {
-        format!(" ({n} more since the last such line)")
-    }
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -161,7 +130,7 @@ impl Admission {
             streams: Mutex::default(),
             connections: Mutex::default(),
             failures: Mutex::default(),
-            connection_log: Mutex::default(),
+            log: Quiet::new(Duration::from_secs(1)),
             counters: Counters::default(),
         })
     }
@@ -202,12 +171,13 @@ impl Admission {
                 self.counters
                     .streams_refused_client
                     .fetch_add(1, Ordering::Relaxed);
-                if let Some(n) = s.client_log.allow() {
-                    tracing::warn!(
+                if let Some(line) = self.log.admit("stream per client", || {
+                    format!(
                         "event stream refused: token {name:?} holds {held} \
-                         (max_event_streams_per_client){}",
-                        more(n)
-                    );
+                         (max_event_streams_per_client)"
+                    )
+                }) {
+                    tracing::warn!("{line}");
                 }
                 return Err(refusal(
                     StatusCode::TOO_MANY_REQUESTS,
@@ -268,12 +238,12 @@ impl Admission {
             self.counters
                 .connections_refused
                 .fetch_add(1, Ordering::Relaxed);
-            if let Some(n) = lock(&self.connection_log).allow() {
-                tracing::warn!(
-                    "connection from {peer} refused: it holds {cap} \
-                     (max_connections_per_client){}",
-                    more(n)
-                );
+            if let Some(line) = self.log.admit("connections per client", || {
+                format!(
+                    "connection from {peer} refused: it holds {cap} (max_connections_per_client)"
+                )
+            }) {
+                tracing::warn!("{line}");
             }
             return Err(canned_refusal(
                 "429 Too Many Requests",
@@ -360,8 +330,10 @@ impl Admission {
         let rate = self.per_second();
         let mut f = lock(&self.failures);
         let from = peer.map_or_else(|| "an unknown address".to_string(), |p| p.to_string());
-        if let Some(n) = f.log.allow() {
-            tracing::warn!("failed token attempt from {from}: {code}{}", more(n));
+        if let Some(line) = self.log.admit("token failed", || {
+            format!("failed token attempt from {from}: {code}")
+        }) {
+            tracing::warn!("{line}");
         }
         let Some(peer) = peer else { return };
         if !f.peers.contains_key(&peer) && f.peers.len() >= MAX_TRACKED_ADDRESSES {
