@@ -8,7 +8,7 @@
 use crate::error::{Error, ErrorKind};
 use fresa_plugin_api::contract::Request;
 use fresa_plugin_api::host::{CallError, Instance};
-pub use fresa_plugin_api::operation::Lane;
+use fresa_plugin_api::operation::Lane;
 use serde_json::Value;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc as std_mpsc;

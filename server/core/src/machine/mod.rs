@@ -9,7 +9,7 @@ mod lanes;
 pub mod limits;
 pub mod unstored;
 
-pub use lanes::{BackendError, Lane};
+pub use lanes::BackendError;
 
 use crate::error::{Error, Result};
 use crate::events::EventBus;
