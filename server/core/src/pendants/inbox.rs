@@ -40,12 +40,11 @@ pub(crate) struct Ticket {
 /// An ordinary input, in arrival order.
 #[derive(Debug)]
 pub(crate) enum Input {
-    /// `count` detents of `step` on `axis` (signed), the sum of `frames` wheel events.
+    /// `count` detents of `step` on `axis` (signed), the sum of consecutive wheel events.
     Jog {
         axis: Axis,
         step: f64,
         count: i64,
-        frames: u64,
         /// A single event over the machine's `max_jog_mm`: kept apart, so it is refused on its
         /// own (refused, not clamped) and never takes allowed counts with it.
         alone: bool,
@@ -262,14 +261,12 @@ impl Inbox {
                 axis: a,
                 step: s,
                 count: c,
-                frames,
                 alone: false,
                 ticket: t,
             }) = q.ordinary.back_mut()
             {
                 if *a == axis && *s == step && *t == ticket {
                     *c = c.saturating_add(count);
-                    *frames += 1;
                     self.ordinary_ready.notify_one();
                     return;
                 }
@@ -281,7 +278,6 @@ impl Inbox {
                 axis,
                 step,
                 count,
-                frames: 1,
                 alone,
                 ticket,
             },
@@ -296,11 +292,12 @@ impl Inbox {
             let newest_motion = q.ordinary.iter().rposition(Input::is_motion);
             match newest_motion {
                 Some(i) if !input.is_motion() => {
-                    let dropped = q.ordinary.remove(i);
-                    self.log_full(&format!("{dropped:?}"));
+                    if let Some(dropped) = q.ordinary.remove(i) {
+                        self.log_full(&dropped);
+                    }
                 }
                 _ => {
-                    self.log_full(&format!("{input:?}"));
+                    self.log_full(&input);
                     return;
                 }
             }
@@ -309,12 +306,21 @@ impl Inbox {
         self.ordinary_ready.notify_one();
     }
 
-    fn log_full(&self, what: &str) {
+    /// Built only when logged, and short: an upload's program is never put in the log.
+    fn log_full(&self, dropped: &Input) {
         let pendant = self.pendant;
         if let Some(line) = self.quiet.admit("full", || {
+            let what = match dropped {
+                Input::Jog {
+                    axis, step, count, ..
+                } => format!("a wheel move of {count} x {step} mm on {axis:?}"),
+                Input::Key { key, .. } => format!("the key {key:?}"),
+                Input::Other(_) => "an upload message".to_string(),
+            };
             format!(
                 "pendant input dropped: {MAX_QUEUED_INPUTS} inputs are already waiting \
-                 (the pendant sends faster than the machine moves): {what}"
+                 (the pendant sends faster than the machine moves; stop turning the wheel or \
+                 pressing keys until it catches up): {what}"
             )
         }) {
             tracing::warn!(pendant, "{line}");

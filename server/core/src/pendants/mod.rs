@@ -270,6 +270,9 @@ async fn wheel(app: &Arc<App>, p: &Arc<Pendant>) {
             .await
             .is_err()
         {
+            // The machine's task has ended: its queued wheel move can never run, and left at
+            // the front it would be offered again at once, forever.
+            let _ = p.inbox.take_wheel(f64::INFINITY);
             return;
         }
     }
