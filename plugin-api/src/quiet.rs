@@ -50,17 +50,15 @@ impl Quiet {
     }
 
     /// The line to log now for a message of kind `kind`, or `None` to stay quiet. A line logged
-    /// after some were left out ends with how many: `... (412 more like this in the last 60 s)`.
+    /// after some were left out ends with how many: `... (412 more like this since the last one logged)`
+    /// (since then, which may be longer ago than the period).
     pub fn admit(&self, kind: &str, message: impl FnOnce() -> String) -> Option<String> {
         self.admit_at(kind, Instant::now()).map(|left_out| {
             let m = message();
             if left_out == 0 {
                 m
             } else {
-                format!(
-                    "{m} ({left_out} more like this in the last {} s)",
-                    self.period.as_secs()
-                )
+                format!("{m} ({left_out} more like this since the last one logged)")
             }
         })
     }
