@@ -17,6 +17,7 @@
 //!     changes_offsets: false,
 //!     refused_during_run: true,
 //!     audit: Some("machine.probe"),
+//!     refreshes_status: false,
 //! };
 //! ```
 //!
@@ -32,6 +33,7 @@
 //!     changes_offsets: false,
 //!     refused_during_run: true,
 //!     audit: Some("machine.probe"),
+//!     refreshes_status: false,
 //! };
 //! assert!(probe.starts_motion);
 //! ```
@@ -68,6 +70,10 @@ pub struct Operation {
     /// The audit event recorded when it succeeds; `None` when it records nothing itself (reads,
     /// and run control, whose run transitions are the record).
     pub audit: Option<&'static str>,
+    /// What it changes shows in the status as soon as the backend answers (state, offsets,
+    /// outputs): the host takes a fresh status before answering. A jog or MDI line reports its
+    /// own progress as it moves; a read changes nothing.
+    pub refreshes_status: bool,
 }
 
 impl Operation {
@@ -81,6 +87,7 @@ impl Operation {
             changes_offsets: false,
             refused_during_run: false,
             audit: None,
+            refreshes_status: false,
         }
     }
 }
@@ -101,6 +108,7 @@ impl Request {
                 changes_offsets: false,
                 refused_during_run: true,
                 audit: Some("machine.jog"),
+                refreshes_status: false,
             },
             Request::Mdi { .. } => Operation {
                 name: "mdi",
@@ -110,6 +118,7 @@ impl Request {
                 changes_offsets: false,
                 refused_during_run: true,
                 audit: Some("machine.mdi"),
+                refreshes_status: false,
             },
             Request::Command(c) => c.operation(),
             Request::SetOffset { .. } => Operation {
@@ -120,6 +129,7 @@ impl Request {
                 changes_offsets: true,
                 refused_during_run: false,
                 audit: Some("machine.offsets"),
+                refreshes_status: true,
             },
             // Run control: the run's own lifecycle in the host records its transitions.
             Request::LoadProgram { .. } => Operation {
@@ -130,6 +140,7 @@ impl Request {
                 changes_offsets: false,
                 refused_during_run: true,
                 audit: None,
+                refreshes_status: false,
             },
             Request::Run { action } => {
                 let (name, lane, starts_motion) = match action {
@@ -146,6 +157,7 @@ impl Request {
                     changes_offsets: false,
                     refused_during_run: false,
                     audit: None,
+                    refreshes_status: false,
                 }
             }
             Request::Shutdown => Operation {
@@ -174,6 +186,7 @@ impl Command {
             changes_offsets: false,
             refused_during_run: false,
             audit: Some("machine.command"),
+            refreshes_status: true,
         };
         let moves = |name| Operation {
             name,
@@ -183,6 +196,7 @@ impl Command {
             changes_offsets: false,
             refused_during_run: false,
             audit: Some("machine.command"),
+            refreshes_status: true,
         };
         let offsets = |name| Operation {
             name,
@@ -192,6 +206,7 @@ impl Command {
             changes_offsets: true,
             refused_during_run: false,
             audit: Some("machine.command"),
+            refreshes_status: true,
         };
         // Outputs: spindle and coolant are refused while a job cuts, by the host's own check
         // (other outputs are not, so this is not `refused_during_run`).
@@ -203,6 +218,7 @@ impl Command {
             changes_offsets: false,
             refused_during_run: false,
             audit: Some("machine.command"),
+            refreshes_status: true,
         };
         match self {
             Command::Stop => urgent("stop"),

@@ -3,7 +3,8 @@
 //! minute. With `plugin_call_timeout_ms = 500`: the first jog times out (504), the machine is
 //! then `unresponsive` and further jogs are refused at once (503) without new threads, `stop`
 //! still gets through, another machine is unaffected, `/healthz` says `degraded`, and SIGTERM
-//! still ends the process cleanly although the jog is still hung.
+//! still ends the process cleanly although the jog is still hung. Pause and cancel of a running
+//! job are answered while an ordinary call (`as-program`) still hangs.
 
 #![cfg(unix)]
 #![allow(clippy::unwrap_used, clippy::expect_used)]
@@ -178,4 +179,67 @@ fn sigterm_exits_cleanly_while_a_plugin_call_still_hangs() {
     s.send_sigterm();
     let status = s.wait_exit(Duration::from_secs(20), "SIGTERM with a hung plugin call");
     assert!(status.success(), "exit status {status}:\n{}", s.log());
+}
+
+/// Pause and cancel of the running job are never queued behind an ordinary call: while H's
+/// `as-program` call hangs in the plugin (the plugin marks the moment it begins) and the call
+/// timeout is 30 s, pause and then cancel are answered with the run's new state, and the hung
+/// request is still outstanding both times. The audit log (replayed from the start) records
+/// running, paused, cancelled, in that order.
+#[test]
+fn pause_and_cancel_of_the_running_job_overtake_a_call_under_way() {
+    let mut s = Server::unstarted(Opts {
+        extra_plugin_dirs: vec![hang_plugin_dir().to_path_buf()],
+        ..Opts::default()
+    });
+    s.write_config("plugin_call_timeout_ms = 30000\n");
+    s.spawn()
+        .unwrap_or_else(|e| panic!("server did not start: {e}"));
+    let mark = s.root().join("hang-began");
+    let h = s.create_machine(&json!({
+        "name": "H", "backend": "hang", "config": {"mark": s.host_path(&mark)}
+    }));
+    let (job, run) = s.upload_and_start(h, "p.nc", "G1 X1 F100\n");
+    assert_eq!(s.job(job)["state"], "running");
+
+    let url = s.url(&format!("/api/v1/machines/{h}/as-program"));
+    let hung = std::thread::spawn(move || {
+        let client = reqwest::blocking::Client::builder()
+            .timeout(Duration::from_secs(120))
+            .build()
+            .expect("client");
+        client.get(url).send().map(|r| r.status().as_u16())
+    });
+    fresa_tests::wait_for(
+        Duration::from_secs(20),
+        "the as-program call to reach the plugin",
+        || mark.exists().then_some(()),
+    );
+
+    let paused = s.job_action(job, "pause").expect(200);
+    assert_eq!(paused["state"], "paused", "{paused}");
+    assert!(
+        !hung.is_finished(),
+        "pause was answered only after the call it should overtake"
+    );
+    let cancelled = s.job_action(job, "cancel").expect(200);
+    assert_eq!(cancelled["state"], "cancelled", "{cancelled}");
+    assert!(
+        !hung.is_finished(),
+        "cancel was answered only after the call it should overtake"
+    );
+    assert_eq!(s.job(job)["state"], "cancelled");
+
+    let events = s.events("types=job.state", Some(0));
+    let seen = events.until(
+        Duration::from_secs(10),
+        "the cancel in the audit log",
+        |e| e.data["data"]["run"] == run && e.state() == Some("cancelled"),
+    );
+    let states: Vec<_> = seen
+        .iter()
+        .filter(|e| e.data["data"]["run"] == run)
+        .filter_map(|e| e.state())
+        .collect();
+    assert_eq!(states, ["running", "paused", "cancelled"]);
 }

@@ -1,8 +1,15 @@
 //! The machine's task: the only code that changes a machine's run, its row and its published
-//! status. Requests arrive on one channel and backend events on another; queued backend events
-//! are always handled before the next request, so a request sees the run as the backend last
-//! reported it. Each request is answered once what it asked for is true (recorded in the store
-//! and, for motion, acknowledged by the backend).
+//! status. Requests arrive on one channel, pause and cancel on an urgent one, backend events on
+//! a third; queued backend events are always handled before the next request, so a request sees
+//! the run as the backend last reported it. Each request is answered once what it asked for is
+//! true (recorded in the store and, for motion, acknowledged by the backend).
+//!
+//! Pause and cancel never wait behind an ordinary message: the urgent channel is read first, and
+//! while the task waits for an ordinary backend call (a program loading, an artifact being
+//! generated) it serves them in between. That is the one place a request's handling is
+//! interleaved with another's; what runs after the ordinary call copes with a run paused or
+//! cancelled meanwhile because the pause or cancel moved the stop gate (a start or resume under
+//! way is then refused before it sets the machine moving) and run writes are compare-and-set.
 
 use super::lanes::{BackendError, Lanes};
 use super::{Gate, Msg, RunView};
@@ -13,6 +20,7 @@ use fresa_plugin_api::contract::{
     AxisValues, Command, Event, MachineState, MachineStatus, OffsetTable, OutputName,
     ProgramLoaded, Request, RunAction, RunOutcome, WorkOffset,
 };
+use fresa_plugin_api::operation::Lane;
 use serde_json::{json, Value};
 use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
@@ -44,6 +52,11 @@ pub(super) struct Task {
     pub unstored: super::unstored::Marker,
     /// Warnings that can repeat per backend event: rate-limited.
     pub quiet: fresa_plugin_api::quiet::Quiet,
+    /// Pause and cancel ([`Msg::Pause`], [`Msg::Cancel`]): served before the ordinary channel,
+    /// and also while an ordinary backend call is under way (see [`Task::call_raw`]). Locked by
+    /// whoever listens, so a pause served inside a call does not listen again, and a call
+    /// abandoned half-way gives it back by dropping its guard.
+    pub urgent: Arc<tokio::sync::Mutex<mpsc::UnboundedReceiver<Msg>>>,
 }
 
 /// What the store has not been told yet. Written acks first, then transitions in the order they
@@ -90,6 +103,7 @@ impl Task {
         let mut batch = Vec::new();
         // The store's health lives as long as the store this task holds: never closed.
         let mut health = self.store.health().subscribe();
+        let mut urgent_open = true;
         loop {
             let next_events = async {
                 match events.as_mut() {
@@ -107,14 +121,23 @@ impl Task {
                     let drained: Vec<Value> = std::mem::take(&mut batch);
                     self.handle_events(drained).await;
                 }
+                msg = async {
+                    if urgent_open {
+                        self.urgent.lock().await.recv().await
+                    } else {
+                        std::future::pending().await
+                    }
+                } => {
+                    // Closed only with the handle, which closes `requests` too.
+                    let Some(msg) = msg else {
+                        urgent_open = false;
+                        continue;
+                    };
+                    self.serve(msg, &mut events).await;
+                }
                 msg = requests.recv() => {
                     let Some(msg) = msg else { return };
-                    self.drain_events(&mut events).await;
-                    // Writes kept during an outage land before anything the request changes.
-                    if !self.pending.is_empty() {
-                        self.flush_pending().await;
-                    }
-                    self.handle(msg).await;
+                    self.serve(msg, &mut events).await;
                 }
                 Ok(()) = health.changed() => {
                     if self.store.health().is_up() && !self.pending.is_empty() {
@@ -123,6 +146,16 @@ impl Task {
                 }
             }
         }
+    }
+
+    /// One message, after the backend events queued before it.
+    async fn serve(&mut self, msg: Msg, events: &mut Option<mpsc::UnboundedReceiver<Value>>) {
+        self.drain_events(events).await;
+        // Writes kept during an outage land before anything the request changes.
+        if !self.pending.is_empty() {
+            self.flush_pending().await;
+        }
+        self.handle(msg).await;
     }
 
     async fn drain_events(&mut self, events: &mut Option<mpsc::UnboundedReceiver<Value>>) {
@@ -151,15 +184,6 @@ impl Task {
                 let r = self.operate(request, &actor, ticket).await;
                 let _ = reply.send(r);
             }
-            Msg::SetOffset {
-                offset,
-                values,
-                actor,
-                reply,
-            } => {
-                let r = self.set_offset(offset, values, &actor).await;
-                let _ = reply.send(r);
-            }
             Msg::PartZero {
                 position,
                 source,
@@ -170,13 +194,6 @@ impl Task {
                 let r = self
                     .record_part_zero(position, &source, note.as_deref(), &actor)
                     .await;
-                let _ = reply.send(r);
-            }
-            Msg::RefreshStatus { reply } => {
-                let _ = reply.send(self.refresh_status().await);
-            }
-            Msg::Artifact { name, reply } => {
-                let r = self.artifact(name).await;
                 let _ = reply.send(r);
             }
             Msg::Start {
@@ -225,7 +242,7 @@ impl Task {
 
     // ---- backend calls ----
 
-    async fn call(&self, request: &Request) -> Result<Value> {
+    async fn call(&mut self, request: &Request) -> Result<Value> {
         Ok(self.call_raw(request).await?)
     }
 
@@ -233,7 +250,7 @@ impl Task {
     /// after the request was sent, and stopped again at once if a stop reached the backend
     /// while this call was on its way (the two lanes race inside the backend). A call that
     /// timed out may have started motion nobody will answer for: it is stopped too.
-    async fn motion(&self, ticket: u64, request: &Request) -> Result<Value> {
+    async fn motion(&mut self, ticket: u64, request: &Request) -> Result<Value> {
         self.gate.check(ticket)?;
         let answer = match self.call(request).await {
             Ok(a) => a,
@@ -251,50 +268,79 @@ impl Task {
     }
 
     /// Stop on the urgent lane, for motion the machine may have started behind our back.
-    async fn stop_again(&self, why: &str) {
+    async fn stop_again(&mut self, why: &str) {
         tracing::warn!(machine = self.id, "{why}; stopping the machine");
         if let Err(stop) = self.call(&Request::Command(Command::Stop)).await {
             tracing::error!(machine = self.id, error = %stop, "could not stop the machine");
         }
     }
 
-    async fn call_raw(&self, request: &Request) -> Result<Value, BackendError> {
-        let lanes = self.lanes.as_ref().ok_or_else(|| {
-            BackendError::Unavailable(self.unavailable.clone().unwrap_or_default())
-        })?;
-        lanes.call(request).await
-    }
-
-    /// A file the backend generates (e.g. a robot's AS program). Its refusals have their own
-    /// codes: not in this configuration (`not_available`), or no such artifact.
-    async fn artifact(&self, name: String) -> Result<Value> {
-        use fresa_plugin_api::host::CallError;
-        let backend = self.row.borrow().backend.clone();
-        let id = self.id;
-        self.call_raw(&Request::GetArtifact { name: name.clone() })
-            .await
-            .map_err(|e| match e {
-                BackendError::Call(CallError::Plugin(p)) if p.code == "not_available" => {
-                    Error::conflict("not_available", format!("machine {id}: {}", p.message))
+    /// Calls the backend. While an ordinary call is under way, pause and cancel from the urgent
+    /// channel are served (their own calls take the urgent lane and do not listen again).
+    /// Boxed, and declared `Send`: serving a pause calls back into here, and the compiler needs
+    /// the future's type spelled out to see that the cycle is `Send`.
+    fn call_raw<'a>(
+        &'a mut self,
+        request: &'a Request,
+    ) -> std::pin::Pin<Box<dyn std::future::Future<Output = Result<Value, BackendError>> + Send + 'a>>
+    {
+        Box::pin(async move {
+            let lanes = self.lanes.clone().ok_or_else(|| {
+                BackendError::Unavailable(self.unavailable.clone().unwrap_or_default())
+            })?;
+            let listening = match request.lane() {
+                Lane::Ordinary => self.urgent.clone().try_lock_owned().ok(),
+                Lane::Urgent => None,
+            };
+            let Some(mut urgent) = listening else {
+                return lanes.call(request).await;
+            };
+            let call = lanes.call(request);
+            tokio::pin!(call);
+            let answer = loop {
+                tokio::select! {
+                    biased;
+                    answer = &mut call => break answer,
+                    Some(msg) = urgent.recv() => self.handle(msg).await,
                 }
-                BackendError::Call(CallError::Plugin(p)) => Error::not_found(
-                    "no_artifact",
-                    format!(
-                        "machine {id} (backend {backend}) has no {name}: {}",
-                        p.message
-                    ),
-                ),
-                other => other.into(),
-            })
+            };
+            drop(urgent);
+            answer
+        })
     }
 
-    async fn refresh_status(&self) -> Result<MachineStatus> {
+    /// A generated file's refusals have their own codes: not in this configuration
+    /// (`not_available`), or no such artifact.
+    fn artifact_error(&self, name: &str, e: BackendError) -> Error {
+        use fresa_plugin_api::host::CallError;
+        let id = self.id;
+        match e {
+            BackendError::Call(CallError::Plugin(p)) if p.code == "not_available" => {
+                Error::conflict("not_available", format!("machine {id}: {}", p.message))
+            }
+            BackendError::Call(CallError::Plugin(p)) => Error::not_found(
+                "no_artifact",
+                format!(
+                    "machine {id} (backend {}) has no {name}: {}",
+                    self.row.borrow().backend,
+                    p.message
+                ),
+            ),
+            other => other.into(),
+        }
+    }
+
+    async fn refresh_status(&mut self) -> Result<MachineStatus> {
         self.status_from(&Request::Status).await
     }
 
     /// `status` or `connect`: both answer a status, which becomes the published one.
-    async fn status_from(&self, request: &Request) -> Result<MachineStatus> {
+    async fn status_from(&mut self, request: &Request) -> Result<MachineStatus> {
         let v = self.call(request).await?;
+        self.publish_answer(v)
+    }
+
+    fn publish_answer(&self, v: Value) -> Result<MachineStatus> {
         let s: MachineStatus = serde_json::from_value(v).map_err(|e| {
             Error::new(
                 crate::error::ErrorKind::Backend,
@@ -414,19 +460,40 @@ impl Task {
         let answer = if op.starts_motion {
             self.motion(ticket, &request).await?
         } else {
-            self.call(&request).await?
+            match self.call_raw(&request).await {
+                Ok(a) => a,
+                Err(e) => {
+                    return Err(match &request {
+                        Request::GetArtifact { name } => self.artifact_error(name, e),
+                        _ => e.into(),
+                    })
+                }
+            }
         };
-        // The backend computed the new offsets; persist what it now has.
+        // A status read is the published status from now on.
+        if matches!(request, Request::Status | Request::Connect) {
+            self.publish_answer(answer.clone())?;
+        }
         if op.changes_offsets {
-            self.persist_backend_offsets().await?;
+            match &request {
+                // The values given are the ones kept.
+                Request::SetOffset { offset, values } => {
+                    self.store
+                        .health()
+                        .guard(self.store.set_offsets(self.id, &[(*offset, *values)]))
+                        .await?;
+                }
+                // The backend computed the new offsets; persist what it now has.
+                _ => {
+                    self.persist_backend_offsets().await?;
+                }
+            }
         }
         if let Some(event) = op.audit {
             self.record(event, actor, audit_data(&request, &answer))
                 .await;
         }
-        // A command changes what the status shows (state, offsets, outputs): show it before
-        // the answer. A jog or MDI line reports its own progress as it moves.
-        if matches!(request, Request::Command(_)) {
+        if op.refreshes_status {
             let _ = self.refresh_status().await;
         }
         Ok(answer)
@@ -456,35 +523,11 @@ impl Task {
         Ok(table)
     }
 
-    async fn set_offset(
-        &mut self,
-        offset: WorkOffset,
-        values: AxisValues,
-        actor: &str,
-    ) -> Result<()> {
-        // The store is the offsets' source of truth: no change it could not keep.
-        self.store.health().check()?;
-        self.refuse_while_moving("changing a work offset").await?;
-        self.call(&Request::SetOffset { offset, values }).await?;
-        self.store
-            .health()
-            .guard(self.store.set_offsets(self.id, &[(offset, values)]))
-            .await?;
-        self.record(
-            "machine.offsets",
-            actor,
-            json!({"offset": offset, "values": values}),
-        )
-        .await;
-        let _ = self.refresh_status().await;
-        Ok(())
-    }
-
     /// The one check before a part zero is recorded, an axis zeroed or a work offset changed
     /// or selected: refused with 409 `machine_moving` while the machine moves (or holds a paused
     /// job), judged on a fresh status (the published one can lag the backend), or the last
     /// one when the backend cannot answer. Every path (HTTP, MQTT, pendant keys) comes here.
-    async fn refuse_while_moving(&self, what: &str) -> Result<()> {
+    async fn refuse_while_moving(&mut self, what: &str) -> Result<()> {
         let st = match self.refresh_status().await {
             Ok(s) => s,
             Err(_) => self.status.borrow().clone(),
@@ -508,7 +551,7 @@ impl Task {
     }
 
     async fn record_part_zero(
-        &self,
+        &mut self,
         position: Option<AxisValues>,
         source: &str,
         note: Option<&str>,
@@ -738,7 +781,7 @@ impl Task {
 
     /// The machine's state if it is busy. The cached status can lag the backend's events, so
     /// a busy cache is checked with a fresh status before refusing.
-    async fn busy_state(&self) -> Option<MachineState> {
+    async fn busy_state(&mut self) -> Option<MachineState> {
         let cached = self.status.borrow().state;
         if !cached.is_busy() {
             return None;
@@ -1295,6 +1338,7 @@ fn audit_data(request: &Request, answer: &Value) -> Value {
             feed,
         } => json!({"axis": axis, "distance": distance, "feed": feed}),
         Request::Mdi { line } => json!({"line": line}),
+        Request::SetOffset { offset, values } => json!({"offset": offset, "values": values}),
         Request::Command(command) => {
             let mut recorded = json!(command);
             if matches!(
@@ -1366,6 +1410,7 @@ mod tests {
             pending: PendingWrites::default(),
             unstored: super::super::unstored::Marker::start(&dir.0.join("unstored"), m),
             quiet: fresa_plugin_api::quiet::Quiet::per_minute(),
+            urgent: Arc::new(tokio::sync::Mutex::new(mpsc::unbounded_channel().1)),
         };
         (task, run, dir)
     }

@@ -149,13 +149,9 @@ pub(crate) enum Msg {
         ticket: u64,
         reply: Reply<Value>,
     },
-    SetOffset {
-        offset: WorkOffset,
-        values: AxisValues,
-        actor: String,
-        reply: Reply<()>,
-    },
     /// Records a part zero (at `position`, or where the machine stands), refused while it moves.
+    /// Not a backend operation (the host reads the position and keeps the record), so it is not
+    /// in the operation table.
     PartZero {
         position: Option<AxisValues>,
         source: String,
@@ -163,19 +159,14 @@ pub(crate) enum Msg {
         actor: String,
         reply: Reply<PartZeroRow>,
     },
-    RefreshStatus {
-        reply: Reply<MachineStatus>,
-    },
-    Artifact {
-        name: String,
-        reply: Reply<Value>,
-    },
     Start {
         job: JobRow,
         actor: String,
         ticket: u64,
         reply: Reply<RunRow>,
     },
+    /// Pause and cancel travel on the task's urgent channel: served before anything queued on
+    /// the ordinary one, and while the task waits for an ordinary backend call.
     Pause {
         job_id: i64,
         actor: String,
@@ -204,6 +195,8 @@ pub(crate) enum Msg {
 pub struct Machine {
     pub id: i64,
     tx: mpsc::UnboundedSender<Msg>,
+    /// Pause and cancel of the running job: never queued behind an ordinary message.
+    urgent_tx: mpsc::UnboundedSender<Msg>,
     lanes: Option<Arc<lanes::Lanes>>,
     /// Why the backend is missing (plugin not found, config rejected).
     unavailable: Option<String>,
@@ -274,10 +267,12 @@ impl Machine {
         let (run_tx, run_rx) = watch::channel(None);
         let (job_tx, job_rx) = watch::channel(None);
         let (tx, rx) = mpsc::unbounded_channel();
+        let (urgent_tx, urgent_rx) = mpsc::unbounded_channel();
         let gate = Arc::new(Gate::default());
         let m = Arc::new(Machine {
             id: row.id,
             tx,
+            urgent_tx,
             lanes: lanes.clone(),
             unavailable: unavailable.clone(),
             status: status_rx,
@@ -305,6 +300,7 @@ impl Machine {
             pending: Default::default(),
             unstored: unstored::Marker::start(&opts.unstored_dir, row.id),
             quiet: fresa_plugin_api::quiet::Quiet::per_minute(),
+            urgent: Arc::new(tokio::sync::Mutex::new(urgent_rx)),
         };
         tokio::spawn(task.run(rx, events));
         tokio::spawn(status_loop(m.clone(), bus, opts.status_interval));
@@ -357,8 +353,16 @@ impl Machine {
     }
 
     async fn ask<T>(&self, make: impl FnOnce(Reply<T>) -> Msg) -> Result<T> {
+        self.ask_on(&self.tx, make).await
+    }
+
+    async fn ask_on<T>(
+        &self,
+        channel: &mpsc::UnboundedSender<Msg>,
+        make: impl FnOnce(Reply<T>) -> Msg,
+    ) -> Result<T> {
         let (reply, answer) = oneshot::channel();
-        self.tx
+        channel
             .send(make(reply))
             .map_err(|_| Error::internal(format!("machine {} has stopped", self.id)))?;
         answer
@@ -451,11 +455,7 @@ impl Machine {
         // The backend reports the run it stopped before it answers; let the task record that
         // (and refresh the status) before the caller hears "stopped". Bounded: a task stuck
         // in a hung call must not hold up the answer to a stop that already happened.
-        let (reply, done) = oneshot::channel();
-        if self.tx.send(Msg::RefreshStatus { reply }).is_ok() {
-            let bound = self.timeout.min(Duration::from_secs(2));
-            let _ = tokio::time::timeout(bound, done).await;
-        }
+        self.settle().await;
         Ok(answer)
     }
 
@@ -505,11 +505,7 @@ impl Machine {
             )
             .await;
         // The status the caller sees next is the stopped one.
-        let (reply, done) = oneshot::channel();
-        if self.tx.send(Msg::RefreshStatus { reply }).is_ok() {
-            let bound = self.timeout.min(Duration::from_secs(2));
-            let _ = tokio::time::timeout(bound, done).await;
-        }
+        self.settle().await;
         Ok(json!({"stopped": was.is_busy()}))
     }
 
@@ -549,23 +545,47 @@ impl Machine {
         values: AxisValues,
         actor: &str,
     ) -> Result<()> {
-        self.ask(|reply| Msg::SetOffset {
-            offset,
-            values,
-            actor: actor.into(),
-            reply,
-        })
-        .await
+        self.call(Request::SetOffset { offset, values }, actor)
+            .await
+            .map(drop)
     }
 
     /// A fresh status from the backend.
     pub async fn refresh_status(&self) -> Result<MachineStatus> {
-        self.ask(|reply| Msg::RefreshStatus { reply }).await
+        let v = self.call(Request::Status, "").await?;
+        serde_json::from_value(v).map_err(|e| Error::internal(format!("status: {e}")))
+    }
+
+    /// After an urgent call: the backend reports the run it stopped before it answers; let the
+    /// task record that (and refresh the status) before the caller hears "stopped". Bounded: a
+    /// task stuck in a hung call must not hold up the answer to a stop that already happened.
+    async fn settle(&self) {
+        let (reply, done) = oneshot::channel();
+        let refresh = Msg::Call {
+            request: Request::Status,
+            actor: String::new(),
+            ticket: self.gate.ticket(),
+            reply,
+        };
+        if self.tx.send(refresh).is_ok() {
+            let bound = self.timeout.min(Duration::from_secs(2));
+            let _ = tokio::time::timeout(bound, done).await;
+        }
     }
 
     pub async fn artifact(&self, name: &str) -> Result<Value> {
-        self.ask(|reply| Msg::Artifact {
-            name: name.into(),
+        self.call(Request::GetArtifact { name: name.into() }, "")
+            .await
+    }
+
+    /// An operation that does not start motion (no ticket to keep), through the task's one call
+    /// path.
+    async fn call(&self, request: Request, actor: &str) -> Result<Value> {
+        let ticket = self.gate.ticket();
+        self.ask(|reply| Msg::Call {
+            request,
+            actor: actor.into(),
+            ticket,
             reply,
         })
         .await
@@ -582,13 +602,24 @@ impl Machine {
         .await
     }
 
+    /// Pauses the running job. The gate moves first (like a feed hold): a start or resume of it
+    /// still on its way to the backend does not set it moving again.
     pub async fn pause_job(&self, job_id: i64, actor: &str) -> Result<RunRow> {
-        self.ask(|reply| Msg::Pause {
+        self.overtake_for(job_id);
+        self.ask_on(&self.urgent_tx, |reply| Msg::Pause {
             job_id,
             actor: actor.into(),
             reply,
         })
         .await
+    }
+
+    /// Moves the gate when `job_id` is the current run's job: its pause or cancel is then not
+    /// undone by motion requested before it.
+    fn overtake_for(&self, job_id: i64) {
+        if self.run().is_some_and(|r| r.job_id == job_id) {
+            self.gate.overtake();
+        }
     }
 
     /// `confirm_part_zero`: the operator accepts whatever part zero the controller reports
@@ -613,8 +644,10 @@ impl Machine {
         .await
     }
 
+    /// Cancels the job's run (see [`Machine::pause_job`] for the gate).
     pub async fn cancel_job(&self, job_id: i64, actor: &str) -> Result<RunRow> {
-        self.ask(|reply| Msg::Cancel {
+        self.overtake_for(job_id);
+        self.ask_on(&self.urgent_tx, |reply| Msg::Cancel {
             job_id,
             actor: actor.into(),
             reply,
