@@ -6,10 +6,12 @@
 //!
 //! Pause and cancel never wait behind an ordinary message: the urgent channel is read first, and
 //! while the task waits for an ordinary backend call (a program loading, an artifact being
-//! generated) it serves them in between. That is the one place a request's handling is
-//! interleaved with another's; what runs after the ordinary call copes with a run paused or
-//! cancelled meanwhile because the pause or cancel moved the stop gate (a start or resume under
-//! way is then refused before it sets the machine moving) and run writes are compare-and-set.
+//! generated) it serves them in between (not during a call that starts motion: that answers
+//! once motion has begun, and a pause or cancel then acts on the motion). That is the one place
+//! a request's handling is interleaved with another's. A start under way copes: a cancel moves
+//! the stop gate, so the start is refused before it sets the machine moving; a pause while the
+//! program loads holds the run before it starts (it starts on resume); run writes are
+//! compare-and-set.
 
 use super::lanes::{BackendError, Lanes};
 use super::{Gate, Msg, RunView};
@@ -57,6 +59,11 @@ pub(super) struct Task {
     /// whoever listens, so a pause served inside a call does not listen again, and a call
     /// abandoned half-way gives it back by dropping its guard.
     pub urgent: Arc<tokio::sync::Mutex<mpsc::UnboundedReceiver<Msg>>>,
+    /// The run whose program the backend is loading now (a pause then holds it before it
+    /// starts, see [`Task::pause`]).
+    pub loading: Option<i64>,
+    /// A run paused while its program loaded: it was never started, so its resume starts it.
+    pub held_before_start: Option<i64>,
 }
 
 /// What the store has not been told yet. Written acks first, then transitions in the order they
@@ -275,8 +282,9 @@ impl Task {
         }
     }
 
-    /// Calls the backend. While an ordinary call is under way, pause and cancel from the urgent
-    /// channel are served (their own calls take the urgent lane and do not listen again).
+    /// Calls the backend. While an ordinary call that starts no motion is under way, pause and
+    /// cancel from the urgent channel are served (their own calls take the urgent lane and do not
+    /// listen again).
     /// Boxed, and declared `Send`: serving a pause calls back into here, and the compiler needs
     /// the future's type spelled out to see that the cycle is `Send`.
     fn call_raw<'a>(
@@ -288,9 +296,10 @@ impl Task {
             let lanes = self.lanes.clone().ok_or_else(|| {
                 BackendError::Unavailable(self.unavailable.clone().unwrap_or_default())
             })?;
-            let listening = match request.lane() {
-                Lane::Ordinary => self.urgent.clone().try_lock_owned().ok(),
-                Lane::Urgent => None,
+            let op = request.operation();
+            let listening = match op.lane {
+                Lane::Ordinary if !op.starts_motion => self.urgent.clone().try_lock_owned().ok(),
+                _ => None,
             };
             let Some(mut urgent) = listening else {
                 return lanes.call(request).await;
@@ -589,6 +598,7 @@ impl Task {
         if run.is_none() {
             self.job.send_replace(None);
             self.launched = None;
+            self.held_before_start = None;
         }
         self.run.send_replace(run);
     }
@@ -888,7 +898,8 @@ impl Task {
                     })
                 })
                 .collect();
-            let v = self
+            self.loading = Some(run.id);
+            let loaded = self
                 .call(&Request::LoadProgram {
                     run: run.id,
                     path: path.to_string_lossy().into_owned(),
@@ -897,7 +908,9 @@ impl Task {
                     tools,
                     max_segments: Some(self.max_program_segments),
                 })
-                .await?;
+                .await;
+            self.loading = None;
+            let v = loaded?;
             if let Ok(l) = serde_json::from_value::<ProgramLoaded>(v) {
                 if l.start_line != start_line {
                     tracing::info!(
@@ -908,8 +921,12 @@ impl Task {
                     );
                 }
             }
-            // A stop that arrived while the program loaded wins: nothing moves.
+            // A stop or cancel that arrived while the program loaded wins: nothing moves.
             self.gate.check(ticket)?;
+            // Paused while it loaded: it waits for its resume to start.
+            if self.held_before_start == Some(run.id) {
+                return Ok(None);
+            }
             self.motion(
                 ticket,
                 &Request::Run {
@@ -917,10 +934,12 @@ impl Task {
                 },
             )
             .await
+            .map(Some)
         }
         .await;
         let answer = match started {
-            Ok(a) => a,
+            Ok(Some(a)) => a,
+            Ok(None) => return Ok(self.remembered_run(run.id).unwrap_or(run)),
             Err(e) => {
                 let to = if e.code == "stopped" || e.code == "shutting_down" {
                     RunState::Cancelled
@@ -1013,10 +1032,16 @@ impl Task {
                 format!("job {job_id} is {}, not running", run.state),
             ));
         }
-        self.call(&Request::Run {
-            action: RunAction::Pause,
-        })
-        .await?;
+        // Its program is still loading (this pause is served while the load call is under
+        // way): nothing moves yet, so the run is held before it starts instead.
+        if self.loading == Some(run.id) {
+            self.held_before_start = Some(run.id);
+        } else {
+            self.call(&Request::Run {
+                action: RunAction::Pause,
+            })
+            .await?;
+        }
         self.transition_or_current(&run, &[RunState::Running], RunState::Paused, actor)
             .await
     }
@@ -1033,13 +1058,14 @@ impl Task {
         let run = self.latest(job_id).await?;
         match run.state {
             RunState::Paused => {
-                self.motion(
-                    ticket,
-                    &Request::Run {
-                        action: RunAction::Resume,
-                    },
-                )
-                .await?;
+                // Held before it started: the program is loaded, so it is started now.
+                let action = if self.held_before_start == Some(run.id) {
+                    RunAction::Start
+                } else {
+                    RunAction::Resume
+                };
+                self.motion(ticket, &Request::Run { action }).await?;
+                self.held_before_start = None;
                 self.transition_or_current(&run, &[RunState::Paused], RunState::Running, actor)
                     .await
             }
@@ -1159,6 +1185,11 @@ impl Task {
         let run = self.latest(job_id).await?;
         match run.state {
             RunState::Running | RunState::Paused => {
+                // Nothing requested before the cancel sets this run moving again (a start
+                // whose program is still loading is refused at its gate check).
+                if self.run.borrow().is_some_and(|r| r.run_id == run.id) {
+                    self.gate.overtake();
+                }
                 // The backend answers only once motion has stopped; only then is the run
                 // cancelled.
                 self.call(&Request::Run {
@@ -1411,6 +1442,8 @@ mod tests {
             unstored: super::super::unstored::Marker::start(&dir.0.join("unstored"), m),
             quiet: fresa_plugin_api::quiet::Quiet::per_minute(),
             urgent: Arc::new(tokio::sync::Mutex::new(mpsc::unbounded_channel().1)),
+            loading: None,
+            held_before_start: None,
         };
         (task, run, dir)
     }

@@ -301,6 +301,8 @@ impl Machine {
             unstored: unstored::Marker::start(&opts.unstored_dir, row.id),
             quiet: fresa_plugin_api::quiet::Quiet::per_minute(),
             urgent: Arc::new(tokio::sync::Mutex::new(urgent_rx)),
+            loading: None,
+            held_before_start: None,
         };
         tokio::spawn(task.run(rx, events));
         tokio::spawn(status_loop(m.clone(), bus, opts.status_interval));
@@ -602,24 +604,14 @@ impl Machine {
         .await
     }
 
-    /// Pauses the running job. The gate moves first (like a feed hold): a start or resume of it
-    /// still on its way to the backend does not set it moving again.
+    /// Pauses the running job; served by the task ahead of ordinary messages (see `Msg::Pause`).
     pub async fn pause_job(&self, job_id: i64, actor: &str) -> Result<RunRow> {
-        self.overtake_for(job_id);
         self.ask_on(&self.urgent_tx, |reply| Msg::Pause {
             job_id,
             actor: actor.into(),
             reply,
         })
         .await
-    }
-
-    /// Moves the gate when `job_id` is the current run's job: its pause or cancel is then not
-    /// undone by motion requested before it.
-    fn overtake_for(&self, job_id: i64) {
-        if self.run().is_some_and(|r| r.job_id == job_id) {
-            self.gate.overtake();
-        }
     }
 
     /// `confirm_part_zero`: the operator accepts whatever part zero the controller reports
@@ -644,9 +636,8 @@ impl Machine {
         .await
     }
 
-    /// Cancels the job's run (see [`Machine::pause_job`] for the gate).
+    /// Cancels the job's run; served like [`Machine::pause_job`].
     pub async fn cancel_job(&self, job_id: i64, actor: &str) -> Result<RunRow> {
-        self.overtake_for(job_id);
         self.ask_on(&self.urgent_tx, |reply| Msg::Cancel {
             job_id,
             actor: actor.into(),
