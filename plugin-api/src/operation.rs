@@ -8,7 +8,7 @@
 //! A property left out is a compile error:
 //!
 //! ```compile_fail
-//! use fresa_plugin_api::operation::{Lane, Operation};
+//! use fresa_plugin_api::operation::{AuditEvent, Lane, Operation};
 //! // A "probe toward Z" whose author forgot to say whether it starts motion:
 //! let probe = Operation {
 //!     name: "probe",
@@ -16,14 +16,14 @@
 //!     needs_store: true,
 //!     changes_offsets: false,
 //!     refused_during_run: true,
-//!     audit: Some("machine.probe"),
+//!     audit: Some(AuditEvent::Command),
 //! };
 //! ```
 //!
 //! and with every property decided it compiles:
 //!
 //! ```
-//! use fresa_plugin_api::operation::{Lane, Operation};
+//! use fresa_plugin_api::operation::{AuditEvent, Lane, Operation};
 //! let probe = Operation {
 //!     name: "probe",
 //!     lane: Lane::Ordinary,
@@ -31,7 +31,7 @@
 //!     needs_store: true,
 //!     changes_offsets: false,
 //!     refused_during_run: true,
-//!     audit: Some("machine.probe"),
+//!     audit: Some(AuditEvent::Command),
 //! };
 //! assert!(probe.starts_motion);
 //! ```
@@ -67,7 +67,21 @@ pub struct Operation {
     pub refused_during_run: bool,
     /// The audit event recorded when it succeeds; `None` when it records nothing itself (reads,
     /// and run control, whose run transitions are the record).
-    pub audit: Option<&'static str>,
+    pub audit: Option<AuditEvent>,
+}
+
+/// The audit event an operation records when it succeeds. The host's event types are its own
+/// (`fresa_core::events::EventKind`, which maps each of these to one); here only which one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AuditEvent {
+    /// `machine.jog`
+    Jog,
+    /// `machine.mdi`
+    Mdi,
+    /// `machine.offsets`
+    Offsets,
+    /// `machine.command`
+    Command,
 }
 
 impl Operation {
@@ -100,7 +114,7 @@ impl Request {
                 needs_store: true,
                 changes_offsets: false,
                 refused_during_run: true,
-                audit: Some("machine.jog"),
+                audit: Some(AuditEvent::Jog),
             },
             Request::Mdi { .. } => Operation {
                 name: "mdi",
@@ -109,7 +123,7 @@ impl Request {
                 needs_store: true,
                 changes_offsets: false,
                 refused_during_run: true,
-                audit: Some("machine.mdi"),
+                audit: Some(AuditEvent::Mdi),
             },
             Request::Command(c) => c.operation(),
             Request::SetOffset { .. } => Operation {
@@ -119,7 +133,7 @@ impl Request {
                 needs_store: true,
                 changes_offsets: true,
                 refused_during_run: false,
-                audit: Some("machine.offsets"),
+                audit: Some(AuditEvent::Offsets),
             },
             // Run control: the run's own lifecycle in the host records its transitions.
             Request::LoadProgram { .. } => Operation {
@@ -173,7 +187,7 @@ impl Command {
             needs_store: false,
             changes_offsets: false,
             refused_during_run: false,
-            audit: Some("machine.command"),
+            audit: Some(AuditEvent::Command),
         };
         let moves = |name| Operation {
             name,
@@ -182,7 +196,7 @@ impl Command {
             needs_store: true,
             changes_offsets: false,
             refused_during_run: false,
-            audit: Some("machine.command"),
+            audit: Some(AuditEvent::Command),
         };
         let offsets = |name| Operation {
             name,
@@ -191,7 +205,7 @@ impl Command {
             needs_store: true,
             changes_offsets: true,
             refused_during_run: false,
-            audit: Some("machine.command"),
+            audit: Some(AuditEvent::Command),
         };
         // Outputs: spindle and coolant are refused while a job cuts, by the host's own check
         // (other outputs are not, so this is not `refused_during_run`).
@@ -202,7 +216,7 @@ impl Command {
             needs_store: false,
             changes_offsets: false,
             refused_during_run: false,
-            audit: Some("machine.command"),
+            audit: Some(AuditEvent::Command),
         };
         match self {
             Command::Stop => urgent("stop"),
