@@ -57,7 +57,16 @@ pub enum CallError {
 
 /// Receives what plugin instances send to the host. Must be callable from any thread.
 pub trait HostSink: Send + Sync + 'static {
+    /// An event the instance emitted, as a JSON value.
     fn event(&self, event: serde_json::Value);
+    /// An event as the instance emitted it: its JSON bytes. A sink that decodes events into a
+    /// type of its own overrides this to decode them straight from the bytes, with no `Value`
+    /// in between; the default parses a `Value` for [`event`](Self::event). `Err`: the bytes
+    /// are not JSON; the host logs that (rate limited) and drops them.
+    fn event_json(&self, bytes: &[u8]) -> Result<(), serde_json::Error> {
+        self.event(serde_json::from_slice(bytes)?);
+        Ok(())
+    }
     fn log(&self, level: u32, message: &str);
 }
 
@@ -334,9 +343,9 @@ unsafe extern "C" fn host_emit_event(ctx: *mut c_void, json: *const u8, len: usi
         unsafe { std::slice::from_raw_parts(json, len) }
     };
     // Never unwind into the plugin.
-    let _ = std::panic::catch_unwind(std::panic::AssertUnwindSafe(
-        || match serde_json::from_slice(bytes) {
-            Ok(v) => ctx.sink.event(v),
+    let _ = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        match ctx.sink.event_json(bytes) {
+            Ok(()) => {}
             Err(e) => {
                 if let Some(line) = ctx.quiet.admit("not-json", || {
                     format!("plugin emitted an event that is not JSON ({e}); dropped")
@@ -344,8 +353,8 @@ unsafe extern "C" fn host_emit_event(ctx: *mut c_void, json: *const u8, len: usi
                     ctx.sink.log(abi::LOG_WARN, &line)
                 }
             }
-        },
-    ));
+        }
+    }));
 }
 
 unsafe extern "C" fn host_log(ctx: *mut c_void, level: u32, msg: *const u8, len: usize) {

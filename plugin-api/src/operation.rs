@@ -8,7 +8,7 @@
 //! A property left out is a compile error:
 //!
 //! ```compile_fail
-//! use fresa_plugin_api::operation::{Lane, Operation};
+//! use fresa_plugin_api::operation::{AuditEvent, Lane, Operation};
 //! // A "probe toward Z" whose author forgot to say whether it starts motion:
 //! let probe = Operation {
 //!     name: "probe",
@@ -16,7 +16,7 @@
 //!     needs_store: true,
 //!     changes_offsets: false,
 //!     refused_during_run: true,
-//!     audit: Some("machine.probe"),
+//!     audit: Some(AuditEvent::Command),
 //!     refreshes_status: false,
 //! };
 //! ```
@@ -24,7 +24,7 @@
 //! and with every property decided it compiles:
 //!
 //! ```
-//! use fresa_plugin_api::operation::{Lane, Operation};
+//! use fresa_plugin_api::operation::{AuditEvent, Lane, Operation};
 //! let probe = Operation {
 //!     name: "probe",
 //!     lane: Lane::Ordinary,
@@ -32,7 +32,7 @@
 //!     needs_store: true,
 //!     changes_offsets: false,
 //!     refused_during_run: true,
-//!     audit: Some("machine.probe"),
+//!     audit: Some(AuditEvent::Command),
 //!     refreshes_status: false,
 //! };
 //! assert!(probe.starts_motion);
@@ -69,11 +69,25 @@ pub struct Operation {
     pub refused_during_run: bool,
     /// The audit event recorded when it succeeds; `None` when it records nothing itself (reads,
     /// and run control, whose run transitions are the record).
-    pub audit: Option<&'static str>,
+    pub audit: Option<AuditEvent>,
     /// What it changes shows in the status as soon as the backend answers (state, offsets,
     /// outputs): the host takes a fresh status before answering. A jog or MDI line reports its
     /// own progress as it moves; a read changes nothing.
     pub refreshes_status: bool,
+}
+
+/// The audit event an operation records when it succeeds. The host's event types are its own
+/// (`fresa_core::events::EventKind`, which maps each of these to one); here only which one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AuditEvent {
+    /// `machine.jog`
+    Jog,
+    /// `machine.mdi`
+    Mdi,
+    /// `machine.offsets`
+    Offsets,
+    /// `machine.command`
+    Command,
 }
 
 impl Operation {
@@ -107,7 +121,7 @@ impl Request {
                 needs_store: true,
                 changes_offsets: false,
                 refused_during_run: true,
-                audit: Some("machine.jog"),
+                audit: Some(AuditEvent::Jog),
                 refreshes_status: false,
             },
             Request::Mdi { .. } => Operation {
@@ -117,7 +131,7 @@ impl Request {
                 needs_store: true,
                 changes_offsets: false,
                 refused_during_run: true,
-                audit: Some("machine.mdi"),
+                audit: Some(AuditEvent::Mdi),
                 refreshes_status: false,
             },
             Request::Command(c) => c.operation(),
@@ -128,7 +142,7 @@ impl Request {
                 needs_store: true,
                 changes_offsets: true,
                 refused_during_run: false,
-                audit: Some("machine.offsets"),
+                audit: Some(AuditEvent::Offsets),
                 refreshes_status: true,
             },
             // Run control: the run's own lifecycle in the host records its transitions.
@@ -185,7 +199,7 @@ impl Command {
             needs_store: false,
             changes_offsets: false,
             refused_during_run: false,
-            audit: Some("machine.command"),
+            audit: Some(AuditEvent::Command),
             refreshes_status: true,
         };
         let moves = |name| Operation {
@@ -195,7 +209,7 @@ impl Command {
             needs_store: true,
             changes_offsets: false,
             refused_during_run: false,
-            audit: Some("machine.command"),
+            audit: Some(AuditEvent::Command),
             refreshes_status: true,
         };
         let offsets = |name| Operation {
@@ -205,7 +219,7 @@ impl Command {
             needs_store: true,
             changes_offsets: true,
             refused_during_run: false,
-            audit: Some("machine.command"),
+            audit: Some(AuditEvent::Command),
             refreshes_status: true,
         };
         // Outputs: spindle and coolant are refused while a job cuts, by the host's own check
@@ -217,7 +231,7 @@ impl Command {
             needs_store: false,
             changes_offsets: false,
             refused_during_run: false,
-            audit: Some("machine.command"),
+            audit: Some(AuditEvent::Command),
             refreshes_status: true,
         };
         match self {

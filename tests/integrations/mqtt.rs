@@ -781,3 +781,93 @@ fn an_oversized_command_is_dropped_and_the_connection_kept() {
         s.log()
     );
 }
+
+/// The latest status on each of the three outlets once they agree: `GET .../status`, the data
+/// of the last SSE `status` event, and the last MQTT status message. Polls (the stream and the
+/// broker deliver asynchronously) until the three are the same JSON value, or panics showing
+/// them.
+#[track_caller]
+fn agreed_status(s: &Server, sse: &fresa_tests::Sse, sub: &Sub, machine: i64, what: &str) -> Value {
+    let topic = format!("t/machines/{machine}/status");
+    let (mut on_sse, mut on_mqtt) = (Value::Null, Value::Null);
+    let deadline = std::time::Instant::now() + T;
+    loop {
+        while let Some(e) = sse.next(Duration::from_millis(1)) {
+            if e.event == "status" {
+                assert_eq!(e.data["type"], "status", "{:?}", e.data);
+                assert_eq!(e.data["machine"], machine, "{:?}", e.data);
+                on_sse = e.data["data"].clone();
+            }
+        }
+        while let Ok((t, v, _)) = sub.rx.try_recv() {
+            if t == topic {
+                on_mqtt = v;
+            }
+        }
+        let http = s.status(machine);
+        if on_sse == http && on_mqtt == http {
+            return http;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "{what}: the status differs\nHTTP: {http}\nSSE:  {on_sse}\nMQTT: {on_mqtt}"
+        );
+        // Wait for the next message on either outlet rather than spinning.
+        if let Some(e) = sse.next(Duration::from_millis(50)) {
+            if e.event == "status" {
+                on_sse = e.data["data"].clone();
+            }
+        }
+    }
+}
+
+/// Issue 24: the status is one view, serialised the same on the API, the event stream and the
+/// broker: after a jog (no job) and while a job is paused (with its progress), the three are the
+/// same JSON, and so is the retained message a late subscriber gets.
+#[test]
+fn the_status_is_the_same_json_on_http_sse_and_mqtt() {
+    let broker = Broker::start();
+    let mut s = Server::unstarted(Opts::default());
+    s.write_config(&format!(
+        "[mqtt]\nurl = \"{}\"\ntopic_prefix = \"t\"\n",
+        broker.url()
+    ));
+    s.spawn().unwrap();
+    wait_for(T, "bridge connected", || {
+        (metric(&s, "fresa_mqtt_connected") == 1.0).then_some(())
+    });
+    let m = s.sim("m", 0.1);
+    let topic = format!("t/machines/{}/status", m.id);
+    let sub = Sub::new(&broker, &[&topic]);
+    let sse = s.events(&format!("types=status&machine={}", m.id), None);
+    s.wait_machine_state(m.id, "idle", T);
+
+    s.jog(m.id, "X", 3.0).expect(200);
+    s.wait_status(m.id, T, "idle at x=3", |st| {
+        st["state"] == "idle" && x_is(st, 3.0)
+    });
+    let after_jog = agreed_status(&s, &sse, &sub, m.id, "after a jog");
+    assert_eq!(after_jog["machine"], m.id, "{after_jog}");
+    assert!(after_jog["job"].is_null(), "{after_jog}");
+    assert!(x_is(&after_jog, 3.0), "{after_jog}");
+
+    // A paused job: the status carries its progress, the same on all three.
+    let job = s.upload(m.id, "slow", fresa_tests::back_and_forth(200, 1.0, 600.0))["id"]
+        .as_i64()
+        .unwrap();
+    s.job_action(job, "start").expect(200);
+    s.wait_job(job, T, "line >= 5", |j| j["line"].as_i64().unwrap() >= 5);
+    s.job_action(job, "pause").expect(200);
+    s.wait_machine_state(m.id, "paused", T);
+    let paused = agreed_status(&s, &sse, &sub, m.id, "with a paused job");
+    assert_eq!(paused["job"]["job"], job, "{paused}");
+    assert_eq!(paused["job"]["total_lines"], 200, "{paused}");
+    assert!(paused["job"]["line"].as_i64().unwrap() >= 5, "{paused}");
+
+    // What a client connecting now is given is the same status.
+    let late = Sub::new(&broker, &[&topic]);
+    let (retained, was_retained) = late.until(&topic, |_, _| true);
+    assert!(was_retained, "{retained}");
+    assert_eq!(retained, s.status(m.id));
+    s.job_action(job, "cancel").expect(200);
+}

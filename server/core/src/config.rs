@@ -548,7 +548,7 @@ impl NodeSettings {
 
 /// How long the event log keeps what. Routine events (jogs, commands, MDI, pendant traffic:
 /// the high-volume ones) go after `routine_days` or beyond the newest `routine_count`; the
-/// audit events (see `events::AUDIT_EVENT_TYPES`) are kept `audit_days`, whatever the count.
+/// audit events (see `events::Keeping::Audit`) are kept `audit_days`, whatever the count.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct EventRetention {
     pub routine_days: u32,

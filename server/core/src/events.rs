@@ -7,14 +7,128 @@ use crate::store::{now_ms, EventRow, Store};
 use serde::Serialize;
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 use tokio::sync::{broadcast, Mutex};
+
+/// What the bus does with an event of a type.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Keeping {
+    /// Fanned out only, no id: the next one supersedes it ([`EventBus::transient`]).
+    Transient,
+    /// Persisted with an id ([`EventBus::record_or_log`]); high-volume traffic (jogs, commands,
+    /// MDI lines, pendant connects, refusals, rewinds), also pruned beyond
+    /// `event_retention_count`.
+    Routine,
+    /// Persisted and kept `audit_retention_days`: what was made, run, set or lost.
+    Audit,
+}
+
+/// Declares [`EventKind`] from one table: a variant, its wire name and its keeping per line.
+/// The generated `name` and `keeping` are exhaustive matches (no catch-all) and [`EventKind::ALL`]
+/// lists every variant, so a new type is decided in one place, all at once.
+macro_rules! event_kinds {
+    ($($(#[$doc:meta])* $variant:ident = $name:literal, $keeping:ident;)*) => {
+        /// Every event type the server emits. The bus takes this instead of a string, so an
+        /// event cannot go out with a typo in its type, nor live-only when it is persisted (or
+        /// the other way round).
+        #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+        pub enum EventKind {
+            $($(#[$doc])* $variant,)*
+        }
+
+        impl EventKind {
+            /// Every type, in table order.
+            pub const ALL: &'static [EventKind] = &[$(EventKind::$variant,)*];
+
+            /// The type as on the wire: SSE `event:`, the `type` field, the `events` table,
+            /// MQTT and webhook topics. Never renamed: clients and stored rows use these.
+            pub const fn name(self) -> &'static str {
+                match self {
+                    $(EventKind::$variant => $name,)*
+                }
+            }
+
+            pub const fn keeping(self) -> Keeping {
+                match self {
+                    $(EventKind::$variant => Keeping::$keeping,)*
+                }
+            }
+        }
+    };
+}
+
+event_kinds! {
+    /// The machine's status, as `GET /machines/{id}/status` answers it ([`crate::views::StatusView`]).
+    Status = "status", Transient;
+    JobProgress = "job.progress", Transient;
+    JobLineReport = "job.line_report", Transient;
+    MachineIo = "machine.io", Transient;
+    MachineState = "machine.state", Transient;
+    MachineCommand = "machine.command", Routine;
+    MachineJog = "machine.jog", Routine;
+    MachineMdi = "machine.mdi", Routine;
+    MachineJogCancel = "machine.jog_cancel", Routine;
+    PendantConnected = "pendant.connected", Routine;
+    PendantLost = "pendant.lost", Routine;
+    PendantRefused = "pendant.refused", Routine;
+    PendantRewind = "pendant.rewind", Routine;
+    PendantUploadRejected = "pendant.upload_rejected", Routine;
+    JobCreated = "job.created", Audit;
+    JobState = "job.state", Audit;
+    MachineCreated = "machine.created", Audit;
+    MachineOffsets = "machine.offsets", Audit;
+    MachinePartZero = "machine.part_zero", Audit;
+    MachineAlarm = "machine.alarm", Audit;
+    MachineNode = "machine.node", Audit;
+    MachineTools = "machine.tools", Audit;
+    PendantCreated = "pendant.created", Audit;
+    PendantBound = "pendant.bound", Audit;
+    PendantMacro = "pendant.macro", Audit;
+    PendantDeleted = "pendant.deleted", Audit;
+    PendantNode = "pendant.node", Audit;
+    PendantUpload = "pendant.upload", Audit;
+    WebhookCreated = "webhook.created", Audit;
+    WebhookDeleted = "webhook.deleted", Audit;
+}
+
+impl EventKind {
+    /// Persisted in the event log (routine or audit), with an id.
+    pub const fn is_persisted(self) -> bool {
+        !matches!(self.keeping(), Keeping::Transient)
+    }
+
+    /// The type a wire name stands for, if the server emits it.
+    pub fn from_name(name: &str) -> Option<EventKind> {
+        EventKind::ALL.iter().copied().find(|k| k.name() == name)
+    }
+}
+
+/// An operation's audit event (the plugin-api operation table decides which one).
+impl From<fresa_plugin_api::operation::AuditEvent> for EventKind {
+    fn from(e: fresa_plugin_api::operation::AuditEvent) -> Self {
+        use fresa_plugin_api::operation::AuditEvent;
+        match e {
+            AuditEvent::Jog => EventKind::MachineJog,
+            AuditEvent::Mdi => EventKind::MachineMdi,
+            AuditEvent::Offsets => EventKind::MachineOffsets,
+            AuditEvent::Command => EventKind::MachineCommand,
+        }
+    }
+}
+
+impl std::fmt::Display for EventKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
 
 #[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct BusEvent {
     /// Present on persisted events only.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub id: Option<i64>,
+    /// The wire name: an [`EventKind`]'s for what this server emits; a row read back from the
+    /// log may hold a type an older version wrote.
     #[serde(rename = "type")]
     pub kind: String,
     #[serde(skip_serializing_if = "Option::is_none", default)]
@@ -26,19 +140,67 @@ pub struct BusEvent {
     /// The node it happened on, when the store is shared by nodes.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub node: Option<String>,
+    /// This event as JSON text, made the first time it is asked for: an event fans out to
+    /// every subscriber as one `Arc`, so it is serialised once, not once per SSE client.
+    #[serde(skip)]
+    json: OnceLock<String>,
+    /// `data` as JSON text, likewise (what MQTT publishes as a status).
+    #[serde(skip)]
+    data_json: OnceLock<String>,
+}
+
+impl BusEvent {
+    fn new(
+        id: Option<i64>,
+        kind: String,
+        machine: Option<i64>,
+        actor: Option<String>,
+        time: i64,
+        data: serde_json::Value,
+        node: Option<String>,
+    ) -> Self {
+        BusEvent {
+            id,
+            kind,
+            machine,
+            actor,
+            time,
+            data,
+            node,
+            json: OnceLock::new(),
+            data_json: OnceLock::new(),
+        }
+    }
+
+    /// Whether this is an event of type `kind`.
+    pub fn is(&self, kind: EventKind) -> bool {
+        self.kind == kind.name()
+    }
+
+    /// The whole event as JSON (what SSE sends as `data:` and MQTT as an event message),
+    /// serialised once.
+    pub fn json(&self) -> &str {
+        self.json
+            .get_or_init(|| serde_json::to_string(self).unwrap_or_default())
+    }
+
+    /// Its `data` as JSON, serialised once.
+    pub fn data_json(&self) -> &str {
+        self.data_json.get_or_init(|| self.data.to_string())
+    }
 }
 
 impl From<EventRow> for BusEvent {
     fn from(r: EventRow) -> Self {
-        BusEvent {
-            id: Some(r.id),
-            kind: r.kind,
-            machine: r.machine_id,
-            actor: r.actor,
-            time: r.created_at,
-            data: serde_json::from_str(&r.data).unwrap_or(serde_json::Value::Null),
-            node: r.node,
-        }
+        BusEvent::new(
+            Some(r.id),
+            r.kind,
+            r.machine_id,
+            r.actor,
+            r.created_at,
+            serde_json::from_str(&r.data).unwrap_or(serde_json::Value::Null),
+            r.node,
+        )
     }
 }
 
@@ -73,7 +235,7 @@ pub const MAX_DELAYED_EVENTS: usize = 10_000;
 
 /// An audit event recorded while the database was unreachable.
 struct Delayed {
-    kind: String,
+    kind: EventKind,
     machine: Option<i64>,
     actor: Option<String>,
     data: serde_json::Value,
@@ -131,7 +293,7 @@ impl EventBus {
             }
             let written = health
                 .guard(self.store.append_event(
-                    &d.kind,
+                    d.kind.name(),
                     d.machine,
                     d.actor.as_deref(),
                     &data.to_string(),
@@ -182,34 +344,42 @@ impl EventBus {
         match &self.shared {
             Some(shared) => shared.wake.notify_one(),
             None => {
-                let _ = self.tx.send(Arc::new(BusEvent {
-                    id: Some(row.id),
-                    kind: row.kind,
-                    machine: row.machine_id,
-                    actor: row.actor,
-                    time: row.created_at,
+                let _ = self.tx.send(Arc::new(BusEvent::new(
+                    Some(row.id),
+                    row.kind,
+                    row.machine_id,
+                    row.actor,
+                    row.created_at,
                     data,
-                    node: row.node,
-                }));
+                    row.node,
+                )));
             }
         }
     }
 
-    /// Appends to the event log and fans out. Returns the event id.
+    /// Appends to the event log and fans out. Returns the event id. For persisted types only:
+    /// a live-only one is a bug, refused (and fanned out as it should have been).
     pub async fn record(
         &self,
-        kind: &str,
+        kind: EventKind,
         machine: Option<i64>,
         actor: Option<&str>,
         data: serde_json::Value,
     ) -> Result<i64, sqlx::Error> {
+        if !kind.is_persisted() {
+            wrong_path(kind);
+            self.transient(kind, machine, data);
+            return Err(sqlx::Error::Protocol(format!(
+                "event type {kind} is live-only; it has no id"
+            )));
+        }
         let mut delayed = self.order.lock().await;
         if !delayed.is_empty() {
             self.write_delayed(&mut delayed).await;
         }
         let row = self
             .store
-            .append_event(kind, machine, actor, &data.to_string())
+            .append_event(kind.name(), machine, actor, &data.to_string())
             .await?;
         let id = row.id;
         self.publish_row(row, data);
@@ -219,13 +389,19 @@ impl EventBus {
     /// Like [`record`](Self::record) but never fails the action that caused the event: while the
     /// database is unreachable the event waits in memory (at most [`MAX_DELAYED_EVENTS`]) and is
     /// written, then sent with its id, when the database returns; other failures are logged.
+    ///
+    /// For persisted types only: a live-only one is a bug, fanned out as it should have been.
     pub async fn record_or_log(
         &self,
-        kind: &str,
+        kind: EventKind,
         machine: Option<i64>,
         actor: Option<&str>,
         data: serde_json::Value,
     ) {
+        if !kind.is_persisted() {
+            wrong_path(kind);
+            return self.transient(kind, machine, data);
+        }
         let mut delayed = self.order.lock().await;
         let health = self.store.health();
         // Behind older delayed events, or while the database is down: wait in memory.
@@ -234,7 +410,7 @@ impl EventBus {
             let written = health
                 .guard(
                     self.store
-                        .append_event(kind, machine, actor, &data.to_string()),
+                        .append_event(kind.name(), machine, actor, &data.to_string()),
                 )
                 .await;
             match written {
@@ -244,7 +420,7 @@ impl EventBus {
                 }
                 Err(e) if e.code == "database_unavailable" => data,
                 Err(e) => {
-                    tracing::error!(kind, error = %e, "could not persist event");
+                    tracing::error!(kind = kind.name(), error = %e, "could not persist event");
                     return;
                 }
             }
@@ -256,7 +432,7 @@ impl EventBus {
             self.dropped.fetch_add(1, Ordering::Relaxed);
         }
         delayed.push_back(Delayed {
-            kind: kind.to_string(),
+            kind,
             machine,
             actor: actor.map(str::to_string),
             data,
@@ -265,16 +441,26 @@ impl EventBus {
         self.waiting.store(delayed.len(), Ordering::Relaxed);
     }
 
-    pub fn transient(&self, kind: &str, machine: Option<i64>, data: serde_json::Value) {
-        let event = Arc::new(BusEvent {
-            id: None,
-            kind: kind.to_string(),
+    /// Fans out a live-only event. For live-only types only: a persisted one is a bug, recorded
+    /// (in the background) as it should have been rather than lost from the log.
+    pub fn transient(&self, kind: EventKind, machine: Option<i64>, data: serde_json::Value) {
+        if kind.is_persisted() {
+            wrong_path(kind);
+            if let Ok(rt) = tokio::runtime::Handle::try_current() {
+                let bus = self.clone();
+                rt.spawn(async move { bus.record_or_log(kind, machine, None, data).await });
+            }
+            return;
+        }
+        let event = Arc::new(BusEvent::new(
+            None,
+            kind.name().to_string(),
             machine,
-            actor: None,
-            time: now_ms(),
+            None,
+            now_ms(),
             data,
-            node: self.store.node().map(str::to_string),
-        });
+            self.store.node().map(str::to_string),
+        ));
         if let Some(shared) = &self.shared {
             // Full: the database is slow or away; this status is superseded by the next one.
             let _ = shared.outbox.try_send(event.clone());
@@ -300,6 +486,17 @@ impl EventBus {
             _ => true,
         }
     }
+}
+
+/// An event sent on the path its type does not take (a bug): loud in debug builds and tests,
+/// logged in release.
+fn wrong_path(kind: EventKind) {
+    debug_assert!(
+        false,
+        "event type {kind} sent on the wrong path ({:?})",
+        kind.keeping()
+    );
+    tracing::error!(kind = kind.name(), keeping = ?kind.keeping(), "event sent on the wrong path; rerouted");
 }
 
 /// On a store shared by nodes (PostgreSQL), follows the event table and fans every node's
@@ -380,12 +577,12 @@ async fn relay_transient(
             _ = stop.cancelled() => return,
             e = outbox.recv() => {
                 let Some(e) = e else { return };
-                let Ok(payload) = serde_json::to_string(&*e) else { continue };
+                let payload = e.json();
                 if payload.len() > MAX_NOTIFY_PAYLOAD {
                     tracing::debug!(kind = %e.kind, bytes = payload.len(), "transient event too large to share with other nodes");
                     continue;
                 }
-                if let Err(err) = bus.store.notify(TRANSIENT_CHANNEL, &payload).await {
+                if let Err(err) = bus.store.notify(TRANSIENT_CHANNEL, payload).await {
                     tracing::debug!(error = %err, "could not share a transient event with other nodes");
                 }
             }
@@ -443,27 +640,16 @@ async fn next_notification(listener: &mut Option<sqlx::postgres::PgListener>) ->
 // ---- retention ----
 
 /// The audit trail, kept `audit_retention_days`: what was made, run, set or lost. Every other
-/// type (jogs, commands, MDI lines, pendant connects, refusals, rewinds: high-volume traffic)
-/// is routine and also goes beyond `event_retention_count`. A new event type is routine
-/// unless it is added here.
-pub const AUDIT_EVENT_TYPES: &[&str] = &[
-    "job.created",
-    "job.state",
-    "machine.created",
-    "machine.offsets",
-    "machine.part_zero",
-    "machine.alarm",
-    "machine.node",
-    "machine.tools",
-    "pendant.created",
-    "pendant.bound",
-    "pendant.macro",
-    "pendant.deleted",
-    "pendant.node",
-    "pendant.upload",
-    "webhook.created",
-    "webhook.deleted",
-];
+/// persisted type (jogs, commands, MDI lines, pendant connects, refusals, rewinds:
+/// high-volume traffic) is routine and also goes beyond `event_retention_count`; see
+/// [`Keeping`]. Types an older version wrote and this one no longer emits are routine.
+pub fn audit_event_types() -> Vec<&'static str> {
+    EventKind::ALL
+        .iter()
+        .filter(|k| k.keeping() == Keeping::Audit)
+        .map(|k| k.name())
+        .collect()
+}
 
 /// Rows per delete: one short write transaction each, so machine tasks and uploads waiting
 /// for the write lock get it between batches.
@@ -482,19 +668,14 @@ pub async fn prune(
     let routine_before = now - i64::from(policy.routine_days) * DAY_MS;
     let audit_before = now - i64::from(policy.audit_days) * DAY_MS;
     // Fixed for the pass: newer events only move the real cut up, never down.
+    let audit = audit_event_types();
     let cut = store
-        .routine_event_count_cut(AUDIT_EVENT_TYPES, policy.routine_count)
+        .routine_event_count_cut(&audit, policy.routine_count)
         .await?;
     let mut total = 0;
     loop {
         let n = store
-            .prune_events_batch(
-                AUDIT_EVENT_TYPES,
-                routine_before,
-                cut,
-                audit_before,
-                PRUNE_BATCH,
-            )
+            .prune_events_batch(&audit, routine_before, cut, audit_before, PRUNE_BATCH)
             .await?;
         total += n;
         if n < u64::from(PRUNE_BATCH) || budget.is_some_and(|b| started.elapsed() >= b) {
@@ -543,6 +724,78 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
 
+    /// The wire names are the API: pinned here, so a rename shows up as a failing test.
+    #[test]
+    fn event_types_keep_their_wire_names_and_keeping() {
+        let names: Vec<&str> = EventKind::ALL.iter().map(|k| k.name()).collect();
+        let mut unique = names.clone();
+        unique.sort_unstable();
+        unique.dedup();
+        assert_eq!(unique.len(), names.len(), "duplicate wire names: {names:?}");
+        for k in EventKind::ALL {
+            assert_eq!(EventKind::from_name(k.name()), Some(*k));
+        }
+        assert_eq!(EventKind::from_name("bench.event"), None);
+        let live: Vec<&str> = EventKind::ALL
+            .iter()
+            .filter(|k| !k.is_persisted())
+            .map(|k| k.name())
+            .collect();
+        assert_eq!(
+            live,
+            [
+                "status",
+                "job.progress",
+                "job.line_report",
+                "machine.io",
+                "machine.state"
+            ]
+        );
+        assert_eq!(
+            audit_event_types(),
+            [
+                "job.created",
+                "job.state",
+                "machine.created",
+                "machine.offsets",
+                "machine.part_zero",
+                "machine.alarm",
+                "machine.node",
+                "machine.tools",
+                "pendant.created",
+                "pendant.bound",
+                "pendant.macro",
+                "pendant.deleted",
+                "pendant.node",
+                "pendant.upload",
+                "webhook.created",
+                "webhook.deleted",
+            ]
+        );
+    }
+
+    /// Every persisted event goes out as JSON once, whoever reads it.
+    #[test]
+    fn an_event_is_serialised_once_and_as_before() {
+        let e = BusEvent::new(
+            Some(3),
+            EventKind::JobState.name().into(),
+            Some(1),
+            Some("op".into()),
+            5,
+            serde_json::json!({"job": 2}),
+            None,
+        );
+        let first = e.json() as *const str;
+        assert_eq!(e.json() as *const str, first);
+        let v: serde_json::Value = serde_json::from_str(e.json()).unwrap();
+        assert_eq!(
+            v,
+            serde_json::json!({"id": 3, "type": "job.state", "machine": 1, "actor": "op", "time": 5, "data": {"job": 2}})
+        );
+        assert_eq!(e.data_json(), r#"{"job":2}"#);
+    }
+
     #[tokio::test]
     async fn retention_cuts_routine_events_by_count_and_keeps_the_audit() {
         let dir = std::env::temp_dir().join(format!(
@@ -554,19 +807,24 @@ mod tests {
         let store = Store::open(&dir.join("t.db")).await.unwrap();
         let bus = EventBus::new(store.clone(), 16);
         let created = bus
-            .record("machine.created", Some(1), None, serde_json::json!({}))
+            .record(
+                EventKind::MachineCreated,
+                Some(1),
+                None,
+                serde_json::json!({}),
+            )
             .await
             .unwrap();
         let mut jogs = Vec::new();
         for _ in 0..10 {
             jogs.push(
-                bus.record("machine.jog", Some(1), None, serde_json::json!({}))
+                bus.record(EventKind::MachineJog, Some(1), None, serde_json::json!({}))
                     .await
                     .unwrap(),
             );
         }
         let state = bus
-            .record("job.state", Some(1), None, serde_json::json!({}))
+            .record(EventKind::JobState, Some(1), None, serde_json::json!({}))
             .await
             .unwrap();
         let policy = EventRetention {

@@ -4,6 +4,7 @@
 
 use crate::app::App;
 use crate::error::{Error, Result};
+use crate::events::EventKind;
 use crate::machine::Machine;
 use crate::programs::StoredProgram;
 use crate::store::{JobRow, NewJob, RunRow};
@@ -92,7 +93,7 @@ pub async fn store_program(
     };
     app.bus
         .record_or_log(
-            "job.created",
+            EventKind::JobCreated,
             Some(machine_id),
             Some(actor),
             json!({"job": id, "name": name, "sha256": sha, "lines": lines, "bytes": bytes, "source": source}),
@@ -213,31 +214,6 @@ pub fn gcode_error(e: &fresa_gcode::GcodeError, max_segments: u64) -> Error {
         ),
         _ => Error::invalid("invalid_gcode", format!("G-code error at {e}")),
     }
-}
-
-/// Job as the API shows it: the job row, its analysis and its latest run.
-pub fn job_json(job: &JobRow, run: Option<&RunRow>) -> serde_json::Value {
-    let analysis: serde_json::Value = job
-        .analysis
-        .as_deref()
-        .and_then(|a| serde_json::from_str(a).ok())
-        .unwrap_or(serde_json::Value::Null);
-    let (state, line) = match run {
-        Some(r) => (r.state.as_str(), r.last_line),
-        None => ("ready", 0),
-    };
-    let percent = if job.line_count > 0 {
-        ((line as f64 / job.line_count as f64) * 1000.0).round() / 10.0
-    } else {
-        0.0
-    };
-    json!({
-        "id": job.id, "name": job.name, "machine": job.machine_id, "sha256": job.sha256,
-        "size_bytes": job.size_bytes, "line_count": job.line_count, "source": job.source,
-        "created_at": job.created_at, "analysis": analysis,
-        "state": state, "line": line, "percent": percent,
-        "run": run,
-    })
 }
 
 /// A job by id: from the store, or, while the database is unreachable, from the machine that

@@ -8,6 +8,7 @@
 //!   cache, concurrency bound and cancellation.
 //! * [`pendants`]: handwheel pendants; their keys call the same functions the HTTP layer does.
 //! * [`events`]: the event bus and audit log. [`plugins`]: the plugin registry.
+//! * [`views`]: what the API shows (status, machine, job), the same on HTTP, SSE and MQTT.
 //! * [`webhooks`]: webhook registrations; [`integrations`]: what webhook deliveries and the MQTT
 //!   bridge (crate `fresa-integrations`) count, for `/metrics`.
 //! * [`nodes`]: several nodes on one store: which node drives a machine, heartbeats.
@@ -31,6 +32,7 @@ mod startup;
 pub mod store;
 pub mod toolpath;
 pub mod tools;
+pub mod views;
 pub mod webhooks;
 
 pub use app::{App, SharedApp};

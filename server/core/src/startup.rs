@@ -5,6 +5,7 @@ use crate::app::{App, SharedApp};
 use crate::config::Settings;
 use crate::datadir::{DataDirLock, LockError};
 use crate::events::EventBus;
+use crate::events::EventKind;
 use crate::machine::{Machine, Machines};
 use crate::plugins::Registry;
 use crate::store::RunRow;
@@ -357,7 +358,7 @@ async fn record_interrupted(bus: &EventBus, run: &RunRow) {
     if let Some(unstored) = run.unstored_line {
         data["unstored_line"] = unstored.into();
     }
-    bus.record_or_log("job.state", Some(run.machine_id), None, data)
+    bus.record_or_log(EventKind::JobState, Some(run.machine_id), None, data)
         .await;
 }
 

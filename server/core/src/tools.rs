@@ -4,6 +4,7 @@
 
 use crate::app::App;
 use crate::error::{Error, Result};
+use crate::events::EventKind;
 use crate::store::ToolRow;
 use serde_json::json;
 
@@ -102,7 +103,7 @@ pub async fn replace(
     app.store.replace_tools(machine_id, &tools).await?;
     app.bus
         .record_or_log(
-            "machine.tools",
+            EventKind::MachineTools,
             Some(machine_id),
             Some(actor),
             json!({"replaced": true, "tools": tools}),
@@ -125,7 +126,7 @@ pub async fn set(app: &App, machine_id: i64, tool: ToolRow, actor: &str) -> Resu
     app.store.upsert_tool(machine_id, &tool).await?;
     app.bus
         .record_or_log(
-            "machine.tools",
+            EventKind::MachineTools,
             Some(machine_id),
             Some(actor),
             json!({"set": tool}),
@@ -145,7 +146,7 @@ pub async fn delete(app: &App, machine_id: i64, tool: i64, actor: &str) -> Resul
     }
     app.bus
         .record_or_log(
-            "machine.tools",
+            EventKind::MachineTools,
             Some(machine_id),
             Some(actor),
             json!({"deleted": tool}),

@@ -4,6 +4,7 @@
 
 use crate::app::App;
 use crate::error::{Error, Result};
+use crate::events::EventKind;
 use crate::store::WebhookRow;
 use std::net::{IpAddr, Ipv4Addr, Ipv6Addr};
 
@@ -285,7 +286,7 @@ pub async fn create(app: &App, url: &str, events: Vec<String>, actor: &str) -> R
         .await?;
     app.bus
         .record_or_log(
-            "webhook.created",
+            EventKind::WebhookCreated,
             None,
             Some(actor),
             serde_json::json!({"id": row.id, "url": row.url, "events": events}),
@@ -303,7 +304,7 @@ pub async fn delete(app: &App, id: i64, actor: &str) -> Result<()> {
     }
     app.bus
         .record_or_log(
-            "webhook.deleted",
+            EventKind::WebhookDeleted,
             None,
             Some(actor),
             serde_json::json!({"id": id}),

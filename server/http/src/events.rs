@@ -50,10 +50,9 @@ impl Matcher {
     }
 }
 
+/// The event's JSON is made once per event (`BusEvent::json`), not once per client.
 fn to_sse(e: &BusEvent) -> Event {
-    let mut ev = Event::default()
-        .event(e.kind.clone())
-        .data(serde_json::to_string(e).unwrap_or_default());
+    let mut ev = Event::default().event(e.kind.as_str()).data(e.json());
     if let Some(id) = e.id {
         ev = ev.id(id.to_string());
     }

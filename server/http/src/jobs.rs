@@ -8,6 +8,7 @@ use axum::response::{IntoResponse, Response};
 use axum::Extension;
 use fresa_core::jobs as core;
 use fresa_core::programs::{self, PendingProgram};
+use fresa_core::views::JobView;
 use fresa_core::SharedApp;
 use futures_util::StreamExt;
 use serde::Deserialize;
@@ -62,30 +63,6 @@ pub struct Uploaded {
     analysis: Value,
 }
 
-/// A job: `id`, `name`, `machine`, `sha256`, `size_bytes`, `line_count`, `source`,
-/// `created_at`, `analysis`, `state` (`ready` before the first start, then the run's state),
-/// `line` (last acknowledged), `percent`, `run` (the latest run or null).
-#[derive(ToSchema)]
-#[allow(dead_code)] // describes `fresa_core::jobs::job_json`
-pub struct Job {
-    id: i64,
-    name: Option<String>,
-    machine: i64,
-    sha256: String,
-    size_bytes: i64,
-    line_count: i64,
-    source: String,
-    created_at: i64,
-    #[schema(value_type = Option<Object>)]
-    analysis: Value,
-    /// `ready`, `running`, `paused`, `completed`, `failed`, `cancelled`, `interrupted`.
-    state: String,
-    line: i64,
-    percent: f64,
-    #[schema(value_type = Option<Object>)]
-    run: Value,
-}
-
 /// Run control: what `POST /jobs/{id}/{action}` does.
 #[derive(ToSchema)]
 #[schema(rename_all = "snake_case")]
@@ -99,13 +76,13 @@ pub enum JobAction {
 
 #[utoipa::path(get, path = "/jobs", tag = "jobs", params(ListParams),
     responses(
-        (status = 200, description = "Jobs, newest first", body = [Job]),
+        (status = 200, description = "Jobs, newest first", body = [JobView]),
         (status = 400, description = "`invalid_query`", body = ErrorBody),
     ))]
 pub async fn list(
     State(app): State<SharedApp>,
     Query(p): Query<ListParams>,
-) -> Result<Json<Vec<Value>>, ApiError> {
+) -> Result<Json<Vec<JobView>>, ApiError> {
     let jobs = app
         .store
         .list_jobs(p.machine, p.limit.unwrap_or(100).clamp(1, 1000))
@@ -120,7 +97,7 @@ pub async fn list(
         .collect();
     let out = jobs
         .iter()
-        .map(|j| core::job_json(j, runs.get(&j.id)))
+        .map(|j| JobView::new(j, runs.get(&j.id)))
         .collect();
     Ok(Json(out))
 }
@@ -128,20 +105,20 @@ pub async fn list(
 #[utoipa::path(get, path = "/jobs/{id}", tag = "jobs",
     params(("id" = i64, Path, description = "job id", example = 1)),
     responses(
-        (status = 200, description = "The job", body = Job),
+        (status = 200, description = "The job", body = JobView),
         (status = 404, description = "`unknown_job`", body = ErrorBody),
     ))]
 pub async fn get_one(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
-) -> Result<Json<Value>, ApiError> {
+) -> Result<Json<JobView>, ApiError> {
     let job = app
         .store
         .job(id)
         .await?
         .ok_or_else(|| ApiError::not_found("unknown_job", format!("no job with id {id}")))?;
     let run = app.store.latest_run(id).await?;
-    Ok(Json(core::job_json(&job, run.as_ref())))
+    Ok(Json(JobView::new(&job, run.as_ref())))
 }
 
 #[utoipa::path(get, path = "/jobs/{id}/gcode", tag = "jobs",
@@ -347,7 +324,7 @@ pub struct ResumeBody {
            ("action" = inline(JobAction), Path, description = "`resume` also continues an `interrupted` or `failed` run from the next unacknowledged line", example = "start")),
     request_body(content = Option<ResumeBody>, description = "Only for `resume`, optional"),
     responses(
-        (status = 200, description = "Done: the job with its run (answered only once true: a `cancel` after motion stopped)", body = Job),
+        (status = 200, description = "Done: the job with its run (answered only once true: a `cancel` after motion stopped)", body = JobView),
         (status = 400, description = "`invalid_json`", body = ErrorBody),
         (status = 404, description = "`unknown_job`, `unknown_action`", body = ErrorBody),
         (status = 409, description = "`machine_busy`, `not_started`, `not_running`, `not_resumable`, `not_cancellable`, `part_zero_changed`, `line_unconfirmed` (the stored line may be behind: resume with `confirm_line`), `stopped`, `backend_rejected`", body = ErrorBody),
@@ -359,7 +336,7 @@ pub async fn control(
     Path((id, action)): Path<(i64, String)>,
     Extension(caller): Extension<Caller>,
     body: axum::body::Bytes,
-) -> Result<Json<Value>, ApiError> {
+) -> Result<Json<JobView>, ApiError> {
     // Read first: while the database is unreachable the job is known from its machine only as
     // long as its run is current, and a cancel ends that.
     let job = core::job(&app, id).await?;
@@ -391,7 +368,7 @@ pub async fn control(
             ))
         }
     };
-    Ok(Json(core::job_json(&job, Some(&run))))
+    Ok(Json(JobView::new(&job, Some(&run))))
 }
 
 #[derive(Deserialize)]

@@ -4,12 +4,12 @@ use crate::openapi::ErrorBody;
 use axum::extract::State;
 use axum::http::StatusCode;
 use axum::Extension;
+use fresa_core::events::EventKind;
 use fresa_core::machine::{limits, Machine};
 use fresa_core::store::MachineRow;
+use fresa_core::views::{MachineView, StatusView};
 use fresa_core::SharedApp;
-use fresa_plugin_api::contract::{
-    Axis, AxisValues, Command, MachineState, MachineStatus, WorkOffset,
-};
+use fresa_plugin_api::contract::{Axis, AxisValues, Command, MachineStatus, WorkOffset};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 use std::sync::Arc;
@@ -22,45 +22,12 @@ async fn machine(app: &SharedApp, id: i64) -> Result<Arc<Machine>, ApiError> {
         .ok_or_else(|| ApiError::not_found("unknown_machine", format!("no machine with id {id}")))
 }
 
-/// A machine: its stored row and live state.
-#[derive(Serialize, ToSchema)]
-#[schema(as = Machine)]
-pub struct MachineView {
-    id: i64,
-    name: String,
-    /// The plugin that drives it, e.g. `sim-machine`.
-    backend: String,
-    /// The backend's own settings, as given at creation.
-    #[schema(value_type = Object)]
-    config: Value,
-    max_jog_mm: f64,
-    max_feed_mm_min: f64,
-    state: MachineState,
-    /// Why the machine is offline or unresponsive, when it is.
-    reason: Option<String>,
-    /// Milliseconds since the Unix epoch.
-    created_at: i64,
-    /// The node that drives it (see `GET /nodes`); requests for it are carried out there.
-    node: Option<String>,
-}
-
 fn machine_json(m: &Machine) -> MachineView {
-    view(m.row(), m.status())
+    MachineView::new(m.row(), m.status())
 }
 
 fn view(row: MachineRow, status: MachineStatus) -> MachineView {
-    MachineView {
-        id: row.id,
-        config: row.config_json(),
-        name: row.name,
-        backend: row.backend,
-        max_jog_mm: row.max_jog_mm,
-        max_feed_mm_min: row.max_feed_mm_min,
-        state: status.state,
-        reason: status.reason,
-        created_at: row.created_at,
-        node: row.node,
-    }
+    MachineView::new(row, status)
 }
 
 /// A machine this node does not drive, from the store and its node's last heartbeat.
@@ -219,25 +186,13 @@ pub async fn create(
     app.machines.insert(m).await;
     app.bus
         .record_or_log(
-            "machine.created",
+            EventKind::MachineCreated,
             Some(id),
             Some(&caller.name),
             json!({"id": id, "name": name, "backend": req.backend}),
         )
         .await;
     Ok((StatusCode::CREATED, Json(Created { id })))
-}
-
-/// A machine's status: what the backend reports, plus the machine id and the running job.
-#[derive(Serialize, ToSchema)]
-#[schema(as = Status)]
-pub struct StatusView {
-    #[serde(flatten)]
-    status: MachineStatus,
-    machine: i64,
-    /// `job`, `run`, `line`, `total_lines`, `percent` of the active run; null when none.
-    #[schema(value_type = Option<Object>)]
-    job: Option<Value>,
 }
 
 #[utoipa::path(get, path = "/machines/{id}/status", tag = "machines",
@@ -251,18 +206,14 @@ pub async fn status(
     Path(id): Path<i64>,
 ) -> Result<Json<StatusView>, ApiError> {
     match app.machines.get(id).await {
-        Some(m) => Ok(Json(status_json(&m, m.status()))),
+        Some(m) => Ok(Json(m.status_view())),
         // Reached for another node's machine only while that node is unreachable (otherwise
         // the request was forwarded): offline, and why.
         None => {
             let row = app.store.machine(id).await?.ok_or_else(|| {
                 ApiError::not_found("unknown_machine", format!("no machine with id {id}"))
             })?;
-            Ok(Json(StatusView {
-                status: app.remote_status(&row).await,
-                machine: id,
-                job: None,
-            }))
+            Ok(Json(StatusView::remote(id, app.remote_status(&row).await)))
         }
     }
 }
@@ -316,21 +267,13 @@ pub async fn set_node(
     }
     app.bus
         .record_or_log(
-            "machine.node",
+            EventKind::MachineNode,
             Some(id),
             Some(&caller.name),
             json!({"from": before.node, "to": req.node}),
         )
         .await;
     remote_view(&app, id).await.map(Json)
-}
-
-fn status_json(m: &Machine, status: MachineStatus) -> StatusView {
-    StatusView {
-        status,
-        machine: m.id,
-        job: m.run().map(|r| r.progress_json()),
-    }
 }
 
 #[derive(Deserialize, ToSchema)]

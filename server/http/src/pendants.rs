@@ -5,6 +5,7 @@ use crate::openapi::ErrorBody;
 use axum::extract::State;
 use axum::http::StatusCode;
 use axum::Extension;
+use fresa_core::events::EventKind;
 use fresa_core::pendants as core;
 use fresa_core::store::MacroAction;
 use fresa_core::SharedApp;
@@ -213,7 +214,7 @@ pub async fn create(
     core::attach(&app, row, Ok(created)).await;
     app.bus
         .record_or_log(
-            "pendant.created",
+            EventKind::PendantCreated,
             req.machine,
             Some(&caller.name),
             json!({"pendant": id, "name": name, "address": req.address, "machine": req.machine}),
@@ -362,7 +363,7 @@ pub async fn patch(
         p.set_machine(machine);
         app.bus
             .record_or_log(
-                "pendant.bound",
+                EventKind::PendantBound,
                 machine,
                 Some(&caller.name),
                 json!({"pendant": id, "machine": machine}),
@@ -375,7 +376,7 @@ pub async fn patch(
             .await?;
         app.bus
             .record_or_log(
-                "pendant.macro",
+                EventKind::PendantMacro,
                 p.row().machine_id,
                 Some(&caller.name),
                 json!({"pendant": id, "key": format!("M{slot}"), "action": action}),
@@ -402,7 +403,7 @@ pub async fn delete(
     app.store.delete_pendant(id).await?;
     app.bus
         .record_or_log(
-            "pendant.deleted",
+            EventKind::PendantDeleted,
             None,
             Some(&caller.name),
             json!({"pendant": id}),
@@ -456,7 +457,7 @@ pub async fn set_node(
         json!({"pendant": id, "from": before.node, "node": req.node, "machine": after.machine_id});
     app.bus
         .record_or_log(
-            "pendant.node",
+            EventKind::PendantNode,
             before.machine_id,
             Some(&caller.name),
             body.clone(),

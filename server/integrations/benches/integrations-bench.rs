@@ -9,6 +9,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+use fresa_core::events::EventKind;
 use fresa_core::{App, SharedApp};
 use rumqttc::{AsyncClient, Event, MqttOptions, Packet, QoS};
 use serde_json::json;
@@ -140,7 +141,12 @@ async fn mqtt_events_per_second(n: u64) {
     let start = Instant::now();
     for i in 0..n {
         app.bus
-            .record("bench.event", None, Some("bench"), json!({"i": i}))
+            .record(
+                EventKind::MachineCommand,
+                None,
+                Some("bench"),
+                json!({"i": i}),
+            )
             .await
             .unwrap();
     }
@@ -200,7 +206,8 @@ async fn status_cpu(n: u64, mqtt_port: Option<u16>, measure_at_broker: bool) -> 
         for i in 0..1000 {
             let mut s = status.clone();
             s["machine_position"]["x"] = json!((sent + i) as f64);
-            app.bus.transient("status", Some(1 + (i % 8) as i64), s);
+            app.bus
+                .transient(EventKind::Status, Some(1 + (i % 8) as i64), s);
         }
         sent += 1000;
         wait_until("the bus readers caught up", Duration::from_secs(60), || {
@@ -284,14 +291,19 @@ async fn webhook_deliveries(n: u64, hooks: u64) {
     let integrations = fresa_integrations::start(app.clone());
     let (url, got) = receiver().await;
     for _ in 0..hooks {
-        fresa_core::webhooks::create(&app, &url, vec!["bench".into()], "bench")
+        fresa_core::webhooks::create(&app, &url, vec!["machine.command".into()], "bench")
             .await
             .unwrap();
     }
     let start = Instant::now();
     for i in 0..n {
         app.bus
-            .record("bench.event", None, Some("bench"), json!({"i": i}))
+            .record(
+                EventKind::MachineCommand,
+                None,
+                Some("bench"),
+                json!({"i": i}),
+            )
             .await
             .unwrap();
     }

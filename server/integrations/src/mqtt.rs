@@ -23,7 +23,7 @@
 //! `try_publish`; a full queue (broker slow or gone) drops the message and counts it.
 
 use fresa_core::config::MqttSettings;
-use fresa_core::events::BusEvent;
+use fresa_core::events::{BusEvent, EventKind};
 use fresa_core::integrations::IntegrationStats;
 use fresa_core::SharedApp;
 use rumqttc::{AsyncClient, Event, EventLoop, LastWill, MqttOptions, Packet, QoS};
@@ -93,21 +93,6 @@ fn online_payload(online: bool, node: &str) -> Vec<u8> {
     json!({"online": online, "node": node, "version": env!("CARGO_PKG_VERSION")})
         .to_string()
         .into_bytes()
-}
-
-/// A machine's status as `GET /machines/{id}/status` answers it: the backend's status plus
-/// `machine` and the running job's progress (`job`, or null).
-pub async fn status_json(app: &SharedApp, machine: i64, status: &Value) -> Value {
-    let mut v = status.clone();
-    if let Some(o) = v.as_object_mut() {
-        o.insert("machine".into(), json!(machine));
-        let job = match app.machines.get(machine).await {
-            Some(m) => m.run().map(|r| r.progress_json()),
-            None => None,
-        };
-        o.insert("job".into(), job.unwrap_or(Value::Null));
-    }
-    v
 }
 
 /// Starts the bridge; it ends when the app shuts down (after saying it goes offline).
@@ -237,22 +222,19 @@ async fn publish_events(
         if !app.bus.is_local(&ev) {
             continue;
         }
-        for (topic, qos, retain, payload) in messages(&app, &topics, &ev).await {
+        for (topic, qos, retain, payload) in messages(&topics, &ev) {
             offer(&app, &client, topic, qos, retain, payload);
         }
     }
 }
 
 /// What one bus event becomes on the broker.
-async fn messages(
-    app: &SharedApp,
-    topics: &Topics,
-    ev: &BusEvent,
-) -> Vec<(String, QoS, bool, Vec<u8>)> {
+fn messages(topics: &Topics, ev: &BusEvent) -> Vec<(String, QoS, bool, Vec<u8>)> {
     let mut out = Vec::new();
-    if ev.kind == "status" {
+    if ev.is(EventKind::Status) {
+        // The event's data is the status view `GET /machines/{id}/status` answers with.
         if let Some(m) = ev.machine {
-            let body = status_json(app, m, &ev.data).await.to_string().into_bytes();
+            let body = ev.data_json().as_bytes().to_vec();
             out.push((topics.status(m), QoS::AtMostOnce, true, body));
         }
         return out;
@@ -261,7 +243,7 @@ async fn messages(
         // Other live-only events (progress, line reports) stay on the event stream.
         return out;
     }
-    if ev.kind == "job.state" {
+    if ev.is(EventKind::JobState) {
         if let Some(job) = ev.data["job"].as_i64() {
             let mut body = ev.data.clone();
             if let Some(o) = body.as_object_mut() {
@@ -276,9 +258,12 @@ async fn messages(
             ));
         }
     }
-    if let Ok(body) = serde_json::to_vec(ev) {
-        out.push((topics.event(&ev.kind), QoS::AtLeastOnce, false, body));
-    }
+    out.push((
+        topics.event(&ev.kind),
+        QoS::AtLeastOnce,
+        false,
+        ev.json().as_bytes().to_vec(),
+    ));
     out
 }
 
@@ -324,11 +309,8 @@ async fn announce(
                     left.remove(0);
                     continue;
                 };
-                let status = json!(m.status());
-                let body = status_json(app, *id, &status)
-                    .await
-                    .to_string()
-                    .into_bytes();
+                // The same view as `GET /machines/{id}/status` and the `status` event.
+                let body = serde_json::to_vec(&m.status_view()).unwrap_or_default();
                 (topics.status(*id), QoS::AtMostOnce, body)
             }
         };

@@ -15,7 +15,7 @@
 //! where the key is the webhook's secret string (UTF-8 bytes, `whsec_...` included).
 
 use fresa_core::config::WebhookSettings;
-use fresa_core::events::BusEvent;
+use fresa_core::events::{BusEvent, EventKind};
 use fresa_core::integrations::IntegrationStats;
 use fresa_core::store::{DeliveryOutcome, WebhookTarget};
 use fresa_core::webhooks::{refusal_message, TargetPolicy};
@@ -168,7 +168,7 @@ async fn dispatch(app: SharedApp, mut rx: tokio::sync::broadcast::Receiver<Arc<B
                 if ev.id.is_none() {
                     continue;
                 }
-                if ev.kind == "webhook.created" || ev.kind == "webhook.deleted" {
+                if ev.is(EventKind::WebhookCreated) || ev.is(EventKind::WebhookDeleted) {
                     sync_workers(&app, &client, &mut workers).await;
                 }
                 // On a store shared by nodes each node delivers its own events (once each).
@@ -278,17 +278,8 @@ async fn deliver(
     ev: &BusEvent,
     stop: &CancellationToken,
 ) -> Option<DeliveryOutcome> {
-    let body = match serde_json::to_vec(ev) {
-        Ok(b) => b,
-        Err(e) => {
-            return Some(DeliveryOutcome {
-                ok: false,
-                status: None,
-                error: Some(format!("cannot serialise the event: {e}")),
-                attempts: 0,
-            })
-        }
-    };
+    // Serialised once per event, shared with SSE and MQTT.
+    let body = ev.json().as_bytes().to_vec();
     let delivery = format!("{}-{}", target.id, ev.id.unwrap_or(0));
     let mut delay = settings.retry_initial;
     let mut outcome = DeliveryOutcome {

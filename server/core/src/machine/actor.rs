@@ -17,6 +17,7 @@ use super::lanes::{BackendError, Lanes};
 use super::{Gate, Msg, RunView};
 use crate::error::{Error, Result};
 use crate::events::EventBus;
+use crate::events::EventKind;
 use crate::store::{JobRow, MachineRow, PartZeroRow, RunRow, RunState, Store};
 use fresa_plugin_api::contract::{
     AxisValues, Command, Event, MachineState, MachineStatus, OffsetTable, OutputName,
@@ -52,8 +53,6 @@ pub(super) struct Task {
     /// The runs whose acknowledged lines are only in `pending`, recorded beside the store so a
     /// restart knows their stored line is behind.
     pub unstored: super::unstored::Marker,
-    /// Warnings that can repeat per backend event: rate-limited.
-    pub quiet: fresa_plugin_api::quiet::Quiet,
     /// Pause and cancel ([`Msg::Pause`], [`Msg::Cancel`]): served before the ordinary channel,
     /// and also while an ordinary backend call is under way (see [`Task::call_raw`]). Locked by
     /// whoever listens, so a pause served inside a call does not listen again, and a call
@@ -105,7 +104,7 @@ impl Task {
     pub async fn run(
         mut self,
         mut requests: mpsc::UnboundedReceiver<Msg>,
-        mut events: Option<mpsc::UnboundedReceiver<Value>>,
+        mut events: Option<mpsc::UnboundedReceiver<Event>>,
     ) {
         let mut batch = Vec::new();
         // The store's health lives as long as the store this task holds: never closed.
@@ -125,7 +124,7 @@ impl Task {
                         events = None;
                         continue;
                     }
-                    let drained: Vec<Value> = std::mem::take(&mut batch);
+                    let drained: Vec<Event> = std::mem::take(&mut batch);
                     self.handle_events(drained).await;
                 }
                 msg = async {
@@ -156,7 +155,7 @@ impl Task {
     }
 
     /// One message, after the backend events queued before it.
-    async fn serve(&mut self, msg: Msg, events: &mut Option<mpsc::UnboundedReceiver<Value>>) {
+    async fn serve(&mut self, msg: Msg, events: &mut Option<mpsc::UnboundedReceiver<Event>>) {
         self.drain_events(events).await;
         // Writes kept during an outage land before anything the request changes.
         if !self.pending.is_empty() {
@@ -165,7 +164,7 @@ impl Task {
         self.handle(msg).await;
     }
 
-    async fn drain_events(&mut self, events: &mut Option<mpsc::UnboundedReceiver<Value>>) {
+    async fn drain_events(&mut self, events: &mut Option<mpsc::UnboundedReceiver<Event>>) {
         let Some(rx) = events.as_mut() else { return };
         let mut pending = Vec::new();
         while let Ok(e) = rx.try_recv() {
@@ -371,7 +370,7 @@ impl Task {
         };
         if let Some(changed) = changed {
             self.bus.transient(
-                "machine.io",
+                EventKind::MachineIo,
                 Some(self.id),
                 json!({"inputs": s.inputs, "outputs": s.outputs, "changed": changed}),
             );
@@ -379,7 +378,7 @@ impl Task {
         self.status.send_replace(s);
     }
 
-    async fn record(&self, kind: &str, actor: &str, data: Value) {
+    async fn record(&self, kind: EventKind, actor: &str, data: Value) {
         self.bus
             .record_or_log(kind, Some(self.id), Some(actor), data)
             .await;
@@ -499,7 +498,7 @@ impl Task {
             }
         }
         if let Some(event) = op.audit {
-            self.record(event, actor, audit_data(&request, &answer))
+            self.record(event.into(), actor, audit_data(&request, &answer))
                 .await;
         }
         if op.refreshes_status {
@@ -527,7 +526,7 @@ impl Task {
         self.row
             .send_modify(|r| r.active_offset = table.active.name().to_string());
         self.bus
-            .record_or_log("machine.offsets", Some(self.id), None, json!(table))
+            .record_or_log(EventKind::MachineOffsets, Some(self.id), None, json!(table))
             .await;
         Ok(table)
     }
@@ -588,7 +587,8 @@ impl Task {
                     .insert_part_zero(self.id, at, source, actor, note),
             )
             .await?;
-        self.record("machine.part_zero", actor, json!(row)).await;
+        self.record(EventKind::MachinePartZero, actor, json!(row))
+            .await;
         Ok(row)
     }
 
@@ -703,7 +703,7 @@ impl Task {
 
     async fn record_transition(&self, row: &RunRow, actor: Option<&str>) {
         self.bus
-            .record_or_log("job.state", Some(self.id), actor, run_event(row))
+            .record_or_log(EventKind::JobState, Some(self.id), actor, run_event(row))
             .await;
     }
 
@@ -881,7 +881,8 @@ impl Task {
         }));
         // The store says `running` from here on, and so does the audit log, before the backend
         // can finish or fail the run (so it never shows `completed` or `failed` without it).
-        self.record("job.state", actor, run_event(&run)).await;
+        self.record(EventKind::JobState, actor, run_event(&run))
+            .await;
         let started = async {
             // The table the backend interprets with: the one the upload check used, unless it
             // was edited since (then the backend's own check decides).
@@ -1219,26 +1220,16 @@ impl Task {
 
     /// Persists what the backend reports. Line acknowledgements are coalesced: only the highest
     /// line per run in a batch is written, in one transaction.
-    async fn handle_events(&mut self, batch: Vec<Value>) {
-        for raw in batch {
-            let event: Event = match serde_json::from_value(raw.clone()) {
-                Ok(e) => e,
-                Err(e) => {
-                    if let Some(line) = self.quiet.admit("unknown-event", || {
-                        format!("unknown backend event {raw}; ignored: {e}")
-                    }) {
-                        tracing::warn!(machine = self.id, "{line}");
-                    }
-                    continue;
-                }
-            };
+    /// Events arrive decoded (the sink decodes them from the plugin's bytes on its thread).
+    async fn handle_events(&mut self, batch: Vec<Event>) {
+        for event in batch {
             match event {
                 Event::Status(s) => self.publish_status(s),
                 Event::LineAcknowledged { run, line } => self.pending.ack(run, line),
                 Event::StateChanged { from, to } => {
                     self.status.send_modify(|s| s.state = to);
                     self.bus.transient(
-                        "machine.state",
+                        EventKind::MachineState,
                         Some(self.id),
                         json!({"from": from, "to": to}),
                     );
@@ -1249,7 +1240,7 @@ impl Task {
                         None => json!({ "message": message }),
                     };
                     self.bus
-                        .record_or_log("machine.alarm", Some(self.id), None, data)
+                        .record_or_log(EventKind::MachineAlarm, Some(self.id), None, data)
                         .await;
                 }
                 Event::RunEnded {
@@ -1280,7 +1271,7 @@ impl Task {
                         .filter(|c| c.run_id == run)
                         .map(|c| c.job_id);
                     self.bus.transient(
-                        "job.line_report",
+                        EventKind::JobLineReport,
                         Some(self.id),
                         json!({"job": job, "run": run, "line": line,
                                "max_deviation_mm": max_deviation_mm,
@@ -1328,7 +1319,10 @@ impl Task {
             )
             .await
         {
-            Ok(row) => self.record("machine.part_zero", "robot", json!(row)).await,
+            Ok(row) => {
+                self.record(EventKind::MachinePartZero, "robot", json!(row))
+                    .await
+            }
             Err(e) => {
                 tracing::error!(machine = self.id, error = %e, "could not store the reported part zero")
             }
@@ -1440,7 +1434,6 @@ mod tests {
             launched: Some(run.clone()),
             pending: PendingWrites::default(),
             unstored: super::super::unstored::Marker::start(&dir.0.join("unstored"), m),
-            quiet: fresa_plugin_api::quiet::Quiet::per_minute(),
             urgent: Arc::new(tokio::sync::Mutex::new(mpsc::unbounded_channel().1)),
             loading: None,
             held_before_start: None,
@@ -1466,10 +1459,6 @@ mod tests {
                 let _ = std::fs::remove_dir_all(&self.0);
             }
         }
-    }
-
-    fn ev(e: Event) -> Value {
-        serde_json::to_value(e).unwrap()
     }
 
     async fn job_state_events(store: &Store) -> Vec<Value> {
@@ -1509,16 +1498,16 @@ mod tests {
         let (mut task, run, dir) = task_with_run().await;
         let unstored = dir.0.join("unstored");
         let store = task.store.clone();
-        task.handle_events(vec![ev(Event::LineAcknowledged {
+        task.handle_events(vec![Event::LineAcknowledged {
             run: run.id,
             line: 2,
-        })])
+        }])
         .await;
         store.health().mark_down("test outage");
-        task.handle_events(vec![ev(Event::LineAcknowledged {
+        task.handle_events(vec![Event::LineAcknowledged {
             run: run.id,
             line: 7,
-        })])
+        }])
         .await;
         unstored_record(&unstored, "line 7 recorded", |left| {
             matches!(left, [LeftBehind::Record(_, r)]
@@ -1539,14 +1528,14 @@ mod tests {
         store.health().mark_down("test outage");
 
         task.handle_events(vec![
-            ev(Event::LineAcknowledged {
+            Event::LineAcknowledged {
                 run: run.id,
                 line: 3,
-            }),
-            ev(Event::LineAcknowledged {
+            },
+            Event::LineAcknowledged {
                 run: run.id,
                 line: 5,
-            }),
+            },
         ])
         .await;
         // Shown from memory, not written.
@@ -1571,15 +1560,15 @@ mod tests {
         assert!(refused.message.contains("t.db"), "{}", refused.message);
 
         task.handle_events(vec![
-            ev(Event::LineAcknowledged {
+            Event::LineAcknowledged {
                 run: run.id,
                 line: 10,
-            }),
-            ev(Event::RunEnded {
+            },
+            Event::RunEnded {
                 run: run.id,
                 outcome: RunOutcome::Completed,
                 message: None,
-            }),
+            },
         ])
         .await;
         // The machine is free in memory; the store has not heard of any of it.
@@ -1589,11 +1578,11 @@ mod tests {
         assert_eq!(task.pending.acks.get(&run.id), Some(&10));
         assert_eq!(task.pending.transitions.len(), 1);
         // A duplicate end reported during the outage is not kept twice.
-        task.handle_events(vec![ev(Event::RunEnded {
+        task.handle_events(vec![Event::RunEnded {
             run: run.id,
             outcome: RunOutcome::Cancelled,
             message: None,
-        })])
+        }])
         .await;
         assert_eq!(task.pending.transitions.len(), 1);
 
@@ -1608,11 +1597,11 @@ mod tests {
         assert_eq!(states[0]["line"], 10);
 
         // Nothing is written twice: a late duplicate end is ignored.
-        task.handle_events(vec![ev(Event::RunEnded {
+        task.handle_events(vec![Event::RunEnded {
             run: run.id,
             outcome: RunOutcome::Completed,
             message: None,
-        })])
+        }])
         .await;
         assert_eq!(job_state_events(&store).await.len(), 1);
     }
@@ -1647,15 +1636,30 @@ mod tests {
         let store = task.store.clone();
         let bus = task.bus.clone();
         store.health().mark_down("test outage");
-        bus.record_or_log("machine.command", Some(1), Some("op"), json!({"n": 1}))
-            .await;
-        bus.record_or_log("machine.command", Some(1), Some("op"), json!({"n": 2}))
-            .await;
+        bus.record_or_log(
+            EventKind::MachineCommand,
+            Some(1),
+            Some("op"),
+            json!({"n": 1}),
+        )
+        .await;
+        bus.record_or_log(
+            EventKind::MachineCommand,
+            Some(1),
+            Some("op"),
+            json!({"n": 2}),
+        )
+        .await;
         assert_eq!(bus.delayed_counts(), (2, 0));
         assert!(store.events_after(0, 10).await.unwrap().is_empty());
         store.health().mark_up();
-        bus.record_or_log("machine.command", Some(1), Some("op"), json!({"n": 3}))
-            .await;
+        bus.record_or_log(
+            EventKind::MachineCommand,
+            Some(1),
+            Some("op"),
+            json!({"n": 3}),
+        )
+        .await;
         let written: Vec<Value> = store
             .events_after(0, 10)
             .await

@@ -13,11 +13,14 @@ pub use lanes::BackendError;
 
 use crate::error::{Error, Result};
 use crate::events::EventBus;
+use crate::events::EventKind;
 use crate::store::{JobRow, MachineRow, PartZeroRow, RunRow, RunState, Store};
+use crate::views::{JobProgress, StatusView};
 use fresa_plugin_api::contract::{
-    Axis, AxisValues, Command, MachineState, MachineStatus, Request, WorkOffset,
+    Axis, AxisValues, Command, Event, MachineState, MachineStatus, Request, WorkOffset,
 };
 use fresa_plugin_api::host::{HostSink, Instance, PluginLibrary};
+use fresa_plugin_api::quiet::Quiet;
 use serde_json::{json, Value};
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -49,14 +52,9 @@ pub struct RunView {
 }
 
 impl RunView {
-    pub fn progress_json(&self) -> Value {
-        let percent = if self.total_lines > 0 {
-            (self.line as f64 / self.total_lines as f64 * 100.0).min(100.0)
-        } else {
-            0.0
-        };
-        json!({"job": self.job_id, "run": self.run_id, "line": self.line,
-               "total_lines": self.total_lines, "percent": (percent * 10.0).round() / 10.0})
+    /// Its progress as `job.progress` and a status's `job` show it.
+    pub fn progress(&self) -> JobProgress {
+        JobProgress::new(self.job_id, self.run_id, self.line, self.total_lines)
     }
 }
 
@@ -102,21 +100,58 @@ impl Gate {
 /// A backend instance created but not yet attached to a machine.
 pub struct Prepared {
     instance: Instance,
-    events: mpsc::UnboundedReceiver<Value>,
+    events: mpsc::UnboundedReceiver<Event>,
     machine_id: Arc<AtomicI64>,
 }
 
 struct Sink {
-    tx: mpsc::UnboundedSender<Value>,
+    tx: mpsc::UnboundedSender<Event>,
     /// Set once the machine row exists; 0 while the config is being checked.
     machine_id: Arc<AtomicI64>,
+    /// An unknown event repeats per event: warned about once a minute, with a count.
+    quiet: Quiet,
+}
+
+impl Sink {
+    /// Queues a decoded event, or warns about one that is JSON but not a contract event.
+    fn accept(
+        &self,
+        decoded: std::result::Result<Event, serde_json::Error>,
+        raw: &dyn Fn() -> String,
+    ) {
+        match decoded {
+            // Unbounded on purpose: a plugin thread must never block on the host, and every
+            // line acknowledgement matters. The task drains in batches.
+            Ok(e) => {
+                let _ = self.tx.send(e);
+            }
+            Err(e) => {
+                if let Some(line) = self.quiet.admit("unknown-event", || {
+                    format!("unknown backend event {}; ignored: {e}", raw())
+                }) {
+                    let id = Some(self.machine_id.load(Ordering::Relaxed)).filter(|&id| id != 0);
+                    tracing::warn!(machine = id, "{line}");
+                }
+            }
+        }
+    }
 }
 
 impl HostSink for Sink {
     fn event(&self, event: Value) {
-        // Unbounded on purpose: a plugin thread must never block on the host, and every
-        // line acknowledgement matters. The task drains in batches.
-        let _ = self.tx.send(event);
+        use serde::Deserialize;
+        self.accept(Event::deserialize(&event), &|| event.to_string());
+    }
+    /// On the plugin's thread: straight from the plugin's bytes to the contract's event.
+    fn event_json(&self, bytes: &[u8]) -> std::result::Result<(), serde_json::Error> {
+        match serde_json::from_slice::<Event>(bytes) {
+            // Not JSON at all: the host says so.
+            Err(e) if e.is_syntax() || e.is_eof() => Err(e),
+            decoded => {
+                self.accept(decoded, &|| String::from_utf8_lossy(bytes).into_owned());
+                Ok(())
+            }
+        }
     }
     fn log(&self, level: u32, message: &str) {
         use fresa_plugin_api::abi::*;
@@ -220,6 +255,7 @@ impl Machine {
         let sink = Arc::new(Sink {
             tx,
             machine_id: machine_id.clone(),
+            quiet: Quiet::per_minute(),
         });
         let lib = library.clone();
         match tokio::task::spawn_blocking(move || lib.create(&config, sink)).await {
@@ -299,7 +335,6 @@ impl Machine {
             launched: None,
             pending: Default::default(),
             unstored: unstored::Marker::start(&opts.unstored_dir, row.id),
-            quiet: fresa_plugin_api::quiet::Quiet::per_minute(),
             urgent: Arc::new(tokio::sync::Mutex::new(urgent_rx)),
             loading: None,
             held_before_start: None,
@@ -337,6 +372,16 @@ impl Machine {
     }
 
     /// The current run, if any.
+    /// The status as the API, the `status` event and the MQTT bridge show it: the backend's
+    /// status, the machine id and the active run's progress.
+    pub fn status_view(&self) -> StatusView {
+        StatusView {
+            status: self.status(),
+            machine: self.id,
+            job: self.run().map(|r| r.progress()),
+        }
+    }
+
     pub fn run(&self) -> Option<RunView> {
         *self.run.borrow()
     }
@@ -448,7 +493,7 @@ impl Machine {
         let answer = self.urgent(&Request::Command(command)).await?;
         self.bus
             .record_or_log(
-                "machine.command",
+                EventKind::MachineCommand,
                 Some(self.id),
                 Some(actor),
                 json!(command),
@@ -500,7 +545,7 @@ impl Machine {
         self.urgent(&Request::Command(Command::Stop)).await?;
         self.bus
             .record_or_log(
-                "machine.jog_cancel",
+                EventKind::MachineJogCancel,
                 Some(self.id),
                 Some(actor),
                 json!({"state_before": was}),
@@ -669,7 +714,7 @@ impl Machine {
 /// Publishes status and job progress at most once per interval, and only when they changed.
 /// Read-only: it changes nothing the task owns.
 async fn status_loop(machine: Arc<Machine>, bus: EventBus, interval: Duration) {
-    let mut last_sent: Option<MachineStatus> = None;
+    let mut last_sent: Option<StatusView> = None;
     let mut last_progress: Option<(i64, i64)> = None;
     let mut tick = tokio::time::interval(interval);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -678,19 +723,20 @@ async fn status_loop(machine: Arc<Machine>, bus: EventBus, interval: Duration) {
         if machine.tx.is_closed() {
             return;
         }
-        let current = machine.status();
+        // The view as `GET /machines/{id}/status` shows it (job progress included), so the
+        // last `status` event, the retained MQTT status and the API agree once it settles.
+        let current = machine.status_view();
+        let progress = current.job.as_ref().map(|j| (j.run, j.line));
         if last_sent.as_ref() != Some(&current) {
-            bus.transient("status", Some(machine.id), json!(current));
-            last_sent = Some(current);
+            bus.transient(EventKind::Status, Some(machine.id), json!(current));
         }
-        let run = machine.run();
-        let progress = run.map(|r| (r.run_id, r.line));
         if progress != last_progress {
-            if let Some(r) = run {
-                bus.transient("job.progress", Some(machine.id), r.progress_json());
+            if let Some(p) = &current.job {
+                bus.transient(EventKind::JobProgress, Some(machine.id), json!(p));
             }
             last_progress = progress;
         }
+        last_sent = Some(current);
     }
 }
 

@@ -6,6 +6,7 @@
 
 use crate::app::App;
 use crate::error::{Error, ErrorKind};
+use crate::events::EventKind;
 use crate::machine::Machine;
 use crate::store::{MacroAction, PendantRow, RunState};
 use fresa_plugin_api::contract::{
@@ -206,7 +207,7 @@ async fn urgent_loop(app: Arc<App>, p: Arc<Pendant>) {
                     let m = p.row().machine_id;
                     app.bus
                         .record_or_log(
-                            "pendant.connected",
+                            EventKind::PendantConnected,
                             m,
                             Some(&p.actor()),
                             json!({"pendant": p.id, "address": address}),
@@ -218,7 +219,7 @@ async fn urgent_loop(app: Arc<App>, p: Arc<Pendant>) {
                     let m = p.row().machine_id;
                     app.bus
                         .record_or_log(
-                            "pendant.lost",
+                            EventKind::PendantLost,
                             m,
                             Some(&p.actor()),
                             json!({"pendant": p.id, "reason": reason, "stopped": stopped}),
@@ -344,7 +345,7 @@ async fn other_input(app: &Arc<App>, p: &Arc<Pendant>, input: Input) {
             let m = p.row().machine_id;
             app.bus
                 .record_or_log(
-                    "pendant.upload_rejected",
+                    EventKind::PendantUploadRejected,
                     m,
                     Some(&p.actor()),
                     json!({"pendant": p.id, "reason": reason}),
@@ -381,7 +382,7 @@ async fn refuse(
     }
     app.bus
         .record_or_log(
-            "pendant.refused",
+            EventKind::PendantRefused,
             machine,
             Some(&p.actor()),
             json!({"pendant": p.id, "input": input, "code": code, "reason": reason}),
@@ -522,7 +523,7 @@ async fn key_pressed(
             // Every Start of a finished or new job runs from line 1; nothing to move.
             app.bus
                 .record_or_log(
-                    "pendant.rewind",
+                    EventKind::PendantRewind,
                     Some(m.id),
                     Some(&actor),
                     json!({"pendant": p.id}),
@@ -646,7 +647,7 @@ async fn receive_upload(
         tracing::warn!(pendant = p.id, code, reason, "pendant upload rejected");
         app.bus
             .record_or_log(
-                "pendant.upload_rejected",
+                EventKind::PendantUploadRejected,
                 row.machine_id,
                 Some(&actor),
                 json!({"pendant": p.id, "code": code, "reason": reason, "lines": lines.len(), "chars": chars}),
@@ -702,7 +703,7 @@ async fn receive_upload(
             };
             app.bus
                 .record_or_log(
-                    "pendant.upload",
+                    EventKind::PendantUpload,
                     Some(machine_id),
                     Some(&actor),
                     json!({"pendant": p.id, "job": job.id, "lines": job.lines, "bytes": job.bytes, "sha256": job.sha256, "confirmed": sent, "declared_lines": declared_lines, "blank_lines_dropped": blank_lines_dropped}),
@@ -712,7 +713,7 @@ async fn receive_upload(
         Err(e) => {
             app.bus
                 .record_or_log(
-                    "pendant.upload_rejected",
+                    EventKind::PendantUploadRejected,
                     Some(machine_id),
                     Some(&actor),
                     json!({"pendant": p.id, "code": e.code, "reason": e.message}),

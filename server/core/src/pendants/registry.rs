@@ -132,18 +132,40 @@ pub(super) struct Sink {
     pub(super) quiet: Quiet,
 }
 
-impl HostSink for Sink {
-    /// On the plugin's thread: decoded and queued at once (bounded, never blocks).
-    fn event(&self, event: Value) {
-        use serde::Deserialize;
-        match PendantEvent::deserialize(&event) {
+impl Sink {
+    /// Queues a decoded event at once (bounded, never blocks), or warns about one that is JSON
+    /// but not a pendant event.
+    fn accept(
+        &self,
+        decoded: std::result::Result<PendantEvent, serde_json::Error>,
+        raw: &dyn Fn() -> String,
+    ) {
+        match decoded {
             Ok(e) => self.inbox.push(e),
             Err(e) => {
                 if let Some(line) = self.quiet.admit("unknown-event", || {
-                    format!("unknown pendant event {event}; ignored: {e}")
+                    format!("unknown pendant event {}; ignored: {e}", raw())
                 }) {
                     tracing::warn!(pendant = self.id, "{line}");
                 }
+            }
+        }
+    }
+}
+
+impl HostSink for Sink {
+    fn event(&self, event: Value) {
+        use serde::Deserialize;
+        self.accept(PendantEvent::deserialize(&event), &|| event.to_string());
+    }
+    /// On the plugin's thread: straight from the plugin's bytes to the contract's event.
+    fn event_json(&self, bytes: &[u8]) -> std::result::Result<(), serde_json::Error> {
+        match serde_json::from_slice::<PendantEvent>(bytes) {
+            // Not JSON at all: the host says so.
+            Err(e) if e.is_syntax() || e.is_eof() => Err(e),
+            decoded => {
+                self.accept(decoded, &|| String::from_utf8_lossy(bytes).into_owned());
+                Ok(())
             }
         }
     }
