@@ -276,6 +276,61 @@ pub async fn set_pendant_node(app: &App, id: i64, node: &str, actor: &str) -> Re
     Ok(body)
 }
 
+/// Changes a live pendant: binds it to `machine` (`Some(None)` unbinds; `pendant.bound`) and
+/// sets the given macro keys (`pendant.macro` each). Every macro is checked before anything
+/// changes.
+pub async fn change_pendant(
+    app: &App,
+    p: &pendants::Pendant,
+    machine: Option<Option<i64>>,
+    macros: Option<&BTreeMap<String, Option<Value>>>,
+    actor: &str,
+) -> Result<()> {
+    let id = p.id;
+    let macros = match macros {
+        Some(m) => parse_macros(m)?,
+        None => Vec::new(),
+    };
+    if let Some(machine) = machine {
+        check_pendant_machine(app, machine).await?;
+        app.store.set_pendant_machine(id, machine).await?;
+        p.set_machine(machine);
+        app.bus
+            .record_or_log(
+                "pendant.bound",
+                machine,
+                Some(actor),
+                json!({"pendant": id, "machine": machine}),
+            )
+            .await;
+    }
+    for (slot, action) in macros {
+        app.store
+            .set_pendant_macro(id, slot, action.as_ref())
+            .await?;
+        app.bus
+            .record_or_log(
+                "pendant.macro",
+                p.row().machine_id,
+                Some(actor),
+                json!({"pendant": id, "key": format!("M{slot}"), "action": action}),
+            )
+            .await;
+        p.set_macro(slot, action);
+    }
+    Ok(())
+}
+
+/// Removes pendant `id`: its link is closed, its row deleted, `pendant.deleted` recorded.
+pub async fn delete_pendant(app: &App, id: i64, actor: &str) -> Result<()> {
+    app.pendants.remove(id).await;
+    app.store.delete_pendant(id).await?;
+    app.bus
+        .record_or_log("pendant.deleted", None, Some(actor), json!({"pendant": id}))
+        .await;
+    Ok(())
+}
+
 /// A pendant's `machine` field: a machine this node drives (a pendant's keys go to its
 /// machine's task on this node, so both must be here).
 pub async fn check_pendant_machine(app: &App, machine: Option<i64>) -> Result<()> {

@@ -9,7 +9,7 @@ use fresa_core::admin;
 use fresa_core::pendants as core;
 use fresa_core::SharedApp;
 use serde::Deserialize;
-use serde_json::{json, Value};
+use serde_json::Value;
 use std::collections::BTreeMap;
 use utoipa::ToSchema;
 
@@ -146,37 +146,7 @@ pub async fn patch(
     Json(req): Json<PatchPendant>,
 ) -> Result<Json<Value>, ApiError> {
     let p = pendant(&app, id).await?;
-    let macros = match &req.macros {
-        Some(m) => admin::parse_macros(m)?,
-        None => Vec::new(),
-    };
-    if let Some(machine) = req.machine {
-        admin::check_pendant_machine(&app, machine).await?;
-        app.store.set_pendant_machine(id, machine).await?;
-        p.set_machine(machine);
-        app.bus
-            .record_or_log(
-                "pendant.bound",
-                machine,
-                Some(&caller.name),
-                json!({"pendant": id, "machine": machine}),
-            )
-            .await;
-    }
-    for (slot, action) in macros {
-        app.store
-            .set_pendant_macro(id, slot, action.as_ref())
-            .await?;
-        app.bus
-            .record_or_log(
-                "pendant.macro",
-                p.row().machine_id,
-                Some(&caller.name),
-                json!({"pendant": id, "key": format!("M{slot}"), "action": action}),
-            )
-            .await;
-        p.set_macro(slot, action);
-    }
+    admin::change_pendant(&app, &p, req.machine, req.macros.as_ref(), &caller.name).await?;
     Ok(Json(core::pendant_json(&p)))
 }
 
@@ -192,16 +162,7 @@ pub async fn delete(
     Extension(caller): Extension<Caller>,
 ) -> Result<StatusCode, ApiError> {
     pendant(&app, id).await?;
-    app.pendants.remove(id).await;
-    app.store.delete_pendant(id).await?;
-    app.bus
-        .record_or_log(
-            "pendant.deleted",
-            None,
-            Some(&caller.name),
-            json!({"pendant": id}),
-        )
-        .await;
+    admin::delete_pendant(&app, id, &caller.name).await?;
     Ok(StatusCode::NO_CONTENT)
 }
 
