@@ -200,6 +200,72 @@ fn pause_and_cancel_stop_a_job_during_an_outage_and_are_stored_when_it_ends() {
     );
 }
 
+/// Reading jobs during an outage (issue 24): the running job is answered as its machine knows
+/// it (state, run, the line it has reached) and its program from disk, exactly as long as cancel
+/// can find it; any other job, and the list, get the same 503 as run control would.
+#[test]
+fn the_running_job_is_read_during_an_outage_as_long_as_it_can_be_cancelled() {
+    // Long enough (30 s) for the refused reads, each bounded by the store's ping timeout.
+    const LONG: usize = 3000;
+    let pg = DedicatedPostgres::start();
+    let s = server_on(&pg);
+    let m = s.sim("mill", TIME_SCALE);
+    let spare = s.upload(m.id, "spare", "G1 X1 F600\n")["id"]
+        .as_i64()
+        .unwrap();
+    let program = back_and_forth(LONG, 1.0, 600.0);
+    let job = s.upload(m.id, "long", program.clone())["id"]
+        .as_i64()
+        .unwrap();
+    let run = s.job_action(job, "start").expect(200)["run"]["id"]
+        .as_i64()
+        .unwrap();
+    wait_for(T, "the job to execute its first lines", || {
+        (m.count_of(run) >= 20).then_some(())
+    });
+    stop_database(&s, &pg);
+
+    let j = s.job(job);
+    assert_eq!(
+        (j["id"].as_i64(), j["run"]["id"].as_i64()),
+        (Some(job), Some(run)),
+        "{j}"
+    );
+    assert_eq!(j["state"], "running", "{j}");
+    assert_eq!(j["name"], "long", "{j}");
+    assert_eq!(j["line_count"], LONG, "{j}");
+    // The line is the machine's: it moves on while the store cannot take it.
+    let line = j["line"].as_i64().unwrap();
+    wait_for(T, "GET /jobs/{id} to show the line advancing", || {
+        (s.job(job)["line"].as_i64().unwrap() > line).then_some(())
+    });
+    let g = s.get(&format!("/api/v1/jobs/{job}/gcode"));
+    assert_eq!(g.status, 200, "{}", g.text);
+    assert!(g.text == program, "the program as uploaded");
+
+    // Nothing else is known without the database.
+    refused(s.get(&format!("/api/v1/jobs/{spare}")), &pg);
+    refused(s.get(&format!("/api/v1/jobs/{spare}/gcode")), &pg);
+    refused(s.get("/api/v1/jobs"), &pg);
+
+    let cancelled = s.job_action(job, "cancel").expect(200);
+    assert_eq!(cancelled["state"], "cancelled", "{cancelled}");
+    // The run is over in memory: neither a read nor a second cancel can find the job now.
+    refused(s.get(&format!("/api/v1/jobs/{job}")), &pg);
+    refused(s.job_action(job, "cancel"), &pg);
+
+    pg.restart();
+    let j = s.wait_job_state(job, "cancelled", T);
+    assert_eq!(j["run"]["id"], run, "{j}");
+    assert_eq!(
+        j["line"].as_i64(),
+        Some(last_logged(&m, run)),
+        "the stored line is the last executed one: {j}"
+    );
+    let listed = s.get(&format!("/api/v1/jobs?machine={}", m.id)).expect(200);
+    assert_eq!(listed.as_array().map(Vec::len), Some(2), "{listed}");
+}
+
 // ---- a full disk (issue 23) ----
 
 /// A small tmpfs mounted over a server's data directory, as a full disk is what users hit: the
@@ -347,6 +413,11 @@ fn a_full_disk_is_an_outage_a_running_job_finishes_and_freeing_it_recovers_witho
     let rss_before = rss_kib(pid);
     fill_and_wait_for_the_outage(&s, &disk);
     let at_outage = m.count_of(run);
+    // A full disk still answers reads: the list comes from the store, the running job's run
+    // from its machine.
+    let listed = s.get(&format!("/api/v1/jobs?machine={}", m.id)).expect(200);
+    assert_eq!(listed[0]["id"], job, "{listed}");
+    assert_eq!(listed[0]["state"], "running", "{listed}");
 
     // Nothing new is taken: an upload is refused before a byte is written, new motion too.
     let msg = s

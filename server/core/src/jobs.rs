@@ -216,24 +216,116 @@ pub fn gcode_error(e: &fresa_gcode::GcodeError, max_segments: u64) -> Error {
     }
 }
 
-/// A job by id: from the store, or, while the database is unreachable, from the machine that
-/// is running it (so its run can still be paused or cancelled).
+/// The job `job_id` as a machine of this node knows it: its current job, with the run as the
+/// task last reported it (`None` while the run is not known in memory).
+async fn known(app: &App, job_id: i64) -> Option<(JobRow, Option<RunRow>)> {
+    for m in app.machines.all().await {
+        if let Some(job) = m.current_job().filter(|j| j.id == job_id) {
+            let run = m.current_run().filter(|r| r.job_id == job_id);
+            return Some((job, run));
+        }
+    }
+    None
+}
+
+/// The lookups below: while the database is down, a job a machine runs is answered from that
+/// machine (its state and line are newer than the store's, whose writes wait in memory); any
+/// other job from the store, which may still answer reads (a full disk does). A store that
+/// cannot answer gives `database_unavailable`, the same refusal run control gives.
+fn unavailable(e: &Error) -> bool {
+    e.code == "database_unavailable"
+}
+
+/// A job by id: from the store, or, while the database is down, from the machine that is
+/// running it (so its run can still be paused or cancelled).
 pub async fn job(app: &App, job_id: i64) -> Result<JobRow> {
     let health = app.store.health();
-    match health.guard(app.store.job(job_id)).await {
-        Ok(job) => {
-            job.ok_or_else(|| Error::not_found("unknown_job", format!("no job with id {job_id}")))
+    if !health.is_up() {
+        if let Some((job, _)) = known(app, job_id).await {
+            return Ok(job);
         }
-        Err(e) if e.code == "database_unavailable" => {
-            for m in app.machines.all().await {
-                if let Some(job) = m.current_job().filter(|j| j.id == job_id) {
-                    return Ok(job);
-                }
-            }
-            Err(e)
-        }
+    }
+    match health.read(app.store.job(job_id)).await {
+        Ok(job) => job.ok_or_else(|| unknown_job(job_id)),
+        Err(e) if unavailable(&e) => known(app, job_id).await.map(|(job, _)| job).ok_or(e),
         Err(e) => Err(e),
     }
+}
+
+fn unknown_job(job_id: i64) -> Error {
+    Error::not_found("unknown_job", format!("no job with id {job_id}"))
+}
+
+/// A job and its latest run, as `GET /jobs/{id}` shows them (see [`job_json`]); outage-aware
+/// like [`job`], answering a running job from its machine while the database is down.
+pub async fn job_with_run(app: &App, job_id: i64) -> Result<(JobRow, Option<RunRow>)> {
+    let health = app.store.health();
+    let from_machine = || async {
+        match known(app, job_id).await {
+            Some((job, Some(run))) => Some((job, Some(run))),
+            _ => None,
+        }
+    };
+    if !health.is_up() {
+        if let Some(found) = from_machine().await {
+            return Ok(found);
+        }
+    }
+    let stored = async {
+        let job = health
+            .read(app.store.job(job_id))
+            .await?
+            .ok_or_else(|| unknown_job(job_id))?;
+        let run = health.read(app.store.latest_run(job_id)).await?;
+        Ok((job, run))
+    };
+    match stored.await {
+        Err(e) if unavailable(&e) => from_machine().await.ok_or(e),
+        other => other,
+    }
+}
+
+/// Jobs, newest first, each with its latest run (`GET /jobs`): from the store, which may still
+/// answer reads during an outage; there the runs this node's machines are running are shown as
+/// the machines know them. A list cannot be answered from memory alone (it would be
+/// incomplete), so a store that cannot answer gives `database_unavailable`.
+pub async fn list(
+    app: &App,
+    machine: Option<i64>,
+    limit: i64,
+) -> Result<Vec<(JobRow, Option<RunRow>)>> {
+    let health = app.store.health();
+    let jobs = health.read(app.store.list_jobs(machine, limit)).await?;
+    let ids: Vec<i64> = jobs.iter().map(|j| j.id).collect();
+    let mut runs: std::collections::HashMap<i64, RunRow> = health
+        .read(app.store.latest_runs(&ids))
+        .await?
+        .into_iter()
+        .map(|r| (r.job_id, r))
+        .collect();
+    if !health.is_up() {
+        for m in app.machines.all().await {
+            if let Some(run) = m.current_run().filter(|r| ids.contains(&r.job_id)) {
+                runs.insert(run.job_id, run);
+            }
+        }
+    }
+    Ok(jobs
+        .into_iter()
+        .map(|j| {
+            let run = runs.remove(&j.id);
+            (j, run)
+        })
+        .collect())
+}
+
+/// The job's program file on this node (`GET /jobs/{id}/gcode`): the job is found as by
+/// [`job`], so a running job's program is served from disk during an outage too.
+pub async fn program(app: &App, job_id: i64) -> Result<(JobRow, std::path::PathBuf)> {
+    let job = job(app, job_id).await?;
+    let path =
+        crate::programs::local_copy(&app.store, &app.settings.programs_dir(), &job.sha256).await?;
+    Ok((job, path))
 }
 
 async fn load_job(app: &App, job_id: i64) -> Result<(JobRow, Arc<Machine>)> {
@@ -247,16 +339,17 @@ async fn load_job(app: &App, job_id: i64) -> Result<(JobRow, Arc<Machine>)> {
     Ok((job, machine))
 }
 
-// Run control is the machine's: these find the job's machine and ask its task.
+// Run control is the machine's: these find the job's machine, ask its task and note the answer
+// (`Machine::current_run`, for reads while the database is down).
 
 pub async fn start(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
     let (job, machine) = load_job(app, job_id).await?;
-    machine.start_job(job, actor).await
+    machine.note_run(machine.start_job(job, actor).await)
 }
 
 pub async fn pause(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
     let (_, machine) = load_job(app, job_id).await?;
-    machine.pause_job(job_id, actor).await
+    machine.note_run(machine.pause_job(job_id, actor).await)
 }
 
 /// `confirm_part_zero`: the operator accepts whatever part zero the controller reports now,
@@ -270,12 +363,13 @@ pub async fn resume(
     confirm_line: Option<i64>,
 ) -> Result<RunRow> {
     let (job, machine) = load_job(app, job_id).await?;
-    machine
+    let run = machine
         .resume_job(job, actor, confirm_part_zero, confirm_line)
-        .await
+        .await;
+    machine.note_run(run)
 }
 
 pub async fn cancel(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
     let (_, machine) = load_job(app, job_id).await?;
-    machine.cancel_job(job_id, actor).await
+    machine.note_run(machine.cancel_job(job_id, actor).await)
 }

@@ -12,8 +12,10 @@
 //! * [`webhooks`]: webhook registrations; [`integrations`]: what webhook deliveries and the MQTT
 //!   bridge (crate `fresa-integrations`) count, for `/metrics`.
 //! * [`nodes`]: several nodes on one store: which node drives a machine, heartbeats.
+//! * [`admin`]: creating machines and pendants, moving them between nodes, part zeros.
 //! * [`app`]: the whole; `startup`: its start-up and shutdown. [`error`]: the core's errors.
 
+pub mod admin;
 pub mod app;
 pub mod config;
 pub mod datadir;

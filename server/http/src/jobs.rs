@@ -7,7 +7,7 @@ use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Extension;
 use fresa_core::jobs as core;
-use fresa_core::programs::{self, PendingProgram};
+use fresa_core::programs::PendingProgram;
 use fresa_core::views::JobView;
 use fresa_core::SharedApp;
 use futures_util::StreamExt;
@@ -78,26 +78,16 @@ pub enum JobAction {
     responses(
         (status = 200, description = "Jobs, newest first", body = [JobView]),
         (status = 400, description = "`invalid_query`", body = ErrorBody),
+        (status = 503, description = "`database_unavailable`: the store cannot be read (during an outage, jobs a machine runs are shown as it knows them)", body = ErrorBody),
     ))]
 pub async fn list(
     State(app): State<SharedApp>,
     Query(p): Query<ListParams>,
 ) -> Result<Json<Vec<JobView>>, ApiError> {
-    let jobs = app
-        .store
-        .list_jobs(p.machine, p.limit.unwrap_or(100).clamp(1, 1000))
-        .await?;
-    let ids: Vec<i64> = jobs.iter().map(|j| j.id).collect();
-    let runs: std::collections::HashMap<i64, fresa_core::store::RunRow> = app
-        .store
-        .latest_runs(&ids)
-        .await?
-        .into_iter()
-        .map(|r| (r.job_id, r))
-        .collect();
+    let jobs = core::list(&app, p.machine, p.limit.unwrap_or(100).clamp(1, 1000)).await?;
     let out = jobs
         .iter()
-        .map(|j| JobView::new(j, runs.get(&j.id)))
+        .map(|(job, run)| JobView::new(job, run.as_ref()))
         .collect();
     Ok(Json(out))
 }
@@ -107,17 +97,13 @@ pub async fn list(
     responses(
         (status = 200, description = "The job", body = JobView),
         (status = 404, description = "`unknown_job`", body = ErrorBody),
+        (status = 503, description = "`database_unavailable`: the store cannot be read and no machine of this node runs the job", body = ErrorBody),
     ))]
 pub async fn get_one(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
 ) -> Result<Json<JobView>, ApiError> {
-    let job = app
-        .store
-        .job(id)
-        .await?
-        .ok_or_else(|| ApiError::not_found("unknown_job", format!("no job with id {id}")))?;
-    let run = app.store.latest_run(id).await?;
+    let (job, run) = core::job_with_run(&app, id).await?;
     Ok(Json(JobView::new(&job, run.as_ref())))
 }
 
@@ -126,17 +112,13 @@ pub async fn get_one(
     responses(
         (status = 200, description = "The stored program", content_type = "text/plain", body = String),
         (status = 404, description = "`unknown_job`", body = ErrorBody),
+        (status = 503, description = "`database_unavailable`: the store cannot be read and no machine of this node runs the job", body = ErrorBody),
     ))]
 pub async fn gcode(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
 ) -> Result<Response, ApiError> {
-    let job = app
-        .store
-        .job(id)
-        .await?
-        .ok_or_else(|| ApiError::not_found("unknown_job", format!("no job with id {id}")))?;
-    let path = programs::local_copy(&app.store, &app.settings.programs_dir(), &job.sha256).await?;
+    let (_, path) = core::program(&app, id).await?;
     let file = tokio::fs::File::open(&path).await.map_err(|e| {
         ApiError::internal(format!("program file {} is missing: {e}", path.display()))
     })?;

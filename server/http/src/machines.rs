@@ -4,7 +4,7 @@ use crate::openapi::ErrorBody;
 use axum::extract::State;
 use axum::http::StatusCode;
 use axum::Extension;
-use fresa_core::events::EventKind;
+use fresa_core::admin;
 use fresa_core::machine::{limits, Machine};
 use fresa_core::store::MachineRow;
 use fresa_core::views::{MachineView, StatusView};
@@ -123,75 +123,14 @@ pub async fn create(
     Extension(caller): Extension<Caller>,
     Json(req): Json<NewMachine>,
 ) -> Result<(StatusCode, Json<Created>), ApiError> {
-    let name = fresa_core::Error::required_name(&req.name)?;
-    let mut config = req.config.unwrap_or_else(|| json!({}));
-    if !config.is_object() {
-        return Err(ApiError::unprocessable(
-            "invalid_field",
-            "field `config` must be a JSON object",
-        ));
-    }
-    let max_jog = limits::check_configured(
-        "max_jog_mm",
-        req.max_jog_mm.unwrap_or(50.0),
-        limits::MAX_JOG_MM,
-    )?;
-    let max_feed = limits::check_configured(
-        "max_feed_mm_min",
-        req.max_feed_mm_min.unwrap_or(5000.0),
-        limits::MAX_FEED_MM_MIN,
-    )?;
-    let Some(lib) = app.plugins.get(&req.backend) else {
-        return Err(ApiError::unprocessable(
-            "unknown_backend",
-            format!(
-                "field `backend`: no plugin named {:?} is loaded (loaded: {})",
-                req.backend,
-                app.plugins.names().join(", ")
-            ),
-        ));
+    let req = admin::NewMachine {
+        name: req.name,
+        backend: req.backend,
+        config: req.config,
+        max_jog_mm: req.max_jog_mm,
+        max_feed_mm_min: req.max_feed_mm_min,
     };
-    if app.store.machine_by_name(name).await?.is_some() {
-        return Err(ApiError::conflict(
-            "name_taken",
-            format!("a machine named {name:?} already exists"),
-        ));
-    }
-    limits::confine_backend_files(&mut config, &app.settings.data_dir)?;
-    // The plugin judges the config before anything is stored; that instance is the one kept.
-    let backend = Machine::prepare(lib, config.clone()).await.map_err(|e| {
-        ApiError::unprocessable(
-            "invalid_config",
-            format!("field `config` rejected by {}: {e}", req.backend),
-        )
-    })?;
-    let id = app
-        .store
-        .insert_machine(name, &req.backend, &config, max_jog, max_feed)
-        .await
-        .map_err(|e| fresa_core::Error::insert_failed(e, "machine", name))?;
-    let row = app
-        .store
-        .machine(id)
-        .await?
-        .ok_or_else(|| ApiError::internal("machine vanished"))?;
-    let m = Machine::start(
-        row,
-        Ok(backend),
-        app.store.clone(),
-        app.bus.clone(),
-        &app.machine_options(),
-    )
-    .await;
-    app.machines.insert(m).await;
-    app.bus
-        .record_or_log(
-            EventKind::MachineCreated,
-            Some(id),
-            Some(&caller.name),
-            json!({"id": id, "name": name, "backend": req.backend}),
-        )
-        .await;
+    let id = admin::create_machine(&app, req, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(Created { id })))
 }
 
@@ -218,17 +157,6 @@ pub async fn status(
     }
 }
 
-/// A `node` field: a name a node could have (it need not have started yet).
-pub(crate) fn check_node_name(node: &str) -> Result<(), ApiError> {
-    if fresa_core::config::NodeSettings::valid_name(node) {
-        return Ok(());
-    }
-    Err(ApiError::unprocessable(
-        "invalid_field",
-        format!("node: {node:?} is not a node name (1 to 63 letters, digits, '-', '_' or '.')"),
-    ))
-}
-
 #[derive(Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct NodeReq {
@@ -253,26 +181,7 @@ pub async fn set_node(
     Extension(caller): Extension<Caller>,
     Json(req): Json<NodeReq>,
 ) -> Result<Json<MachineView>, ApiError> {
-    check_node_name(&req.node)?;
-    let before = app.store.machine(id).await?.ok_or_else(|| {
-        ApiError::not_found("unknown_machine", format!("no machine with id {id}"))
-    })?;
-    if !app.store.set_machine_node(id, &req.node).await? {
-        return Err(ApiError::conflict(
-            "machine_busy",
-            format!(
-                "machine {id} has an active run; finish or cancel it before moving the machine"
-            ),
-        ));
-    }
-    app.bus
-        .record_or_log(
-            EventKind::MachineNode,
-            Some(id),
-            Some(&caller.name),
-            json!({"from": before.node, "to": req.node}),
-        )
-        .await;
+    admin::set_machine_node(&app, id, &req.node, &caller.name).await?;
     remote_view(&app, id).await.map(Json)
 }
 
@@ -548,10 +457,12 @@ pub async fn record_part_zero(
         serde_json::from_slice(&body)
             .map_err(|e| ApiError::bad_request("invalid_json", format!("part zero: {e}")))?
     };
-    let source = req.source.unwrap_or_else(|| "api".into());
-    let row = m
-        .record_part_zero(req.position, &source, req.note.as_deref(), &caller.name)
-        .await?;
+    let req = admin::PartZero {
+        position: req.position,
+        source: req.source,
+        note: req.note,
+    };
+    let row = admin::record_part_zero(&m, req, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(json!(row))))
 }
 

@@ -5,12 +5,11 @@ use crate::openapi::ErrorBody;
 use axum::extract::State;
 use axum::http::StatusCode;
 use axum::Extension;
-use fresa_core::events::EventKind;
+use fresa_core::admin;
 use fresa_core::pendants as core;
-use fresa_core::store::MacroAction;
 use fresa_core::SharedApp;
 use serde::Deserialize;
-use serde_json::{json, Value};
+use serde_json::Value;
 use std::collections::BTreeMap;
 use utoipa::ToSchema;
 
@@ -56,83 +55,6 @@ pub struct Pendant {
     created_at: i64,
 }
 
-/// `{"M1": action|null, ...}` -> slots; names the bad key or action.
-fn parse_macros(
-    m: &BTreeMap<String, Option<Value>>,
-) -> Result<Vec<(u8, Option<MacroAction>)>, ApiError> {
-    let mut out = Vec::new();
-    for (k, v) in m {
-        let slot = match k.as_str() {
-            "M1" => 1,
-            "M2" => 2,
-            "M3" => 3,
-            "M4" => 4,
-            other => {
-                return Err(ApiError::unprocessable(
-                    "invalid_field",
-                    format!("field `macros`: {other:?} is not a macro key (M1, M2, M3, M4)"),
-                ))
-            }
-        };
-        let action = match v {
-            None | Some(Value::Null) => None,
-            Some(v) => Some(
-                serde_json::from_value::<MacroAction>(v.clone()).map_err(|e| {
-                    ApiError::unprocessable(
-                        "invalid_field",
-                        format!("field `macros.{k}`: {e} (types: command, jog, toggle, mdi)"),
-                    )
-                })?,
-            ),
-        };
-        match &action {
-            Some(MacroAction::Jog { distance, .. })
-                if !distance.is_finite() || *distance == 0.0 =>
-            {
-                return Err(ApiError::unprocessable(
-                    "invalid_field",
-                    format!("field `macros.{k}.distance` must be a non-zero number"),
-                ));
-            }
-            Some(MacroAction::Mdi { line }) => {
-                fresa_core::machine::limits::check_mdi_line(line).map_err(|e| {
-                    ApiError::unprocessable(
-                        "invalid_field",
-                        format!("field `macros.{k}.line`: {e}"),
-                    )
-                })?;
-            }
-            _ => {}
-        }
-        out.push((slot, action));
-    }
-    Ok(out)
-}
-
-async fn check_machine(app: &SharedApp, machine: Option<i64>) -> Result<(), ApiError> {
-    if let Some(id) = machine {
-        if app.machines.get(id).await.is_none() {
-            // A pendant's keys go to its machine's task on this node: both must be here.
-            if let Some(row) = app.store.machine(id).await? {
-                return Err(ApiError::unprocessable(
-                    "machine_on_other_node",
-                    format!(
-                        "field `machine`: machine {id} is driven by node {}; a pendant drives \
-                         machines of its own node ({})",
-                        row.node.as_deref().unwrap_or("?"),
-                        app.settings.node.name
-                    ),
-                ));
-            }
-            return Err(ApiError::unprocessable(
-                "unknown_machine",
-                format!("field `machine`: no machine with id {id}"),
-            ));
-        }
-    }
-    Ok(())
-}
-
 #[utoipa::path(post, path = "/pendants", tag = "pendants",
     request_body(content = NewPendant, example = json!({"name": "bench-1", "address": "127.0.0.1:8001", "dialect": "firmware"})),
     responses(
@@ -145,145 +67,16 @@ pub async fn create(
     Extension(caller): Extension<Caller>,
     Json(req): Json<NewPendant>,
 ) -> Result<(StatusCode, Json<Created>), ApiError> {
-    let name = fresa_core::Error::required_name(&req.name)?;
-    let (host, port) = split_address(&req.address);
-    if host.is_empty() || port == 0 {
-        return Err(ApiError::unprocessable(
-            "invalid_field",
-            format!("field `address`: {:?} is not host:port (e.g. 192.168.1.40:8001 or MPG000001.local)", req.address),
-        ));
-    }
-    let dialect = req.dialect.unwrap_or_else(|| "firmware".into());
-    if !matches!(dialect.as_str(), "firmware" | "document") {
-        return Err(ApiError::unprocessable(
-            "invalid_field",
-            format!("field `dialect`: {dialect:?} is not firmware or document"),
-        ));
-    }
-    let config = req.config.unwrap_or_else(|| json!({}));
-    if !config.is_object() {
-        return Err(ApiError::unprocessable(
-            "invalid_field",
-            "field `config` must be a JSON object",
-        ));
-    }
-    if let Some(v) = config.get("stop_program_on_lost") {
-        if !v.is_boolean() {
-            return Err(ApiError::unprocessable(
-                "invalid_field",
-                "field `config.stop_program_on_lost` must be true or false",
-            ));
-        }
-    }
-    check_machine(&app, req.machine).await?;
-    let macros: Vec<(u8, MacroAction)> = match &req.macros {
-        Some(m) => parse_macros(m)?
-            .into_iter()
-            .filter_map(|(s, a)| a.map(|a| (s, a)))
-            .collect(),
-        None => Vec::new(),
+    let req = admin::NewPendant {
+        name: req.name,
+        address: req.address,
+        machine: req.machine,
+        dialect: req.dialect,
+        config: req.config,
+        macros: req.macros,
     };
-    let id = app
-        .store
-        .insert_pendant(
-            name,
-            req.address.trim(),
-            &dialect,
-            req.machine,
-            &config,
-            &macros,
-        )
-        .await
-        .map_err(|e| fresa_core::Error::insert_failed(e, "pendant", name))?;
-    let row = app
-        .store
-        .pendant(id)
-        .await?
-        .ok_or_else(|| ApiError::internal("pendant vanished"))?;
-    // The transport judges its config before the pendant is kept; that instance is the one used.
-    let created = match core::create_instance(&app, &row).await {
-        Ok(c) => c,
-        Err(e) => {
-            let _ = app.store.delete_pendant(id).await;
-            return Err(ApiError::unprocessable(
-                "invalid_config",
-                format!("field `config` rejected by {}: {e}", core::TRANSPORT_PLUGIN),
-            ));
-        }
-    };
-    core::attach(&app, row, Ok(created)).await;
-    app.bus
-        .record_or_log(
-            EventKind::PendantCreated,
-            req.machine,
-            Some(&caller.name),
-            json!({"pendant": id, "name": name, "address": req.address, "machine": req.machine}),
-        )
-        .await;
+    let id = admin::create_pendant(&app, req, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(Created { id })))
-}
-
-/// Same rule as the transport plugin: `host:port`, or `host` for port 8001; the host must be an
-/// IP address or a DNS name (`MPG000001.local`). Anything else gives an empty host.
-fn split_address(address: &str) -> (String, u16) {
-    let a = address.trim();
-    if let Ok(sa) = a.parse::<std::net::SocketAddr>() {
-        return (sa.ip().to_string(), sa.port());
-    }
-    if let Ok(ip) = a.parse::<std::net::IpAddr>() {
-        return (ip.to_string(), 8001);
-    }
-    let (host, port) = match a.rsplit_once(':') {
-        Some((h, p)) => (h, p.parse().unwrap_or(0)),
-        None => (a, 8001),
-    };
-    if is_dns_name(host) {
-        (host.to_string(), port)
-    } else {
-        (String::new(), port)
-    }
-}
-
-/// RFC 1123 host name: dot-separated labels of letters, digits and inner hyphens.
-fn is_dns_name(host: &str) -> bool {
-    let host = host.strip_suffix('.').unwrap_or(host);
-    !host.is_empty()
-        && host.len() <= 253
-        && host.split('.').all(|label| {
-            !label.is_empty()
-                && label.len() <= 63
-                && !label.starts_with('-')
-                && !label.ends_with('-')
-                && label
-                    .bytes()
-                    .all(|b| b.is_ascii_alphanumeric() || b == b'-')
-        })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::split_address;
-
-    #[test]
-    fn pendant_addresses_are_parsed() {
-        assert_eq!(
-            split_address("192.168.1.40:8001"),
-            ("192.168.1.40".into(), 8001)
-        );
-        assert_eq!(
-            split_address("MPG000001.local"),
-            ("MPG000001.local".into(), 8001)
-        );
-        assert_eq!(split_address("[::1]:9000"), ("::1".into(), 9000));
-        assert_eq!(split_address("fe80::1"), ("fe80::1".into(), 8001));
-        for bad in ["::::", "a b:1", "-x.local", "x..y", "host:", "", "é.local"] {
-            let (host, port) = split_address(bad);
-            assert!(
-                host.is_empty() || port == 0,
-                "{bad:?} accepted as {host}:{port}"
-            );
-        }
-    }
 }
 
 #[utoipa::path(get, path = "/pendants", tag = "pendants",
@@ -353,37 +146,7 @@ pub async fn patch(
     Json(req): Json<PatchPendant>,
 ) -> Result<Json<Value>, ApiError> {
     let p = pendant(&app, id).await?;
-    let macros = match &req.macros {
-        Some(m) => parse_macros(m)?,
-        None => Vec::new(),
-    };
-    if let Some(machine) = req.machine {
-        check_machine(&app, machine).await?;
-        app.store.set_pendant_machine(id, machine).await?;
-        p.set_machine(machine);
-        app.bus
-            .record_or_log(
-                EventKind::PendantBound,
-                machine,
-                Some(&caller.name),
-                json!({"pendant": id, "machine": machine}),
-            )
-            .await;
-    }
-    for (slot, action) in macros {
-        app.store
-            .set_pendant_macro(id, slot, action.as_ref())
-            .await?;
-        app.bus
-            .record_or_log(
-                EventKind::PendantMacro,
-                p.row().machine_id,
-                Some(&caller.name),
-                json!({"pendant": id, "key": format!("M{slot}"), "action": action}),
-            )
-            .await;
-        p.set_macro(slot, action);
-    }
+    admin::change_pendant(&app, &p, req.machine, req.macros.as_ref(), &caller.name).await?;
     Ok(Json(core::pendant_json(&p)))
 }
 
@@ -399,16 +162,7 @@ pub async fn delete(
     Extension(caller): Extension<Caller>,
 ) -> Result<StatusCode, ApiError> {
     pendant(&app, id).await?;
-    app.pendants.remove(id).await;
-    app.store.delete_pendant(id).await?;
-    app.bus
-        .record_or_log(
-            EventKind::PendantDeleted,
-            None,
-            Some(&caller.name),
-            json!({"pendant": id}),
-        )
-        .await;
+    admin::delete_pendant(&app, id, &caller.name).await?;
     Ok(StatusCode::NO_CONTENT)
 }
 
@@ -442,26 +196,6 @@ pub async fn set_node(
     Extension(caller): Extension<Caller>,
     Json(req): Json<PendantNodeReq>,
 ) -> Result<Json<Value>, ApiError> {
-    crate::machines::check_node_name(&req.node)?;
-    let before = app.store.pendant(id).await?.ok_or_else(|| {
-        ApiError::not_found("unknown_pendant", format!("no pendant with id {id}"))
-    })?;
-    app.store.set_pendant_node(id, &req.node).await?;
-    let after = app.store.pendant(id).await?.ok_or_else(|| {
-        ApiError::not_found("unknown_pendant", format!("no pendant with id {id}"))
-    })?;
-    if let Some(p) = app.pendants.get(id).await {
-        p.set_machine(after.machine_id);
-    }
-    let body =
-        json!({"pendant": id, "from": before.node, "node": req.node, "machine": after.machine_id});
-    app.bus
-        .record_or_log(
-            EventKind::PendantNode,
-            before.machine_id,
-            Some(&caller.name),
-            body.clone(),
-        )
-        .await;
+    let body = admin::set_pendant_node(&app, id, &req.node, &caller.name).await?;
     Ok(Json(body))
 }

@@ -240,6 +240,9 @@ pub struct Machine {
     run: watch::Receiver<Option<RunView>>,
     /// The job of the current run.
     job: watch::Receiver<Option<JobRow>>,
+    /// The run row the task last answered run control with (`jobs` notes it): with the
+    /// published [`RunView`] it is the current run without the database.
+    answered: std::sync::Mutex<Option<RunRow>>,
     gate: Arc<Gate>,
     bus: EventBus,
     timeout: Duration,
@@ -315,6 +318,7 @@ impl Machine {
             row: row_rx,
             run: run_rx,
             job: job_rx,
+            answered: std::sync::Mutex::new(None),
             gate: gate.clone(),
             bus: bus.clone(),
             timeout: opts.timeout,
@@ -389,6 +393,26 @@ impl Machine {
     /// The job of the current run, if any (known without the database).
     pub fn current_job(&self) -> Option<JobRow> {
         self.job.borrow().clone()
+    }
+
+    /// The current run's row as run control was last answered with it, with the state and line
+    /// the task has published since (known without the database, like [`Machine::current_job`]).
+    pub fn current_run(&self) -> Option<RunRow> {
+        let view = self.run()?;
+        let answered = self.answered.lock().unwrap_or_else(|p| p.into_inner());
+        let mut row = answered.clone().filter(|r| r.id == view.run_id)?;
+        row.state = view.state;
+        row.last_line = row.last_line.max(view.line);
+        Some(row)
+    }
+
+    /// Keeps a run-control answer (start, resume, pause, cancel) for [`Machine::current_run`];
+    /// `jobs`, the one path of run control, calls it.
+    pub(crate) fn note_run(&self, run: Result<RunRow>) -> Result<RunRow> {
+        if let Ok(row) = &run {
+            *self.answered.lock().unwrap_or_else(|p| p.into_inner()) = Some(row.clone());
+        }
+        run
     }
 
     pub fn subscribe_status(&self) -> watch::Receiver<MachineStatus> {

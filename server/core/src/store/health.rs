@@ -147,6 +147,22 @@ impl DbHealth {
         }
     }
 
+    /// Runs a store *read*. While up it is [`DbHealth::guard`]; while down it is tried anyway,
+    /// within [`PING_TIMEOUT`]: a full or read-only disk still answers reads, and an unreachable
+    /// database costs at most that. A failure for an outage reason (or no answer) is the
+    /// `database_unavailable` error; the read never ends an outage (only a probe write does).
+    pub async fn read<T>(&self, call: impl Future<Output = sqlx::Result<T>>) -> Result<T, Error> {
+        if self.is_up() {
+            return self.guard(call).await;
+        }
+        match tokio::time::timeout(PING_TIMEOUT, call).await {
+            Ok(Ok(v)) => Ok(v),
+            Ok(Err(e)) if outage_reason(&e).is_some() => Err(self.unavailable_error()),
+            Ok(Err(e)) => Err(e.into()),
+            Err(_) => Err(self.unavailable_error()),
+        }
+    }
+
     /// One check of the monitor: while up, a ping (a read) that fails or takes longer than
     /// [`PING_TIMEOUT`] marks the database down; while down, only a probe write that commits
     /// within it marks it up again.

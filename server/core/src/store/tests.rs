@@ -669,3 +669,40 @@ fn sqlite_urls_keep_windows_paths_whole() {
         "sqlite:/var/lib/fresa/fresa.db?mode=rwc"
     );
 }
+
+/// Issue 24: during an outage a read is still tried, since a full or read-only disk answers
+/// reads; one the store cannot answer is the outage's refusal, and no read ends the outage.
+#[tokio::test]
+async fn reads_are_tried_during_an_outage_and_refused_like_writes_when_they_fail() {
+    let s = sqlite_store().await;
+    let id = s
+        .store
+        .insert_machine("m", "sim-machine", &serde_json::json!({}), 50.0, 1000.0)
+        .await
+        .unwrap();
+    let h = s.store.health();
+    h.mark_down("disk full: test");
+    let refused = h.guard(s.store.machine(id)).await.unwrap_err();
+    assert_eq!(refused.code, "database_unavailable");
+    let row = h.read(s.store.machine(id)).await.unwrap();
+    assert_eq!(row.map(|r| r.name).as_deref(), Some("m"));
+    // No answer within the ping timeout, or an outage's error: the refusal, naming the outage.
+    let silent = h
+        .read(std::future::pending::<sqlx::Result<()>>())
+        .await
+        .unwrap_err();
+    assert_eq!(silent.code, "database_unavailable");
+    assert!(silent.message.contains("disk full: test"), "{silent}");
+    let lost = h
+        .read(async { Err::<(), _>(sqlx::Error::PoolTimedOut) })
+        .await
+        .unwrap_err();
+    assert_eq!(lost.code, "database_unavailable");
+    // A statement's own failure stays its own.
+    let own = h
+        .read(async { Err::<(), _>(sqlx::Error::RowNotFound) })
+        .await
+        .unwrap_err();
+    assert_eq!(own.code, "internal");
+    assert!(!h.is_up(), "a read never ends an outage");
+}
