@@ -70,6 +70,18 @@ pub trait HostSink: Send + Sync + 'static {
     fn log(&self, level: u32, message: &str);
 }
 
+/// For a sink's [`HostSink::event_json`] that decodes into a type of its own: `Err` only when the
+/// bytes are not JSON at all (the host reports that); JSON of another shape is `Ok(Err(..))`, for
+/// the sink to report as an event it does not know.
+pub fn decode_event<T: serde::de::DeserializeOwned>(
+    bytes: &[u8],
+) -> Result<Result<T, serde_json::Error>, serde_json::Error> {
+    match serde_json::from_slice::<T>(bytes) {
+        Err(e) if e.is_syntax() || e.is_eof() => Err(e),
+        decoded => Ok(decoded),
+    }
+}
+
 /// A loaded, checked plugin library. The library is never unloaded: code from it may still be
 /// referenced by threads the plugin started, and unloading buys nothing for a daemon.
 #[derive(Clone)]

@@ -339,17 +339,16 @@ async fn load_job(app: &App, job_id: i64) -> Result<(JobRow, Arc<Machine>)> {
     Ok((job, machine))
 }
 
-// Run control is the machine's: these find the job's machine, ask its task and note the answer
-// (`Machine::current_run`, for reads while the database is down).
+// Run control is the machine's: these find the job's machine and ask its task.
 
 pub async fn start(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
     let (job, machine) = load_job(app, job_id).await?;
-    machine.note_run(machine.start_job(job, actor).await)
+    machine.start_job(job, actor).await
 }
 
 pub async fn pause(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
     let (_, machine) = load_job(app, job_id).await?;
-    machine.note_run(machine.pause_job(job_id, actor).await)
+    machine.pause_job(job_id, actor).await
 }
 
 /// `confirm_part_zero`: the operator accepts whatever part zero the controller reports now,
@@ -363,13 +362,12 @@ pub async fn resume(
     confirm_line: Option<i64>,
 ) -> Result<RunRow> {
     let (job, machine) = load_job(app, job_id).await?;
-    let run = machine
+    machine
         .resume_job(job, actor, confirm_part_zero, confirm_line)
-        .await;
-    machine.note_run(run)
+        .await
 }
 
 pub async fn cancel(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
     let (_, machine) = load_job(app, job_id).await?;
-    machine.note_run(machine.cancel_job(job_id, actor).await)
+    machine.cancel_job(job_id, actor).await
 }

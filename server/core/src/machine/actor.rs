@@ -45,8 +45,9 @@ pub(super) struct Task {
     /// The job of the current run, published so that pause and cancel find it while the
     /// database is unreachable.
     pub job: watch::Sender<Option<JobRow>>,
-    /// The current run's row as it was launched (the store's copy is the truth while it answers).
-    pub launched: Option<RunRow>,
+    /// The current run's row as it was launched (the store's copy is the truth while it answers);
+    /// published so reads find the running job's run while the database is down.
+    pub launched: watch::Sender<Option<RunRow>>,
     /// Run writes not yet in the store: acknowledged lines (always, until the batch is flushed)
     /// and, while the database is unreachable, run transitions.
     pub pending: PendingWrites,
@@ -597,7 +598,7 @@ impl Task {
     fn publish_run(&mut self, run: Option<RunView>) {
         if run.is_none() {
             self.job.send_replace(None);
-            self.launched = None;
+            self.launched.send_replace(None);
             self.held_before_start = None;
         }
         self.run.send_replace(run);
@@ -679,11 +680,7 @@ impl Task {
     /// The current run as the task knows it (its row at launch, its state and line since), if
     /// `run_id` is the current run.
     fn remembered_run(&self, run_id: i64) -> Option<RunRow> {
-        let view = (*self.run.borrow()).filter(|v| v.run_id == run_id)?;
-        let mut row = self.launched.clone().filter(|r| r.id == run_id)?;
-        row.state = view.state;
-        row.last_line = row.last_line.max(view.line);
-        Some(row)
+        super::current_row(*self.run.borrow(), &self.launched.borrow()).filter(|r| r.id == run_id)
     }
 
     /// The published run follows a transition of the current run.
@@ -871,7 +868,7 @@ impl Task {
                 }
             };
         self.job.send_replace(Some(job.clone()));
-        self.launched = Some(run.clone());
+        self.launched.send_replace(Some(run.clone()));
         self.publish_run(Some(RunView {
             run_id: run.id,
             job_id: job.id,
@@ -1431,7 +1428,7 @@ mod tests {
             run: watch::channel(Some(view)).0,
             gate: Arc::new(Gate::default()),
             job: watch::channel(Some(job)).0,
-            launched: Some(run.clone()),
+            launched: watch::channel(Some(run.clone())).0,
             pending: PendingWrites::default(),
             unstored: super::super::unstored::Marker::start(&dir.0.join("unstored"), m),
             urgent: Arc::new(tokio::sync::Mutex::new(mpsc::unbounded_channel().1)),

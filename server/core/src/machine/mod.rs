@@ -144,14 +144,9 @@ impl HostSink for Sink {
     }
     /// On the plugin's thread: straight from the plugin's bytes to the contract's event.
     fn event_json(&self, bytes: &[u8]) -> std::result::Result<(), serde_json::Error> {
-        match serde_json::from_slice::<Event>(bytes) {
-            // Not JSON at all: the host says so.
-            Err(e) if e.is_syntax() || e.is_eof() => Err(e),
-            decoded => {
-                self.accept(decoded, &|| String::from_utf8_lossy(bytes).into_owned());
-                Ok(())
-            }
-        }
+        let decoded = fresa_plugin_api::host::decode_event::<Event>(bytes)?;
+        self.accept(decoded, &|| String::from_utf8_lossy(bytes).into_owned());
+        Ok(())
     }
     fn log(&self, level: u32, message: &str) {
         use fresa_plugin_api::abi::*;
@@ -240,9 +235,8 @@ pub struct Machine {
     run: watch::Receiver<Option<RunView>>,
     /// The job of the current run.
     job: watch::Receiver<Option<JobRow>>,
-    /// The run row the task last answered run control with (`jobs` notes it): with the
-    /// published [`RunView`] it is the current run without the database.
-    answered: std::sync::Mutex<Option<RunRow>>,
+    /// The current run's row as launched: with `run`, the current run without the database.
+    launched: watch::Receiver<Option<RunRow>>,
     gate: Arc<Gate>,
     bus: EventBus,
     timeout: Duration,
@@ -305,6 +299,7 @@ impl Machine {
         let (row_tx, row_rx) = watch::channel(row.clone());
         let (run_tx, run_rx) = watch::channel(None);
         let (job_tx, job_rx) = watch::channel(None);
+        let (launched_tx, launched_rx) = watch::channel(None);
         let (tx, rx) = mpsc::unbounded_channel();
         let (urgent_tx, urgent_rx) = mpsc::unbounded_channel();
         let gate = Arc::new(Gate::default());
@@ -318,7 +313,7 @@ impl Machine {
             row: row_rx,
             run: run_rx,
             job: job_rx,
-            answered: std::sync::Mutex::new(None),
+            launched: launched_rx,
             gate: gate.clone(),
             bus: bus.clone(),
             timeout: opts.timeout,
@@ -336,7 +331,7 @@ impl Machine {
             run: run_tx,
             gate,
             job: job_tx,
-            launched: None,
+            launched: launched_tx,
             pending: Default::default(),
             unstored: unstored::Marker::start(&opts.unstored_dir, row.id),
             urgent: Arc::new(tokio::sync::Mutex::new(urgent_rx)),
@@ -395,24 +390,10 @@ impl Machine {
         self.job.borrow().clone()
     }
 
-    /// The current run's row as run control was last answered with it, with the state and line
-    /// the task has published since (known without the database, like [`Machine::current_job`]).
+    /// The current run's row as it was launched, with the state and line the task has published
+    /// since (known without the database, like [`Machine::current_job`]).
     pub fn current_run(&self) -> Option<RunRow> {
-        let view = self.run()?;
-        let answered = self.answered.lock().unwrap_or_else(|p| p.into_inner());
-        let mut row = answered.clone().filter(|r| r.id == view.run_id)?;
-        row.state = view.state;
-        row.last_line = row.last_line.max(view.line);
-        Some(row)
-    }
-
-    /// Keeps a run-control answer (start, resume, pause, cancel) for [`Machine::current_run`];
-    /// `jobs`, the one path of run control, calls it.
-    pub(crate) fn note_run(&self, run: Result<RunRow>) -> Result<RunRow> {
-        if let Ok(row) = &run {
-            *self.answered.lock().unwrap_or_else(|p| p.into_inner()) = Some(row.clone());
-        }
-        run
+        current_row(self.run(), &self.launched.borrow())
     }
 
     pub fn subscribe_status(&self) -> watch::Receiver<MachineStatus> {
@@ -621,12 +602,6 @@ impl Machine {
             .map(drop)
     }
 
-    /// A fresh status from the backend.
-    pub async fn refresh_status(&self) -> Result<MachineStatus> {
-        let v = self.call(Request::Status, "").await?;
-        serde_json::from_value(v).map_err(|e| Error::internal(format!("status: {e}")))
-    }
-
     /// After an urgent call: the backend reports the run it stopped before it answers; let the
     /// task record that (and refresh the status) before the caller hears "stopped". Bounded: a
     /// task stuck in a hung call must not hold up the answer to a stop that already happened.
@@ -733,6 +708,16 @@ impl Machine {
     pub async fn shutdown_backend(&self) -> Result<()> {
         self.urgent(&Request::Shutdown).await.map(|_| ())
     }
+}
+
+/// The current run's row: its row at launch with the state and line published since (the task
+/// and readers without the database derive it the same way).
+fn current_row(view: Option<RunView>, launched: &Option<RunRow>) -> Option<RunRow> {
+    let view = view?;
+    let mut row = launched.clone().filter(|r| r.id == view.run_id)?;
+    row.state = view.state;
+    row.last_line = row.last_line.max(view.line);
+    Some(row)
 }
 
 /// Publishes status and job progress at most once per interval, and only when they changed.

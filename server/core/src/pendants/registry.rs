@@ -160,14 +160,9 @@ impl HostSink for Sink {
     }
     /// On the plugin's thread: straight from the plugin's bytes to the contract's event.
     fn event_json(&self, bytes: &[u8]) -> std::result::Result<(), serde_json::Error> {
-        match serde_json::from_slice::<PendantEvent>(bytes) {
-            // Not JSON at all: the host says so.
-            Err(e) if e.is_syntax() || e.is_eof() => Err(e),
-            decoded => {
-                self.accept(decoded, &|| String::from_utf8_lossy(bytes).into_owned());
-                Ok(())
-            }
-        }
+        let decoded = fresa_plugin_api::host::decode_event::<PendantEvent>(bytes)?;
+        self.accept(decoded, &|| String::from_utf8_lossy(bytes).into_owned());
+        Ok(())
     }
     fn log(&self, level: u32, message: &str) {
         use fresa_plugin_api::abi::*;
