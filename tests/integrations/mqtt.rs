@@ -827,15 +827,7 @@ fn agreed_status(s: &Server, sse: &fresa_tests::Sse, sub: &Sub, machine: i64, wh
 #[test]
 fn the_status_is_the_same_json_on_http_sse_and_mqtt() {
     let broker = Broker::start();
-    let mut s = Server::unstarted(Opts::default());
-    s.write_config(&format!(
-        "[mqtt]\nurl = \"{}\"\ntopic_prefix = \"t\"\n",
-        broker.url()
-    ));
-    s.spawn().unwrap();
-    wait_for(T, "bridge connected", || {
-        (metric(&s, "fresa_mqtt_connected") == 1.0).then_some(())
-    });
+    let s = bridged_demo(&broker, "");
     let m = s.sim("m", 0.1);
     let topic = format!("t/machines/{}/status", m.id);
     let sub = Sub::new(&broker, &[&topic]);
