@@ -48,7 +48,8 @@ fn graph(mods: &BTreeMap<String, String>) -> BTreeMap<String, BTreeSet<String>> 
             while !parts.is_empty() {
                 let t = parts.join("::");
                 if mods.contains_key(&t) {
-                    if &t != m {
+                    // A module and its own parent or child count as one: their edges are inside.
+                    if !same_unit(&t, m) {
                         deps.insert(t);
                     }
                     break;
@@ -59,6 +60,18 @@ fn graph(mods: &BTreeMap<String, String>) -> BTreeMap<String, BTreeSet<String>> 
         g.insert(m.clone(), deps);
     }
     g
+}
+
+/// Whether `a` and `b` are the same module, or one is the other's ancestor (`machine` and
+/// `machine::actor`).
+fn same_unit(a: &str, b: &str) -> bool {
+    let inside = |child: &str, parent: &str| {
+        child == parent
+            || child
+                .strip_prefix(parent)
+                .is_some_and(|r| r.starts_with("::"))
+    };
+    inside(a, b) || inside(b, a)
 }
 
 fn cycle(g: &BTreeMap<String, BTreeSet<String>>) -> Option<Vec<String>> {
@@ -123,6 +136,18 @@ fn the_checker_sees_a_cycle_when_there_is_one() {
     assert!(cycle(&graph(&mods)).is_some());
     mods.insert("b".to_string(), String::new());
     assert!(cycle(&graph(&mods)).is_none());
+    // A parent and its child may use each other; a cycle through a third module still counts.
+    mods.insert("m".to_string(), "use crate::m::child::X;".to_string());
+    mods.insert("m::child".to_string(), "use crate::m::Y;".to_string());
+    assert!(cycle(&graph(&mods)).is_none());
+    mods.insert(
+        "m::child".to_string(),
+        "use crate::m::Y; use crate::c;".to_string(),
+    );
+    mods.insert("a".to_string(), "use crate::m::child::X;".to_string());
+    mods.insert("b".to_string(), String::new());
+    mods.insert("c".to_string(), "use crate::a;".to_string());
+    assert!(cycle(&graph(&mods)).is_some());
 }
 
 #[test]
