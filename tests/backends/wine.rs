@@ -2,12 +2,15 @@
 //! plugins through the C ABI, serves on a loopback port with a temporary data directory, runs
 //! a corpus program to `completed` on a sim-machine, and stops cleanly on Ctrl-C (motion
 //! stopped, the running job `interrupted`, resumable after a restart). Then the one-PC Mach3
-//! set-up: `fresa-mach3-agent.exe --simulate` and `fresa.exe` with a `mach3-oem` machine, both
-//! under Wine.
+//! set-up: the 32-bit Windows 7 `fresa-mach3-agent.exe --simulate` and `fresa.exe` with a
+//! `mach3-oem` machine, both under Wine, and the check that this agent is a 32-bit program
+//! importing nothing Windows 7 lacks. (`backends::mach3` runs every agent test against the same
+//! 32-bit agent too.)
 //!
-//! Needs the Windows programs (`cargo build --workspace --target x86_64-pc-windows-gnu`, which
-//! `tests/run` does first) and Debian's `wine`/`wine64`; each missing piece fails the test
-//! naming the command or package (see `support/wine.rs`).
+//! Needs the Windows programs (`cargo build --workspace --target x86_64-pc-windows-gnu` and
+//! `plugins/mach3-oem/build-win7-agent`, which `tests/run` does first) and Debian's
+//! `wine`/`wine64`/`wine32:i386`; each missing piece fails the test naming the command or
+//! package (see `support/wine.rs`).
 
 #![cfg(target_os = "linux")]
 #![allow(clippy::unwrap_used, clippy::expect_used)]
@@ -103,7 +106,7 @@ fn fresa_exe_runs_a_corpus_program_on_the_sim_machine_dll_and_stops_cleanly_on_c
 
 const SECRET: &str = "test-secret-0123456789";
 
-/// `fresa-mach3-agent.exe --simulate` under Wine; killed when dropped.
+/// The 32-bit Windows 7 `fresa-mach3-agent.exe --simulate` under Wine; killed when dropped.
 struct Agent {
     child: Child,
     addr: String,
@@ -113,8 +116,7 @@ struct Agent {
 impl Agent {
     fn start() -> Agent {
         let programs = tempfile::tempdir().unwrap();
-        let exe = wine::windows_bin_dir().join("fresa-mach3-agent.exe");
-        let mut child = wine::command(&exe)
+        let mut child = wine::command32(wine::win7_agent_exe())
             .args([
                 "--simulate",
                 "--listen",
@@ -128,7 +130,7 @@ impl Agent {
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .spawn()
-            .expect("start fresa-mach3-agent.exe under wine");
+            .expect("start the 32-bit fresa-mach3-agent.exe under wine");
         let stdout = child.stdout.take().unwrap();
         let (tx, rx) = mpsc::channel();
         std::thread::spawn(move || {
@@ -160,7 +162,7 @@ impl Drop for Agent {
     }
 }
 
-/// The one-PC set-up, all Windows programs: the agent (here simulating Mach3) and the server
+/// The one-PC set-up, all Windows programs: the 32-bit agent (here simulating Mach3) and the server
 /// with a `mach3-oem` machine, a corpus program run to `completed`.
 #[test]
 fn mach3_agent_exe_and_fresa_exe_run_a_corpus_program_to_completion() {
@@ -340,4 +342,125 @@ fn the_parport_dll_refuses_a_real_port_naming_the_platform_and_accepts_sim() {
     s.wait_machine_state(sim, "idle", T);
     let machines = s.get("/api/v1/machines").expect(200);
     assert_eq!(machines.as_array().unwrap().len(), 1, "{machines}");
+}
+
+/// What Windows 7 lacks and newer Rust builds import (each would stop the agent from starting
+/// there, "entry point not found" or "DLL not found"): `dll!function`, `dll!` for any function
+/// of that DLL, `!function` from any DLL.
+const NEWER_THAN_WINDOWS_7: &[(&str, &str)] = &[
+    (
+        "bcryptprimitives.dll!ProcessPrng",
+        "Windows 10: std's random numbers on *-pc-windows-*",
+    ),
+    ("!WaitOnAddress", "Windows 8: std's locks on *-pc-windows-*"),
+    ("!WakeByAddressSingle", "Windows 8: std's locks"),
+    ("!WakeByAddressAll", "Windows 8: std's locks"),
+    (
+        "!GetSystemTimePreciseAsFileTime",
+        "Windows 8: std's SystemTime",
+    ),
+    ("!SetThreadDescription", "Windows 10 1607: thread names"),
+    ("!GetThreadDescription", "Windows 10 1607: thread names"),
+    ("!CreateFile2", "Windows 8"),
+    ("!CopyFile2", "Windows 8"),
+    ("!GetOverlappedResultEx", "Windows 8"),
+    (
+        "combase.dll!",
+        "Windows 8: the `windows` crate's COM support",
+    ),
+    (
+        "api-ms-win-core-winrt-error-l1-1-0.dll!",
+        "Windows 8: the `windows` crate's errors",
+    ),
+    (
+        "api-ms-win-core-synch-l1-2-0.dll!",
+        "Windows 8: std's WaitOnAddress",
+    ),
+    (
+        "ucrtbase.dll!",
+        "the Universal CRT: Windows 10, an update on 7",
+    ),
+    (
+        "propsys.dll!",
+        "not on every Windows 7 install (Windows Search)",
+    ),
+];
+
+/// Why `exe` would not load on 32-bit Windows 7: empty when it would.
+fn windows_7_problems(exe: &std::path::Path) -> Vec<String> {
+    let facts = wine::pe_facts(exe);
+    let reviewed_path =
+        fresa_tests::workspace_root().join("tests/fixtures/wine/win7-agent-imports.txt");
+    let reviewed = std::fs::read_to_string(&reviewed_path).unwrap();
+    let reviewed: std::collections::HashSet<&str> = reviewed
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .collect();
+    let mut problems = Vec::new();
+    if !facts.pe32 || facts.machine != 0x14c {
+        problems.push(format!(
+            "not a 32-bit (PE32, i386) program: PE32 {}, machine 0x{:x}",
+            facts.pe32, facts.machine
+        ));
+    }
+    for (what, v) in [
+        ("subsystem", facts.subsystem_version),
+        ("OS", facts.os_version),
+    ] {
+        if v > (6, 1) {
+            problems.push(format!(
+                "its {what} version {}.{} is above Windows 7's 6.1",
+                v.0, v.1
+            ));
+        }
+    }
+    for import in &facts.imports {
+        let (dll, function) = import.split_once('!').unwrap();
+        let newer = NEWER_THAN_WINDOWS_7.iter().find(|(pattern, _)| {
+            let (d, f) = pattern.split_once('!').unwrap();
+            (d.is_empty() || d == dll) && (f.is_empty() || f == function)
+        });
+        if let Some((_, why)) = newer {
+            problems.push(format!("imports {import} ({why})"));
+        } else if !reviewed.contains(import.as_str()) {
+            problems.push(format!(
+                "imports {import}, not in {} (check it against Windows 7, then add it)",
+                reviewed_path.display()
+            ));
+        }
+    }
+    problems
+}
+
+/// The agent that ships for Mach3 PCs is a 32-bit program that imports only what Windows 7 has;
+/// the ordinary x86_64 build of the same source fails the same check (Windows 10's
+/// `ProcessPrng`), which shows the check can fail.
+#[test]
+fn the_mach3_agent_for_windows_7_is_32_bit_and_imports_nothing_windows_7_lacks() {
+    let problems = windows_7_problems(wine::win7_agent_exe());
+    assert!(
+        problems.is_empty(),
+        "{} would not load on 32-bit Windows 7:\n{}",
+        wine::win7_agent_exe().display(),
+        problems.join("\n")
+    );
+    let facts = wine::pe_facts(wine::win7_agent_exe());
+    assert!(
+        facts
+            .imports
+            .iter()
+            .any(|i| i == "oleaut32.dll!GetActiveObject"),
+        "the agent attaches to Mach3 through COM: {:?}",
+        facts.imports
+    );
+
+    let x64 = wine::windows_bin_dir().join("fresa-mach3-agent.exe");
+    let problems = windows_7_problems(&x64);
+    assert!(
+        problems.iter().any(|p| p.contains("not a 32-bit"))
+            && problems
+                .iter()
+                .any(|p| p.contains("bcryptprimitives.dll!ProcessPrng")),
+        "the x86_64 build should fail the check: {problems:?}"
+    );
 }

@@ -14,6 +14,15 @@ use std::time::{Duration, Instant};
 pub const WINDOWS_TARGET: &str = "x86_64-pc-windows-gnu";
 /// What builds the programs the Wine tests run.
 pub const BUILD_COMMAND: &str = "cargo build --workspace --target x86_64-pc-windows-gnu";
+/// The 32-bit Windows 7 agent's target, and what builds it.
+pub const WIN7_TARGET: &str = "i686-win7-windows-gnu";
+pub const WIN7_BUILD_COMMAND: &str = "plugins/mach3-oem/build-win7-agent";
+/// The loaders Debian's `wine32:i386` and `wine64` install. Each program is started by its own
+/// loader, not through `/usr/bin/wine`: that script picks the 32-bit loader whenever `wine32` is
+/// installed, which starts a 64-bit program as a second process, so the child a test holds
+/// (and signals or kills) would not be the program.
+const WINE32_LOADER: &str = "/usr/lib/wine/wine";
+const WINE64_LOADER: &str = "/usr/lib/wine/wine64";
 
 /// How long a fresh Wine prefix may take to set itself up.
 const WINEBOOT_TIMEOUT: Duration = Duration::from_secs(300);
@@ -48,6 +57,43 @@ pub fn windows_bin_dir() -> &'static Path {
         }
         dir
     })
+}
+
+/// `<target>/i686-win7-windows-gnu/<profile>/fresa-mach3-agent.exe`, checked to exist.
+pub fn win7_agent_exe() -> &'static Path {
+    static EXE: OnceLock<PathBuf> = OnceLock::new();
+    EXE.get_or_init(|| {
+        let profile = crate::profile_dir();
+        let exe = profile
+            .parent()
+            .expect("profile dir has a parent")
+            .join(WIN7_TARGET)
+            .join(profile.file_name().expect("profile dir has a name"))
+            .join("fresa-mach3-agent.exe");
+        assert!(
+            exe.is_file(),
+            "{} is missing: build it first with `{WIN7_BUILD_COMMAND}{}` (tests/run does)",
+            exe.display(),
+            if cfg!(debug_assertions) {
+                ""
+            } else {
+                " --release"
+            }
+        );
+        exe
+    })
+}
+
+/// `wine EXE` for a 32-bit program, in the tests' (WoW64) prefix; fails naming the package
+/// when 32-bit Wine is missing.
+pub fn command32(exe: &Path) -> Command {
+    assert!(
+        Path::new(WINE32_LOADER).is_file(),
+        "{WINE32_LOADER} is missing: 32-bit programs need Debian's 32-bit Wine \
+         (`dpkg --add-architecture i386 && apt-get update && apt-get install wine32:i386`; \
+         .ci/install-deps does)"
+    );
+    loader_command(WINE32_LOADER, prefix(), exe)
 }
 
 /// Runs `cmd` to completion within `timeout` (polling; killed and a panic naming `what` past
@@ -159,15 +205,24 @@ fn set_up(name: &str) -> PathBuf {
     prefix
 }
 
-/// `wine EXE` in the tests' prefix, with no `FRESA_*` variable inherited.
+/// `wine EXE` for a 64-bit program in the tests' prefix, with no `FRESA_*` variable inherited.
 pub fn command(exe: &Path) -> Command {
     command_in(prefix(), exe)
 }
 
-/// `wine EXE` in `prefix`, with no `FRESA_*` variable inherited.
+/// `wine EXE` for a 64-bit program in `prefix`, with no `FRESA_*` variable inherited.
 pub fn command_in(prefix: &Path, exe: &Path) -> Command {
-    let mut cmd = Command::new("wine");
+    assert!(
+        Path::new(WINE64_LOADER).is_file(),
+        "{WINE64_LOADER} is missing: install Wine with `apt-get install wine wine64`"
+    );
+    loader_command(WINE64_LOADER, prefix, exe)
+}
+
+fn loader_command(loader: &str, prefix: &Path, exe: &Path) -> Command {
+    let mut cmd = Command::new(loader);
     cmd.arg(exe)
+        .env("WINELOADER", loader)
         .env("WINEPREFIX", prefix)
         .env("WINEDEBUG", "-all")
         .stdin(Stdio::null());
@@ -182,4 +237,93 @@ pub fn command_in(prefix: &Path, exe: &Path) -> Command {
 /// A Linux path as the Windows program sees it (Wine's drive `Z:` is `/`).
 pub fn path(p: &Path) -> String {
     format!("Z:{}", p.display())
+}
+
+/// What a Windows program's PE headers say about where it can load.
+#[derive(Debug)]
+pub struct PeFacts {
+    /// PE32 (32-bit), not PE32+.
+    pub pe32: bool,
+    /// `IMAGE_FILE_MACHINE_*` (0x14c is i386).
+    pub machine: u16,
+    /// The loader refuses a program whose subsystem version is above the running Windows.
+    pub subsystem_version: (u16, u16),
+    pub os_version: (u16, u16),
+    /// Every imported function (ordinary and delay-loaded) as `dll!name`, DLL in lower case,
+    /// an import by ordinal as `dll!#N`.
+    pub imports: Vec<String>,
+}
+
+/// Reads `exe`'s PE headers and import tables (32- or 64-bit).
+pub fn pe_facts(exe: &Path) -> PeFacts {
+    use object::pe::{ImageNtHeaders32, ImageNtHeaders64};
+    use object::read::pe::{ImageNtHeaders, ImageOptionalHeader, PeFile};
+    use object::LittleEndian as LE;
+
+    fn read<H: ImageNtHeaders>(data: &[u8], pe32: bool) -> object::Result<PeFacts> {
+        let file = PeFile::<H>::parse(data)?;
+        let nt = file.nt_headers();
+        let opt = nt.optional_header();
+        let mut imports = Vec::new();
+        if let Some(table) = file.import_table()? {
+            let mut descriptors = table.descriptors()?;
+            while let Some(d) = descriptors.next()? {
+                let dll = String::from_utf8_lossy(table.name(d.name.get(LE))?).to_lowercase();
+                let first = match d.original_first_thunk.get(LE) {
+                    0 => d.first_thunk.get(LE),
+                    t => t,
+                };
+                let mut thunks = table.thunks(first)?;
+                while let Some(thunk) = thunks.next::<H>()? {
+                    imports.push(match table.import::<H>(thunk)? {
+                        object::read::pe::Import::Name(_, name) => {
+                            format!("{dll}!{}", String::from_utf8_lossy(name))
+                        }
+                        object::read::pe::Import::Ordinal(n) => format!("{dll}!#{n}"),
+                    });
+                }
+            }
+        }
+        if let Some(table) = file
+            .data_directories()
+            .delay_load_import_table(data, &file.section_table())?
+        {
+            let mut descriptors = table.descriptors()?;
+            while let Some(d) = descriptors.next()? {
+                let dll =
+                    String::from_utf8_lossy(table.name(d.dll_name_rva.get(LE))?).to_lowercase();
+                let mut thunks = table.thunks(d.import_name_table_rva.get(LE))?;
+                while let Some(thunk) = thunks.next::<H>()? {
+                    imports.push(match table.import::<H>(thunk)? {
+                        object::read::pe::Import::Name(_, name) => {
+                            format!("{dll}!{}", String::from_utf8_lossy(name))
+                        }
+                        object::read::pe::Import::Ordinal(n) => format!("{dll}!#{n}"),
+                    });
+                }
+            }
+        }
+        imports.sort();
+        imports.dedup();
+        Ok(PeFacts {
+            pe32,
+            machine: nt.file_header().machine.get(LE),
+            subsystem_version: (opt.major_subsystem_version(), opt.minor_subsystem_version()),
+            os_version: (
+                opt.major_operating_system_version(),
+                opt.minor_operating_system_version(),
+            ),
+            imports,
+        })
+    }
+
+    let data = std::fs::read(exe).unwrap_or_else(|e| panic!("read {}: {e}", exe.display()));
+    let kind = object::FileKind::parse(&data[..])
+        .unwrap_or_else(|e| panic!("{} is not an executable: {e}", exe.display()));
+    let facts = match kind {
+        object::FileKind::Pe32 => read::<ImageNtHeaders32>(&data, true),
+        object::FileKind::Pe64 => read::<ImageNtHeaders64>(&data, false),
+        other => panic!("{} is not a PE program but {other:?}", exe.display()),
+    };
+    facts.unwrap_or_else(|e| panic!("{}: bad PE headers: {e}", exe.display()))
 }
