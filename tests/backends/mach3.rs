@@ -2,15 +2,21 @@
 //! `fresa-mach3-agent --simulate` -> simulated Mach3. The test reads Mach3's DROs and LEDs
 //! itself through the agent protocol, so "what Mach3 shows" is checked, not what the plugin
 //! says about it.
+//!
+//! Every test that starts an agent runs twice, once per agent build that ships (`Build`): the
+//! Linux binary and the 32-bit Windows 7 `fresa-mach3-agent.exe` under 32-bit Wine (built by
+//! `plugins/mach3-oem/build-win7-agent`, which `tests/run` does). A new agent test goes in
+//! `on_every_agent!` at the bottom.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use fresa_mach3_oem::client::AgentClient;
-use fresa_mach3_oem::mach3::Call;
+use fresa_mach3_oem::client::{AgentClient, LinkError};
+use fresa_mach3_oem::mach3::{Call, ErrorKind};
 use fresa_mach3_oem::protocol::CallResult;
-use fresa_tests::{bin_dir, corpus, wait_for, Server};
+use fresa_tests::{bin_dir, corpus, wait_for, wine, Server};
 use serde_json::{json, Value};
 use std::io::{BufRead, BufReader, Write};
+use std::net::TcpStream;
 use std::process::{Child, ChildStdin, Command, Stdio};
 use std::sync::mpsc;
 use std::time::Duration;
@@ -21,8 +27,18 @@ const SECRET: &str = "test-secret-0123456789";
 const PROGRAM: &str = "fusion-1122_jig_28bit_first.nc";
 const TIME_SCALE: f64 = 0.01;
 
+/// Which agent binary a test runs against.
+#[derive(Clone, Copy, Debug)]
+enum Build {
+    /// `target/<profile>/fresa-mach3-agent`, this machine's own build.
+    Linux,
+    /// `target/i686-win7-windows-gnu/<profile>/fresa-mach3-agent.exe` under 32-bit Wine.
+    Win7Wine32,
+}
+
 /// A `fresa-mach3-agent --simulate` process; killed when dropped.
 struct Agent {
+    build: Build,
     child: Child,
     stdin: ChildStdin,
     addr: String,
@@ -30,19 +46,35 @@ struct Agent {
 }
 
 impl Agent {
-    fn start(listen: &str) -> Agent {
+    fn start(build: Build, listen: &str) -> Agent {
+        Agent::start_with(build, listen, &[])
+    }
+
+    /// [`Agent::start`] with more command-line options.
+    fn start_with(build: Build, listen: &str, options: &[&str]) -> Agent {
         let programs = tempfile::tempdir().unwrap();
-        let mut child = Command::new(bin_dir().join("fresa-mach3-agent"))
+        let (mut cmd, program_dir) = match build {
+            Build::Linux => (
+                Command::new(bin_dir().join("fresa-mach3-agent")),
+                programs.path().display().to_string(),
+            ),
+            Build::Win7Wine32 => (
+                wine::command32(wine::win7_agent_exe()),
+                wine::path(programs.path()),
+            ),
+        };
+        let mut child = cmd
             .args(["--simulate", "--listen", listen, "--time-scale"])
             .arg(TIME_SCALE.to_string())
             .arg("--program-dir")
-            .arg(programs.path())
+            .arg(program_dir)
+            .args(options)
             .env("FRESA_MACH3_SECRET", SECRET)
             .env_remove("FRESA_MACH3_SECRET_FILE")
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .spawn()
-            .expect("start fresa-mach3-agent");
+            .unwrap_or_else(|e| panic!("start the {build:?} fresa-mach3-agent: {e}"));
         let stdout = child.stdout.take().unwrap();
         let (tx, rx) = mpsc::channel();
         std::thread::spawn(move || {
@@ -58,6 +90,7 @@ impl Agent {
             .to_string();
         let stdin = child.stdin.take().unwrap();
         Agent {
+            build,
             child,
             stdin,
             addr,
@@ -155,9 +188,8 @@ fn reset_to_idle(s: &Server, m: i64) {
     s.wait_machine_state(m, "idle", T);
 }
 
-#[test]
-fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode() {
-    let agent = Agent::start("127.0.0.1:0");
+fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode(build: Build) {
+    let agent = Agent::start(build, "127.0.0.1:0");
     let mut mach = agent.client();
     let s = Server::start();
     let m = machine(&s, "mach3", &agent);
@@ -315,9 +347,8 @@ fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode() {
     assert_eq!(dro(&mut mach, 800), x_before, "nothing moved");
 }
 
-#[test]
-fn a_program_runs_to_completion_with_progress_feed_hold_and_reset_toggles_right() {
-    let mut agent = Agent::start("127.0.0.1:0");
+fn a_program_runs_to_completion_with_progress_feed_hold_and_reset_toggles_right(build: Build) {
+    let mut agent = Agent::start(build, "127.0.0.1:0");
     let mut mach = agent.client();
     let s = Server::start();
     let m = machine(&s, "mach3", &agent);
@@ -387,9 +418,8 @@ fn a_program_runs_to_completion_with_progress_feed_hold_and_reset_toggles_right(
     }
 }
 
-#[test]
-fn losing_the_agent_mid_job_goes_offline_and_the_job_resumes_later() {
-    let mut agent = Agent::start("127.0.0.1:0");
+fn losing_the_agent_mid_job_goes_offline_and_the_job_resumes_later(build: Build) {
+    let mut agent = Agent::start(build, "127.0.0.1:0");
     let s = Server::start();
     let m = machine(&s, "mach3", &agent);
     reset_to_idle(&s, m);
@@ -424,7 +454,7 @@ fn losing_the_agent_mid_job_goes_offline_and_the_job_resumes_later() {
     );
 
     // The agent comes back (Mach3 restarted with it, in reset): the plugin reconnects by itself.
-    let agent = Agent::start(&agent.addr.clone());
+    let agent = Agent::start(agent.build, &agent.addr.clone());
     reset_to_idle(&s, m);
     s.job_action(job, "resume").expect(200);
     let st = s.wait_status(m, T, "running the resumed run", |st| st["line"].is_u64());
@@ -437,9 +467,8 @@ fn losing_the_agent_mid_job_goes_offline_and_the_job_resumes_later() {
     drop(agent);
 }
 
-#[test]
-fn mach3_closing_shows_offline_with_that_reason_and_recovers() {
-    let agent = Agent::start("127.0.0.1:0");
+fn mach3_closing_shows_offline_with_that_reason_and_recovers(build: Build) {
+    let agent = Agent::start(build, "127.0.0.1:0");
     let s = Server::start();
     let m = machine(&s, "mach3", &agent);
     reset_to_idle(&s, m);
@@ -494,9 +523,8 @@ fn an_agent_that_never_answers_or_is_absent_gives_offline_not_a_hang() {
     drop(silent);
 }
 
-#[test]
-fn mdi_lines_restore_the_modal_state_and_outputs_switch() {
-    let agent = Agent::start("127.0.0.1:0");
+fn mdi_lines_restore_the_modal_state_and_outputs_switch(build: Build) {
+    let agent = Agent::start(build, "127.0.0.1:0");
     let mut mach = agent.client();
     let s = Server::start();
     let m = machine(&s, "mach3", &agent);
@@ -542,9 +570,8 @@ fn mdi_lines_restore_the_modal_state_and_outputs_switch() {
 
 /// With Mach3's output LEDs read back, spindle and coolant toggle: each toggle reads the LED,
 /// switches the other way, and the status shows what Mach3 shows.
-#[test]
-fn spindle_and_coolant_toggle_with_read_back_and_show_in_the_status() {
-    let agent = Agent::start("127.0.0.1:0");
+fn spindle_and_coolant_toggle_with_read_back_and_show_in_the_status(build: Build) {
+    let agent = Agent::start(build, "127.0.0.1:0");
     let mut mach = agent.client();
     let s = Server::start();
     let m = machine(&s, "mach3-io", &agent);
@@ -587,3 +614,110 @@ fn spindle_and_coolant_toggle_with_read_back_and_show_in_the_status() {
     assert_eq!(t["result"]["on"], false, "{t}");
     assert!(!led(&mut mach, 13), "flood LED out");
 }
+
+/// The agent protocol as the shipped binary speaks it (the crate's own `tests/agent.rs` checks
+/// the same rules in-process): a wrong secret is refused, a malformed frame is answered and
+/// skipped, and a jog ends when its connection is lost or goes quiet, seen from a second
+/// connection as Mach3's own `IsMoving`.
+fn the_protocol_refuses_bad_secrets_and_frames_and_releases_jogs_of_a_lost_link(build: Build) {
+    let mut agent = Agent::start_with(build, "127.0.0.1:0", &["--watchdog-ms", "300"]);
+    let mut wrong = AgentClient::new(agent.addr.clone(), "not-the-secret".into(), T);
+    match wrong.connect() {
+        Err(LinkError::Refused { error, .. }) => assert_eq!(error.kind, ErrorKind::Auth),
+        other => panic!("a wrong secret must be refused: {other:?}"),
+    }
+
+    let stream = TcpStream::connect(&agent.addr).unwrap();
+    let mut r = BufReader::new(stream.try_clone().unwrap());
+    let mut w = stream;
+    let mut line = String::new();
+    r.read_line(&mut line).unwrap();
+    let hello: Value = serde_json::from_str(&line).unwrap();
+    assert_eq!(hello["agent"], "fresa-mach3-agent", "{hello}");
+    let auth = fresa_mach3_oem::protocol::sign(SECRET, hello["nonce"].as_str().unwrap());
+    writeln!(w, "{}", json!({"protocol": 1, "auth": auth})).unwrap();
+    line.clear();
+    r.read_line(&mut line).unwrap();
+    assert!(line.contains("\"ok\":true"), "{line}");
+    writeln!(w, r#"{{"id": 7, "calls": [{{"op": "launch_mach3"}}]}}"#).unwrap();
+    line.clear();
+    r.read_line(&mut line).unwrap();
+    let v: Value = serde_json::from_str(&line).unwrap();
+    assert_eq!(v["id"], 7, "{v}");
+    assert_eq!(v["error"]["kind"], "protocol", "{v}");
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("launch_mach3"),
+        "{v}"
+    );
+    // The connection still works (the simulated Mach3 starts in reset, as the real one does).
+    writeln!(w, r#"{{"id": 8, "calls": [{{"op": "is_estop"}}]}}"#).unwrap();
+    line.clear();
+    r.read_line(&mut line).unwrap();
+    assert_eq!(line.trim(), r#"{"id":8,"results":[{"ok":true}]}"#);
+    drop((r, w));
+
+    agent.press(1021); // out of the start-up reset, as the operator would
+    let mut watcher = agent.client();
+    let moving = |c: &mut AgentClient| mach3(c, vec![Call::IsMoving])[0] == json!(true);
+    wait_for(T, "the reset released", || {
+        (mach3(&mut watcher, vec![Call::IsEstop])[0] == json!(false)).then_some(())
+    });
+    // Lost: the jogging connection closes.
+    let mut jogger = agent.client();
+    mach3(
+        &mut jogger,
+        vec![Call::JogOn {
+            axis: 0,
+            direction: 0,
+        }],
+    );
+    assert!(moving(&mut watcher), "JogOn X+ moves");
+    drop(jogger);
+    wait_for(T, "JogOff after the connection closed", || {
+        (!moving(&mut watcher)).then_some(())
+    });
+    // Quiet: the jogging connection stays open but says nothing past the watchdog.
+    let mut jogger = agent.client();
+    mach3(
+        &mut jogger,
+        vec![Call::JogOn {
+            axis: 1,
+            direction: 1,
+        }],
+    );
+    assert!(moving(&mut watcher), "JogOn Y- moves");
+    wait_for(T, "JogOff after the watchdog", || {
+        (!moving(&mut watcher)).then_some(())
+    });
+    assert!(dro(&mut watcher, 801) < 0.0, "Y jogged minus");
+    drop(jogger);
+}
+
+/// `mod NAME { linux, win7_32bit_wine }`: the test `NAME(build)` against each agent build.
+macro_rules! on_every_agent {
+    ($($name:ident),* $(,)?) => {$(
+        mod $name {
+            #[test]
+            fn linux() {
+                super::$name(super::Build::Linux)
+            }
+            #[test]
+            fn win7_32bit_wine() {
+                super::$name(super::Build::Win7Wine32)
+            }
+        }
+    )*};
+}
+
+on_every_agent!(
+    the_protocol_refuses_bad_secrets_and_frames_and_releases_jogs_of_a_lost_link,
+    jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode,
+    a_program_runs_to_completion_with_progress_feed_hold_and_reset_toggles_right,
+    losing_the_agent_mid_job_goes_offline_and_the_job_resumes_later,
+    mach3_closing_shows_offline_with_that_reason_and_recovers,
+    mdi_lines_restore_the_modal_state_and_outputs_switch,
+    spindle_and_coolant_toggle_with_read_back_and_show_in_the_status,
+);
