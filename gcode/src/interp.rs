@@ -1329,9 +1329,10 @@ impl<R: BufRead> Interpreter<R> {
         let mut g_retract = None;
         let mut g_nonmodal: Option<(u16, u32)> = None;
         for &(code, off) in &blk.g[..blk.ng] {
+            const MOTION: [u16; 13] = [0, 10, 20, 30, 50, 51, 800, 730, 810, 820, 830, 850, 890];
+            let is_motion = MOTION.contains(&code);
             let slot = match code {
-                0 | 10 | 20 | 30 | 50 | 51 | 800 => &mut g_motion,
-                730 | 810 | 820 | 830 | 850 | 890 => &mut g_motion,
+                _ if is_motion => &mut g_motion,
                 330 | 331 | 382..=385 | 760 | 840 | 860..=880 => {
                     // Remember it so that following modal lines are rejected
                     // rather than run as the previous G0/G1.
@@ -1356,6 +1357,16 @@ impl<R: BufRead> Interpreter<R> {
                 _ => return Err(unknown_g(code, off)),
             };
             if let Some((prev, _)) = *slot {
+                // G80 beside another motion code (`G0 G80 X..`, the "safe start" line of
+                // Fanuc-, Haas-, Vectric- and Mach3-style posts) is dropped and the other code
+                // applies, in either order, as LinuxCNC's rs274 does.
+                if is_motion && code == 800 {
+                    continue;
+                }
+                if is_motion && prev == 800 {
+                    *slot = Some((code, off));
+                    continue;
+                }
                 return Err((
                     off as usize,
                     ErrorKind::Invalid,

@@ -144,6 +144,18 @@ fn same_modal_group_twice_is_an_error() {
 }
 
 #[test]
+fn g80_beside_another_motion_code_is_dropped_as_rs274_does() {
+    let m = moves("G0 G80 X1 Y2\nG1 G80 X3 F100\nG80 G0 X4\n");
+    assert!(matches!(m[0], Motion::Rapid { line: 1, .. }), "{m:?}");
+    assert!(matches!(m[1], Motion::Linear { line: 2, .. }), "{m:?}");
+    assert!(matches!(m[2], Motion::Rapid { line: 3, .. }), "{m:?}");
+    assert!(close(m[2].end_point().unwrap(), [4.0, 2.0, 0.0]));
+    // Two motion codes that are not G80 still conflict; G80 twice is G80 (axis words refused).
+    assert!(err("G0 G1 X1 F1\n").message.contains("same modal group"));
+    assert!(!err("G80 G80 X1\n").message.contains("same modal group"));
+}
+
+#[test]
 fn several_groups_on_one_line() {
     let m = run("G17 G21 G90 G54 G0 X1 Y2 Z3 S1000 M3 M8 T2 M6\n").unwrap();
     // LinuxCNC order: tool change, spindle, coolant, work offset, motion.
