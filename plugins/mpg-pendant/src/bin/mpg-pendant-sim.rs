@@ -20,6 +20,11 @@
 //!                            loop's N0451 polls start again; `wrap8` counts lines in a u8, so a
 //!                            file over 255 lines is re-sent from the start forever, without FIN
 //!                            (until `stop-after` or the link ends).
+//! set-cero PLATE_Z [STEPS]   the firmware's touch-plate routine ("Set cero"): Z down 0.01 a
+//!                            frame (`N01S0.0001Z-0100`) until the plate closes, then `ZeroZ`.
+//!                            The plate closes when the Z the LCD shows (N51) is at or below
+//!                            PLATE_Z; at most STEPS frames (default 10000, 100 mm), then an
+//!                            error and no ZeroZ
 //! poll HZ                    N0451 polls per second (0 stops); `poll-job HZ` for N0452
 //! raw TEXT                   send TEXT as is
 //! wait-connected             block until a server is connected
@@ -32,7 +37,7 @@
 
 use clap::Parser;
 use fresa_mpg_pendant::codec::{parse_key_word, Decoded, Decoder, Frame, Info};
-use fresa_plugin_api::contract::Axis;
+use fresa_plugin_api::contract::{Axis, AxisValues};
 use std::io::{BufRead, Write};
 use std::net::{Shutdown, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -71,6 +76,9 @@ struct Sim {
     uploading: Mutex<bool>,
     quiet_polls: bool,
     out: Mutex<()>,
+    /// The newest N51 answer (what the LCD shows) and how many have arrived.
+    lcd: Mutex<(u64, Option<AxisValues>)>,
+    lcd_changed: Condvar,
 }
 
 impl Sim {
@@ -108,6 +116,8 @@ fn main() {
         uploading: Mutex::new(false),
         quiet_polls: args.quiet_polls,
         out: Mutex::new(()),
+        lcd: Mutex::new((0, None)),
+        lcd_changed: Condvar::new(),
     });
     match listener.local_addr() {
         Ok(a) => sim.say(&format!("listening on {a}")),
@@ -196,6 +206,10 @@ fn read_loop(sim: &Sim, mut stream: TcpStream, gen: u64) {
                 while let Some(d) = decoder.pop() {
                     match d {
                         Decoded::Frame(f) => {
+                            if let (Frame::Positions(p), Ok(mut lcd)) = (&f, sim.lcd.lock()) {
+                                *lcd = (lcd.0 + 1, Some(*p));
+                                sim.lcd_changed.notify_all();
+                            }
                             if sim.quiet_polls && matches!(f, Frame::Positions(_)) {
                                 if last_positions.as_ref() == Some(&f) {
                                     continue;
@@ -288,6 +302,15 @@ fn command(sim: &Sim, line: &str) -> Result<(), String> {
             sim.send(&Frame::Key(key).encode())
         }
         ["upload", path, opts @ ..] => upload(sim, path, opts),
+        ["set-cero", plate_z, rest @ ..] => {
+            let plate_z: f64 = plate_z.parse().map_err(|_| format!("plate Z {plate_z:?} is not a number"))?;
+            let steps: u32 = match rest {
+                [] => 10_000,
+                [n] => n.parse().map_err(|_| format!("steps {n:?} is not a count"))?,
+                _ => return Err("usage: set-cero PLATE_Z [STEPS]".into()),
+            };
+            set_cero(sim, plate_z, steps)
+        }
         ["poll", hz] | ["poll-job", hz] => {
             let hz: f64 = hz.parse().map_err(|_| format!("rate {hz:?} is not a number"))?;
             let target = if words[0] == "poll" { &sim.poll_mhz } else { &sim.poll_job_mhz };
@@ -314,8 +337,70 @@ fn command(sim: &Sim, line: &str) -> Result<(), String> {
             std::thread::sleep(Duration::from_millis(ms));
             Ok(())
         }
-        _ => Err("unknown command (jog, flood, key, upload, poll, poll-job, raw, wait-connected, drop, sleep, quit)".into()),
+        _ => Err("unknown command (jog, flood, key, upload, set-cero, poll, poll-job, raw, wait-connected, drop, sleep, quit)".into()),
     }
+}
+
+/// The LCD's Z from an N51 answer newer than `after` (asking with N0451 every 20 ms, as the
+/// firmware's main loop does), within `timeout`.
+fn lcd_z_after(sim: &Sim, after: u64, timeout: Duration) -> Result<(u64, f64), String> {
+    let ask = Frame::Request(Info::Positions).encode();
+    let deadline = std::time::Instant::now() + timeout;
+    loop {
+        sim.send(&ask)?;
+        let lcd = sim.lcd.lock().map_err(|_| "poisoned")?;
+        let (lcd, _) = sim
+            .lcd_changed
+            .wait_timeout_while(lcd, Duration::from_millis(20), |l| l.0 <= after)
+            .map_err(|_| "poisoned")?;
+        if let (seq, Some(p)) = *lcd {
+            if seq > after {
+                return Ok((seq, p.z));
+            }
+        }
+        drop(lcd);
+        if std::time::Instant::now() >= deadline {
+            return Err(format!(
+                "no position (N51) from the server within {timeout:?}"
+            ));
+        }
+    }
+}
+
+/// The firmware's "Set cero": one Z-down step, then its plate input is read (here: the LCD's Z
+/// against `plate_z`), until the plate closes; then `ZeroZ`.
+fn set_cero(sim: &Sim, plate_z: f64, steps: u32) -> Result<(), String> {
+    const STEP_MM: f64 = 0.01;
+    let wait = Duration::from_secs(5);
+    let (mut seq, mut z) = lcd_z_after(sim, 0, wait)?;
+    for _ in 0..steps {
+        if z <= plate_z + 1e-9 {
+            return sim.send(&Frame::Key(fresa_plugin_api::contract::PendantKey::ZeroZ).encode());
+        }
+        sim.send(
+            &Frame::Jog {
+                step: 0.0001,
+                axis: Axis::Z,
+                count: -100,
+            }
+            .encode(),
+        )?;
+        // The next position that shows the step done (the plate is sensed where the tool is).
+        let target = z - STEP_MM / 2.0;
+        let deadline = std::time::Instant::now() + wait;
+        loop {
+            (seq, z) = lcd_z_after(sim, seq, wait)?;
+            if z <= target {
+                break;
+            }
+            if std::time::Instant::now() >= deadline {
+                return Err(format!("set-cero: Z stayed at {z} after a step down (is the pendant bound to an idle machine?)"));
+            }
+        }
+    }
+    Err(format!(
+        "set-cero: the plate never closed in {steps} steps (Z at {z}, plate at {plate_z})"
+    ))
 }
 
 struct UploadOpts {
