@@ -167,6 +167,71 @@ fn wait_event(s: &Server, what: &str, pred: impl Fn(&SseEvent) -> bool) -> SseEv
     stream.until(T, what, |e| pred(e)).pop().unwrap()
 }
 
+/// The firmware's "Set cero" routine (0.0001-step Z- frames until the plate closes, then
+/// `ZeroZ`) with a 15 mm plate: Z reads 15 where the plate closed, on the status and the LCD,
+/// and the touch-off is in the audit log with the offset before and after. A `ZeroZ` after an
+/// ordinary wheel move still zeroes; a plate thickness that is not one is refused.
+#[test]
+fn set_cero_on_a_15_mm_touch_plate_leaves_z_reading_15() {
+    let s = Server::start();
+    let m = s.sim("mill", 0.0).id;
+    for bad in [json!(0), json!(-1), json!(150), json!("15")] {
+        let r = s.post(
+            "/api/v1/pendants",
+            &json!({"name": "bad", "address": "127.0.0.1:9", "config": {"touch_plate_mm": bad}}),
+        );
+        let msg = r.expect_error(422, "invalid_field");
+        assert!(msg.contains("config.touch_plate_mm"), "{msg}");
+    }
+    let mut sim = PendantSim::start();
+    let p = add_pendant(
+        &s,
+        "wheel",
+        &sim.addr,
+        Some(m),
+        json!({"touch_plate_mm": 15}),
+    );
+    wait_connected(&s, p, true);
+
+    // The plate's top is 0.5 mm below where the tool starts: 50 steps of 0.01 mm.
+    sim.cmd("set-cero -0.5");
+    let w = wait_work(&s, m, "Z reads the plate's thickness", |w| {
+        close(w[2], 15.0)
+    });
+    assert!(
+        close(w[0], 0.0) && close(w[1], 0.0),
+        "only Z changed: {w:?}"
+    );
+    let st = s.status(m);
+    let machine_z = st["machine_position"]["z"].as_f64().unwrap();
+    assert!(close(machine_z, -0.5), "the tool stayed on the plate: {st}");
+    sim.wait_line_from(0, "Z 15 on the LCD", |l| {
+        l == "recv N51E+00000.0000x+00000.0000y+00015.0000z+00000.0000aF"
+    });
+    let e = wait_event(&s, "the touch-off", |e| e.event == "machine.touch_off");
+    assert_eq!(e.data["actor"], format!("pendant:{p}"), "{:?}", e.data);
+    let d = &e.data["data"];
+    assert_eq!(
+        (d["axis"].as_str(), d["plate_mm"].as_f64()),
+        (Some("Z"), Some(15.0)),
+        "{d}"
+    );
+    assert!(close(d["before"]["z"].as_f64().unwrap(), 0.0), "{d}");
+    // The offset that makes Z read 15 at machine Z -0.5 (the sim reads work = machine - offset).
+    assert!(close(d["after"]["z"].as_f64().unwrap(), -15.5), "{d}");
+    let offsets = s.get(&format!("/api/v1/machines/{m}/offsets")).expect(200);
+    assert!(
+        close(offsets["offsets"]["G54"]["z"].as_f64().unwrap(), -15.5),
+        "the store keeps the new offset: {offsets}"
+    );
+
+    // ZeroZ after an ordinary wheel move (not the routine's 0.0001 steps) zeroes Z, plate or not.
+    sim.cmd("jog Z -3 0.1");
+    wait_work(&s, m, "z = 14.7", |w| close(w[2], 14.7));
+    sim.cmd("key ZeroZ");
+    wait_work(&s, m, "z zeroed", |w| close(w[2], 0.0));
+}
+
 #[test]
 fn wheel_keys_macros_and_the_lcd_drive_the_bound_machine() {
     let s = Server::start();

@@ -172,6 +172,10 @@ pub struct NewPendant {
     pub macros: Option<BTreeMap<String, Option<Value>>>,
 }
 
+/// The thickest touch plate a pendant's `config.touch_plate_mm` may name: anything above is a
+/// typo (cm for mm), and would put the first cut that far above the part.
+const MAX_TOUCH_PLATE_MM: f64 = 100.0;
+
 /// Creates a pendant: checks the fields, stores the row and its macros, lets the transport
 /// plugin judge its config (the instance it judged with is the one used; a refused config
 /// leaves no row), starts its tasks and records `pendant.created`. Returns the new id.
@@ -203,6 +207,20 @@ pub async fn create_pendant(app: &SharedApp, req: NewPendant, actor: &str) -> Re
             return Err(Error::invalid(
                 "invalid_field",
                 "field `config.stop_program_on_lost` must be true or false",
+            ));
+        }
+    }
+    if let Some(v) = config.get("touch_plate_mm") {
+        if !v
+            .as_f64()
+            .is_some_and(|mm| mm > 0.0 && mm <= MAX_TOUCH_PLATE_MM)
+        {
+            return Err(Error::invalid(
+                "invalid_field",
+                format!(
+                    "field `config.touch_plate_mm`: {v} is not a touch plate's thickness in mm \
+                     (more than 0, at most {MAX_TOUCH_PLATE_MM})"
+                ),
             ));
         }
     }

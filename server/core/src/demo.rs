@@ -131,7 +131,8 @@ async fn try_demo_pendant(app: &App) -> Result<(), String> {
                     &addr,
                     "firmware",
                     machine,
-                    &serde_json::json!({}),
+                    // The 15 mm plate of the pendant's design: Set cero leaves Z reading 15.
+                    &serde_json::json!({"touch_plate_mm": 15}),
                     &[],
                 )
                 .await

@@ -78,6 +78,8 @@ event_kinds! {
     MachineCreated = "machine.created", Audit;
     MachineOffsets = "machine.offsets", Audit;
     MachinePartZero = "machine.part_zero", Audit;
+    /// Z set from a touch plate of known thickness: the offset before and after.
+    MachineTouchOff = "machine.touch_off", Audit;
     MachineAlarm = "machine.alarm", Audit;
     MachineNode = "machine.node", Audit;
     MachineTools = "machine.tools", Audit;
@@ -759,6 +761,7 @@ mod tests {
                 "machine.created",
                 "machine.offsets",
                 "machine.part_zero",
+                "machine.touch_off",
                 "machine.alarm",
                 "machine.node",
                 "machine.tools",

@@ -10,11 +10,13 @@ use crate::events::EventKind;
 use crate::machine::Machine;
 use crate::store::{MacroAction, PendantRow, RunState};
 use fresa_plugin_api::contract::{
-    Axis, Command, MachineState, PendantEvent, PendantJob, PendantKey, PendantRequest,
+    Axis, AxisValues, Command, MachineState, PendantEvent, PendantJob, PendantKey, PendantRequest,
+    WorkOffset,
 };
 use fresa_plugin_api::host::Instance;
 use fresa_plugin_api::quiet::Quiet;
 use serde_json::{json, Value};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex as StdMutex};
 use std::time::{Duration, Instant};
 use tokio_util::sync::CancellationToken;
@@ -25,7 +27,7 @@ pub const TRANSPORT_PLUGIN: &str = "mpg-pendant";
 const STATUS_PUSH: Duration = Duration::from_millis(50);
 
 /// Settings the core reads from a pendant's `config` (the rest goes to the transport plugin).
-const CORE_KEYS: [&str; 1] = ["stop_program_on_lost"];
+const CORE_KEYS: [&str; 2] = ["stop_program_on_lost", "touch_plate_mm"];
 
 pub mod inbox;
 pub mod registry;
@@ -161,6 +163,7 @@ pub async fn attach(
         inbox,
         macros: StdMutex::new(macros),
         started_run: StdMutex::new(None),
+        in_set_cero: AtomicBool::new(false),
         stop: CancellationToken::new(),
         quiet: Quiet::per_minute(),
     });
@@ -281,6 +284,8 @@ async fn wheel(app: &Arc<App>, p: &Arc<Pendant>) {
     let Some(j) = p.inbox.take_wheel(max) else {
         return;
     };
+    p.in_set_cero
+        .store(is_set_cero_step(j.axis, j.count, j.step), Ordering::Relaxed);
     let input = json!({"jog": {"axis": j.axis, "count": j.count, "step": j.step}});
     let Some(m) = ready_machine(app, p, &input).await else {
         return;
@@ -310,6 +315,88 @@ async fn wheel(app: &Arc<App>, p: &Arc<Pendant>) {
         Err(e) => refuse(app, p, Some(m.id), input, e.code, &e.message).await,
     }
 }
+
+/// A wheel move the firmware's "Set cero" routine sends: Z down in 0.0001 steps (the spec's
+/// `N01S0.0001Z-0100`; the inbox may have merged several into one).
+fn is_set_cero_step(axis: Axis, count: i64, step: f64) -> bool {
+    axis == Axis::Z && count < 0 && (step - SET_CERO_STEP).abs() < 1e-9
+}
+
+const SET_CERO_STEP: f64 = 0.0001;
+
+/// The end of "Set cero" on a plate `plate_mm` thick: Z zeroed where the plate closed, then the
+/// active work offset moved so Z reads the plate's thickness there (the tool tip is on the
+/// plate's top, `plate_mm` above the part). Two backend calls rather than one computed offset,
+/// so whatever else the backend folds into Z (tool length, G92) stays as it was. Waits for the
+/// routine's last step to end first, as the firmware does before it sends `ZeroZ`. Recorded as
+/// `machine.touch_off` with the offset before and after; if the second call fails, Z reads 0
+/// (as without a plate) and the refusal says so.
+async fn set_cero_on_plate(
+    app: &App,
+    p: &Pendant,
+    m: &Machine,
+    plate_mm: f64,
+    actor: &str,
+    ticket: u64,
+) -> Result<(), Error> {
+    let mut status = m.subscribe_status();
+    let still = status.wait_for(|s| s.state != MachineState::Jogging);
+    if tokio::time::timeout(SET_CERO_SETTLE, still).await.is_err() {
+        return Err(Error::conflict(
+            "machine_moving",
+            format!(
+                "machine {} still jogs {SET_CERO_SETTLE:?} after the last Set cero step",
+                m.id
+            ),
+        ));
+    }
+    let active = m.status().active_offset;
+    let active_values = |offsets: Vec<(WorkOffset, AxisValues)>| {
+        offsets
+            .into_iter()
+            .find(|(o, _)| *o == active)
+            .map(|(_, v)| v)
+            .unwrap_or_default()
+    };
+    let before = active_values(app.store.offsets(m.id).await?);
+    m.command_ticketed(
+        Command::Zero {
+            axis: Some(Axis::Z),
+        },
+        actor,
+        ticket,
+    )
+    .await?;
+    let mut after = active_values(app.store.offsets(m.id).await?);
+    let zeroed_z = after.z;
+    after.z -= plate_mm;
+    m.set_offset(active, after, actor).await.map_err(|e| {
+        Error::new(
+            e.kind,
+            e.code,
+            format!(
+                "Z was zeroed on the plate but not raised by its {plate_mm} mm: {}",
+                e.message
+            ),
+        )
+    })?;
+    app.bus
+        .record_or_log(
+            EventKind::MachineTouchOff,
+            Some(m.id),
+            Some(actor),
+            json!({
+                "pendant": p.id, "axis": "Z", "plate_mm": plate_mm, "offset": active,
+                "before": before, "after": after, "zeroed_z": zeroed_z,
+                "machine_z": m.status().machine_position.z,
+            }),
+        )
+        .await;
+    Ok(())
+}
+
+/// How long the last Set cero step may take to end before `ZeroZ` is refused.
+const SET_CERO_SETTLE: Duration = Duration::from_secs(10);
 
 /// Marks the pendant as the one moving `m` and checks the link is still up: a loss handled
 /// after this sees the mark and stops the machine; one before it is seen here.
@@ -458,6 +545,8 @@ async fn key_pressed(
 ) {
     let input = json!({"key": key});
     let actor = p.actor();
+    // Any key ends a Set cero routine; only ZeroZ finishes it on the plate.
+    let ends_set_cero = p.in_set_cero.swap(false, Ordering::Relaxed) && key == PendantKey::ZeroZ;
     // Stop, pause and reset never wait for anything and are allowed in alarm.
     let safe = matches!(
         key,
@@ -511,27 +600,31 @@ async fn key_pressed(
         PendantKey::Home => Some(Command::GoToZero),
         _ => None,
     };
-    let result: Result<(), Error> = match (command, key) {
-        (Some(c), _) if c.is_urgent() => m.command(c, &actor).await.map(|_| ()),
-        (Some(c), _) => m.command_ticketed(c, &actor, ticket).await.map(|_| ()),
-        (None, PendantKey::Pause) => match m.run() {
-            Some(r) => crate::jobs::pause(app, r.job_id, &actor).await.map(|_| ()),
-            None => m.command(Command::FeedHold, &actor).await.map(|_| ()),
+    let plate = p.touch_plate_mm().filter(|_| ends_set_cero);
+    let result: Result<(), Error> = match (command, plate) {
+        (Some(_), Some(plate_mm)) => set_cero_on_plate(app, p, &m, plate_mm, &actor, ticket).await,
+        (command, _) => match (command, key) {
+            (Some(c), _) if c.is_urgent() => m.command(c, &actor).await.map(|_| ()),
+            (Some(c), _) => m.command_ticketed(c, &actor, ticket).await.map(|_| ()),
+            (None, PendantKey::Pause) => match m.run() {
+                Some(r) => crate::jobs::pause(app, r.job_id, &actor).await.map(|_| ()),
+                None => m.command(Command::FeedHold, &actor).await.map(|_| ()),
+            },
+            (None, PendantKey::Start) => start_key(app, p, &m, &actor).await,
+            (None, PendantKey::Rewind) => {
+                // Every Start of a finished or new job runs from line 1; nothing to move.
+                app.bus
+                    .record_or_log(
+                        EventKind::PendantRewind,
+                        Some(m.id),
+                        Some(&actor),
+                        json!({"pendant": p.id}),
+                    )
+                    .await;
+                Ok(())
+            }
+            (None, k) => run_macro(p, &m, k, &actor, ticket).await,
         },
-        (None, PendantKey::Start) => start_key(app, p, &m, &actor).await,
-        (None, PendantKey::Rewind) => {
-            // Every Start of a finished or new job runs from line 1; nothing to move.
-            app.bus
-                .record_or_log(
-                    EventKind::PendantRewind,
-                    Some(m.id),
-                    Some(&actor),
-                    json!({"pendant": p.id}),
-                )
-                .await;
-            Ok(())
-        }
-        (None, k) => run_macro(p, &m, k, &actor, ticket).await,
     };
     if let Err(e) = result {
         refuse(app, p, Some(m.id), input, e.code, &e.message).await;

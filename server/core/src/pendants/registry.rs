@@ -8,6 +8,7 @@ use fresa_plugin_api::host::{HostSink, Instance};
 use fresa_plugin_api::quiet::Quiet;
 use serde_json::Value;
 use std::collections::HashMap;
+use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex as StdMutex};
 use tokio::sync::RwLock;
 use tokio_util::sync::CancellationToken;
@@ -23,6 +24,9 @@ pub struct Pendant {
     pub(super) macros: StdMutex<[Option<MacroAction>; 4]>,
     /// Run this pendant started (Start key), for the lost-pendant policy.
     pub(super) started_run: StdMutex<Option<i64>>,
+    /// The last input was a step of the firmware's "Set cero" routine (a 0.0001-step Z- wheel
+    /// frame): a `ZeroZ` right after it ends the routine on the touch plate.
+    pub(super) in_set_cero: AtomicBool,
     pub(super) stop: CancellationToken,
     /// Refusals and failed status pushes can repeat per wheel event or per push: rate-limited.
     pub(super) quiet: Quiet,
@@ -63,6 +67,12 @@ impl Pendant {
     }
     pub(super) fn stop_program_on_lost(&self) -> bool {
         self.row().config_json()["stop_program_on_lost"].as_bool() == Some(true)
+    }
+    /// The touch plate's thickness (`config.touch_plate_mm`), checked when the pendant was made.
+    pub(super) fn touch_plate_mm(&self) -> Option<f64> {
+        self.row().config_json()["touch_plate_mm"]
+            .as_f64()
+            .filter(|mm| *mm > 0.0)
     }
 }
 
