@@ -391,6 +391,8 @@ fn an_operator_drives_the_demo_in_a_browser() {
     // Pendants: bind the demo pendant to the other machine and back.
     b.goto(&format!("{}/#/pendants", s.base));
     b.wait_text("[data-pendant=\"1\"]", T);
+    let plate = b.wait_text("[data-touch-plate=\"1\"]", T);
+    assert!(plate.contains("Touch plate 15 mm"), "{plate}");
     for target in [mill.id, 1] {
         b.select("[data-bind-select=\"1\"]", &target.to_string());
         b.click("[data-bind=\"1\"]");

@@ -86,7 +86,7 @@ export function upload(machine, file, onProgress) {
  */
 /** Every event type the server sends (README: event stream). */
 export const EVENT_TYPES = ['status', 'machine.state', 'machine.io', 'job.progress', 'job.state', 'job.created',
-  'machine.created', 'machine.offsets', 'machine.part_zero', 'machine.alarm', 'machine.command',
+  'machine.created', 'machine.offsets', 'machine.part_zero', 'machine.touch_off', 'machine.alarm', 'machine.command',
   'machine.jog', 'machine.jog_cancel', 'machine.mdi', 'pendant.created', 'pendant.connected', 'pendant.lost', 'pendant.bound',
   'pendant.macro', 'pendant.refused', 'pendant.deleted', 'pendant.upload', 'pendant.upload_rejected',
   'pendant.rewind', 'job.line_report', 'resync'];

@@ -52,6 +52,13 @@ function macroEditor(pid, slot, action) {
   return h('div', { class: 'macro row wrap', dataset: { macro: slot } }, h('strong', {}, slot), type, fields, save, err);
 }
 
+/** What the pendant's "Set cero" leaves Z reading: its touch plate's thickness, or 0. */
+function plate(p) {
+  const mm = (p.config || {}).touch_plate_mm;
+  return mm > 0 ? `Touch plate ${mm} mm: Set cero leaves Z reading ${mm}`
+    : 'No touch plate set (config.touch_plate_mm): Set cero leaves Z reading 0';
+}
+
 function pendantCard(p) {
   const sel = h('select', { 'aria-label': 'machine', dataset: { bindSelect: p.id } },
     h('option', { value: '' }, '— unbound —'),
@@ -66,6 +73,7 @@ function pendantCard(p) {
     h('div', { class: 'row between' }, h('h2', {}, p.name),
       h('span', { class: 'badge ' + (p.connected ? 'ok' : 'lost'), dataset: { conn: p.id } }, p.connected ? 'connected' : 'not connected')),
     h('p', { class: 'muted' }, `${p.address} · dialect ${p.dialect}` + (p.reason ? ` · ${p.reason}` : '')),
+    h('p', { dataset: { touchPlate: p.id } }, plate(p)),
     h('div', { class: 'row wrap' }, h('span', {}, 'Bound to ', h('strong', { dataset: { boundTo: p.id } }, machineName(p.machine))), sel, bind, del),
     h('h3', {}, 'Macros'),
     ['M1', 'M2', 'M3', 'M4'].map((slot) => macroEditor(p.id, slot, (p.macros || {})[slot])));
