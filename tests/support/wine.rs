@@ -27,16 +27,21 @@ const WINE64_LOADER: &str = "/usr/lib/wine/wine64";
 /// How long a fresh Wine prefix may take to set itself up.
 const WINEBOOT_TIMEOUT: Duration = Duration::from_secs(300);
 
+/// `<target>/<triple>/<profile>`: where cargo puts what it builds for `triple` in this profile.
+fn cross_profile_dir(triple: &str) -> PathBuf {
+    let profile = crate::profile_dir();
+    profile
+        .parent()
+        .expect("profile dir has a parent")
+        .join(triple)
+        .join(profile.file_name().expect("profile dir has a name"))
+}
+
 /// `<target>/x86_64-pc-windows-gnu/<profile>`, checked to hold the programs the tests run.
 pub fn windows_bin_dir() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
-        let profile = crate::profile_dir();
-        let dir = profile
-            .parent()
-            .expect("profile dir has a parent")
-            .join(WINDOWS_TARGET)
-            .join(profile.file_name().expect("profile dir has a name"));
+        let dir = cross_profile_dir(WINDOWS_TARGET);
         for f in [
             "fresa.exe",
             "fresa-mach3-agent.exe",
@@ -63,13 +68,7 @@ pub fn windows_bin_dir() -> &'static Path {
 pub fn win7_agent_exe() -> &'static Path {
     static EXE: OnceLock<PathBuf> = OnceLock::new();
     EXE.get_or_init(|| {
-        let profile = crate::profile_dir();
-        let exe = profile
-            .parent()
-            .expect("profile dir has a parent")
-            .join(WIN7_TARGET)
-            .join(profile.file_name().expect("profile dir has a name"))
-            .join("fresa-mach3-agent.exe");
+        let exe = cross_profile_dir(WIN7_TARGET).join("fresa-mach3-agent.exe");
         assert!(
             exe.is_file(),
             "{} is missing: build it first with `{WIN7_BUILD_COMMAND}{}` (tests/run does)",
