@@ -177,6 +177,28 @@ fn machine_filter_only_shows_that_machines_events() {
 /// With instant motion a job can end before the request that started it has recorded
 /// `running`. The persisted job.state events of a run must still end with its final state, or an
 /// SSE client is left believing the job still runs.
+/// A filter that can never match is refused, naming what is wrong, instead of a stream that
+/// stays silent forever; groups and exact types are accepted.
+#[test]
+fn unknown_types_and_machines_are_refused_not_followed_in_silence() {
+    let s = Server::start();
+    let msg = s
+        .get("/api/v1/events?types=job,bogus")
+        .expect_error(400, "invalid_query");
+    assert!(msg.contains("\"bogus\"") && msg.contains("types"), "{msg}");
+    let msg = s
+        .get("/api/v1/events?machine=99")
+        .expect_error(404, "unknown_machine");
+    assert!(msg.contains("99"), "{msg}");
+    let m = s.sim("m", 0.0);
+    let stream = s.events(
+        &format!("types=job,machine.jog,status&machine={}", m.id),
+        None,
+    );
+    s.jog(m.id, "X", 1.0).expect(200);
+    stream.until(T, "the jog event", |e| e.event == "machine.jog");
+}
+
 #[test]
 fn job_state_events_of_instant_jobs_end_with_the_final_state() {
     let s = Server::start();

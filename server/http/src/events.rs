@@ -11,7 +11,7 @@ use axum::http::HeaderMap;
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::Extension;
-use fresa_core::events::BusEvent;
+use fresa_core::events::{BusEvent, EventKind};
 use fresa_core::SharedApp;
 use futures_util::Stream;
 use serde::Deserialize;
@@ -50,6 +50,33 @@ impl Matcher {
     }
 }
 
+/// `types` as asked, each checked: a type the server emits, or a group of them (`job` for
+/// `job.*`); anything else would be a stream that never sends a thing.
+fn known_types(types: Option<&str>) -> Result<Vec<String>, ApiError> {
+    let mut out = Vec::new();
+    for t in types.unwrap_or("").split(',').map(str::trim) {
+        if t.is_empty() {
+            continue;
+        }
+        let known = t == "resync"
+            || EventKind::ALL.iter().any(|k| {
+                let n = k.name();
+                n == t || (n.starts_with(t) && n.as_bytes().get(t.len()) == Some(&b'.'))
+            });
+        if !known {
+            return Err(ApiError::bad_request(
+                "invalid_query",
+                format!(
+                    "query `types`: {t:?} is not an event type or group of them (e.g. `job`, \
+                     `machine.jog`, `status`; the list is in the README's event stream section)"
+                ),
+            ));
+        }
+        out.push(t.to_string());
+    }
+    Ok(out)
+}
+
 /// The event's JSON is made once per event (`BusEvent::json`), not once per client.
 fn to_sse(e: &BusEvent) -> Event {
     let mut ev = Event::default().event(e.kind.as_str()).data(e.json());
@@ -66,7 +93,8 @@ fn to_sse(e: &BusEvent) -> Event {
     responses(
         (status = 200, description = "Server-Sent Events: `event: <type>`, `id: <id>` (persisted events), `data: Event` as JSON. A client that fell behind, or resumes across pruned events, first gets `event: resync` (`{\"reason\", \"missed\"|\"pruned_through\", \"after\"}`).",
             content_type = "text/event-stream", body = crate::openapi::EventDoc),
-        (status = 400, description = "`invalid_header`, `invalid_query`, `token_in_query`", body = crate::openapi::ErrorBody),
+        (status = 400, description = "`invalid_header`, `invalid_query` (also a `types` entry that is no event type or group), `token_in_query`", body = crate::openapi::ErrorBody),
+        (status = 404, description = "`unknown_machine`: `machine` names no machine", body = crate::openapi::ErrorBody),
         (status = 429, description = "`too_many_streams`: this token holds `max_event_streams_per_client` streams (with `Retry-After`; the connection is closed)", body = crate::openapi::ErrorBody),
         (status = 503, description = "`too_many_streams`: `max_event_streams` are open (with `Retry-After`; the connection is closed)", body = crate::openapi::ErrorBody),
     ))]
@@ -93,17 +121,20 @@ pub async fn stream(
         ),
         None => f.after,
     };
+    let types = known_types(f.types.as_deref()).map_err(IntoResponse::into_response)?;
+    if let Some(id) = f.machine {
+        // A typo would otherwise be a stream that stays silent forever. Unknown only when the
+        // store says so: during an outage live events still flow.
+        if app.machines.get(id).await.is_none() && matches!(app.store.machine(id).await, Ok(None)) {
+            return Err(ApiError::not_found(
+                "unknown_machine",
+                format!("query `machine`: no machine with id {id}"),
+            )
+            .into_response());
+        }
+    }
     let matcher = Matcher {
-        types: f
-            .types
-            .as_deref()
-            .map(|t| {
-                t.split(',')
-                    .map(|s| s.trim().to_string())
-                    .filter(|s| !s.is_empty())
-                    .collect()
-            })
-            .unwrap_or_default(),
+        types,
         machine: f.machine,
     };
     // A stream holds its connection while it lasts, so it needs one of the stream slots,
