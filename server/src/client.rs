@@ -528,6 +528,16 @@ pub async fn events(server: ServerArgs, f: EventsArgs) -> Res {
     Ok(())
 }
 
+/// How `job watch` ends once the job has: success only for `completed`, so a script's
+/// `fresa job watch 4 && next-step` does not go on after a cancelled or failed job.
+fn ended(id: i64, state: &str) -> Res {
+    if state == "completed" {
+        Ok(())
+    } else {
+        Err(format!("job {id} ended {state}").into())
+    }
+}
+
 fn is_terminal(state: &str) -> bool {
     matches!(state, "completed" | "failed" | "cancelled" | "interrupted")
 }
@@ -592,7 +602,7 @@ pub async fn job(server: ServerArgs, cmd: JobCmd) -> Res {
                 job["line_count"]
             );
             if is_terminal(&state) {
-                return Ok(());
+                return ended(id, &state);
             }
             // Elapsed counts from the run's start (it may have started before watch did).
             let now_ms = std::time::SystemTime::now()
@@ -610,7 +620,7 @@ pub async fn job(server: ServerArgs, cmd: JobCmd) -> Res {
                 job["line"].as_u64().unwrap_or(0),
                 started,
             );
-            let mut end = None;
+            let mut end: Option<(String, String)> = None;
             follow_events(resp, |ev| {
                 if ev["data"]["job"].as_i64() != Some(id) {
                     return true;
@@ -639,7 +649,7 @@ pub async fn job(server: ServerArgs, cmd: JobCmd) -> Res {
                         );
                         let done = is_terminal(&s);
                         if done {
-                            end = Some(line);
+                            end = Some((line, s));
                         } else if let Progress::Bar(bar) = &progress {
                             bar.println(line);
                         } else {
@@ -652,9 +662,9 @@ pub async fn job(server: ServerArgs, cmd: JobCmd) -> Res {
             })
             .await?;
             progress.finish();
-            if let Some(line) = end {
+            if let Some((line, state)) = end {
                 println!("{line}");
-                return Ok(());
+                return ended(id, &state);
             }
             return Err("the server closed the event stream".into());
         }

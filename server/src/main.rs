@@ -214,6 +214,19 @@ impl From<ServeArgs> for config::Overrides {
     }
 }
 
+/// Rust starts programs with SIGPIPE ignored, so a client command whose reader went away
+/// (`fresa job watch 4 | head -2`) got EPIPE from its next `println!`, which panics. The
+/// client commands take the default, as Unix tools do: the process ends quietly when its
+/// output is closed. Not the server: it must outlive a client that hangs up.
+fn restore_default_sigpipe() {
+    #[cfg(unix)]
+    // SAFETY: sets this process's disposition of one signal to the default, before any other
+    // thread exists; no handler of ours is replaced.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     // The service manager's calls block (they wait for the service), and `service run` builds
@@ -226,6 +239,9 @@ fn main() -> ExitCode {
                 ExitCode::FAILURE
             }
         };
+    }
+    if !matches!(cli.command, Cmd::Serve(_)) {
+        restore_default_sigpipe();
     }
     let rt = match tokio::runtime::Runtime::new() {
         Ok(rt) => rt,

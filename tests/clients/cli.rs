@@ -219,6 +219,72 @@ fn job_watch_draws_a_progress_bar_on_a_terminal() {
     assert!(last.contains("completed at line"), "{text:?}");
 }
 
+/// `job watch` succeeds only for a completed job (a script's `watch && next` stops after a
+/// cancelled one) and ends quietly, not with a panic, when its reader goes away (`| head -1`).
+#[test]
+fn job_watch_exits_non_zero_for_a_cancelled_job_and_quietly_into_a_closed_pipe() {
+    use std::io::{BufRead, Read};
+    use std::os::unix::process::ExitStatusExt;
+    let s = Server::start();
+    let m = s.sim("m", 1.0);
+    let (id, _) = s.upload_and_start(m.id, "long", &fresa_tests::back_and_forth(2000, 1.0, 600.0));
+    let mut child = fresa_cmd()
+        .args(["job", "watch", &id.to_string(), "--server", &s.base])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut reader = std::io::BufReader::new(child.stdout.take().unwrap());
+    let mut first = String::new();
+    reader.read_line(&mut first).unwrap();
+    assert!(first.starts_with(&format!("job {id} ")), "{first:?}");
+    drop(reader); // the reader is gone, as `head -1` is after one line
+    s.job_action(id, "pause").expect(200); // a state line for watch to write
+    let status = fresa_tests::wait_for(T, "job watch to end", || child.try_wait().unwrap());
+    let mut err = String::new();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    assert!(!err.contains("panicked"), "{err}");
+    assert_eq!(
+        status.signal(),
+        Some(13),
+        "ended by SIGPIPE: {status} {err}"
+    );
+
+    s.job_action(id, "cancel").expect(200);
+    s.wait_job_state(id, "cancelled", T);
+    let out = s.cli(&["job", "watch", &id.to_string()]);
+    assert!(!out.status.success(), "{}", output_text(&out));
+    assert!(stdout(&out).contains("cancelled"), "{}", output_text(&out));
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains(&format!("job {id} ended cancelled")),
+        "{}",
+        output_text(&out)
+    );
+}
+
+/// `fresa events` with a filter that can never match says so instead of printing nothing.
+#[test]
+fn events_refuses_unknown_types_and_machines() {
+    let s = Server::start();
+    for (args, needle) in [
+        (["events", "--types", "bogus"], "bogus"),
+        (["events", "--machine", "99"], "unknown_machine"),
+    ] {
+        let out = s.cli(&args);
+        assert!(!out.status.success(), "{}", output_text(&out));
+        assert!(
+            String::from_utf8_lossy(&out.stderr).contains(needle),
+            "{}",
+            output_text(&out)
+        );
+    }
+}
+
 #[test]
 fn events_follows_the_stream_with_filters() {
     let s = Server::start_demo();
