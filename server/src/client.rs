@@ -127,14 +127,31 @@ pub enum TokenCmd {
     },
 }
 
+/// A rate in mm/min that an estimate can divide by: finite and more than 0.
+fn positive_mm_min(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        Ok(v) => Err(format!("{v} is not a rate: it must be more than 0 mm/min")),
+        Err(_) => Err(format!("{s:?} is not a number of mm/min")),
+    }
+}
+
+/// Why a request did not reach the server, and what to do about it.
+fn unreachable(base: &str, e: impl std::fmt::Display) -> String {
+    format!(
+        "cannot reach the server at {base}: {e}; is `fresa serve` running there? Name another \
+         one with --server URL or the FRESA_URL environment variable"
+    )
+}
+
 #[derive(Subcommand)]
 pub enum GcodeCmd {
     /// Interpret a whole program as the server would on upload: print its analysis, or the first
     /// error with line and column (exit status 1).
     Check {
         file: PathBuf,
-        /// Rapid rate assumed for the time estimate, mm/min.
-        #[arg(long, default_value_t = 5000.0)]
+        /// Rapid rate assumed for the time estimate, mm/min (more than 0).
+        #[arg(long, default_value_t = 5000.0, value_parser = positive_mm_min)]
         rapid: f64,
         /// Print the analysis as JSON.
         #[arg(long)]
@@ -174,10 +191,7 @@ impl Client {
     }
 
     async fn send(&self, rb: reqwest::RequestBuilder) -> Result<Value, Box<dyn std::error::Error>> {
-        let resp = rb
-            .send()
-            .await
-            .map_err(|e| format!("cannot reach the server at {}: {e}", self.base))?;
+        let resp = rb.send().await.map_err(|e| unreachable(&self.base, e))?;
         let status = resp.status();
         let body: Value = resp.json().await.unwrap_or(Value::Null);
         if !status.is_success() {
@@ -481,7 +495,7 @@ pub async fn events(server: ServerArgs, f: EventsArgs) -> Res {
         .query(&query)
         .send()
         .await
-        .map_err(|e| format!("cannot reach the server at {}: {e}", c.base))?;
+        .map_err(|e| unreachable(&c.base, e))?;
     if !resp.status().is_success() {
         let status = resp.status();
         let body: Value = resp.json().await.unwrap_or(Value::Null);
@@ -587,7 +601,7 @@ pub async fn job(server: ServerArgs, cmd: JobCmd) -> Res {
                 .query(&[("types", "job")])
                 .send()
                 .await
-                .map_err(|e| format!("cannot reach the server: {e}"))?;
+                .map_err(|e| unreachable(&c.base, e))?;
             if !resp.status().is_success() {
                 return Err(format!("events: {}", resp.status()).into());
             }
@@ -791,6 +805,22 @@ pub async fn backup(file: PathBuf, data: DataArgs) -> Res {
     Ok(())
 }
 
+/// The checks an upload makes as the program streams in (`fresa_core::programs`), on `f`.
+fn upload_checks(mut f: std::fs::File) -> Result<(), Box<dyn std::error::Error>> {
+    use std::io::Read;
+    let mut checker = fresa_core::programs::ProgramChecker::default();
+    let mut buf = vec![0u8; 1 << 16];
+    loop {
+        let n = f.read(&mut buf)?;
+        if n == 0 {
+            break;
+        }
+        checker.feed(&buf[..n]).map_err(|e| e.message)?;
+    }
+    checker.finish().map_err(|e| e.message)?;
+    Ok(())
+}
+
 pub fn gcode(cmd: GcodeCmd) -> Res {
     match cmd {
         GcodeCmd::Check {
@@ -804,8 +834,17 @@ pub fn gcode(cmd: GcodeCmd) -> Res {
                 Some(t) => gcode_tools(&t)?,
                 None => fresa_gcode::ToolTable::new(),
             };
-            let f = std::fs::File::open(&file)
-                .map_err(|e| format!("cannot open {}: {e}", file.display()))?;
+            // The upload's own first checks (UTF-8, no binary, not empty), in its words, before
+            // the interpreter: `gcode check` and an upload fail on the same first error.
+            if std::fs::metadata(&file).is_ok_and(|m| m.is_dir()) {
+                return Err(format!("{} is a directory, not a G-code file", file.display()).into());
+            }
+            let open = || {
+                std::fs::File::open(&file)
+                    .map_err(|e| format!("cannot open {}: {e}", file.display()))
+            };
+            upload_checks(open()?).map_err(|e| format!("{}: {e}", file.display()))?;
+            let f = open()?;
             let opts = fresa_gcode::AnalysisOptions {
                 rapid_mm_min: rapid,
                 config: fresa_gcode::Config {
@@ -865,6 +904,24 @@ pub fn gcode(cmd: GcodeCmd) -> Res {
             );
             if a.units_inch_seen {
                 println!("  units            inch (G20) converted to mm");
+            }
+            let tools: Vec<String> = a.tools.iter().map(|t| format!("T{t}")).collect();
+            println!(
+                "  tools            {}",
+                if tools.is_empty() {
+                    "none".to_string()
+                } else {
+                    tools.join(" ")
+                }
+            );
+            println!("  dwell            {:.1} s", a.dwell_seconds);
+            println!("  max feed         {:.1} mm/min", a.max_feed_mm_min);
+            println!("  max spindle      {:.0} rpm", a.max_spindle_rpm);
+            if a.motion_lines == 0 {
+                println!("  warning: the program moves nothing (no motion on any line)");
+            }
+            if !a.program_end {
+                println!("  warning: no program end (M2 or M30): the run ends at the last line");
             }
             for w in &a.warnings {
                 println!(

@@ -126,9 +126,10 @@ fn cli_errors_name_the_problem_and_exit_non_zero() {
         .output()
         .unwrap();
     assert!(!out.status.success(), "{}", output_text(&out));
+    let err = String::from_utf8_lossy(&out.stderr);
     assert!(
-        String::from_utf8_lossy(&out.stderr).contains("cannot reach"),
-        "{}",
+        err.contains("cannot reach") && err.contains("--server") && err.contains("FRESA_URL"),
+        "says how to name another server: {}",
         output_text(&out)
     );
 }
@@ -412,4 +413,80 @@ fn gcode_check_refuses_nesting_bombs_and_absurd_numbers_without_aborting() {
             assert!(err.contains(p), "{name}: no {p:?} in {text}");
         }
     }
+}
+
+/// `gcode check` fails on what an upload fails on, in the same words, and says what a plain OK
+/// would hide: no motion, no program end, the tools, dwell and maxima.
+#[test]
+fn gcode_check_gives_the_uploads_first_error_and_warns_where_ok_would_mislead() {
+    let s = Server::start();
+    let m = s.sim("m", 0.0);
+    let dir = tempfile::tempdir().unwrap();
+    let check = |path: &std::path::Path, extra: &[&str]| {
+        fresa_cmd()
+            .args(["gcode", "check"])
+            .arg(path)
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let file = |name: &str, data: &[u8]| {
+        let p = dir.path().join(name);
+        std::fs::write(&p, data).unwrap();
+        p
+    };
+
+    let binary = b"G0 X1\nG1\0X2 F100\n";
+    let upload = s
+        .post_bytes(
+            &format!("/api/v1/jobs?machine={}&name=bin", m.id),
+            binary.to_vec(),
+        )
+        .expect_error(422, "binary_program");
+    let out = check(&file("bin.nc", binary), &[]);
+    assert_eq!(out.status.code(), Some(1), "{}", output_text(&out));
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains(&upload),
+        "the upload's words ({upload:?}): {}",
+        output_text(&out)
+    );
+    let out = check(dir.path(), &[]);
+    assert_eq!(out.status.code(), Some(1), "{}", output_text(&out));
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("is a directory"),
+        "{}",
+        output_text(&out)
+    );
+    let out = check(&file("ok.nc", b"G0 X1\n"), &["--rapid", "0"]);
+    assert!(!out.status.success(), "{}", output_text(&out));
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("more than 0"),
+        "{}",
+        output_text(&out)
+    );
+
+    let out = check(
+        &file("no-end.nc", b"G21 T2 M6\nG4 P1.5\nS8000 M3\nG1 X10 F300\n"),
+        &[],
+    );
+    assert!(out.status.success(), "{}", output_text(&out));
+    let text = stdout(&out);
+    for part in [
+        "tools            T2",
+        "dwell            1.5 s",
+        "max feed         300.0 mm/min",
+        "max spindle      8000 rpm",
+        "warning: no program end (M2 or M30)",
+    ] {
+        assert!(text.contains(part), "no {part:?} in {text}");
+    }
+    assert!(!text.contains("moves nothing"), "{text}");
+    let out = check(&file("still.nc", b"(only a comment)\nM30\n"), &[]);
+    assert!(out.status.success(), "{}", output_text(&out));
+    let text = stdout(&out);
+    assert!(
+        text.contains("warning: the program moves nothing"),
+        "{text}"
+    );
+    assert!(!text.contains("no program end"), "{text}");
 }
