@@ -44,7 +44,9 @@ pub enum MachineCmd {
 /// Filters of `fresa events`.
 #[derive(Args)]
 pub struct EventsArgs {
-    /// Comma-separated event types; `job` matches `job.*` (e.g. `job,machine.alarm`).
+    /// Comma-separated event types; `job` matches `job.*` (e.g. `job,machine.alarm`). Without
+    /// it every type but `status`, which repeats up to 10 times a second per machine while one
+    /// moves (ask for it with `--types status`).
     #[arg(long)]
     types: Option<String>,
     /// Only this machine's events.
@@ -508,7 +510,11 @@ pub async fn events(server: ServerArgs, f: EventsArgs) -> Res {
     }
     use std::io::Write;
     let mut out = std::io::stdout().lock();
+    let hide_status = f.types.is_none();
     let ended = !follow_events(resp, |ev| {
+        if hide_status && ev["type"] == "status" {
+            return true;
+        }
         let line = if f.json {
             ev.to_string()
         } else {

@@ -490,3 +490,79 @@ fn gcode_check_gives_the_uploads_first_error_and_warns_where_ok_would_mislead() 
     );
     assert!(!text.contains("no program end"), "{text}");
 }
+
+/// `fresa events` without `--types` leaves out the 10 Hz `status` events, which would drown
+/// everything else; `--types status` asks for them.
+#[test]
+fn events_hides_status_unless_asked() {
+    use std::io::BufRead;
+    let s = Server::start();
+    let m = s.sim("m", 1.0);
+    // `--after 0` replays the machine's `machine.created` first: once it is printed, the
+    // stream is subscribed and sees everything live from then on.
+    let follow = |types: Option<&str>| {
+        let mut cmd = fresa_cmd();
+        cmd.args(["events", "--after", "0", "--machine", &m.id.to_string()])
+            .args(["--server", &s.base]);
+        if let Some(t) = types {
+            cmd.args(["--types", t]);
+        }
+        let mut child = cmd.stdout(std::process::Stdio::piped()).spawn().unwrap();
+        let (tx, rx) = std::sync::mpsc::channel::<String>();
+        let stdout = child.stdout.take().unwrap();
+        std::thread::spawn(move || {
+            for line in std::io::BufReader::new(stdout)
+                .lines()
+                .map_while(Result::ok)
+            {
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        (child, rx)
+    };
+    let until = |rx: &std::sync::mpsc::Receiver<String>, what: &str| -> Vec<String> {
+        let mut seen = Vec::new();
+        let deadline = std::time::Instant::now() + T;
+        loop {
+            assert!(
+                std::time::Instant::now() < deadline,
+                "no {what} in {seen:?}"
+            );
+            if let Ok(l) = rx.recv_timeout(Duration::from_millis(100)) {
+                let done = l.contains(what);
+                seen.push(l);
+                if done {
+                    return seen;
+                }
+            }
+        }
+    };
+    let (mut plain, plain_rx) = follow(None);
+    let (mut status, status_rx) = follow(Some("status,machine.created,machine.command"));
+    until(&plain_rx, " machine.created ");
+    until(&status_rx, " machine.created ");
+    s.jog(m.id, "X", 10.0).expect(200);
+    s.wait_machine_state(m.id, "idle", T);
+    s.command(m.id, "zero", serde_json::json!({"axis": "X"}))
+        .expect(200);
+    let with = until(&status_rx, " machine.command ");
+    assert!(
+        with.iter().any(|l| l.contains(" status ")),
+        "--types status shows them: {with:?}"
+    );
+    // Everything the jog caused came before the zero's command, in stream order.
+    let without = until(&plain_rx, " machine.command ");
+    assert!(
+        without.iter().any(|l| l.contains(" machine.jog ")),
+        "{without:?}"
+    );
+    assert!(
+        without.iter().all(|l| !l.contains(" status ")),
+        "{without:?}"
+    );
+    let _ = plain.kill();
+    let _ = status.kill();
+    let _ = (plain.wait(), status.wait());
+}
