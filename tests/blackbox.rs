@@ -27,7 +27,7 @@
 //! | `store::nodes` | several nodes on one PostgreSQL |
 //! | `store::retention`, `leftovers` | event pruning; what a crash leaves behind, backups |
 //! | `integrations::events`, `webhooks`, `mqtt` | what goes out: SSE, webhooks, the MQTT bridge |
-//! | `clients::cli`, `console`, `openapi` | the CLI, the web console (real Chromium), the OpenAPI description |
+//! | `clients::cli`, `console`, `openapi` | the CLI and the README's curl walk-through, the web console (real Chromium), the OpenAPI description |
 //!
 //! Run one group with `cargo test -p fresa-tests --test blackbox pendants::` (a module path is a
 //! test-name filter).

@@ -566,3 +566,47 @@ fn events_hides_status_unless_asked() {
     let _ = status.kill();
     let _ = (plain.wait(), status.wait());
 }
+
+/// The README's "Try it with curl" block, run as written (only the address swapped for the test
+/// server's) against the demo: every request succeeds (curl fails on an HTTP error, and the
+/// script stops there), and the machine and job end as the block says.
+#[test]
+fn the_readmes_curl_walk_through_runs_top_to_bottom() {
+    let s = Server::start_demo();
+    s.wait_machine_state(1, "idle", T);
+    let root = fresa_tests::workspace_root();
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let block = readme
+        .split("## Try it with curl")
+        .nth(1)
+        .and_then(|s| s.split("```sh\n").nth(1))
+        .and_then(|s| s.split("```").next())
+        .expect("the README's curl block");
+    let script = format!(
+        "set -euo pipefail\ncurl() {{ command curl --fail-with-body -S --max-time 90 \"$@\"; echo; }}\n{}",
+        block.replace("http://127.0.0.1:7878", &s.base)
+    );
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(&script)
+        .current_dir(&root)
+        .output()
+        .expect("bash");
+    assert!(out.status.success(), "{}", output_text(&out));
+    let offsets = s.get("/api/v1/machines/1/offsets").expect(200);
+    let g55 = &offsets["offsets"]["G55"];
+    assert_eq!(
+        (g55["x"].as_f64(), g55["y"].as_f64()),
+        (Some(10.0), Some(20.0)),
+        "{offsets}"
+    );
+    let job = s.job(1);
+    assert_eq!(
+        (job["name"].as_str(), job["state"].as_str()),
+        (Some("spiral"), Some("cancelled")),
+        "{job}"
+    );
+    // X was zeroed where the 5 mm jog ended, not on the way (the block waits for idle).
+    let g54 = &offsets["offsets"]["G54"];
+    assert!((g54["x"].as_f64().unwrap() - 5.0).abs() < 1e-6, "{offsets}");
+}

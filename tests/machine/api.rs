@@ -65,6 +65,36 @@ fn jog(s: &Server, m: &Sim, axis_name: &str, distance: f64) {
     assert_eq!(r["ok"], true);
 }
 
+/// `GET /status?until=STATE` answers once the machine is in that state (a jog's own answer
+/// comes while it moves), 409 `wait_timeout` when it is not within `timeout_s`, and refuses a
+/// state that does not exist.
+#[test]
+fn status_until_waits_for_the_state_and_says_when_it_did_not_come() {
+    let s = Server::start();
+    let m = s.sim("m", 1.0).id;
+    s.jog(m, "X", 20.0).expect(200);
+    let st = s
+        .get(&format!("/api/v1/machines/{m}/status?until=idle"))
+        .expect(200);
+    assert_eq!(st["state"], "idle", "{st}");
+    assert!(
+        (st["machine_position"]["x"].as_f64().unwrap() - 20.0).abs() < 1e-9,
+        "{st}"
+    );
+    let msg = s
+        .get(&format!(
+            "/api/v1/machines/{m}/status?until=running&timeout_s=0.2"
+        ))
+        .expect_error(409, "wait_timeout");
+    assert!(msg.contains("still idle"), "{msg}");
+    s.get(&format!("/api/v1/machines/{m}/status?until=sleeping"))
+        .expect_error(400, "invalid_query");
+    s.get(&format!(
+        "/api/v1/machines/{m}/status?until=idle&timeout_s=600"
+    ))
+    .expect_error(400, "invalid_query");
+}
+
 #[test]
 fn jog_zero_offsets_and_part_zero() {
     let mut s = Server::start();

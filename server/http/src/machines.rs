@@ -1,5 +1,5 @@
 use super::auth::Caller;
-use super::error::{ApiError, Json, Path};
+use super::error::{ApiError, Json, Path, Query};
 use crate::openapi::ErrorBody;
 use axum::extract::State;
 use axum::http::StatusCode;
@@ -9,7 +9,9 @@ use fresa_core::machine::{limits, Machine};
 use fresa_core::store::MachineRow;
 use fresa_core::views::{MachineView, StatusView};
 use fresa_core::SharedApp;
-use fresa_plugin_api::contract::{Axis, AxisValues, Command, MachineStatus, WorkOffset};
+use fresa_plugin_api::contract::{
+    Axis, AxisValues, Command, MachineState, MachineStatus, WorkOffset,
+};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 use std::sync::Arc;
@@ -134,18 +136,42 @@ pub async fn create(
     Ok((StatusCode::CREATED, Json(Created { id })))
 }
 
+/// `?until=STATE`: the status once the machine is in that state, e.g. `idle` after a jog (the
+/// jog's answer comes when the move is under way, not done).
+#[derive(Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+#[serde(deny_unknown_fields)]
+pub struct StatusWait {
+    /// Answer once the machine is in this state (`idle`, `running`, `paused`, ...).
+    #[param(example = "idle")]
+    until: Option<MachineState>,
+    /// Longest wait for `until`, in seconds: default 30, at most 60; then 409 `wait_timeout`.
+    timeout_s: Option<f64>,
+}
+
+/// The longest a status request may wait for `until`: a waiting request holds a connection.
+const MAX_STATUS_WAIT_S: f64 = 60.0;
+
 #[utoipa::path(get, path = "/machines/{id}/status", tag = "machines",
-    params(("id" = i64, Path, description = "machine id", example = 1)),
+    params(("id" = i64, Path, description = "machine id", example = 1), StatusWait),
     responses(
-        (status = 200, description = "The machine's status", body = StatusView),
+        (status = 200, description = "The machine's status (with `until`: once it is in that state)", body = StatusView),
+        (status = 400, description = "`invalid_query`: an unknown state or a timeout that is not 0..60 s", body = ErrorBody),
         (status = 404, description = "`unknown_machine`", body = ErrorBody),
+        (status = 409, description = "`wait_timeout`: not in the `until` state within `timeout_s`", body = ErrorBody),
     ))]
 pub async fn status(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
+    Query(wait): Query<StatusWait>,
 ) -> Result<Json<StatusView>, ApiError> {
     match app.machines.get(id).await {
-        Some(m) => Ok(Json(m.status_view())),
+        Some(m) => {
+            if let Some(target) = wait.until {
+                wait_for_state(&m, target, wait.timeout_s).await?;
+            }
+            Ok(Json(m.status_view()))
+        }
         // Reached for another node's machine only while that node is unreachable (otherwise
         // the request was forwarded): offline, and why.
         None => {
@@ -154,6 +180,39 @@ pub async fn status(
             })?;
             Ok(Json(StatusView::remote(id, app.remote_status(&row).await)))
         }
+    }
+}
+
+/// Waits until `m` is in `target`, at most `timeout_s` (default 30 s, at most 60 s).
+async fn wait_for_state(
+    m: &Machine,
+    target: MachineState,
+    timeout_s: Option<f64>,
+) -> Result<(), ApiError> {
+    let seconds = timeout_s.unwrap_or(30.0);
+    if !(seconds.is_finite() && (0.0..=MAX_STATUS_WAIT_S).contains(&seconds)) {
+        return Err(ApiError::bad_request(
+            "invalid_query",
+            format!("query `timeout_s`: {seconds} is not 0 to {MAX_STATUS_WAIT_S} seconds"),
+        ));
+    }
+    let mut rx = m.subscribe_status();
+    let limit = std::time::Duration::from_secs_f64(seconds);
+    let outcome = tokio::time::timeout(limit, rx.wait_for(|s| s.state == target))
+        .await
+        .map(|r| r.is_ok());
+    match outcome {
+        // Reached, or the machine's task ended (shutdown): answer with what it last was.
+        Ok(_) => Ok(()),
+        Err(_) => Err(ApiError::conflict(
+            "wait_timeout",
+            format!(
+                "machine {} is still {} after {seconds} s, not {}",
+                m.id,
+                m.status().state.as_str(),
+                target.as_str()
+            ),
+        )),
     }
 }
 
