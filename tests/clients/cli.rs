@@ -223,6 +223,7 @@ fn job_watch_draws_a_progress_bar_on_a_terminal() {
 /// `job watch` succeeds only for a completed job (a script's `watch && next` stops after a
 /// cancelled one) and ends quietly, not with a panic, when its reader goes away (`| head -1`).
 #[test]
+#[cfg(unix)] // SIGPIPE
 fn job_watch_exits_non_zero_for_a_cancelled_job_and_quietly_into_a_closed_pipe() {
     use std::io::{BufRead, Read};
     use std::os::unix::process::ExitStatusExt;
