@@ -58,13 +58,19 @@ fn check(context: &str, hr: HRESULT) -> Mach3Result<()> {
     ))
 }
 
-/// The `IDispatch` vtable (IUnknown's three methods, then IDispatch's four, in this order).
+/// `IUnknown`'s vtable: the three methods every COM object has first.
 #[repr(C)]
-struct DispatchVtbl {
+struct UnknownVtbl {
     query_interface:
         unsafe extern "system" fn(*mut c_void, *const GUID, *mut *mut c_void) -> HRESULT,
     add_ref: unsafe extern "system" fn(*mut c_void) -> u32,
     release: unsafe extern "system" fn(*mut c_void) -> u32,
+}
+
+/// `IDispatch`'s vtable: IUnknown's, then its own four methods, in this order.
+#[repr(C)]
+struct DispatchVtbl {
+    unknown: UnknownVtbl,
     _get_type_info_count: *const c_void,
     _get_type_info: *const c_void,
     get_ids_of_names: unsafe extern "system" fn(
@@ -89,31 +95,63 @@ struct DispatchVtbl {
     ) -> HRESULT,
 }
 
-/// One counted reference to a COM object whose vtable starts like `IDispatch`'s (IUnknown's
-/// methods are at the same places, so an `IUnknown` is held the same way until cast).
-struct Dispatch(NonNull<c_void>);
+/// One counted reference to a COM object, released on drop.
+struct Unknown(NonNull<c_void>);
 
-impl Dispatch {
+impl Unknown {
     /// Takes over a reference the callee already counted (an out-parameter).
-    fn from_owned(p: *mut c_void, what: &str) -> Mach3Result<Dispatch> {
+    fn from_owned(p: *mut c_void, what: &str) -> Mach3Result<Unknown> {
         NonNull::new(p)
-            .map(Dispatch)
+            .map(Unknown)
             .ok_or_else(|| Mach3Error::new(ErrorKind::Com, format!("{what} returned nothing")))
     }
 
-    fn vtbl(&self) -> &DispatchVtbl {
-        // SAFETY: a COM object pointer points at its vtable pointer, and the object stays
-        // alive while this reference is counted.
-        unsafe { &**(self.0.as_ptr() as *const *const DispatchVtbl) }
+    fn vtbl(&self) -> &UnknownVtbl {
+        // SAFETY: a COM object pointer points at its vtable pointer, whose first three slots
+        // are IUnknown's; the object stays alive while this reference is counted.
+        unsafe { &**(self.0.as_ptr() as *const *const UnknownVtbl) }
     }
 
     fn query_dispatch(&self, what: &str) -> Mach3Result<Dispatch> {
         let mut out = null_mut();
-        // SAFETY: a valid IID and out-pointer; on success `out` holds a counted reference.
+        // SAFETY: a valid IID and out-pointer; on success `out` holds a counted reference to
+        // an object with IDispatch's vtable.
         let hr =
             unsafe { (self.vtbl().query_interface)(self.0.as_ptr(), &IID_IDISPATCH, &mut out) };
         check(&format!("{what} has no IDispatch"), hr)?;
-        Dispatch::from_owned(out, what)
+        Unknown::from_owned(out, what).map(Dispatch)
+    }
+}
+
+impl Clone for Unknown {
+    fn clone(&self) -> Self {
+        // SAFETY: counts one more reference to a live object; `Drop` releases it.
+        unsafe { (self.vtbl().add_ref)(self.0.as_ptr()) };
+        Unknown(self.0)
+    }
+}
+
+impl Drop for Unknown {
+    fn drop(&mut self) {
+        // SAFETY: releases the one reference this value counted.
+        unsafe { (self.vtbl().release)(self.0.as_ptr()) };
+    }
+}
+
+/// A counted `IDispatch` (only made from a pointer known to be one: asked for by IID, or a
+/// `VT_DISPATCH` result).
+#[derive(Clone)]
+struct Dispatch(Unknown);
+
+impl Dispatch {
+    fn ptr(&self) -> *mut c_void {
+        self.0 .0.as_ptr()
+    }
+
+    fn vtbl(&self) -> &DispatchVtbl {
+        // SAFETY: an IDispatch pointer points at IDispatch's vtable; the object stays alive
+        // while this reference is counted.
+        unsafe { &**(self.ptr() as *const *const DispatchVtbl) }
     }
 
     fn dispid(&self, name: &str) -> Mach3Result<i32> {
@@ -123,7 +161,7 @@ impl Dispatch {
         // SAFETY: one NUL-terminated name that outlives the call, one out DISPID.
         let hr = unsafe {
             (self.vtbl().get_ids_of_names)(
-                self.0.as_ptr(),
+                self.ptr(),
                 &IID_NULL,
                 names.as_ptr(),
                 1,
@@ -149,7 +187,7 @@ impl Dispatch {
         // VARIANT; no exception info or argument error index is asked for.
         let hr = unsafe {
             (self.vtbl().invoke)(
-                self.0.as_ptr(),
+                self.ptr(),
                 id,
                 &IID_NULL,
                 LOCALE_USER_DEFAULT,
@@ -162,21 +200,6 @@ impl Dispatch {
         };
         check("call failed", hr)?;
         Ok(result)
-    }
-}
-
-impl Clone for Dispatch {
-    fn clone(&self) -> Self {
-        // SAFETY: counts one more reference to a live object; `Drop` releases it.
-        unsafe { (self.vtbl().add_ref)(self.0.as_ptr()) };
-        Dispatch(self.0)
-    }
-}
-
-impl Drop for Dispatch {
-    fn drop(&mut self) {
-        // SAFETY: releases the one reference this value counted.
-        unsafe { (self.vtbl().release)(self.0.as_ptr()) };
     }
 }
 
@@ -256,7 +279,7 @@ impl Variant {
         // SAFETY: a VT_DISPATCH holds an IDispatch pointer (maybe null).
         let p = unsafe { self.0.Anonymous.Anonymous.Anonymous.pdispVal };
         let d = NonNull::new(p)
-            .map(Dispatch)
+            .map(|p| Dispatch(Unknown(p)))
             .ok_or_else(|| Mach3Error::new(ErrorKind::Com, format!("{what} returned no object")))?;
         // The VARIANT keeps (and on drop releases) its own reference: count ours.
         let ours = d.clone();
@@ -308,7 +331,7 @@ impl ComMach3 {
         // SAFETY: valid pointers to a GUID and an out-parameter that lives across the call.
         let hr = unsafe { GetActiveObject(&CLSID_MACH4_DOCUMENT, null_mut(), &mut unknown) };
         check("Mach3 (Mach4.Document) is not running in this session", hr)?;
-        let unknown = Dispatch::from_owned(unknown, "GetActiveObject")?;
+        let unknown = Unknown::from_owned(unknown, "GetActiveObject")?;
         let document = unknown.query_dispatch("Mach4.Document")?;
         let id = document.dispid("GetScriptDispatch")?;
         document
