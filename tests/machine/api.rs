@@ -95,6 +95,68 @@ fn status_until_waits_for_the_state_and_says_when_it_did_not_come() {
     .expect_error(400, "invalid_query");
 }
 
+/// A continuous jog moves while its keep-alives come and stops when they stop (the deadman
+/// cancels it, as `jog/cancel` does); it is bounded by `max_jog_mm` and one at a time.
+#[test]
+fn a_continuous_jog_moves_while_kept_alive_and_stops_when_the_keep_alives_stop() {
+    let s = Server::start();
+    let m = s.sim_with("m", 1.0, json!({"max_jog_mm": 100.0})).id;
+    let jog = format!("/api/v1/machines/{m}/jog");
+    let keepalive = format!("/api/v1/machines/{m}/jog/keepalive");
+    for bad in [
+        json!({"axis": "X", "continuous": true}),
+        json!({"axis": "X", "continuous": true, "direction": "up"}),
+        json!({"axis": "X", "continuous": true, "direction": "+", "distance": 5}),
+        json!({"axis": "X", "direction": "+", "distance": 5}),
+    ] {
+        s.post(&jog, &bad).expect_error(422, "invalid_field");
+    }
+    s.post_empty(&keepalive)
+        .expect_error(409, "no_continuous_jog");
+
+    // 600 mm/min = 10 mm/s: the whole 100 mm would take 10 s.
+    let start = json!({"axis": "X", "direction": "+", "feed": 600, "continuous": true});
+    s.post(&jog, &start).expect(200);
+    s.post(&jog, &start).expect_error(409, "machine_busy");
+    // The client holds the key for about a second: keep-alives every 100 ms (the cadence is
+    // what is tested here, not a wait for something to happen).
+    for _ in 0..10 {
+        std::thread::sleep(Duration::from_millis(100));
+        s.post_empty(&keepalive).expect(200);
+    }
+    // Then it lets go without a word.
+    let st = s.wait_machine_state(m, "idle", T);
+    let x = st["machine_position"]["x"].as_f64().unwrap();
+    // About 1 s of motion plus at most the deadman's 250 ms: far from the 100 mm it may go.
+    assert!(
+        x > 5.0 && x < 50.0,
+        "moved while held, stopped soon after: x = {x}"
+    );
+    s.post_empty(&keepalive)
+        .expect_error(409, "no_continuous_jog");
+    let events = s.events("types=machine.jog_cancel", Some(0));
+    let cancel = events
+        .until(T, "the deadman's cancel", |e| {
+            e.event == "machine.jog_cancel"
+        })
+        .pop()
+        .unwrap();
+    assert!(
+        cancel.data["actor"]
+            .as_str()
+            .unwrap()
+            .starts_with("deadman:"),
+        "{:?}",
+        cancel.data
+    );
+    // Released: another continuous jog may start, and jog/cancel ends it at once.
+    s.post(&jog, &start).expect(200);
+    s.post_empty(&format!("/api/v1/machines/{m}/jog/cancel"))
+        .expect(200);
+    s.post_empty(&keepalive)
+        .expect_error(409, "no_continuous_jog");
+}
+
 #[test]
 fn jog_zero_offsets_and_part_zero() {
     let mut s = Server::start();

@@ -82,6 +82,7 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
         .routes(needs(Viewer, routes!(machines::status)))
         .routes(needs(Operator, routes!(machines::jog)))
         .routes(needs(Operator, routes!(machines::jog_cancel)))
+        .routes(needs(Operator, routes!(machines::jog_keepalive)))
         .routes(needs(Operator, routes!(machines::command)))
         .routes(needs(Operator, routes!(machines::mdi)))
         .routes(needs(Viewer, routes!(machines::offsets)))

@@ -248,20 +248,28 @@ pub async fn set_node(
 #[serde(deny_unknown_fields)]
 pub struct JogReq {
     axis: Axis,
-    /// mm (degrees for A), signed; at most the machine's `max_jog_mm`.
-    distance: f64,
+    /// mm (degrees for A), signed; at most the machine's `max_jog_mm`. Not with `continuous`.
+    #[serde(default)]
+    distance: Option<f64>,
     /// mm/min; at most the machine's `max_feed_mm_min`.
     #[serde(default)]
     feed: Option<f64>,
+    /// Move toward `direction` until `jog/cancel` or a missing keep-alive
+    /// (`POST /machines/{id}/jog/keepalive` at least every 250 ms), at most `max_jog_mm`.
+    #[serde(default)]
+    continuous: bool,
+    /// `+` or `-`: a continuous jog's direction.
+    #[serde(default)]
+    direction: Option<String>,
 }
 
 #[utoipa::path(post, path = "/machines/{id}/jog", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = JogReq, example = json!({"axis": "X", "distance": 5.0})),
     responses(
-        (status = 200, description = "The jog was carried out", body = Done),
+        (status = 200, description = "The jog was carried out (a continuous one: started)", body = Done),
         (status = 404, description = "`unknown_machine`", body = ErrorBody),
-        (status = 409, description = "`machine_busy`, `stopped`, `backend_rejected`", body = ErrorBody),
+        (status = 409, description = "`machine_busy` (also: a continuous jog is under way), `stopped`, `backend_rejected`", body = ErrorBody),
         (status = 422, description = "`jog_too_far`, `feed_out_of_range`, `invalid_field`, `backend_rejected`", body = ErrorBody),
         (status = 502, description = "`backend_error`", body = ErrorBody),
         (status = 503, description = "`machine_offline`, `machine_unresponsive`, `shutting_down`", body = ErrorBody),
@@ -274,8 +282,46 @@ pub async fn jog(
     Json(req): Json<JogReq>,
 ) -> Result<Json<Done>, ApiError> {
     let m = machine(&app, id).await?;
-    m.jog(req.axis, req.distance, req.feed, &caller.name)
-        .await?;
+    let invalid = |m: &str| ApiError::unprocessable("invalid_field", m.to_string());
+    match (req.continuous, req.distance, req.direction.as_deref()) {
+        (false, Some(distance), None) => m.jog(req.axis, distance, req.feed, &caller.name).await?,
+        (true, None, Some(d @ ("+" | "-"))) => {
+            m.jog_continuous(req.axis, d == "+", req.feed, &caller.name)
+                .await?
+        }
+        (false, None, _) => return Err(invalid("field `distance` is required (or `continuous`)")),
+        (false, Some(_), Some(_)) => {
+            return Err(invalid(
+                "field `direction` is for a continuous jog; `distance` has its sign",
+            ))
+        }
+        (true, Some(_), _) => {
+            return Err(invalid(
+                "field `distance` is not for a continuous jog (it moves until released)",
+            ))
+        }
+        (true, None, _) => {
+            return Err(invalid(
+                "field `direction` must be \"+\" or \"-\" for a continuous jog",
+            ))
+        }
+    }
+    Ok(Json(Done { ok: true }))
+}
+
+/// Keeps a continuous jog going for another 250 ms.
+#[utoipa::path(post, path = "/machines/{id}/jog/keepalive", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    responses(
+        (status = 200, description = "Still held", body = Done),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+        (status = 409, description = "`no_continuous_jog`: it ended (its whole way, a cancel or stop, or a missed keep-alive)", body = ErrorBody),
+    ))]
+pub async fn jog_keepalive(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+) -> Result<Json<Done>, ApiError> {
+    machine(&app, id).await?.jog_keepalive()?;
     Ok(Json(Done { ok: true }))
 }
 

@@ -5,6 +5,7 @@
 //! they ask for is true. Stop, feed hold and reset skip the task's queue (see [`lanes`]).
 
 mod actor;
+pub mod deadman;
 mod lanes;
 pub mod limits;
 pub mod unstored;
@@ -240,6 +241,8 @@ pub struct Machine {
     gate: Arc<Gate>,
     bus: EventBus,
     timeout: Duration,
+    /// The continuous jog and its keep-alives.
+    deadman: deadman::Deadman,
 }
 
 impl Machine {
@@ -317,6 +320,7 @@ impl Machine {
             gate: gate.clone(),
             bus: bus.clone(),
             timeout: opts.timeout,
+            deadman: deadman::Deadman::default(),
         });
         let task = actor::Task {
             id: row.id,
@@ -494,6 +498,7 @@ impl Machine {
         }
         if matches!(command, Command::Stop | Command::FeedHold) {
             self.gate.overtake();
+            self.deadman.release(None);
         }
         let answer = self.urgent(&Request::Command(command)).await?;
         self.bus
@@ -529,6 +534,71 @@ impl Machine {
         .await
     }
 
+    /// A continuous jog: toward `positive` or negative `axis` at `feed`, at most the machine's
+    /// `max_jog_mm`, for as long as [`Machine::jog_keepalive`] comes at least every
+    /// [`deadman::DEADMAN`]; then cancelled as [`Machine::cancel_jogs`] does (recorded with the
+    /// actor `deadman:<actor>`). One at a time per machine.
+    pub async fn jog_continuous(
+        self: &Arc<Self>,
+        axis: Axis,
+        positive: bool,
+        feed: Option<f64>,
+        actor: &str,
+    ) -> Result<()> {
+        let id = self.deadman.arm().ok_or_else(|| {
+            Error::conflict(
+                "machine_busy",
+                format!(
+                    "machine {} already jogs continuously: keep it alive or cancel it",
+                    self.id
+                ),
+            )
+        })?;
+        let reach = self.row().max_jog_mm;
+        let distance = if positive { reach } else { -reach };
+        if let Err(e) = self.jog(axis, distance, feed, actor).await {
+            self.deadman.release(Some(id));
+            return Err(e);
+        }
+        // The task has seen the jog start: a state other than jogging from now on means it ended.
+        self.sync().await;
+        let (m, actor) = (self.clone(), format!("deadman:{actor}"));
+        tokio::spawn(async move { m.hold_continuous(id, &actor).await });
+        Ok(())
+    }
+
+    /// Watches continuous jog `id` until it ends by itself or misses its keep-alive.
+    async fn hold_continuous(&self, id: u64, actor: &str) {
+        while let Some(deadline) = self.deadman.deadline(id) {
+            if self.status().state != MachineState::Jogging {
+                break; // it went its whole way, or something else stopped it
+            }
+            if std::time::Instant::now() >= deadline {
+                self.deadman.release(Some(id));
+                if let Err(e) = self.cancel_jogs(actor).await {
+                    tracing::error!(machine = self.id, error = %e, "the deadman could not stop a continuous jog");
+                }
+                return;
+            }
+            tokio::time::sleep_until(deadline.into()).await;
+        }
+        self.deadman.release(Some(id));
+    }
+
+    /// The keep-alive of a continuous jog; 409 `no_continuous_jog` once it has ended.
+    pub fn jog_keepalive(&self) -> Result<()> {
+        if self.deadman.feed() {
+            return Ok(());
+        }
+        Err(Error::conflict(
+            "no_continuous_jog",
+            format!(
+                "machine {} has no continuous jog under way (it ended, or missed a keep-alive)",
+                self.id
+            ),
+        ))
+    }
+
     /// Ends the jog under way and every jog still queued for it, from anyone (HTTP, MQTT, the
     /// CLI, pendants' wheel moves and macros): the gate moves first, so nothing queued before
     /// this starts afterwards, then a stop on the urgent lane, answered once the backend
@@ -546,6 +616,7 @@ impl Machine {
             ));
         }
         self.gate.overtake();
+        self.deadman.release(None);
         let was = self.status().state;
         self.urgent(&Request::Command(Command::Stop)).await?;
         self.bus
