@@ -8,7 +8,7 @@ use crate::app::App;
 use crate::error::{Error, ErrorKind};
 use crate::events::EventKind;
 use crate::machine::Machine;
-use crate::store::{MacroAction, PendantRow, RunState};
+use crate::store::{MacroAction, PendantRow};
 use fresa_plugin_api::contract::{
     Axis, AxisValues, Command, MachineState, PendantEvent, PendantJob, PendantKey, PendantRequest,
     WorkOffset,
@@ -634,16 +634,18 @@ async fn key_pressed(
 /// Start: resume a paused run, otherwise start the machine's newest job.
 async fn start_key(app: &Arc<App>, p: &Pendant, m: &Machine, actor: &str) -> Result<(), Error> {
     if let Some(r) = m.run() {
-        if r.state == RunState::Paused {
-            // Never confirms a changed part zero: that decision belongs to the operator at the API.
-            return crate::jobs::resume(app, r.job_id, actor, false, None)
-                .await
-                .map(|_| ());
-        }
-        return Err(Error::conflict(
-            "machine_busy",
-            format!("machine {} is already running job {}", m.id, r.job_id),
-        ));
+        // Resume whatever the published run says: it can lag a pause the machine's task has
+        // just stored (the key then came right after the pause), and the task, which orders
+        // both, knows. A job that really runs is not resumable: the machine is busy. Never
+        // confirms a changed part zero: that decision belongs to the operator at the API.
+        return match crate::jobs::resume(app, r.job_id, actor, false, None).await {
+            Ok(_) => Ok(()),
+            Err(e) if e.code == "not_resumable" => Err(Error::conflict(
+                "machine_busy",
+                format!("machine {} is already running job {}", m.id, r.job_id),
+            )),
+            Err(e) => Err(e),
+        };
     }
     let job = app
         .store
