@@ -556,15 +556,27 @@ impl Machine {
         })?;
         let reach = self.row().max_jog_mm;
         let distance = if positive { reach } else { -reach };
-        if let Err(e) = self.jog(axis, distance, feed, actor).await {
-            self.deadman.release(Some(id));
-            return Err(e);
-        }
-        // The task has seen the jog start: a state other than jogging from now on means it ended.
-        self.sync().await;
-        let (m, actor) = (self.clone(), format!("deadman:{actor}"));
-        tokio::spawn(async move { m.hold_continuous(id, &actor).await });
-        Ok(())
+        // Started and watched by a task of its own, not by the caller: a caller that goes away
+        // mid-request (an HTTP client whose connection drops) must not leave a jog that nobody
+        // watches. Its keep-alives then stop, and the watcher cancels the jog.
+        let (m, actor) = (self.clone(), actor.to_string());
+        let (started, answer) = oneshot::channel();
+        tokio::spawn(async move {
+            if let Err(e) = m.jog(axis, distance, feed, &actor).await {
+                m.deadman.release(Some(id));
+                let _ = started.send(Err(e));
+                return;
+            }
+            // The task has seen the jog start: a state other than jogging from now on means it
+            // ended. The deadline counts from here, not from before a slow backend took it.
+            m.sync().await;
+            m.deadman.feed();
+            let _ = started.send(Ok(()));
+            m.hold_continuous(id, &format!("deadman:{actor}")).await;
+        });
+        answer
+            .await
+            .unwrap_or_else(|_| Err(Error::internal("the continuous jog's task ended early")))
     }
 
     /// Watches continuous jog `id` until it ends by itself or misses its keep-alive.
