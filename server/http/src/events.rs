@@ -41,13 +41,13 @@ impl Matcher {
                 return false;
             }
         }
-        self.types.is_empty()
-            || self.types.iter().any(|t| {
-                e.kind == *t
-                    || (e.kind.starts_with(t.as_str())
-                        && e.kind.as_bytes().get(t.len()) == Some(&b'.'))
-            })
+        self.types.is_empty() || self.types.iter().any(|t| type_matches(e.kind.as_str(), t))
     }
+}
+
+/// A `types` entry matches its own type and, as a group, every `<entry>.*` type.
+fn type_matches(kind: &str, filter: &str) -> bool {
+    kind == filter || (kind.starts_with(filter) && kind.as_bytes().get(filter.len()) == Some(&b'.'))
 }
 
 /// `types` as asked, each checked: a type the server emits, or a group of them (`job` for
@@ -58,11 +58,7 @@ fn known_types(types: Option<&str>) -> Result<Vec<String>, ApiError> {
         if t.is_empty() {
             continue;
         }
-        let known = t == "resync"
-            || EventKind::ALL.iter().any(|k| {
-                let n = k.name();
-                n == t || (n.starts_with(t) && n.as_bytes().get(t.len()) == Some(&b'.'))
-            });
+        let known = t == "resync" || EventKind::ALL.iter().any(|k| type_matches(k.name(), t));
         if !known {
             return Err(ApiError::bad_request(
                 "invalid_query",

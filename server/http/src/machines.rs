@@ -198,22 +198,22 @@ async fn wait_for_state(
     }
     let mut rx = m.subscribe_status();
     let limit = std::time::Duration::from_secs_f64(seconds);
-    let outcome = tokio::time::timeout(limit, rx.wait_for(|s| s.state == target))
+    // Reached, or the machine's task ended (shutdown): answer with what it last was.
+    if tokio::time::timeout(limit, rx.wait_for(|s| s.state == target))
         .await
-        .map(|r| r.is_ok());
-    match outcome {
-        // Reached, or the machine's task ended (shutdown): answer with what it last was.
-        Ok(_) => Ok(()),
-        Err(_) => Err(ApiError::conflict(
-            "wait_timeout",
-            format!(
-                "machine {} is still {} after {seconds} s, not {}",
-                m.id,
-                m.status().state.as_str(),
-                target.as_str()
-            ),
-        )),
+        .is_ok()
+    {
+        return Ok(());
     }
+    Err(ApiError::conflict(
+        "wait_timeout",
+        format!(
+            "machine {} is still {} after {seconds} s, not {}",
+            m.id,
+            m.status().state.as_str(),
+            target.as_str()
+        ),
+    ))
 }
 
 #[derive(Deserialize, ToSchema)]
