@@ -259,6 +259,15 @@ pub fn pe_facts(exe: &Path) -> PeFacts {
     use object::read::pe::{ImageNtHeaders, ImageOptionalHeader, PeFile};
     use object::LittleEndian as LE;
 
+    fn import_name(dll: &str, import: object::read::pe::Import<'_>) -> String {
+        match import {
+            object::read::pe::Import::Name(_, name) => {
+                format!("{dll}!{}", String::from_utf8_lossy(name))
+            }
+            object::read::pe::Import::Ordinal(n) => format!("{dll}!#{n}"),
+        }
+    }
+
     fn read<H: ImageNtHeaders>(data: &[u8], pe32: bool) -> object::Result<PeFacts> {
         let file = PeFile::<H>::parse(data)?;
         let nt = file.nt_headers();
@@ -274,12 +283,7 @@ pub fn pe_facts(exe: &Path) -> PeFacts {
                 };
                 let mut thunks = table.thunks(first)?;
                 while let Some(thunk) = thunks.next::<H>()? {
-                    imports.push(match table.import::<H>(thunk)? {
-                        object::read::pe::Import::Name(_, name) => {
-                            format!("{dll}!{}", String::from_utf8_lossy(name))
-                        }
-                        object::read::pe::Import::Ordinal(n) => format!("{dll}!#{n}"),
-                    });
+                    imports.push(import_name(&dll, table.import::<H>(thunk)?));
                 }
             }
         }
@@ -293,12 +297,7 @@ pub fn pe_facts(exe: &Path) -> PeFacts {
                     String::from_utf8_lossy(table.name(d.dll_name_rva.get(LE))?).to_lowercase();
                 let mut thunks = table.thunks(d.import_name_table_rva.get(LE))?;
                 while let Some(thunk) = thunks.next::<H>()? {
-                    imports.push(match table.import::<H>(thunk)? {
-                        object::read::pe::Import::Name(_, name) => {
-                            format!("{dll}!{}", String::from_utf8_lossy(name))
-                        }
-                        object::read::pe::Import::Ordinal(n) => format!("{dll}!#{n}"),
-                    });
+                    imports.push(import_name(&dll, table.import::<H>(thunk)?));
                 }
             }
         }
