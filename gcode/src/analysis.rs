@@ -92,6 +92,13 @@ pub struct Analysis {
     /// First line with A motion: a machine without an A axis refuses the
     /// program naming it.
     pub first_a_line: Option<u32>,
+    /// Probing moves (G38.2-G38.5), counted with the cutting moves' bounds
+    /// and time for their whole distance (the worst case).
+    pub probe_moves: u64,
+    /// The first probing line: a machine without a probe input refuses the
+    /// program naming it, and the moves after it may depend on where the
+    /// probe trips (analysed here as if it ran its whole way untripped).
+    pub first_probe_line: Option<u32>,
     /// Segments the program linearises to (moves, and arcs as chords at
     /// [`Config::arc_tolerance_mm`]): the work it causes, at most
     /// [`AnalysisOptions::max_segments`].
@@ -179,6 +186,8 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
         offset_change_count: 0,
         a_bounds: None,
         first_a_line: None,
+        probe_moves: 0,
+        first_probe_line: None,
         segments: 0,
     };
     let mut budget = WorkBudget::new(opts.max_segments, opts.config.arc_tolerance_mm);
@@ -200,7 +209,10 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
         let line = m.line();
         let is_move = matches!(
             m,
-            Motion::Rapid { .. } | Motion::Linear { .. } | Motion::Arc { .. }
+            Motion::Rapid { .. }
+                | Motion::Linear { .. }
+                | Motion::Arc { .. }
+                | Motion::Probe { .. }
         );
         if is_move {
             if line != last_motion_line {
@@ -256,6 +268,18 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
                     grow(&mut a.cutting_bounds, lo, hi);
                 }
                 a.max_feed_mm_min = a.max_feed_mm_min.max(feed_mm_min);
+            }
+            Motion::Probe {
+                line,
+                from,
+                to,
+                feed_mm_min,
+                ..
+            } => {
+                a.probe_moves += 1;
+                a.first_probe_line.get_or_insert(line);
+                feed_minutes += dist(from, to) / feed_mm_min;
+                grow(&mut a.cutting_bounds, from, to);
             }
             Motion::Dwell { seconds, .. } => a.dwell_seconds += seconds,
             Motion::Spindle { rpm, direction, .. } if direction != SpindleDirection::Off => {

@@ -198,7 +198,7 @@ pub fn segments_for(radius: f64, sweep_rad: f64, tolerance: f64) -> u64 {
 /// tolerance, without making them), 0 for anything that does not move.
 pub fn segments_of(m: &Motion, tolerance_mm: f64) -> u64 {
     match m {
-        Motion::Rapid { .. } | Motion::Linear { .. } => 1,
+        Motion::Rapid { .. } | Motion::Linear { .. } | Motion::Probe { .. } => 1,
         Motion::Arc { .. } => ArcGeometry::from_motion(m).map_or(1, |g| {
             segments_for(g.effective_radius(), g.sweep, tolerance_mm)
         }),
@@ -290,6 +290,10 @@ impl<I> Budgeted<I> {
     /// The wrapped iterator (e.g. to read an interpreter's warnings).
     pub fn inner(&self) -> &I {
         &self.inner
+    }
+    /// The wrapped iterator, to give it what it waits for (a probe's result).
+    pub fn inner_mut(&mut self) -> &mut I {
+        &mut self.inner
     }
     pub fn into_inner(self) -> I {
         self.inner
@@ -463,6 +467,10 @@ impl<I> Linearise<I> {
     /// The wrapped iterator (e.g. to read an interpreter's warnings).
     pub fn inner(&self) -> &I {
         &self.inner
+    }
+    /// The wrapped iterator, to give it what it waits for (a probe's result).
+    pub fn inner_mut(&mut self) -> &mut I {
+        &mut self.inner
     }
     /// The wrapped iterator; an arc in progress is dropped.
     pub fn into_inner(self) -> I {

@@ -76,6 +76,15 @@ impl Params {
         }
     }
 
+    /// A probe's result: #5061..#5063 where it tripped (program units),
+    /// #5064..#5069 (A B C U V W) 0, #5070 1 if it tripped, else 0.
+    pub fn set_probe(&mut self, trip: [f64; 3], tripped: bool) {
+        let v = self.numbered_mut();
+        v[5061..=5063].copy_from_slice(&trip);
+        v[5064..=5069].fill(0.0);
+        v[5070] = if tripped { 1.0 } else { 0.0 };
+    }
+
     fn numbered_mut(&mut self) -> &mut Vec<f64> {
         if self.numbered.is_empty() {
             self.numbered = vec![0.0; NUMBERED];

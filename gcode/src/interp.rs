@@ -155,6 +155,8 @@ enum MotionMode {
     Unsupported(u16),
     /// Canned cycle G73, G81, G82, G83, G85, G89 (code * 10).
     Cycle(u16),
+    /// G38.2..G38.5 (code * 10: 382..385).
+    Probe(u16),
     /// G5 (cubic, 50) or G5.1 (quadratic, 51) spline in the XY plane.
     Spline(u16),
 }
@@ -286,6 +288,20 @@ pub struct Interpreter<R: BufRead> {
     percent_open: bool,
     units_inch_seen: bool,
     work_systems: u16,
+    /// A probing move was yielded; its result is applied before the next
+    /// line is read (see [`Interpreter::probe_result`]).
+    probe_pending: Option<PendingProbe>,
+}
+
+/// A probing move whose result the rest of the program waits for.
+#[derive(Debug, Clone, Copy)]
+struct PendingProbe {
+    from: Point,
+    to: Point,
+    /// The program's frame when it was made (motion frame = program + this).
+    frame: Point,
+    inch: bool,
+    result: Option<crate::ProbeResult>,
 }
 
 impl<R: BufRead> Interpreter<R> {
@@ -329,7 +345,48 @@ impl<R: BufRead> Interpreter<R> {
             percent_open: false,
             units_inch_seen: false,
             work_systems: 0,
+            probe_pending: None,
         }
+    }
+
+    /// What the probing move just yielded ([`Motion::Probe`]) found, from the
+    /// backend that executed it; call before asking for the next motion. The
+    /// tool's position becomes `rest`, #5061..#5063 the trip (program
+    /// coordinates, program units) and #5070 1 (tripped) or 0.
+    pub fn probe_result(&mut self, result: crate::ProbeResult) {
+        if let Some(p) = self.probe_pending.as_mut() {
+            p.result = Some(result);
+        }
+    }
+
+    /// Applies the pending probe's result (or the stand-alone assumption).
+    fn settle_probe(&mut self) {
+        let Some(p) = self.probe_pending.take() else {
+            return;
+        };
+        let r = p.result.unwrap_or_else(|| {
+            // LinuxCNC's stand-alone interpreter: no contact, and the tool
+            // backed off from the end toward the start by 0.254 mm (0.01 in).
+            let d = sub(p.from, p.to);
+            let len = len3(p.from, p.to);
+            // 0.01 in in an inch program, 0.254 mm in a metric one: the same.
+            let back = 0.254;
+            let rest = if len > 0.0 {
+                std::array::from_fn(|i| p.to[i] + back * d[i] / len)
+            } else {
+                p.to
+            };
+            crate::ProbeResult {
+                tripped: false,
+                trip: p.to,
+                rest,
+            }
+        });
+        let unit = Self::scale(p.inch);
+        let trip = sub(r.trip, p.frame);
+        self.st.pos = sub(r.rest, p.frame);
+        self.params
+            .set_probe([trip[0] / unit, trip[1] / unit, trip[2] / unit], r.tripped);
     }
 
     /// Lines skipped under [`Unsupported::SkipWithWarning`] and other notes
@@ -1140,6 +1197,7 @@ impl<R: BufRead> Interpreter<R> {
 
     /// Reads and interprets one line; events go to the queue.
     fn step(&mut self) -> Result<(), GcodeError> {
+        self.settle_probe();
         if !self.next_line()? {
             return self.end_of_input();
         }
@@ -1329,18 +1387,20 @@ impl<R: BufRead> Interpreter<R> {
         let mut g_retract = None;
         let mut g_nonmodal: Option<(u16, u32)> = None;
         for &(code, off) in &blk.g[..blk.ng] {
-            const MOTION: [u16; 13] = [0, 10, 20, 30, 50, 51, 800, 730, 810, 820, 830, 850, 890];
+            const MOTION: [u16; 17] = [
+                0, 10, 20, 30, 50, 51, 800, 730, 810, 820, 830, 850, 890, 382, 383, 384, 385,
+            ];
             let is_motion = MOTION.contains(&code);
             let slot = match code {
                 _ if is_motion => &mut g_motion,
-                330 | 331 | 382..=385 | 760 | 840 | 860..=880 => {
+                330 | 331 | 760 | 840 | 860..=880 => {
                     // Remember it so that following modal lines are rejected
                     // rather than run as the previous G0/G1.
                     self.st.motion = MotionMode::Unsupported(code);
                     return Err(unsupported_g(
                         code,
                         off,
-                        "tapping, boring cycles with spindle stops, probing and threading are not implemented",
+                        "tapping, boring cycles with spindle stops and threading are not implemented",
                     ));
                 }
                 170 | 180 | 190 => &mut g_plane,
@@ -1488,6 +1548,7 @@ impl<R: BufRead> Interpreter<R> {
                 30 => MotionMode::Ccw,
                 50 | 51 => MotionMode::Spline(code),
                 730 | 810 | 820 | 830 | 850 | 890 => MotionMode::Cycle(code),
+                382..=385 => MotionMode::Probe(code),
                 _ => MotionMode::None,
             };
             if self.cycle.initial.is_some() && !matches!(st.motion, MotionMode::Cycle(_)) {
@@ -2026,6 +2087,14 @@ impl<R: BufRead> Interpreter<R> {
                 return Err((blk.pos_of(b'A') as usize, kind, why.to_string()));
             }
         }
+        if motion_here && comp_on && matches!(st.motion, MotionMode::Probe(_)) {
+            return Err((
+                first_of(blk, axis_mask),
+                ErrorKind::Invalid,
+                "cannot probe with cutter radius compensation on (G40 first)".to_string(),
+            ));
+        }
+        let mut probe_new: Option<(Point, Point)> = None;
         if motion_here && comp_on {
             if let Some(c) = comp.as_mut() {
                 let at = first_of(blk, axis_mask | ijk_mask | bit(b'R'));
@@ -2145,6 +2214,50 @@ impl<R: BufRead> Interpreter<R> {
                     target = canned_cycle(queue, &mut st, &mut cyc, blk, code, first, scale, line)?;
                     cycle_new = Some(cyc);
                 }
+                MotionMode::Probe(code) => {
+                    let at = first_of(blk, axis_mask);
+                    let name = gname(code);
+                    if machine {
+                        let off = g_nonmodal.map_or(0, |g| g.1);
+                        return Err((off as usize, ErrorKind::Invalid, format!("G53 with {name}")));
+                    }
+                    if st.feed_mode == FeedMode::InverseTime {
+                        return Err((
+                            at,
+                            ErrorKind::Invalid,
+                            format!("{name} cannot probe in inverse time feed mode (G93)"),
+                        ));
+                    }
+                    if target_a != st.a {
+                        return Err((
+                            blk.pos_of(b'A') as usize,
+                            ErrorKind::Unsupported,
+                            format!("{name} with an A axis move is not supported"),
+                        ));
+                    }
+                    let feed = feed_mm_min(&st, blk)?;
+                    // LinuxCNC's rule (rs274 2.9): a G38.2/G38.4 that would not move at all is
+                    // an error; G38.3/G38.5 may (smartprobe.ngc relies on it).
+                    if matches!(code, 382 | 384) && len3(st.pos, target) < 1e-9 {
+                        return Err((
+                            at,
+                            ErrorKind::Invalid,
+                            format!(
+                                "{name}: the start point is too close to the probe point (it \
+                                 would not move)"
+                            ),
+                        ));
+                    }
+                    queue.push_back(Motion::Probe {
+                        line,
+                        from: st.pos,
+                        to: target,
+                        feed_mm_min: feed,
+                        contact: matches!(code, 382 | 383),
+                        must_trip: matches!(code, 382 | 384),
+                    });
+                    probe_new = Some((st.pos, target));
+                }
                 MotionMode::None | MotionMode::Unsupported(_) => {}
             }
             st.pos = target;
@@ -2253,6 +2366,16 @@ impl<R: BufRead> Interpreter<R> {
             self.g92_a = g92_a;
             self.g92_saved_a = saved_a;
             self.g92_active = g92 != [0.0; 3] || g92_a != 0.0;
+        }
+        if let Some((from, to)) = probe_new {
+            let frame = self.frame();
+            self.probe_pending = Some(PendingProbe {
+                from: add(from, frame),
+                to: add(to, frame),
+                frame,
+                inch: self.st.inch,
+                result: None,
+            });
         }
         if self.g92_active || self.offsets_changed {
             // Into the work system's frame. Lines that change the offset
@@ -3318,6 +3441,10 @@ fn shift(m: &mut Motion, off: Point, off_a: f64) {
                 a.to += off_a;
             }
         }
+        Motion::Probe { from, to, .. } => {
+            *from = add(*from, off);
+            *to = add(*to, off);
+        }
         Motion::Arc {
             from, to, centre, ..
         } => {
@@ -3359,9 +3486,10 @@ fn sys_view(st: &State, g92: Point, g92_saved: Point, g92_a: f64, g92_saved_a: f
             MotionMode::Cw => 20,
             MotionMode::Ccw => 30,
             MotionMode::None => 800,
-            MotionMode::Unsupported(c) | MotionMode::Cycle(c) | MotionMode::Spline(c) => {
-                i32::from(c)
-            }
+            MotionMode::Unsupported(c)
+            | MotionMode::Cycle(c)
+            | MotionMode::Spline(c)
+            | MotionMode::Probe(c) => i32::from(c),
         },
     }
 }

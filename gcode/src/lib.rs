@@ -318,6 +318,23 @@ pub enum Motion {
         turns: u32,
         sweep_rad: f64,
     },
+    /// G38.2-G38.5: a straight probing move toward `to` at `feed_mm_min`
+    /// until the probe input closes (`contact`: G38.2/G38.3) or opens
+    /// (G38.4/G38.5); `must_trip` (G38.2/G38.4) makes a move that ends with
+    /// no change an error of the run. Where it tripped feeds the rest of the
+    /// program: a backend that executes it gives the result back with
+    /// [`Interpreter::probe_result`] before it asks for the next motion;
+    /// without one (an upload check) the probe is taken to end at `to`
+    /// without tripping and the tool to rest 0.254 mm (0.01 in) back toward
+    /// `from`, as LinuxCNC's stand-alone interpreter assumes.
+    Probe {
+        line: u32,
+        from: Point,
+        to: Point,
+        feed_mm_min: f64,
+        contact: bool,
+        must_trip: bool,
+    },
     /// G4 P seconds.
     Dwell { line: u32, seconds: f64 },
     /// M3/M4/M5, or a new S while running.
@@ -374,6 +391,18 @@ pub enum Motion {
     },
 }
 
+/// What a probing move ([`Motion::Probe`]) found, in the frame motions are
+/// given in (program coordinates plus the program's own offsets, mm).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProbeResult {
+    /// The input changed (the move did not run its whole way).
+    pub tripped: bool,
+    /// Where it changed (`to` when it did not).
+    pub trip: Point,
+    /// Where the tool came to rest.
+    pub rest: Point,
+}
+
 fn is_zero(v: &f64) -> bool {
     *v == 0.0
 }
@@ -386,6 +415,7 @@ impl Motion {
             Motion::Rapid { line, .. }
             | Motion::Linear { line, .. }
             | Motion::Arc { line, .. }
+            | Motion::Probe { line, .. }
             | Motion::Dwell { line, .. }
             | Motion::Spindle { line, .. }
             | Motion::Coolant { line, .. }
@@ -413,9 +443,10 @@ impl Motion {
     #[inline]
     pub fn end_point(&self) -> Option<Point> {
         match self {
-            Motion::Rapid { to, .. } | Motion::Linear { to, .. } | Motion::Arc { to, .. } => {
-                Some(*to)
-            }
+            Motion::Rapid { to, .. }
+            | Motion::Linear { to, .. }
+            | Motion::Arc { to, .. }
+            | Motion::Probe { to, .. } => Some(*to),
             _ => None,
         }
     }

@@ -38,15 +38,7 @@ const KNOWN: &[(&str, &str)] = &[
         "ncfiles/cone.ngc",
         "B and C axes: refused by design (X/Y/Z machines)",
     ),
-    // Deliberate: no backend has a probe input or a spindle encoder.
-    (
-        "ncfiles/gridprobe.ngc",
-        "G38.2 probing: no backend has a probe input",
-    ),
-    (
-        "ncfiles/smartprobe.ngc",
-        "G38.x probing: no backend has a probe input",
-    ),
+    // Deliberate: no backend has a spindle encoder.
     (
         "ncfiles/threading.ngc",
         "G33 spindle-synchronised motion: no backend has a spindle encoder",
@@ -80,6 +72,13 @@ enum Canon {
     /// tests/splines.rs checks the chords against the curve.
     Spline {
         order: u8,
+    },
+    /// G38.x: rs274 prints `STRAIGHT_PROBE(x, y, z, ...)` and then assumes the probe did
+    /// not trip (see `Motion::Probe`); compared by target and feed, never dropped as
+    /// zero-length (both print one that starts where the tool is).
+    Probe {
+        to: [f64; 3],
+        feed: f64,
     },
     /// End and centre in XYZ; `rotation` > 0 counter-clockwise turns, < 0 clockwise.
     Arc {
@@ -283,7 +282,16 @@ fn run_rs274_once(exe: &Path, table: &Path, dir: &Path, file: &Path) -> (Outcome
                     order: num(a[0]) as u8,
                 })
             }
-            "STRAIGHT_PROBE" | "RIGID_TAP" => other.push(name.to_string()),
+            "STRAIGHT_PROBE" => {
+                feed_number = None;
+                let to = [
+                    num(a[0]) * scale + g92[0] + g5x[0],
+                    num(a[1]) * scale + g92[1] + g5x[1],
+                    num(a[2]) * scale + g92[2] + g5x[2],
+                ];
+                moves.push(Canon::Probe { to, feed });
+            }
+            "RIGID_TAP" => other.push(name.to_string()),
             _ => {}
         }
     }
@@ -385,6 +393,12 @@ fn run_fresa(file: &Path) -> Outcome {
         }
         match m {
             Ok(Motion::Rapid { to, .. }) => moves.push(Canon::Rapid { to, a: a_deg }),
+            Ok(Motion::Probe {
+                to, feed_mm_min, ..
+            }) => moves.push(Canon::Probe {
+                to,
+                feed: feed_mm_min,
+            }),
             Ok(Motion::Linear {
                 to, feed_mm_min, ..
             }) => moves.push(Canon::Feed {
@@ -440,7 +454,9 @@ fn normalise(moves: &[Canon]) -> Vec<Canon> {
     for m in moves {
         let to = match *m {
             Canon::Rapid { to, a } | Canon::Feed { to, a, .. } => [to[0], to[1], to[2], a],
-            Canon::Arc { to, .. } => [to[0], to[1], to[2], at.map_or(0.0, |p| p[3])],
+            Canon::Arc { to, .. } | Canon::Probe { to, .. } => {
+                [to[0], to[1], to[2], at.map_or(0.0, |p| p[3])]
+            }
             Canon::Spline { .. } => {
                 out.push(*m);
                 at = None;
@@ -448,7 +464,7 @@ fn normalise(moves: &[Canon]) -> Vec<Canon> {
             }
         };
         let still = at.is_some_and(|p| (0..4).all(|i| (p[i] - to[i]).abs() < 1e-9));
-        if still && !matches!(m, Canon::Arc { .. }) {
+        if still && !matches!(m, Canon::Arc { .. } | Canon::Probe { .. }) {
             continue;
         }
         out.push(*m);
@@ -482,6 +498,9 @@ fn compare(reference: &[Canon], ours: &[Canon], scale: f64) -> Option<String> {
                 },
             ) => pt(a, b) && close(*aa, *ab, 1.0) && close(*fa, *fb, scale),
             (Canon::Spline { order: a }, Canon::Spline { order: b }) => a == b,
+            (Canon::Probe { to: a, feed: fa }, Canon::Probe { to: b, feed: fb }) => {
+                pt(a, b) && close(*fa, *fb, scale)
+            }
             (
                 Canon::Arc {
                     to: a,

@@ -295,3 +295,110 @@ fn modal_state_save_restore_and_m61() {
     );
     assert!(err("M61\n").message.contains("M61"));
 }
+
+/// G38.2-G38.5: the probing move, and its result fed back by the machine that ran it (the
+/// trip in #5061..#5063 and #5070, the tool at rest) into the rest of the program; without a
+/// machine, LinuxCNC's stand-alone assumption (no contact, 0.254 mm back from the end).
+#[test]
+fn probe_results_feed_the_rest_of_the_program() {
+    let src = "G21 G90 F100\nG38.2 Z-50\nG0 Z[#5063 + 5] X[#5070]\nG91 G0 X1\n";
+    // Fed back: tripped at Z -20.25, came to rest at -20.3.
+    let mut it = Interpreter::new(src.as_bytes(), Config::default());
+    let probe = it.next().unwrap().unwrap();
+    assert!(
+        matches!(
+            probe,
+            Motion::Probe { line: 2, to, feed_mm_min, contact: true, must_trip: true, .. }
+                if to == [0.0, 0.0, -50.0] && feed_mm_min == 100.0
+        ),
+        "{probe:?}"
+    );
+    it.probe_result(ProbeResult {
+        tripped: true,
+        trip: [0.0, 0.0, -20.25],
+        rest: [0.0, 0.0, -20.3],
+    });
+    let rest: Vec<Motion> = it.map(Result::unwrap).collect();
+    let fed: Vec<Point> = rest.iter().filter_map(Motion::end_point).collect();
+    assert_eq!(
+        fed,
+        vec![[1.0, 0.0, -15.25], [2.0, 0.0, -15.25]],
+        "{rest:?}"
+    );
+    // The next move starts where the tool rested, not at the probe's end.
+    assert!(
+        matches!(rest[0], Motion::Rapid { from, .. } if from == [0.0, 0.0, -20.3]),
+        "{rest:?}"
+    );
+    // Not fed back (an upload check): untripped at the end, resting 0.254 mm back.
+    let alone: Vec<Motion> = Interpreter::new(src.as_bytes(), Config::default())
+        .map(Result::unwrap)
+        .collect();
+    assert!(
+        matches!(alone[1], Motion::Rapid { from, to, .. }
+            if (from[2] + 49.746).abs() < 1e-12 && to == [0.0, 0.0, -45.0]),
+        "{alone:?}"
+    );
+    // In an inch program the parameters are in inches.
+    let mut it = Interpreter::new(
+        "G20 F10\nG38.3 X-2\nG0 Y[#5061]\n".as_bytes(),
+        Config::default(),
+    );
+    assert!(matches!(
+        it.next(),
+        Some(Ok(Motion::Probe {
+            contact: true,
+            must_trip: false,
+            ..
+        }))
+    ));
+    it.probe_result(ProbeResult {
+        tripped: true,
+        trip: [-25.4, 0.0, 0.0],
+        rest: [-25.4, 0.0, 0.0],
+    });
+    let end = it.find_map(|m| m.unwrap().end_point()).unwrap();
+    assert!((end[1] + 25.4).abs() < 1e-9, "Y = #5061 = -1 in: {end:?}");
+    // G38.4/G38.5 look for the release.
+    assert!(matches!(
+        Interpreter::new("F10\nG38.5 Z5\n".as_bytes(), Config::default()).next(),
+        Some(Ok(Motion::Probe {
+            contact: false,
+            must_trip: false,
+            ..
+        }))
+    ));
+}
+
+/// What LinuxCNC refuses in a probing move is refused here, naming the line.
+#[test]
+fn probing_moves_refuse_what_linuxcnc_refuses() {
+    for (src, needle) in [
+        ("G38.2 Z-5\n", "no feed rate"),
+        ("F100\nG38.4 Z0\n", "too close"),
+        ("F100 G93\nG38.2 Z-5\n", "inverse time"),
+        ("F100\nG38.2 Z-5 A10\n", "A axis"),
+        (
+            "F100\nG41 D1 G1 X10\nG38.2 Z-5\n",
+            "cutter radius compensation",
+        ),
+        ("F100\nG53 G38.2 Z-5\n", "G53"),
+    ] {
+        let e = err_cfg(
+            src,
+            Config {
+                tools: [(
+                    1,
+                    Tool {
+                        diameter_mm: 2.0,
+                        length_mm: 0.0,
+                    },
+                )]
+                .into_iter()
+                .collect(),
+                ..Config::default()
+            },
+        );
+        assert!(e.message.contains(needle), "{src:?}: {e}");
+    }
+}
