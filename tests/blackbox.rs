@@ -8,7 +8,9 @@
 //! | module | what its tests are about |
 //! |---|---|
 //! | `machine::api` | a machine over the REST API: listing, jog, zero, work offsets, part zero, MDI |
+//! | `machine::probing` | probing moves and touch-off: the offset set, refusals, STOP and a lost client during a probe |
 //! | `machine::limits` | what is refused before anything moves: soft limits, jog/feed limits, the work a program may cause |
+//! | `machine::overrides` | feed, spindle and rapid overrides: their effect on a run, the machine's range, the record |
 //! | `machine::tools` | tool tables and cutter compensation with them |
 //! | `machine::io` | inputs and outputs: switches, alarms, `machine.io` |
 //! | `jobs::runs` | upload, run to completion, download, pause / resume / cancel of a job |
@@ -36,6 +38,8 @@ mod machine {
     mod api;
     mod io;
     mod limits;
+    mod overrides;
+    mod probing;
     mod tools;
 }
 

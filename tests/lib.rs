@@ -818,6 +818,17 @@ impl Sim {
             .collect()
     }
 
+    /// `(line, ms)`: when each line of `run` finished, by the sim's own clock (ms since the
+    /// Unix epoch, as it logged them).
+    pub fn line_times(&self, run: i64) -> Vec<(i64, u64)> {
+        let text = std::fs::read_to_string(&self.log).unwrap_or_default();
+        text.lines()
+            .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+            .filter(|v| v["run"].as_i64() == Some(run))
+            .filter_map(|v| Some((v["line"].as_i64()?, v["at_ms"].as_u64()?)))
+            .collect()
+    }
+
     /// How many lines of `run` the execution log holds.
     pub fn count_of(&self, run: i64) -> usize {
         self.lines_of(run).len()

@@ -671,11 +671,21 @@ fn fifty_pendants_on_one_machine_at_once() {
     }
     let list = s.get("/api/v1/pendants").expect(200);
     assert_eq!(list.as_array().unwrap().len(), 50);
-    assert!(list
+    let off: Vec<_> = list
         .as_array()
         .unwrap()
         .iter()
-        .all(|p| p["connected"] == true && p["machine"] == m));
+        .filter(|p| !(p["connected"] == true && p["machine"] == m))
+        .collect();
+    if !off.is_empty() {
+        // Diagnostics only: what the log says about the links.
+        let stream = s.events("types=pendant.lost", Some(0));
+        let mut lost = Vec::new();
+        while let Some(e) = stream.next(Duration::from_secs(1)) {
+            lost.push(e.data);
+        }
+        panic!("not connected or not bound: {off:?}; pendant.lost events: {lost:?}");
+    }
 }
 
 #[test]
@@ -745,6 +755,31 @@ fn macros_toggle_the_spindle_and_run_mdi_lines_and_bad_ones_are_refused() {
     });
     assert_eq!(mdi.data["actor"], actor);
 
+    // An override macro (slow the cut down from the machine); outside the range it is refused.
+    patch_pendant(
+        &s,
+        p,
+        json!({"macros": {"M4": {"type": "command", "command": "set_overrides", "feed": 50}}}),
+    )
+    .expect(200);
+    sim.cmd("key M4");
+    s.wait_status(m, T, "feed override 50 from M4", |st| {
+        st["feed_override"] == 50.0
+    });
+    patch_pendant(
+        &s,
+        p,
+        json!({"macros": {"M4": {"type": "command", "command": "set_overrides", "feed": 500}}}),
+    )
+    .expect(200);
+    sim.cmd("key M4");
+    let refused = wait_event(&s, "M4 refused", |e| {
+        e.event == "pendant.refused" && e.data["data"]["code"] == "override_out_of_range"
+    });
+    assert_eq!(refused.data["actor"], actor);
+    assert_eq!(s.status(m)["feed_override"], 50.0);
+    patch_pendant(&s, p, json!({"macros": {"M4": null}})).expect(200);
+
     // Bad macros are refused naming slot and field; nothing of that request is applied.
     for (bad, field) in [
         (json!({"type": "mdi", "line": "G1 X("}), "macros.M4.line"),
@@ -755,6 +790,10 @@ fn macros_toggle_the_spindle_and_run_mdi_lines_and_bad_ones_are_refused() {
         (json!({"type": "mdi", "line": " "}), "macros.M4.line"),
         (json!({"type": "toggle", "output": "vacuum"}), "macros.M4"),
         (json!({"type": "toggle"}), "macros.M4"),
+        (
+            json!({"type": "command", "command": "set_overrides", "fed": 50}),
+            "macros.M4",
+        ),
     ] {
         let msg = patch_pendant(
             &s,

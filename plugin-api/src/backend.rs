@@ -105,6 +105,24 @@ pub trait MachineBackend: Send + Sync + Sized + 'static {
         let _ = line;
         Err(PluginError::unsupported("mdi"))
     }
+    /// Set the overrides given (percent; `None` leaves one as it is), applied from the next
+    /// planning interval on. A backend that cannot apply one of them refuses the whole
+    /// command, saying which and why, and changes nothing.
+    fn set_overrides(
+        &self,
+        feed: Option<f64>,
+        spindle: Option<f64>,
+        rapid: Option<f64>,
+    ) -> Result<(), PluginError> {
+        let _ = (feed, spindle, rapid);
+        Err(PluginError::unsupported("set_overrides"))
+    }
+    /// A probing move (see [`crate::contract::Probe`]): queue it and answer; report its end
+    /// with a `probe_ended` event.
+    fn probe(&self, probe: crate::contract::Probe) -> Result<(), PluginError> {
+        let _ = probe;
+        Err(PluginError::unsupported("probe"))
+    }
 
     // ----- provided -----
 
@@ -171,6 +189,11 @@ pub fn dispatch<B: MachineBackend>(b: &B, request: Request) -> Result<Answer, Pl
             Command::SelectOffset { offset } => empty(b.select_offset(offset)),
             Command::SetOutput { name, on } => b.set_output(name, on).map(Answer::Value),
             Command::ToggleOutput { name } => b.toggle_output(name).map(Answer::Value),
+            Command::SetOverrides {
+                feed,
+                spindle,
+                rapid,
+            } => empty(b.set_overrides(feed, spindle, rapid)),
         },
         Request::GetOffsets => b.get_offsets().map(Answer::Offsets),
         Request::SetOffset { offset, values } => empty(b.set_offset(offset, values)),
@@ -195,6 +218,7 @@ pub fn dispatch<B: MachineBackend>(b: &B, request: Request) -> Result<Answer, Pl
         Request::Shutdown => empty(b.shutdown()),
         Request::GetArtifact { name } => b.get_artifact(&name).map(Answer::Artifact),
         Request::Mdi { line } => empty(b.mdi(&line)),
+        Request::Probe(p) => empty(b.probe(p)),
     }
 }
 

@@ -173,6 +173,12 @@ pub struct MachineStatus {
     /// Feed override in percent (100 = programmed feed).
     #[serde(default = "hundred")]
     pub feed_override: f64,
+    /// Spindle speed override in percent (100 = programmed speed).
+    #[serde(default = "hundred")]
+    pub spindle_override: f64,
+    /// Rapid (G0) override in percent (100 = the machine's rapid rate).
+    #[serde(default = "hundred")]
+    pub rapid_override: f64,
     pub active_offset: WorkOffset,
     /// Run being executed, as given in `load_program`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -265,6 +271,8 @@ impl Default for MachineStatus {
             work_position: AxisValues::default(),
             feed: 0.0,
             feed_override: hundred(),
+            spindle_override: hundred(),
+            rapid_override: hundred(),
             active_offset: WorkOffset::default(),
             run: None,
             line: None,
@@ -315,6 +323,49 @@ pub enum Command {
     ToggleOutput {
         name: OutputName,
     },
+    // --- run control additions (issue 26) ---
+    /// Set the feed, spindle and/or rapid override, in percent of the programmed value; an
+    /// absent one is left as it is, e.g. `{"command":"set_overrides","feed":50}`. Applies to
+    /// program and MDI moves from the next planning interval on, also during a run (jogs and
+    /// probing moves keep their own feeds). The host has already checked each against the
+    /// machine's range. Answer: `{}`; the status reports the values in force.
+    SetOverrides {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        feed: Option<f64>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        spindle: Option<f64>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        rapid: Option<f64>,
+    },
+}
+
+/// The three overrides in force, in percent.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Overrides {
+    pub feed: f64,
+    pub spindle: f64,
+    pub rapid: f64,
+}
+
+impl Default for Overrides {
+    fn default() -> Self {
+        Overrides {
+            feed: 100.0,
+            spindle: 100.0,
+            rapid: 100.0,
+        }
+    }
+}
+
+impl Overrides {
+    /// These overrides with the ones a `set_overrides` command gives replaced.
+    pub fn with(self, feed: Option<f64>, spindle: Option<f64>, rapid: Option<f64>) -> Overrides {
+        Overrides {
+            feed: feed.unwrap_or(self.feed),
+            spindle: spindle.unwrap_or(self.spindle),
+            rapid: rapid.unwrap_or(self.rapid),
+        }
+    }
 }
 
 /// Digital outputs a backend may expose to `Command::SetOutput`.
@@ -416,6 +467,13 @@ pub enum Request {
     /// motion mode, feed, work offset) as it found it. Answer: `{}`. Errors: `invalid_gcode`,
     /// `unsupported` (the backend cannot run MDI, or not this kind of line).
     Mdi { line: String },
+    // --- probing additions (issue 25) ---
+    /// A probing move (G38.2-G38.5): see [`Probe`]. Answer: `{}` once it is queued (checked
+    /// against the travel for its whole distance, refused with `probe_already_in_state` when
+    /// the probe already reads what it looks for); the outcome comes later as a
+    /// [`Event::ProbeEnded`] with the same `id`. Errors: `unsupported` (no probe, or not on
+    /// that axis, with the reason), `out_of_travel`, `busy`, `alarm`.
+    Probe(Probe),
 }
 
 impl Request {
@@ -463,6 +521,56 @@ fn refused(request: &serde_json::Value, e: &serde_json::Error) -> crate::PluginE
         }
         _ => crate::PluginError::invalid(format!("invalid request: {e}")),
     }
+}
+
+/// A probing move: `axis` moves by `distance` (signed: its sign is the direction) at `feed`
+/// mm/min until the probe input reads `until`; then motion stops at once and the position where
+/// the input changed is reported. The distance ending first is `not_tripped`, not a fault (the
+/// host decides what that means: G38.2 fails, G38.3 goes on).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Probe {
+    /// The host's number for this probe, repeated in its [`Event::ProbeEnded`].
+    pub id: u64,
+    pub axis: Axis,
+    pub distance: f64,
+    pub feed: f64,
+    #[serde(default)]
+    pub until: ProbeUntil,
+}
+
+/// What a probing move waits for (G38.2/.3 contact, G38.4/.5 release).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ProbeUntil {
+    /// The probe input becomes active (the tool touches the plate).
+    #[default]
+    Contact,
+    /// The probe input becomes inactive (the tool leaves it).
+    Release,
+}
+
+impl ProbeUntil {
+    /// The input level that ends the move.
+    pub fn wants_active(self) -> bool {
+        self == ProbeUntil::Contact
+    }
+}
+
+/// How a probing move ended (see [`Event::ProbeEnded`]).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ProbeOutcome {
+    /// The input changed: `trip` is where.
+    Tripped,
+    /// The whole distance ran with no change.
+    NotTripped,
+    /// Stop, feed hold or shutdown ended it first.
+    Stopped,
+    /// A fault ended it (an alarm, a limit); `message` says which.
+    Failed,
 }
 
 /// Answer to `run` and `command cycle_start`: `{}`, or `{"part_zero": ...}` from a backend
@@ -543,6 +651,20 @@ pub enum Event {
         percent: f64,
         /// Planned motion time left, seconds (pauses not counted).
         remaining_s: f64,
+    },
+    // --- probing additions (issue 25) ---
+    /// Probing move `id` ended. `trip` is the machine position latched when the input changed
+    /// (only with `tripped`); `position` is where motion came to rest (past the trip by the
+    /// stopping distance, the overshoot). Emitted after the machine's state has left
+    /// `jogging`, so the host may act on the machine at once.
+    ProbeEnded {
+        id: u64,
+        outcome: ProbeOutcome,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        trip: Option<AxisValues>,
+        position: AxisValues,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        message: Option<String>,
     },
     // --- kawasaki-as additions (issue 6) ---
     /// The controller reported its part zero (machine/robot base coordinates), e.g. at the

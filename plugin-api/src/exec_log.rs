@@ -13,6 +13,10 @@ use std::path::{Path, PathBuf};
 pub struct Entry {
     pub run: i64,
     pub line: u32,
+    /// When the line finished, ms since the Unix epoch (an independent record of how long
+    /// each line took, e.g. under an override). Absent in logs written before it existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub at_ms: Option<u64>,
 }
 
 /// An open, append-only execution log.
@@ -48,7 +52,11 @@ impl ExecLog {
     /// Appends one entry and flushes it to the operating system (one `write` call, so a torn
     /// entry can only be the last line, which [`ExecLog::last_line`] skips).
     pub fn append(&mut self, run: i64, line: u32) -> Result<(), String> {
-        self.append_entry(&Entry { run, line })
+        let at_ms = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .ok()
+            .map(|d| d.as_millis() as u64);
+        self.append_entry(&Entry { run, line, at_ms })
     }
 
     /// Appends any one-line JSON record (backends with their own record shape).

@@ -10,8 +10,8 @@
 
 use crate::config_fields::{invalid, number, object};
 use crate::contract::{
-    Axis, AxisValues, Event, IoValue, MachineState, MachineStatus, OffsetTable, RunOutcome,
-    WorkOffset,
+    io, Axis, AxisValues, Event, IoValue, MachineState, MachineStatus, OffsetTable, Overrides,
+    Probe, ProbeOutcome, RunOutcome, WorkOffset,
 };
 use crate::exec_log::ExecLog;
 use crate::PluginError;
@@ -251,8 +251,20 @@ pub enum Job<P> {
     /// Z up to a safe height, then XY/A, then Z down, to the active work zero.
     GoToZero,
     /// One MDI line: straight moves to these machine targets, each at its feed.
-    Mdi(Vec<([f64; 4], f64)>),
+    Mdi(Vec<MdiMove>),
+    /// A probing move: ends with [`Kit::finish_probe`], not [`Kit::finish_job`].
+    Probe(Probe),
     Program(Loaded<P>),
+}
+
+/// One straight move of an MDI line, in machine coordinates.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MdiMove {
+    pub to: [f64; 4],
+    /// mm/min (the rapid rate for a G0).
+    pub feed: f64,
+    /// A G0: the rapid override applies to it, not the feed override.
+    pub rapid: bool,
 }
 
 impl<P> Job<P> {
@@ -294,6 +306,9 @@ pub struct State<P, X> {
     pub offsets: [[f64; 4]; 6],
     pub active: WorkOffset,
     pub feed: f64,
+    /// Feed, spindle and rapid overrides in force; the motion thread reads them every slice
+    /// (or planning interval), so a change applies to the move under way.
+    pub overrides: Overrides,
     pub run: Option<i64>,
     pub line: Option<u32>,
     /// Loaded with `load_program`, not started yet.
@@ -304,6 +319,8 @@ pub struct State<P, X> {
     pub shutdown: bool,
     /// When the last status event was queued (for rate limiting by the motion thread).
     pub last_status: Option<Instant>,
+    /// The probing move queued or under way, by its id: nothing else moves until it ends.
+    pub probing: Option<u64>,
     /// Inputs and outputs as reported in the status (see `MachineStatus::inputs`); change
     /// them with [`State::set_io`] so every change is reported.
     pub inputs: BTreeMap<String, Option<bool>>,
@@ -319,7 +336,9 @@ impl<P, X> State<P, X> {
             machine_position: AxisValues::from_array(self.pos),
             work_position: AxisValues::from_array(std::array::from_fn(|i| self.pos[i] - off[i])),
             feed: self.feed,
-            feed_override: 100.0,
+            feed_override: self.overrides.feed,
+            spindle_override: self.overrides.spindle,
+            rapid_override: self.overrides.rapid,
             active_offset: self.active,
             run: self.run,
             line: self.line,
@@ -365,14 +384,15 @@ impl<P, X> State<P, X> {
         self.last_status = Some(Instant::now());
     }
 
+    /// The status (with the new state and the position that goes with it) goes out before
+    /// the state change: a host that shows the change alone first would show, e.g., `idle` at
+    /// a position the machine has already left, if the two reach it apart.
     pub fn set_state(&mut self, to: MachineState, ev: &mut Events) {
         if self.state != to {
-            ev.push(Event::StateChanged {
-                from: self.state,
-                to,
-            });
+            let from = self.state;
             self.state = to;
             self.push_status(ev);
+            ev.push(Event::StateChanged { from, to });
         }
     }
 
@@ -400,7 +420,11 @@ impl<P, X> State<P, X> {
     }
 
     fn latch_alarm(&mut self, message: String, input: Option<String>, ev: &mut Events) {
+        let dropped = self.drop_queued_probes();
         self.queue.clear();
+        for id in dropped {
+            self.probe_ended(id, ProbeOutcome::Failed, None, Some(message.clone()), ev);
+        }
         self.alarm = Some(message.clone());
         ev.push(Event::Alarm { message, input });
         self.set_state(MachineState::Alarm, ev);
@@ -442,8 +466,47 @@ impl<P, X> State<P, X> {
         Ok(())
     }
 
-    /// Drops queued jobs and the loaded program; runs among them end as cancelled.
+    /// Takes the probing moves out of the queue (their ends are reported by the caller).
+    fn drop_queued_probes(&mut self) -> Vec<u64> {
+        let mut ids = Vec::new();
+        self.queue.retain(|j| match j {
+            Job::Probe(p) => {
+                ids.push(p.id);
+                false
+            }
+            _ => true,
+        });
+        if !self.busy {
+            self.probing = None;
+        }
+        ids
+    }
+
+    /// Reports probing move `id` ended (see [`Event::ProbeEnded`]), at the current position.
+    fn probe_ended(
+        &mut self,
+        id: u64,
+        outcome: ProbeOutcome,
+        trip: Option<[f64; 4]>,
+        message: Option<String>,
+        ev: &mut Events,
+    ) {
+        ev.push(Event::ProbeEnded {
+            id,
+            outcome,
+            trip: trip.map(AxisValues::from_array),
+            position: AxisValues::from_array(self.pos),
+            message,
+        });
+    }
+
+    /// Drops queued jobs and the loaded program; runs among them end as cancelled, probing
+    /// moves as stopped.
     fn cancel_pending(&mut self, ev: &mut Events) {
+        for id in self.drop_queued_probes() {
+            let m = "stopped before the probing move started".to_string();
+            self.probe_ended(id, ProbeOutcome::Stopped, None, Some(m), ev);
+        }
         let loaded = self.program.take();
         let queued = self.queue.drain(..).filter_map(|j| match j {
             Job::Program(l) => Some(l),
@@ -498,6 +561,7 @@ impl<P, X> Kit<P, X> {
                 offsets: [[0.0; 4]; 6],
                 active: WorkOffset::G54,
                 feed: 0.0,
+                overrides: Overrides::default(),
                 run: None,
                 line: None,
                 program: None,
@@ -505,6 +569,7 @@ impl<P, X> Kit<P, X> {
                 busy: false,
                 shutdown: false,
                 last_status: None,
+                probing: None,
                 inputs: BTreeMap::new(),
                 outputs: BTreeMap::new(),
                 extra,
@@ -646,6 +711,46 @@ impl<P, X> Kit<P, X> {
         result: Result<(), Interrupted>,
         update: impl FnOnce(&mut State<P, X>),
     ) {
+        self.finish(run, result, update, |_, _| {});
+    }
+
+    /// The probing move `id` ended: `Ok(Some(trip))` when the input changed at machine
+    /// position `trip`, `Ok(None)` when the whole distance ran without it. As
+    /// [`Kit::finish_job`], then a `probe_ended` event (after the state left jogging).
+    pub fn finish_probe(
+        &self,
+        id: u64,
+        result: Result<Option<[f64; 4]>, Interrupted>,
+        update: impl FnOnce(&mut State<P, X>),
+    ) {
+        let (outcome, trip, message) = match &result {
+            Ok(Some(t)) => (ProbeOutcome::Tripped, Some(*t), None),
+            Ok(None) => (ProbeOutcome::NotTripped, None, None),
+            Err(Interrupted::Aborted) => (
+                ProbeOutcome::Stopped,
+                None,
+                Some("stopped before the probe changed".to_string()),
+            ),
+            Err(
+                Interrupted::Alarm(m)
+                | Interrupted::Failed(m)
+                | Interrupted::Tripped { message: m, .. },
+            ) => (ProbeOutcome::Failed, None, Some(m.clone())),
+        };
+        let result = result.map(drop);
+        self.finish(None, result, update, |sh, ev| {
+            sh.probing = None;
+            sh.probe_ended(id, outcome, trip, message, ev);
+        });
+    }
+
+    fn finish(
+        &self,
+        run: Option<i64>,
+        result: Result<(), Interrupted>,
+        update: impl FnOnce(&mut State<P, X>),
+        last: impl FnOnce(&mut State<P, X>, &mut Events),
+    ) {
         let mut sh = self.lock();
         let mut ev = Vec::new();
         sh.busy = false;
@@ -686,6 +791,7 @@ impl<P, X> Kit<P, X> {
             }
             _ => sh.push_status(&mut ev),
         }
+        last(&mut sh, &mut ev);
         self.release(sh, ev);
     }
 
@@ -749,6 +855,12 @@ impl<P, X> Kit<P, X> {
         self.with(|sh, ev| {
             sh.require_online()?;
             sh.require_no_alarm("jog")?;
+            if sh.probing.is_some() {
+                return Err(PluginError::new(
+                    "busy",
+                    "cannot jog while the machine probes",
+                ));
+            }
             if !matches!(sh.state, MachineState::Idle | MachineState::Jogging) {
                 return Err(PluginError::new(
                     "busy",
@@ -771,6 +883,71 @@ impl<P, X> Kit<P, X> {
                 .map_err(|m| PluginError::new("out_of_travel", format!("jog refused: {m}")))?;
             sh.end = target;
             sh.queue.push_back(Job::Jog(jog));
+            sh.set_state(MachineState::Jogging, ev);
+            Ok(())
+        })
+    }
+
+    /// Queues a probing move after checking it: a finite, non-zero distance and a positive
+    /// feed, a probe input whose level is known and not already the one looked for, and the
+    /// whole distance inside the travel (the trip may come anywhere along it). The motion
+    /// thread runs it and ends it with [`Kit::finish_probe`].
+    pub fn probe(&self, p: Probe) -> Result<(), PluginError> {
+        if !(p.distance.is_finite() && p.distance != 0.0) {
+            return Err(PluginError::invalid(format!(
+                "probe distance must be a finite number other than 0, got {}",
+                p.distance
+            )));
+        }
+        if !(p.feed.is_finite() && p.feed > 0.0) {
+            return Err(PluginError::invalid(format!(
+                "probe feed must be greater than 0 mm/min, got {}",
+                p.feed
+            )));
+        }
+        self.with(|sh, ev| {
+            sh.require_no_alarm("probe")?;
+            sh.require_still("probe")?;
+            match sh.inputs.get(io::PROBE) {
+                None => {
+                    return Err(PluginError::new(
+                        "unsupported",
+                        "this machine has no probe input (configure one to probe)",
+                    ))
+                }
+                Some(None) => {
+                    return Err(PluginError::new(
+                        "probe_unknown",
+                        "the probe input's level is not known yet; try again",
+                    ))
+                }
+                Some(Some(active)) if *active == p.until.wants_active() => {
+                    return Err(PluginError::new(
+                        "probe_already_in_state",
+                        format!(
+                            "the probe is already {}: nothing to probe for (check the clip \
+                             and the plate)",
+                            if *active { "in contact" } else { "open" }
+                        ),
+                    ))
+                }
+                Some(Some(_)) => {}
+            }
+            let target = Jog {
+                axis: p.axis,
+                distance: p.distance,
+                feed: p.feed,
+            }
+            .target(sh.pos);
+            check_travel(&self.cfg.travel, target).map_err(|m| {
+                PluginError::new(
+                    "out_of_travel",
+                    format!("probe refused (its whole distance must be inside the travel): {m}"),
+                )
+            })?;
+            sh.end = target;
+            sh.probing = Some(p.id);
+            sh.queue.push_back(Job::Probe(p));
             sh.set_state(MachineState::Jogging, ev);
             Ok(())
         })
@@ -982,6 +1159,38 @@ impl<P, X> Kit<P, X> {
         self.lock().offset_table()
     }
 
+    /// Sets the overrides given, in percent (the host has checked them against the machine's
+    /// range; here only that each is a positive finite number and a rapid one is at most 100),
+    /// also during a run: the motion thread applies them from its next slice.
+    pub fn set_overrides(
+        &self,
+        feed: Option<f64>,
+        spindle: Option<f64>,
+        rapid: Option<f64>,
+    ) -> Result<(), PluginError> {
+        for (field, v) in [("feed", feed), ("spindle", spindle), ("rapid", rapid)] {
+            if let Some(v) = v.filter(|v| !(v.is_finite() && *v > 0.0)) {
+                return Err(PluginError::invalid(format!(
+                    "`{field}` override must be a positive percentage, got {v}"
+                )));
+            }
+        }
+        if let Some(r) = rapid.filter(|r| *r > 100.0) {
+            return Err(PluginError::invalid(format!(
+                "`rapid` override is at most 100 % (the machine's rapid rate), got {r}"
+            )));
+        }
+        self.with(|sh, ev| {
+            sh.require_online()?;
+            let next = sh.overrides.with(feed, spindle, rapid);
+            if next != sh.overrides {
+                sh.overrides = next;
+                sh.push_status(ev);
+            }
+            Ok(())
+        })
+    }
+
     pub fn set_offset(&self, offset: WorkOffset, values: AxisValues) -> Result<(), PluginError> {
         if values.to_array().iter().any(|v| !v.is_finite()) {
             return Err(PluginError::invalid("offset values must be finite numbers"));
@@ -1000,7 +1209,7 @@ impl<P, X> Kit<P, X> {
     /// changed since the caller planned it from `offsets`/`active`.
     pub fn queue_mdi(
         &self,
-        moves: Vec<([f64; 4], f64)>,
+        moves: Vec<MdiMove>,
         offsets: [[f64; 4]; 6],
         active: WorkOffset,
     ) -> Result<(), PluginError> {
@@ -1013,8 +1222,8 @@ impl<P, X> Kit<P, X> {
                     "the work offsets changed while the MDI line was checked; send it again",
                 ));
             }
-            if let Some((last, _)) = moves.last() {
-                sh.end = *last;
+            if let Some(last) = moves.last() {
+                sh.end = last.to;
                 sh.queue.push_back(Job::Mdi(moves));
                 sh.set_state(MachineState::Jogging, ev);
             }

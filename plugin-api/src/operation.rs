@@ -88,6 +88,8 @@ pub enum AuditEvent {
     Offsets,
     /// `machine.command`
     Command,
+    /// `machine.probe`
+    Probe,
 }
 
 impl Operation {
@@ -135,6 +137,18 @@ impl Request {
                 refreshes_status: false,
             },
             Request::Command(c) => c.operation(),
+            // A motion like a jog; its outcome comes later, as an event, and the host records
+            // the probe (and any offset it sets) when that arrives.
+            Request::Probe(_) => Operation {
+                name: "probe",
+                lane: Lane::Ordinary,
+                starts_motion: true,
+                needs_store: true,
+                changes_offsets: false,
+                refused_during_run: true,
+                audit: Some(AuditEvent::Probe),
+                refreshes_status: false,
+            },
             Request::SetOffset { .. } => Operation {
                 name: "set_offset",
                 lane: Lane::Ordinary,
@@ -246,6 +260,9 @@ impl Command {
             Command::SelectOffset { .. } => offsets("select_offset"),
             Command::SetOutput { .. } => output("set_output"),
             Command::ToggleOutput { .. } => output("toggle_output"),
+            // Allowed during a run (that is when it matters) and during a database outage (an
+            // operator slowing a cut down must not wait for the store); never starts motion.
+            Command::SetOverrides { .. } => output("set_overrides"),
         }
     }
 
@@ -273,6 +290,13 @@ mod tests {
                 feed: None,
             },
             Request::Mdi { line: "G0".into() },
+            Request::Probe(crate::contract::Probe {
+                id: 1,
+                axis: Axis::Z,
+                distance: -10.0,
+                feed: 100.0,
+                until: Default::default(),
+            }),
             Request::SetOffset {
                 offset: WorkOffset::G55,
                 values: AxisValues::default(),
@@ -310,6 +334,11 @@ mod tests {
             Command::SetOutput {
                 name: OutputName::Spindle,
                 on: true,
+            },
+            Command::SetOverrides {
+                feed: Some(50.0),
+                spindle: None,
+                rapid: None,
             },
             Command::ToggleOutput {
                 name: OutputName::Coolant,

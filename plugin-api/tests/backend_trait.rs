@@ -160,8 +160,14 @@ fn malformed_requests_are_invalid_requests_on_both_paths() {
 #[test]
 fn operations_a_plugin_does_not_know_are_unsupported() {
     let m = Exported(Minimal::new());
+    // A probe the Minimal backend does not implement is `unsupported` too (the trait default).
+    let e = m
+        .call(serde_json::json!({"op":"probe","id":1,"axis":"Z","distance":-10,"feed":100}))
+        .unwrap_err();
+    assert_eq!(e.code, "unsupported", "{e}");
+    assert!(e.message.contains("probe"), "{e}");
     for (unknown, name) in [
-        (&br#"{"op":"probe","axis":"Z","distance":-10}"#[..], "probe"),
+        (&br#"{"op":"height_map","rows":3}"#[..], "height_map"),
         (
             br#"{"op":"command","command":"tool_change","tool":3}"#,
             "tool_change",

@@ -31,6 +31,72 @@ pub enum MachineCmd {
     /// End the jog under way and drop every jog still queued for the machine (from anyone);
     /// returns once motion has stopped.
     JogCancel { id: i64 },
+    /// A probing move: until the probe touches (or releases), at most --distance mm. Prints
+    /// the machine position where it tripped; exits 1 if the whole distance ran without
+    /// contact.
+    Probe {
+        id: i64,
+        #[arg(long, default_value = "Z")]
+        axis: String,
+        /// `+` or `-`.
+        #[arg(long, default_value = "-", allow_hyphen_values = true)]
+        toward: String,
+        /// mm, at most the machine's max_jog_mm.
+        #[arg(long)]
+        distance: f64,
+        /// mm/min, at most the machine's max_probe_feed_mm_min.
+        #[arg(long)]
+        feed: f64,
+        /// Stop when the probe opens instead of when it closes (G38.4).
+        #[arg(long)]
+        release: bool,
+        /// Print the server's JSON answer.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Touch-off on a plate: probe down onto it, set the active work offset so Z reads the
+    /// plate's thickness there, retract. Nothing changes if it does not touch. With --axis X
+    /// or Y (and --toward, --tool-diameter): edge finding, the part's edge becomes 0.
+    TouchOff {
+        id: i64,
+        #[arg(long, default_value = "Z")]
+        axis: String,
+        /// `+` or `-` (default `-` on Z; required on X/Y).
+        #[arg(long, allow_hyphen_values = true)]
+        toward: Option<String>,
+        /// The tool's diameter, mm (X/Y).
+        #[arg(long)]
+        tool_diameter: Option<f64>,
+        /// The plate's thickness, mm (0: the part itself).
+        #[arg(long)]
+        plate: f64,
+        /// mm to probe at most.
+        #[arg(long)]
+        distance: f64,
+        /// mm/min, at most the machine's max_probe_feed_mm_min.
+        #[arg(long)]
+        feed: f64,
+        /// mm to move back up afterwards.
+        #[arg(long, default_value_t = 5.0)]
+        retract: f64,
+        /// Print the server's JSON answer.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Set the feed, spindle and/or rapid override in percent (also while a job runs); prints
+    /// the overrides in force. Without any option, prints them.
+    Override {
+        id: i64,
+        /// Feed override, % (the machine's range, default 10-200).
+        #[arg(long)]
+        feed: Option<f64>,
+        /// Spindle override, % (default 50-150).
+        #[arg(long)]
+        spindle: Option<f64>,
+        /// Rapid override, % (default 25-100).
+        #[arg(long)]
+        rapid: Option<f64>,
+    },
     /// A machine's tool table (what G41/G42 D<n> offset by); with --load, replace it first.
     Tools {
         id: i64,
@@ -250,6 +316,131 @@ pub async fn machine(server: ServerArgs, cmd: MachineCmd) -> Res {
                 println!("machine {id}: was not moving; queued jogs dropped");
             }
         }
+        MachineCmd::Probe {
+            id,
+            axis,
+            toward,
+            distance,
+            feed,
+            release,
+            json,
+        } => {
+            let body = serde_json::json!({
+                "axis": axis.to_ascii_uppercase(), "toward": toward, "distance": distance,
+                "feed": feed, "until": if release { "release" } else { "contact" },
+            });
+            let v = c
+                .send(
+                    c.req(
+                        reqwest::Method::POST,
+                        &format!("/api/v1/machines/{id}/probe"),
+                    )
+                    .json(&body),
+                )
+                .await?;
+            if json {
+                println!("{v}");
+            }
+            if v["outcome"] != "tripped" {
+                return Err(format!(
+                    "machine {id}: no {} within {distance} mm (stopped at {})",
+                    if release { "release" } else { "contact" },
+                    position_text(&v["position"])
+                )
+                .into());
+            }
+            if !json {
+                println!(
+                    "machine {id}: probe tripped at {} (came to rest {:.4} mm past it)",
+                    position_text(&v["trip"]),
+                    v["overshoot_mm"].as_f64().unwrap_or_default()
+                );
+            }
+        }
+        MachineCmd::TouchOff {
+            id,
+            axis,
+            toward,
+            tool_diameter,
+            plate,
+            distance,
+            feed,
+            retract,
+            json,
+        } => {
+            let axis = axis.to_ascii_uppercase();
+            let mut body = serde_json::json!({
+                "axis": axis, "plate_mm": plate, "distance": distance, "feed": feed,
+                "retract_mm": retract,
+            });
+            if let Some(t) = toward {
+                body["toward"] = t.into();
+            }
+            if let Some(d) = tool_diameter {
+                body["tool_diameter_mm"] = d.into();
+            }
+            let v = c
+                .send(
+                    c.req(
+                        reqwest::Method::POST,
+                        &format!("/api/v1/machines/{id}/touch-off"),
+                    )
+                    .json(&body),
+                )
+                .await?;
+            if json {
+                println!("{v}");
+            } else {
+                let a = axis.to_ascii_lowercase();
+                let n = |k: &str| v[k][a.as_str()].as_f64().unwrap_or_default();
+                println!(
+                    "machine {id}: touched the {plate} mm plate at machine {axis} {:.4}; {} {axis} {:.4} -> {:.4}; {axis} now reads {:.4}",
+                    n("trip"),
+                    v["offset"].as_str().unwrap_or("offset"),
+                    n("before"),
+                    n("after"),
+                    n("work_position"),
+                );
+            }
+        }
+        MachineCmd::Override {
+            id,
+            feed,
+            spindle,
+            rapid,
+        } => {
+            let v = if feed.is_none() && spindle.is_none() && rapid.is_none() {
+                let st = c
+                    .send(c.req(
+                        reqwest::Method::GET,
+                        &format!("/api/v1/machines/{id}/status"),
+                    ))
+                    .await?;
+                serde_json::json!({"feed": st["feed_override"], "spindle": st["spindle_override"], "rapid": st["rapid_override"]})
+            } else {
+                let mut body = serde_json::json!({});
+                for (k, v) in [("feed", feed), ("spindle", spindle), ("rapid", rapid)] {
+                    if let Some(v) = v {
+                        body[k] = v.into();
+                    }
+                }
+                c.send(
+                    c.req(
+                        reqwest::Method::POST,
+                        &format!("/api/v1/machines/{id}/overrides"),
+                    )
+                    .json(&body),
+                )
+                .await?
+            };
+            let pct = |k: &str| v[k].as_f64().unwrap_or(100.0);
+            println!(
+                "machine {id}: feed {}%, spindle {}%, rapid {}%",
+                pct("feed"),
+                pct("spindle"),
+                pct("rapid")
+            );
+        }
         MachineCmd::Tools { id, load } => {
             let path = format!("/api/v1/machines/{id}/tools");
             let v = match load {
@@ -274,6 +465,19 @@ pub async fn machine(server: ServerArgs, cmd: MachineCmd) -> Res {
         }
     }
     Ok(())
+}
+
+/// `X1.0000 Y2.0000 Z3.0000` from an `{"x", "y", "z"}` object.
+fn position_text(v: &Value) -> String {
+    ["x", "y", "z"]
+        .map(|a| {
+            format!(
+                "{}{:.4}",
+                a.to_ascii_uppercase(),
+                v[a].as_f64().unwrap_or_default()
+            )
+        })
+        .join(" ")
 }
 
 /// A tool-table file: the API's JSON array. Errors name the file and what is wrong.
@@ -895,6 +1099,13 @@ pub fn gcode(cmd: GcodeCmd) -> Res {
                 println!(
                     "  A axis           {:.3}..{:.3} deg (first A move on line {line})",
                     b.min, b.max
+                );
+            }
+            if let Some(line) = a.first_probe_line {
+                println!(
+                    "  probing          {} G38 moves, first on line {line} (later moves may \
+                     depend on where they trip; checked as if none did)",
+                    a.probe_moves
                 );
             }
             println!(

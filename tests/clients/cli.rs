@@ -611,3 +611,108 @@ fn the_readmes_curl_walk_through_runs_top_to_bottom() {
     let g54 = &offsets["offsets"]["G54"];
     assert!((g54["x"].as_f64().unwrap() - 5.0).abs() < 1e-6, "{offsets}");
 }
+
+/// `fresa machine touch-off` sets Z from the plate and says what it changed; `fresa machine
+/// probe` prints the trip, and exits non-zero when the whole distance ran without contact.
+#[test]
+fn machine_touch_off_and_probe_print_what_they_found() {
+    let s = Server::start();
+    let m = s.create_machine(&serde_json::json!({
+        "name": "router", "backend": "sim-machine",
+        "config": {"time_scale": 0, "travel": {"z": [-100, 0]},
+                   "switches": {"probe": {"axis": "z", "at_or_below": -20}}},
+    }));
+    s.wait_machine_state(m, "idle", T);
+    let id = m.to_string();
+    let out = s.cli(&[
+        "machine",
+        "touch-off",
+        &id,
+        "--plate",
+        "15",
+        "--distance",
+        "50",
+        "--feed",
+        "200",
+    ]);
+    assert!(out.status.success(), "{}", output_text(&out));
+    let text = stdout(&out);
+    assert!(
+        text.contains("machine Z -20.0000") && text.contains("-> -35.0000"),
+        "{text}"
+    );
+    assert!(text.contains("Z now reads 20.0000"), "{text}");
+    // `fresa machine probe ID --distance 10 --feed 200` and more.
+    let probe = |more: &[&str]| {
+        let mut args = vec!["machine", "probe", &id, "--distance", "10", "--feed", "200"];
+        args.extend_from_slice(more);
+        s.cli(&args)
+    };
+    let stderr = |out: &std::process::Output| String::from_utf8_lossy(&out.stderr).into_owned();
+    // Back down onto the plate from 5 mm above it (Z -15 in machine terms).
+    let out = probe(&["--toward", "-"]);
+    assert!(out.status.success(), "{}", output_text(&out));
+    assert!(
+        stdout(&out).contains("tripped at X0.0000 Y0.0000 Z-20.0000"),
+        "{}",
+        output_text(&out)
+    );
+    // Looking for contact upwards while touching: refused outright.
+    let out = probe(&["--toward", "+"]);
+    assert!(!out.status.success(), "{}", output_text(&out));
+    assert!(
+        stderr(&out).contains("probe_already_in_state"),
+        "{}",
+        output_text(&out)
+    );
+    // Up off the plate until it opens.
+    let out = probe(&["--toward", "+", "--release", "--json"]);
+    assert!(out.status.success(), "{}", output_text(&out));
+    let v: serde_json::Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    assert_eq!(v["outcome"], "tripped", "{v}");
+    // Further up there is nothing to touch.
+    let out = probe(&["--toward", "+"]);
+    assert!(!out.status.success(), "{}", output_text(&out));
+    assert!(
+        stderr(&out).contains("no contact within 10 mm"),
+        "{}",
+        output_text(&out)
+    );
+    // An edge touch-off needs its direction (and the tool's diameter): the server says which.
+    let out = s.cli(&[
+        "machine",
+        "touch-off",
+        &id,
+        "--axis",
+        "x",
+        "--plate",
+        "0",
+        "--tool-diameter",
+        "6",
+        "--distance",
+        "5",
+        "--feed",
+        "200",
+    ]);
+    assert!(!out.status.success(), "{}", output_text(&out));
+    assert!(
+        stderr(&out).contains("field `toward`"),
+        "{}",
+        output_text(&out)
+    );
+    // `gcode check` says a program probes, and what that means for its checks.
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("probe.ngc");
+    std::fs::write(&p, "G21 F100\nG38.2 Z-10\nG0 Z[#5063+2]\nG38.3 X5\nM2\n").unwrap();
+    let out = fresa_cmd()
+        .args(["gcode", "check"])
+        .arg(&p)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", output_text(&out));
+    assert!(
+        stdout(&out).contains("probing          2 G38 moves, first on line 2"),
+        "{}",
+        output_text(&out)
+    );
+}

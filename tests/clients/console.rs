@@ -684,3 +684,144 @@ fn io_lamps_follow_the_machines_inputs_and_outputs() {
     b.goto(&s.base);
     b.wait("the card's spindle lamp", T, &lamp_is("spindle", "on"));
 }
+
+/// The machine page's touch-off panel: the probe lamp beside the button, a touch-off that sets
+/// Z from the plate and says what it changed, the plate remembered for the machine, and on a
+/// machine with no probe input a disabled button that says why.
+#[test]
+fn the_touch_off_panel_sets_z_from_the_plate_and_remembers_it() {
+    let s = Server::start();
+    let m = s.create_machine(&json!({
+        "name": "router", "backend": "sim-machine",
+        "config": {"time_scale": 0, "travel": {"z": [-100, 0]},
+                   "switches": {"probe": {"axis": "z", "at_or_below": -20}}}
+    }));
+    let plain = s.create_machine(&json!({"name": "plain", "backend": "sim-machine"}));
+    s.wait_machine_state(m, "idle", T);
+    let b = Browser::start();
+    b.goto(&format!("{}/#/machines/{m}", s.base));
+    b.wait(
+        "the probe lamp, open",
+        T,
+        "const l = document.querySelector('#probe-lamp'); return l && l.classList.contains('off');",
+    );
+    b.type_into("#touch-plate", "12");
+    b.click("#touch-off");
+    let result = b.wait(
+        "the touch-off's result",
+        T,
+        "const r = document.querySelector('#touch-result'); \
+         return r && r.textContent.includes('→') ? r.textContent : null;",
+    );
+    let text = result.as_str().unwrap();
+    assert!(
+        text.contains("machine Z -20.000") && text.contains("→ -32.000"),
+        "{text}"
+    );
+    assert!(
+        text.contains("Z reads 17.000"),
+        "12 mm plate + 5 mm retract: {text}"
+    );
+    let offsets = s.get(&format!("/api/v1/machines/{m}/offsets")).expect(200);
+    assert_eq!(offsets["offsets"]["G54"]["z"], -32.0, "{offsets}");
+    b.screenshot("touch-off");
+    // An edge: the tool's diameter is asked for, and a probe that finds no edge says so
+    // (this machine's probe is under Z: moving along X never closes it).
+    assert!(b
+        .js("return document.querySelector('#touch-diameter').closest('label').hidden;")
+        .as_bool()
+        .unwrap());
+    b.select("#touch-axis", "X+");
+    assert!(!b
+        .js("return document.querySelector('#touch-diameter').closest('label').hidden;")
+        .as_bool()
+        .unwrap());
+    assert_eq!(b.wait_text("#touch-off", T), "Touch off X+");
+    b.click("#touch-off");
+    b.wait(
+        "the missed edge reported",
+        T,
+        "const r = document.querySelector('#touch-result'); \
+         return r && r.textContent.includes('probe_not_tripped') ? r.textContent : null;",
+    );
+    let offsets = s.get(&format!("/api/v1/machines/{m}/offsets")).expect(200);
+    assert_eq!(
+        offsets["offsets"]["G54"]["x"], 0.0,
+        "nothing changed: {offsets}"
+    );
+    // Remembered for this machine in this browser.
+    b.goto(&format!("{}/#/machines/{plain}", s.base));
+    b.goto(&format!("{}/#/machines/{m}", s.base));
+    b.wait(
+        "the plate remembered",
+        T,
+        "const i = document.querySelector('#touch-plate'); return i && i.value === '12';",
+    );
+    // No probe input: the button is disabled and says why.
+    b.goto(&format!("{}/#/machines/{plain}", s.base));
+    b.wait_text("#touch-result", T);
+    b.wait(
+        "the reason shown",
+        T,
+        "return document.querySelector('#touch-result').textContent.includes('no probe input');",
+    );
+    assert!(b.disabled("#touch-off"));
+    let tip = b.js("return document.querySelector('#touch-off').title;");
+    assert!(
+        tip.as_str().unwrap_or("").contains("no probe input"),
+        "{tip}"
+    );
+}
+
+/// The machine page's overrides card: +10 and the slider set the feed override, rapid buttons
+/// the rapid one, within the machine's range; what the machine reports is what is shown, also
+/// a change from elsewhere (the API); at the top of the range +10 is refused and says why.
+#[test]
+fn the_override_card_sets_feed_and_rapid_and_shows_what_the_machine_reports() {
+    let s = Server::start();
+    let m = s.create_machine(&json!({
+        "name": "router", "backend": "sim-machine", "config": {"time_scale": 0},
+        "override_limits": {"feed_max": 150},
+    }));
+    s.wait_machine_state(m, "idle", T);
+    let b = Browser::start();
+    b.goto(&format!("{}/#/machines/{m}", s.base));
+    b.wait_text("[data-override-value=\"feed\"]", T);
+    b.click("[data-override=\"feed+\"]");
+    s.wait_status(m, T, "feed override 110", |st| st["feed_override"] == 110.0);
+    b.wait(
+        "110 % shown",
+        T,
+        "return document.querySelector('[data-override-value=\"feed\"]').textContent === '110 %';",
+    );
+    b.click("[data-override=\"rapid25\"]");
+    s.wait_status(m, T, "rapid override 25", |st| st["rapid_override"] == 25.0);
+    b.wait(
+        "the 25 % rapid button active",
+        T,
+        "return document.querySelector('[data-override=\"rapid25\"]').classList.contains('active');",
+    );
+    // The slider, released at 140 %.
+    b.js(
+        "const i = document.querySelector('#override-feed'); i.value = 140; \
+         i.dispatchEvent(new Event('change')); return true;",
+    );
+    s.wait_status(m, T, "feed override 140", |st| st["feed_override"] == 140.0);
+    // A change from the API shows too.
+    s.post(
+        &format!("/api/v1/machines/{m}/overrides"),
+        &json!({"feed": 150}),
+    )
+    .expect(200);
+    b.wait(
+        "150 % from the API shown",
+        T,
+        "return document.querySelector('[data-override-value=\"feed\"]').textContent === '150 %';",
+    );
+    // The slider's range is the machine's; +10 past it is clamped, and nothing changes.
+    let max = b.js("return document.querySelector('#override-feed').max;");
+    assert_eq!(max, json!("150"));
+    b.click("[data-override=\"feed+\"]");
+    assert_eq!(s.status(m)["feed_override"], 150.0);
+    b.screenshot("overrides");
+}

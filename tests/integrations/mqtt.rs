@@ -471,6 +471,19 @@ fn commands_need_a_token_with_the_operator_role() {
     let st = s.status(1);
     assert_eq!(st["state"], "idle", "stopped before the answer: {st}");
     assert!(st["machine_position"]["x"].as_f64().unwrap() < 42.0, "{st}");
+
+    // An override through the same topic, checked against the machine's range.
+    let mut answers = Vec::new();
+    for (feed, id) in [(60.0, "i"), (900.0, "j")] {
+        c.publish(
+            "t/cmd/machines/1/commands",
+            &json!({"command": "set_overrides", "feed": feed, "request_id": id, "token": operator}),
+        );
+        answers.push(c.until("t/cmd/results", |v, _| v["request_id"] == id).0);
+    }
+    assert_eq!(answers[0]["ok"], true, "{answers:?}");
+    assert_eq!(answers[1]["code"], "override_out_of_range", "{answers:?}");
+    assert_eq!(s.status(1)["feed_override"], 60.0);
 }
 
 #[test]

@@ -273,6 +273,15 @@ impl Convert {
                     ),
                 });
             }
+            if matches!(motion, Motion::Probe { .. }) {
+                return Err(GcodeError {
+                    line,
+                    column: 1,
+                    kind: fresa_gcode::ErrorKind::Unsupported,
+                    message: "G38 probing: the Kawasaki robot's AS link has no probe input"
+                        .to_string(),
+                });
+            }
             match motion {
                 Motion::Rapid { to, .. } => cmds.push((
                     line,

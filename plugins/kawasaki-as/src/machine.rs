@@ -970,6 +970,17 @@ fn taught_on_pendant() -> PluginError {
 }
 
 impl MachineBackend for KawasakiMachine {
+    /// The AS protocol this backend speaks streams motions and reads positions; it has no
+    /// probe input or a motion that ends on one (a robot would need a signal input wired and
+    /// an AS program watching it), so a probe is refused with the reason.
+    fn probe(&self, _probe: fresa_plugin_api::contract::Probe) -> Result<(), PluginError> {
+        Err(PluginError::new(
+            "unsupported",
+            "kawasaki-as cannot probe: the robot's AS link has no probe input or a move that \
+             stops on one; set the part zero by teaching it (part-zero) instead",
+        ))
+    }
+
     fn create(host: Host, config: Value) -> Result<Self, PluginError> {
         KawasakiMachine::new(
             &config,

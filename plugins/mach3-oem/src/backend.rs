@@ -376,6 +376,8 @@ impl Inner {
             work_position: AxisValues::from_array(p.work),
             feed: p.feed,
             feed_override: p.fro,
+            spindle_override: 100.0,
+            rapid_override: 100.0,
             active_offset: active,
             run: None,
             line: None,
@@ -1217,6 +1219,16 @@ impl MachineBackend for Mach3Backend {
 
     fn mdi(&self, line: &str) -> Result<(), PluginError> {
         self.inner.mdi(line).map(drop)
+    }
+
+    /// Mach3 probes with G31 and reports the trip in its parameters #2000-#2002; driving that
+    /// through the agent (and watching Mach3's probe DRO for the end) is not built yet.
+    fn probe(&self, _probe: fresa_plugin_api::contract::Probe) -> Result<(), PluginError> {
+        Err(PluginError::new(
+            "unsupported",
+            "mach3-oem cannot probe from Fresa yet: a G31 through the agent with the trip read \
+             back from Mach3 is not built (programs that use G31 run in Mach3 itself)",
+        ))
     }
 }
 

@@ -514,6 +514,12 @@ impl State {
         for m in linearise(Interpreter::new(text.as_bytes(), config), 0.01) {
             let m = m.map_err(|e| Mach3Error::invalid(e.to_string()))?;
             let line = m.line();
+            // Mach3 probes with G31, which this simulator of it does not run either.
+            if matches!(m, Motion::Probe { .. }) {
+                return Err(Mach3Error::invalid(format!(
+                    "line {line}: G38 probing is not Mach3's dialect (Mach3 probes with G31)"
+                )));
+            }
             let step = match m {
                 Motion::Rapid { to, a, .. } => Step::Move {
                     to,

@@ -2,13 +2,14 @@
 //! thread. Requests change state and queue work; the output thread runs the tick loop,
 //! executes plans, reads the inputs every tick and reports what happened.
 
-use crate::config::{Config, Input, PortSpec};
+use crate::config::{Config, Input, InputFunction, PortSpec};
 use crate::output::{realtime_priority, Output, Pacer};
 use crate::planner::{self, Action, Builder, Item, PlanEnd, ProgramStream, Start};
 use crate::port::{Port, SharedSimPort, SimPort};
 use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
 use fresa_plugin_api::contract::{
-    io, Axis, Event, IoValue, MachineState, MachineStatus, OutputName, ProgramLoaded,
+    io, Axis, Event, IoValue, MachineState, MachineStatus, OutputName, Probe, ProbeUntil,
+    ProgramLoaded,
 };
 use fresa_plugin_api::exec_log::ExecLog;
 use fresa_plugin_api::kit::{self, Interrupted, Job, KitConfig, MotionThread};
@@ -99,14 +100,19 @@ struct Core {
     kit: Kit,
 }
 
+/// Machine mm of motor step counts `steps` with the lift at `z`.
+fn machine_mm(cfg: &Config, steps: [i64; 2], z: f64) -> [f64; 4] {
+    [
+        steps[0] as f64 / cfg.machine.axes[0].steps_per_mm,
+        steps[1] as f64 / cfg.machine.axes[1].steps_per_mm,
+        z,
+        0.0,
+    ]
+}
+
 /// Machine mm from the step counts and the lift's Z; the lift output as the status shows it.
 fn sync_pos(sh: &mut State, cfg: &Config) {
-    sh.pos = [
-        sh.extra.steps[0] as f64 / cfg.machine.axes[0].steps_per_mm,
-        sh.extra.steps[1] as f64 / cfg.machine.axes[1].steps_per_mm,
-        sh.extra.z,
-        0.0,
-    ];
+    sh.pos = machine_mm(cfg, sh.extra.steps, sh.extra.z);
     sh.outputs
         .insert(io::Z_LIFT.to_string(), Some(IoValue::On(sh.extra.lift)));
 }
@@ -131,6 +137,20 @@ fn start(sh: &State) -> Start {
 
 fn port_error(e: std::io::Error) -> Interrupted {
     Interrupted::Alarm(format!("parallel port I/O failed: {e}"))
+}
+
+/// Why the tick loop of a plan ends before the plan does.
+enum Halt {
+    /// The probe input reads what the probing move waits for, in the tick just begun (nothing
+    /// has moved in it).
+    Probed,
+    Interrupted(Interrupted),
+}
+
+impl From<Interrupted> for Halt {
+    fn from(e: Interrupted) -> Halt {
+        Halt::Interrupted(e)
+    }
 }
 
 impl Core {
@@ -219,23 +239,50 @@ impl Core {
     }
 
     fn finish_job(&self, out: &mut Output, job: Job<Program>) {
-        let run = job.run();
         out.pacer.restart();
-        let result = catch_unwind(AssertUnwindSafe(|| self.run_job(out, job)))
+        match job {
+            // A probe ends with its own report (where it tripped, if it did).
+            Job::Probe(p) => {
+                let result = self.guarded(out, |out| self.run_probe(out, &p));
+                let update = self.settle(out);
+                self.kit.finish_probe(p.id, result, update);
+            }
+            job => {
+                let run = job.run();
+                let result = self.guarded(out, |out| self.run_job(out, job));
+                let update = self.settle(out);
+                self.kit.finish_job(run, result, update);
+            }
+        }
+    }
+
+    /// Runs a job's motion: a panic fails the job, an alarm switches the coils off.
+    fn guarded<T>(
+        &self,
+        out: &mut Output,
+        motion: impl FnOnce(&mut Output) -> Result<T, Interrupted>,
+    ) -> Result<T, Interrupted> {
+        let result = catch_unwind(AssertUnwindSafe(|| motion(&mut *out)))
             .unwrap_or_else(|_| Err(Interrupted::Failed("internal error (panic)".into())));
         if matches!(result, Err(Interrupted::Alarm(_))) {
             out.coils_off();
         }
-        // Write what the job left (coils off after an alarm) before anyone looks.
+        result
+    }
+
+    /// Writes what a job left (coils off after an alarm, still on after a probe's trip: they
+    /// hold the position and time out as after any move) before anyone looks; answers the
+    /// kit's update of the state to it.
+    fn settle(&self, out: &mut Output) -> impl FnOnce(&mut State) + '_ {
         let _ = out.end(false);
         let pos = out.pos;
         let estop = out.estop_active().map(|i| i.describe());
-        self.kit.finish_job(run, result, |sh| {
+        move |sh: &mut State| {
             // Before anyone can send reset after an alarm.
             sh.extra.estop = estop;
             sh.extra.steps = pos;
             sync_pos(sh, &self.cfg);
-        });
+        }
     }
 
     fn run_job(&self, out: &mut Output, job: Job<Program>) -> Result<(), Interrupted> {
@@ -252,7 +299,8 @@ impl Core {
                     .map_err(|e| Interrupted::Alarm(format!("soft limit: {e}")))?;
                 let plan = b.finish(0);
                 let summary = Summary::of(&plan);
-                self.execute(out, plan.items.into_iter().map(Ok), summary, None)
+                self.execute(out, plan.items.into_iter().map(Ok), summary, None, None)
+                    .map(drop)
             }
             Job::GoToZero => {
                 let (start, path) = {
@@ -266,7 +314,8 @@ impl Core {
                     .map_err(|e| Interrupted::Alarm(format!("soft limit: {e}")))?;
                 let plan = b.finish(0);
                 let summary = Summary::of(&plan);
-                self.execute(out, plan.items.into_iter().map(Ok), summary, None)
+                self.execute(out, plan.items.into_iter().map(Ok), summary, None, None)
+                    .map(drop)
             }
             // Not queued by this backend (no MDI); refused rather than ignored.
             Job::Mdi(_) => Err(Interrupted::Failed("parport-stepper runs no MDI".into())),
@@ -280,9 +329,67 @@ impl Core {
                     end_lift: p.end.lift,
                 };
                 let items = self.planned(p)?;
-                self.execute(out, items, summary, Some(run))
+                self.execute(out, items, summary, Some(run), None).map(drop)
             }
+            // Taken apart by `finish_job` (a probe ends with its own report).
+            Job::Probe(p) => self.run_probe(out, &p).map(drop),
         }
+    }
+
+    /// A probing move along X or Y: a jog that ends in the first tick whose read of the probe
+    /// input (its raw level, not the debounced one) is what `p.until` waits for. Answers the
+    /// trip, machine mm: the motor position of that tick, in which nothing stepped.
+    fn run_probe(&self, out: &mut Output, p: &Probe) -> Result<Option<[f64; 4]>, Interrupted> {
+        let m = &self.cfg.machine;
+        let ax = match p.axis {
+            Axis::X => &m.axes[0],
+            Axis::Y => &m.axes[1],
+            // Refused by `Stepper::probe`; a failure rather than a guess if one gets here.
+            other => {
+                return Err(Interrupted::Failed(format!(
+                    "cannot probe {other:?}: not a stepper axis"
+                )))
+            }
+        };
+        let (start, here) = {
+            let sh = self.kit.lock();
+            (start(&sh), sh.pos)
+        };
+        // A stepper stops dead without losing steps only from at most its start rate (the rate
+        // it starts at without a ramp). Probing no faster than that, the stop in the tick that
+        // reads the probe is safe and overshoots by zero steps; a faster feed is clamped.
+        let feed = p.feed.min(ax.start_rate / ax.steps_per_mm * 60.0);
+        let to = kit::Jog {
+            axis: p.axis,
+            distance: p.distance,
+            feed,
+        }
+        .target(here);
+        let mut b = Builder::new(m, &start);
+        b.move_to(0, [to[0], to[1]], to[2], Some(feed))
+            .map_err(|e| Interrupted::Alarm(format!("soft limit: {e}")))?;
+        let plan = b.finish(0);
+        let summary = Summary::of(&plan);
+        let items = plan.items.into_iter().map(Ok);
+        let trip = self.execute(out, items, summary, None, Some(p.until))?;
+        Ok(trip.map(|steps| machine_mm(&self.cfg, steps, start.z)))
+    }
+
+    /// Starts a tick of a plan: reads the inputs and shows what changed. Ends the plan before
+    /// anything moves in this tick when a limit or e-stop trips (the coils go off in this
+    /// tick's write) or when `probe` is watched and the probe input reads what it waits for
+    /// (the coils stay on, holding).
+    fn begin_tick(&self, out: &mut Output, probe: Option<ProbeUntil>) -> Result<(), Halt> {
+        let trip = out.begin().map_err(port_error)?;
+        self.show_inputs(out);
+        if let Some(input) = trip {
+            out.coils_off();
+            return Err(tripped(&input).into());
+        }
+        if probe.is_some_and(|u| out.input_active(InputFunction::Probe) == u.wants_active()) {
+            return Err(Halt::Probed);
+        }
+        Ok(())
     }
 
     /// Moves the timeline one tick on: ends the current tick, then starts real ticks until the
@@ -290,18 +397,17 @@ impl Core {
     /// flags. A feed hold slows the timeline down to a stop along a ramp (and resume speeds it
     /// up again), so the motors decelerate instead of stopping dead; once stopped, the hold is
     /// confirmed to the waiting request.
-    fn advance(&self, out: &mut Output, tl: &mut Timeline) -> Result<(), Interrupted> {
+    fn advance(
+        &self,
+        out: &mut Output,
+        tl: &mut Timeline,
+        probe: Option<ProbeUntil>,
+    ) -> Result<(), Halt> {
         loop {
             out.end(true).map_err(port_error)?;
-            let trip = out.begin().map_err(port_error)?;
-            self.show_inputs(out);
-            if let Some(input) = trip {
-                // No step in this tick: the coils go off in the same write.
-                out.coils_off();
-                return Err(tripped(&input));
-            }
+            self.begin_tick(out, probe)?;
             if self.kit.aborted() {
-                return Err(Interrupted::Aborted);
+                return Err(Interrupted::Aborted.into());
             }
             let hold = self.kit.hold_requested();
             if tl.tick(hold) {
@@ -363,25 +469,39 @@ impl Core {
     }
 
     /// Executes a plan's items on the tick grid. `run` = (run id, first line to acknowledge).
+    /// With `probe`, watches the probe input every tick and ends at the first tick that reads
+    /// what it waits for: answers the motor position of that tick (`None`: the plan ran out).
     fn execute(
         &self,
         out: &mut Output,
         items: impl Iterator<Item = Result<Item, Interrupted>>,
         plan: Summary,
         run: Option<(i64, u32)>,
-    ) -> Result<(), Interrupted> {
+        probe: Option<ProbeUntil>,
+    ) -> Result<Option<[i64; 2]>, Interrupted> {
+        match self.step_plan(out, items, plan, run, probe) {
+            Ok(()) => Ok(None),
+            Err(Halt::Probed) => Ok(Some(out.pos)),
+            Err(Halt::Interrupted(e)) => Err(e),
+        }
+    }
+
+    /// The tick loop of [`Core::execute`].
+    fn step_plan(
+        &self,
+        out: &mut Output,
+        items: impl Iterator<Item = Result<Item, Interrupted>>,
+        plan: Summary,
+        run: Option<(i64, u32)>,
+        probe: Option<ProbeUntil>,
+    ) -> Result<(), Halt> {
         let mut tl = Timeline::new(&self.cfg);
         let mut stepped_at: Option<u64> = None;
         let mut next_ack = run.map_or(1, |r| r.1);
         let mut line_dev: Option<(u32, f64)> = None;
         let mut last_publish = Instant::now();
         // Tick 0 of the timeline.
-        let trip = out.begin().map_err(port_error)?;
-        self.show_inputs(out);
-        if let Some(input) = trip {
-            out.coils_off();
-            return Err(tripped(&input));
-        }
+        self.begin_tick(out, probe)?;
         for item in items {
             let item = item?;
             if let Some((run, _)) = run {
@@ -406,7 +526,7 @@ impl Core {
                         // At most one step per tick, whatever the schedule says: two in one
                         // write would skip a phase.
                         while tl.t < at || stepped_at == Some(tl.t) {
-                            self.advance(out, &mut tl)?;
+                            self.advance(out, &mut tl, probe)?;
                         }
                         stepped_at = Some(tl.t);
                         out.step(s.pos);
@@ -438,13 +558,13 @@ impl Core {
                     });
                     let until = item.start_tick + settle;
                     while tl.t < until {
-                        self.advance(out, &mut tl)?;
+                        self.advance(out, &mut tl, probe)?;
                     }
                 }
                 Action::Dwell(ticks) => {
                     let until = item.start_tick + ticks;
                     while tl.t < until {
-                        self.advance(out, &mut tl)?;
+                        self.advance(out, &mut tl, probe)?;
                     }
                 }
                 Action::Pause => {
@@ -602,6 +722,20 @@ impl MachineBackend for Stepper {
             ));
         }
         self.kit().jog(axis, distance, feed)
+    }
+
+    /// Probes along X or Y (see `Core::run_probe`); the kit checks the probe input, its level
+    /// and the travel.
+    fn probe(&self, p: Probe) -> Result<(), PluginError> {
+        let why = match p.axis {
+            Axis::X | Axis::Y => return self.kit().probe(p),
+            Axis::Z => "Z is a tool lift (on/off), not a stepper axis",
+            Axis::A => "this machine has no A axis",
+        };
+        Err(PluginError::new(
+            "unsupported",
+            format!("parport-stepper cannot probe {:?}: {why}", p.axis),
+        ))
     }
 
     /// No home switches: homing declares the current position machine zero.

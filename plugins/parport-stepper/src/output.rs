@@ -183,6 +183,16 @@ impl Output {
         Some(levels)
     }
 
+    /// Whether an input of `function` read active at the start of this tick: the raw level
+    /// (not the debounced one the status shows), so a probing move reacts within the tick that
+    /// reads the pin. Inputs sharing a function count as one (active when any of them is).
+    pub fn input_active(&self, function: InputFunction) -> bool {
+        self.inputs
+            .iter()
+            .enumerate()
+            .any(|(i, inp)| self.active & (1 << i) != 0 && inp.function == function)
+    }
+
     /// An active e-stop input, if any (for refusing reset).
     pub fn estop_active(&self) -> Option<Input> {
         self.inputs

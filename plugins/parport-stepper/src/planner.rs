@@ -909,6 +909,9 @@ impl<'m, R: BufRead> ProgramStream<'m, R> {
                 a.to
             ));
         }
+        if matches!(motion, Motion::Probe { .. }) {
+            return Err(no_probing_in_programs(line));
+        }
         let run = line >= self.start_line;
         let off = self.offsets_now;
         let b = &mut self.builder;
@@ -981,6 +984,14 @@ impl<R: BufRead> Iterator for ProgramStream<'_, R> {
             }
         }
     }
+}
+
+/// Why a program that probes is refused whole here, before anything moves.
+fn no_probing_in_programs(line: u32) -> String {
+    format!(
+        "line {line}: G38 probing inside a program is not supported by parport-stepper yet \
+         (probe with POST /machines/{{id}}/probe or touch-off)"
+    )
 }
 
 /// The planner as it was before it streamed (whole chains blended at once), kept as the
@@ -1250,6 +1261,9 @@ mod reference {
                     "line {line}: A axis motion (to A{}): this machine has no A axis",
                     a.to
                 ));
+            }
+            if matches!(motion, Motion::Probe { .. }) {
+                return Err(no_probing_in_programs(line));
             }
             let run = line >= start_line;
             match motion {

@@ -7,7 +7,7 @@ use fresa_parport_stepper::coils::CoilMap;
 use fresa_parport_stepper::pins;
 use fresa_parport_stepper::port::{Register, Write};
 use fresa_parport_stepper::{Config, Stepper, Timing};
-use fresa_plugin_api::contract::Event;
+use fresa_plugin_api::contract::{Event, ProbeOutcome};
 use fresa_plugin_api::MachineBackend;
 use serde_json::{json, Value};
 use std::io::Write as _;
@@ -653,4 +653,305 @@ fn inputs_show_debounced_by_name_and_only_limits_and_e_stop_trip() {
         vec![Value::Null, json!(false), json!(true)],
         "{shown:?}"
     );
+}
+
+// ----- probing -----
+
+/// Pin 12 is the probe (active high); the sim axes run at 20 steps/mm with the default
+/// `start_rate` of 100 steps/s, so every probe is clamped to 300 mm/min: a step every 200 ticks
+/// at the default 20 kHz.
+fn probe_rig(tag: &str, script: Value) -> Rig {
+    let r = rig(
+        tag,
+        sim(json!({"inputs":[{"pin":12,"function":"probe"}], "sim_inputs": script})),
+    );
+    // The kit refuses a probe whose level is not known yet: wait for the first read to show.
+    r.wait_status(|s| s["inputs"]["probe"].is_boolean());
+    r
+}
+
+fn probe_ended(r: &Rig) -> Event {
+    r.wait(|e| matches!(e, Event::ProbeEnded { .. }))
+}
+
+/// Ticks of the data writes that moved a motor, with the position after each.
+fn step_ticks(path: &[(u64, [i64; 2])]) -> Vec<(u64, [i64; 2])> {
+    path.windows(2)
+        .filter(|w| w[0].1 != w[1].1)
+        .map(|w| w[1])
+        .collect()
+}
+
+#[test]
+fn probe_stops_in_the_tick_that_reads_the_pin_and_latches_that_steps_position() {
+    // Data write 1 is the all-off write of the first idle tick, so write 41 is the 40th step
+    // (X = -2 mm); the pin goes high just after it.
+    let r = probe_rig(
+        "probe-trip",
+        json!([{"after_writes":41,"pin":12,"level":"high"}]),
+    );
+    r.m.request(json!({"op":"probe","id":7,"axis":"X","distance":-5.0,"feed":600}))
+        .unwrap();
+    let (trip, position) = match probe_ended(&r) {
+        Event::ProbeEnded {
+            id,
+            outcome,
+            trip,
+            position,
+            message,
+        } => {
+            assert_eq!(id, 7);
+            assert_eq!(outcome, ProbeOutcome::Tripped, "{message:?}");
+            (trip.expect("a trip position"), position)
+        }
+        _ => unreachable!(),
+    };
+    assert_eq!(trip.x, -2.0, "{trip:?}");
+    assert_eq!(trip.y, 0.0);
+    assert_eq!(position, trip, "zero overshoot: at rest where it tripped");
+    let st = r.m.request(json!({"op":"status"})).unwrap();
+    assert_eq!(st["state"], "idle");
+    assert_eq!(st["alarm"], Value::Null, "a probe's trip is no alarm");
+    assert_eq!(st["machine_position"]["x"], -2.0);
+
+    // The coils hold after the trip and go off by the idle timeout only.
+    let writes = r.writes_after_idle();
+    let port = r.m.sim_port.clone().unwrap();
+    let seen = port
+        .lock()
+        .status_changes
+        .iter()
+        .find(|(_, v)| pins::input_level(*v, 12))
+        .map(|(t, _)| *t)
+        .expect("the loop read the probe");
+    let path = replay(&r.cfg.coils, &writes);
+    let steps = step_ticks(&path);
+    let &(last_step, at_trip) = steps.last().unwrap();
+    assert_eq!(steps.len(), 40, "40 steps, then none");
+    assert!(
+        seen >= last_step,
+        "read at {seen}, last step at {last_step}"
+    );
+    assert_eq!(
+        seen - last_step,
+        1,
+        "the pin set by the step write at tick {last_step} is read in the next tick"
+    );
+    assert!(
+        path.iter()
+            .filter(|(t, _)| *t >= seen)
+            .all(|(_, p)| *p == at_trip),
+        "no step in or after the tick that read the pin"
+    );
+    assert_eq!(at_trip, [-40, 0]);
+    assert_eq!(
+        [trip.x * 20.0, trip.y * 20.0],
+        [at_trip[0] as f64, at_trip[1] as f64],
+        "the trip is the decoded motor position of that tick"
+    );
+    // The only data write from the trip tick on is the idle all-off, a timeout after the
+    // last step (300 ticks of the default 15 ms at 20 kHz), not at the trip.
+    let after: Vec<_> = writes
+        .iter()
+        .filter(|w| w.register == Register::Data && w.tick >= seen)
+        .collect();
+    assert_eq!(after.len(), 1, "{after:?}");
+    assert_eq!(after[0].value, 0);
+    let idle = after[0].tick - last_step;
+    assert!((300..=302).contains(&idle), "coils off after {idle} ticks");
+    // Clamped to the start rate (100 steps/s = 200 ticks a step): no faster, no ramp.
+    let gaps: Vec<u64> = steps.windows(2).map(|w| w[1].0 - w[0].0).collect();
+    assert!(gaps.iter().all(|g| (199..=201).contains(g)), "{gaps:?}");
+}
+
+#[test]
+fn probe_that_never_trips_runs_its_whole_distance() {
+    let r = probe_rig("probe-miss", json!([]));
+    r.m.request(json!({"op":"probe","id":1,"axis":"Y","distance":3.0,"feed":120}))
+        .unwrap();
+    match probe_ended(&r) {
+        Event::ProbeEnded {
+            outcome,
+            trip,
+            position,
+            ..
+        } => {
+            assert_eq!(outcome, ProbeOutcome::NotTripped);
+            assert_eq!(trip, None);
+            assert_eq!((position.x, position.y), (0.0, 3.0));
+        }
+        _ => unreachable!(),
+    }
+    let st = r.m.request(json!({"op":"status"})).unwrap();
+    assert_eq!(st["state"], "idle");
+    assert_eq!(st["machine_position"]["y"], 3.0);
+    let path = replay(&r.cfg.coils, &r.writes_after_idle());
+    assert_eq!(
+        path.last().unwrap().1,
+        [0, 60],
+        "every step of the distance"
+    );
+}
+
+#[test]
+fn probe_refusals_name_the_reason() {
+    // No probe input.
+    let r = rig("probe-none", sim(json!({})));
+    let e =
+        r.m.request(json!({"op":"probe","id":1,"axis":"X","distance":-1.0,"feed":100}))
+            .unwrap_err();
+    assert_eq!(e.code, "unsupported", "{e}");
+    assert!(e.message.contains("no probe input"), "{}", e.message);
+    drop(r);
+
+    // The probe reads contact already (high from the first write on).
+    let r = probe_rig(
+        "probe-state",
+        json!([{"after_writes":0,"pin":12,"level":"high"}]),
+    );
+    r.wait_status(|s| s["inputs"]["probe"] == true);
+    let e =
+        r.m.request(json!({"op":"probe","id":2,"axis":"X","distance":-1.0,"feed":100}))
+            .unwrap_err();
+    assert_eq!(e.code, "probe_already_in_state", "{e}");
+    // Z is the lift, A does not exist.
+    for (axis, why) in [
+        ("Z", "Z is a tool lift (on/off)"),
+        ("A", "this machine has no A axis"),
+    ] {
+        let e =
+            r.m.request(
+                json!({"op":"probe","id":3,"axis":axis,"distance":-1.0,"feed":100,
+                              "until":"release"}),
+            )
+            .unwrap_err();
+        assert_eq!(e.code, "unsupported", "{e}");
+        assert!(
+            e.message
+                .starts_with(&format!("parport-stepper cannot probe {axis}: {why}")),
+            "{}",
+            e.message
+        );
+    }
+    let st = r.m.request(json!({"op":"status"})).unwrap();
+    assert_eq!(st["state"], "idle");
+    assert_eq!(st["machine_position"]["x"], 0.0);
+    assert!(r
+        .events
+        .lock()
+        .unwrap()
+        .iter()
+        .all(|e| !matches!(e, Event::ProbeEnded { .. })));
+}
+
+#[test]
+fn probe_until_release_trips_when_the_pin_goes_inactive() {
+    // In contact from the first write; released just after the 20th step (write 21).
+    let r = probe_rig(
+        "probe-release",
+        json!([{"after_writes":0,"pin":12,"level":"high"},
+               {"after_writes":21,"pin":12,"level":"low"}]),
+    );
+    r.wait_status(|s| s["inputs"]["probe"] == true);
+    r.m.request(
+        json!({"op":"probe","id":4,"axis":"Y","distance":2.0,"feed":300,"until":"release"}),
+    )
+    .unwrap();
+    let (trip, position) = match probe_ended(&r) {
+        Event::ProbeEnded {
+            outcome,
+            trip,
+            position,
+            message,
+            ..
+        } => {
+            assert_eq!(outcome, ProbeOutcome::Tripped, "{message:?}");
+            (trip.unwrap(), position)
+        }
+        _ => unreachable!(),
+    };
+    assert_eq!((trip.x, trip.y), (0.0, 1.0), "{trip:?}");
+    assert_eq!(position, trip);
+    let writes = r.writes_after_idle();
+    let port = r.m.sim_port.clone().unwrap();
+    let released = port
+        .lock()
+        .status_changes
+        .iter()
+        .rev()
+        .find(|(_, v)| !pins::input_level(*v, 12))
+        .map(|(t, _)| *t)
+        .unwrap();
+    let steps = step_ticks(&replay(&r.cfg.coils, &writes));
+    let &(last_step, at) = steps.last().unwrap();
+    assert_eq!(at, [0, 20]);
+    assert_eq!(released - last_step, 1, "stopped in the tick that read it");
+}
+
+/// In real ticks: stop or feed hold during a probe ends it `stopped`, reported before the
+/// request answers, and no step is written after the answer.
+#[test]
+fn stop_or_feed_hold_during_a_probe_ends_it_stopped_with_no_step_after() {
+    for (tag, command) in [("probe-stop", "stop"), ("probe-hold", "feed_hold")] {
+        // 50 steps/s start rate at 20 steps/mm: clamped to 150 mm/min, a step every 20 ms.
+        let r = rig_timed(
+            tag,
+            json!({"port":"sim","tick_hz":5000,"spin_us":0,"realtime_priority":false,
+                   "inputs":[{"pin":12,"function":"probe"}],
+                   "axes":{"x":{"steps_per_mm":20,"max_rate":1000,"start_rate":50,"accel":20000},
+                           "y":{"steps_per_mm":20,"max_rate":1000,"start_rate":50,"accel":20000}}}),
+            Timing::Real,
+        );
+        r.wait_status(|s| s["inputs"]["probe"] == false);
+        r.m.request(json!({"op":"probe","id":9,"axis":"X","distance":-10.0,"feed":1000}))
+            .unwrap();
+        let port = r.m.sim_port.clone().unwrap();
+        let deadline = Instant::now() + Duration::from_secs(30);
+        // Under way: a few steps written (10 mm take 4 s, so the stop lands mid-move).
+        loop {
+            let w: Vec<Write> = port.lock().writes.iter().copied().collect();
+            if replay(&r.cfg.coils, &w)
+                .last()
+                .is_some_and(|p| p.1[0] <= -3)
+            {
+                break;
+            }
+            assert!(Instant::now() < deadline, "{tag}: the probe never moved");
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        r.m.request(json!({"op":"command","command":command}))
+            .unwrap();
+        let at_answer: Vec<Write> = port.lock().writes.iter().copied().collect();
+        let ended = r
+            .events
+            .lock()
+            .unwrap()
+            .iter()
+            .find(|e| matches!(e, Event::ProbeEnded { .. }))
+            .cloned();
+        let position = match ended {
+            Some(Event::ProbeEnded {
+                outcome,
+                trip,
+                position,
+                ..
+            }) => {
+                assert_eq!(outcome, ProbeOutcome::Stopped, "{tag}");
+                assert_eq!(trip, None);
+                position
+            }
+            other => panic!("{tag}: probe_ended not emitted before the answer: {other:?}"),
+        };
+        let st = r.m.request(json!({"op":"status"})).unwrap();
+        assert_eq!(st["state"], "idle", "{tag}");
+        let stopped_at = replay(&r.cfg.coils, &at_answer).last().unwrap().1;
+        let all = replay(&r.cfg.coils, &r.writes_after_idle());
+        assert_eq!(
+            all.last().unwrap().1,
+            stopped_at,
+            "{tag}: a step after the answer"
+        );
+        assert!(stopped_at[0] < -2 && stopped_at[0] > -200, "{stopped_at:?}");
+        assert_eq!(position.x * 20.0, stopped_at[0] as f64, "{tag}");
+    }
 }

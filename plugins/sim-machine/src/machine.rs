@@ -3,14 +3,16 @@
 //! thread moves the axes in small time slices, so stop and feed hold take effect within one
 //! slice.
 
-use crate::config::Config;
+use crate::config::{Config, Switch};
 use crate::program::{self, Plan, Refusal, Step};
 use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
 use fresa_plugin_api::contract::{
-    io, Axis, IoValue, MachineState, MachineStatus, OutputName, ProgramLoaded,
+    io, Axis, IoValue, MachineState, MachineStatus, OutputName, Overrides, Probe, ProgramLoaded,
 };
 use fresa_plugin_api::exec_log::ExecLog;
-use fresa_plugin_api::kit::{self, Events, Interrupted, Job, KitConfig, Loaded, MotionThread};
+use fresa_plugin_api::kit::{
+    self, Events, Interrupted, Job, KitConfig, Loaded, MdiMove, MotionThread,
+};
 use fresa_plugin_api::{Host, PluginError};
 use serde_json::{json, Value};
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -21,6 +23,31 @@ pub use fresa_plugin_api::kit::EventSink;
 
 /// Most segments one MDI line may make: its moves are all checked, then queued together.
 const MDI_MAX_SEGMENTS: u64 = 1_000_000;
+
+/// How far past a probe switch's edge an instant (time-scale 0) machine stops, mm.
+const EDGE_MM: f64 = 1e-6;
+
+/// Which override a timed stretch follows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Pace {
+    /// Program and MDI feed moves (G1/G2/G3).
+    Feed,
+    /// G0 and go-to-zero.
+    Rapid,
+    /// Jogs, probing moves and dwells: no override.
+    Fixed,
+}
+
+impl Pace {
+    /// The speed factor (1 = programmed).
+    fn rate(self, o: &Overrides) -> f64 {
+        match self {
+            Pace::Feed => o.feed / 100.0,
+            Pace::Rapid => o.rapid / 100.0,
+            Pace::Fixed => 1.0,
+        }
+    }
+}
 
 /// Longest time the motion thread goes without looking at stop / feed hold.
 const SLICE: Duration = Duration::from_millis(5);
@@ -44,6 +71,12 @@ fn output_key(name: OutputName) -> Result<&'static str, PluginError> {
 
 fn off_outputs() -> [(String, Option<IoValue>); 2] {
     [io::SPINDLE, io::COOLANT_FLOOD].map(|k| (k.to_string(), Some(IoValue::On(false))))
+}
+
+/// What a probing move watches: the probe switch, and the level that ends the move.
+struct ProbeWatch<'a> {
+    switch: &'a Switch,
+    active: bool,
 }
 
 /// A simulated 4-axis machine. Thread-safe; dropping it stops motion and joins its thread.
@@ -100,6 +133,12 @@ impl Core {
 
     fn worker(self: Arc<Self>) {
         while let Some(job) = self.kit.wait_for_job() {
+            if let Job::Probe(p) = job {
+                let result = catch_unwind(AssertUnwindSafe(|| self.run_probe(&p)))
+                    .unwrap_or_else(|_| Err(Interrupted::Failed("internal error (panic)".into())));
+                self.kit.finish_probe(p.id, result, |_| {});
+                continue;
+            }
             let run = job.run();
             let result = catch_unwind(AssertUnwindSafe(|| self.run_job(job)))
                 .unwrap_or_else(|_| Err(Interrupted::Failed("internal error (panic)".into())));
@@ -120,57 +159,192 @@ impl Core {
             Job::Jog(jog) => {
                 let target = jog.target(self.kit.lock().pos);
                 self.check(target)?;
-                self.move_to(target, jog.feed)
+                self.move_to(target, jog.feed, Pace::Fixed)
             }
             Job::GoToZero => {
                 let path = self.kit.lock().go_to_zero_path();
                 path.into_iter()
-                    .try_for_each(|p| self.move_to(p, self.cfg.rapid_mm_min))
+                    .try_for_each(|p| self.move_to(p, self.cfg.rapid_mm_min, Pace::Rapid))
             }
             Job::Mdi(moves) => {
                 // An MDI line's feed is not left behind as the programmed feed.
                 let feed = self.kit.lock().feed;
-                let result = moves.iter().try_for_each(|&(to, f)| {
-                    self.check(to)?;
-                    self.move_to(to, f)
+                let result = moves.iter().try_for_each(|m| {
+                    self.check(m.to)?;
+                    let pace = if m.rapid { Pace::Rapid } else { Pace::Feed };
+                    self.move_to(m.to, m.feed, pace)
                 });
                 self.kit.lock().feed = feed;
                 result
             }
             Job::Program(l) => self.run_program(l),
+            // Taken apart by `worker` (a probe ends with its own report).
+            Job::Probe(p) => self.run_probe(&p).map(drop),
         }
     }
 
+    /// A probing move: toward the target at the probe's feed, watching the `probe` switch
+    /// every slice. The trip is latched where the switch's edge lies between the last two
+    /// slices (as a controller's probe input latches the position in hardware); motion stops in
+    /// the slice that saw it, so it rests up to one slice's travel past the trip (at once in
+    /// a time-scale 0 simulation).
+    fn run_probe(&self, p: &Probe) -> Result<Option<[f64; 4]>, Interrupted> {
+        let jog = kit::Jog {
+            axis: p.axis,
+            distance: p.distance,
+            feed: p.feed,
+        };
+        self.probe_move(|start| jog.target(start), p.feed, p.until.wants_active())
+    }
+
+    /// One probing move from where the machine is to `target(start)` (machine coordinates),
+    /// checked against the travel, until the `probe` switch reads `active`: the trip, if it
+    /// did (a request's probe and a program's G38 share it).
+    fn probe_move(
+        &self,
+        target: impl FnOnce([f64; 4]) -> [f64; 4],
+        feed: f64,
+        active: bool,
+    ) -> Result<Option<[f64; 4]>, Interrupted> {
+        let watch = self
+            .cfg
+            .switches
+            .iter()
+            .find(|s| s.name == io::PROBE)
+            .map(|switch| ProbeWatch { switch, active });
+        let sh = self.kit.lock();
+        let start = sh.pos;
+        let target = target(start);
+        self.check(target)?;
+        let seconds = self.cfg.move_seconds(distance(&start, &target), feed);
+        self.timed_locked(
+            sh,
+            Some((start, target)),
+            seconds,
+            Some(feed),
+            Pace::Fixed,
+            watch.as_ref(),
+        )
+    }
+
     fn run_program(&self, l: Loaded<Plan>) -> Result<(), Interrupted> {
-        // Interpreted again as it runs (it was checked whole at load): memory stays flat.
+        // Interpreted again as it runs (it was checked whole at load): memory stays flat. No
+        // step is interpreted ahead of the one running (a probe's result feeds the next).
         let failed = |e: fresa_gcode::GcodeError| Interrupted::Failed(e.to_string());
-        let mut steps = l.plan.steps().map_err(failed)?.peekable();
+        let mut steps = l.plan.steps().map_err(failed)?;
+        let mut ahead: Option<(u32, Step)> = None;
         // Lines before the start line are interpreted but not executed: only their modal
-        // effects carry over.
-        while let Some(Ok((line, _))) = steps.peek() {
-            if *line >= l.start_line {
+        // effects carry over (a probe among them keeps the interpreter's assumption).
+        for next in steps.by_ref() {
+            let (line, step) = next.map_err(failed)?;
+            if line >= l.start_line {
+                ahead = Some((line, step));
                 break;
             }
-            if let Some(Ok((_, step))) = steps.next() {
-                self.kit.with(|sh, _| match step {
-                    Step::Move { feed: Some(f), .. } => sh.feed = f,
-                    Step::UseOffset(o) => sh.active = o,
-                    _ => {}
-                });
-            }
+            self.kit.with(|sh, _| match step {
+                Step::Move { feed: Some(f), .. } => sh.feed = f,
+                Step::UseOffset(o) => sh.active = o,
+                _ => {}
+            });
         }
         for line in l.start_line..=l.plan.lines {
             // No new line starts while held or after a stop, even one without motion.
             self.kit.line_gate()?;
             self.kit.with(|sh, _| sh.line = Some(line));
-            while let Some(next) = steps.next_if(|s| s.as_ref().map_or(true, |(sl, _)| *sl <= line))
-            {
-                let (_, step) = next.map_err(failed)?;
-                self.run_step(&step)?;
+            loop {
+                let (step_line, step) = match ahead.take() {
+                    Some(s) => s,
+                    None => match steps.next() {
+                        Some(next) => next.map_err(failed)?,
+                        None => break,
+                    },
+                };
+                if step_line > line {
+                    ahead = Some((step_line, step));
+                    break;
+                }
+                if let Step::Probe {
+                    to,
+                    feed,
+                    contact,
+                    must_trip,
+                } = step
+                {
+                    let result = self.program_probe(step_line, to, feed, contact, must_trip)?;
+                    steps.probe_result(result);
+                } else {
+                    self.run_step(&step)?;
+                }
             }
             self.kit.lines_done(l.run, line..=line, Vec::new())?;
         }
         Ok(())
+    }
+
+    /// A probing move of a program (G38.2-G38.5), in program coordinates: what it found, for
+    /// the rest of the program. G38.2/G38.4 fail the run when the probe already reads what
+    /// they look for or never does; G38.3/G38.5 then go on (tripped at once, or untripped at
+    /// the end).
+    fn program_probe(
+        &self,
+        line: u32,
+        to: [f64; 3],
+        feed: f64,
+        contact: bool,
+        must_trip: bool,
+    ) -> Result<fresa_gcode::ProbeResult, Interrupted> {
+        let name = match (contact, must_trip) {
+            (true, true) => "G38.2",
+            (true, false) => "G38.3",
+            (false, true) => "G38.4",
+            (false, false) => "G38.5",
+        };
+        let (offset, start) = {
+            let sh = self.kit.lock();
+            (sh.offsets[sh.active.index()], sh.pos)
+        };
+        let program = |m: [f64; 4]| [m[0] - offset[0], m[1] - offset[1], m[2] - offset[2]];
+        let switch = self.cfg.switches.iter().find(|s| s.name == io::PROBE);
+        let Some(switch) = switch else {
+            return Err(Interrupted::Failed(format!(
+                "line {line}: {name} but this machine has no probe input"
+            )));
+        };
+        if switch.active_at(&start) == contact {
+            if must_trip {
+                return Err(Interrupted::Failed(format!(
+                    "line {line}: {name}: the probe is already {} at the start",
+                    if contact { "in contact" } else { "open" }
+                )));
+            }
+            let here = program(start);
+            return Ok(fresa_gcode::ProbeResult {
+                tripped: true,
+                trip: here,
+                rest: here,
+            });
+        }
+        let trip = self.probe_move(
+            |from| program::machine_target(to, None, &offset, from[3]),
+            feed,
+            contact,
+        )?;
+        if trip.is_none() && must_trip {
+            return Err(Interrupted::Failed(format!(
+                "line {line}: {name} ended without the probe {} (moved its whole way to \
+                 X{:.3} Y{:.3} Z{:.3})",
+                if contact { "touching" } else { "opening" },
+                to[0],
+                to[1],
+                to[2]
+            )));
+        }
+        let rest = program(self.kit.lock().pos);
+        Ok(fresa_gcode::ProbeResult {
+            tripped: trip.is_some(),
+            trip: trip.map_or(to, program),
+            rest,
+        })
     }
 
     fn run_step(&self, step: &Step) -> Result<(), Interrupted> {
@@ -181,12 +355,20 @@ impl Core {
                     program::machine_target(to, a, &sh.offsets[sh.active.index()], sh.pos[3])
                 };
                 self.check(target)?;
-                self.move_to(target, feed.unwrap_or(self.cfg.rapid_mm_min))
+                match feed {
+                    Some(f) => self.move_to(target, f, Pace::Feed),
+                    None => self.move_to(target, self.cfg.rapid_mm_min, Pace::Rapid),
+                }
             }
-            Step::Dwell(seconds) => self.timed(None, seconds.max(0.0) * self.cfg.time_scale, 0.0),
+            Step::Dwell(seconds) => self.timed(
+                None,
+                seconds.max(0.0) * self.cfg.time_scale,
+                0.0,
+                Pace::Fixed,
+            ),
             Step::Pause => {
                 self.kit.with(|sh, ev| self.kit.program_pause(sh, ev));
-                self.timed(None, 0.0, 0.0)
+                self.timed(None, 0.0, 0.0, Pace::Fixed)
             }
             Step::UseOffset(o) => {
                 self.kit.with(|sh, ev| {
@@ -197,13 +379,35 @@ impl Core {
                 });
                 Ok(())
             }
+            // Taken apart by `run_program` (its result feeds the interpreter).
+            Step::Probe { .. } => Err(Interrupted::Failed(
+                "internal error: a probing step outside a program".into(),
+            )),
         }
     }
 
-    fn move_to(&self, target: [f64; 4], feed: f64) -> Result<(), Interrupted> {
+    /// A straight move at `feed` (mm/min, before the override `pace` names).
+    fn move_to(&self, target: [f64; 4], feed: f64, pace: Pace) -> Result<(), Interrupted> {
         let start = self.kit.lock().pos;
         let seconds = self.cfg.move_seconds(distance(&start, &target), feed);
-        self.timed(Some((start, target)), seconds, feed)
+        self.timed(Some((start, target)), seconds, feed, pace)
+    }
+
+    /// Where the probe switch's edge lies on the slice from `a` to `b`, if the switch reads
+    /// what the probe waits for at `b`.
+    fn probe_trip(watch: &ProbeWatch, a: [f64; 4], b: [f64; 4]) -> Option<[f64; 4]> {
+        let sw = watch.switch;
+        if sw.active_at(&b) != watch.active {
+            return None;
+        }
+        let i = sw.axis.index();
+        let span = b[i] - a[i];
+        let t = if span == 0.0 {
+            0.0
+        } else {
+            ((sw.at - a[i]) / span).clamp(0.0, 1.0)
+        };
+        Some(std::array::from_fn(|k| a[k] + (b[k] - a[k]) * t))
     }
 
     /// Spends `seconds` (already scaled) of un-held time, moving linearly from `start` to
@@ -213,20 +417,28 @@ impl Core {
         path: Option<([f64; 4], [f64; 4])>,
         seconds: f64,
         feed: f64,
+        pace: Pace,
     ) -> Result<(), Interrupted> {
-        let mut sh = self.kit.lock();
-        if path.is_some() {
-            sh.feed = feed;
-        }
-        self.timed_locked(sh, path, seconds)
+        let sh = self.kit.lock();
+        let feed = path.map(|_| feed);
+        self.timed_locked(sh, path, seconds, feed, pace, None)
+            .map(drop)
     }
 
+    /// [`Core::timed`] under the lock; `probe` ends the move early where the probe switch
+    /// changes, answering the trip position.
     fn timed_locked<'a>(
         &'a self,
         mut sh: MutexGuard<'a, State>,
         path: Option<([f64; 4], [f64; 4])>,
         seconds: f64,
-    ) -> Result<(), Interrupted> {
+        feed: Option<f64>,
+        pace: Pace,
+        probe: Option<&ProbeWatch>,
+    ) -> Result<Option<[f64; 4]>, Interrupted> {
+        if let Some(f) = feed {
+            sh.feed = f;
+        }
         let mut done = 0.0;
         let mut last = Instant::now();
         loop {
@@ -240,8 +452,12 @@ impl Core {
                 last = Instant::now();
                 continue;
             }
+            // `done` is the move's own (nominal) time: an override read every slice makes it
+            // run slower or faster from this slice on. No acceleration is simulated, so the
+            // new speed applies at once.
+            let rate = pace.rate(&sh.overrides);
             let now = Instant::now();
-            done += now.duration_since(last).as_secs_f64();
+            done += now.duration_since(last).as_secs_f64() * rate;
             last = now;
             let frac = if seconds <= 0.0 {
                 1.0
@@ -249,11 +465,29 @@ impl Core {
                 (done / seconds).min(1.0)
             };
             if let Some((a, b)) = path {
+                let before = sh.pos;
                 sh.pos = if frac >= 1.0 {
                     b
                 } else {
                     std::array::from_fn(|i| a[i] + (b[i] - a[i]) * frac)
                 };
+                let trip = probe.and_then(|w| Self::probe_trip(w, before, sh.pos));
+                if let Some(at) = trip {
+                    if seconds <= 0.0 {
+                        sh.pos = at;
+                        // An instant machine stops at the first point past the edge: on the
+                        // edge itself an inclusive switch still reads closed after a release.
+                        if let Some(w) = probe.filter(|w| w.switch.active_at(&at) != w.active) {
+                            let i = w.switch.axis.index();
+                            sh.pos[i] += EDGE_MM.copysign(b[i] - a[i]);
+                        }
+                    }
+                    let mut ev = Vec::new();
+                    self.sense(&mut sh, &mut ev);
+                    sh.push_status(&mut ev);
+                    self.kit.release(sh, ev);
+                    return Ok(Some(at));
+                }
                 if !self.cfg.switches.is_empty() {
                     let mut ev = Vec::new();
                     let trip = self.sense(&mut sh, &mut ev);
@@ -284,10 +518,10 @@ impl Core {
                 }
             }
             if frac >= 1.0 {
-                return Ok(());
+                return Ok(None);
             }
             // Finite: travel checks bound every distance, and feeds are positive.
-            let wait = Duration::try_from_secs_f64(seconds - done)
+            let wait = Duration::try_from_secs_f64((seconds - done) / rate)
                 .unwrap_or(SLICE)
                 .min(SLICE);
             sh = self.kit.wait_timeout(sh, wait);
@@ -375,15 +609,25 @@ impl MachineBackend for SimMachine {
             fresa_gcode::tool_table(p.tools.iter().map(|t| (t.tool, t.diameter_mm, t.length_mm)));
         let budget = p.max_segments.unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS);
         let plan = program::plan_file(file, lines, work, xyz, tools, budget);
-        plan.check(&offsets, active, a, |p| self.core.cfg.check_travel(p))
-            .map_err(|r| match r {
-                Refusal::Gcode(e) if e.kind == fresa_gcode::ErrorKind::Budget => PluginError::new(
-                    "work_budget_exceeded",
-                    format!("{e}; the budget is the server's `max_program_segments`"),
+        let has_probe = self.core.cfg.switches.iter().any(|s| s.name == io::PROBE);
+        plan.check(&offsets, active, a, has_probe, |p| {
+            self.core.cfg.check_travel(p)
+        })
+        .map_err(|r| match r {
+            Refusal::NoProbe(line) => PluginError::new(
+                "unsupported",
+                format!(
+                    "line {line} probes (G38.x) but this machine has no probe input \
+                         (configure a `probe` switch)"
                 ),
-                Refusal::Gcode(e) => PluginError::new("invalid_program", e.to_string()),
-                Refusal::Travel(m) => PluginError::new("out_of_travel", m),
-            })?;
+            ),
+            Refusal::Gcode(e) if e.kind == fresa_gcode::ErrorKind::Budget => PluginError::new(
+                "work_budget_exceeded",
+                format!("{e}; the budget is the server's `max_program_segments`"),
+            ),
+            Refusal::Gcode(e) => PluginError::new("invalid_program", e.to_string()),
+            Refusal::Travel(m) => PluginError::new("out_of_travel", m),
+        })?;
         kit.install_plan(p.run, plan, lines, p.start_line, start)
     }
 
@@ -398,6 +642,22 @@ impl MachineBackend for SimMachine {
 
     fn jog(&self, axis: Axis, distance: f64, feed: Option<f64>) -> Result<(), PluginError> {
         self.kit().jog(axis, distance, feed)
+    }
+
+    /// Probes against the configured `probe` switch (see `Core::run_probe`).
+    /// All three apply from the motion thread's next slice (5 ms); the simulated spindle has
+    /// no speed to scale, so its override is only reported.
+    fn set_overrides(
+        &self,
+        feed: Option<f64>,
+        spindle: Option<f64>,
+        rapid: Option<f64>,
+    ) -> Result<(), PluginError> {
+        self.kit().set_overrides(feed, spindle, rapid)
+    }
+
+    fn probe(&self, probe: Probe) -> Result<(), PluginError> {
+        self.kit().probe(probe)
     }
 
     fn home(&self, axis: Option<Axis>) -> Result<(), PluginError> {
@@ -460,7 +720,11 @@ impl MachineBackend for SimMachine {
                     self.core.cfg.check_travel(target).map_err(|m| {
                         PluginError::new("out_of_travel", format!("MDI {line:?} refused: {m}"))
                     })?;
-                    moves.push((target, feed.unwrap_or(self.core.cfg.rapid_mm_min)));
+                    moves.push(MdiMove {
+                        to: target,
+                        feed: feed.unwrap_or(self.core.cfg.rapid_mm_min),
+                        rapid: feed.is_none(),
+                    });
                 }
                 other => {
                     return Err(PluginError::new(
@@ -470,6 +734,7 @@ impl MachineBackend for SimMachine {
                             match other {
                                 Step::Dwell(_) => "a dwell",
                                 Step::Pause => "a program pause",
+                                Step::Probe { .. } => "a probing move (use the probe API)",
                                 _ => "a work offset change",
                             }
                         ),

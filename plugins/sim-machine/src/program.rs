@@ -25,6 +25,15 @@ pub enum Step {
     Pause,
     /// G54..G59 in the program: later moves use this offset.
     UseOffset(WorkOffset),
+    /// G38.2-G38.5: probe toward `to` (program coordinates) at `feed` until the probe closes
+    /// (`contact`) or opens; `must_trip`: ending without that is an error of the run. The
+    /// result goes back with [`Steps::probe_result`] before the next step is taken.
+    Probe {
+        to: [f64; 3],
+        feed: f64,
+        contact: bool,
+        must_trip: bool,
+    },
 }
 
 /// Where a plan's text comes from: the program file, kept open from load to run (so the run
@@ -50,6 +59,8 @@ pub struct Plan {
 pub enum Refusal {
     /// A G-code error (the work budget's included), with line and column.
     Gcode(GcodeError),
+    /// The program probes (at this line) and the machine has no probe input.
+    NoProbe(u32),
     /// A move outside the travel: `line L: message`.
     Travel(String),
 }
@@ -58,6 +69,14 @@ pub enum Refusal {
 pub struct Steps<'a> {
     motions: Linearise<Budgeted<Interpreter<Box<dyn BufRead + 'a>>>>,
     lines: u32,
+}
+
+impl Steps<'_> {
+    /// What the probing step just taken found (program coordinates): the rest of the program
+    /// is interpreted with it (#5061.., #5070, the tool's position).
+    pub fn probe_result(&mut self, result: fresa_gcode::ProbeResult) {
+        self.motions.inner_mut().inner_mut().probe_result(result);
+    }
 }
 
 impl Iterator for Steps<'_> {
@@ -100,6 +119,18 @@ fn step_of(motion: Motion) -> Option<Step> {
             to,
             a: None,
             feed: Some(feed_mm_min),
+        },
+        Motion::Probe {
+            to,
+            feed_mm_min,
+            contact,
+            must_trip,
+            ..
+        } => Step::Probe {
+            to,
+            feed: feed_mm_min,
+            contact,
+            must_trip,
         },
         Motion::Dwell { seconds, .. } => Step::Dwell(seconds),
         Motion::Pause {
@@ -204,11 +235,15 @@ impl Plan {
     /// coordinates), using `offsets` (the machine origins of G54..G59) starting in `active`.
     /// A G-code error anywhere wins over a move outside the travel (as when the program was
     /// interpreted whole before its moves were checked).
+    /// A probing move is checked for its whole distance (it may trip anywhere along it, or not
+    /// at all); the moves after it as if it ran its whole way (they may depend on its result);
+    /// without a probe input (`has_probe`) the first one refuses the program.
     pub fn check(
         &self,
         offsets: &[[f64; 4]; 6],
         active: WorkOffset,
         start_a: f64,
+        has_probe: bool,
         check: impl Fn([f64; 4]) -> Result<(), String>,
     ) -> Result<(), Refusal> {
         let mut offset = offsets[active.index()];
@@ -225,6 +260,14 @@ impl Plan {
                     machine_a = target[3];
                     if let Err(m) = check(target) {
                         outside = Some(format!("line {line}: {m}"));
+                    }
+                }
+                Step::Probe { to, .. } => {
+                    if !has_probe {
+                        return Err(Refusal::NoProbe(line));
+                    }
+                    if let Err(m) = check(machine_target(to, None, &offset, machine_a)) {
+                        outside = Some(format!("line {line}: probing move: {m}"));
                     }
                 }
                 Step::UseOffset(o) => offset = offsets[o.index()],
@@ -345,6 +388,7 @@ mod tests {
                 &offsets,
                 WorkOffset::G54,
                 0.0,
+                true,
                 travel,
             )
         };

@@ -126,6 +126,114 @@ export async function machinePage(page, { id }, events) {
     gate(offsetsBody);
   };
 
+  // Touch-off: probe down onto a plate of known thickness; Z then reads the thickness where the
+  // tool touched. The plate is remembered per machine in this browser; the probe's lamp sits
+  // beside the button, and without a probe input the panel says so instead.
+  const plateKey = `fresa.plate.${id}`;
+  const numberField = (fid, label, value, max) => h('label', {}, label + ' ',
+    h('input', { id: fid, type: 'number', min: 0, max, step: 'any', value, 'aria-label': label }));
+  const plateField = numberField('touch-plate', 'Plate mm', localStorage.getItem(plateKey) || '15', 100);
+  const distField = numberField('touch-distance', 'Distance mm', Math.min(50, m.max_jog_mm), m.max_jog_mm);
+  const probeFeed = m.max_probe_feed_mm_min || 300;
+  const feedField = numberField('touch-feed', 'Feed mm/min', Math.min(100, probeFeed), probeFeed);
+  const retractField = numberField('touch-retract', 'Retract mm', 5, m.max_jog_mm);
+  // Z down onto a plate, or an edge: X/Y toward + or -, with the tool's diameter.
+  const axisSel = h('select', { id: 'touch-axis', 'aria-label': 'touch-off axis' },
+    [['Z', 'Z (plate on top)'], ['X+', 'X+ (left edge)'], ['X-', 'X− (right edge)'], ['Y+', 'Y+ (front edge)'], ['Y-', 'Y− (back edge)']]
+      .map(([v, label]) => h('option', { value: v }, label)));
+  const diameterField = numberField('touch-diameter', 'Tool Ø mm', 6, 100);
+  const showAxis = () => {
+    const edge = axisSel.value !== 'Z';
+    diameterField.hidden = !edge;
+    touchButton.textContent = 'Touch off ' + axisSel.value.replace('-', '−');
+  };
+  axisSel.addEventListener('change', showAxis);
+  const value = (label) => parseFloat(label.querySelector('input').value);
+  const probeLamp = h('span', { id: 'probe-lamp', class: 'lamp unknown in' }, 'probe');
+  const touchResult = h('p', { id: 'touch-result', class: 'muted' });
+  const touchButton = h('button', { id: 'touch-off', dataset: { need: 'motion' }, onclick: async (ev) => {
+    const choice = axisSel.value;
+    const axis = choice[0];
+    const body = { axis, plate_mm: value(plateField), distance: value(distField), feed: value(feedField), retract_mm: value(retractField) };
+    if (axis !== 'Z') {
+      body.toward = choice[1];
+      body.tool_diameter_mm = value(diameterField);
+    }
+    localStorage.setItem(plateKey, String(body.plate_mm));
+    touchResult.className = 'muted';
+    touchResult.textContent = 'Probing…';
+    try {
+      const r = await act(ev.currentTarget, () => api('POST', `/machines/${id}/touch-off`, body), axis + ' set from the plate');
+      const a = axis.toLowerCase();
+      touchResult.textContent = `Touched at machine ${axis} ${mm(r.trip[a])}: ${r.offset} ${axis} ${mm(r.before[a])} → ${mm(r.after[a])}; ${axis} reads ${mm(r.work_position[a])} (${mm(r.overshoot_mm)} mm overshoot)`;
+    } catch (e) {
+      touchResult.className = 'error';
+      touchResult.textContent = errorText(e);
+    }
+  } }, 'Touch off Z');
+  const drawProbe = () => {
+    const inputs = (state.io.get(id) || {}).inputs || {};
+    const has = Object.prototype.hasOwnProperty.call(inputs, 'probe');
+    const v = inputs.probe;
+    probeLamp.className = `lamp ${v === null || v === undefined ? 'unknown' : v ? 'on' : 'off'} in`;
+    probeLamp.title = has ? `probe ${v === null ? 'unknown' : v ? 'closed (touching)' : 'open'}` : 'no probe input';
+    touchButton.dataset.off = has ? '' : '1';
+    touchButton.dataset.tip = has ? '' : 'this machine reports no probe input';
+    gate(touchCard);
+    if (!has) touchResult.textContent = 'This machine reports no probe input: touch-off needs one.';
+    else if (touchResult.textContent.startsWith('This machine reports no probe')) touchResult.textContent = '';
+  };
+  showAxis();
+  const touchCard = h('section', { class: 'card', id: 'touch-card' }, h('h2', {}, 'Touch-off'),
+    h('div', { class: 'row wrap' }, h('label', {}, 'Axis ', axisSel), plateField, diameterField, distField, feedField, retractField),
+    h('div', { class: 'row' }, touchButton, probeLamp), touchResult);
+
+  // Overrides: feed and spindle by slider (sent on release) or ±10 %, rapid at 25/50/100 %,
+  // each within the machine's range; allowed during a run (that is when they matter). What the
+  // machine reports is what is shown, so a slider snaps back if the machine refused.
+  const lim = m.override_limits || { feed_min: 10, feed_max: 200, spindle_min: 50, spindle_max: 150, rapid_min: 25 };
+  const ovrError = h('p', { class: 'error', id: 'override-error' });
+  const setOverride = async (el, kind, value) => {
+    ovrError.textContent = '';
+    try {
+      await act(el, () => api('POST', `/machines/${id}/overrides`, { [kind]: value }), `${kind} override ${value} %`);
+    } catch (e) { ovrError.textContent = errorText(e); }
+    drawOverrides();
+  };
+  const sliders = {};
+  const values = {};
+  const sliderRow = (kind, label, min, max) => {
+    const clamp = (v) => Math.max(min, Math.min(max, v));
+    const slider = (sliders[kind] = h('input', { type: 'range', id: `override-${kind}`, min, max, step: 1, value: 100,
+      'aria-label': `${label} override (%)`, dataset: { need: 'operator' } }));
+    slider.addEventListener('input', () => { values[kind].textContent = slider.value + ' %'; });
+    slider.addEventListener('change', () => setOverride(slider, kind, parseFloat(slider.value)));
+    const step = (d) => h('button', { dataset: { need: 'operator', override: `${kind}${d > 0 ? '+' : '-'}` },
+      onclick: (ev) => setOverride(ev.currentTarget, kind, clamp(parseFloat(slider.value) + d)) }, (d > 0 ? '+' : '−') + Math.abs(d));
+    values[kind] = h('span', { class: 'num', dataset: { overrideValue: kind } }, '100 %');
+    return h('div', { class: 'row override' }, h('span', { class: 'override-label' }, label), step(-10), slider, step(10), values[kind]);
+  };
+  values.rapid = h('span', { class: 'num', dataset: { overrideValue: 'rapid' } }, '100 %');
+  const rapidButtons = [25, 50, 100].filter((v) => v >= lim.rapid_min).map((v) => h('button', {
+    dataset: { need: 'operator', override: `rapid${v}` },
+    onclick: (ev) => setOverride(ev.currentTarget, 'rapid', v) }, v + ' %'));
+  const drawOverrides = () => {
+    const st = state.status.get(id) || {};
+    for (const [kind, key] of [['feed', 'feed_override'], ['spindle', 'spindle_override']]) {
+      const v = st[key] ?? 100;
+      if (document.activeElement !== sliders[kind]) sliders[kind].value = v;
+      values[kind].textContent = v + ' %';
+    }
+    const r = st.rapid_override ?? 100;
+    values.rapid.textContent = r + ' %';
+    rapidButtons.forEach((b) => b.classList.toggle('active', parseFloat(b.textContent) === r));
+  };
+  const overrideCard = h('section', { class: 'card', id: 'override-card' }, h('h2', {}, 'Overrides'),
+    sliderRow('feed', 'Feed', lim.feed_min, lim.feed_max),
+    sliderRow('spindle', 'Spindle', lim.spindle_min, lim.spindle_max),
+    h('div', { class: 'row override' }, h('span', { class: 'override-label' }, 'Rapid'), ...rapidButtons, values.rapid),
+    ovrError);
+
   // Part-zero history.
   const pzList = h('tbody');
   const loadPartZeros = async () => {
@@ -171,6 +279,7 @@ export async function machinePage(page, { id }, events) {
     h('div', { class: 'cols' },
       h('section', { class: 'card' }, h('h2', {}, 'Cycle'), cycle, zeros, outputs),
       h('section', { class: 'card' }, h('h2', {}, 'MDI'), mdiForm, mdiError)),
+    h('div', { class: 'cols' }, overrideCard, touchCard),
     h('section', { class: 'card' }, h('h2', {}, 'Work offsets'),
       h('table', { class: 'offsets' }, h('thead', {}, h('tr', {}, h('th', {}, ''), AXES.map((a) => h('th', {}, a.toUpperCase())), h('th', {}, ''))), offsetsBody)),
     h('section', { class: 'card' }, h('h2', {}, 'Part zero'), h('div', { class: 'row' }, note, record),
@@ -186,9 +295,11 @@ export async function machinePage(page, { id }, events) {
       mpos[a].textContent = 'M ' + mm((s.machine_position || {})[a]);
     }
     droInfo.textContent = `offset ${s.active_offset || '—'} · feed ${s.feed ?? '—'} mm/min · override ${s.feed_override ?? '—'} %`;
+    drawOverrides();
     run.update();
     const l = ioLamps(id);
     lamps.replaceChildren(...(l ? [l] : []));
+    drawProbe();
   };
   let frame = 0;
   const schedule = () => {

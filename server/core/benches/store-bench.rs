@@ -15,7 +15,14 @@ const EVENTS: usize = 2000;
 
 async fn measure(label: &str, store: Store) {
     let m = store
-        .insert_machine("bench", "sim-machine", &serde_json::json!({}), 50.0, 1000.0)
+        .insert_machine(
+            "bench",
+            "sim-machine",
+            &serde_json::json!({}),
+            50.0,
+            1000.0,
+            300.0,
+        )
         .await
         .expect("machine");
     let j = store

@@ -6,6 +6,7 @@
 use crate::app::{App, SharedApp};
 use crate::error::{Error, Result};
 use crate::events::EventKind;
+pub use crate::machine::limits::OverrideLimits;
 use crate::machine::{limits, Machine};
 use crate::pendants;
 use crate::store::{MacroAction, PartZeroRow, PendantRow};
@@ -24,6 +25,11 @@ pub struct NewMachine {
     pub max_jog_mm: Option<f64>,
     /// Fastest jog feed accepted, mm/min (default 5000).
     pub max_feed_mm_min: Option<f64>,
+    /// Fastest probing feed accepted, mm/min (default 300).
+    pub max_probe_feed_mm_min: Option<f64>,
+    /// The overrides an operator may set (default feed 10-200 %, spindle 50-150 %, rapid
+    /// 25-100 %).
+    pub override_limits: Option<limits::OverrideLimits>,
 }
 
 /// Creates a machine: checks the fields, lets the backend judge its config (the instance it
@@ -48,6 +54,14 @@ pub async fn create_machine(app: &App, req: NewMachine, actor: &str) -> Result<i
         req.max_feed_mm_min.unwrap_or(5000.0),
         limits::MAX_FEED_MM_MIN,
     )?;
+    let max_probe_feed = limits::check_configured(
+        "max_probe_feed_mm_min",
+        req.max_probe_feed_mm_min
+            .unwrap_or(limits::DEFAULT_PROBE_FEED_MM_MIN),
+        limits::MAX_PROBE_FEED_MM_MIN,
+    )?;
+    let override_limits = req.override_limits.unwrap_or_default();
+    override_limits.check_configured()?;
     let Some(lib) = app.plugins.get(&req.backend) else {
         return Err(Error::invalid(
             "unknown_backend",
@@ -73,7 +87,13 @@ pub async fn create_machine(app: &App, req: NewMachine, actor: &str) -> Result<i
     })?;
     let id = app
         .store
-        .insert_machine(name, &req.backend, &config, max_jog, max_feed)
+        .insert_machine_with(
+            name,
+            &req.backend,
+            &config,
+            [max_jog, max_feed, max_probe_feed],
+            &override_limits,
+        )
         .await
         .map_err(|e| Error::insert_failed(e, "machine", name))?;
     let row = app
@@ -172,9 +192,7 @@ pub struct NewPendant {
     pub macros: Option<BTreeMap<String, Option<Value>>>,
 }
 
-/// The thickest touch plate a pendant's `config.touch_plate_mm` may name: anything above is a
-/// typo (cm for mm), and would put the first cut that far above the part.
-const MAX_TOUCH_PLATE_MM: f64 = 100.0;
+use crate::machine::probing::MAX_TOUCH_PLATE_MM;
 
 /// Creates a pendant: checks the fields, stores the row and its macros, lets the transport
 /// plugin judge its config (the instance it judged with is the one used; a refused config
@@ -285,7 +303,7 @@ pub async fn set_pendant_node(app: &App, id: i64, node: &str, actor: &str) -> Re
     app.store.set_pendant_node(id, node).await?;
     let after = app.store.pendant(id).await?.ok_or_else(unknown)?;
     if let Some(p) = app.pendants.get(id).await {
-        p.set_machine(after.machine_id);
+        p.set_machine(app, after.machine_id).await;
     }
     let body =
         json!({"pendant": id, "from": before.node, "node": node, "machine": after.machine_id});
@@ -318,7 +336,7 @@ pub async fn change_pendant(
     if let Some(machine) = machine {
         check_pendant_machine(app, machine).await?;
         app.store.set_pendant_machine(id, machine).await?;
-        p.set_machine(machine);
+        p.set_machine(app, machine).await;
         app.bus
             .record_or_log(
                 EventKind::PendantBound,

@@ -13,8 +13,9 @@ pub async fn ensure_demo_machine(app: &App) {
                 tracing::error!("--demo needs the sim-machine plugin, which is not loaded");
                 return;
             }
-            // Limit switches far out on X and Y, and a touch probe under Z, so the I/O lamps
-            // have something to show (jog onto one to see an input trip).
+            // Limit switches far out on X and Y, and a touch plate's probe 10 mm under Z 0, so
+            // the I/O lamps have something to show (jog onto one to see an input trip) and a
+            // touch-off finds the plate.
             let config = serde_json::json!({
                 "time_scale": 1.0,
                 "execution_log": app.settings.data_dir.join("demo-execution.log"),
@@ -23,12 +24,12 @@ pub async fn ensure_demo_machine(app: &App) {
                     "limit_x_max": {"axis": "x", "at_or_above": 1000},
                     "limit_y_min": {"axis": "y", "at_or_below": -1000},
                     "limit_y_max": {"axis": "y", "at_or_above": 1000},
-                    "probe": {"axis": "z", "at_or_below": -150},
+                    "probe": {"axis": "z", "at_or_below": -10},
                 },
             });
             match app
                 .store
-                .insert_machine(DEMO_MACHINE, "sim-machine", &config, 50.0, 5000.0)
+                .insert_machine(DEMO_MACHINE, "sim-machine", &config, 50.0, 5000.0, 300.0)
                 .await
             {
                 Ok(id) => {

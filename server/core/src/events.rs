@@ -68,6 +68,9 @@ event_kinds! {
     MachineJog = "machine.jog", Routine;
     MachineMdi = "machine.mdi", Routine;
     MachineJogCancel = "machine.jog_cancel", Routine;
+    /// A probing move was started (what was asked); its result is in the answer, and in
+    /// `machine.touch_off` when it set an offset.
+    MachineProbe = "machine.probe", Routine;
     PendantConnected = "pendant.connected", Routine;
     PendantLost = "pendant.lost", Routine;
     PendantRefused = "pendant.refused", Routine;
@@ -78,7 +81,8 @@ event_kinds! {
     MachineCreated = "machine.created", Audit;
     MachineOffsets = "machine.offsets", Audit;
     MachinePartZero = "machine.part_zero", Audit;
-    /// Z set from a touch plate of known thickness: the offset before and after.
+    /// Z set from a touch plate of known thickness (the pendant's Set cero, or a probing
+    /// touch-off): the offset before and after.
     MachineTouchOff = "machine.touch_off", Audit;
     MachineAlarm = "machine.alarm", Audit;
     MachineNode = "machine.node", Audit;
@@ -114,6 +118,7 @@ impl From<fresa_plugin_api::operation::AuditEvent> for EventKind {
             AuditEvent::Mdi => EventKind::MachineMdi,
             AuditEvent::Offsets => EventKind::MachineOffsets,
             AuditEvent::Command => EventKind::MachineCommand,
+            AuditEvent::Probe => EventKind::MachineProbe,
         }
     }
 }

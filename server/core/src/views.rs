@@ -77,6 +77,9 @@ pub struct MachineView {
     pub config: Value,
     pub max_jog_mm: f64,
     pub max_feed_mm_min: f64,
+    pub max_probe_feed_mm_min: f64,
+    /// The overrides an operator may set, percent.
+    pub override_limits: crate::machine::limits::OverrideLimits,
     pub state: MachineState,
     /// Why the machine is offline or unresponsive, when it is.
     pub reason: Option<String>,
@@ -88,6 +91,7 @@ pub struct MachineView {
 
 impl MachineView {
     pub fn new(row: MachineRow, status: MachineStatus) -> MachineView {
+        let limits = crate::machine::limits::OverrideLimits::of(&row);
         MachineView {
             id: row.id,
             config: row.config_json(),
@@ -95,6 +99,8 @@ impl MachineView {
             backend: row.backend,
             max_jog_mm: row.max_jog_mm,
             max_feed_mm_min: row.max_feed_mm_min,
+            max_probe_feed_mm_min: row.max_probe_feed_mm_min,
+            override_limits: limits,
             state: status.state,
             reason: status.reason,
             created_at: row.created_at,

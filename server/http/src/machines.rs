@@ -5,12 +5,13 @@ use axum::extract::State;
 use axum::http::StatusCode;
 use axum::Extension;
 use fresa_core::admin;
+use fresa_core::machine::probing::{ProbeAsk, ProbeReport, TouchOffAsk, TouchOffReport};
 use fresa_core::machine::{limits, Machine};
 use fresa_core::store::MachineRow;
 use fresa_core::views::{MachineView, StatusView};
 use fresa_core::SharedApp;
 use fresa_plugin_api::contract::{
-    Axis, AxisValues, Command, MachineState, MachineStatus, WorkOffset,
+    Axis, AxisValues, Command, MachineState, MachineStatus, ProbeUntil, WorkOffset,
 };
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
@@ -111,6 +112,12 @@ pub struct NewMachine {
     /// Fastest jog feed accepted, mm/min (default 5000, at most 100000).
     #[serde(default)]
     max_feed_mm_min: Option<f64>,
+    /// Fastest probing feed, mm/min (default 300, at most 2000).
+    max_probe_feed_mm_min: Option<f64>,
+    /// The overrides an operator may set, percent (default feed 10-200, spindle 50-150,
+    /// rapid 25-100; a range must hold 100).
+    #[serde(default)]
+    override_limits: Option<admin::OverrideLimits>,
 }
 
 #[utoipa::path(post, path = "/machines", tag = "machines",
@@ -131,6 +138,8 @@ pub async fn create(
         config: req.config,
         max_jog_mm: req.max_jog_mm,
         max_feed_mm_min: req.max_feed_mm_min,
+        max_probe_feed_mm_min: req.max_probe_feed_mm_min,
+        override_limits: req.override_limits,
     };
     let id = admin::create_machine(&app, req, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(Created { id })))
@@ -355,6 +364,196 @@ pub async fn jog_cancel(
         ok: true,
         stopped: answer["stopped"].as_bool().unwrap_or(false),
     }))
+}
+
+/// `+` or `-` (a probing direction), or an error naming the field.
+fn toward(field: &str, v: &str) -> Result<bool, ApiError> {
+    match v {
+        "+" => Ok(true),
+        "-" => Ok(false),
+        other => Err(ApiError::unprocessable(
+            "invalid_field",
+            format!("field `{field}` must be \"+\" or \"-\", got {other:?}"),
+        )),
+    }
+}
+
+#[derive(Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ProbeReq {
+    axis: Axis,
+    /// `+` or `-`: the direction to probe in.
+    toward: String,
+    /// mm to move at most (positive); at most the machine's `max_jog_mm`.
+    distance: f64,
+    /// mm/min; at most the machine's `max_probe_feed_mm_min`.
+    feed: f64,
+    /// `contact` (default, G38.2) or `release` (G38.4): what ends the move.
+    #[serde(default)]
+    until: ProbeUntil,
+}
+
+/// A probing move for scripts: moves until the probe input changes (or the distance ends) and
+/// answers where it tripped. Refused if the probe already reads what it looks for; a stop
+/// during it answers `stopped` once motion ended; a dropped connection stops it.
+#[utoipa::path(post, path = "/machines/{id}/probe", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    request_body(content = ProbeReq, example = json!({"axis": "Z", "toward": "-", "distance": 40, "feed": 300})),
+    responses(
+        (status = 200, description = "The move ended: `tripped` with the trip position, or `not_tripped`", body = ProbeReport),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+        (status = 409, description = "`probe_already_in_state`, `stopped` (a stop or feed hold ended it), `probe_failed` (an alarm), `machine_busy`", body = ErrorBody),
+        (status = 422, description = "`probe_unsupported` (no probe input, or not this axis), `out_of_travel` (the whole distance must be inside the travel), `probe_too_far`, `feed_out_of_range`, `invalid_field`", body = ErrorBody),
+        (status = 503, description = "`machine_offline`, `machine_unresponsive`, `shutting_down`, `database_unavailable`", body = ErrorBody),
+        (status = 504, description = "`backend_timeout`, `probe_unconfirmed`", body = ErrorBody),
+    ))]
+pub async fn probe(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Extension(caller): Extension<Caller>,
+    Json(req): Json<ProbeReq>,
+) -> Result<Json<ProbeReport>, ApiError> {
+    let m = machine(&app, id).await?;
+    let ask = ProbeAsk {
+        axis: req.axis,
+        positive: toward("toward", &req.toward)?,
+        distance: req.distance,
+        feed: req.feed,
+        until: req.until,
+    };
+    Ok(Json(m.probe(ask, &caller.name).await?))
+}
+
+/// Overrides to set, percent of the programmed value; a field left out stays as it is.
+#[derive(Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct OverridesReq {
+    /// Feed override for program and MDI feed moves (default range 10-200).
+    #[serde(default)]
+    feed: Option<f64>,
+    /// Spindle speed override (default range 50-150).
+    #[serde(default)]
+    spindle: Option<f64>,
+    /// Rapid (G0) override (default range 25-100).
+    #[serde(default)]
+    rapid: Option<f64>,
+}
+
+/// The overrides in force, percent, as the machine reports them.
+#[derive(Serialize, ToSchema)]
+pub struct OverridesView {
+    feed: f64,
+    spindle: f64,
+    rapid: f64,
+}
+
+/// Sets the feed, spindle and/or rapid override, also while a job runs (that is when an
+/// operator needs it: chatter, a tool about to break). Applied from the backend's next planning
+/// interval; jogs and probing moves keep their own feeds. Recorded as `machine.command`
+/// (`set_overrides`). Overrides start at 100 % whenever the server starts.
+#[utoipa::path(post, path = "/machines/{id}/overrides", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    request_body(content = OverridesReq, example = json!({"feed": 50, "rapid": 25})),
+    responses(
+        (status = 200, description = "The overrides in force", body = OverridesView),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+        (status = 422, description = "`override_out_of_range` (outside the machine's `override_limits`), `invalid_field`, `unsupported` (the backend cannot apply one; nothing changed)", body = ErrorBody),
+        (status = 503, description = "`machine_offline`, `machine_unresponsive`, `shutting_down`", body = ErrorBody),
+        (status = 504, description = "`backend_timeout`", body = ErrorBody),
+    ))]
+pub async fn overrides(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Extension(caller): Extension<Caller>,
+    Json(req): Json<OverridesReq>,
+) -> Result<Json<OverridesView>, ApiError> {
+    let m = machine(&app, id).await?;
+    let command = Command::SetOverrides {
+        feed: req.feed,
+        spindle: req.spindle,
+        rapid: req.rapid,
+    };
+    m.command(command, &caller.name).await?;
+    let st = m.status();
+    Ok(Json(OverridesView {
+        feed: st.feed_override,
+        spindle: st.spindle_override,
+        rapid: st.rapid_override,
+    }))
+}
+
+fn default_retract() -> f64 {
+    5.0
+}
+
+#[derive(Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct TouchOffReq {
+    /// `Z`, or `X`/`Y` (edge finding, with `toward` and `tool_diameter_mm`).
+    axis: Axis,
+    /// The plate's thickness, mm (0: the tool touches the part itself). Z reads this where
+    /// the tool touches; on X/Y the part's edge behind the plate becomes 0.
+    plate_mm: f64,
+    /// X/Y: the tool's (or probe tip's) diameter, mm.
+    #[serde(default)]
+    tool_diameter_mm: Option<f64>,
+    /// mm to probe at most; at most the machine's `max_jog_mm`.
+    distance: f64,
+    /// mm/min; at most the machine's `max_probe_feed_mm_min`.
+    feed: f64,
+    /// mm to move back off the plate afterwards (default 5).
+    #[serde(default = "default_retract")]
+    retract_mm: f64,
+    /// `-` or `+`; on Z `-` (down onto the plate) when left out, required on X/Y.
+    #[serde(default)]
+    toward: Option<String>,
+}
+
+/// Touch-off on a plate: probes toward it, sets the active work offset so Z reads the plate's
+/// thickness where the tool touched (on X/Y: so the part's edge behind the plate reads 0,
+/// the tool's radius taken into account), retracts, and answers once the retract ended. A
+/// probe that does not touch changes nothing.
+#[utoipa::path(post, path = "/machines/{id}/touch-off", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    request_body(content = TouchOffReq, example = json!({"axis": "Z", "plate_mm": 15, "distance": 40, "feed": 300, "retract_mm": 5})),
+    responses(
+        (status = 200, description = "The offset was set and the tool retracted", body = TouchOffReport),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+        (status = 409, description = "`probe_already_in_state`, `stopped`, `probe_failed`, `machine_busy`, `machine_moving`", body = ErrorBody),
+        (status = 422, description = "`probe_not_tripped` (nothing changed), `probe_unsupported`, `out_of_travel`, `probe_too_far`, `feed_out_of_range`, `invalid_field`", body = ErrorBody),
+        (status = 503, description = "`machine_offline`, `machine_unresponsive`, `shutting_down`, `database_unavailable`", body = ErrorBody),
+        (status = 504, description = "`backend_timeout`, `probe_unconfirmed`", body = ErrorBody),
+    ))]
+pub async fn touch_off(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Extension(caller): Extension<Caller>,
+    Json(req): Json<TouchOffReq>,
+) -> Result<Json<TouchOffReport>, ApiError> {
+    let m = machine(&app, id).await?;
+    let positive = match (req.axis, req.toward.as_deref()) {
+        (_, Some(t)) => toward("toward", t)?,
+        (Axis::Z, None) => false,
+        (a, None) => {
+            return Err(ApiError::unprocessable(
+                "invalid_field",
+                format!(
+                    "field `toward` (\"+\" or \"-\") is needed for an {} touch-off",
+                    a.letter()
+                ),
+            ))
+        }
+    };
+    let ask = TouchOffAsk {
+        axis: req.axis,
+        positive,
+        plate_mm: req.plate_mm,
+        tool_diameter_mm: req.tool_diameter_mm,
+        distance: req.distance,
+        feed: req.feed,
+        retract_mm: req.retract_mm,
+    };
+    Ok(Json(m.touch_off(ask, &caller.name).await?))
 }
 
 #[derive(Deserialize, ToSchema)]

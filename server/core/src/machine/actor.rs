@@ -48,6 +48,8 @@ pub(super) struct Task {
     /// The current run's row as it was launched (the store's copy is the truth while it answers);
     /// published so reads find the running job's run while the database is down.
     pub launched: watch::Sender<Option<RunRow>>,
+    /// Where probing moves' ends are published (see `super::probing`).
+    pub probe_ended: watch::Sender<Option<super::probing::ProbeEnd>>,
     /// Run writes not yet in the store: acknowledged lines (always, until the batch is flushed)
     /// and, while the database is unreachable, run transitions.
     pub pending: PendingWrites,
@@ -1219,12 +1221,19 @@ impl Task {
     /// line per run in a batch is written, in one transaction.
     /// Events arrive decoded (the sink decodes them from the plugin's bytes on its thread).
     async fn handle_events(&mut self, batch: Vec<Event>) {
-        for event in batch {
+        let last_status = batch.iter().rposition(|e| matches!(e, Event::Status(_)));
+        for (i, event) in batch.into_iter().enumerate() {
             match event {
                 Event::Status(s) => self.publish_status(s),
                 Event::LineAcknowledged { run, line } => self.pending.ack(run, line),
                 Event::StateChanged { from, to } => {
-                    self.status.send_modify(|s| s.state = to);
+                    // A status later in this batch carries the new state together with the
+                    // position that goes with it. Published alone first, the state would show
+                    // e.g. `idle` at a position the machine has left, and whoever waits for
+                    // idle (`status?until=idle`, a touch-off's retract) would read that.
+                    if last_status.is_none_or(|j| j < i) {
+                        self.status.send_modify(|s| s.state = to);
+                    }
                     self.bus.transient(
                         EventKind::MachineState,
                         Some(self.id),
@@ -1277,6 +1286,22 @@ impl Task {
                 }
                 Event::PartZeroReported { values, run } => {
                     self.record_reported_part_zero(values, run).await;
+                }
+                Event::ProbeEnded {
+                    id,
+                    outcome,
+                    trip,
+                    position,
+                    message,
+                } => {
+                    let end = super::probing::ProbeEnd {
+                        id,
+                        outcome,
+                        trip,
+                        position,
+                        message,
+                    };
+                    self.probe_ended.send_replace(Some(end));
                 }
             }
         }
@@ -1360,6 +1385,7 @@ fn audit_data(request: &Request, answer: &Value) -> Value {
             feed,
         } => json!({"axis": axis, "distance": distance, "feed": feed}),
         Request::Mdi { line } => json!({"line": line}),
+        Request::Probe(p) => json!(p),
         Request::SetOffset { offset, values } => json!({"offset": offset, "values": values}),
         Request::Command(command) => {
             let mut recorded = json!(command);
@@ -1390,7 +1416,7 @@ mod tests {
         let dir = tempfile_dir::Dir::new();
         let store = Store::open(&dir.0.join("t.db")).await.unwrap();
         let m = store
-            .insert_machine("m", "sim-machine", &json!({}), 50.0, 1000.0)
+            .insert_machine("m", "sim-machine", &json!({}), 50.0, 1000.0, 300.0)
             .await
             .unwrap();
         let j = store
@@ -1429,6 +1455,7 @@ mod tests {
             gate: Arc::new(Gate::default()),
             job: watch::channel(Some(job)).0,
             launched: watch::channel(Some(run.clone())).0,
+            probe_ended: watch::channel(None).0,
             pending: PendingWrites::default(),
             unstored: super::super::unstored::Marker::start(&dir.0.join("unstored"), m),
             urgent: Arc::new(tokio::sync::Mutex::new(mpsc::unbounded_channel().1)),

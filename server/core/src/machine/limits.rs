@@ -5,12 +5,18 @@
 
 use crate::error::{Error, Result};
 use crate::store::MachineRow;
+use serde::{Deserialize, Serialize};
 use std::path::Path;
 
 /// Largest `max_jog_mm` a machine may be configured with: one jog request is a hand move.
 pub const MAX_JOG_MM: f64 = 1000.0;
 /// Largest `max_feed_mm_min`: well above any spindle machine's rapid rate.
 pub const MAX_FEED_MM_MIN: f64 = 100_000.0;
+/// Largest `max_probe_feed_mm_min`: a probe that trips stops from this feed, and faster
+/// than this no probe or plate survives the overshoot.
+pub const MAX_PROBE_FEED_MM_MIN: f64 = 2000.0;
+/// `max_probe_feed_mm_min` when a machine is created without one.
+pub const DEFAULT_PROBE_FEED_MM_MIN: f64 = 300.0;
 /// No machine's work envelope reaches further from its origin than this (mm); a coordinate
 /// beyond it is a typo or an attack (`G0 X1e30`), refused before any backend sees it. The
 /// G-code interpreter's own bound, so MDI lines, uploads and `fresa gcode check` share one rule.
@@ -21,6 +27,108 @@ pub const MAX_MDI_LINE: usize = 256;
 /// all of an MDI line's moves before the first, so it holds them (a circle of 1 m radius is
 /// about 1,600 chords).
 pub const MAX_MDI_SEGMENTS: u64 = 1_000_000;
+
+/// Widest feed and spindle override a machine may be configured to allow, percent.
+pub const MAX_FEED_OVERRIDE: f64 = 300.0;
+pub const MAX_SPINDLE_OVERRIDE: f64 = 200.0;
+
+/// The overrides an operator may set on one machine, percent (`override_limits` of the
+/// machine; a rapid override goes up to 100, the machine's rapid rate). Fields left out when
+/// the machine is created take these defaults.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct OverrideLimits {
+    pub feed_min: f64,
+    pub feed_max: f64,
+    pub spindle_min: f64,
+    pub spindle_max: f64,
+    pub rapid_min: f64,
+}
+
+impl Default for OverrideLimits {
+    fn default() -> Self {
+        OverrideLimits {
+            feed_min: 10.0,
+            feed_max: 200.0,
+            spindle_min: 50.0,
+            spindle_max: 150.0,
+            rapid_min: 25.0,
+        }
+    }
+}
+
+impl OverrideLimits {
+    pub fn of(row: &MachineRow) -> OverrideLimits {
+        OverrideLimits {
+            feed_min: row.feed_override_min,
+            feed_max: row.feed_override_max,
+            spindle_min: row.spindle_override_min,
+            spindle_max: row.spindle_override_max,
+            rapid_min: row.rapid_override_min,
+        }
+    }
+
+    /// Each range holds 100 % and lies inside what any machine may allow.
+    pub fn check_configured(&self) -> Result<()> {
+        let ranges = [
+            ("feed", self.feed_min, self.feed_max, MAX_FEED_OVERRIDE),
+            (
+                "spindle",
+                self.spindle_min,
+                self.spindle_max,
+                MAX_SPINDLE_OVERRIDE,
+            ),
+            ("rapid", self.rapid_min, 100.0, 100.0),
+        ];
+        for (name, min, max, ceiling) in ranges {
+            if !(min.is_finite() && min > 0.0 && min <= 100.0) {
+                return Err(Error::invalid(
+                    "invalid_field",
+                    format!(
+                        "field `override_limits.{name}_min` must be above 0 and at most 100 (%), got {min}"
+                    ),
+                ));
+            }
+            if !(max.is_finite() && (100.0..=ceiling).contains(&max)) {
+                return Err(Error::invalid(
+                    "invalid_field",
+                    format!(
+                        "field `override_limits.{name}_max` must be from 100 to {ceiling} (%), got {max}"
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The overrides a `set_overrides` asks for, each inside this machine's range.
+    pub fn check(&self, feed: Option<f64>, spindle: Option<f64>, rapid: Option<f64>) -> Result<()> {
+        if feed.is_none() && spindle.is_none() && rapid.is_none() {
+            return Err(Error::invalid(
+                "invalid_field",
+                "give at least one of `feed`, `spindle` and `rapid` (percent)",
+            ));
+        }
+        let asked = [
+            ("feed", feed, self.feed_min, self.feed_max),
+            ("spindle", spindle, self.spindle_min, self.spindle_max),
+            ("rapid", rapid, self.rapid_min, 100.0),
+        ];
+        for (name, v, min, max) in asked {
+            let Some(v) = v else { continue };
+            if !(v.is_finite() && (min..=max).contains(&v)) {
+                return Err(Error::invalid(
+                    "override_out_of_range",
+                    format!(
+                        "field `{name}`: {v} % is outside this machine's {name} override range, \
+                         {min} to {max} %"
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
 
 /// A configured limit: finite, positive and at most `max`, or an error naming the field.
 pub fn check_configured(field: &str, value: f64, max: f64) -> Result<f64> {

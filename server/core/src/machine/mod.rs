@@ -8,6 +8,7 @@ mod actor;
 pub mod deadman;
 mod lanes;
 pub mod limits;
+pub mod probing;
 pub mod unstored;
 
 pub use lanes::BackendError;
@@ -243,6 +244,10 @@ pub struct Machine {
     timeout: Duration,
     /// The continuous jog and its keep-alives.
     deadman: deadman::Deadman,
+    /// The last probing move's end, as the backend reported it (see [`probing`]).
+    probe_ended: watch::Receiver<Option<probing::ProbeEnd>>,
+    /// Numbers probing moves, so an end is matched to its own move.
+    probe_ids: AtomicU64,
 }
 
 impl Machine {
@@ -303,6 +308,7 @@ impl Machine {
         let (run_tx, run_rx) = watch::channel(None);
         let (job_tx, job_rx) = watch::channel(None);
         let (launched_tx, launched_rx) = watch::channel(None);
+        let (probe_tx, probe_rx) = watch::channel(None);
         let (tx, rx) = mpsc::unbounded_channel();
         let (urgent_tx, urgent_rx) = mpsc::unbounded_channel();
         let gate = Arc::new(Gate::default());
@@ -321,6 +327,8 @@ impl Machine {
             bus: bus.clone(),
             timeout: opts.timeout,
             deadman: deadman::Deadman::default(),
+            probe_ended: probe_rx,
+            probe_ids: AtomicU64::new(1),
         });
         let task = actor::Task {
             id: row.id,
@@ -336,6 +344,7 @@ impl Machine {
             gate,
             job: job_tx,
             launched: launched_tx,
+            probe_ended: probe_tx,
             pending: Default::default(),
             unstored: unstored::Marker::start(&opts.unstored_dir, row.id),
             urgent: Arc::new(tokio::sync::Mutex::new(urgent_rx)),
@@ -525,6 +534,15 @@ impl Machine {
         ticket: u64,
     ) -> Result<Value> {
         debug_assert!(!command.is_urgent());
+        // Every caller (HTTP, MQTT, a pendant macro, the CLI) meets the machine's own range.
+        if let Command::SetOverrides {
+            feed,
+            spindle,
+            rapid,
+        } = command
+        {
+            limits::OverrideLimits::of(&self.row()).check(feed, spindle, rapid)?;
+        }
         self.ask(|reply| Msg::Call {
             request: Request::Command(command),
             actor: actor.into(),

@@ -176,7 +176,7 @@ pub async fn attach(
 }
 
 /// Tells the inbox which machine (and whose gate) new inputs are for.
-fn bind(p: &Pendant, m: Option<&Machine>) {
+pub(super) fn bind(p: &Pendant, m: Option<&Machine>) {
     p.inbox.bind(m.map(|m| Binding {
         machine: m.id,
         gate: m.gate().clone(),

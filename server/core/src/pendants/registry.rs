@@ -52,12 +52,16 @@ impl Pendant {
             *cell = action;
         }
     }
-    pub fn set_machine(&self, machine: Option<i64>) {
-        let before = std::mem::replace(&mut lock(&self.row).machine_id, machine);
-        if before != machine {
-            // Queued motion was meant for the old machine; the status task binds the new one.
-            self.inbox.bind(None);
-        }
+    /// Binds the pendant to `machine` at once: motion queued for the old machine is dropped
+    /// now, and inputs arriving from now on are for the new one (a key pressed right after a
+    /// rebind must not wait for the status task to bind it, nor be dropped when it does).
+    pub async fn set_machine(&self, app: &crate::App, machine: Option<i64>) {
+        let m = match machine {
+            Some(id) => app.machines.get(id).await,
+            None => None,
+        };
+        lock(&self.row).machine_id = machine;
+        super::bind(self, m.as_deref());
     }
     pub(super) fn actor(&self) -> String {
         format!("pendant:{}", self.id)

@@ -14,6 +14,14 @@ pub struct MachineRow {
     pub config: String,
     pub max_jog_mm: f64,
     pub max_feed_mm_min: f64,
+    /// Fastest probing feed accepted, mm/min.
+    pub max_probe_feed_mm_min: f64,
+    /// Override ranges, percent (see `limits::OverrideLimits`).
+    pub feed_override_min: f64,
+    pub feed_override_max: f64,
+    pub spindle_override_min: f64,
+    pub spindle_override_max: f64,
+    pub rapid_override_min: f64,
     pub active_offset: String,
     pub created_at: i64,
     /// The node that drives it (`None`: not claimed yet; see `Store::claim_unowned`).
@@ -43,6 +51,7 @@ pub struct PartZeroRow {
 impl Store {
     // ---- machines ----
 
+    /// A machine with the default override ranges.
     pub async fn insert_machine(
         &self,
         name: &str,
@@ -50,18 +59,49 @@ impl Store {
         config: &serde_json::Value,
         max_jog_mm: f64,
         max_feed_mm_min: f64,
+        max_probe_feed_mm_min: f64,
     ) -> Result<i64> {
+        let limits = crate::machine::limits::OverrideLimits::default();
+        self.insert_machine_with(
+            name,
+            backend,
+            config,
+            [max_jog_mm, max_feed_mm_min, max_probe_feed_mm_min],
+            &limits,
+        )
+        .await
+    }
+
+    /// `maxima`: `max_jog_mm`, `max_feed_mm_min`, `max_probe_feed_mm_min`.
+    pub async fn insert_machine_with(
+        &self,
+        name: &str,
+        backend: &str,
+        config: &serde_json::Value,
+        maxima: [f64; 3],
+        overrides: &crate::machine::limits::OverrideLimits,
+    ) -> Result<i64> {
+        let [max_jog_mm, max_feed_mm_min, max_probe_feed_mm_min] = maxima;
         let mut tx = self.begin().await?;
         let now = now_ms();
         let id: i64 = sqlx::query_scalar(
-            "INSERT INTO machines (name, backend, config, max_jog_mm, max_feed_mm_min, created_at, node)
-             VALUES ($1, $2, $3, $4, $5, $6, $7) RETURNING id",
+            "INSERT INTO machines (name, backend, config, max_jog_mm, max_feed_mm_min,
+                                   max_probe_feed_mm_min, feed_override_min, feed_override_max,
+                                   spindle_override_min, spindle_override_max,
+                                   rapid_override_min, created_at, node)
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13) RETURNING id",
         )
         .bind(name)
         .bind(backend)
         .bind(config.to_string())
         .bind(max_jog_mm)
         .bind(max_feed_mm_min)
+        .bind(max_probe_feed_mm_min)
+        .bind(overrides.feed_min)
+        .bind(overrides.feed_max)
+        .bind(overrides.spindle_min)
+        .bind(overrides.spindle_max)
+        .bind(overrides.rapid_min)
         .bind(now)
         .bind(self.node())
         .fetch_one(&mut *tx)

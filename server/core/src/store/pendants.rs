@@ -27,7 +27,11 @@ impl PendantRow {
 
 /// What a macro key (M1..M4) does. Stored as JSON in `pendant_macros.action`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+#[serde(
+    tag = "type",
+    rename_all = "snake_case",
+    try_from = "serde_json::Map<String, Value>"
+)]
 pub enum MacroAction {
     /// Any immediate machine command, e.g. `{"type":"command","command":"feed_hold"}`.
     Command {
@@ -41,6 +45,39 @@ pub enum MacroAction {
     /// One MDI line, e.g. `{"type":"mdi","line":"G91 G0 Z5"}`; the backend leaves the modal
     /// state as it found it.
     Mdi { line: String },
+}
+
+/// The macro kinds other than `command`, read strictly (a misspelt field is an error).
+#[derive(Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+enum PlainAction {
+    Jog { axis: Axis, distance: f64 },
+    Toggle { output: OutputName },
+    Mdi { line: String },
+}
+
+/// By hand because serde cannot flatten a command into a tagged enum and still refuse
+/// unknown fields: a `command` macro is the command's own JSON (which refuses them) beside
+/// `"type"`.
+impl TryFrom<serde_json::Map<String, Value>> for MacroAction {
+    type Error = String;
+    fn try_from(mut v: serde_json::Map<String, Value>) -> std::result::Result<Self, String> {
+        if v.get("type").and_then(Value::as_str) == Some("command") {
+            v.remove("type");
+            return serde_json::from_value::<Command>(Value::Object(v))
+                .map(|command| MacroAction::Command { command })
+                .map_err(|e| e.to_string());
+        }
+        Ok(
+            match serde_json::from_value::<PlainAction>(Value::Object(v))
+                .map_err(|e| e.to_string())?
+            {
+                PlainAction::Jog { axis, distance } => MacroAction::Jog { axis, distance },
+                PlainAction::Toggle { output } => MacroAction::Toggle { output },
+                PlainAction::Mdi { line } => MacroAction::Mdi { line },
+            },
+        )
+    }
 }
 
 impl Store {

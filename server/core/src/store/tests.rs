@@ -201,7 +201,14 @@ async fn tool_tables_are_per_machine_and_replaced_whole(s: &Store) {
     };
     let (a, _) = machine_with_job(s, 1).await;
     let b = s
-        .insert_machine("b", "sim-machine", &serde_json::json!({}), 50.0, 1000.0)
+        .insert_machine(
+            "b",
+            "sim-machine",
+            &serde_json::json!({}),
+            50.0,
+            1000.0,
+            300.0,
+        )
         .await
         .unwrap();
     s.replace_tools(a, &[tool(1, 6.0), tool(2, 3.0)])
@@ -221,7 +228,14 @@ async fn tool_tables_are_per_machine_and_replaced_whole(s: &Store) {
 
 async fn machine_with_job(s: &Store, lines: i64) -> (i64, i64) {
     let m = s
-        .insert_machine("m", "sim-machine", &serde_json::json!({}), 50.0, 1000.0)
+        .insert_machine(
+            "m",
+            "sim-machine",
+            &serde_json::json!({}),
+            50.0,
+            1000.0,
+            300.0,
+        )
         .await
         .unwrap();
     let j = s
@@ -349,7 +363,14 @@ async fn restart_marks_active_runs_interrupted_and_keeps_last_line(s: &Store) {
     let other = s
         .clone()
         .for_node("b")
-        .insert_machine("on-b", "sim-machine", &serde_json::json!({}), 50.0, 1000.0)
+        .insert_machine(
+            "on-b",
+            "sim-machine",
+            &serde_json::json!({}),
+            50.0,
+            1000.0,
+            300.0,
+        )
         .await
         .unwrap();
     assert_eq!(
@@ -420,7 +441,14 @@ async fn nodes_share_machines_secret_and_programs(s: &Store) {
     );
 
     let old = s
-        .insert_machine("old", "sim-machine", &serde_json::json!({}), 50.0, 1000.0)
+        .insert_machine(
+            "old",
+            "sim-machine",
+            &serde_json::json!({}),
+            50.0,
+            1000.0,
+            300.0,
+        )
         .await
         .unwrap();
     assert_eq!(s.machine(old).await.unwrap().unwrap().node, None);
@@ -647,9 +675,16 @@ async fn a_database_path_with_url_characters_opens_and_is_that_file() {
     std::fs::create_dir_all(&dir).unwrap();
     let db = dir.join("fresa.db");
     let s = Store::open(&db).await.unwrap();
-    s.insert_machine("m", "sim-machine", &serde_json::json!({}), 50.0, 1000.0)
-        .await
-        .unwrap();
+    s.insert_machine(
+        "m",
+        "sim-machine",
+        &serde_json::json!({}),
+        50.0,
+        1000.0,
+        300.0,
+    )
+    .await
+    .unwrap();
     assert!(
         db.is_file(),
         "the store is the file asked for: {}",
@@ -677,7 +712,14 @@ async fn reads_are_tried_during_an_outage_and_refused_like_writes_when_they_fail
     let s = sqlite_store().await;
     let id = s
         .store
-        .insert_machine("m", "sim-machine", &serde_json::json!({}), 50.0, 1000.0)
+        .insert_machine(
+            "m",
+            "sim-machine",
+            &serde_json::json!({}),
+            50.0,
+            1000.0,
+            300.0,
+        )
         .await
         .unwrap();
     let h = s.store.health();
