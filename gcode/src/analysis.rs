@@ -99,6 +99,16 @@ pub struct Analysis {
     /// program naming it, and the moves after it may depend on where the
     /// probe trips (analysed here as if it ran its whole way untripped).
     pub first_probe_line: Option<u32>,
+    /// Moves whose end point depends on where a probe trips (see
+    /// [`probe_spread`]; 0 until it has been merged in).
+    pub probe_dependent_moves: u64,
+    /// The first line with such a move.
+    pub first_probe_dependent_line: Option<u32>,
+    /// From this line on the program's path depends on a probe's result in a
+    /// way the two cases of [`probe_spread`] cannot bound (control flow that
+    /// reads the result): checked with the no-contact assumption only, and by
+    /// the machine before each move.
+    pub probe_paths_unchecked_from: Option<u32>,
     /// Segments the program linearises to (moves, and arcs as chords at
     /// [`Config::arc_tolerance_mm`]): the work it causes, at most
     /// [`AnalysisOptions::max_segments`].
@@ -160,6 +170,106 @@ fn dist(a: Point, b: Point) -> f64 {
     (dx * dx + dy * dy + dz * dz).sqrt()
 }
 
+/// How a program's path depends on where its probes trip: the program run as
+/// if every probe found no contact (the assumption [`analyse`] makes) and as
+/// if every probe touched at once, side by side.
+#[derive(Debug, Clone, PartialEq, Default, Serialize)]
+pub struct ProbeSpread {
+    /// Moves whose end point differs between the two cases.
+    pub dependent_moves: u64,
+    pub first_dependent_line: Option<u32>,
+    /// Bounds of the contact-at-once case, to merge with the analysis's.
+    pub cutting_bounds: Option<Bounds>,
+    pub rapid_bounds: Option<Bounds>,
+    /// Where the two cases stopped following the same lines (a loop or
+    /// branch on the result, or an error only one case meets).
+    pub unchecked_from_line: Option<u32>,
+}
+
+impl Analysis {
+    /// Takes in what [`probe_spread`] found: the bounds become those of both
+    /// cases (the worst case the machine's travel is checked against).
+    pub fn merge_probe_spread(&mut self, s: &ProbeSpread) {
+        self.probe_dependent_moves = s.dependent_moves;
+        self.first_probe_dependent_line = s.first_dependent_line;
+        self.probe_paths_unchecked_from = s.unchecked_from_line;
+        for (mine, theirs) in [
+            (&mut self.cutting_bounds, s.cutting_bounds),
+            (&mut self.rapid_bounds, s.rapid_bounds),
+        ] {
+            if let Some(b) = theirs {
+                grow(mine, b.min, b.max);
+            }
+        }
+    }
+}
+
+/// Runs the program twice in step, from two readers of the same text: with
+/// every probe taken to find no contact, and with every probe taken to touch
+/// at its start ([`crate::ProbeAssumption`]), and compares their moves. The
+/// two cases are the ends of what each probe can return, so a move whose end
+/// depends linearly on a result lies between them. Stops where the two stop
+/// following the same lines (a loop on #5070 does), saying where. Bounded by
+/// the same work budget as [`analyse`], per case.
+pub fn probe_spread<R1: BufRead, R2: BufRead>(
+    no_contact: R1,
+    contact: R2,
+    opts: &AnalysisOptions,
+) -> ProbeSpread {
+    let with = |assumption| Config {
+        probe_assumption: assumption,
+        ..opts.config.clone()
+    };
+    let mut a = Interpreter::new(no_contact, with(crate::ProbeAssumption::NoContact));
+    let mut b = Interpreter::new(contact, with(crate::ProbeAssumption::ContactAtStart));
+    let mut budget_a = WorkBudget::new(opts.max_segments, opts.config.arc_tolerance_mm);
+    let mut budget_b = WorkBudget::new(opts.max_segments, opts.config.arc_tolerance_mm);
+    let mut s = ProbeSpread::default();
+    loop {
+        let (ma, mb) = match (a.next(), b.next()) {
+            (None, None) => break,
+            (Some(Ok(ma)), Some(Ok(mb)))
+                if ma.line() == mb.line()
+                    && std::mem::discriminant(&ma) == std::mem::discriminant(&mb)
+                    && budget_a.charge(&ma).is_ok()
+                    && budget_b.charge(&mb).is_ok() =>
+            {
+                (ma, mb)
+            }
+            (ma, mb) => {
+                let line = |m: Option<Result<Motion, GcodeError>>| match m {
+                    Some(Ok(m)) => Some(m.line()),
+                    Some(Err(e)) => Some(e.line),
+                    None => None,
+                };
+                s.unchecked_from_line = match (line(ma), line(mb)) {
+                    (Some(x), Some(y)) => Some(x.min(y)),
+                    (x, y) => x.or(y),
+                };
+                break;
+            }
+        };
+        if ma.end_point() != mb.end_point() {
+            s.dependent_moves += 1;
+            s.first_dependent_line.get_or_insert(mb.line());
+        }
+        match mb {
+            Motion::Rapid { from, to, .. } => grow(&mut s.rapid_bounds, from, to),
+            Motion::Linear { from, to, .. } | Motion::Probe { from, to, .. } => {
+                grow(&mut s.cutting_bounds, from, to)
+            }
+            Motion::Arc { .. } => {
+                if let Some(g) = ArcGeometry::from_motion(&mb) {
+                    let (lo, hi) = g.bounds();
+                    grow(&mut s.cutting_bounds, lo, hi);
+                }
+            }
+            _ => {}
+        }
+    }
+    s
+}
+
 /// Interprets the whole program and summarises it; the first error stops it.
 pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis, GcodeError> {
     let mut it = Interpreter::new(reader, opts.config.clone());
@@ -188,6 +298,9 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
         first_a_line: None,
         probe_moves: 0,
         first_probe_line: None,
+        probe_dependent_moves: 0,
+        first_probe_dependent_line: None,
+        probe_paths_unchecked_from: None,
         segments: 0,
     };
     let mut budget = WorkBudget::new(opts.max_segments, opts.config.arc_tolerance_mm);

@@ -85,6 +85,12 @@ impl Params {
         v[5070] = if tripped { 1.0 } else { 0.0 };
     }
 
+    /// Mach3's G31 result: the trip in #2000..#2002 (program coordinates and units), where
+    /// Mach3 programs (autolevellers) read it. Ordinary numbered parameters otherwise.
+    pub fn set_mach3_probe(&mut self, trip: [f64; 3]) {
+        self.numbered_mut()[2000..=2002].copy_from_slice(&trip);
+    }
+
     fn numbered_mut(&mut self) -> &mut Vec<f64> {
         if self.numbered.is_empty() {
             self.numbered = vec![0.0; NUMBERED];

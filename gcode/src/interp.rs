@@ -155,7 +155,7 @@ enum MotionMode {
     Unsupported(u16),
     /// Canned cycle G73, G81, G82, G83, G85, G89 (code * 10).
     Cycle(u16),
-    /// G38.2..G38.5 (code * 10: 382..385).
+    /// G38.2..G38.5 (code * 10: 382..385), or Mach3's G31 (310).
     Probe(u16),
     /// G5 (cubic, 50) or G5.1 (quadratic, 51) spline in the XY plane.
     Spline(u16),
@@ -301,6 +301,8 @@ struct PendingProbe {
     /// The program's frame when it was made (motion frame = program + this).
     frame: Point,
     inch: bool,
+    /// Mach3's G31: the trip also goes to #2000..#2002, where Mach3 programs read it.
+    mach3: bool,
     result: Option<crate::ProbeResult>,
 }
 
@@ -364,7 +366,15 @@ impl<R: BufRead> Interpreter<R> {
         let Some(p) = self.probe_pending.take() else {
             return;
         };
+        let assumption = self.cfg.probe_assumption;
         let r = p.result.unwrap_or_else(|| {
+            if assumption == crate::ProbeAssumption::ContactAtStart {
+                return crate::ProbeResult {
+                    tripped: true,
+                    trip: p.from,
+                    rest: p.from,
+                };
+            }
             // LinuxCNC's stand-alone interpreter: no contact, and the tool
             // backed off from the end toward the start by 0.254 mm (0.01 in).
             let d = sub(p.from, p.to);
@@ -385,8 +395,11 @@ impl<R: BufRead> Interpreter<R> {
         let unit = Self::scale(p.inch);
         let trip = sub(r.trip, p.frame);
         self.st.pos = sub(r.rest, p.frame);
-        self.params
-            .set_probe([trip[0] / unit, trip[1] / unit, trip[2] / unit], r.tripped);
+        let trip = [trip[0] / unit, trip[1] / unit, trip[2] / unit];
+        self.params.set_probe(trip, r.tripped);
+        if p.mach3 {
+            self.params.set_mach3_probe(trip);
+        }
     }
 
     /// Lines skipped under [`Unsupported::SkipWithWarning`] and other notes
@@ -1387,8 +1400,8 @@ impl<R: BufRead> Interpreter<R> {
         let mut g_retract = None;
         let mut g_nonmodal: Option<(u16, u32)> = None;
         for &(code, off) in &blk.g[..blk.ng] {
-            const MOTION: [u16; 17] = [
-                0, 10, 20, 30, 50, 51, 800, 730, 810, 820, 830, 850, 890, 382, 383, 384, 385,
+            const MOTION: [u16; 18] = [
+                0, 10, 20, 30, 50, 51, 800, 730, 810, 820, 830, 850, 890, 310, 382, 383, 384, 385,
             ];
             let is_motion = MOTION.contains(&code);
             let slot = match code {
@@ -1548,7 +1561,7 @@ impl<R: BufRead> Interpreter<R> {
                 30 => MotionMode::Ccw,
                 50 | 51 => MotionMode::Spline(code),
                 730 | 810 | 820 | 830 | 850 | 890 => MotionMode::Cycle(code),
-                382..=385 => MotionMode::Probe(code),
+                310 | 382..=385 => MotionMode::Probe(code),
                 _ => MotionMode::None,
             };
             if self.cycle.initial.is_some() && !matches!(st.motion, MotionMode::Cycle(_)) {
@@ -2094,7 +2107,7 @@ impl<R: BufRead> Interpreter<R> {
                 "cannot probe with cutter radius compensation on (G40 first)".to_string(),
             ));
         }
-        let mut probe_new: Option<(Point, Point)> = None;
+        let mut probe_new: Option<(Point, Point, bool)> = None;
         if motion_here && comp_on {
             if let Some(c) = comp.as_mut() {
                 let at = first_of(blk, axis_mask | ijk_mask | bit(b'R'));
@@ -2248,15 +2261,17 @@ impl<R: BufRead> Interpreter<R> {
                             ),
                         ));
                     }
+                    // Mach3's G31 probes for contact and, like G38.3, ends without error when
+                    // the whole move ran.
                     queue.push_back(Motion::Probe {
                         line,
                         from: st.pos,
                         to: target,
                         feed_mm_min: feed,
-                        contact: matches!(code, 382 | 383),
+                        contact: matches!(code, 310 | 382 | 383),
                         must_trip: matches!(code, 382 | 384),
                     });
-                    probe_new = Some((st.pos, target));
+                    probe_new = Some((st.pos, target, code == 310));
                 }
                 MotionMode::None | MotionMode::Unsupported(_) => {}
             }
@@ -2367,13 +2382,14 @@ impl<R: BufRead> Interpreter<R> {
             self.g92_saved_a = saved_a;
             self.g92_active = g92 != [0.0; 3] || g92_a != 0.0;
         }
-        if let Some((from, to)) = probe_new {
+        if let Some((from, to, mach3)) = probe_new {
             let frame = self.frame();
             self.probe_pending = Some(PendingProbe {
                 from: add(from, frame),
                 to: add(to, frame),
                 frame,
                 inch: self.st.inch,
+                mach3,
                 result: None,
             });
         }

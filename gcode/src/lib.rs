@@ -53,7 +53,10 @@ mod flow;
 mod interp;
 mod lex;
 
-pub use analysis::{analyse, Analysis, AnalysisOptions, Bounds, OffsetChangeNote, RotaryBounds};
+pub use analysis::{
+    analyse, probe_spread, Analysis, AnalysisOptions, Bounds, OffsetChangeNote, ProbeSpread,
+    RotaryBounds,
+};
 pub use arc::{
     budgeted, linearise, segments_for, segments_of, ArcGeometry, Budgeted, Linearise, WorkBudget,
     DEFAULT_MAX_SEGMENTS, MIN_TOLERANCE_MM,
@@ -182,6 +185,25 @@ pub struct Config {
     /// Empty by default: a G41/G42 that needs a tool is then an error naming
     /// the line and the tool.
     pub tools: ToolTable,
+    /// Where a probing move is taken to end when no machine gives its result
+    /// back ([`Interpreter::probe_result`]): LinuxCNC's stand-alone
+    /// assumption by default.
+    pub probe_assumption: ProbeAssumption,
+}
+
+/// What the interpreter assumes a probing move found when no machine said
+/// (an upload check). [`analysis::probe_spread`] runs both to see which moves
+/// depend on a probe's result.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ProbeAssumption {
+    /// No contact: the move ran its whole way and the tool rests 0.254 mm
+    /// (0.01 in) back toward the start (LinuxCNC's rs274 stand-alone).
+    #[default]
+    NoContact,
+    /// Contact at once: the trip and the rest are the start point (the other
+    /// end of what a probe along the move can return).
+    ContactAtStart,
 }
 
 /// One tool of a [`ToolTable`], millimetres.
@@ -237,6 +259,7 @@ impl Default for Config {
             max_loop_iterations: 10_000_000,
             max_kept_program_bytes: 256 * 1024 * 1024,
             tools: ToolTable::new(),
+            probe_assumption: ProbeAssumption::NoContact,
         }
     }
 }

@@ -370,6 +370,78 @@ fn probe_results_feed_the_rest_of_the_program() {
     ));
 }
 
+/// Mach3's G31 (autolevellers such as pcb2gcode's Mach3 output read #2000..#2002): a
+/// contact probe that is no error when the whole move runs (as G38.3), modal like G1, whose
+/// trip goes to #2000..#2002 (program coordinates) as well as #5061..#5063.
+#[test]
+fn mach3_g31_probes_and_leaves_the_trip_in_2000_to_2002() {
+    let src =
+        "G21 G90 F50\nG31 Z-10\nG0 Z[#2002 + 1] X[#2000] Y[#2001]\nG31 X5 Y6 Z-9\nG0 Z[#2002]\n";
+    let mut it = Interpreter::new(src.as_bytes(), Config::default());
+    assert!(
+        matches!(
+            it.next(),
+            Some(Ok(Motion::Probe { line: 2, to, contact: true, must_trip: false, .. }))
+                if to == [0.0, 0.0, -10.0]
+        ),
+        "G31 is a contact probe that may run its whole way"
+    );
+    it.probe_result(ProbeResult {
+        tripped: true,
+        trip: [0.0, 0.0, -3.5],
+        rest: [0.0, 0.0, -3.55],
+    });
+    let next = it.next().unwrap().unwrap();
+    assert_eq!(next.end_point(), Some([0.0, 0.0, -2.5]), "{next:?}");
+    // Modal: the next line with axis words probes again.
+    let again = it.next().unwrap().unwrap();
+    assert!(
+        matches!(again, Motion::Probe { line: 4, to, .. } if to == [5.0, 6.0, -9.0]),
+        "{again:?}"
+    );
+    // Not tripped (the whole move ran): no error, #2002 the end point.
+    it.probe_result(ProbeResult {
+        tripped: false,
+        trip: [5.0, 6.0, -9.0],
+        rest: [5.0, 6.0, -9.0],
+    });
+    let last = it.next().unwrap().unwrap();
+    assert_eq!(last.end_point(), Some([5.0, 6.0, -9.0]), "{last:?}");
+    assert!(it.next().is_none());
+}
+
+/// Which moves depend on where a probe trips: the program run side by side as if every
+/// probe found nothing and as if every probe touched at once. The moves after `G0
+/// Z[#5063 + 20]` differ (Z -30 against Z 25: a touch at the start, Z 5), the probe's own
+/// does not; the bounds of
+/// both cases are merged into the analysis (the worst case); a loop on #5070 (LinuxCNC's
+/// smartprobe.ngc) makes the two cases part ways, and the analysis says from which line.
+#[test]
+fn the_analysis_names_the_moves_that_depend_on_a_probe() {
+    let src = "G21 G90 F100\nG0 Z5\nG38.2 Z-50\nG0 Z[#5063 + 20]\nG0 X10\nG1 X20\nM2\n";
+    let opts = fresa_gcode::AnalysisOptions::default();
+    let spread = fresa_gcode::probe_spread(src.as_bytes(), src.as_bytes(), &opts);
+    assert_eq!(spread.dependent_moves, 3, "{spread:?}");
+    assert_eq!(spread.first_dependent_line, Some(4), "{spread:?}");
+    assert_eq!(spread.unchecked_from_line, None, "{spread:?}");
+    let mut a = fresa_gcode::analyse(src.as_bytes(), &opts).unwrap();
+    // Without the spread: the probe from Z 5 down, the cut at Z -30.
+    let cut = a.cutting_bounds.unwrap();
+    assert!((cut.max[2] - 5.0).abs() < 1e-9, "{cut:?}");
+    a.merge_probe_spread(&spread);
+    // The G1 X20 runs at Z -30 (no contact) or Z 25 (contact at once): both count.
+    let cut = a.cutting_bounds.unwrap();
+    assert!((cut.max[2] - 25.0).abs() < 1e-9, "{cut:?}");
+    assert!((cut.min[2] + 50.0).abs() < 1e-9, "{cut:?}");
+    assert_eq!(a.probe_dependent_moves, 3);
+    assert_eq!(a.first_probe_dependent_line, Some(4));
+
+    let smart = "G20 F20\n#5070=1\nO4 while [#5070 NE 0]\nG38.5 z1\nG38.3 x1\nO4 endwhile\n\
+                 G38.2 Z-0.1\nM2\n";
+    let spread = fresa_gcode::probe_spread(smart.as_bytes(), smart.as_bytes(), &opts);
+    assert!(spread.unchecked_from_line.is_some(), "{spread:?}");
+}
+
 /// What LinuxCNC refuses in a probing move is refused here, naming the line.
 #[test]
 fn probing_moves_refuse_what_linuxcnc_refuses() {

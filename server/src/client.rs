@@ -1063,7 +1063,7 @@ pub fn gcode(cmd: GcodeCmd) -> Res {
                 },
                 max_segments,
             };
-            let a = fresa_gcode::analyse(std::io::BufReader::with_capacity(1 << 16, f), &opts)
+            let mut a = fresa_gcode::analyse(std::io::BufReader::with_capacity(1 << 16, f), &opts)
                 .map_err(|e| match e.kind {
                     fresa_gcode::ErrorKind::Budget => format!(
                         "{}: {e}; raise it with --max-segments (on the server: \
@@ -1072,6 +1072,10 @@ pub fn gcode(cmd: GcodeCmd) -> Res {
                     ),
                     _ => format!("{}: {e}", file.display()),
                 })?;
+            if a.probe_moves > 0 {
+                let reader = || open().map(|f| std::io::BufReader::with_capacity(1 << 16, f));
+                a.merge_probe_spread(&fresa_gcode::probe_spread(reader()?, reader()?, &opts));
+            }
             if json {
                 println!("{}", serde_json::to_string_pretty(&a)?);
                 return Ok(());
@@ -1103,10 +1107,23 @@ pub fn gcode(cmd: GcodeCmd) -> Res {
             }
             if let Some(line) = a.first_probe_line {
                 println!(
-                    "  probing          {} G38 moves, first on line {line} (later moves may \
-                     depend on where they trip; checked as if none did)",
+                    "  probing          {} probing moves, first on line {line}",
                     a.probe_moves
                 );
+                if let Some(dep) = a.first_probe_dependent_line {
+                    println!(
+                        "  probe-dependent  {} moves, first on line {dep} (bounds above cover \
+                         a probe touching at once and not at all)",
+                        a.probe_dependent_moves
+                    );
+                }
+                if let Some(from) = a.probe_paths_unchecked_from {
+                    println!(
+                        "  warning: from line {from} the path depends on a probe's result \
+                         through a loop or branch: checked as if no probe touched (the \
+                         machine checks each move before it starts)"
+                    );
+                }
             }
             println!(
                 "  path length      {:.1} mm cutting, {:.1} mm rapid",

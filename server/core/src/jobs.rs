@@ -133,14 +133,22 @@ async fn analyse(
         .ok_or_else(|| Error::internal("program file already moved"))?
         .to_path_buf();
     let result = tokio::task::spawn_blocking(move || {
-        let file = std::fs::File::open(&path)?;
-        let reader = std::io::BufReader::with_capacity(1 << 16, file);
+        let open =
+            || std::fs::File::open(&path).map(|f| std::io::BufReader::with_capacity(1 << 16, f));
         let opts = fresa_gcode::AnalysisOptions {
             config,
             max_segments,
             ..fresa_gcode::AnalysisOptions::default()
         };
-        Ok::<_, std::io::Error>(fresa_gcode::analyse(reader, &opts))
+        let mut analysis = fresa_gcode::analyse(open()?, &opts);
+        // A program that probes: which moves depend on the result, and the bounds of both
+        // ends of what the probes can return (a second interpretation, side by side).
+        if let Ok(a) = analysis.as_mut() {
+            if a.probe_moves > 0 {
+                a.merge_probe_spread(&fresa_gcode::probe_spread(open()?, open()?, &opts));
+            }
+        }
+        Ok::<_, std::io::Error>(analysis)
     })
     .await
     .map_err(|e| Error::internal(format!("analysis failed: {e}")))?
