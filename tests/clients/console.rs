@@ -233,8 +233,9 @@ fn an_operator_drives_the_demo_in_a_browser() {
     assert_eq!(format!("{x:.3}"), dro(&b, "x"));
     assert_eq!(format!("{x:.3}"), "1.000");
     // A jog beyond the machine's limit is not offered: steps stop at max_jog_mm.
-    let steps =
-        b.js("return [...document.querySelectorAll('#jog-step option')].map(o => +o.value);");
+    let steps = b.js(
+        "return [...document.querySelectorAll('#jog-step option')].filter(o => o.value !== 'hold').map(o => +o.value);",
+    );
     let max_jog = s.get("/api/v1/machines/1").body["max_jog_mm"]
         .as_f64()
         .unwrap();
@@ -824,4 +825,101 @@ fn the_override_card_sets_feed_and_rapid_and_shows_what_the_machine_reports() {
     b.click("[data-override=\"feed+\"]");
     assert_eq!(s.status(m)["feed_override"], 150.0);
     b.screenshot("overrides");
+}
+
+/// The machine's position on `axis`, from the API.
+fn machine_axis(s: &Server, axis: &str) -> f64 {
+    s.status(1)["machine_position"][axis].as_f64().unwrap()
+}
+
+/// Hold-to-jog and keyboard jog: a held button (and, with the keyboard switch on, a held
+/// arrow key) keeps the axis moving past what one keep-alive period allows, and its release
+/// stops it well short of `max_jog_mm`; keys do nothing with the switch off; a tab that goes
+/// away mid-hold stops sending keep-alives and the server's deadman stops the machine.
+#[test]
+fn the_console_jogs_while_a_button_or_key_is_held_and_stops_when_let_go() {
+    let s = Server::start_demo();
+    let b = Browser::start();
+    b.goto(&format!("{}/#/machines/1", s.base));
+    b.wait_enabled("[data-jog=\"X+\"]", T);
+    b.select("#jog-step", "hold");
+    b.js("const f = document.getElementById('jog-feed'); f.value = '600'; f.dispatchEvent(new Event('input'));");
+    let press = |css: &str, ty: &str| {
+        b.js(&format!(
+            "document.querySelector('{css}').dispatchEvent(new PointerEvent('{ty}', {{bubbles: true, pointerId: 1}}));"
+        ));
+    };
+    let max_jog = s.get("/api/v1/machines/1").body["max_jog_mm"]
+        .as_f64()
+        .unwrap();
+
+    // Held: 10 mm/s, so 5 mm takes 0.5 s, twice the deadman's 250 ms: the keep-alives work.
+    press("[data-jog=\"X+\"]", "pointerdown");
+    s.wait_status(1, T, "X moving past 5 mm while held", |st| {
+        st["machine_position"]["x"].as_f64().unwrap_or(0.0) > 5.0
+    });
+    press("[data-jog=\"X+\"]", "pointerup");
+    let st = s.wait_status(1, T, "idle after the release", |st| st["state"] == "idle");
+    let x = st["machine_position"]["x"].as_f64().unwrap();
+    assert!(x > 5.0 && x < max_jog, "stopped on release: x = {x}");
+
+    // Keys do nothing while the keyboard switch is off (a marker step jog on Z afterwards
+    // shows the page handled both).
+    let key = |ty: &str, k: &str| {
+        b.js(&format!(
+            "document.dispatchEvent(new KeyboardEvent('{ty}', {{key: '{k}', bubbles: true}}));"
+        ));
+    };
+    assert!(b.js("return document.getElementById('keyboard-jog-on').hidden;") == true);
+    key("keydown", "ArrowUp");
+    key("keyup", "ArrowUp");
+    assert_eq!(machine_axis(&s, "y"), 0.0);
+
+    // Switched on: the badge says so, and a held ArrowUp moves Y+ until released.
+    b.click("#keyboard-jog");
+    assert!(b.js("return document.getElementById('keyboard-jog-on').hidden;") == false);
+    key("keydown", "ArrowUp");
+    s.wait_status(1, T, "Y moving past 5 mm while the key is held", |st| {
+        st["machine_position"]["y"].as_f64().unwrap_or(0.0) > 5.0
+    });
+    key("keyup", "ArrowUp");
+    let st = s.wait_status(1, T, "idle after the key's release", |st| st["state"] == "idle");
+    let y = st["machine_position"]["y"].as_f64().unwrap();
+    assert!(y > 5.0 && y < max_jog, "stopped on the key's release: y = {y}");
+    assert_eq!(machine_axis(&s, "x"), x, "the key moved Y only");
+
+    // The link goes mid-hold (nothing the page sends arrives any more, not even a cancel):
+    // no keep-alive comes, and the server's deadman stops the machine.
+    let events = s.events("types=machine.jog_cancel", Some(0));
+    press("[data-jog=\"X-\"]", "pointerdown");
+    s.wait_status(1, T, "X moving back while held", |st| {
+        st["machine_position"]["x"].as_f64().unwrap_or(x) < x - 2.0
+    });
+    b.js("window.fetch = () => new Promise(() => {});");
+    let st = s.wait_status(1, T, "idle once the link is gone", |st| st["state"] == "idle");
+    let back = st["machine_position"]["x"].as_f64().unwrap();
+    assert!(back > x - max_jog, "stopped by the deadman: x = {back}");
+    let cancels = events.until(T, "the deadman's cancel", |e| {
+        e.data["actor"]
+            .as_str()
+            .is_some_and(|a| a.starts_with("deadman:"))
+    });
+    assert!(!cancels.is_empty());
+
+    // The tab closes mid-hold: the page lets go as it is hidden (or, failing that, the
+    // deadman does); either way the machine stops short of max_jog_mm. (A fresh page: this
+    // one's fetch is cut off.)
+    b.goto("about:blank");
+    b.goto(&format!("{}/#/machines/1", s.base));
+    b.wait_enabled("[data-jog=\"X+\"]", T);
+    b.select("#jog-step", "hold");
+    let from = machine_axis(&s, "x");
+    press("[data-jog=\"X+\"]", "pointerdown");
+    s.wait_status(1, T, "X moving while held", |st| {
+        st["machine_position"]["x"].as_f64().unwrap_or(from) > from + 2.0
+    });
+    b.goto("about:blank");
+    let st = s.wait_status(1, T, "idle once the tab is gone", |st| st["state"] == "idle");
+    let end = st["machine_position"]["x"].as_f64().unwrap();
+    assert!(end < from + max_jog, "stopped once the tab went: x = {end}");
 }

@@ -39,28 +39,121 @@ export async function machinePage(page, { id }, events) {
   const lamps = h('div');
   const run = runBlock(id);
 
-  // Step jog, bounded by the machine's limits (the server refuses anything past them too).
+  // Step jog, bounded by the machine's limits (the server refuses anything past them too), or
+  // hold-to-jog ("Hold" in the step list): the axis moves while the button or key is held
+  // (at most max_jog_mm), kept alive every 100 ms; released, it is cancelled. A tab that
+  // closes or loses its link sends no keep-alive, and the server stops the move within 250 ms.
   const steps = STEPS.filter((s) => s <= m.max_jog_mm);
   const stepSel = h('select', { id: 'jog-step', 'aria-label': 'jog step (mm)' },
-    steps.map((s) => h('option', { value: s, selected: s === 1 }, s + ' mm')));
+    steps.map((s) => h('option', { value: s, selected: s === 1 }, s + ' mm')),
+    h('option', { value: 'hold' }, 'Hold (continuous)'));
   const feed = h('input', { id: 'jog-feed', type: 'number', min: 1, max: m.max_feed_mm_min, step: 1,
     value: Math.min(1000, m.max_feed_mm_min), 'aria-label': 'jog feed (mm/min)' });
   const jogError = h('p', { class: 'error', id: 'jog-error' });
-  const jog = (axis, sign) => async (ev) => {
-    jogError.textContent = '';
-    const distance = sign * parseFloat(stepSel.value);
+  const jogFeed = () => {
     const f = parseFloat(feed.value);
-    if (!(f > 0 && f <= m.max_feed_mm_min)) {
-      jogError.textContent = `feed must be 1..${m.max_feed_mm_min} mm/min`;
-      return;
-    }
+    if (f > 0 && f <= m.max_feed_mm_min) return f;
+    jogError.textContent = `feed must be 1..${m.max_feed_mm_min} mm/min`;
+    return null;
+  };
+  const holding = () => stepSel.value === 'hold';
+  const stepJog = async (axis, sign, el) => {
+    jogError.textContent = '';
+    const f = jogFeed();
+    if (f === null) return;
+    const distance = sign * parseFloat(stepSel.value);
     try {
-      await act(ev.currentTarget, () => api('POST', `/machines/${id}/jog`, { axis: axis.toUpperCase(), distance, feed: f }));
+      await act(el, () => api('POST', `/machines/${id}/jog`, { axis: axis.toUpperCase(), distance, feed: f }));
     } catch (e) { jogError.textContent = errorText(e); }
   };
+  // The hold under way: { key, timer, released }. One at a time, as the server allows.
+  let held = null;
+  const startHold = async (axis, sign, key) => {
+    if (held) return;
+    jogError.textContent = '';
+    const f = jogFeed();
+    if (f === null) return;
+    const mine = held = { key, timer: 0, released: false };
+    jogPad.dataset.holding = key;
+    try {
+      await api('POST', `/machines/${id}/jog`, { axis: axis.toUpperCase(), direction: sign > 0 ? '+' : '-', feed: f, continuous: true });
+    } catch (e) {
+      jogError.textContent = errorText(e);
+      if (held === mine) { held = null; delete jogPad.dataset.holding; }
+      return;
+    }
+    // Released while the start was on its way: end it now.
+    if (mine.released) { cancelHold(); return; }
+    mine.timer = setInterval(() => {
+      api('POST', `/machines/${id}/jog/keepalive`).catch(() => {
+        // It ended (its whole way, a stop, a missed keep-alive): nothing to keep alive.
+        clearInterval(mine.timer);
+        if (held === mine) { held = null; delete jogPad.dataset.holding; }
+      });
+    }, 100);
+  };
+  const cancelHold = () => api('POST', `/machines/${id}/jog/cancel`)
+    .catch((e) => { jogError.textContent = errorText(e); });
+  const endHold = () => {
+    const mine = held;
+    if (!mine) return;
+    held = null;
+    delete jogPad.dataset.holding;
+    mine.released = true;
+    // Not started yet: the start ends it when its answer comes.
+    if (mine.timer) { clearInterval(mine.timer); cancelHold(); }
+  };
+  const jogButton = (a, sign) => {
+    const key = a.toUpperCase() + (sign > 0 ? '+' : '-');
+    const b = h('button', { dataset: { need: 'motion', jog: key } }, a.toUpperCase() + (sign > 0 ? '+' : '−'));
+    b.addEventListener('click', (ev) => { if (!holding()) stepJog(a, sign, ev.currentTarget); });
+    b.addEventListener('pointerdown', (ev) => {
+      if (!holding() || b.disabled) return;
+      b.setPointerCapture?.(ev.pointerId);
+      startHold(a, sign, key);
+    });
+    for (const end of ['pointerup', 'pointercancel', 'lostpointercapture']) b.addEventListener(end, endHold);
+    return b;
+  };
   const jogPad = h('div', { class: 'jog' }, AXES.map((a) => h('div', { class: 'jog-axis' },
-    h('button', { dataset: { need: 'motion', jog: a.toUpperCase() + '-' }, onclick: jog(a, -1) }, a.toUpperCase() + '−'),
-    h('button', { dataset: { need: 'motion', jog: a.toUpperCase() + '+' }, onclick: jog(a, 1) }, a.toUpperCase() + '+'))));
+    jogButton(a, -1), jogButton(a, 1))));
+
+  // Keyboard jog, off until switched on (a stray arrow key must not move a machine): arrows
+  // X/Y, PgUp/PgDn Z, each a step or, with "Hold", held until the key is released. Keys typed
+  // into a field are never jogs.
+  const KEYS = { ArrowLeft: ['x', -1], ArrowRight: ['x', 1], ArrowUp: ['y', 1], ArrowDown: ['y', -1], PageUp: ['z', 1], PageDown: ['z', -1] };
+  let keyboard = false;
+  const kbSwitch = h('button', { id: 'keyboard-jog', 'aria-pressed': 'false', dataset: { need: 'motion' } }, 'Keyboard jog');
+  const kbBadge = h('span', { id: 'keyboard-jog-on', class: 'badge keyboard', hidden: true }, 'keyboard jog on');
+  kbSwitch.addEventListener('click', () => {
+    keyboard = !keyboard;
+    kbSwitch.setAttribute('aria-pressed', String(keyboard));
+    kbBadge.hidden = !keyboard;
+    if (!keyboard) endHold();
+  });
+  const typing = (t) => t && (t.isContentEditable || ['INPUT', 'SELECT', 'TEXTAREA'].includes(t.tagName));
+  const onKeyDown = (ev) => {
+    const k = KEYS[ev.key];
+    if (!k || !keyboard || kbSwitch.disabled || typing(ev.target)) return;
+    ev.preventDefault();
+    if (ev.repeat) return;
+    const [axis, sign] = k;
+    if (holding()) startHold(axis, sign, 'key:' + ev.key);
+    else stepJog(axis, sign, null);
+  };
+  const onKeyUp = (ev) => { if (held && held.key === 'key:' + ev.key) endHold(); };
+  const onHidden = () => { if (document.hidden) endHold(); };
+  document.addEventListener('keydown', onKeyDown);
+  document.addEventListener('keyup', onKeyUp);
+  window.addEventListener('blur', endHold);
+  document.addEventListener('visibilitychange', onHidden);
+  const keyboardOff = () => {
+    endHold();
+    document.removeEventListener('keydown', onKeyDown);
+    document.removeEventListener('keyup', onKeyUp);
+    window.removeEventListener('blur', endHold);
+    document.removeEventListener('visibilitychange', onHidden);
+  };
   // Ends the jog under way and drops every jog still queued (taps, pendant wheel); like STOP,
   // it needs no live stream.
   const jogCancel = h('button', { id: 'jog-cancel', class: 'hold', dataset: { need: 'operator' }, onclick: (ev) => {
@@ -275,7 +368,8 @@ export async function machinePage(page, { id }, events) {
       h('section', { class: 'card' }, h('h2', {}, 'Jog'),
         h('div', { class: 'row wrap' }, h('label', {}, 'Step ', stepSel), h('label', {}, 'Feed ', feed, ' mm/min')),
         h('p', { class: 'muted small' }, `At most ${m.max_jog_mm} mm per step and ${m.max_feed_mm_min} mm/min.`),
-        jogPad, h('div', { class: 'row' }, jogCancel), jogError)),
+        jogPad, h('div', { class: 'row' }, jogCancel, kbSwitch, kbBadge),
+        h('p', { class: 'muted small' }, 'Keys: ← → X, ↑ ↓ Y, PgUp PgDn Z.'), jogError)),
     h('div', { class: 'cols' },
       h('section', { class: 'card' }, h('h2', {}, 'Cycle'), cycle, zeros, outputs),
       h('section', { class: 'card' }, h('h2', {}, 'MDI'), mdiForm, mdiError)),
@@ -320,5 +414,5 @@ export async function machinePage(page, { id }, events) {
     events.on('machine.part_zero', mine(() => loadPartZeros().catch(() => {}))),
   ];
   const tick = setInterval(schedule, 1000);
-  return () => { offs.forEach((f) => f()); clearInterval(tick); cancelAnimationFrame(frame); if (preview) preview.destroy(); };
+  return () => { offs.forEach((f) => f()); clearInterval(tick); cancelAnimationFrame(frame); if (preview) preview.destroy(); keyboardOff(); };
 }
