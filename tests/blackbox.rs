@@ -15,6 +15,7 @@
 //! | `machine::io` | inputs and outputs: switches, alarms, `machine.io` |
 //! | `jobs::runs` | upload, run to completion, download, pause / resume / cancel of a job |
 //! | `jobs::races` | cancel, stop and pause racing a running job: nothing moves after the answer |
+//! | `jobs::estimate` | the run-time estimate and the time left against real-time sim runs |
 //! | `jobs::chaos` | many clients sending random run control at once: the run state machine holds |
 //! | `jobs::resume` | a server killed or stopped mid-job: the run comes back and resumes exactly once |
 //! | `backends::mach3`, `parport`, `kawasaki`, `wine` | one backend (or the Windows build) end to end against its simulator |
@@ -45,6 +46,7 @@ mod machine {
 
 mod jobs {
     mod chaos;
+    mod estimate;
     mod races;
     mod resume;
     mod runs;

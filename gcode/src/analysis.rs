@@ -1,6 +1,7 @@
 //! Whole-program analysis in one streaming pass (constant memory).
 
 use crate::arc::{ArcGeometry, WorkBudget};
+use crate::estimate::{Estimator, MotionProfile, TimeTable};
 use crate::{Config, GcodeError, Interpreter, Motion, Point, SpindleDirection, Warning};
 use serde::{Deserialize, Serialize};
 use std::io::BufRead;
@@ -62,8 +63,13 @@ pub struct Analysis {
     pub rapid_bounds: Option<Bounds>,
     pub cutting_length_mm: f64,
     pub rapid_length_mm: f64,
-    /// Rapids at `rapid_mm_min`, feeds at their F, dwells; no acceleration.
+    /// Run time at 100 % overrides with the machine's [`MotionProfile`] (its rapid rate,
+    /// acceleration and cornering; without one, rapids at `rapid_mm_min` and no acceleration):
+    /// the total of `time_table`.
     pub estimated_seconds: f64,
+    /// Cumulative time by line (at most [`crate::estimate::MAX_MARKS`] marks): a running job's
+    /// remaining time at any line, under any override.
+    pub time_table: TimeTable,
     pub warnings: Vec<Warning>,
     /// Warnings beyond [`Config::max_warnings`] (counted, not kept).
     pub warnings_dropped: u64,
@@ -152,6 +158,9 @@ pub struct AnalysisOptions {
     /// from each arc's radius and sweep, so the check stays cheap for a huge arc).
     /// Default [`crate::DEFAULT_MAX_SEGMENTS`].
     pub max_segments: u64,
+    /// How the machine moves, for the time estimate; absent: rapids at `rapid_mm_min`, no
+    /// acceleration.
+    pub profile: Option<MotionProfile>,
 }
 
 impl Default for AnalysisOptions {
@@ -160,6 +169,7 @@ impl Default for AnalysisOptions {
             rapid_mm_min: 5000.0,
             config: Config::default(),
             max_segments: crate::DEFAULT_MAX_SEGMENTS,
+            profile: None,
         }
     }
 }
@@ -281,6 +291,7 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
         cutting_length_mm: 0.0,
         rapid_length_mm: 0.0,
         estimated_seconds: 0.0,
+        time_table: TimeTable::default(),
         warnings: Vec::new(),
         warnings_dropped: 0,
         units_inch_seen: false,
@@ -309,16 +320,20 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
     } else {
         5000.0
     };
-    let mut feed_minutes = 0.0;
     let mut last_motion_line = 0u32;
     // Work systems that moves happened in (bit 0 = G54), to warn once where
     // the bounds start mixing frames.
     let mut active_system = 1u8;
     let mut moved_in = 0u16;
     let mut mixed_at = None;
+    let mut estimator = Estimator::new(opts.profile.unwrap_or(MotionProfile {
+        rapid_mm_min: rapid_rate,
+        ..MotionProfile::default()
+    }));
     for m in it.by_ref() {
         let m = m?;
         budget.charge(&m)?;
+        estimator.push(&m);
         let line = m.line();
         let is_move = matches!(
             m,
@@ -357,17 +372,11 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
                 from,
                 to,
                 feed_mm_min,
-                a: rotary,
                 ..
             } => {
                 a.linear_moves += 1;
                 let d = dist(from, to);
                 a.cutting_length_mm += d;
-                // A rotary-only move's feed is in degrees per minute.
-                feed_minutes += match rotary {
-                    Some(r) if d == 0.0 => (r.to - r.from).abs() / feed_mm_min,
-                    _ => d / feed_mm_min,
-                };
                 a.max_feed_mm_min = a.max_feed_mm_min.max(feed_mm_min);
                 grow(&mut a.cutting_bounds, from, to);
             }
@@ -376,22 +385,14 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
                 if let Some(g) = ArcGeometry::from_motion(&m) {
                     let d = g.length();
                     a.cutting_length_mm += d;
-                    feed_minutes += d / feed_mm_min;
                     let (lo, hi) = g.bounds();
                     grow(&mut a.cutting_bounds, lo, hi);
                 }
                 a.max_feed_mm_min = a.max_feed_mm_min.max(feed_mm_min);
             }
-            Motion::Probe {
-                line,
-                from,
-                to,
-                feed_mm_min,
-                ..
-            } => {
+            Motion::Probe { line, from, to, .. } => {
                 a.probe_moves += 1;
                 a.first_probe_line.get_or_insert(line);
-                feed_minutes += dist(from, to) / feed_mm_min;
                 grow(&mut a.cutting_bounds, from, to);
             }
             Motion::Dwell { seconds, .. } => a.dwell_seconds += seconds,
@@ -441,7 +442,8 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
             _ => {}
         }
     }
-    a.estimated_seconds = (a.rapid_length_mm / rapid_rate + feed_minutes) * 60.0 + a.dwell_seconds;
+    a.time_table = estimator.finish();
+    a.estimated_seconds = a.time_table.total();
     a.segments = budget.used();
     a.lines = it.lines_read();
     a.units_inch_seen = it.units_inch_seen();

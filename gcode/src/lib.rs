@@ -48,6 +48,7 @@
 mod analysis;
 mod arc;
 mod comp;
+mod estimate;
 mod expr;
 mod flow;
 mod interp;
@@ -61,6 +62,7 @@ pub use arc::{
     budgeted, linearise, segments_for, segments_of, ArcGeometry, Budgeted, Linearise, WorkBudget,
     DEFAULT_MAX_SEGMENTS, MIN_TOLERANCE_MM,
 };
+pub use estimate::{Estimator, MotionProfile, TimeMark, TimeTable};
 pub use interp::Interpreter;
 
 // Input bounds: whatever a program says, it cannot make the reader recurse without end or put

@@ -117,6 +117,11 @@ pub trait MachineBackend: Send + Sync + Sized + 'static {
         let _ = (feed, spindle, rapid);
         Err(PluginError::unsupported("set_overrides"))
     }
+    /// How this machine moves (its rapid rate, acceleration, cornering), for run-time
+    /// estimates.
+    fn motion_profile(&self) -> Result<crate::contract::MotionProfile, PluginError> {
+        Err(PluginError::unsupported("motion_profile"))
+    }
     /// A probing move (see [`crate::contract::Probe`]): queue it and answer; report its end
     /// with a `probe_ended` event.
     fn probe(&self, probe: crate::contract::Probe) -> Result<(), PluginError> {
@@ -219,6 +224,12 @@ pub fn dispatch<B: MachineBackend>(b: &B, request: Request) -> Result<Answer, Pl
         Request::GetArtifact { name } => b.get_artifact(&name).map(Answer::Artifact),
         Request::Mdi { line } => empty(b.mdi(&line)),
         Request::Probe(p) => empty(b.probe(p)),
+        Request::MotionProfile => b
+            .motion_profile()
+            .and_then(|p| {
+                serde_json::to_value(p).map_err(|e| PluginError::new("internal", e.to_string()))
+            })
+            .map(Answer::Value),
     }
 }
 

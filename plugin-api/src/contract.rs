@@ -467,6 +467,10 @@ pub enum Request {
     /// motion mode, feed, work offset) as it found it. Answer: `{}`. Errors: `invalid_gcode`,
     /// `unsupported` (the backend cannot run MDI, or not this kind of line).
     Mdi { line: String },
+    // --- estimate additions (issue 26) ---
+    /// How this machine moves, for run-time estimates. Answer: [`MotionProfile`]. Errors:
+    /// `unsupported` (the host then assumes rapids at 5000 mm/min and no acceleration).
+    MotionProfile,
     // --- probing additions (issue 25) ---
     /// A probing move (G38.2-G38.5): see [`Probe`]. Answer: `{}` once it is queued (checked
     /// against the travel for its whole distance, refused with `probe_already_in_state` when
@@ -521,6 +525,27 @@ fn refused(request: &serde_json::Value, e: &serde_json::Error) -> crate::PluginE
         }
         _ => crate::PluginError::invalid(format!("invalid request: {e}")),
     }
+}
+
+/// How a machine moves, as far as a run-time estimate needs it (answer to `motion_profile`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MotionProfile {
+    /// G0 speed, mm/min.
+    pub rapid_mm_min: f64,
+    /// Lowest feed the machine runs, mm/min (lower programmed feeds are raised); 0: none.
+    #[serde(default)]
+    pub min_feed_mm_min: f64,
+    /// Highest feed the machine runs, mm/min (higher programmed feeds are capped); 0: none.
+    #[serde(default)]
+    pub max_feed_mm_min: f64,
+    /// Path acceleration, mm/s²; 0: speed changes at once.
+    #[serde(default)]
+    pub accel_mm_s2: f64,
+    /// The largest step in an axis's speed a corner may make without slowing, mm/s; 0: the
+    /// machine stops at every corner (with acceleration).
+    #[serde(default)]
+    pub corner_jump_mm_s: f64,
 }
 
 /// A probing move: `axis` moves by `distance` (signed: its sign is the direction) at `feed`

@@ -116,6 +116,7 @@ impl Request {
             Request::Status => Operation::read("status"),
             Request::GetOffsets => Operation::read("get_offsets"),
             Request::GetArtifact { .. } => Operation::read("get_artifact"),
+            Request::MotionProfile => Operation::read("motion_profile"),
             Request::Jog { .. } => Operation {
                 name: "jog",
                 lane: Lane::Ordinary,
@@ -284,6 +285,7 @@ mod tests {
             Request::Status,
             Request::GetOffsets,
             Request::GetArtifact { name: "x".into() },
+            Request::MotionProfile,
             Request::Jog {
                 axis: Axis::X,
                 distance: 1.0,

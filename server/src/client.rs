@@ -618,28 +618,41 @@ impl Progress {
             return Progress::Lines;
         }
         let bar = indicatif::ProgressBar::new(total.max(1)).with_elapsed(elapsed);
+        // The time left is the server's (its estimate by line, under the overrides in
+        // force), not a rate extrapolated from the lines so far, which swings with every
+        // short or long stretch of the program.
         let style = indicatif::ProgressStyle::with_template(
-            "[{bar:30}] line {pos}/{len} {percent}%  elapsed {elapsed_precise}  remaining {eta_precise} {msg}",
+            "[{bar:30}] line {pos}/{len} {percent}%  elapsed {elapsed_precise}  remaining {msg}",
         )
         .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
         .progress_chars("=> ");
         bar.set_style(style);
         bar.set_position(line);
+        bar.set_message("?");
         Progress::Bar(bar)
     }
 
-    /// `remaining` is the time left at the pace so far (None before the first line).
-    fn update(&self, line: u64, total: u64, percent: &Value, elapsed: std::time::Duration) {
+    /// `remaining_s`: the server's time left (`remaining_s` of the job's progress; absent
+    /// for a job without an estimate).
+    fn update(
+        &self,
+        line: u64,
+        total: u64,
+        percent: &Value,
+        elapsed: std::time::Duration,
+        remaining_s: Option<f64>,
+    ) {
+        let remaining = remaining_s
+            .filter(|r| r.is_finite() && *r >= 0.0)
+            .map(|r| clock(std::time::Duration::from_secs_f64(r)))
+            .unwrap_or_else(|| "?".into());
         match self {
             Progress::Bar(bar) => {
                 bar.set_length(total.max(1));
                 bar.set_position(line);
+                bar.set_message(remaining);
             }
             Progress::Lines => {
-                let remaining = (line > 0 && total >= line)
-                    .then(|| elapsed.mul_f64((total - line) as f64 / line as f64))
-                    .map(clock)
-                    .unwrap_or_else(|| "?".into());
                 println!(
                     "line {line}/{total} ({percent}%)  elapsed {}  remaining {remaining}",
                     clock(elapsed)
@@ -857,6 +870,7 @@ pub async fn job(server: ServerArgs, cmd: JobCmd) -> Res {
                             d["total_lines"].as_u64().unwrap_or(0),
                             &d["percent"],
                             elapsed(),
+                            d["remaining_s"].as_f64(),
                         );
                         true
                     }
@@ -1062,6 +1076,7 @@ pub fn gcode(cmd: GcodeCmd) -> Res {
                     ..Default::default()
                 },
                 max_segments,
+                profile: None,
             };
             let mut a = fresa_gcode::analyse(std::io::BufReader::with_capacity(1 << 16, f), &opts)
                 .map_err(|e| match e.kind {

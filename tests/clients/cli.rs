@@ -179,6 +179,20 @@ fn job_watch_prints_lines_with_elapsed_and_remaining_when_not_a_terminal() {
             "{l}"
         );
     }
+    // The time left is the server's estimate by line (`remaining_s`), so it is known from the
+    // first line and only goes down (a rate extrapolated from the lines so far is neither).
+    let left: Vec<u64> = progress
+        .iter()
+        .map(|l| {
+            let t = l.rsplit("remaining ").next().unwrap().trim();
+            let parts: Vec<u64> = t
+                .split(':')
+                .map(|p| p.parse().unwrap_or_else(|_| panic!("{l}")))
+                .collect();
+            parts[0] * 3600 + parts[1] * 60 + parts[2]
+        })
+        .collect();
+    assert!(left.windows(2).all(|w| w[0] >= w[1]), "{text}");
     // No terminal, no escape sequences.
     assert!(!text.contains('\u{1b}'), "{text:?}");
     let last = text.lines().last().unwrap();
@@ -710,8 +724,16 @@ fn machine_touch_off_and_probe_print_what_they_found() {
         .output()
         .unwrap();
     assert!(out.status.success(), "{}", output_text(&out));
+    let text = stdout(&out);
     assert!(
-        stdout(&out).contains("probing          2 G38 moves, first on line 2"),
+        text.contains("probing          2 probing moves, first on line 2"),
+        "{}",
+        output_text(&out)
+    );
+    // Line 3 goes where the first probe tripped, and line 4's probe starts from there (its
+    // target X5 keeps Z, so it differs too).
+    assert!(
+        text.contains("probe-dependent  2 moves, first on line 3"),
         "{}",
         output_text(&out)
     );

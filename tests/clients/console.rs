@@ -883,9 +883,14 @@ fn the_console_jogs_while_a_button_or_key_is_held_and_stops_when_let_go() {
         st["machine_position"]["y"].as_f64().unwrap_or(0.0) > 5.0
     });
     key("keyup", "ArrowUp");
-    let st = s.wait_status(1, T, "idle after the key's release", |st| st["state"] == "idle");
+    let st = s.wait_status(1, T, "idle after the key's release", |st| {
+        st["state"] == "idle"
+    });
     let y = st["machine_position"]["y"].as_f64().unwrap();
-    assert!(y > 5.0 && y < max_jog, "stopped on the key's release: y = {y}");
+    assert!(
+        y > 5.0 && y < max_jog,
+        "stopped on the key's release: y = {y}"
+    );
     assert_eq!(machine_axis(&s, "x"), x, "the key moved Y only");
 
     // The link goes mid-hold (nothing the page sends arrives any more, not even a cancel):
@@ -896,7 +901,9 @@ fn the_console_jogs_while_a_button_or_key_is_held_and_stops_when_let_go() {
         st["machine_position"]["x"].as_f64().unwrap_or(x) < x - 2.0
     });
     b.js("window.fetch = () => new Promise(() => {});");
-    let st = s.wait_status(1, T, "idle once the link is gone", |st| st["state"] == "idle");
+    let st = s.wait_status(1, T, "idle once the link is gone", |st| {
+        st["state"] == "idle"
+    });
     let back = st["machine_position"]["x"].as_f64().unwrap();
     assert!(back > x - max_jog, "stopped by the deadman: x = {back}");
     let cancels = events.until(T, "the deadman's cancel", |e| {
@@ -919,7 +926,9 @@ fn the_console_jogs_while_a_button_or_key_is_held_and_stops_when_let_go() {
         st["machine_position"]["x"].as_f64().unwrap_or(from) > from + 2.0
     });
     b.goto("about:blank");
-    let st = s.wait_status(1, T, "idle once the tab is gone", |st| st["state"] == "idle");
+    let st = s.wait_status(1, T, "idle once the tab is gone", |st| {
+        st["state"] == "idle"
+    });
     let end = st["machine_position"]["x"].as_f64().unwrap();
     assert!(end < from + max_jog, "stopped once the tab went: x = {end}");
 }

@@ -981,6 +981,20 @@ impl MachineBackend for KawasakiMachine {
         ))
     }
 
+    /// The robot is given its speeds by this backend: G0 at `rapid_mm_s`, feeds clamped to
+    /// `cut_min_mm_s..=cut_max_mm_s`. Its own acceleration and blending (CP ON) are the
+    /// controller's and not known here: none is assumed.
+    fn motion_profile(&self) -> Result<fresa_plugin_api::contract::MotionProfile, PluginError> {
+        let s = self.core.cfg.speeds;
+        Ok(fresa_plugin_api::contract::MotionProfile {
+            rapid_mm_min: s.rapid_mm_s * 60.0,
+            min_feed_mm_min: s.cut_min_mm_s * 60.0,
+            max_feed_mm_min: s.cut_max_mm_s * 60.0,
+            accel_mm_s2: 0.0,
+            corner_jump_mm_s: 0.0,
+        })
+    }
+
     fn create(host: Host, config: Value) -> Result<Self, PluginError> {
         KawasakiMachine::new(
             &config,

@@ -16,7 +16,7 @@ use fresa_plugin_api::kit::{
 use fresa_plugin_api::{Host, PluginError};
 use serde_json::{json, Value};
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::sync::{Arc, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 pub use fresa_plugin_api::kit::EventSink;
@@ -51,6 +51,9 @@ impl Pace {
 
 /// Longest time the motion thread goes without looking at stop / feed hold.
 const SLICE: Duration = Duration::from_millis(5);
+/// Longest gap between two program moves still taken up by the next (see `Core::flow`): a
+/// few slices and the thread's scheduling, not a hold.
+const FLOW_GAP: Duration = Duration::from_millis(50);
 
 // The simulated machine keeps nothing beyond the kit's state: its outputs (spindle, flood
 // coolant) and switch inputs are the kit's I/O maps.
@@ -88,6 +91,11 @@ pub struct SimMachine {
 struct Core {
     cfg: Config,
     kit: Kit,
+    /// When the last program move ended on the program's own timeline: the next one starts
+    /// there, not when the motion thread got to it, so a program takes its nominal time
+    /// (slice rounding and the time between two moves are not added to every move, which
+    /// made jobs of many short moves run noticeably longer than their length at their feed).
+    flow: Mutex<Option<Instant>>,
 }
 
 /// Length a feed applies to (LinuxCNC's rule): the XYZ path, or the A turn in degrees when
@@ -159,12 +167,12 @@ impl Core {
             Job::Jog(jog) => {
                 let target = jog.target(self.kit.lock().pos);
                 self.check(target)?;
-                self.move_to(target, jog.feed, Pace::Fixed)
+                self.move_to(target, jog.feed, Pace::Fixed, false)
             }
             Job::GoToZero => {
                 let path = self.kit.lock().go_to_zero_path();
                 path.into_iter()
-                    .try_for_each(|p| self.move_to(p, self.cfg.rapid_mm_min, Pace::Rapid))
+                    .try_for_each(|p| self.move_to(p, self.cfg.rapid_mm_min, Pace::Rapid, false))
             }
             Job::Mdi(moves) => {
                 // An MDI line's feed is not left behind as the programmed feed.
@@ -172,7 +180,7 @@ impl Core {
                 let result = moves.iter().try_for_each(|m| {
                     self.check(m.to)?;
                     let pace = if m.rapid { Pace::Rapid } else { Pace::Feed };
-                    self.move_to(m.to, m.feed, pace)
+                    self.move_to(m.to, m.feed, pace, false)
                 });
                 self.kit.lock().feed = feed;
                 result
@@ -217,6 +225,8 @@ impl Core {
         let target = target(start);
         self.check(target)?;
         let seconds = self.cfg.move_seconds(distance(&start, &target), feed);
+        // A probe stops where it trips: off the program's timeline.
+        let from = self.flow_start(false);
         self.timed_locked(
             sh,
             Some((start, target)),
@@ -224,10 +234,14 @@ impl Core {
             Some(feed),
             Pace::Fixed,
             watch.as_ref(),
+            from,
         )
+        .map(|(trip, _)| trip)
     }
 
     fn run_program(&self, l: Loaded<Plan>) -> Result<(), Interrupted> {
+        // A run's timeline starts with its first move.
+        self.flow_start(false);
         // Interpreted again as it runs (it was checked whole at load): memory stays flat. No
         // step is interpreted ahead of the one running (a probe's result feeds the next).
         let failed = |e: fresa_gcode::GcodeError| Interrupted::Failed(e.to_string());
@@ -356,8 +370,8 @@ impl Core {
                 };
                 self.check(target)?;
                 match feed {
-                    Some(f) => self.move_to(target, f, Pace::Feed),
-                    None => self.move_to(target, self.cfg.rapid_mm_min, Pace::Rapid),
+                    Some(f) => self.move_to(target, f, Pace::Feed, true),
+                    None => self.move_to(target, self.cfg.rapid_mm_min, Pace::Rapid, true),
                 }
             }
             Step::Dwell(seconds) => self.timed(
@@ -365,10 +379,11 @@ impl Core {
                 seconds.max(0.0) * self.cfg.time_scale,
                 0.0,
                 Pace::Fixed,
+                true,
             ),
             Step::Pause => {
                 self.kit.with(|sh, ev| self.kit.program_pause(sh, ev));
-                self.timed(None, 0.0, 0.0, Pace::Fixed)
+                self.timed(None, 0.0, 0.0, Pace::Fixed, false)
             }
             Step::UseOffset(o) => {
                 self.kit.with(|sh, ev| {
@@ -387,10 +402,18 @@ impl Core {
     }
 
     /// A straight move at `feed` (mm/min, before the override `pace` names).
-    fn move_to(&self, target: [f64; 4], feed: f64, pace: Pace) -> Result<(), Interrupted> {
+    /// A straight move at `feed`; `flow`: a program's move, on the program's timeline (see
+    /// `Core::flow`).
+    fn move_to(
+        &self,
+        target: [f64; 4],
+        feed: f64,
+        pace: Pace,
+        flow: bool,
+    ) -> Result<(), Interrupted> {
         let start = self.kit.lock().pos;
         let seconds = self.cfg.move_seconds(distance(&start, &target), feed);
-        self.timed(Some((start, target)), seconds, feed, pace)
+        self.timed(Some((start, target)), seconds, feed, pace, flow)
     }
 
     /// Where the probe switch's edge lies on the slice from `a` to `b`, if the switch reads
@@ -418,15 +441,34 @@ impl Core {
         seconds: f64,
         feed: f64,
         pace: Pace,
+        flow: bool,
     ) -> Result<(), Interrupted> {
         let sh = self.kit.lock();
         let feed = path.map(|_| feed);
-        self.timed_locked(sh, path, seconds, feed, pace, None)
-            .map(drop)
+        let from = self.flow_start(flow);
+        let ended = self.timed_locked(sh, path, seconds, feed, pace, None, from);
+        if let (true, Ok((_, end))) = (flow, &ended) {
+            *self.flow.lock().unwrap_or_else(|e| e.into_inner()) = *end;
+        }
+        ended.map(drop)
     }
 
-    /// [`Core::timed`] under the lock; `probe` ends the move early where the probe switch
-    /// changes, answering the trip position.
+    /// Where a move starts on the timeline: where the last program move ended, for a program's
+    /// move that follows it closely; now for anything else (and the timeline is broken off).
+    /// A longer gap is a real stop (a hold between lines), not the motion thread's own delay.
+    fn flow_start(&self, flow: bool) -> Instant {
+        let last = self.flow.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let now = Instant::now();
+        match last {
+            Some(t) if flow && t <= now && now.duration_since(t) <= FLOW_GAP => t,
+            _ => now,
+        }
+    }
+
+    /// [`Core::timed`] under the lock, its time counted from `from`; `probe` ends the move
+    /// early where the probe switch changes, answering the trip position. Also answers when
+    /// the move ended on its own timeline (`None` when it did not run its whole way in time).
+    #[allow(clippy::too_many_arguments)]
     fn timed_locked<'a>(
         &'a self,
         mut sh: MutexGuard<'a, State>,
@@ -435,12 +477,13 @@ impl Core {
         feed: Option<f64>,
         pace: Pace,
         probe: Option<&ProbeWatch>,
-    ) -> Result<Option<[f64; 4]>, Interrupted> {
+        from: Instant,
+    ) -> Result<(Option<[f64; 4]>, Option<Instant>), Interrupted> {
         if let Some(f) = feed {
             sh.feed = f;
         }
         let mut done = 0.0;
-        let mut last = Instant::now();
+        let mut last = from;
         loop {
             if self.kit.aborted() || sh.shutdown {
                 return Err(Interrupted::Aborted);
@@ -486,7 +529,7 @@ impl Core {
                     self.sense(&mut sh, &mut ev);
                     sh.push_status(&mut ev);
                     self.kit.release(sh, ev);
-                    return Ok(Some(at));
+                    return Ok((Some(at), None));
                 }
                 if !self.cfg.switches.is_empty() {
                     let mut ev = Vec::new();
@@ -518,7 +561,10 @@ impl Core {
                 }
             }
             if frac >= 1.0 {
-                return Ok(None);
+                // The move's nominal end, before `now` by the time run past it.
+                let over = Duration::try_from_secs_f64((done - seconds).max(0.0) / rate)
+                    .unwrap_or_default();
+                return Ok((None, now.checked_sub(over)));
             }
             // Finite: travel checks bound every distance, and feeds are positive.
             let wait = Duration::try_from_secs_f64((seconds - done) / rate)
@@ -544,6 +590,7 @@ impl SimMachine {
         let core = Arc::new(Core {
             cfg,
             kit: Kit::new(kit_cfg, sink, log, ()),
+            flow: Mutex::new(None),
         });
         core.kit.with(|sh, ev| {
             sh.set_io([], off_outputs(), ev);
@@ -586,6 +633,18 @@ impl MachineBackend for SimMachine {
         Ok(self
             .kit()
             .connect(self.core.cfg.alarm_at_connect.as_deref()))
+    }
+
+    /// The simulated machine changes speed at once (no acceleration is simulated) and runs
+    /// G0 at its `rapid_mm_min`; its time is that, times `time_scale`.
+    fn motion_profile(&self) -> Result<fresa_plugin_api::contract::MotionProfile, PluginError> {
+        Ok(fresa_plugin_api::contract::MotionProfile {
+            rapid_mm_min: self.core.cfg.rapid_mm_min,
+            min_feed_mm_min: 0.0,
+            max_feed_mm_min: 0.0,
+            accel_mm_s2: 0.0,
+            corner_jump_mm_s: 0.0,
+        })
     }
 
     // The simulated machine has no part zero of its own to compare.

@@ -115,6 +115,8 @@ function wire() {
     applyIo(e.machine, e.data);
     const r = state.runs.get(e.machine);
     if (r && e.data.line !== undefined) r.line = Math.max(r.line || 0, e.data.line);
+    // The server's time left (its estimate by line, under the overrides in force).
+    if (r && e.data.job && e.data.job.job === r.job && 'remaining_s' in e.data.job) r.remaining_s = e.data.job.remaining_s;
   });
   events.on('machine.io', (e) => applyIo(e.machine, e.data));
   events.on('machine.state', (e) => {

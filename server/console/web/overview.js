@@ -37,7 +37,10 @@ export function runBlock(id) {
       label.textContent = `${r.name || 'job ' + r.job} — ${pct.toFixed(1)} % · line ${r.line || 0}/${total}` +
         (r.state === 'paused' ? ' · paused' : '');
       const elapsed = r.started_at ? (Date.now() - r.started_at) / 1000 : NaN;
-      const remaining = r.estimated_seconds ? r.estimated_seconds * (1 - pct / 100) : NaN;
+      // The server's time left by line (with the machine's acceleration and the overrides in
+      // force); a share of the whole estimate only for a job without one.
+      const remaining = typeof r.remaining_s === 'number' ? r.remaining_s
+        : r.estimated_seconds ? r.estimated_seconds * (1 - pct / 100) : NaN;
       times.textContent = `elapsed ${duration(elapsed)} · remaining ≈ ${duration(remaining)}`;
     },
   };

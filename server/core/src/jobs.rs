@@ -44,7 +44,13 @@ pub async fn store_program(
         tools: crate::tools::gcode_table(app, machine_id).await?,
         ..fresa_gcode::Config::default()
     };
-    let analysis = analyse(&program, config, app.settings.max_program_segments).await?;
+    // The time estimate with the machine's own rapid rate, acceleration and cornering (when
+    // this node drives it and its backend says).
+    let profile = match app.machines.get(machine_id).await {
+        Some(m) => m.motion_profile().await,
+        None => None,
+    };
+    let analysis = analyse(&program, config, profile, app.settings.max_program_segments).await?;
     let sha = program.sha256.clone();
     let (lines, bytes) = (program.lines, program.bytes);
     let dir = app.settings.programs_dir();
@@ -104,7 +110,7 @@ pub async fn store_program(
         sha256: sha,
         lines,
         bytes,
-        analysis,
+        analysis: analysis.map(crate::views::public_analysis),
     })
 }
 
@@ -126,6 +132,7 @@ async fn unsupported_policy(app: &App, machine_id: i64) -> Result<fresa_gcode::U
 async fn analyse(
     program: &StoredProgram,
     config: fresa_gcode::Config,
+    profile: Option<fresa_gcode::MotionProfile>,
     max_segments: u64,
 ) -> Result<Option<serde_json::Value>> {
     let path = program
@@ -138,6 +145,7 @@ async fn analyse(
         let opts = fresa_gcode::AnalysisOptions {
             config,
             max_segments,
+            profile,
             ..fresa_gcode::AnalysisOptions::default()
         };
         let mut analysis = fresa_gcode::analyse(open()?, &opts);

@@ -18,10 +18,21 @@ pub struct JobProgress {
     pub total_lines: i64,
     /// `line` of `total_lines`, to one decimal.
     pub percent: f64,
+    /// Seconds of motion left after `line` by the program's time estimate (the machine's
+    /// rapid rate, acceleration and cornering), under the feed and rapid overrides in force;
+    /// pauses not counted. Absent without an estimate.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub remaining_s: Option<f64>,
 }
 
 impl JobProgress {
-    pub fn new(job: i64, run: i64, line: i64, total_lines: i64) -> JobProgress {
+    pub fn new(
+        job: i64,
+        run: i64,
+        line: i64,
+        total_lines: i64,
+        remaining_s: Option<f64>,
+    ) -> JobProgress {
         let percent = if total_lines > 0 {
             (line as f64 / total_lines as f64 * 100.0).min(100.0)
         } else {
@@ -33,6 +44,8 @@ impl JobProgress {
             line,
             total_lines,
             percent: (percent * 10.0).round() / 10.0,
+            // To the tenth of a second: the status is only re-sent when it changes.
+            remaining_s: remaining_s.map(|r| (r * 10.0).round() / 10.0),
         }
     }
 }
@@ -109,6 +122,15 @@ impl MachineView {
     }
 }
 
+/// A stored analysis as the API shows it: without the time table, which is the server's (a
+/// running job's `remaining_s` comes from it) and which a job list would carry for every job.
+pub fn public_analysis(mut analysis: Value) -> Value {
+    if let Some(a) = analysis.as_object_mut() {
+        a.remove("time_table");
+    }
+    analysis
+}
+
 /// A job as the API shows it: the job row, its analysis and its latest run.
 #[derive(Debug, Clone, Serialize, ToSchema)]
 #[schema(as = Job)]
@@ -143,6 +165,7 @@ impl JobView {
             .as_deref()
             .and_then(|a| serde_json::from_str(a).ok())
             .unwrap_or(Value::Null);
+        let analysis = public_analysis(analysis);
         let (state, line) = match run {
             Some(r) => (r.state.as_str(), r.last_line),
             None => ("ready", 0),

@@ -457,6 +457,7 @@ impl Task {
             let cutting = self
                 .run
                 .borrow()
+                .as_ref()
                 .is_some_and(|r| r.state == RunState::Running);
             if cutting && matches!(name, OutputName::Spindle | OutputName::Coolant) {
                 return Err(Error::conflict(
@@ -682,12 +683,18 @@ impl Task {
     /// The current run as the task knows it (its row at launch, its state and line since), if
     /// `run_id` is the current run.
     fn remembered_run(&self, run_id: i64) -> Option<RunRow> {
-        super::current_row(*self.run.borrow(), &self.launched.borrow()).filter(|r| r.id == run_id)
+        super::current_row(self.run.borrow().as_ref(), &self.launched.borrow())
+            .filter(|r| r.id == run_id)
     }
 
     /// The published run follows a transition of the current run.
     fn show_transition(&mut self, run_id: i64, to: RunState) {
-        if self.run.borrow().is_some_and(|r| r.run_id == run_id) {
+        if self
+            .run
+            .borrow()
+            .as_ref()
+            .is_some_and(|r| r.run_id == run_id)
+        {
             if to.is_active() {
                 self.run.send_modify(|r| {
                     if let Some(r) = r {
@@ -803,7 +810,7 @@ impl Task {
     }
 
     fn busy_with_run(&self) -> Option<Error> {
-        self.run.borrow().map(|r| {
+        self.run.borrow().as_ref().map(|r| {
             Error::conflict(
                 "machine_busy",
                 format!(
@@ -877,6 +884,7 @@ impl Task {
             total_lines: job.line_count,
             state: RunState::Running,
             line: run.last_line,
+            times: time_table(job),
         }));
         // The store says `running` from here on, and so does the audit log, before the backend
         // can finish or fail the run (so it never shows `completed` or `failed` without it).
@@ -994,8 +1002,10 @@ impl Task {
             Err(e) if e.code == UNAVAILABLE => self
                 .run
                 .borrow()
+                .as_ref()
                 .filter(|v| v.job_id == job_id)
-                .and_then(|v| self.remembered_run(v.run_id))
+                .map(|v| v.run_id)
+                .and_then(|run_id| self.remembered_run(run_id))
                 .ok_or(e),
             Err(e) => Err(e),
         }
@@ -1187,7 +1197,12 @@ impl Task {
             RunState::Running | RunState::Paused => {
                 // Nothing requested before the cancel sets this run moving again (a start
                 // whose program is still loading is refused at its gate check).
-                if self.run.borrow().is_some_and(|r| r.run_id == run.id) {
+                if self
+                    .run
+                    .borrow()
+                    .as_ref()
+                    .is_some_and(|r| r.run_id == run.id)
+                {
                     self.gate.overtake();
                 }
                 // The backend answers only once motion has stopped; only then is the run
@@ -1274,6 +1289,7 @@ impl Task {
                     let job = self
                         .run
                         .borrow()
+                        .as_ref()
                         .filter(|c| c.run_id == run)
                         .map(|c| c.job_id);
                     self.bus.transient(
@@ -1377,6 +1393,20 @@ fn io_changes(before: &MachineStatus, after: &MachineStatus) -> Option<Value> {
 
 /// What an operation's audit event says: its fields as the API took them, and for an output
 /// its new state as the backend reports it.
+/// The program's time by line, from the job's stored analysis (absent in analyses stored
+/// before it existed).
+fn time_table(job: &JobRow) -> Option<Arc<fresa_gcode::TimeTable>> {
+    #[derive(serde::Deserialize)]
+    struct Times {
+        time_table: fresa_gcode::TimeTable,
+    }
+    let a = job.analysis.as_deref()?;
+    serde_json::from_str::<Times>(a)
+        .ok()
+        .filter(|t| !t.time_table.marks.is_empty())
+        .map(|t| Arc::new(t.time_table))
+}
+
 fn audit_data(request: &Request, answer: &Value) -> Value {
     match request {
         Request::Jog {
@@ -1440,6 +1470,7 @@ mod tests {
             total_lines: 10,
             state: run.state,
             line: 0,
+            times: None,
         };
         let task = Task {
             id: m,
@@ -1563,7 +1594,7 @@ mod tests {
         ])
         .await;
         // Shown from memory, not written.
-        assert_eq!(task.run.borrow().map(|v| v.line), Some(5));
+        assert_eq!(task.run.borrow().as_ref().map(|v| v.line), Some(5));
         assert_eq!(store.run(run.id).await.unwrap().unwrap().last_line, 0);
 
         // New motion is refused while the database is down, naming it.

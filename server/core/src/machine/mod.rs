@@ -43,7 +43,7 @@ pub struct MachineOptions {
 }
 
 /// The current run as everyone but the machine's task sees it.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct RunView {
     pub run_id: i64,
     pub job_id: i64,
@@ -51,12 +51,25 @@ pub struct RunView {
     pub state: RunState,
     /// Last acknowledged line.
     pub line: i64,
+    /// The program's time by line (from its analysis), for the time left.
+    pub times: Option<Arc<fresa_gcode::TimeTable>>,
 }
 
 impl RunView {
-    /// Its progress as `job.progress` and a status's `job` show it.
-    pub fn progress(&self) -> JobProgress {
-        JobProgress::new(self.job_id, self.run_id, self.line, self.total_lines)
+    /// Its progress as `job.progress` and a status's `job` show it, the time left under the
+    /// feed and rapid overrides in force (percent).
+    pub fn progress(&self, feed_pct: f64, rapid_pct: f64) -> JobProgress {
+        let remaining = self.times.as_ref().map(|t| {
+            let line = u32::try_from(self.line.max(0)).unwrap_or(u32::MAX);
+            t.remaining_after(line, feed_pct, rapid_pct)
+        });
+        JobProgress::new(
+            self.job_id,
+            self.run_id,
+            self.line,
+            self.total_lines,
+            remaining,
+        )
     }
 }
 
@@ -248,6 +261,8 @@ pub struct Machine {
     probe_ended: watch::Receiver<Option<probing::ProbeEnd>>,
     /// Numbers probing moves, so an end is matched to its own move.
     probe_ids: AtomicU64,
+    /// How the machine moves, once the backend said (see [`Machine::motion_profile`]).
+    profile: std::sync::OnceLock<Option<fresa_gcode::MotionProfile>>,
 }
 
 impl Machine {
@@ -329,6 +344,7 @@ impl Machine {
             deadman: deadman::Deadman::default(),
             probe_ended: probe_rx,
             probe_ids: AtomicU64::new(1),
+            profile: std::sync::OnceLock::new(),
         });
         let task = actor::Task {
             id: row.id,
@@ -387,15 +403,21 @@ impl Machine {
     /// The status as the API, the `status` event and the MQTT bridge show it: the backend's
     /// status, the machine id and the active run's progress.
     pub fn status_view(&self) -> StatusView {
+        let status = self.status();
+        let job = self
+            .run
+            .borrow()
+            .as_ref()
+            .map(|r| r.progress(status.feed_override, status.rapid_override));
         StatusView {
-            status: self.status(),
+            status,
             machine: self.id,
-            job: self.run().map(|r| r.progress()),
+            job,
         }
     }
 
     pub fn run(&self) -> Option<RunView> {
-        *self.run.borrow()
+        self.run.borrow().clone()
     }
 
     /// The job of the current run, if any (known without the database).
@@ -406,7 +428,7 @@ impl Machine {
     /// The current run's row as it was launched, with the state and line the task has published
     /// since (known without the database, like [`Machine::current_job`]).
     pub fn current_run(&self) -> Option<RunRow> {
-        current_row(self.run(), &self.launched.borrow())
+        current_row(self.run.borrow().as_ref(), &self.launched.borrow())
     }
 
     pub fn subscribe_status(&self) -> watch::Receiver<MachineStatus> {
@@ -720,6 +742,30 @@ impl Machine {
         }
     }
 
+    /// How this machine moves (its backend's `motion_profile`: rapid rate, acceleration,
+    /// cornering), for the time estimate of programs uploaded for it. Asked once and kept (it
+    /// is the backend's configuration); `None` when the backend has none (then kept too) or
+    /// cannot answer now (asked again next time).
+    pub async fn motion_profile(&self) -> Option<fresa_gcode::MotionProfile> {
+        if let Some(p) = self.profile.get() {
+            return *p;
+        }
+        let known = match self.call(Request::MotionProfile, "").await {
+            Ok(v) => serde_json::from_value::<fresa_plugin_api::contract::MotionProfile>(v)
+                .ok()
+                .map(|p| fresa_gcode::MotionProfile {
+                    rapid_mm_min: p.rapid_mm_min,
+                    min_feed_mm_min: p.min_feed_mm_min,
+                    max_feed_mm_min: p.max_feed_mm_min,
+                    accel_mm_s2: p.accel_mm_s2,
+                    corner_jump_mm_s: p.corner_jump_mm_s,
+                }),
+            Err(e) if e.message.contains("unsupported") => None,
+            Err(_) => return None,
+        };
+        *self.profile.get_or_init(|| known)
+    }
+
     pub async fn artifact(&self, name: &str) -> Result<Value> {
         self.call(Request::GetArtifact { name: name.into() }, "")
             .await
@@ -813,7 +859,7 @@ impl Machine {
 
 /// The current run's row: its row at launch with the state and line published since (the task
 /// and readers without the database derive it the same way).
-fn current_row(view: Option<RunView>, launched: &Option<RunRow>) -> Option<RunRow> {
+fn current_row(view: Option<&RunView>, launched: &Option<RunRow>) -> Option<RunRow> {
     let view = view?;
     let mut row = launched.clone().filter(|r| r.id == view.run_id)?;
     row.state = view.state;
