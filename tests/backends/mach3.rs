@@ -220,7 +220,7 @@ fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode(build: Bu
     jog(&s, m, "X", 1.5);
     wait_idle_at(&s, m, 1.5, 0.0);
     assert_eq!(dro(&mut mach, 800), 1.5, "X DRO");
-    assert!(led(&mut mach, 48), "G91 restored");
+    assert!(led(&mut mach, 49), "G91 restored");
     assert_eq!(dro(&mut mach, 819), 0.0, "G0 restored");
     assert_eq!(dro(&mut mach, 818), 250.0, "F250 restored");
 
@@ -235,7 +235,7 @@ fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode(build: Bu
     jog(&s, m, "X", 1.25);
     let st = wait_idle_at(&s, m, 2.75, -2.25);
     assert_eq!(pos(&st, "machine_position", "x"), 2.75);
-    assert!(!led(&mut mach, 48), "G90 restored");
+    assert!(!led(&mut mach, 49) && led(&mut mach, 48), "G90 restored");
     assert_eq!(dro(&mut mach, 819), 1.0, "G1 restored");
     assert_eq!(dro(&mut mach, 818), 300.0, "F300 restored");
 
@@ -543,7 +543,7 @@ fn mdi_lines_restore_the_modal_state_and_outputs_switch(build: Build) {
     )
     .expect(200);
     wait_idle_at(&s, m, 2.0, -1.0);
-    assert!(!led(&mut mach, 48), "G90 restored");
+    assert!(!led(&mut mach, 49) && led(&mut mach, 48), "G90 restored");
     assert_eq!(dro(&mut mach, 819), 1.0, "G1 restored");
     assert_eq!(dro(&mut mach, 818), 300.0, "F300 restored");
 
@@ -564,7 +564,7 @@ fn mdi_lines_restore_the_modal_state_and_outputs_switch(build: Build) {
         .expect_error(422, "backend_rejected");
     assert!(e.contains("unsupported"), "{e}");
     // The spindle's MDI also left the modal state alone.
-    assert!(!led(&mut mach, 48), "still G90");
+    assert!(!led(&mut mach, 49) && led(&mut mach, 48), "still G90");
     assert_eq!(dro(&mut mach, 818), 300.0, "still F300");
 }
 

@@ -167,13 +167,14 @@ pub const TABLE: &[(Code, &str, Kind, i16, &str)] = &[
         999,
         "System moving",
     ),
-    // Not in the project's code table (its LED rows were unreadable): OEM LED 48 is the G91
-    // LED in Mach3 screen sets. Check it on the installation; override if it differs.
+    // Not in the project's code table (its LED rows were unreadable). The Mach3 plugin SDK's
+    // `Mach3Led.h` names OEM LED 48 "Abs Coordinate Mode" and 49 "Incremental Coordinate
+    // Mode", and Mach3 macros restore G91 when LED 48 is out: 49 is the G91 lamp.
     (
         Code::IncrementalLed,
         "led_incremental",
         Kind::Led,
-        48,
+        49,
         "G91 (incremental) active",
     ),
     (Code::FloodOn, "flood_on", Kind::Button, 224, "Flood ON"),

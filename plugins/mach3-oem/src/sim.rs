@@ -4,7 +4,7 @@
 //! * Axis DROs 800-805 show work coordinates (machine position minus the active fixture's
 //!   offset, DROs 830-835; fixture number in DRO 46). MDI `Code()` understands G0 G1 G90 G91
 //!   G54-G59 `G10 L2 P..` F and X..C words, keeps G90/G91, G0/G1 and F modal between calls and
-//!   queues the moves; LED 48 lights in G91.
+//!   queues the moves; LED 48 lights in G90, LED 49 in G91 (as in Mach3's `Mach3Led.h`).
 //! * `LoadFile` interprets the whole file with `fresa-gcode`; cycle start (1000) runs it from
 //!   the line in DRO 816 (0-based), advancing DRO 816 and the elapsed time in DRO 814 (DRO 815 is
 //!   the estimate). M0 pauses, M2/M30 end the run and rewind DRO 816 to 0. LED 804 = running.
@@ -58,7 +58,8 @@ mod code {
     pub const LED_PAUSED: i16 = 805;
     pub const LED_REFERENCED_X: i16 = 807;
     pub const LED_MOVING: i16 = 999;
-    pub const LED_INCREMENTAL: i16 = 48;
+    pub const LED_ABSOLUTE: i16 = 48;
+    pub const LED_INCREMENTAL: i16 = 49;
     pub const FLOOD_ON: i16 = 224;
     pub const FLOOD_OFF: i16 = 225;
     pub const MIST_ON: i16 = 226;
@@ -621,6 +622,7 @@ impl State {
             code::LED_RUNNING => self.running,
             code::LED_PAUSED => self.paused,
             code::LED_MOVING => self.moving(),
+            code::LED_ABSOLUTE => !self.incremental,
             code::LED_INCREMENTAL => self.incremental,
             code::LED_SPINDLE_CW => self.spindle == 1,
             code::LED_SPINDLE_CCW => self.spindle == -1,
