@@ -52,6 +52,11 @@ impl Agent {
 
     /// [`Agent::start`] with more command-line options.
     fn start_with(build: Build, listen: &str, options: &[&str]) -> Agent {
+        Agent::start_scaled(build, listen, TIME_SCALE, options)
+    }
+
+    /// [`Agent::start_with`] with its own time scale (1.0: real time).
+    fn start_scaled(build: Build, listen: &str, time_scale: f64, options: &[&str]) -> Agent {
         let programs = tempfile::tempdir().unwrap();
         let (mut cmd, program_dir) = match build {
             Build::Linux => (
@@ -65,7 +70,7 @@ impl Agent {
         };
         let mut child = cmd
             .args(["--simulate", "--listen", listen, "--time-scale"])
-            .arg(TIME_SCALE.to_string())
+            .arg(time_scale.to_string())
             .arg("--program-dir")
             .arg(program_dir)
             .args(options)
@@ -100,7 +105,12 @@ impl Agent {
 
     /// The operator presses a button on the (simulated) Mach3 screen.
     fn press(&mut self, code: i16) {
-        writeln!(self.stdin, "button {code}").unwrap();
+        self.operator(&format!("button {code}"));
+    }
+
+    /// An operator action on the simulated Mach3 (see the agent's `--simulate`).
+    fn operator(&mut self, action: &str) {
+        writeln!(self.stdin, "{action}").unwrap();
         self.stdin.flush().unwrap();
     }
 
@@ -220,7 +230,7 @@ fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode(build: Bu
     jog(&s, m, "X", 1.5);
     wait_idle_at(&s, m, 1.5, 0.0);
     assert_eq!(dro(&mut mach, 800), 1.5, "X DRO");
-    assert!(led(&mut mach, 48), "G91 restored");
+    assert!(led(&mut mach, 49), "G91 restored");
     assert_eq!(dro(&mut mach, 819), 0.0, "G0 restored");
     assert_eq!(dro(&mut mach, 818), 250.0, "F250 restored");
 
@@ -235,7 +245,7 @@ fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode(build: Bu
     jog(&s, m, "X", 1.25);
     let st = wait_idle_at(&s, m, 2.75, -2.25);
     assert_eq!(pos(&st, "machine_position", "x"), 2.75);
-    assert!(!led(&mut mach, 48), "G90 restored");
+    assert!(!led(&mut mach, 49) && led(&mut mach, 48), "G90 restored");
     assert_eq!(dro(&mut mach, 819), 1.0, "G1 restored");
     assert_eq!(dro(&mut mach, 818), 300.0, "F300 restored");
 
@@ -543,7 +553,7 @@ fn mdi_lines_restore_the_modal_state_and_outputs_switch(build: Build) {
     )
     .expect(200);
     wait_idle_at(&s, m, 2.0, -1.0);
-    assert!(!led(&mut mach, 48), "G90 restored");
+    assert!(!led(&mut mach, 49) && led(&mut mach, 48), "G90 restored");
     assert_eq!(dro(&mut mach, 819), 1.0, "G1 restored");
     assert_eq!(dro(&mut mach, 818), 300.0, "F300 restored");
 
@@ -564,7 +574,7 @@ fn mdi_lines_restore_the_modal_state_and_outputs_switch(build: Build) {
         .expect_error(422, "backend_rejected");
     assert!(e.contains("unsupported"), "{e}");
     // The spindle's MDI also left the modal state alone.
-    assert!(!led(&mut mach, 48), "still G90");
+    assert!(!led(&mut mach, 49) && led(&mut mach, 48), "still G90");
     assert_eq!(dro(&mut mach, 818), 300.0, "still F300");
 }
 
@@ -696,6 +706,401 @@ fn the_protocol_refuses_bad_secrets_and_frames_and_releases_jogs_of_a_lost_link(
     drop(jogger);
 }
 
+// ---- overrides (issue 26) ----------------------------------------------------------------
+
+/// Forty G1 lines of 20 mm at F600: 80 s of machine time (0.8 s at the agent's time scale,
+/// long enough to hold it midway on a loaded machine).
+fn feed_program() -> String {
+    let mut p = String::from("G21 G90 G54\n");
+    for _ in 0..20 {
+        p.push_str("G1 X20 F600\nG1 X0\n");
+    }
+    p.push_str("M30\n");
+    p
+}
+
+/// Six rapids of 50 mm at the simulator's 5000 mm/min: 3.6 s of machine time.
+fn rapid_program() -> String {
+    let mut p = String::from("G21 G90 G54\n");
+    for _ in 0..3 {
+        p.push_str("G0 X50\nG0 X0\n");
+    }
+    p.push_str("M30\n");
+    p
+}
+
+/// Runs `job` to completion and answers Mach3's own elapsed-time DRO (814): the run's machine
+/// time in the simulator, whatever the host's load.
+fn elapsed_of_run(s: &Server, mach: &mut AgentClient, job: i64) -> f64 {
+    s.job_action(job, "start").expect(200);
+    s.wait_job_state(job, "completed", T);
+    dro(mach, 814)
+}
+
+fn overrides_of(st: &Value) -> [f64; 3] {
+    ["feed_override", "spindle_override", "rapid_override"].map(|k| st[k].as_f64().unwrap())
+}
+
+/// Feed, spindle and rapid overrides go into Mach3's DROs (821, 74, 223) before the answer,
+/// the status reads them back, and Mach3 honours them: a run at a 50 % feed override takes
+/// twice the machine time (Mach3's elapsed DRO), one whose override changes while it is held
+/// mid-run takes the mix, and a rapid override is in force only while Mach3's "override of
+/// rapid feeds" toggle is on (switched on by the plugin, off again by the operator on the
+/// Mach3 screen: the status then says 100). A machine whose toggle LED code is wrong is refused
+/// and nothing changes.
+fn overrides_go_to_mach3s_dros_and_slow_its_run(build: Build) {
+    let mut agent = Agent::start(build, "127.0.0.1:0");
+    let mut mach = agent.client();
+    let s = Server::start();
+    let m = machine(&s, "mach3", &agent);
+    reset_to_idle(&s, m);
+    assert_eq!(overrides_of(&s.status(m)), [100.0, 100.0, 100.0]);
+    let path = format!("/api/v1/machines/{m}/overrides");
+
+    let feed_job = s.upload(m, "feeds", feed_program())["id"].as_i64().unwrap();
+    let full = elapsed_of_run(&s, &mut mach, feed_job);
+    assert!((full - 80.0).abs() < 1e-6, "80 s of feed moves: {full}");
+
+    // The latency an operator sees: HTTP request to answer, the DRO already set by then.
+    let mut times = Vec::new();
+    for k in 0..20 {
+        let feed = if k % 2 == 0 { 60.0 } else { 50.0 };
+        let t = std::time::Instant::now();
+        let r = s
+            .post(&path, &json!({"feed": feed, "spindle": 120}))
+            .expect(200);
+        times.push(t.elapsed());
+        assert_eq!(r, json!({"feed": feed, "spindle": 120.0, "rapid": 100.0}));
+        assert_eq!(
+            dro(&mut mach, 821),
+            feed,
+            "Mach3's FRO is set when the answer comes"
+        );
+    }
+    times.sort();
+    eprintln!(
+        "mach3 override: POST /overrides answered in min {:?}, median {:?}, max {:?} ({build:?} agent)",
+        times[0],
+        times[times.len() / 2],
+        times[times.len() - 1]
+    );
+    assert_eq!(dro(&mut mach, 74), 120.0, "spindle override DRO");
+    assert_eq!(overrides_of(&s.status(m)), [50.0, 120.0, 100.0]);
+    let half = elapsed_of_run(&s, &mut mach, feed_job);
+    assert!(
+        (half - 2.0 * full).abs() < 1e-6,
+        "{full} s at 100 %, {half} s at 50 %"
+    );
+
+    // Changed during a run: held mid-run at 50 %, resumed at 100 %. What was left of the
+    // run at 50 % takes half that time.
+    s.job_action(feed_job, "start").expect(200);
+    s.wait_job(feed_job, T, "past line 3", |j| {
+        j["state"] == "running" && j["line"].as_i64().unwrap() > 3
+    });
+    s.job_action(feed_job, "pause").expect(200);
+    s.wait_machine_state(m, "paused", T);
+    let held = dro(&mut mach, 814);
+    s.post(&path, &json!({"feed": 100})).expect(200);
+    assert_eq!(
+        s.status(m)["state"],
+        "paused",
+        "an override does not resume a run"
+    );
+    s.job_action(feed_job, "resume").expect(200);
+    s.wait_job_state(feed_job, "completed", T);
+    let mixed = dro(&mut mach, 814);
+    let expected = held + (half - held) / 2.0;
+    assert!(
+        held > 0.0 && (mixed - expected).abs() < 1e-6,
+        "held at {held} s of {half}; then at 100 %: {mixed}, expected {expected}"
+    );
+
+    // The spindle override scales Mach3's programmed speed.
+    s.mdi(m, "M3 S1000").expect(200);
+    assert_eq!(dro(&mut mach, 202), 1200.0, "overridden spindle speed");
+    s.mdi(m, "M5").expect(200);
+
+    // Rapids: 3.6 s at the rapid rate; a 25 % override switches Mach3's rapid override on.
+    let rapid_job = s.upload(m, "rapids", rapid_program())["id"]
+        .as_i64()
+        .unwrap();
+    let rapid_full = elapsed_of_run(&s, &mut mach, rapid_job);
+    assert!((rapid_full - 3.6).abs() < 1e-6, "{rapid_full}");
+    assert!(!led(&mut mach, 109), "Mach3 starts with rapid override off");
+    let r = s.post(&path, &json!({"rapid": 25})).expect(200);
+    assert_eq!(r["rapid"], 25.0, "{r}");
+    assert!(led(&mut mach, 109), "rapid override switched on");
+    assert_eq!(dro(&mut mach, 223), 25.0);
+    let slow = elapsed_of_run(&s, &mut mach, rapid_job);
+    assert!((slow - 4.0 * rapid_full).abs() < 1e-6, "{slow} s at 25 %");
+    // The operator switches rapid override off on the Mach3 screen: the DRO still says 25,
+    // but rapids run at full speed again, and the status says what is in force.
+    agent.press(287);
+    s.wait_status(m, T, "rapid override 100 once off", |st| {
+        st["rapid_override"] == 100.0
+    });
+    assert_eq!(dro(&mut mach, 223), 25.0);
+    let again = elapsed_of_run(&s, &mut mach, rapid_job);
+    assert!((again - rapid_full).abs() < 1e-6, "{again}");
+    s.post(&path, &json!({"rapid": 50})).expect(200);
+    assert!(led(&mut mach, 109), "switched on again, not toggled off");
+    assert_eq!(overrides_of(&s.status(m)), [100.0, 120.0, 50.0]);
+
+    // A Mach3 whose toggle lamp is not where the config says: the toggle is pressed, does not
+    // light the configured LED, is pressed back, and nothing changes.
+    agent.press(287); // rapid override off again
+    s.wait_status(m, T, "rapid override off", |st| {
+        st["rapid_override"] == 100.0
+    });
+    let odd = s.create_machine(&json!({
+        "name": "odd-leds", "backend": "mach3-oem",
+        "config": {"agent": agent.addr, "secret": SECRET, "poll_hz": 20,
+                   "codes": {"led_rapid_override": 108}},
+    }));
+    s.wait_machine_state(odd, "idle", T);
+    let msg = s
+        .post(
+            &format!("/api/v1/machines/{odd}/overrides"),
+            &json!({"rapid": 25, "feed": 80}),
+        )
+        .expect_error(422, "backend_rejected");
+    assert!(msg.contains("led_rapid_override"), "{msg}");
+    assert!(!led(&mut mach, 109), "the toggle was put back");
+    assert_eq!(dro(&mut mach, 223), 50.0, "the rapid DRO was put back");
+    assert_eq!(dro(&mut mach, 821), 100.0, "no feed override set either");
+}
+
+// ---- probing (issue 25) ------------------------------------------------------------------
+
+fn probing_machine(s: &Server, name: &str, agent: &Agent) -> i64 {
+    s.create_machine(&json!({
+        "name": name, "backend": "mach3-oem", "max_jog_mm": 60.0,
+        "max_probe_feed_mm_min": 1200.0,
+        "config": {"agent": agent.addr, "secret": SECRET, "poll_hz": 20},
+    }))
+}
+
+fn z(v: &Value) -> f64 {
+    v["z"].as_f64().unwrap_or_else(|| panic!("no z in {v}"))
+}
+
+/// A Z touch-off on Mach3: a G31 through the agent down onto a plate whose top is at machine
+/// Z -20 (the simulated Mach3's probe input), the trip read back from #2000-#2002, G54 Z set
+/// so Z reads the plate's 15 mm there, a 5 mm retract. Mach3's own DROs say the same, and
+/// the modal state the operator left (G91 G0 F250) is back. Overshoots at three feeds are
+/// printed (the README's figures).
+fn a_z_touch_off_on_mach3_sets_g54_from_g31s_trip(build: Build) {
+    let agent = Agent::start_with(build, "127.0.0.1:0", &["--probe", "z<=-20"]);
+    let mut mach = agent.client();
+    let s = Server::start();
+    let m = probing_machine(&s, "mach3-probe", &agent);
+    reset_to_idle(&s, m);
+    let st = s.status(m);
+    assert_eq!(
+        st["inputs"]["probe"], false,
+        "Mach3's probe input (LED 825): {st}"
+    );
+    mach3(
+        &mut mach,
+        vec![Call::Code {
+            line: "G91 G0 F250".into(),
+        }],
+    );
+    let r = s
+        .post(
+            &format!("/api/v1/machines/{m}/touch-off"),
+            &json!({"axis": "Z", "plate_mm": 15, "distance": 50, "feed": 300, "retract_mm": 5}),
+        )
+        .expect(200);
+    assert!(
+        (z(&r["trip"]) + 20.0).abs() < 1e-9,
+        "trip at the plate: {r}"
+    );
+    let overshoot = r["overshoot_mm"].as_f64().unwrap();
+    assert!(
+        overshoot > 0.0 && overshoot < 0.1,
+        "Mach3 stops a little past the trip: {r}"
+    );
+    assert!(
+        (z(&r["after"]) + 35.0).abs() < 1e-9,
+        "G54 Z = -20 - 15: {r}"
+    );
+    assert!(
+        (z(&r["work_position"]) - (20.0 - overshoot)).abs() < 1e-6,
+        "5 mm above the trip's 15: {r}"
+    );
+    // Mach3 itself: the fixture DRO, the work Z DRO, the trip parameter, the modal state.
+    assert!((dro(&mut mach, 832) + 35.0).abs() < 1e-9, "G54 Z in Mach3");
+    assert!((dro(&mut mach, 802) - (20.0 - overshoot)).abs() < 1e-6);
+    let trip = mach3(&mut mach, vec![Call::GetVar { var: 2002 }])[0]
+        .as_f64()
+        .unwrap();
+    assert!(
+        (trip + 20.0).abs() < 1e-9,
+        "#2002 (work Z then: G54 was 0) {trip}"
+    );
+    assert!(led(&mut mach, 49), "G91 put back");
+    assert_eq!(dro(&mut mach, 819), 0.0, "G0 put back, not G31");
+    assert_eq!(dro(&mut mach, 818), 250.0, "F250 put back");
+    let st = s.status(m);
+    assert_eq!(st["state"], "idle", "{st}");
+    assert_eq!(st["inputs"]["probe"], false, "off the plate: {st}");
+    let stored = s.get(&format!("/api/v1/machines/{m}/offsets")).expect(200);
+    assert!(
+        (z(&stored["offsets"]["G54"]) + 35.0).abs() < 1e-9,
+        "{stored}"
+    );
+
+    // Trip to stop at three feeds (the scripting endpoint, from 5 mm above the plate).
+    for feed in [100.0, 300.0, 1200.0] {
+        let r = s
+            .post(
+                &format!("/api/v1/machines/{m}/probe"),
+                &json!({"axis": "Z", "toward": "-", "distance": 10, "feed": feed}),
+            )
+            .expect(200);
+        assert_eq!(r["outcome"], "tripped", "{r}");
+        assert!((z(&r["trip"]) + 20.0).abs() < 1e-9, "{r}");
+        eprintln!(
+            "mach3 probe at {feed} mm/min: overshoot {:.4} mm ({build:?} agent)",
+            r["overshoot_mm"].as_f64().unwrap()
+        );
+        s.jog(m, "Z", 5.0).expect(200);
+        s.wait_status(m, T, "up off the plate", |st| {
+            st["state"] == "idle" && st["inputs"]["probe"] == false
+        });
+    }
+}
+
+/// A probe that runs its whole distance touches nothing and changes nothing; onto the plate
+/// it trips; already touching it is refused, as is probing for the release (Mach3's G31 has
+/// none). The plate is moved by the operator between them.
+fn a_mach3_probe_that_never_touches_changes_nothing(build: Build) {
+    let mut agent = Agent::start_with(build, "127.0.0.1:0", &["--probe", "z<=-80"]);
+    let mut mach = agent.client();
+    let s = Server::start();
+    let m = probing_machine(&s, "mach3-far", &agent);
+    reset_to_idle(&s, m);
+    let msg = s
+        .post(
+            &format!("/api/v1/machines/{m}/touch-off"),
+            &json!({"axis": "Z", "plate_mm": 15, "distance": 30, "feed": 600}),
+        )
+        .expect_error(422, "probe_not_tripped");
+    assert!(msg.contains("30 mm"), "{msg}");
+    assert_eq!(dro(&mut mach, 832), 0.0, "no offset changed in Mach3");
+    assert_eq!(dro(&mut mach, 802), -30.0, "ran its whole distance");
+    let probe = format!("/api/v1/machines/{m}/probe");
+    let r = s
+        .post(
+            &probe,
+            &json!({"axis": "Z", "toward": "-", "distance": 10, "feed": 600}),
+        )
+        .expect(200);
+    assert_eq!(r["outcome"], "not_tripped", "{r}");
+    assert!(r["trip"].is_null(), "{r}");
+    assert!((z(&r["position"]) + 40.0).abs() < 1e-9, "{r}");
+    let r = s
+        .post(
+            &probe,
+            &json!({"axis": "Z", "toward": "-", "distance": 50, "feed": 600}),
+        )
+        .expect(200);
+    assert_eq!(r["outcome"], "tripped", "{r}");
+    assert!((z(&r["trip"]) + 80.0).abs() < 1e-9, "{r}");
+    s.wait_status(m, T, "the probe input lit", |st| {
+        st["inputs"]["probe"] == true
+    });
+    let msg = s
+        .post(
+            &probe,
+            &json!({"axis": "Z", "toward": "-", "distance": 5, "feed": 600}),
+        )
+        .expect_error(409, "probe_already_in_state");
+    assert!(msg.contains("825"), "{msg}");
+    let msg = s
+        .post(
+            &probe,
+            &json!({"axis": "Z", "toward": "+", "distance": 5, "feed": 600, "until": "release"}),
+        )
+        .expect_error(422, "probe_unsupported");
+    assert!(msg.contains("G31") && msg.contains("release"), "{msg}");
+    // The operator takes the plate away: the input goes out.
+    agent.operator("probe off");
+    s.wait_status(m, T, "the probe input out", |st| {
+        st["inputs"]["probe"] == false
+    });
+    assert!(!led(&mut mach, 49) && led(&mut mach, 48), "still G90");
+    assert_eq!(
+        dro(&mut mach, 819),
+        0.0,
+        "G0 (Mach3's start-up mode), not G31"
+    );
+}
+
+/// STOP during a probe on Mach3 stops it: the touch-off answers `stopped` once Mach3 no
+/// longer moves, far from the end, no offset changes, and the modal state is put back.
+fn stop_during_a_mach3_probe_stops_it_and_changes_nothing(build: Build) {
+    // Real time: the probe lasts 10 s, long enough to stop it midway.
+    let mut agent = Agent::start_scaled(build, "127.0.0.1:0", 1.0, &["--probe", "z<=-95"]);
+    let mut mach = agent.client();
+    let s = std::sync::Arc::new(Server::start());
+    let m = probing_machine(&s, "mach3-stop", &agent);
+    reset_to_idle(&s, m);
+    let prober = {
+        let s = s.clone();
+        std::thread::spawn(move || {
+            s.post(
+                &format!("/api/v1/machines/{m}/touch-off"),
+                &json!({"axis": "Z", "plate_mm": 10, "distance": 50, "feed": 300}),
+            )
+        })
+    };
+    s.wait_status(m, T, "probing down", |st| {
+        st["state"] == "jogging" && z(&st["machine_position"]) < -0.5
+    });
+    assert_eq!(dro(&mut mach, 819), 31.0, "Mach3 runs a G31");
+    s.command(m, "stop", json!({})).expect(200);
+    let msg = prober.join().unwrap().expect_error(409, "stopped");
+    assert!(msg.contains("stopped"), "{msg}");
+    assert!(!mach3(&mut mach, vec![Call::IsMoving])[0].as_bool().unwrap());
+    let st = s.status(m);
+    assert_eq!(st["state"], "idle", "{st}");
+    assert!(z(&st["machine_position"]) > -40.0, "stopped midway: {st}");
+    assert_eq!(dro(&mut mach, 832), 0.0, "no offset changed");
+    assert_eq!(dro(&mut mach, 819), 0.0, "G31 replaced by the G0 found");
+
+    // In real time, how long after the trip the answer comes: the plate 2 mm below, probed
+    // at 300 mm/min (0.4 s to the trip, then Mach3's stop); the rest is Fresa's part (the
+    // poll that sees the motion end, reading the trip, the HTTP answer).
+    let start = z(&st["machine_position"]);
+    // The plate moved in two steps the status shows, so it is in place before the request.
+    agent.operator("probe z<=1000");
+    s.wait_status(m, T, "the probe input lit", |st| {
+        st["inputs"]["probe"] == true
+    });
+    agent.operator(&format!("probe z<={}", start - 2.0));
+    s.wait_status(m, T, "the probe input out", |st| {
+        st["inputs"]["probe"] == false
+    });
+    let t = std::time::Instant::now();
+    let r = s
+        .post(
+            &format!("/api/v1/machines/{m}/probe"),
+            &json!({"axis": "Z", "toward": "-", "distance": 5, "feed": 300}),
+        )
+        .expect(200);
+    let answered = t.elapsed().as_secs_f64();
+    assert_eq!(r["outcome"], "tripped", "{r}");
+    let to_trip = (start - z(&r["trip"])) / 5.0;
+    eprintln!(
+        "mach3 probe in real time: trip {to_trip:.3} s after the request, answered after \
+         {answered:.3} s: {:.0} ms from the trip to the answer ({build:?} agent, poll 20 Hz)",
+        (answered - to_trip) * 1000.0
+    );
+}
+
 /// `mod NAME { linux, win7_32bit_wine }`: the test `NAME(build)` against each agent build.
 macro_rules! on_every_agent {
     ($($name:ident),* $(,)?) => {$(
@@ -720,4 +1125,8 @@ on_every_agent!(
     mach3_closing_shows_offline_with_that_reason_and_recovers,
     mdi_lines_restore_the_modal_state_and_outputs_switch,
     spindle_and_coolant_toggle_with_read_back_and_show_in_the_status,
+    overrides_go_to_mach3s_dros_and_slow_its_run,
+    a_z_touch_off_on_mach3_sets_g54_from_g31s_trip,
+    a_mach3_probe_that_never_touches_changes_nothing,
+    stop_during_a_mach3_probe_stops_it_and_changes_nothing,
 );

@@ -169,6 +169,7 @@ impl Connection {
                 agent: protocol::AGENT_NAME.into(),
                 protocol: protocol::PROTOCOL_VERSION,
                 nonce: nonce.clone(),
+                features: protocol::FEATURES.iter().map(|f| f.to_string()).collect(),
             },
         )?;
         let mut buf = Vec::new();

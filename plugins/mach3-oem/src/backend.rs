@@ -7,11 +7,11 @@ use crate::client::{AgentClient, LinkError};
 use crate::codes::{Code, IO_LEDS};
 use crate::config::Config;
 use crate::mach3::{Call, ErrorKind};
-use crate::protocol::{CallResult, PROGRAM_CHUNK_BYTES};
+use crate::protocol::{CallResult, FEATURE_GET_VAR, PROGRAM_CHUNK_BYTES};
 use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
 use fresa_plugin_api::contract::{
     io, Axis, AxisValues, Event, IoValue, MachineState, MachineStatus, OffsetTable, OutputName,
-    ProgramLoaded, RunAction, RunAnswer, RunOutcome, WorkOffset,
+    Probe, ProbeOutcome, ProbeUntil, ProgramLoaded, RunAction, RunAnswer, RunOutcome, WorkOffset,
 };
 use fresa_plugin_api::{Host, PluginError};
 use serde_json::{json, Value};
@@ -31,6 +31,16 @@ const BACKOFF_MIN: Duration = Duration::from_millis(200);
 const BACKOFF_MAX: Duration = Duration::from_secs(5);
 /// How long reset waits for LED 800 to go out.
 const RESET_CONFIRM: Duration = Duration::from_secs(2);
+/// How long the rapid override's LED may take to light after its toggle was pressed.
+const TOGGLE_CONFIRM: Duration = Duration::from_millis(500);
+/// G31's trip: Mach3's parameters #2000-#2003 (X, Y, Z, A, in work coordinates).
+const VAR_PROBE_X: i16 = 2000;
+/// How far (mm) a G31 may come to rest from its end and still count as having run its whole
+/// distance: the line's 4 decimals, with room for Mach3's own rounding to steps.
+const PROBE_END_TOLERANCE: f64 = 0.001;
+/// How far (mm) a reported trip may lie outside the probed path (the G31's start to where it
+/// came to rest) and still be believed.
+const PROBE_TRIP_TOLERANCE: f64 = 0.01;
 
 struct Link {
     client: AgentClient,
@@ -50,6 +60,22 @@ struct Loaded {
     last_active_line: u32,
 }
 
+/// A G31 sent by `probe`, followed by the poller until its motion ended.
+#[derive(Debug, Clone, Copy)]
+struct ProbeTrack {
+    id: u64,
+    axis: Axis,
+    /// The probed axis's machine position when the G31 was sent.
+    start: f64,
+    /// Where the G31 line ends on that axis, work coordinates (as sent).
+    target_work: f64,
+    started: Instant,
+    saw_moving: bool,
+    stop_requested: bool,
+    /// Motion ended: the outcome is read next (`Inner::finish_probe`).
+    ended: bool,
+}
+
 #[derive(Debug, Clone, Copy)]
 struct RunTrack {
     loaded: Loaded,
@@ -66,6 +92,10 @@ struct Shared {
     run: Option<RunTrack>,
     /// Machine origins of G54..G59 as last read or set (Mach3 shows only the active one).
     offsets: [[f64; 4]; 6],
+    probe: Option<ProbeTrack>,
+    /// The MDI line that puts back the modal state a probe changed (G90, G31, F), until it
+    /// has been sent to a Mach3 out of reset.
+    restore: Option<String>,
     shutdown: bool,
 }
 
@@ -142,6 +172,116 @@ fn num(v: &Value) -> f64 {
     v.as_f64().unwrap_or(0.0)
 }
 
+/// How probe `t` ended, from Mach3 at rest (`p`) and its trip parameters #2000-#2003 (work
+/// coordinates): `(outcome, trip in machine coordinates, message)`. Mach3's G31 leaves no
+/// flag saying whether it touched; the probe input still active where the axis came to rest
+/// (pressed against the plate) says it did, as Mach3's own probing macros take it.
+fn probe_outcome(
+    t: &ProbeTrack,
+    p: &Poll,
+    vars: Result<Vec<f64>, String>,
+) -> (ProbeOutcome, Option<AxisValues>, Option<String>) {
+    let i = t.axis.index();
+    let rest = p.work[i] + p.fixture[i];
+    let failed = |m: String| (ProbeOutcome::Failed, None, Some(m));
+    if p.estop {
+        return failed("Mach3 went into reset during the probe (e-stop or a limit switch)".into());
+    }
+    if p.led(Code::ProbeLed) {
+        let vars = match vars {
+            Ok(v) if v.len() == 4 => v,
+            Ok(_) => return failed("the probe touched, but Mach3's trip was not read".into()),
+            Err(e) => {
+                return failed(format!(
+                    "the probe touched, but Mach3's trip (#2000-#2003) could not be read: {e}"
+                ))
+            }
+        };
+        let trip: [f64; 4] = std::array::from_fn(|k| vars[k] + p.fixture[k]);
+        let (lo, hi) = (t.start.min(rest), t.start.max(rest));
+        if (lo - PROBE_TRIP_TOLERANCE..=hi + PROBE_TRIP_TOLERANCE).contains(&trip[i]) {
+            return (
+                ProbeOutcome::Tripped,
+                Some(AxisValues::from_array(trip)),
+                None,
+            );
+        }
+        return failed(format!(
+            "Mach3 shows the probe touching, but its trip #{} = {:.4} (machine {:.4}) is not \
+             between where the G31 started ({:.4}) and where it stopped ({rest:.4})",
+            i as i16 + VAR_PROBE_X,
+            vars[i],
+            trip[i],
+            t.start
+        ));
+    }
+    if t.stop_requested {
+        return (
+            ProbeOutcome::Stopped,
+            None,
+            Some("stopped before the probe touched".into()),
+        );
+    }
+    let short = (p.work[i] - t.target_work).abs();
+    if short <= PROBE_END_TOLERANCE {
+        return (ProbeOutcome::NotTripped, None, None);
+    }
+    if !t.saw_moving && (rest - t.start).abs() <= 1e-9 {
+        return failed(
+            "Mach3 did not move for the G31 line (see Mach3's status line for why)".into(),
+        );
+    }
+    failed(format!(
+        "the G31 came to rest {short:.3} mm short of its end with the probe open (stopped on \
+         the Mach3 screen, or a soft limit?)"
+    ))
+}
+
+/// The status batch's answers (`Inner::status_calls`, in its order) as a [`Poll`]; the first
+/// that failed says why (Mach3 not running, not answering).
+fn parse_poll(results: Vec<CallResult>) -> Result<Poll, String> {
+    let mut values = Vec::with_capacity(results.len());
+    for r in results {
+        match r {
+            CallResult::Ok(v) => values.push(v),
+            CallResult::Err(e) if e.kind == ErrorKind::NotRunning => {
+                return Err(format!(
+                    "Mach3 is not running on the agent's PC ({}); retrying",
+                    e.message
+                ))
+            }
+            CallResult::Err(e) => return Err(format!("Mach3 did not answer: {e}; retrying")),
+        }
+    }
+    // Taken in `status_calls`' order: DROs, then LEDs.
+    let mut next = values.iter();
+    let mut take = move || next.next();
+    let n = |v: Option<&Value>| v.map(num).unwrap_or(0.0);
+    let b = |v: Option<&Value>| v.and_then(Value::as_bool).unwrap_or(false);
+    let work = std::array::from_fn(|_| n(take()));
+    let fixture = std::array::from_fn(|_| n(take()));
+    let (fixture_number, line, feed) = (n(take()), n(take()), n(take()));
+    let (fro, sro, rapid_override) = (n(take()), n(take()), n(take()));
+    let (estop, running, paused) = (b(take()), b(take()), b(take()));
+    let (moving, rapid_override_on) = (b(take()), b(take()));
+    Ok(Poll {
+        work,
+        fixture,
+        fixture_number,
+        line,
+        feed,
+        fro,
+        sro,
+        rapid_override,
+        estop,
+        running,
+        paused,
+        moving,
+        rapid_override_on,
+        io_leds: (0..IO_LEDS.len()).map(|_| b(take())).collect(),
+    })
+}
+
 /// The status batch: what is read, in this order.
 struct Poll {
     work: [f64; 4],
@@ -150,12 +290,74 @@ struct Poll {
     line: f64,
     feed: f64,
     fro: f64,
+    sro: f64,
+    rapid_override: f64,
     estop: bool,
     running: bool,
     paused: bool,
     moving: bool,
+    /// "Override of rapid feeds" is on: the rapid override DRO is in force.
+    rapid_override_on: bool,
     /// The LEDs of `IO_LEDS`, in its order.
     io_leds: Vec<bool>,
+}
+
+impl Poll {
+    fn led(&self, code: Code) -> bool {
+        IO_LEDS
+            .iter()
+            .position(|(c, _, _)| *c == code)
+            .and_then(|i| self.io_leds.get(i).copied())
+            .unwrap_or(false)
+    }
+}
+
+/// The modal state a jog, MDI line or probe changes, as read before it.
+struct Modal {
+    incremental: bool,
+    /// DRO 819: 0 (G0), 1 (G1), or another motion mode that cannot be re-entered alone.
+    motion: i64,
+    feed: f64,
+    /// Feed override, %.
+    fro: f64,
+}
+
+impl Modal {
+    /// The MDI line that puts it back. G2/G3 cannot be re-entered without an arc, so then the
+    /// motion mode is left to the next program line, unless `motion_fallback` names one.
+    fn restore(&self, motion_fallback: Option<&str>) -> String {
+        let mut line = String::from(if self.incremental { "G91" } else { "G90" });
+        match (self.motion, motion_fallback) {
+            (0, _) => line.push_str(" G0"),
+            (1, _) => line.push_str(" G1"),
+            (_, Some(g)) => {
+                line.push(' ');
+                line.push_str(g);
+            }
+            (_, None) => {}
+        }
+        // F0 too: the F a move or probe set must not stay behind.
+        if self.feed.is_finite() && self.feed >= 0.0 {
+            line.push_str(&format!(" F{}", self.feed));
+        }
+        line
+    }
+
+    /// The F that makes a move go at `feed` mm/min under this feed override (Mach3 applies
+    /// FRO to MDI moves; jogs and probes keep their own feed).
+    fn own_feed(&self, feed: f64, what: &str) -> Result<f64, PluginError> {
+        if !(self.fro.is_finite() && self.fro > 0.0) {
+            return Err(PluginError::new(
+                "busy",
+                format!(
+                    "cannot {what}: Mach3's feed override is {} %, so nothing would move; set \
+                     it above 0 first",
+                    self.fro
+                ),
+            ));
+        }
+        Ok(feed * 100.0 / self.fro)
+    }
 }
 
 impl Inner {
@@ -236,6 +438,8 @@ impl Inner {
             Code::Line,
             Code::Feed,
             Code::FeedOverride,
+            Code::SpindleOverride,
+            Code::RapidOverride,
         ] {
             calls.push(Call::GetOemDro { code: c.get(code) });
         }
@@ -244,6 +448,7 @@ impl Inner {
             Code::RunningLed,
             Code::PausedLed,
             Code::MovingLed,
+            Code::RapidOverrideLed,
         ] {
             calls.push(Call::GetOemLed { code: c.get(code) });
         }
@@ -257,33 +462,7 @@ impl Inner {
         let results = self
             .batch(self.status_calls(), false)
             .map_err(|e| format!("{e}; retrying"))?;
-        let mut values = Vec::with_capacity(results.len());
-        for r in results {
-            match r {
-                CallResult::Ok(v) => values.push(v),
-                CallResult::Err(e) if e.kind == ErrorKind::NotRunning => {
-                    return Err(format!(
-                        "Mach3 is not running on the agent's PC ({}); retrying",
-                        e.message
-                    ))
-                }
-                CallResult::Err(e) => return Err(format!("Mach3 did not answer: {e}; retrying")),
-            }
-        }
-        let b = |i: usize| values[i].as_bool().unwrap_or(false);
-        Ok(Poll {
-            work: std::array::from_fn(|i| num(&values[i])),
-            fixture: std::array::from_fn(|i| num(&values[4 + i])),
-            fixture_number: num(&values[8]),
-            line: num(&values[9]),
-            feed: num(&values[10]),
-            fro: num(&values[11]),
-            estop: b(12),
-            running: b(13),
-            paused: b(14),
-            moving: b(15),
-            io_leds: (16..16 + IO_LEDS.len()).map(b).collect(),
-        })
+        parse_poll(results)
     }
 
     /// Reads the status from Mach3 and publishes what changed: status, state, line
@@ -293,7 +472,6 @@ impl Inner {
         let polled = self.read_poll();
         let mut sh = self.lock();
         let mut events = Vec::new();
-        let before = sh.status.clone();
         let status = match polled {
             Err(reason) => {
                 if let Some(t) = sh.run.take() {
@@ -307,10 +485,40 @@ impl Inner {
                         )),
                     });
                 }
+                if let Some(t) = sh.probe.take() {
+                    events.push(Event::ProbeEnded {
+                        id: t.id,
+                        outcome: ProbeOutcome::Failed,
+                        trip: None,
+                        position: sh.status.machine_position,
+                        message: Some(format!(
+                            "lost Mach3 during the probe ({reason}); Mach3 may still be moving: \
+                             check the machine"
+                        )),
+                    });
+                }
                 offline(reason)
             }
             Ok(p) => self.track(&mut sh, &p, &mut events),
         };
+        self.publish(&mut sh, status, events);
+        let ended = sh.probe.filter(|t| t.ended);
+        let put_back = match (&sh.probe, sh.status.state) {
+            (None, MachineState::Idle) => sh.restore.clone(),
+            _ => None,
+        };
+        drop(sh);
+        if let Some(t) = ended {
+            self.finish_probe(t);
+        } else if let Some(line) = put_back {
+            self.put_back(line);
+        }
+    }
+
+    /// Publishes `status` and what it implies (state change, alarm), then `events`, in the
+    /// order they happened. Under the lock, so events leave in the order states were seen.
+    fn publish(&self, sh: &mut Shared, status: MachineStatus, mut events: Vec<Event>) {
+        let before = sh.status.clone();
         sh.polled = true;
         if status.state != before.state {
             events.insert(
@@ -337,9 +545,73 @@ impl Inner {
             sh.status = status.clone();
             events.insert(0, Event::Status(status));
         }
-        // Emitted under the lock so events leave in the order the states were seen.
         self.emit(events);
-        drop(sh);
+    }
+
+    /// Sends the line that puts back the modal state a probe changed (its motion had ended
+    /// while Mach3 was in reset, or the link dropped before it could be sent).
+    fn put_back(&self, line: String) {
+        if self
+            .exec(vec![Call::Code { line: line.clone() }], false)
+            .is_ok()
+        {
+            let mut sh = self.lock();
+            if sh.restore.as_ref() == Some(&line) {
+                sh.restore = None;
+            }
+        }
+    }
+
+    /// The probe's motion ended: reads Mach3 again (everything now at rest), its trip
+    /// (#2000-#2003) and, in the same batch, puts back the modal state; then publishes the
+    /// status and, after it (the state has left `jogging`), `probe_ended`. If the link fails
+    /// here, the next poll reports the probe lost.
+    fn finish_probe(&self, t: ProbeTrack) {
+        let mut calls = self.status_calls();
+        let n = calls.len();
+        calls.extend((0..4).map(|k| Call::GetVar {
+            var: VAR_PROBE_X + k,
+        }));
+        let restore = self.lock().restore.clone();
+        if let Some(line) = &restore {
+            calls.push(Call::Code { line: line.clone() });
+        }
+        let Ok(mut results) = self.batch(calls, false) else {
+            return;
+        };
+        let tail = results.split_off(n.min(results.len()));
+        let Ok(p) = parse_poll(results) else {
+            return;
+        };
+        let vars: Result<Vec<f64>, String> = tail
+            .iter()
+            .take(4)
+            .map(|r| match r {
+                CallResult::Ok(v) => Ok(num(v)),
+                CallResult::Err(e) => Err(e.to_string()),
+            })
+            .collect();
+        // Mach3 ignores MDI in reset: the line is sent again once it is out of it.
+        let restored = !p.estop && matches!(tail.get(4), Some(CallResult::Ok(_)));
+        let mut sh = self.lock();
+        if sh.probe.map(|x| x.id) != Some(t.id) {
+            return;
+        }
+        sh.probe = None;
+        if restored && sh.restore == restore {
+            sh.restore = None;
+        }
+        let mut events = Vec::new();
+        let status = self.track(&mut sh, &p, &mut events);
+        let (outcome, trip, message) = probe_outcome(&t, &p, vars);
+        events.push(Event::ProbeEnded {
+            id: t.id,
+            outcome,
+            trip,
+            position: status.machine_position,
+            message,
+        });
+        self.publish(&mut sh, status, events);
     }
 
     fn track(&self, sh: &mut Shared, p: &Poll, events: &mut Vec<Event>) -> MachineStatus {
@@ -376,8 +648,13 @@ impl Inner {
             work_position: AxisValues::from_array(p.work),
             feed: p.feed,
             feed_override: p.fro,
-            spindle_override: 100.0,
-            rapid_override: 100.0,
+            spindle_override: p.sro,
+            // The DRO is in force only while Mach3 overrides rapids (button 287, LED 109).
+            rapid_override: if p.rapid_override_on {
+                p.rapid_override
+            } else {
+                100.0
+            },
             active_offset: active,
             run: None,
             line: None,
@@ -391,6 +668,20 @@ impl Inner {
             inputs,
             outputs,
         };
+        if let Some(mut t) = sh.probe.filter(|t| !t.ended) {
+            t.saw_moving |= p.moving;
+            let moved = (machine[t.axis.index()] - t.start).abs() > 1e-9;
+            let settled = !p.moving
+                && !p.paused
+                && (t.saw_moving || moved || t.started.elapsed() >= START_GRACE);
+            if p.estop || settled {
+                t.ended = true;
+            } else if status.state == MachineState::Idle {
+                // Sent and not moving yet: as good as under way.
+                status.state = MachineState::Jogging;
+            }
+            sh.probe = Some(t);
+        }
         let Some(mut t) = sh.run else {
             return status;
         };
@@ -509,10 +800,15 @@ impl Inner {
             )));
         }
         self.require("jog", &[MachineState::Idle, MachineState::Jogging])?;
-        let restore = self.modal_restore("jog")?;
+        if self.lock().probe.is_some() {
+            return Err(PluginError::new("busy", "cannot jog while Mach3 probes"));
+        }
+        let modal = self.read_modal("jog")?;
+        // Mach3 applies its feed override to MDI moves; a jog keeps its own feed.
+        let f = modal.own_feed(feed, "jog")?;
         self.mdi_then_restore(
-            format!("G91 G1 {}{distance} F{feed}", axis.letter()),
-            restore,
+            format!("G91 G1 {}{distance} F{f}", axis.letter()),
+            modal.restore(None),
         )
     }
 
@@ -525,13 +821,13 @@ impl Inner {
             ));
         }
         self.require("run MDI", &[MachineState::Idle])?;
-        let restore = self.modal_restore("run MDI")?;
+        let restore = self.read_modal("run MDI")?.restore(None);
         self.mdi_then_restore(line.to_string(), restore)
     }
 
-    /// Reads distance mode, motion mode and feed; refuses while a program runs or in reset.
-    /// Returns the MDI line that restores them.
-    fn modal_restore(&self, what: &str) -> Result<String, PluginError> {
+    /// Reads distance mode, motion mode, feed and feed override; refuses while a program runs
+    /// or in reset.
+    fn read_modal(&self, what: &str) -> Result<Modal, PluginError> {
         let c = &self.cfg.codes;
         let modal = self.exec(
             vec![
@@ -548,6 +844,9 @@ impl Inner {
                     code: c.get(Code::RunningLed),
                 },
                 Call::IsEstop,
+                Call::GetOemDro {
+                    code: c.get(Code::FeedOverride),
+                },
             ],
             false,
         )?;
@@ -563,22 +862,12 @@ impl Inner {
                 format!("cannot {what}: Mach3 is in reset (e-stop); send reset first"),
             ));
         }
-        let mut restore = String::from(if modal[0].as_bool().unwrap_or(false) {
-            "G91"
-        } else {
-            "G90"
-        });
-        match num(&modal[1]).round() as i64 {
-            0 => restore.push_str(" G0"),
-            1 => restore.push_str(" G1"),
-            // G2/G3 cannot be re-entered without an arc; the next program line sets its own.
-            _ => {}
-        }
-        let old_feed = num(&modal[2]);
-        if old_feed > 0.0 {
-            restore.push_str(&format!(" F{old_feed}"));
-        }
-        Ok(restore)
+        Ok(Modal {
+            incremental: modal[0].as_bool().unwrap_or(false),
+            motion: num(&modal[1]).round() as i64,
+            feed: num(&modal[2]),
+            fro: modal[5].as_f64().unwrap_or(100.0),
+        })
     }
 
     fn mdi_then_restore(&self, line: String, restore: String) -> Result<Value, PluginError> {
@@ -631,8 +920,14 @@ impl Inner {
     }
 
     fn stop(&self) -> Result<(), PluginError> {
-        if let Some(t) = self.lock().run.as_mut() {
-            t.stop_requested = true;
+        {
+            let mut sh = self.lock();
+            if let Some(t) = sh.run.as_mut() {
+                t.stop_requested = true;
+            }
+            if let Some(t) = sh.probe.as_mut() {
+                t.stop_requested = true;
+            }
         }
         self.button(Code::Stop, true)
     }
@@ -715,6 +1010,235 @@ impl Inner {
         self.lock().offsets[offset.index()] = v;
         self.poll();
         Ok(json!({}))
+    }
+
+    /// Sets the overrides given through Mach3's DROs: FRO (821), spindle override (74), rapid
+    /// override (223). Mach3 applies the rapid override only while "override of rapid feeds"
+    /// is on (button 287, a toggle; LED 109), so a rapid override switches it on, reading the
+    /// LED first: pressing a toggle blindly could switch it off. That comes first: if it
+    /// fails, the rapid DRO is put back and nothing else is set. Allowed during a run (that
+    /// is when an operator needs it), sent ahead of queued agent work.
+    fn set_overrides(
+        &self,
+        feed: Option<f64>,
+        spindle: Option<f64>,
+        rapid: Option<f64>,
+    ) -> Result<Value, PluginError> {
+        for (field, v) in [("feed", feed), ("spindle", spindle), ("rapid", rapid)] {
+            if let Some(v) = v.filter(|v| !(v.is_finite() && *v > 0.0)) {
+                return Err(PluginError::invalid(format!(
+                    "`{field}` override must be a positive percentage, got {v}"
+                )));
+            }
+        }
+        if let Some(r) = rapid.filter(|r| *r > 100.0) {
+            return Err(PluginError::invalid(format!(
+                "`rapid` override is at most 100 % (Mach3's rapid rate), got {r}"
+            )));
+        }
+        let st = self.lock().status.clone();
+        if st.state == MachineState::Offline {
+            return Err(PluginError::new(
+                "offline",
+                format!(
+                    "cannot set overrides: {}",
+                    st.reason.as_deref().unwrap_or("Mach3 is offline")
+                ),
+            ));
+        }
+        let c = &self.cfg.codes;
+        if let Some(value) = rapid {
+            let code = c.get(Code::RapidOverride);
+            // Setting the DRO while the toggle is off puts nothing in force yet.
+            let was = self.exec(
+                vec![
+                    Call::GetOemDro { code },
+                    Call::SetOemDro { code, value },
+                    Call::GetOemLed {
+                        code: c.get(Code::RapidOverrideLed),
+                    },
+                ],
+                true,
+            )?;
+            if !was[2].as_bool().unwrap_or(false) {
+                if let Err(e) = self.rapid_override_on() {
+                    let value = num(&was[0]);
+                    // Best effort: the error is what the caller must hear.
+                    let _ = self.exec(vec![Call::SetOemDro { code, value }], true);
+                    return Err(e);
+                }
+            }
+        }
+        let calls: Vec<Call> = [(Code::FeedOverride, feed), (Code::SpindleOverride, spindle)]
+            .into_iter()
+            .filter_map(|(code, v)| {
+                v.map(|value| Call::SetOemDro {
+                    code: c.get(code),
+                    value,
+                })
+            })
+            .collect();
+        if !calls.is_empty() {
+            self.exec(calls, true)?;
+        }
+        self.poll();
+        Ok(json!({}))
+    }
+
+    /// Presses the rapid-override toggle and waits for its LED. Should it not light, the
+    /// toggle is pressed again so Mach3 is left as it was, and the error names both codes.
+    fn rapid_override_on(&self) -> Result<(), PluginError> {
+        let c = &self.cfg.codes;
+        let (button, led) = (
+            c.get(Code::RapidOverrideToggle),
+            c.get(Code::RapidOverrideLed),
+        );
+        let lit = |v: Vec<Value>| v.last().and_then(Value::as_bool).unwrap_or(false);
+        let pressed = self.exec(
+            vec![
+                Call::DoOemButton { code: button },
+                Call::GetOemLed { code: led },
+            ],
+            true,
+        )?;
+        if lit(pressed) {
+            return Ok(());
+        }
+        let deadline = Instant::now() + TOGGLE_CONFIRM;
+        while Instant::now() < deadline {
+            // Polling the LED, as reset does.
+            std::thread::sleep(Duration::from_millis(50));
+            if lit(self.exec(vec![Call::GetOemLed { code: led }], true)?) {
+                return Ok(());
+            }
+        }
+        self.exec(vec![Call::DoOemButton { code: button }], true)?;
+        Err(PluginError::new(
+            "mach3_error",
+            format!(
+                "pressed Mach3's \"override of rapid feeds\" toggle (button {button}) but its LED \
+                 {led} did not light, so it was pressed again to leave it as it was and no \
+                 override was changed. Check `codes.rapid_override_toggle` and \
+                 `codes.led_rapid_override` against this Mach3's screen set"
+            ),
+        ))
+    }
+
+    /// Starts a probing move as Mach3's G31, which stops when the probe input (LED 825)
+    /// becomes active and keeps where in #2000-#2005. Sent in G90 with the end in work
+    /// coordinates, as Mach3's probing macros send it, with F such that the move goes at
+    /// `feed` whatever the feed override; the line putting back G90/G91, G0/G1 and F is sent
+    /// once the motion ended (a line queued behind a G31 could wait as long as the probe).
+    /// The poller follows it to its end and reports `probe_ended`.
+    fn probe(&self, p: Probe) -> Result<(), PluginError> {
+        if !(p.distance.is_finite() && p.distance != 0.0) {
+            return Err(PluginError::invalid(format!(
+                "probe distance must be a finite number other than 0, got {}",
+                p.distance
+            )));
+        }
+        if !(p.feed.is_finite() && p.feed > 0.0) {
+            return Err(PluginError::invalid(format!(
+                "probe feed must be greater than 0 mm/min, got {}",
+                p.feed
+            )));
+        }
+        if p.until == ProbeUntil::Release {
+            return Err(PluginError::new(
+                "unsupported",
+                "mach3-oem cannot probe for the probe's release (G38.4/G38.5): Mach3's G31 \
+                 only stops when the probe input becomes active (contact)",
+            ));
+        }
+        self.require("probe", &[MachineState::Idle])?;
+        if self.lock().probe.is_some() {
+            return Err(PluginError::new("busy", "a probe is already under way"));
+        }
+        let has_get_var = self
+            .link
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .client
+            .has_feature(FEATURE_GET_VAR);
+        if !has_get_var {
+            return Err(PluginError::new(
+                "unsupported",
+                format!(
+                    "the Mach3 agent at {} is older than this plugin: it cannot read Mach3's \
+                     probe trip (GetVar); install the current fresa-mach3-agent to probe",
+                    self.cfg.agent
+                ),
+            ));
+        }
+        // A line still owed by an earlier probe goes first, or this one would take the
+        // state that probe left for the one to put back.
+        let owed = self.lock().restore.clone();
+        if let Some(line) = owed {
+            self.put_back(line);
+            if self.lock().restore.is_some() {
+                return Err(PluginError::new(
+                    "busy",
+                    "cannot probe: the modal state an earlier probe changed could not be put \
+                     back yet (Mach3 did not take the MDI line); try again",
+                ));
+            }
+        }
+        let modal = self.read_modal("probe")?;
+        let f = modal.own_feed(p.feed, "probe")?;
+        let c = &self.cfg.codes;
+        let i = p.axis.index();
+        let now = self.exec(
+            vec![
+                Call::GetOemLed {
+                    code: c.get(Code::ProbeLed),
+                },
+                Call::GetOemDro {
+                    code: c.axis(Code::PosX, i),
+                },
+                Call::GetOemDro {
+                    code: c.axis(Code::FixtureX, i),
+                },
+            ],
+            false,
+        )?;
+        if now[0].as_bool().unwrap_or(true) {
+            return Err(PluginError::new(
+                "probe_already_in_state",
+                format!(
+                    "the probe is already in contact (Mach3's probe input, LED {}, is lit): \
+                     nothing to probe for (check the clip and the plate)",
+                    c.get(Code::ProbeLed)
+                ),
+            ));
+        }
+        let (work, fixture) = (num(&now[1]), num(&now[2]));
+        // As sent (4 decimals), so "ran its whole distance" compares with what Mach3 got.
+        let target = format!("{:.4}", work + p.distance);
+        let target_work: f64 = target.parse().unwrap_or(work + p.distance);
+        let line = format!("G90 G31 {}{target} F{f:.4}", p.axis.letter());
+        {
+            let mut sh = self.lock();
+            // G31 stays modal in Mach3: if the motion mode found cannot be re-entered (G2/G3),
+            // G1 is put back rather than leave a probe mode behind.
+            sh.restore = Some(modal.restore(Some("G1")));
+            sh.probe = Some(ProbeTrack {
+                id: p.id,
+                axis: p.axis,
+                start: work + fixture,
+                target_work,
+                started: Instant::now(),
+                saw_moving: false,
+                stop_requested: false,
+                ended: false,
+            });
+        }
+        if let Err(e) = self.exec(vec![Call::Code { line }], false) {
+            // The restore line stays pending: the next idle poll sends it.
+            self.lock().probe = None;
+            return Err(e);
+        }
+        self.poll();
+        Ok(())
     }
 
     fn load_program(
@@ -916,20 +1440,30 @@ impl Inner {
         Ok(())
     }
 
-    /// After a stop: polls Mach3 until it no longer runs the program and the run's `run_ended`
-    /// has been emitted, so a cancel or stop is never answered while Mach3 still cuts. Mach3
-    /// still moving after [`STOP_WAIT`] answers `stop_unconfirmed`.
+    /// After a stop: polls Mach3 until it no longer runs the program (or probes) and the
+    /// run's `run_ended` (the probe's `probe_ended`) has been emitted, so a cancel or stop is
+    /// never answered while Mach3 still cuts. Mach3 still moving after [`STOP_WAIT`] answers
+    /// `stop_unconfirmed`.
     fn wait_run_over(&self) -> Result<(), PluginError> {
         let deadline = Instant::now() + STOP_WAIT;
         loop {
             self.poll();
-            if self.lock().run.is_none() {
+            let (run, probe) = {
+                let sh = self.lock();
+                (sh.run.is_some(), sh.probe.is_some())
+            };
+            if !run && !probe {
                 return Ok(());
             }
             if Instant::now() >= deadline {
+                let what = if run {
+                    "the program running"
+                } else {
+                    "the probe moving"
+                };
                 return Err(PluginError::new(
                     "stop_unconfirmed",
-                    format!("Mach3 still reports the program running {STOP_WAIT:?} after Stop"),
+                    format!("Mach3 still reports {what} {STOP_WAIT:?} after Stop"),
                 ));
             }
             // Polling the controller, at about the status rate.
@@ -938,6 +1472,12 @@ impl Inner {
     }
 
     fn feed_hold(&self) -> Result<(), PluginError> {
+        if self.lock().probe.is_some() {
+            // Held, a G31 would go on probing at the next cycle start; a probe ends at a hold
+            // (`stopped`) on every backend, so it is stopped instead.
+            self.stop()?;
+            return self.wait_run_over();
+        }
         self.button(Code::FeedHold, true)?;
         self.poll();
         Ok(())
@@ -1051,6 +1591,8 @@ impl Mach3Backend {
                 loaded: None,
                 run: None,
                 offsets: [[0.0; 4]; 6],
+                probe: None,
+                restore: None,
                 shutdown: false,
             }),
             wake: Condvar::new(),
@@ -1221,14 +1763,18 @@ impl MachineBackend for Mach3Backend {
         self.inner.mdi(line).map(drop)
     }
 
-    /// Mach3 probes with G31 and reports the trip in its parameters #2000-#2002; driving that
-    /// through the agent (and watching Mach3's probe DRO for the end) is not built yet.
-    fn probe(&self, _probe: fresa_plugin_api::contract::Probe) -> Result<(), PluginError> {
-        Err(PluginError::new(
-            "unsupported",
-            "mach3-oem cannot probe from Fresa yet: a G31 through the agent with the trip read \
-             back from Mach3 is not built (programs that use G31 run in Mach3 itself)",
-        ))
+    /// Mach3's G31 through the agent; its trip read back from #2000-#2003 (see `Inner::probe`).
+    fn probe(&self, probe: Probe) -> Result<(), PluginError> {
+        self.inner.probe(probe)
+    }
+
+    fn set_overrides(
+        &self,
+        feed: Option<f64>,
+        spindle: Option<f64>,
+        rapid: Option<f64>,
+    ) -> Result<(), PluginError> {
+        self.inner.set_overrides(feed, spindle, rapid).map(drop)
     }
 }
 

@@ -28,6 +28,8 @@ pub struct AgentClient {
     timeout: Duration,
     conn: Option<Conn>,
     next_id: u64,
+    /// The protocol features the agent named in its last hello.
+    features: Vec<String>,
 }
 
 impl AgentClient {
@@ -38,11 +40,17 @@ impl AgentClient {
             timeout,
             conn: None,
             next_id: 1,
+            features: Vec::new(),
         }
     }
 
     pub fn is_connected(&self) -> bool {
         self.conn.is_some()
+    }
+
+    /// Whether the agent of the current (or last) connection named `feature` in its hello.
+    pub fn has_feature(&self, feature: &str) -> bool {
+        self.features.iter().any(|f| f == feature)
     }
 
     pub fn disconnect(&mut self) {
@@ -128,6 +136,7 @@ impl AgentClient {
                     .unwrap_or_else(|| protocol::protocol_error("refused without a reason")),
             });
         }
+        self.features = hello.features;
         self.conn = Some(conn);
         Ok(())
     }

@@ -60,6 +60,12 @@ pub enum Code {
     LimitYMinLed,
     LimitZMaxLed,
     LimitZMinLed,
+    // --- overrides (issue 26) and probing (issue 25) ---
+    SpindleOverride,
+    RapidOverride,
+    RapidOverrideToggle,
+    RapidOverrideLed,
+    ProbeLed,
 }
 
 /// `(role, config name, kind, default code, meaning)`.
@@ -167,13 +173,14 @@ pub const TABLE: &[(Code, &str, Kind, i16, &str)] = &[
         999,
         "System moving",
     ),
-    // Not in the project's code table (its LED rows were unreadable): OEM LED 48 is the G91
-    // LED in Mach3 screen sets. Check it on the installation; override if it differs.
+    // Not in the project's code table (its LED rows were unreadable). The Mach3 plugin SDK's
+    // `Mach3Led.h` names OEM LED 48 "Abs Coordinate Mode" and 49 "Incremental Coordinate
+    // Mode", and Mach3 macros restore G91 when LED 48 is out: 49 is the G91 lamp.
     (
         Code::IncrementalLed,
         "led_incremental",
         Kind::Led,
-        48,
+        49,
         "G91 (incremental) active",
     ),
     (Code::FloodOn, "flood_on", Kind::Button, 224, "Flood ON"),
@@ -248,6 +255,44 @@ pub const TABLE: &[(Code, &str, Kind, i16, &str)] = &[
         41,
         "Z-- limit switch active",
     ),
+    (
+        Code::SpindleOverride,
+        "dro_spindle_override",
+        Kind::Dro,
+        74,
+        "Spindle Speed Override %",
+    ),
+    (
+        Code::RapidOverride,
+        "dro_rapid_override",
+        Kind::Dro,
+        223,
+        "Rapid Override % (in force only while rapid override is toggled on)",
+    ),
+    (
+        Code::RapidOverrideToggle,
+        "rapid_override_toggle",
+        Kind::Button,
+        287,
+        "Toggle override of rapid feeds",
+    ),
+    // Not in the project's code table (no LED rows): the Mach3 plugin SDK's `Mach3Led.h` names
+    // OEM LED 109 "Rapids being overridden" and 825 "Digitise In" (the probe input; Mach3
+    // probing macros check it before G31).
+    (
+        Code::RapidOverrideLed,
+        "led_rapid_override",
+        Kind::Led,
+        109,
+        "Rapids being overridden (button 287 on)",
+    ),
+    (
+        Code::ProbeLed,
+        "led_probe",
+        Kind::Led,
+        825,
+        "Probe (digitise) input active",
+    ),
 ];
 
 /// The LEDs that are the machine's inputs and outputs in its status: (role, status name, is
@@ -263,6 +308,7 @@ pub const IO_LEDS: &[(Code, &str, bool)] = &[
     (Code::LimitYMinLed, "limit_y_min", false),
     (Code::LimitZMaxLed, "limit_z_max", false),
     (Code::LimitZMinLed, "limit_z_min", false),
+    (Code::ProbeLed, "probe", false),
 ];
 
 /// The codes of one machine: the defaults with its config overrides applied.

@@ -11,7 +11,8 @@
 //! agent must load on Windows 7, and `windows-core` imports `combase.dll` and
 //! `api-ms-win-core-winrt-error-l1-1-0.dll`, which Windows 7 lacks. Every import here is from
 //! `ole32.dll` / `oleaut32.dll` and exists since Windows 2000; the two `IDispatch` methods
-//! used are called through its vtable.
+//! used are called through its vtable. Methods are found by name (`GetIDsOfNames`), with the
+//! project's documented DISPID as the fallback; `GetVar`, which that list lacks, by name only.
 
 use crate::mach3::{ErrorKind, Mach3, Mach3Error, Mach3Result};
 use std::collections::HashMap;
@@ -368,11 +369,38 @@ impl ComMach3 {
         fallback: i32,
         args: Vec<Variant>,
     ) -> Mach3Result<Variant> {
+        self.invoke(name, Some(fallback), args)
+    }
+
+    /// Calls a method that has no documented DISPID: found by name only (`GetIDsOfNames` on
+    /// the object itself), or the error says Mach3 has no such method.
+    fn call_by_name(&mut self, name: &'static str, args: Vec<Variant>) -> Mach3Result<Variant> {
+        self.invoke(name, None, args)
+    }
+
+    fn invoke(
+        &mut self,
+        name: &'static str,
+        fallback: Option<i32>,
+        args: Vec<Variant>,
+    ) -> Mach3Result<Variant> {
         let script = self.script()?;
         let id = match self.dispids.get(name) {
             Some(id) => *id,
             None => {
-                let id = script.dispid(name).unwrap_or(fallback);
+                let id = match (script.dispid(name), fallback) {
+                    (Ok(id), _) => id,
+                    (Err(_), Some(id)) => id,
+                    (Err(e), None) => {
+                        if e.kind == ErrorKind::NotRunning {
+                            self.script = None;
+                        }
+                        return Err(Mach3Error::new(
+                            e.kind,
+                            format!("this Mach3's script object has no {name}: {}", e.message),
+                        ));
+                    }
+                };
                 self.dispids.insert(name, id);
                 id
             }
@@ -432,5 +460,10 @@ impl Mach3 for ComMach3 {
     }
     fn is_estop(&mut self) -> Mach3Result<bool> {
         self.call("IsEstop", 0xbd, Vec::new())?.to_bool()
+    }
+    fn get_var(&mut self, var: i16) -> Mach3Result<f64> {
+        // Mach3's macros call it as `GetVar(2002)`; IDispatch converts the short as they do.
+        self.call_by_name("GetVar", vec![Variant::i16(var)])?
+            .to_f64()
     }
 }

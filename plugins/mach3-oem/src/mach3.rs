@@ -70,6 +70,9 @@ pub trait Mach3 {
     fn is_moving(&mut self) -> Mach3Result<bool>;
     /// `IsEstop()`.
     fn is_estop(&mut self) -> Mach3Result<bool>;
+    /// `GetVar(n) -> double`: G-code parameter `#n` (G31 leaves its trip in #2000-#2005).
+    /// Not in the project's DISPID list: the COM side looks it up by name.
+    fn get_var(&mut self, var: i16) -> Mach3Result<f64>;
 }
 
 /// One Mach3 method call as it travels in an agent request (`{"op":"get_oem_dro","code":800}`).
@@ -104,6 +107,10 @@ pub enum Call {
     },
     IsMoving,
     IsEstop,
+    /// Protocol feature `get_var` (see [`crate::protocol::FEATURES`]).
+    GetVar {
+        var: i16,
+    },
     /// Not a Mach3 method: the agent stores a program under its program directory, in chunks
     /// (`first` truncates, `last` finishes and answers the full path to give `load_file`).
     WriteProgram {
@@ -158,6 +165,14 @@ impl Call {
             }
             Call::IsMoving => json!(m.is_moving()?),
             Call::IsEstop => json!(m.is_estop()?),
+            Call::GetVar { var } => {
+                if *var < 0 {
+                    return Err(Mach3Error::invalid(format!(
+                        "GetVar({var}): G-code parameters are numbered from 0"
+                    )));
+                }
+                json!(m.get_var(*var)?)
+            }
             Call::WriteProgram { .. } => {
                 return Err(Mach3Error::invalid(
                     "write_program is handled by the agent, not Mach3",

@@ -15,6 +15,13 @@ pub const MAX_LINE_BYTES: usize = 4 << 20;
 /// Program text sent per `write_program` call.
 pub const PROGRAM_CHUNK_BYTES: usize = 1 << 20;
 
+/// What this agent can do beyond protocol 1 as first released, named in its hello. A feature
+/// adds calls (never changes one), so the version stays 1 and either side may be older: a
+/// client asks for a feature's calls only when the agent named it, and an older client ignores
+/// the list. `get_var`: the `get_var {var}` call (Mach3's `GetVar`).
+pub const FEATURES: &[&str] = &[FEATURE_GET_VAR];
+pub const FEATURE_GET_VAR: &str = "get_var";
+
 /// First frame, agent -> client.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Hello {
@@ -22,6 +29,9 @@ pub struct Hello {
     pub protocol: u32,
     /// 32 random bytes, hex.
     pub nonce: String,
+    /// [`FEATURES`] of the agent (absent from agents older than the list).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub features: Vec<String>,
 }
 
 /// Second frame, client -> agent: proves the shared secret without sending it.
@@ -152,6 +162,15 @@ mod tests {
         assert!(!r.urgent);
         assert_eq!(r.calls[0], Call::GetOemDro { code: 800 });
         assert_eq!(r.calls[3], Call::IsMoving);
+        let r: Request =
+            serde_json::from_value(json!({"id": 4, "calls": [{"op": "get_var", "var": 2002}]}))
+                .unwrap();
+        assert_eq!(r.calls[0], Call::GetVar { var: 2002 });
+        // An agent older than the feature list says hello without one.
+        let h: Hello =
+            serde_json::from_value(json!({"agent": AGENT_NAME, "protocol": 1, "nonce": "ab"}))
+                .unwrap();
+        assert!(h.features.is_empty());
         let resp = Response {
             id: Some(3),
             results: vec![

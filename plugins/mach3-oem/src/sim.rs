@@ -4,7 +4,7 @@
 //! * Axis DROs 800-805 show work coordinates (machine position minus the active fixture's
 //!   offset, DROs 830-835; fixture number in DRO 46). MDI `Code()` understands G0 G1 G90 G91
 //!   G54-G59 `G10 L2 P..` F and X..C words, keeps G90/G91, G0/G1 and F modal between calls and
-//!   queues the moves; LED 48 lights in G91.
+//!   queues the moves; LED 48 lights in G90, LED 49 in G91 (as in Mach3's `Mach3Led.h`).
 //! * `LoadFile` interprets the whole file with `fresa-gcode`; cycle start (1000) runs it from
 //!   the line in DRO 816 (0-based), advancing DRO 816 and the elapsed time in DRO 814 (DRO 815 is
 //!   the estimate). M0 pauses, M2/M30 end the run and rewind DRO 816 to 0. LED 804 = running.
@@ -16,8 +16,24 @@
 //! * Zero buttons (1007-1013) set the active fixture offset so the axis reads 0; ref buttons
 //!   (105, 1022-1027) set the machine position to 0 at once; GotoZs (1017) rapids to work zero
 //!   (Z up first). `JogOn`/`JogOff` move an axis continuously. LED 999 / `IsMoving`: motion.
+//! * Overrides, applied to the move under way at every step, as Mach3 applies them: the feed
+//!   override (FRO, DRO 821) to feed moves (G1, arcs, G31) of programs and MDI; the rapid
+//!   override (DRO 223) to rapids only while "override of rapid feeds" is toggled on (button
+//!   287, a toggle; LED 109 lit), else rapids run at the full rapid rate whatever DRO 223 says;
+//!   the spindle override (DRO 74) scales the programmed S (DRO 817) into the overridden speed
+//!   (DRO 202). Continuous jogs keep their own speed.
+//! * Probing: an optional probe switch (`SimConfig::probe`; LED 825, Mach3's "Digitise In")
+//!   and MDI `G31`, Mach3's probe move: a feed move that stops when the probe input becomes
+//!   active. The machine position where it did (interpolated within the step) goes, in work
+//!   coordinates, into parameters #2000-#2005 (`GetVar`), then the axis stops past it by the
+//!   overshoot of a real stop: one kernel period of travel (`probe_latency_s`) plus the
+//!   deceleration distance v²/2a (`probe_decel_mm_s2`). A G31 that runs its whole distance
+//!   leaves its end in #2000-#2005; one that starts with the probe already active trips where
+//!   it stands; Stop leaves the parameters as they were. G31 is modal (DRO 819 reads 31).
 //!
-//! Motion is feed-rate true, with times multiplied by `time_scale` (0 = instant).
+//! Motion is feed-rate true, with times multiplied by `time_scale` (0 = instant). The elapsed
+//! DRO (814) counts machine time while a program runs (at `time_scale` 1 the same as Mach3's
+//! wall clock), so it shows what overrides did to a run whatever the host's load.
 
 use crate::mach3::{Mach3, Mach3Error, Mach3Result};
 use fresa_gcode::{linearise, Interpreter, Motion};
@@ -58,7 +74,17 @@ mod code {
     pub const LED_PAUSED: i16 = 805;
     pub const LED_REFERENCED_X: i16 = 807;
     pub const LED_MOVING: i16 = 999;
-    pub const LED_INCREMENTAL: i16 = 48;
+    pub const LED_PROBE: i16 = 825;
+    pub const LED_RAPID_OVERRIDE: i16 = 109;
+    pub const RAPID_OVERRIDE_TOGGLE: i16 = 287;
+    pub const DRO_SPINDLE_OVERRIDE: i16 = 74;
+    pub const DRO_RAPID_OVERRIDE: i16 = 223;
+    pub const DRO_SPINDLE_REQUESTED: i16 = 817;
+    pub const DRO_SPINDLE_OVERRIDDEN: i16 = 202;
+    /// G31's trip: #2000-#2005 = X..C.
+    pub const VAR_PROBE_X: i16 = 2000;
+    pub const LED_ABSOLUTE: i16 = 48;
+    pub const LED_INCREMENTAL: i16 = 49;
     pub const FLOOD_ON: i16 = 224;
     pub const FLOOD_OFF: i16 = 225;
     pub const MIST_ON: i16 = 226;
@@ -79,6 +105,13 @@ pub struct SimConfig {
     pub rapid_mm_min: f64,
     /// Speed of `JogOn` jogs.
     pub jog_feed_mm_min: f64,
+    /// The probe input (a touch plate); `None`: nothing ever touches it.
+    pub probe: Option<ProbeSwitch>,
+    /// How long Mach3 takes to see the probe input change: one period of its driver's kernel
+    /// (25 kHz, Mach3's default).
+    pub probe_latency_s: f64,
+    /// The deceleration with which the axis stops after a trip, mm/s².
+    pub probe_decel_mm_s2: f64,
 }
 
 impl Default for SimConfig {
@@ -87,8 +120,80 @@ impl Default for SimConfig {
             time_scale: 1.0,
             rapid_mm_min: 5000.0,
             jog_feed_mm_min: 600.0,
+            probe: None,
+            probe_latency_s: 1.0 / 25_000.0,
+            probe_decel_mm_s2: 1000.0,
         }
     }
+}
+
+/// A probe input that is active while one axis's machine position is at or below (or at or
+/// above) a point: a touch plate under the tool, or a part's edge beside it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProbeSwitch {
+    /// 0..5 = X..C.
+    pub axis: usize,
+    pub at: f64,
+    /// Active at or below `at` (else at or above).
+    pub below: bool,
+}
+
+impl ProbeSwitch {
+    fn active(&self, pos: &[f64; AXES]) -> bool {
+        let p = pos[self.axis];
+        if self.below {
+            p <= self.at
+        } else {
+            p >= self.at
+        }
+    }
+
+    /// `z<=-20`, `x>=35.5`: the axis, the side and the machine position.
+    pub fn parse(text: &str) -> Result<ProbeSwitch, String> {
+        let bad = || {
+            format!(
+                "probe switch {text:?}: use AXIS<=POS (active at or below) or AXIS>=POS, e.g. z<=-20"
+            )
+        };
+        let (axis, rest, below) = match (text.split_once("<="), text.split_once(">=")) {
+            (Some((a, r)), None) => (a, r, true),
+            (None, Some((a, r))) => (a, r, false),
+            _ => return Err(bad()),
+        };
+        let axis = match axis.trim().to_ascii_lowercase().as_str() {
+            "x" => 0,
+            "y" => 1,
+            "z" => 2,
+            "a" => 3,
+            "b" => 4,
+            "c" => 5,
+            _ => return Err(bad()),
+        };
+        let at: f64 = rest.trim().parse().map_err(|_| bad())?;
+        if !at.is_finite() {
+            return Err(bad());
+        }
+        Ok(ProbeSwitch { axis, at, below })
+    }
+}
+
+/// How fast a move goes. Overrides are applied while it runs, at every step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Speed {
+    /// A feed move (G1, arcs, G31), mm/min: the feed override applies.
+    Feed(f64),
+    /// A rapid: the rapid override applies while toggled on.
+    Rapid,
+    /// mm/min, no override (the stop after a probe trip).
+    Fixed(f64),
+}
+
+/// The modal motion mode MDI axis words use (DRO 819 shows its G number).
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum MotionMode {
+    Rapid,
+    Feed,
+    Probe,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -103,6 +208,8 @@ enum Step {
     Dwell(f64),
     Pause,
     UseFixture(usize),
+    /// M3/M4/M5 and S: direction (1 CW, -1 CCW, 0 off) and speed.
+    Spindle(i8, f64),
     End,
 }
 
@@ -113,13 +220,28 @@ struct Program {
     estimate_s: f64,
 }
 
-/// A straight move (or a dwell, when `start == target`) in progress.
+/// A straight move (or a dwell, when `length` is 0) in progress.
 #[derive(Debug, Clone, Copy)]
 struct Active {
     start: [f64; AXES],
     target: [f64; AXES],
-    total_s: f64,
-    left_s: f64,
+    /// Path length (mm; degrees count as mm, as in the estimate).
+    length: f64,
+    /// How much of it is done.
+    done: f64,
+    speed: Speed,
+    /// Seconds of dwell left (a dwell has no length).
+    dwell_s: f64,
+    /// A G31 move still looking for the probe.
+    probing: bool,
+}
+
+/// An MDI or go-to-zero move waiting its turn.
+#[derive(Debug, Clone, Copy)]
+struct Queued {
+    target: [f64; AXES],
+    speed: Speed,
+    probing: bool,
 }
 
 #[derive(Debug)]
@@ -129,9 +251,19 @@ struct State {
     fixtures: [[f64; AXES]; 6],
     fixture: usize,
     incremental: bool,
-    rapid_mode: bool,
+    motion: MotionMode,
     feed: f64,
     fro: f64,
+    /// Spindle speed override, %.
+    sro: f64,
+    /// Rapid override, % (DRO 223), in force only while `rapid_override_on`.
+    rapid_override: f64,
+    /// "Override of rapid feeds" (button 287 toggles it; LED 109).
+    rapid_override_on: bool,
+    /// Programmed spindle speed (S).
+    spindle_rpm: f64,
+    /// G-code parameters (`GetVar`); G31 writes #2000-#2005.
+    vars: HashMap<i16, f64>,
     tool: f64,
     estop: bool,
     /// Spindle: 0 off, 1 clockwise (M3), -1 counter-clockwise (M4).
@@ -149,8 +281,8 @@ struct State {
     /// DRO 816: 0-based line.
     line: usize,
     elapsed_s: f64,
-    /// MDI and go-to-zero moves: `(machine target, feed mm/min)`.
-    queue: VecDeque<([f64; AXES], f64)>,
+    /// MDI and go-to-zero moves.
+    queue: VecDeque<Queued>,
     active: Option<Active>,
     jogs: [f64; AXES],
     other_dros: HashMap<i16, f64>,
@@ -170,18 +302,24 @@ pub struct Mach3Sim {
     core: Arc<Core>,
 }
 
-fn seconds(from: &[f64; AXES], to: &[f64; AXES], feed: f64) -> f64 {
-    let d = from
-        .iter()
+fn distance(from: &[f64; AXES], to: &[f64; AXES]) -> f64 {
+    from.iter()
         .zip(to)
         .map(|(a, b)| (a - b) * (a - b))
         .sum::<f64>()
-        .sqrt();
+        .sqrt()
+}
+
+fn seconds(from: &[f64; AXES], to: &[f64; AXES], feed: f64) -> f64 {
     if feed > 0.0 {
-        d / feed * 60.0
+        distance(from, to) / feed * 60.0
     } else {
         0.0
     }
+}
+
+fn lerp(a: &[f64; AXES], b: &[f64; AXES], f: f64) -> [f64; AXES] {
+    std::array::from_fn(|i| a[i] + (b[i] - a[i]) * f)
 }
 
 impl State {
@@ -218,19 +356,124 @@ impl State {
     fn planned_end(&self) -> [f64; AXES] {
         self.queue
             .back()
-            .map(|q| q.0)
+            .map(|q| q.target)
             .or(self.active.map(|a| a.target))
             .unwrap_or(self.pos)
     }
 
-    fn start_move(&mut self, target: [f64; AXES], feed: f64) {
-        let total_s = seconds(&self.pos, &target, feed);
+    fn start_move(&mut self, target: [f64; AXES], speed: Speed, probing: bool) {
+        if probing && self.cfg.probe.is_some_and(|p| p.active(&self.pos)) {
+            // G31 with the probe already active: Mach3 takes the trip where the tool stands.
+            self.set_trip(self.pos);
+            self.active = None;
+            return;
+        }
         self.active = Some(Active {
             start: self.pos,
             target,
-            total_s,
-            left_s: total_s,
+            length: distance(&self.pos, &target),
+            done: 0.0,
+            speed,
+            dwell_s: 0.0,
+            probing,
         });
+    }
+
+    fn start_dwell(&mut self, seconds: f64) {
+        self.active = Some(Active {
+            start: self.pos,
+            target: self.pos,
+            length: 0.0,
+            done: 0.0,
+            speed: Speed::Fixed(0.0),
+            dwell_s: seconds,
+            probing: false,
+        });
+    }
+
+    /// Mach3's #2000-#2005: a machine position in the active fixture's work coordinates.
+    fn set_trip(&mut self, machine: [f64; AXES]) {
+        for (k, p) in machine.iter().enumerate() {
+            let work = p - self.fixtures[self.fixture][k];
+            self.vars.insert(code::VAR_PROBE_X + k as i16, work);
+        }
+    }
+
+    /// mm/min a move goes at now, overrides applied.
+    fn speed(&self, speed: Speed) -> f64 {
+        match speed {
+            Speed::Feed(f) => f * self.fro / 100.0,
+            Speed::Rapid if self.rapid_override_on => {
+                self.cfg.rapid_mm_min * self.rapid_override / 100.0
+            }
+            Speed::Rapid => self.cfg.rapid_mm_min,
+            Speed::Fixed(f) => f,
+        }
+    }
+
+    /// Advances the active move by at most `budget` machine seconds; returns the seconds used,
+    /// or `None` when it cannot advance (an override of 0 %: Mach3 holds it there).
+    fn advance(&mut self, budget: f64) -> Option<f64> {
+        let mut a = self.active?;
+        if a.length <= 0.0 {
+            let t = budget.min(a.dwell_s);
+            a.dwell_s -= t;
+            self.active = (a.dwell_s > 0.0).then_some(a);
+            return Some(t);
+        }
+        let v = self.speed(a.speed) / 60.0;
+        if v <= 0.0 {
+            return None;
+        }
+        let left = a.length - a.done;
+        let t = budget.min(left / v);
+        let before = self.pos;
+        let done_before = a.done;
+        let finished = t * v >= left;
+        a.done = if finished { a.length } else { a.done + t * v };
+        self.pos = if finished {
+            a.target
+        } else {
+            lerp(&a.start, &a.target, a.done / a.length)
+        };
+        if a.probing {
+            if let Some(switch) = self.cfg.probe {
+                if !switch.active(&before) && switch.active(&self.pos) {
+                    let (b, e) = (before[switch.axis], self.pos[switch.axis]);
+                    let f = ((switch.at - b) / (e - b)).clamp(0.0, 1.0);
+                    let trip = lerp(&before, &self.pos, f);
+                    self.set_trip(trip);
+                    self.stop_after_trip(&a, trip, done_before + (a.done - done_before) * f, v);
+                    return Some(t * f);
+                }
+            }
+            if finished {
+                // The whole distance without contact: Mach3 leaves the end in #2000-#2005.
+                self.set_trip(a.target);
+            }
+        }
+        self.active = (!finished).then_some(a);
+        Some(t)
+    }
+
+    /// A probe tripped at `trip` (`done` along `a`) while moving at `v` mm/s: Mach3 sees it one
+    /// kernel period later and decelerates, so the axis comes to rest past the trip.
+    fn stop_after_trip(&mut self, a: &Active, trip: [f64; AXES], done: f64, v: f64) {
+        self.pos = trip;
+        let latency = self.cfg.probe_latency_s.max(0.0);
+        let decel = self.cfg.probe_decel_mm_s2;
+        let braking = if decel > 0.0 {
+            v * v / (2.0 * decel)
+        } else {
+            0.0
+        };
+        let over = (v * latency + braking).min(a.length - done).max(0.0);
+        let time = latency + if decel > 0.0 { v / decel } else { 0.0 };
+        self.active = None;
+        if over > 0.0 && time > 0.0 {
+            let stop_at = lerp(&a.start, &a.target, (done + over) / a.length);
+            self.start_move(stop_at, Speed::Fixed(over / time * 60.0), false);
+        }
     }
 
     /// Advances the simulation by `dt` of real time.
@@ -243,9 +486,6 @@ impl State {
         } else {
             dt / self.cfg.time_scale
         };
-        if self.running && !self.paused {
-            self.elapsed_s += dt;
-        }
         if !self.paused {
             // Continuous jogs run in real time: an operator holds them.
             let jog_step = self.cfg.jog_feed_mm_min / 60.0 * dt;
@@ -254,22 +494,16 @@ impl State {
             }
         }
         while budget > 0.0 && !self.paused {
-            if let Some(mut a) = self.active {
-                let t = budget.min(a.left_s);
-                a.left_s -= t;
+            if self.active.is_some() {
+                let Some(t) = self.advance(budget) else { break };
                 budget -= t;
-                if a.left_s <= 0.0 {
-                    self.pos = a.target;
-                    self.active = None;
-                } else {
-                    let f = 1.0 - a.left_s / a.total_s;
-                    self.pos = std::array::from_fn(|i| a.start[i] + (a.target[i] - a.start[i]) * f);
-                    self.active = Some(a);
+                if self.running {
+                    self.elapsed_s += t;
                 }
                 continue;
             }
-            if let Some((target, feed)) = self.queue.pop_front() {
-                self.start_move(target, feed);
+            if let Some(q) = self.queue.pop_front() {
+                self.start_move(q.target, q.speed, q.probing);
                 continue;
             }
             if !self.running {
@@ -303,19 +537,15 @@ impl State {
                 if let Some(f) = feed {
                     self.feed = f;
                 }
-                let f = feed.unwrap_or(self.cfg.rapid_mm_min) * self.fro / 100.0;
-                self.start_move(target, f);
+                self.start_move(target, feed.map_or(Speed::Rapid, Speed::Feed), false);
             }
-            Step::Dwell(s) => {
-                self.active = Some(Active {
-                    start: self.pos,
-                    target: self.pos,
-                    total_s: s,
-                    left_s: s,
-                })
-            }
+            Step::Dwell(s) => self.start_dwell(s),
             Step::Pause => self.paused = true,
             Step::UseFixture(f) => self.fixture = f,
+            Step::Spindle(direction, rpm) => {
+                self.spindle = direction;
+                self.spindle_rpm = rpm;
+            }
             Step::End => {
                 self.running = false;
                 self.line = 0;
@@ -368,6 +598,7 @@ impl State {
             code::RESUME => self.paused = false,
             code::STOP => self.halt(),
             code::REWIND if !self.running => self.line = 0,
+            code::RAPID_OVERRIDE_TOGGLE => self.rapid_override_on = !self.rapid_override_on,
             code::FLOOD_ON => self.flood = true,
             code::FLOOD_OFF => self.flood = false,
             code::MIST_ON => self.mist = true,
@@ -392,8 +623,12 @@ impl State {
                 up[2] = up[2].max(zero[2]);
                 let mut over = zero;
                 over[2] = up[2];
-                for p in [up, over, zero] {
-                    self.queue.push_back((p, self.cfg.rapid_mm_min));
+                for target in [up, over, zero] {
+                    self.queue.push_back(Queued {
+                        target,
+                        speed: Speed::Rapid,
+                        probing: false,
+                    });
                 }
             }
             // Mach3 ignores buttons it has no use for in the current state.
@@ -414,8 +649,9 @@ impl State {
         for (letter, value) in words {
             match letter {
                 'G' => match value {
-                    0.0 => self.rapid_mode = true,
-                    1.0 => self.rapid_mode = false,
+                    0.0 => self.motion = MotionMode::Rapid,
+                    1.0 => self.motion = MotionMode::Feed,
+                    31.0 => self.motion = MotionMode::Probe,
                     90.0 => self.incremental = false,
                     91.0 => self.incremental = true,
                     10.0 => g10 = true,
@@ -429,6 +665,7 @@ impl State {
                     }
                 },
                 'F' => self.feed = value,
+                'S' => self.spindle_rpm = value.max(0.0),
                 'M' => match value {
                     3.0 => self.spindle = 1,
                     4.0 => self.spindle = -1,
@@ -470,12 +707,15 @@ impl State {
         if target.iter().all(Option::is_none) {
             return Ok(());
         }
-        let feed = if self.rapid_mode {
-            self.cfg.rapid_mm_min
-        } else if self.feed > 0.0 {
-            self.feed
-        } else {
-            return Err(Mach3Error::invalid("G1 with feed rate 0: set F first"));
+        let speed = match self.motion {
+            MotionMode::Rapid => Speed::Rapid,
+            _ if self.feed > 0.0 => Speed::Feed(self.feed),
+            MotionMode::Feed => {
+                return Err(Mach3Error::invalid("G1 with feed rate 0: set F first"))
+            }
+            MotionMode::Probe => {
+                return Err(Mach3Error::invalid("G31 with feed rate 0: set F first"))
+            }
         };
         let base = self.planned_end();
         let end: [f64; AXES] = std::array::from_fn(|i| match target[i] {
@@ -483,7 +723,11 @@ impl State {
             Some(v) => v + self.fixtures[self.fixture][i],
             None => base[i],
         });
-        self.queue.push_back((end, feed * self.fro / 100.0));
+        self.queue.push_back(Queued {
+            target: end,
+            speed,
+            probing: self.motion == MotionMode::Probe,
+        });
         Ok(())
     }
 
@@ -548,6 +792,14 @@ impl State {
                     Step::UseFixture(usize::from(system) - 1)
                 }
                 Motion::ProgramEnd { .. } => Step::End,
+                Motion::Spindle { direction, rpm, .. } => Step::Spindle(
+                    match direction {
+                        fresa_gcode::SpindleDirection::Clockwise => 1,
+                        fresa_gcode::SpindleDirection::CounterClockwise => -1,
+                        fresa_gcode::SpindleDirection::Off => 0,
+                    },
+                    rpm,
+                ),
                 _ => continue,
             };
             if let Step::Move { to, a, feed } = step {
@@ -582,14 +834,16 @@ impl State {
             code::DRO_ESTIMATE => self.program.as_ref().map_or(0.0, |p| p.estimate_s),
             code::DRO_LINE => self.line as f64,
             code::DRO_FEED => self.feed,
-            code::DRO_MOTION_MODE => {
-                if self.rapid_mode {
-                    0.0
-                } else {
-                    1.0
-                }
-            }
+            code::DRO_MOTION_MODE => match self.motion {
+                MotionMode::Rapid => 0.0,
+                MotionMode::Feed => 1.0,
+                MotionMode::Probe => 31.0,
+            },
             code::DRO_FRO => self.fro,
+            code::DRO_SPINDLE_OVERRIDE => self.sro,
+            code::DRO_RAPID_OVERRIDE => self.rapid_override,
+            code::DRO_SPINDLE_REQUESTED => self.spindle_rpm,
+            code::DRO_SPINDLE_OVERRIDDEN => self.spindle_rpm * self.sro / 100.0,
             code::DRO_TOOL => self.tool,
             code::DRO_FIXTURE_NUMBER => (self.fixture + 1) as f64,
             other => self.other_dros.get(&other).copied().unwrap_or(0.0),
@@ -607,6 +861,9 @@ impl State {
             }
             code::DRO_LINE if !self.running => self.line = v.max(0.0) as usize,
             code::DRO_FRO => self.fro = v.clamp(0.0, 300.0),
+            code::DRO_SPINDLE_OVERRIDE => self.sro = v.clamp(0.0, 300.0),
+            // Mach3's rapid override slows rapids; it never makes them faster than the rate.
+            code::DRO_RAPID_OVERRIDE => self.rapid_override = v.clamp(0.0, 100.0),
             code::DRO_TOOL => self.tool = v,
             code::DRO_FIXTURE_NUMBER if (1.0..=6.0).contains(&v) => self.fixture = v as usize - 1,
             other => {
@@ -621,6 +878,9 @@ impl State {
             code::LED_RUNNING => self.running,
             code::LED_PAUSED => self.paused,
             code::LED_MOVING => self.moving(),
+            code::LED_PROBE => self.cfg.probe.is_some_and(|p| p.active(&self.pos)),
+            code::LED_RAPID_OVERRIDE => self.rapid_override_on,
+            code::LED_ABSOLUTE => !self.incremental,
             code::LED_INCREMENTAL => self.incremental,
             code::LED_SPINDLE_CW => self.spindle == 1,
             code::LED_SPINDLE_CCW => self.spindle == -1,
@@ -692,9 +952,14 @@ impl Mach3Sim {
                 fixtures: [[0.0; AXES]; 6],
                 fixture: 0,
                 incremental: false,
-                rapid_mode: true,
+                motion: MotionMode::Rapid,
                 feed: 0.0,
                 fro: 100.0,
+                sro: 100.0,
+                rapid_override: 100.0,
+                rapid_override_on: false,
+                spindle_rpm: 0.0,
+                vars: HashMap::new(),
                 tool: 0.0,
                 estop: true,
                 spindle: 0,
@@ -750,6 +1015,12 @@ impl Mach3Sim {
             st.line = 0;
         }
         st.closed = !running;
+    }
+
+    /// Moves the probe switch (`None`: nothing touches the probe), as an operator places a
+    /// touch plate.
+    pub fn set_probe(&self, probe: Option<ProbeSwitch>) {
+        self.lock().cfg.probe = probe;
     }
 
     /// Presses (or releases) limit switch `which` (0 X++, 1 X--, 2 Y++, 3 Y--, 4 Z++, 5 Z--):
@@ -818,6 +1089,9 @@ impl Mach3 for Mach3Sim {
     }
     fn is_estop(&mut self) -> Mach3Result<bool> {
         Ok(self.open()?.estop)
+    }
+    fn get_var(&mut self, var: i16) -> Mach3Result<f64> {
+        Ok(self.open()?.vars.get(&var).copied().unwrap_or(0.0))
     }
 }
 
@@ -920,6 +1194,168 @@ mod tests {
         assert_eq!(m.get_oem_dro(code::DRO_X + 1).unwrap(), 10.0);
         assert!(m.get_oem_dro(code::DRO_ELAPSED).unwrap() > 0.0);
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// Runs `program` to its end at time scale 0 and answers the run's elapsed machine time.
+    fn run_elapsed(m: &mut Mach3Sim, dir: &std::path::Path, program: &str) -> f64 {
+        let path = dir.join("o.nc");
+        std::fs::write(&path, program).unwrap();
+        m.load_file(path.to_str().unwrap()).unwrap();
+        m.do_oem_button(code::CYCLE_START).unwrap();
+        wait_still(m);
+        m.get_oem_dro(code::DRO_ELAPSED).unwrap()
+    }
+
+    #[test]
+    fn overrides_scale_feeds_and_rapids_only_while_the_rapid_toggle_is_on() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut m = sim(0.0);
+        // 10 mm at F600 (1 s) and 10 mm of rapid at 5000 mm/min (0.12 s).
+        let program = "G21 G90\nG1 X10 F600\nG0 X0\nM30\n";
+        let close = |a: f64, b: f64| (a - b).abs() < 1e-9;
+        assert!(close(run_elapsed(&mut m, dir.path(), program), 1.12));
+        m.set_oem_dro(code::DRO_FRO, 50.0).unwrap();
+        assert!(close(run_elapsed(&mut m, dir.path(), program), 2.12));
+        m.set_oem_dro(code::DRO_FRO, 100.0).unwrap();
+        // Rapid override set, but not toggled on: rapids run at the full rate.
+        m.set_oem_dro(code::DRO_RAPID_OVERRIDE, 25.0).unwrap();
+        assert!(!m.get_oem_led(code::LED_RAPID_OVERRIDE).unwrap());
+        assert!(close(run_elapsed(&mut m, dir.path(), program), 1.12));
+        m.do_oem_button(code::RAPID_OVERRIDE_TOGGLE).unwrap();
+        assert!(m.get_oem_led(code::LED_RAPID_OVERRIDE).unwrap());
+        assert!(close(run_elapsed(&mut m, dir.path(), program), 1.48));
+        // Above 100 % is not a rapid override Mach3 takes.
+        m.set_oem_dro(code::DRO_RAPID_OVERRIDE, 150.0).unwrap();
+        assert_eq!(m.get_oem_dro(code::DRO_RAPID_OVERRIDE).unwrap(), 100.0);
+        // The spindle override scales the programmed S.
+        m.code("M3 S1000").unwrap();
+        m.set_oem_dro(code::DRO_SPINDLE_OVERRIDE, 120.0).unwrap();
+        assert_eq!(m.get_oem_dro(code::DRO_SPINDLE_REQUESTED).unwrap(), 1000.0);
+        assert_eq!(m.get_oem_dro(code::DRO_SPINDLE_OVERRIDDEN).unwrap(), 1200.0);
+    }
+
+    #[test]
+    fn the_feed_override_changes_the_move_under_way() {
+        let m = sim(1.0);
+        // The lock holds the motion thread off: these steps are the only ones taken.
+        let mut st = m.lock();
+        st.mdi("G90 G1 X10 F600").unwrap(); // 1 s at 100 %
+        st.tick(0.5);
+        assert!((st.pos[0] - 5.0).abs() < 1e-9, "{:?}", st.pos);
+        st.set_dro(code::DRO_FRO, 50.0);
+        st.tick(0.5);
+        assert!(
+            (st.pos[0] - 7.5).abs() < 1e-9,
+            "half speed from then on: {:?}",
+            st.pos
+        );
+        st.tick(1.0);
+        assert_eq!(st.pos[0], 10.0);
+        assert!(!st.moving());
+    }
+
+    fn probing_sim(at: f64, time_scale: f64) -> Mach3Sim {
+        let mut m = Mach3Sim::new(SimConfig {
+            time_scale,
+            probe: Some(ProbeSwitch {
+                axis: 2,
+                at,
+                below: true,
+            }),
+            ..Default::default()
+        });
+        m.do_oem_button(code::RESET).unwrap();
+        m
+    }
+
+    fn trip(m: &mut Mach3Sim) -> [f64; 3] {
+        std::array::from_fn(|i| m.get_var(code::VAR_PROBE_X + i as i16).unwrap())
+    }
+
+    #[test]
+    fn g31_stops_past_the_probe_and_keeps_the_trip_in_2000_to_2002() {
+        let mut m = probing_sim(-20.0, 0.0);
+        m.code("G0 X3").unwrap();
+        m.set_oem_dro(code::DRO_FIXTURE_X + 2, -5.0).unwrap(); // G54 Z: work = machine + 5
+        assert!(!m.get_oem_led(code::LED_PROBE).unwrap());
+        m.code("G90 G31 Z-50 F300").unwrap();
+        wait_still(&mut m);
+        assert_eq!(
+            m.get_oem_dro(code::DRO_MOTION_MODE).unwrap(),
+            31.0,
+            "G31 is modal"
+        );
+        assert!(
+            m.get_oem_led(code::LED_PROBE).unwrap(),
+            "resting on the plate"
+        );
+        // The trip, in work coordinates: machine Z -20 is work Z -15.
+        let t = trip(&mut m);
+        assert!((t[2] + 15.0).abs() < 1e-9, "{t:?}");
+        assert_eq!(t[0], 3.0);
+        // At 300 mm/min (5 mm/s): 5 mm/s x 40 us + 25 / 2000 mm past the trip.
+        let rest = m.get_oem_dro(code::DRO_X + 2).unwrap() - 5.0;
+        let overshoot = -20.0 - rest;
+        assert!(
+            (overshoot - (5.0 / 25_000.0 + 25.0 / 2000.0)).abs() < 1e-9,
+            "{overshoot}"
+        );
+        // Already touching: a G31 trips where it stands and does not move.
+        let z = m.get_oem_dro(code::DRO_X + 2).unwrap();
+        m.code("G31 Z-60").unwrap();
+        wait_still(&mut m);
+        assert_eq!(m.get_oem_dro(code::DRO_X + 2).unwrap(), z);
+        assert!((trip(&mut m)[2] - z).abs() < 1e-9);
+        // Off the plate and a G31 that never reaches it: the end goes into #2002.
+        m.code("G0 Z0").unwrap();
+        m.set_probe(Some(ProbeSwitch {
+            axis: 2,
+            at: -80.0,
+            below: true,
+        }));
+        m.code("G31 Z-30").unwrap();
+        wait_still(&mut m);
+        assert_eq!(m.get_oem_dro(code::DRO_X + 2).unwrap(), -30.0);
+        assert_eq!(trip(&mut m)[2], -30.0);
+        assert!(!m.get_oem_led(code::LED_PROBE).unwrap());
+    }
+
+    #[test]
+    fn stop_during_g31_leaves_the_trip_parameters_alone() {
+        let mut m = probing_sim(-20.0, 1.0);
+        let mut st = m.lock();
+        st.mdi("G90 G31 Z-50 F600").unwrap();
+        st.tick(1.0); // 10 mm down
+        assert!((st.pos[2] + 10.0).abs() < 1e-9, "{:?}", st.pos);
+        st.button(code::STOP);
+        st.tick(1.0);
+        assert!(!st.moving());
+        drop(st);
+        assert_eq!(trip(&mut m), [0.0; 3], "untouched");
+        assert!((m.get_oem_dro(code::DRO_X + 2).unwrap() + 10.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn probe_switches_parse() {
+        assert_eq!(
+            ProbeSwitch::parse("z<=-20").unwrap(),
+            ProbeSwitch {
+                axis: 2,
+                at: -20.0,
+                below: true
+            }
+        );
+        assert_eq!(
+            ProbeSwitch::parse("X>=35.5").unwrap(),
+            ProbeSwitch {
+                axis: 0,
+                at: 35.5,
+                below: false
+            }
+        );
+        for bad in ["z<-20", "q<=1", "z<=x", "z<=inf", ""] {
+            assert!(ProbeSwitch::parse(bad).is_err(), "{bad}");
+        }
     }
 
     #[test]

@@ -7,7 +7,7 @@ use fresa_mach3_oem::agent::{Agent, AgentConfig};
 use fresa_mach3_oem::client::{AgentClient, LinkError};
 use fresa_mach3_oem::mach3::{Call, ErrorKind, Mach3};
 use fresa_mach3_oem::protocol::CallResult;
-use fresa_mach3_oem::sim::{Mach3Sim, SimConfig};
+use fresa_mach3_oem::sim::{Mach3Sim, ProbeSwitch, SimConfig};
 use std::io::{BufRead, BufReader, Write};
 use std::net::TcpStream;
 use std::time::{Duration, Instant};
@@ -206,4 +206,223 @@ fn a_limit_led_shows_as_an_input_and_names_the_alarm() {
             |e| matches!(e, Event::Alarm { input, .. } if input.as_deref() == Some("limit_x_max")),
         )
     });
+}
+
+/// The agent names its protocol features in its hello; `get_var` reads Mach3's parameters,
+/// where G31 leaves its trip.
+#[test]
+fn the_hello_names_get_var_and_it_reads_g31s_trip() {
+    let (addr, sim, _dir) = start(Duration::from_secs(5));
+    sim.set_probe(Some(ProbeSwitch {
+        axis: 2,
+        at: -2.0,
+        below: true,
+    }));
+    let mut c = client(&addr);
+    c.connect().unwrap();
+    assert!(c.has_feature(fresa_mach3_oem::protocol::FEATURE_GET_VAR));
+    c.batch(
+        vec![Call::Code {
+            line: "G90 G31 Z-5 F3000".into(),
+        }],
+        false,
+    )
+    .unwrap();
+    let mut s = sim.clone();
+    wait_until("the G31 ended", || !s.is_moving().unwrap());
+    let r = c
+        .batch(
+            vec![Call::GetVar { var: 2002 }, Call::GetVar { var: -1 }],
+            false,
+        )
+        .unwrap();
+    assert!(
+        matches!(&r[0], CallResult::Ok(v) if (v.as_f64().unwrap() + 2.0).abs() < 1e-9),
+        "{r:?}"
+    );
+    assert!(
+        matches!(&r[1], CallResult::Err(e) if e.kind == ErrorKind::Invalid),
+        "{r:?}"
+    );
+}
+
+/// An agent from before the feature list (its hello names none) answering every call with a
+/// plausible value: the plugin talks to it as before, and refuses a probe (which needs
+/// `get_var`) saying the agent must be updated, before anything moves.
+#[test]
+fn a_probe_through_an_agent_without_get_var_is_refused_naming_the_agent() {
+    use fresa_mach3_oem::backend::Mach3Backend;
+    use fresa_mach3_oem::protocol::{read_frame, write_frame, Request, Response};
+    use fresa_plugin_api::MachineBackend;
+
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap().to_string();
+    let moved = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let seen = moved.clone();
+    std::thread::spawn(move || {
+        for stream in listener.incoming() {
+            let Ok(stream) = stream else { return };
+            let seen = seen.clone();
+            std::thread::spawn(move || {
+                let mut r = BufReader::new(stream.try_clone().unwrap());
+                let mut w = stream;
+                let hello = serde_json::json!({"agent": "fresa-mach3-agent", "protocol": 1,
+                    "nonce": "00"});
+                writeln!(w, "{hello}").unwrap();
+                let mut buf = Vec::new();
+                if !read_frame(&mut r, &mut buf).unwrap_or(false) {
+                    return;
+                }
+                writeln!(w, "{{\"ok\":true}}").unwrap();
+                while let Ok(true) = read_frame(&mut r, &mut buf) {
+                    let req: Request = serde_json::from_slice(&buf).unwrap();
+                    let results = req
+                        .calls
+                        .iter()
+                        .map(|c| match c {
+                            Call::GetOemLed { .. } | Call::IsMoving | Call::IsEstop => {
+                                CallResult::Ok(false.into())
+                            }
+                            Call::GetOemDro { .. } => CallResult::Ok(0.0.into()),
+                            _ => {
+                                seen.store(true, std::sync::atomic::Ordering::SeqCst);
+                                CallResult::Ok(serde_json::Value::Null)
+                            }
+                        })
+                        .collect();
+                    let answer = Response {
+                        id: Some(req.id),
+                        results,
+                        error: None,
+                    };
+                    if write_frame(&mut w, &answer).is_err() {
+                        return;
+                    }
+                }
+            });
+        }
+    });
+    let backend = Mach3Backend::new(
+        &serde_json::json!({"agent": addr, "secret": "anything-at-all", "poll_hz": 50}),
+        std::sync::Arc::new(|_: &fresa_plugin_api::contract::Event| {}),
+    )
+    .unwrap();
+    backend
+        .request(serde_json::json!({"op": "connect"}))
+        .unwrap();
+    wait_until("idle", || {
+        backend
+            .request(serde_json::json!({"op": "status"}))
+            .unwrap()["state"]
+            == "idle"
+    });
+    let e = backend
+        .request(
+            serde_json::json!({"op": "probe", "id": 1, "axis": "Z", "distance": -5.0,
+            "feed": 100.0}),
+        )
+        .unwrap_err();
+    assert_eq!(e.code, "unsupported", "{e:?}");
+    assert!(e.message.contains("older"), "{e:?}");
+    assert!(
+        !moved.load(std::sync::atomic::Ordering::SeqCst),
+        "nothing but reads reached Mach3"
+    );
+}
+
+/// In process, the events a probe leaves: the status at rest (no longer `jogging`) comes
+/// before `probe_ended`, whose trip is the switch's position and whose position is where
+/// Mach3 came to rest; an override command is in Mach3's DRO when it returns.
+#[test]
+fn probe_ended_follows_the_status_at_rest_and_overrides_reach_the_dros() {
+    use fresa_mach3_oem::backend::Mach3Backend;
+    use fresa_plugin_api::contract::{Event, MachineState, ProbeOutcome};
+    use fresa_plugin_api::MachineBackend;
+    use std::sync::{Arc, Mutex};
+
+    let (addr, mut sim, _dir) = start(Duration::from_secs(5));
+    sim.set_probe(Some(ProbeSwitch {
+        axis: 2,
+        at: -10.0,
+        below: true,
+    }));
+    let events = Arc::new(Mutex::new(Vec::<Event>::new()));
+    let sink = events.clone();
+    let backend = Mach3Backend::new(
+        &serde_json::json!({"agent": addr, "secret": SECRET, "poll_hz": 50}),
+        Arc::new(move |e: &Event| sink.lock().unwrap().push(e.clone())),
+    )
+    .unwrap();
+    backend
+        .request(serde_json::json!({"op": "connect"}))
+        .unwrap();
+    wait_until("idle", || {
+        backend
+            .request(serde_json::json!({"op": "status"}))
+            .unwrap()["state"]
+            == "idle"
+    });
+    backend
+        .request(
+            serde_json::json!({"op": "command", "command": "set_overrides", "feed": 40.0,
+            "spindle": 110.0}),
+        )
+        .unwrap();
+    assert_eq!(sim.get_oem_dro(821).unwrap(), 40.0);
+    assert_eq!(sim.get_oem_dro(74).unwrap(), 110.0);
+    // Real time: 10 mm at 600 mm/min to the plate takes 1 s. Under a 40 % feed override the
+    // G31 is sent with F1500, so that it goes at the 600 asked for.
+    backend
+        .request(
+            serde_json::json!({"op": "probe", "id": 9, "axis": "Z", "distance": -12.0,
+            "feed": 600.0}),
+        )
+        .unwrap();
+    assert_eq!(sim.get_oem_dro(818).unwrap(), 1500.0, "F of the G31");
+    assert_eq!(sim.get_oem_dro(819).unwrap(), 31.0, "G31 under way");
+    wait_until("probe_ended", || {
+        events
+            .lock()
+            .unwrap()
+            .iter()
+            .any(|e| matches!(e, Event::ProbeEnded { .. }))
+    });
+    let events = events.lock().unwrap();
+    let end = events
+        .iter()
+        .position(|e| matches!(e, Event::ProbeEnded { .. }))
+        .unwrap();
+    let Event::ProbeEnded {
+        id,
+        outcome,
+        trip,
+        position,
+        ..
+    } = &events[end]
+    else {
+        unreachable!()
+    };
+    assert_eq!((*id, *outcome), (9, ProbeOutcome::Tripped));
+    assert!((trip.unwrap().z + 10.0).abs() < 1e-9, "{trip:?}");
+    assert!(position.z < -10.0, "at rest past the trip: {position:?}");
+    let last_status = events[..end]
+        .iter()
+        .rev()
+        .find_map(|e| match e {
+            Event::Status(s) => Some(s),
+            _ => None,
+        })
+        .unwrap();
+    assert_eq!(last_status.state, MachineState::Idle);
+    assert_eq!(last_status.machine_position.z, position.z);
+    // The modal state found is back: G0 and F0 (Mach3 started with none).
+    assert_eq!(sim.get_oem_dro(818).unwrap(), 0.0, "F put back");
+    assert_eq!(sim.get_oem_dro(819).unwrap(), 0.0, "G0 put back");
+    assert!(events[..end].iter().any(|e| matches!(
+        e,
+        Event::StateChanged {
+            to: MachineState::Jogging,
+            ..
+        }
+    )));
 }

@@ -5,7 +5,7 @@
 use clap::Parser;
 use fresa_mach3_oem::agent::{Agent, AgentConfig, Mach3Factory};
 use fresa_mach3_oem::mach3::Mach3;
-use fresa_mach3_oem::sim::{Mach3Sim, SimConfig};
+use fresa_mach3_oem::sim::{Mach3Sim, ProbeSwitch, SimConfig};
 use std::io::{BufRead, Write};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -34,12 +34,17 @@ struct Args {
     watchdog_ms: u64,
     /// Serve a simulated Mach3 instead of the real one. Reads operator actions from stdin:
     /// `button <code>` presses an OEM button on the simulated screen, `close` / `open` quit
-    /// and restart the simulated Mach3.
+    /// and restart the simulated Mach3, `probe z<=-20` / `probe off` place or remove the
+    /// probe's touch plate.
     #[arg(long)]
     simulate: bool,
     /// Simulator only: multiplies every motion time (0.01 = 100x faster, 0 = instant).
     #[arg(long, default_value_t = 1.0)]
     time_scale: f64,
+    /// Simulator only: a probe input active while an axis's machine position is at or below
+    /// (`z<=-20`) or at or above (`x>=35`) a point, e.g. a touch plate under the tool.
+    #[arg(long, value_parser = ProbeSwitch::parse)]
+    probe: Option<ProbeSwitch>,
 }
 
 fn secret(args: &Args) -> Result<String, String> {
@@ -74,9 +79,15 @@ fn operator(mut sim: Mach3Sim) {
             },
             ["close"] => sim.set_running(false),
             ["open"] => sim.set_running(true),
+            ["probe", "off"] => sim.set_probe(None),
+            ["probe", switch] => match ProbeSwitch::parse(switch) {
+                Ok(p) => sim.set_probe(Some(p)),
+                Err(e) => eprintln!("simulator: {e}"),
+            },
             [] => {}
             _ => eprintln!(
-                "simulator: unknown operator action {line:?} (known: button <code>, close, open)"
+                "simulator: unknown operator action {line:?} (known: button <code>, close, open, \
+                 probe <axis><=|>=<pos>, probe off)"
             ),
         }
     }
@@ -92,6 +103,7 @@ fn factory(args: &Args) -> Result<Mach3Factory, String> {
         }
         let sim = Mach3Sim::new(SimConfig {
             time_scale: args.time_scale,
+            probe: args.probe,
             ..Default::default()
         });
         let screen = sim.clone();
