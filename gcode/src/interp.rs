@@ -416,8 +416,8 @@ impl<R: BufRead> Interpreter<R> {
         self.lines_read
     }
     /// First line that used LinuxCNC-only syntax: O-word control flow
-    /// (`o<name> sub`, `if`, `while`, ...), named parameters (`#<x>`) or
-    /// `(debug,...)` / `(print,...)`. A backend that hands the program text
+    /// (`o<name> sub`, `if`, `while`, ...), named parameters (`#<x>`),
+    /// `(debug,...)` / `(print,...)` or G38.x probing (Mach3 probes with G31). A backend that hands the program text
     /// to a controller with another dialect (Mach3) refuses it naming this line.
     pub fn linuxcnc_only_line(&self) -> Option<u32> {
         self.linuxcnc_only
@@ -2383,6 +2383,10 @@ impl<R: BufRead> Interpreter<R> {
             self.g92_active = g92 != [0.0; 3] || g92_a != 0.0;
         }
         if let Some((from, to, mach3)) = probe_new {
+            // G38.x is LinuxCNC's probe: Mach3 knows only its own G31.
+            if !mach3 {
+                self.note_linuxcnc_only();
+            }
             let frame = self.frame();
             self.probe_pending = Some(PendingProbe {
                 from: add(from, frame),

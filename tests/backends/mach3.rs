@@ -312,6 +312,18 @@ fn jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode(build: Bu
         r.text
     );
     assert_eq!(dro(&mut mach, 800), 2.0, "nothing moved");
+    // So does LinuxCNC's G38.2 probe (Mach3 probes with G31).
+    let job = s.upload(m, "g38", "G21 G90 F100\nG38.2 Z-5\nM2\n")["id"]
+        .as_i64()
+        .unwrap();
+    let r = s.job_action(job, "start");
+    assert!(r.status >= 400, "{r:?}");
+    assert!(
+        r.text.contains("line 2") && r.text.contains("G38"),
+        "{}",
+        r.text
+    );
+    assert_eq!(dro(&mut mach, 800), 2.0, "nothing moved");
 
     // The A axis: Mach3 turns it (its A DRO), and the status shows it.
     let job = s.upload(m, "rotary", "G21 G90\nG1 X3 A45 F600\nG1 A90\nM30\n")["id"]

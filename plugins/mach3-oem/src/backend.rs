@@ -1311,8 +1311,9 @@ impl Inner {
             return Err(PluginError::new(
                 "invalid_program",
                 format!(
-                    "line {line}: LinuxCNC-only syntax (O-word sub/if/while, #<named> parameters \
-                     or (debug,...)) that Mach3 does not run; use numbered parameters and M98/M99"
+                    "line {line}: LinuxCNC-only syntax (O-word sub/if/while, #<named> parameters, \
+                     (debug,...) or G38.x probing) that Mach3 does not run; use numbered \
+                     parameters, M98/M99 and G31"
                 ),
             ));
         }

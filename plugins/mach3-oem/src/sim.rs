@@ -758,10 +758,12 @@ impl State {
         for m in linearise(Interpreter::new(text.as_bytes(), config), 0.01) {
             let m = m.map_err(|e| Mach3Error::invalid(e.to_string()))?;
             let line = m.line();
-            // Mach3 probes with G31, which this simulator of it does not run either.
+            // This simulator plans a program whole when it is loaded, so a move that depends
+            // on where a G31 tripped cannot be planned: it runs G31 as MDI only (the real Mach3
+            // runs it in programs too).
             if matches!(m, Motion::Probe { .. }) {
                 return Err(Mach3Error::invalid(format!(
-                    "line {line}: G38 probing is not Mach3's dialect (Mach3 probes with G31)"
+                    "line {line}: this simulated Mach3 runs G31 only as MDI, not in a program"
                 )));
             }
             let step = match m {
