@@ -2463,6 +2463,8 @@ mod tests {
                     _ => "G4 P0.01\n".to_string(),
                 });
             }
+            // (Random arcs can be impossible ones: those programs are refused whole.)
+            prop_assume!(plan_program(&m, &prog, &start(), 1).is_ok());
             let base = streamed(&m, &prog, piece, 0, None);
             let items = streamed(&m, &prog, piece, cut, Some(Scale { feed, rapid }));
             check_limits(&m, &items);
