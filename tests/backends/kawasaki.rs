@@ -542,3 +542,141 @@ fn sigterm_mid_job_closes_the_link_and_resume_completes() {
     }
     assert_same_motions(&got, &want);
 }
+
+/// Speeds (mm/s) of the motions the robot executed, in order: (JMOVE?, speed).
+fn executed_speeds(robot: &Robot) -> Vec<(bool, f64)> {
+    robot
+        .entries()
+        .iter()
+        .filter(|e| e["move"].is_string())
+        .map(|e| (e["move"] == "JMOVE", e["speed"].as_f64().unwrap()))
+        .collect()
+}
+
+fn overrides(s: &Server, m: i64) -> [f64; 3] {
+    let st = s.status(m);
+    ["feed_override", "spindle_override", "rapid_override"].map(|k| st[k].as_f64().unwrap())
+}
+
+/// The seed's robot program (legacy) fixes its own speeds and ignores any other command
+/// without an answer: a feed override is refused through the API with that reason, nothing
+/// changes (the status still says 100, the robot still cuts at 15 mm/s), and 100 % is accepted.
+#[test]
+fn legacy_refuses_a_feed_override_saying_why_and_changes_nothing() {
+    let s = Server::start();
+    let robot = Robot::start(s.root(), "legacy", &[]);
+    let m = machine(&s, &robot, "legacy", json!({}));
+    s.wait_machine_state(m, "idle", T);
+    let path = format!("/api/v1/machines/{m}/overrides");
+    let msg = s
+        .post(&path, &json!({"feed": 50}))
+        .expect_error(422, "backend_rejected");
+    assert!(
+        msg.starts_with("unsupported:")
+            && msg.contains("SPEED 15 MM/S ALWAYS")
+            && msg.contains("Unknown commands are ignored by the robot without an answer"),
+        "{msg}"
+    );
+    let msg = s
+        .post(&path, &json!({"spindle": 120}))
+        .expect_error(422, "backend_rejected");
+    assert!(msg.contains("potentiometer"), "{msg}");
+    assert_eq!(overrides(&s, m), [100.0, 100.0, 100.0]);
+    s.post(&path, &json!({"feed": 100})).expect(200);
+
+    let job = upload(&s, m, "G21 G90\nG0 X1 Y1 Z2\nG1 Z-1 F300\nG1 X5\n");
+    s.job_action(job, "start").expect(200);
+    s.wait_job_state(job, "completed", T);
+    assert_eq!(
+        executed_speeds(&robot),
+        [(true, 10.0), (false, 15.0), (false, 15.0)]
+    );
+    assert!(robot.violations().is_empty(), "{:?}", robot.violations());
+    assert_eq!(overrides(&s, m), [100.0, 100.0, 100.0]);
+}
+
+/// fresa-v1 carries a feed override: set during a run (motions of 1 mm at F600 = 10 mm/s,
+/// 0.1 s each on the simulated robot), every cutting motion from the first one sent after it
+/// runs at 5 mm/s, by the robot's own log; only the motions already in the window (4) keep
+/// 10 mm/s. Every motion is executed exactly once; rapid and spindle overrides are refused.
+#[test]
+fn fresa_v1_applies_a_feed_override_from_the_next_command_sent() {
+    let s = Server::start();
+    let robot = Robot::start(s.root(), "fresa-v1", &["--time-scale", "1"]);
+    let m = machine(&s, &robot, "fresa-v1", json!({}));
+    s.wait_machine_state(m, "idle", T);
+    let path = format!("/api/v1/machines/{m}/overrides");
+    for body in [json!({"rapid": 50}), json!({"feed": 50, "spindle": 80})] {
+        let msg = s.post(&path, &body).expect_error(422, "backend_rejected");
+        assert!(msg.starts_with("unsupported:"), "{msg}");
+    }
+    assert_eq!(overrides(&s, m), [100.0, 100.0, 100.0]);
+
+    let mut program = String::from("G21 G90\nG0 X0 Y0 Z-1\n");
+    program.push_str(&fresa_tests::back_and_forth(40, 1.0, 600.0));
+    let job = upload(&s, m, &program);
+    s.job_action(job, "start").expect(200);
+    fresa_tests::wait_for(T, "10 motions executed", || {
+        (executed_speeds(&robot).len() >= 10).then_some(())
+    });
+    let before = executed_speeds(&robot).len();
+    let asked_ms = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_millis() as u64;
+    let answer = s.post(&path, &json!({"feed": 50})).expect(200);
+    assert_eq!(
+        answer,
+        json!({"feed": 50.0, "spindle": 100.0, "rapid": 100.0})
+    );
+    s.wait_job_state(job, "completed", T);
+    assert_same_motions(&robot.moves(), &expected(&program, Unsupported::Error));
+    assert!(robot.violations().is_empty(), "{:?}", robot.violations());
+    let cuts: Vec<f64> = executed_speeds(&robot)
+        .into_iter()
+        .filter(|(rapid, _)| !rapid)
+        .map(|(_, v)| v)
+        .collect();
+    assert_eq!(cuts.len(), 40);
+    // 10 mm/s up to some motion, 5 mm/s from the next one on: one change, no way back.
+    let first_slow = cuts
+        .iter()
+        .position(|v| *v == 5.0)
+        .expect("no motion at 5 mm/s");
+    assert!(cuts[..first_slow].iter().all(|v| *v == 10.0), "{cuts:?}");
+    assert!(cuts[first_slow..].iter().all(|v| *v == 5.0), "{cuts:?}");
+    // The motions the robot had executed (one rapid among them) and those in the window
+    // when the override came: at most the window (4) and the one in progress.
+    let late = first_slow + 1 - before;
+    // When the first slow motion started: when the one before it ended, by the robot's clock.
+    let ends: Vec<u64> = robot
+        .entries()
+        .iter()
+        .filter(|e| e["move"].is_string())
+        .map(|e| e["at_ms"].as_u64().unwrap())
+        .collect();
+    let cut_index = |k: usize| {
+        executed_speeds(&robot)
+            .iter()
+            .enumerate()
+            .filter(|(_, (rapid, _))| !rapid)
+            .nth(k)
+            .map(|(i, _)| i)
+            .unwrap()
+    };
+    eprintln!(
+        "kawasaki fresa-v1 feed override: {late} motion(s) at the old speed after the command; \
+         the first at 5 mm/s started {} ms after it",
+        ends[cut_index(first_slow) - 1].saturating_sub(asked_ms)
+    );
+    assert!(
+        late <= 5,
+        "{late} motions at 10 mm/s after the override: {cuts:?}"
+    );
+    // The SPEED of the override went out with sequence number 0 (not a program command).
+    assert!(robot
+        .entries()
+        .iter()
+        .any(|e| e["recv"] == "0,SPEED,5.000000" || e["recv"] == "0,SPEED,5"));
+    assert_eq!(overrides(&s, m), [50.0, 100.0, 100.0]);
+}

@@ -270,3 +270,78 @@ fn an_a_axis_program_is_refused_naming_the_line_before_anything_moves() {
     assert_eq!(axis(&st, "machine_position", "x"), 0.0, "{st}");
     assert_eq!(axis(&st, "machine_position", "y"), 0.0, "{st}");
 }
+
+fn overrides(s: &Server, m: i64) -> [f64; 3] {
+    let st = s.status(m);
+    ["feed_override", "spindle_override", "rapid_override"].map(|k| {
+        st[k]
+            .as_f64()
+            .unwrap_or_else(|| panic!("no {k} in the status {st}"))
+    })
+}
+
+/// The median time a line of `run` took, ms, over the lines `from..=to`, from the plugin's
+/// execution log (each line's end stamp minus the previous one's).
+fn median_line_ms(log: &fresa_tests::Sim, run: i64, from: i64, to: i64) -> f64 {
+    let times = log.line_times(run);
+    let mut spans: Vec<f64> = times
+        .windows(2)
+        .filter(|w| w[1].0 >= from && w[1].0 <= to)
+        .map(|w| w[1].1 as f64 - w[0].1 as f64)
+        .collect();
+    assert!(
+        spans.len() as i64 >= to - from,
+        "lines {from}..={to} of run {run} not all stamped: {times:?}"
+    );
+    spans.sort_by(f64::total_cmp);
+    spans[spans.len() / 2]
+}
+
+/// The check on the stepper: a 50 % feed override set during a run makes every later
+/// line take twice as long (lines of 1 mm at 600 mm/min: 20 steps at 200 steps/s, 0.1 s), by
+/// the plugin's own execution log; a spindle override is refused naming why and changes
+/// nothing, also when it comes with a feed override.
+#[test]
+fn a_50_percent_feed_override_doubles_the_line_times_and_a_spindle_one_is_refused() {
+    let s = Server::start();
+    let m = parport_machine(&s, "over", json!({}));
+    let log = fresa_tests::Sim {
+        id: m,
+        log: s.data_dir().join("exec-over.log"),
+    };
+    s.wait_machine_state(m, "idle", T);
+    let path = format!("/api/v1/machines/{m}/overrides");
+    let msg = s
+        .post(&path, &json!({"feed": 80, "spindle": 120}))
+        .expect_error(422, "backend_rejected");
+    assert!(
+        msg.starts_with("unsupported:") && msg.contains("spindle"),
+        "{msg}"
+    );
+    assert_eq!(overrides(&s, m), [100.0, 100.0, 100.0]);
+
+    let (job, run) = s.upload_and_start(m, "strokes", &back_and_forth(40, 1.0, 600.0));
+    fresa_tests::wait_for(T, "line 12 executed", || {
+        (log.count_of(run) >= 12).then_some(())
+    });
+    let answer = s.post(&path, &json!({"feed": 50})).expect(200);
+    assert_eq!(
+        answer,
+        json!({"feed": 50.0, "spindle": 100.0, "rapid": 100.0})
+    );
+    // The line under way and the ~60 ms of motion queued ahead are the only ones in between.
+    let set_at = log.count_of(run) as i64 + 2;
+    s.wait_job_state(job, "completed", T);
+    assert_every_line_once(&read_exec_log(&log.log), run, 40);
+    let full = median_line_ms(&log, run, 3, 11);
+    let half = median_line_ms(&log, run, set_at, 40);
+    let ratio = half / full;
+    eprintln!("parport feed override: {full} ms a line at 100 %, {half} ms at 50 % (x{ratio:.2})");
+    assert!(
+        (1.7..=2.3).contains(&ratio),
+        "a line took {full} ms at 100 % and {half} ms at 50 % (ratio {ratio:.2}); expected about 2"
+    );
+    let st = s.wait_machine_state(m, "idle", T);
+    assert_eq!(axis(&st, "machine_position", "x"), 0.0, "{st}");
+    assert_eq!(overrides(&s, m), [50.0, 100.0, 100.0]);
+}

@@ -54,6 +54,16 @@ impl Speeds {
     pub fn cutting(&self, feed_mm_min: f64) -> f64 {
         (feed_mm_min / 60.0).clamp(self.cut_min_mm_s, self.cut_max_mm_s)
     }
+
+    /// The cutting speed sent for a programmed (clamped) speed `mm_s` under a feed override of
+    /// `percent`: scaled, never above `cut_max_mm_s` (the robot's cutting limit), and never
+    /// below what the wire can carry. The override may take it below `cut_min_mm_s`: that
+    /// clamp is for programs' feeds, the operator slowing a cut down decides for himself.
+    pub fn overridden(&self, mm_s: f64, percent: f64) -> f64 {
+        (mm_s * percent / 100.0)
+            .min(self.cut_max_mm_s)
+            .max(crate::codec::MIN_SPEED_MM_S)
+    }
 }
 
 /// Settings of one robot. See the crate README for the JSON shape.

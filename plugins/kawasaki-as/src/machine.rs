@@ -11,8 +11,8 @@ use crate::convert::{Cmd, Convert, Plan};
 use crate::link::{self, LegacyLink, LinkError, V1Link};
 use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
 use fresa_plugin_api::contract::{
-    Artifact, Axis, AxisValues, Event, MachineState, MachineStatus, OffsetTable, ProgramLoaded,
-    RunAction, RunAnswer, RunOutcome, WorkOffset,
+    Artifact, Axis, AxisValues, Event, MachineState, MachineStatus, OffsetTable, Overrides,
+    ProgramLoaded, RunAction, RunAnswer, RunOutcome, WorkOffset,
 };
 use fresa_plugin_api::exec_log::ExecLog;
 use fresa_plugin_api::{Host, PluginError};
@@ -92,6 +92,8 @@ struct Shared {
     /// Runs ended so far, counted after their `run_ended` event left: a cancel or stop waits
     /// for this to move so it answers only once the run is over.
     runs_ended: u64,
+    /// Overrides in force (fresa-v1 applies the feed one; see `set_overrides`).
+    overrides: Overrides,
 }
 
 impl Shared {
@@ -113,6 +115,9 @@ impl Shared {
                 a: 0.0,
             },
             feed: self.feed_mm_s * 60.0,
+            feed_override: self.overrides.feed,
+            spindle_override: self.overrides.spindle,
+            rapid_override: self.overrides.rapid,
             run: self.run,
             line: self.line,
             alarm: self.alarm.clone(),
@@ -474,6 +479,69 @@ impl KawasakiMachine {
         self.hold(true, strict)
     }
 
+    /// Overrides, as far as the protocol can carry them: fresa-v1 changes the cutting speed
+    /// between streamed commands (a `SPEED` with sequence number 0 before the next one it
+    /// sends); the seed's program (legacy) fixes its speeds. Whatever cannot be applied refuses
+    /// the whole request, saying why, and nothing changes. 100 % is always accepted.
+    fn apply_overrides(
+        &self,
+        feed: Option<f64>,
+        spindle: Option<f64>,
+        rapid: Option<f64>,
+    ) -> Result<(), PluginError> {
+        for (field, v) in [("feed", feed), ("spindle", spindle), ("rapid", rapid)] {
+            if let Some(v) = v.filter(|v| !(v.is_finite() && *v > 0.0)) {
+                return Err(PluginError::invalid(format!(
+                    "`{field}` override must be a positive percentage, got {v}"
+                )));
+            }
+        }
+        let asked = |v: Option<f64>| v.filter(|v| *v != 100.0);
+        let unsupported = |why: String| Err(PluginError::new("unsupported", why));
+        if let Some(s) = asked(spindle) {
+            return unsupported(format!(
+                "kawasaki-as cannot override the spindle speed (asked {s} %): the spindle's speed \
+                 is set by hand with the potentiometer on its supply, not by the robot (spec: \
+                 \"speed set by a 0-10 V potentiometer on its supply (not by the robot)\")"
+            ));
+        }
+        let legacy = self.core.cfg.protocol == Protocol::Legacy;
+        if let Some(f) = asked(feed).filter(|_| legacy) {
+            return unsupported(format!(
+                "kawasaki-as with protocol `legacy` cannot override the feed (asked {f} %): the \
+                 seed's robot program runs every LMOVE at its own `SPEED 15 MM/S ALWAYS` and \
+                 ignores any other command without an answer (spec: \"`LMOVE,x,y,z` ... Robot runs \
+                 it at 15 mm/s.\"; \"Unknown commands are ignored by the robot without an \
+                 answer\"), so no speed can be sent during a run; protocol `fresa-v1` can"
+            ));
+        }
+        if let Some(r) = asked(rapid) {
+            let why = if legacy {
+                "the seed's robot program runs every JMOVE at its own `SPEED 10 MM/S ALWAYS` \
+                 (spec: \"`JMOVE,x,y,z` - for G0. The robot runs it as a *linear* move at a \
+                 fixed 10 mm/s.\")"
+            } else {
+                "fresa-v1's robot program runs every JMOVE at its constant `rapid` (the \
+                 machine's `rapid_mm_s`) and has no command to change it"
+            };
+            return unsupported(format!(
+                "kawasaki-as cannot override the rapid speed (asked {r} %): {why}"
+            ));
+        }
+        let status = {
+            let mut sh = self.core.lock();
+            let next = sh.overrides.with(feed, spindle, rapid);
+            (next != sh.overrides).then(|| {
+                sh.overrides = next;
+                sh.status(&self.core.cfg)
+            })
+        };
+        if let Some(st) = status {
+            self.core.emit(&Event::Status(st));
+        }
+        Ok(())
+    }
+
     fn resume(&self, strict: bool) -> Result<(), PluginError> {
         self.hold(false, strict)
     }
@@ -820,21 +888,43 @@ impl Core {
     ) -> Ended {
         let cfg = &self.cfg;
         let window = cfg.window;
-        // Sent and not yet done: command indices, in order.
-        let mut inflight: VecDeque<usize> = VecDeque::new();
+        // Sent and not yet done: command indices (usize::MAX: a SPEED of our own, seq 0), with
+        // the speed a SPEED among them set.
+        let mut inflight: VecDeque<(usize, Option<f64>)> = VecDeque::new();
         let mut next = start_cmd;
+        // The feed override the speed last sent follows (the robot program's own starting speed
+        // follows none).
+        let mut sent_for = 100.0;
         // A resumed run: the robot's speed is whatever it was; set the one in effect.
         if start_cmd > 0 {
             if let Some(v) = plan.speed_before(start_cmd) {
-                let _ = link.send(&V1Cmd::Speed { seq: 0, mm_s: v });
-                inflight.push_back(usize::MAX);
+                let feed = self.lock().overrides.feed;
+                let mm_s = cfg.speeds.overridden(v, feed);
+                let _ = link.send(&V1Cmd::Speed { seq: 0, mm_s });
+                inflight.push_back((usize::MAX, Some(mm_s)));
+                sent_for = feed;
             }
         }
         loop {
-            let (pause, cancel) = {
+            let (pause, cancel, feed) = {
                 let sh = self.lock();
-                (sh.pause, sh.cancel)
+                (sh.pause, sh.cancel, sh.overrides.feed)
             };
+            // A feed override changed: the programmed speed in force, scaled, goes out before
+            // the next command (the motions already sent keep theirs; the robot program takes
+            // a SPEED once the motion before it is complete).
+            if feed != sent_for
+                && !pause
+                && !cancel
+                && inflight.len() < window
+                && next < plan.cmds.len()
+            {
+                let programmed = plan.speed_before(next).unwrap_or(cfg.speeds.cut_min_mm_s);
+                let mm_s = cfg.speeds.overridden(programmed, feed);
+                let _ = link.send(&V1Cmd::Speed { seq: 0, mm_s });
+                inflight.push_back((usize::MAX, Some(mm_s)));
+                sent_for = feed;
+            }
             if cancel && inflight.is_empty() {
                 link.exit(cfg.handshake_timeout);
                 return Ended::Cancelled;
@@ -843,9 +933,13 @@ impl Core {
             while !pause && !cancel && inflight.len() < window && next < plan.cmds.len() {
                 let (line, cmd) = plan.cmds[next];
                 let seq = next as u64 + 1;
+                let mut speed = None;
                 match cmd {
                     Cmd::Speed(v) => {
-                        let _ = link.send(&V1Cmd::Speed { seq, mm_s: v });
+                        let mm_s = cfg.speeds.overridden(v, feed);
+                        let _ = link.send(&V1Cmd::Speed { seq, mm_s });
+                        speed = Some(mm_s);
+                        sent_for = feed;
                     }
                     Cmd::Move { rapid, to } => {
                         let _ = link.send(&V1Cmd::Move { seq, rapid, to });
@@ -874,7 +968,7 @@ impl Core {
                         break;
                     }
                 }
-                inflight.push_back(next);
+                inflight.push_back((next, speed));
                 next += 1;
             }
             if let Err(e) = link.flush() {
@@ -902,7 +996,7 @@ impl Core {
             }
             match msg {
                 Ok(V1Msg::Done(seq)) => {
-                    let Some(&front) = inflight.front() else {
+                    let Some(&(front, speed)) = inflight.front() else {
                         continue;
                     };
                     let expected = if front == usize::MAX {
@@ -917,10 +1011,10 @@ impl Core {
                         ));
                     }
                     inflight.pop_front();
+                    if let Some(v) = speed {
+                        self.lock().feed_mm_s = v;
+                    }
                     if front != usize::MAX {
-                        if let Some((_, Cmd::Speed(v))) = plan.cmds.get(front) {
-                            self.lock().feed_mm_s = *v;
-                        }
                         if let Err(e) = self.mark(run, plan, journal, front + 1, acked) {
                             link.close();
                             return Ended::Failed(e);
@@ -938,7 +1032,7 @@ impl Core {
                     link.close();
                     let line = inflight
                         .front()
-                        .and_then(|i| plan.cmds.get(*i))
+                        .and_then(|(i, _)| plan.cmds.get(*i))
                         .map(|(l, _)| format!("line {l}: "))
                         .unwrap_or_default();
                     return Ended::Failed(format!(
@@ -1112,5 +1206,14 @@ impl MachineBackend for KawasakiMachine {
 
     fn get_artifact(&self, name: &str) -> Result<Artifact, PluginError> {
         self.artifact(name)
+    }
+
+    fn set_overrides(
+        &self,
+        feed: Option<f64>,
+        spindle: Option<f64>,
+        rapid: Option<f64>,
+    ) -> Result<(), PluginError> {
+        self.apply_overrides(feed, spindle, rapid)
     }
 }

@@ -181,7 +181,11 @@ impl Sim {
         m.pos = to;
         m.motions += 1;
         let n = m.motions;
-        m.log(json!({"conn": conn, "move": kind, "seq": seq, "to": to, "speed": speed}));
+        // When it ended, ms since the Unix epoch: the record a test times motions by.
+        let at_ms = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_millis() as u64);
+        m.log(json!({"conn": conn, "move": kind, "seq": seq, "to": to, "speed": speed, "at_ms": at_ms}));
         let drop = match self.cfg.drop_after {
             Some(k) if !m.dropped && n >= k => {
                 m.dropped = true;

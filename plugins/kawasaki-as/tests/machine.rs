@@ -269,3 +269,105 @@ fn legacy_cancel_is_final_when_answered() {
 fn fresa_v1_cancel_is_final_when_answered() {
     cancel_is_final_when_answered(Protocol::FresaV1);
 }
+
+/// What each protocol can do with overrides: legacy none (its robot program fixes its speeds),
+/// fresa-v1 the feed. A refusal names the reason and changes nothing; 100 % is always fine.
+#[test]
+fn overrides_are_refused_where_the_protocol_cannot_carry_them() {
+    let set = |r: &Rig, body: Value| {
+        let mut req = json!({"op": "command", "command": "set_overrides"});
+        for (k, v) in body.as_object().unwrap() {
+            req[k] = v.clone();
+        }
+        r.m.request(req)
+    };
+    let overrides = |r: &Rig| {
+        let st = r.call(json!({"op": "status"}));
+        [
+            &st["feed_override"],
+            &st["spindle_override"],
+            &st["rapid_override"],
+        ]
+        .map(|v| v.as_f64().unwrap())
+    };
+    let legacy = rig(Protocol::Legacy, SimConfig::default());
+    let e = set(&legacy, json!({"feed": 50})).unwrap_err();
+    assert_eq!(e.code, "unsupported");
+    assert!(
+        e.message.contains("15 mm/s") && e.message.contains("fresa-v1"),
+        "{}",
+        e.message
+    );
+    let e = set(&legacy, json!({"rapid": 50})).unwrap_err();
+    assert!(e.message.contains("10 mm/s"), "{}", e.message);
+    set(&legacy, json!({"feed": 100, "rapid": 100})).unwrap();
+    assert_eq!(overrides(&legacy), [100.0; 3]);
+
+    let v1 = rig(Protocol::FresaV1, SimConfig::default());
+    let e = set(&v1, json!({"feed": 50, "spindle": 120})).unwrap_err();
+    assert_eq!(e.code, "unsupported");
+    assert!(e.message.contains("potentiometer"), "{}", e.message);
+    let e = set(&v1, json!({"rapid": 25})).unwrap_err();
+    assert!(e.message.contains("rapid_mm_s"), "{}", e.message);
+    let e = set(&v1, json!({"feed": -5})).unwrap_err();
+    assert_eq!(e.code, "invalid_request");
+    assert_eq!(overrides(&v1), [100.0; 3], "a refusal changes nothing");
+    set(&v1, json!({"feed": 50})).unwrap();
+    assert_eq!(overrides(&v1), [50.0, 100.0, 100.0]);
+}
+
+/// fresa-v1 under a 40 % feed override: every SPEED the robot takes is the program's, scaled
+/// (F600 = 10 mm/s -> 4 mm/s, below the 5 mm/s clamp for programs; F1200 = 20 mm/s clamped to
+/// 15 -> 6 mm/s), and every cutting motion runs at it; rapids keep the program's rapid speed.
+#[test]
+fn fresa_v1_sends_the_programmed_speed_scaled_by_the_feed_override() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("robot.log");
+    let r = rig(
+        Protocol::FresaV1,
+        SimConfig {
+            log: Some(log.clone()),
+            ..SimConfig::default()
+        },
+    );
+    r.m.request(json!({"op": "command", "command": "set_overrides", "feed": 40}))
+        .unwrap();
+    r.load(
+        1,
+        "G21 G90\nG0 X1 Y1 Z2\nG1 Z-1 F600\nG1 X5\nG1 X9 F1200\nG0 Z5\nM30\n",
+    );
+    r.call(json!({"op": "run", "action": "start"}));
+    r.until(|e| {
+        matches!(
+            e,
+            Event::RunEnded {
+                outcome: RunOutcome::Completed,
+                ..
+            }
+        )
+    });
+    let moves: Vec<(String, f64)> = std::fs::read_to_string(&log)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str::<Value>(l).unwrap())
+        .filter(|e| e["move"].is_string())
+        .map(|e| {
+            (
+                e["move"].as_str().unwrap().to_string(),
+                e["speed"].as_f64().unwrap(),
+            )
+        })
+        .collect();
+    let want = [
+        ("JMOVE", 10.0),
+        ("LMOVE", 4.0),
+        ("LMOVE", 4.0),
+        ("LMOVE", 6.0),
+        ("JMOVE", 10.0),
+    ];
+    assert_eq!(moves.len(), want.len(), "{moves:?}");
+    for ((kind, speed), (wk, ws)) in moves.iter().zip(want) {
+        assert_eq!(kind, wk, "{moves:?}");
+        assert!((speed - ws).abs() < 1e-6, "{moves:?}");
+    }
+}

@@ -4,7 +4,10 @@
 
 use crate::config::{Config, Input, InputFunction, PortSpec};
 use crate::output::{realtime_priority, Output, Pacer};
-use crate::planner::{self, Action, Builder, Item, PlanEnd, ProgramStream, Start};
+use crate::planner::{
+    self, Action, Builder, Item, Machine, Pace, PlanEnd, PlanStream, ProgramStream, Retimable,
+    Scale, Start,
+};
 use crate::port::{Port, SharedSimPort, SimPort};
 use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
 use fresa_plugin_api::contract::{
@@ -65,9 +68,16 @@ pub struct Program {
     end: PlanEnd,
 }
 
-/// Items planned ahead of the output thread (a few ms of motion at least): the planner runs on
-/// a thread of its own, so a slow line never holds up a step.
+/// Items planned ahead of the output thread at most: the planner runs on a thread of its own,
+/// so a slow line never holds up a step.
 const PLAN_QUEUE: usize = 1024;
+/// Motion the planner keeps queued ahead of the output thread (at least one item): an
+/// override re-plans everything behind it, so this bounds how long one takes to apply. It must
+/// also cover the planner thread's worst wait for a CPU.
+const PLAN_AHEAD: Duration = Duration::from_millis(50);
+/// Longest piece of a move given to the output thread at once: the rest of a long move can
+/// still be re-planned for an override.
+const PIECE: Duration = Duration::from_millis(10);
 
 /// What `execute` needs to know of a plan besides its items.
 struct Summary {
@@ -98,6 +108,33 @@ pub struct Stepper {
 struct Core {
     cfg: Config,
     kit: Kit,
+    /// The feed and rapid override the planner plans for (set with the kit's overrides).
+    scale: Arc<Mutex<Scale>>,
+}
+
+/// Reads a shared scale (a poisoned lock still holds a valid value).
+fn scale_of(cell: &Mutex<Scale>) -> Scale {
+    *cell.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// The rapids of a go-to-zero along `path` (machine mm) from `start`, at the rapid override
+/// of `scale`; checked against the travel.
+fn go_to_zero_plan<'m>(
+    m: &'m Machine,
+    start: &Start,
+    path: &[[f64; 4]],
+    scale: Scale,
+) -> Result<Builder<'m>, String> {
+    let mut b = Builder::new(m, start).scaled(scale);
+    for p in path {
+        b.move_to(0, [p[0], p[1]], p[2], Some(m.rapid_mm_min), Pace::Rapid)?;
+    }
+    Ok(b)
+}
+
+/// Ticks of `d` at the machine's tick rate (at least one).
+fn ticks_of(cfg: &Config, d: Duration) -> u64 {
+    ((d.as_secs_f64() * cfg.machine.tick_hz).round() as u64).max(1)
 }
 
 /// Machine mm of motor step counts `steps` with the lift at `z`.
@@ -295,7 +332,7 @@ impl Core {
                 };
                 let to = jog.target(here);
                 let mut b = Builder::new(m, &start);
-                b.move_to(0, [to[0], to[1]], to[2], Some(jog.feed))
+                b.move_to(0, [to[0], to[1]], to[2], Some(jog.feed), Pace::Fixed)
                     .map_err(|e| Interrupted::Alarm(format!("soft limit: {e}")))?;
                 let plan = b.finish(0);
                 let summary = Summary::of(&plan);
@@ -307,15 +344,19 @@ impl Core {
                     let sh = self.kit.lock();
                     (start(&sh), sh.go_to_zero_path())
                 };
-                let mut b = Builder::new(m, &start);
-                let rapid = Some(m.rapid_mm_min);
-                path.into_iter()
-                    .try_for_each(|p| b.move_to(0, [p[0], p[1]], p[2], rapid))
+                // Rapids, planned (and checked against the travel) here, then given out by the
+                // planner thread, which re-plans them when the rapid override changes.
+                let b = go_to_zero_plan(m, &start, &path, scale_of(&self.scale))
                     .map_err(|e| Interrupted::Alarm(format!("soft limit: {e}")))?;
-                let plan = b.finish(0);
-                let summary = Summary::of(&plan);
-                self.execute(out, plan.items.into_iter().map(Ok), summary, None, None)
-                    .map(drop)
+                let summary = Summary::of(&b.finish(0));
+                let piece = ticks_of(&self.cfg, PIECE);
+                let items = self.planned(move |lane, machine, scale| {
+                    // Checked just above: cannot fail now.
+                    if let Ok(b) = go_to_zero_plan(machine, &start, &path, scale_of(scale)) {
+                        lane.feed(PlanStream::new(b, piece), scale);
+                    }
+                })?;
+                self.execute(out, items, summary, None, None).map(drop)
             }
             // Not queued by this backend (no MDI); refused rather than ignored.
             Job::Mdi(_) => Err(Interrupted::Failed("parport-stepper runs no MDI".into())),
@@ -328,7 +369,7 @@ impl Core {
                     end_z: p.end.z,
                     end_lift: p.end.lift,
                 };
-                let items = self.planned(p)?;
+                let items = self.program_items(p)?;
                 self.execute(out, items, summary, Some(run), None).map(drop)
             }
             // Taken apart by `finish_job` (a probe ends with its own report).
@@ -366,7 +407,7 @@ impl Core {
         }
         .target(here);
         let mut b = Builder::new(m, &start);
-        b.move_to(0, [to[0], to[1]], to[2], Some(feed))
+        b.move_to(0, [to[0], to[1]], to[2], Some(feed), Pace::Fixed)
             .map_err(|e| Interrupted::Alarm(format!("soft limit: {e}")))?;
         let plan = b.finish(0);
         let summary = Summary::of(&plan);
@@ -419,53 +460,56 @@ impl Core {
         }
     }
 
-    /// The items of a loaded program, planned on a thread of its own as the output thread
-    /// takes them (at most [`PLAN_QUEUE`] ahead). Waiting for one (the planner fell behind)
-    /// still sees a stop; the planner ends when the job does.
+    /// Starts a planner thread running `plan` (which gives out its plan through the lane it
+    /// gets, with the machine and the shared override); answers the items as the output
+    /// thread takes them. Waiting for one (the planner fell behind) still sees a stop; the
+    /// planner ends when the job does.
     fn planned<'a>(
         &'a self,
-        p: &Program,
-    ) -> Result<impl Iterator<Item = Result<Item, Interrupted>> + 'a, Interrupted> {
+        plan: impl FnOnce(&Lane, &Machine, &Mutex<Scale>) + Send + 'static,
+    ) -> Result<LaneItems<'a>, Interrupted> {
+        let lane = Arc::new(Lane::new(ticks_of(&self.cfg, PLAN_AHEAD)));
+        let machine = self.cfg.machine.clone();
+        let scale = Arc::clone(&self.scale);
+        let feeder = Arc::clone(&lane);
+        std::thread::Builder::new()
+            .name("parport planner".into())
+            .spawn(move || {
+                let _done = PlannerDone(&feeder);
+                plan(&feeder, &machine, &scale);
+            })
+            .map_err(|e| Interrupted::Failed(format!("cannot start the planner thread: {e}")))?;
+        Ok(LaneItems {
+            lane,
+            kit: &self.kit,
+        })
+    }
+
+    /// The items of a loaded program, planned again from its file as the output thread takes
+    /// them, for the overrides in force.
+    fn program_items<'a>(&'a self, p: &Program) -> Result<LaneItems<'a>, Interrupted> {
         let failed =
             |e: std::io::Error| Interrupted::Failed(format!("cannot read the program again: {e}"));
         let mut file = p.file.try_clone().map_err(failed)?;
         std::io::Seek::rewind(&mut file).map_err(failed)?;
-        let (tx, rx) = std::sync::mpsc::sync_channel::<Result<Item, String>>(PLAN_QUEUE);
-        let machine = self.cfg.machine.clone();
         let (lines, start, start_line) = (p.lines, p.start, p.start_line);
         let (tools, max_segments) = (p.tools.clone(), p.max_segments);
-        std::thread::Builder::new()
-            .name("parport planner".into())
-            .spawn(move || {
-                let reader = std::io::BufReader::with_capacity(1 << 16, file);
-                let stream = ProgramStream::new(
-                    &machine,
-                    reader,
-                    lines,
-                    &start,
-                    start_line,
-                    tools,
-                    max_segments,
-                );
-                for item in stream {
-                    // The job ended (or was stopped): nobody takes the rest.
-                    if tx.send(item).is_err() {
-                        return;
-                    }
-                }
-            })
-            .map_err(failed)?;
-        Ok(std::iter::from_fn(move || loop {
-            match rx.recv_timeout(Duration::from_millis(1)) {
-                Ok(item) => return Some(item.map_err(Interrupted::Failed)),
-                Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
-                    if self.kit.aborted() {
-                        return Some(Err(Interrupted::Aborted));
-                    }
-                }
-                Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => return None,
-            }
-        }))
+        let piece = ticks_of(&self.cfg, PIECE);
+        self.planned(move |lane, machine, scale| {
+            let reader = std::io::BufReader::with_capacity(1 << 16, file);
+            let stream = ProgramStream::new(
+                machine,
+                reader,
+                lines,
+                &start,
+                start_line,
+                tools,
+                max_segments,
+            )
+            .scaled(scale_of(scale))
+            .in_pieces(piece);
+            lane.feed(stream, scale);
+        })
     }
 
     /// Executes a plan's items on the tick grid. `run` = (run id, first line to acknowledge).
@@ -692,7 +736,8 @@ impl MachineBackend for Stepper {
             actual,
             tools.clone(),
             max_segments,
-        );
+        )
+        .scaled(scale_of(&self.core.scale));
         if let Some(Err(m)) = stream.by_ref().find(Result::is_err) {
             let code = if m.contains("work budget exceeded") {
                 "work_budget_exceeded"
@@ -786,11 +831,174 @@ impl MachineBackend for Stepper {
             .map(|on| json!({ "z_lift": on, "output": OutputName::ZLift, "on": on }))
     }
 
+    /// Feed and rapid overrides re-plan the motion not yet given to the output thread (see
+    /// `Lane`); the spindle is not this machine's to set.
+    fn set_overrides(
+        &self,
+        feed: Option<f64>,
+        spindle: Option<f64>,
+        rapid: Option<f64>,
+    ) -> Result<(), PluginError> {
+        if let Some(s) = spindle.filter(|s| *s != 100.0) {
+            return Err(PluginError::new(
+                "unsupported",
+                format!(
+                    "parport-stepper cannot override the spindle speed (asked {s} %): the \
+                     parallel port drives only the X/Y steppers and the Z lift, the spindle is \
+                     not connected to it; feed and rapid overrides work"
+                ),
+            ));
+        }
+        let kit = self.kit();
+        kit.set_overrides(feed, spindle, rapid)?;
+        // Under the kit's lock, so concurrent calls leave the scale of the last one.
+        kit.with(|sh, _| {
+            *self.core.scale.lock().unwrap_or_else(|e| e.into_inner()) = Scale {
+                feed: sh.overrides.feed / 100.0,
+                rapid: sh.overrides.rapid / 100.0,
+            };
+        });
+        Ok(())
+    }
+
     fn mdi(&self, _line: &str) -> Result<(), PluginError> {
         Err(PluginError::new(
             "unsupported",
             "parport-stepper runs whole programs only: no MDI",
         ))
+    }
+}
+
+/// The plan queue between a planner thread and the output thread: at most [`PLAN_QUEUE`] items
+/// and about [`PLAN_AHEAD`] of motion, so an override re-plans all but that much.
+struct Lane {
+    q: Mutex<LaneQueue>,
+    cv: std::sync::Condvar,
+    /// Ticks of motion to keep queued.
+    ahead: u64,
+}
+
+#[derive(Default)]
+struct LaneQueue {
+    items: std::collections::VecDeque<Result<Item, String>>,
+    /// Ticks of the queued items.
+    ticks: u64,
+    /// The planner has given out everything (or failed).
+    done: bool,
+    /// The output thread takes nothing more (the job ended or stopped).
+    closed: bool,
+}
+
+fn item_ticks(item: &Result<Item, String>) -> u64 {
+    item.as_ref().map_or(0, |i| i.action.ticks())
+}
+
+impl Lane {
+    fn new(ahead: u64) -> Lane {
+        Lane {
+            q: Mutex::new(LaneQueue::default()),
+            cv: std::sync::Condvar::new(),
+            ahead,
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, LaneQueue> {
+        self.q.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Planner side: gives out `stream`'s items as the output thread takes them, re-planning
+    /// what is not given out yet whenever the override in `scale` changes (noticed within a
+    /// millisecond). Returns when the stream ends or the output thread takes no more.
+    fn feed(&self, mut stream: impl Retimable, scale: &Mutex<Scale>) {
+        let mut planned_for = scale_of(scale);
+        loop {
+            let now = {
+                let mut q = self.lock();
+                loop {
+                    if q.closed {
+                        return;
+                    }
+                    let now = scale_of(scale);
+                    let room =
+                        q.items.len() < PLAN_QUEUE && (q.items.is_empty() || q.ticks < self.ahead);
+                    if now != planned_for || room {
+                        break now;
+                    }
+                    q = self
+                        .cv
+                        .wait_timeout(q, Duration::from_millis(1))
+                        .map_or_else(|e| e.into_inner().0, |(g, _)| g);
+                }
+            };
+            if now != planned_for {
+                stream.retime(now);
+                planned_for = now;
+                continue;
+            }
+            let Some(item) = stream.next() else { return };
+            let mut q = self.lock();
+            q.ticks += item_ticks(&item);
+            q.items.push_back(item);
+            drop(q);
+            self.cv.notify_all();
+        }
+    }
+}
+
+/// Marks the lane done when its planner thread ends, also by a panic (then with an error, so
+/// the job fails instead of ending early as if complete).
+struct PlannerDone<'a>(&'a Lane);
+
+impl Drop for PlannerDone<'_> {
+    fn drop(&mut self) {
+        let mut q = self.0.lock();
+        if std::thread::panicking() {
+            q.items.push_back(Err(
+                "internal error: the motion planner stopped (panic)".into()
+            ));
+        }
+        q.done = true;
+        drop(q);
+        self.0.cv.notify_all();
+    }
+}
+
+/// Output side of a [`Lane`]: its items as they come; a stop while waiting for one ends the
+/// wait. Dropping it tells the planner to stop.
+struct LaneItems<'a> {
+    lane: Arc<Lane>,
+    kit: &'a Kit,
+}
+
+impl Iterator for LaneItems<'_> {
+    type Item = Result<Item, Interrupted>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        loop {
+            {
+                let mut q = self.lane.lock();
+                if let Some(item) = q.items.pop_front() {
+                    q.ticks = q.ticks.saturating_sub(item_ticks(&item));
+                    drop(q);
+                    self.lane.cv.notify_all();
+                    return Some(item.map_err(Interrupted::Failed));
+                }
+                if q.done {
+                    return None;
+                }
+                drop(self.lane.cv.wait_timeout(q, Duration::from_millis(1)));
+            }
+            if self.kit.aborted() {
+                return Some(Err(Interrupted::Aborted));
+            }
+        }
+    }
+}
+
+impl Drop for LaneItems<'_> {
+    fn drop(&mut self) {
+        self.lane.lock().closed = true;
+        self.lane.cv.notify_all();
     }
 }
 
@@ -887,6 +1095,7 @@ impl Stepper {
         let core = Arc::new(Core {
             cfg,
             kit: Kit::new(kit_cfg, sink, exec_log, Drive::default()),
+            scale: Arc::new(Mutex::new(Scale::default())),
         });
         // Every configured input is supported, and unknown until the output thread's first read.
         let unknown: Vec<_> = core

@@ -43,7 +43,9 @@ pub struct Machine {
 }
 
 /// A trapezoidal (or triangular) profile over `n` steps of the major axis: from `v_in`
-/// up to at most `v` at `a`, cruise, down to `v_out`.
+/// up to at most `v` at `a`, cruise, down to `v_out`. When motion already under way enters
+/// above the top speed (an override lowered it), the first ramp slows down to `v` instead
+/// ([`Profile::entering`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Profile {
     n: u64,
@@ -51,11 +53,14 @@ pub struct Profile {
     v_out: f64,
     v: f64,
     a: f64,
-    /// Steps spent accelerating / decelerating.
+    /// Steps spent on the first ramp (accelerating, or slowing down from above `v`) / on the
+    /// last (decelerating).
     d_acc: f64,
     d_dec: f64,
     t_acc: f64,
     total: f64,
+    /// The first ramp slows down (entry above the top speed).
+    slowing_in: bool,
 }
 
 impl Profile {
@@ -94,6 +99,47 @@ impl Profile {
             d_dec,
             t_acc,
             total,
+            slowing_in: false,
+        }
+    }
+
+    /// A profile whose entry rate is fixed by motion already under way (re-timed for an
+    /// override): `v_in` is kept as it is, also above `v_max` (the move then slows down to
+    /// `v_max` at `a` first), and an exit rate `v_in` cannot slow down to within the `n` steps
+    /// is raised to the one it can (slowing down all the way). The rate never jumps.
+    pub fn entering(n: u64, v_max: f64, v_in: f64, v_out: f64, a: f64) -> Profile {
+        let nf = n as f64;
+        let slowest = (v_in * v_in - 2.0 * a * nf).max(0.0).sqrt();
+        let fastest = (v_in * v_in + 2.0 * a * nf).sqrt();
+        // (A margin, so an exit the junction planner made reachable is kept bit for bit.)
+        let v_out = if slowest > v_out * (1.0 + 1e-12) {
+            slowest
+        } else {
+            v_out.min(fastest)
+        };
+        // (Within rounding of the top speed: path speeds converted back to steps.)
+        if v_in <= v_max * (1.0 + 1e-9) {
+            return Profile::new(n, v_max, v_in, v_out, a);
+        }
+        // Slow down to the top speed (or to the exit, if that is above it), cruise, slow down
+        // to the exit.
+        let v = v_max.max(v_out);
+        let d_acc = ((v_in * v_in - v * v) / (2.0 * a)).clamp(0.0, nf);
+        let d_dec = ((v * v - v_out * v_out) / (2.0 * a)).clamp(0.0, nf - d_acc);
+        let t_acc = (v_in - v) / a;
+        let t_dec = (v - v_out) / a;
+        let total = t_acc + (nf - d_acc - d_dec).max(0.0) / v + t_dec;
+        Profile {
+            n,
+            v_in,
+            v_out,
+            v,
+            a,
+            d_acc,
+            d_dec,
+            t_acc,
+            total,
+            slowing_in: true,
         }
     }
 
@@ -105,11 +151,30 @@ impl Profile {
     pub fn time_at(&self, s: f64) -> f64 {
         let nf = self.n as f64;
         if s <= self.d_acc {
-            self.ramp_time(self.v_in, s)
+            if self.slowing_in {
+                (self.v_in - (self.v_in * self.v_in - 2.0 * self.a * s).max(0.0).sqrt()) / self.a
+            } else {
+                self.ramp_time(self.v_in, s)
+            }
         } else if s < nf - self.d_dec {
             self.t_acc + (s - self.d_acc) / self.v
         } else {
             self.total - self.ramp_time(self.v_out, (nf - s).max(0.0))
+        }
+    }
+
+    /// The major axis's rate (steps/s) once it has made `s` steps.
+    pub fn rate_at(&self, s: f64) -> f64 {
+        let nf = self.n as f64;
+        if s <= self.d_acc {
+            let sign = if self.slowing_in { -1.0 } else { 1.0 };
+            (self.v_in * self.v_in + sign * 2.0 * self.a * s)
+                .max(0.0)
+                .sqrt()
+        } else if s < nf - self.d_dec {
+            self.v
+        } else {
+            (self.v_out * self.v_out + 2.0 * self.a * (nf - s).max(0.0)).sqrt()
         }
     }
 
@@ -130,25 +195,72 @@ impl Profile {
     }
 }
 
-/// One straight move in step space.
+/// Which override a move follows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Pace {
+    /// A programmed feed move (G1, G2, G3): the feed override.
+    Feed,
+    /// G0 and go-to-zero: the rapid override.
+    Rapid,
+    /// Jogs and probing moves: their own feed, no override.
+    Fixed,
+}
+
+/// Feed and rapid override as factors (1.0 = 100 %).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Scale {
+    pub feed: f64,
+    pub rapid: f64,
+}
+
+impl Default for Scale {
+    fn default() -> Self {
+        Scale {
+            feed: 1.0,
+            rapid: 1.0,
+        }
+    }
+}
+
+/// One straight move in step space, or a piece of one (a long move is given out to the output
+/// thread in pieces, so an override can re-time the rest of it).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Move {
+    /// Where the line starts (the interleave's origin) and ends, steps.
     pub from: [i64; 2],
     pub to: [i64; 2],
     /// The programmed line, machine mm: the deviation is measured against it.
     pub ideal: [[f64; 2]; 2],
     pub steps_per_mm: [f64; 2],
+    /// Starts at this piece's first step (it may run past its last: a piece cut off the front
+    /// of a move keeps the move's profile).
     pub profile: Profile,
     tick_hz: f64,
-    /// Tick of the last step, counted from the start of the move (the move's length).
+    /// Tick of the last step, counted from the start of the piece (the piece's length).
     pub ticks: u64,
     /// Limits of this move in major-axis steps: top rate, no-ramp rate, acceleration.
     v_max: f64,
     v_start: f64,
     accel: f64,
-    /// Length (mm, of the stepped line) and unit direction, for junction speeds.
+    /// Length (mm, of the stepped line, this piece's part of it) and unit direction, for
+    /// junction speeds.
     length_mm: f64,
     unit: [f64; 2],
+    /// Major-axis steps of the whole line, per mm of its path.
+    per_mm: f64,
+    /// Steps of the line made before this piece, and this piece's steps.
+    first: u64,
+    count: u64,
+    /// Seconds from the piece's first tick to its profile's start (the part of a tick the
+    /// piece before it was rounded by): pieces of a move step when the whole move would,
+    /// with no drift from rounding each.
+    phase: f64,
+    /// The override it follows and its limits before any (major-axis steps/s): the axes' top
+    /// rate, the programmed feed's (infinite without one), the no-ramp rate.
+    pace: Pace,
+    axes_max: f64,
+    feed_max: f64,
+    ramp_free: f64,
 }
 
 /// One step of a move: the new position (both axes) and how far it is from the programmed line.
@@ -160,15 +272,47 @@ pub struct StepEvent {
     pub deviation_mm: f64,
 }
 
+/// The top rate (major-axis steps/s) of a move of `pace` under `scale`: the feed override
+/// scales the programmed feed (never above what the axes allow), the rapid override the rapid
+/// speed the axes allow.
+fn top_rate(pace: Pace, axes_max: f64, feed_max: f64, scale: Scale) -> f64 {
+    match pace {
+        Pace::Feed => axes_max.min(feed_max * scale.feed),
+        Pace::Rapid => axes_max.min(feed_max) * scale.rapid,
+        Pace::Fixed => axes_max.min(feed_max),
+    }
+}
+
 impl Move {
     /// A move from step position `from` to `to`; `ideal` the programmed line in machine mm;
-    /// `feed_mm_min` the path feed (None = as fast as the axes allow).
+    /// `feed_mm_min` the path feed (None = as fast as the axes allow). No override applies.
     pub fn new(
         machine: &Machine,
         from: [i64; 2],
         to: [i64; 2],
         ideal: [[f64; 2]; 2],
         feed_mm_min: Option<f64>,
+    ) -> Move {
+        Move::paced(
+            machine,
+            from,
+            to,
+            ideal,
+            feed_mm_min,
+            Pace::Fixed,
+            Scale::default(),
+        )
+    }
+
+    /// [`Move::new`] for a move that follows the `pace` override, at `scale`.
+    pub fn paced(
+        machine: &Machine,
+        from: [i64; 2],
+        to: [i64; 2],
+        ideal: [[f64; 2]; 2],
+        feed_mm_min: Option<f64>,
+        pace: Pace,
+        scale: Scale,
     ) -> Move {
         let d = [
             (to[0] - from[0]).unsigned_abs(),
@@ -177,19 +321,19 @@ impl Move {
         let n = d[0].max(d[1]);
         let nf = n.max(1) as f64;
         // Limits of each axis, expressed in major-axis steps.
-        let mut v_max = f64::INFINITY;
+        let mut axes_max = f64::INFINITY;
         let mut v0 = f64::INFINITY;
         let mut a = f64::INFINITY;
         for (i, ax) in machine.axes.iter().enumerate() {
             if d[i] > 0 {
                 let k = nf / d[i] as f64;
-                v_max = v_max.min(ax.max_rate * k);
+                axes_max = axes_max.min(ax.max_rate * k);
                 v0 = v0.min(ax.start_rate * k);
                 a = a.min(ax.accel * k);
             }
         }
-        if !v_max.is_finite() {
-            v_max = 1.0;
+        if !axes_max.is_finite() {
+            axes_max = 1.0;
             v0 = 1.0;
             a = 1.0;
         }
@@ -197,10 +341,12 @@ impl Move {
             .map(|i| (d[i] as f64 / machine.axes[i].steps_per_mm).powi(2))
             .sum::<f64>()
             .sqrt();
+        let mut feed_max = f64::INFINITY;
         if let Some(f) = feed_mm_min.filter(|f| *f > 0.0 && length_mm > 0.0) {
             let seconds = length_mm / (f / 60.0);
-            v_max = v_max.min(nf / seconds);
+            feed_max = nf / seconds;
         }
+        let v_max = top_rate(pace, axes_max, feed_max, scale);
         let unit = if length_mm > 0.0 {
             [
                 (to[0] - from[0]) as f64 / machine.axes[0].steps_per_mm / length_mm,
@@ -208,6 +354,11 @@ impl Move {
             ]
         } else {
             [0.0, 0.0]
+        };
+        let per_mm = if length_mm > 0.0 {
+            n as f64 / length_mm
+        } else {
+            1.0
         };
         let mut m = Move {
             from,
@@ -222,6 +373,14 @@ impl Move {
             accel: a,
             length_mm,
             unit,
+            per_mm,
+            first: 0,
+            count: n,
+            phase: 0.0,
+            pace,
+            axes_max,
+            feed_max,
+            ramp_free: v0,
         };
         m.ticks = m.last_tick();
         m
@@ -231,26 +390,47 @@ impl Move {
     /// the config allows (`max_rate <= tick_hz / 2`), so rounding never has to push one later
     /// and the last step lands at the rounded end time (the proptest checks this).
     fn last_tick(&self) -> u64 {
-        let n = self.profile.n;
+        let n = self.count;
         if n == 0 {
             return 0;
         }
-        ((self.profile.time_at(n as f64) * self.tick_hz).round() as u64).max(n)
+        self.tick_of(n).max(n)
+    }
+
+    /// Tick of step `k` of this piece (rounded; counted from the piece's start).
+    fn tick_of(&self, k: u64) -> u64 {
+        ((self.phase + self.profile.time_at(k as f64)) * self.tick_hz).round() as u64
     }
 
     /// Major-axis steps per mm of path.
     fn steps_per_path_mm(&self) -> f64 {
-        if self.length_mm > 0.0 {
-            self.profile.n as f64 / self.length_mm
-        } else {
-            1.0
-        }
+        self.per_mm
     }
 
-    /// Re-times the move to enter at `v_in` and leave at `v_out` (path mm/s).
+    /// Re-times the move to enter at `v_in` and leave at `v_out` (path mm/s). An entry above
+    /// the top speed (motion under way when an override lowered it) slows down to it.
     pub fn set_junction_speeds(&mut self, v_in: f64, v_out: f64) {
         let k = self.steps_per_path_mm();
-        self.profile = Profile::new(self.profile.n, self.v_max, v_in * k, v_out * k, self.accel);
+        self.profile = Profile::entering(self.count, self.v_max, v_in * k, v_out * k, self.accel);
+        self.ticks = self.last_tick();
+    }
+
+    /// Applies overrides: the top speed for `scale` (a move with its own feed keeps it), and
+    /// the stand-alone profile from and to the no-ramp rate (the junction planner re-times it
+    /// when it has neighbours or motion under way before it).
+    pub fn relimit(&mut self, scale: Scale) {
+        if self.pace == Pace::Fixed {
+            return;
+        }
+        self.v_max = top_rate(self.pace, self.axes_max, self.feed_max, scale);
+        self.v_start = self.ramp_free.min(self.v_max);
+        self.profile = Profile::new(
+            self.count,
+            self.v_max,
+            self.ramp_free,
+            self.ramp_free,
+            self.accel,
+        );
         self.ticks = self.last_tick();
     }
 
@@ -260,8 +440,50 @@ impl Move {
         (self.v_max / k, self.v_start / k, self.accel / k)
     }
 
+    /// Major-axis steps of this piece.
     pub fn major_steps(&self) -> u64 {
-        self.profile.n
+        self.count
+    }
+
+    /// Path speed (mm/s) at the end of this piece.
+    pub fn exit_speed(&self) -> f64 {
+        self.profile.rate_at(self.count as f64) / self.steps_per_path_mm()
+    }
+
+    /// The most steps from the start of this piece that are made within `ticks`.
+    fn steps_within(&self, ticks: u64) -> u64 {
+        let (mut lo, mut hi) = (0, self.count);
+        while lo < hi {
+            let mid = lo + (hi - lo).div_ceil(2);
+            if self.tick_of(mid) <= ticks {
+                lo = mid;
+            } else {
+                hi = mid - 1;
+            }
+        }
+        lo
+    }
+
+    /// Cuts this piece after its first `k` steps (0 < k < its steps): it keeps its profile
+    /// for them; the rest, returned, starts at the rate reached there and ends as this did.
+    fn split_off(&mut self, k: u64) -> Move {
+        let mut rest = self.clone();
+        rest.first = self.first + k;
+        rest.count = self.count - k;
+        rest.length_mm = rest.count as f64 / self.per_mm;
+        rest.profile = Profile::entering(
+            rest.count,
+            self.v_max,
+            self.profile.rate_at(k as f64),
+            self.profile.exit_rate(),
+            self.accel,
+        );
+        self.count = k;
+        self.length_mm = k as f64 / self.per_mm;
+        self.ticks = self.last_tick();
+        rest.phase = self.phase + self.profile.time_at(k as f64) - self.ticks as f64 / self.tick_hz;
+        rest.ticks = rest.last_tick();
+        rest
     }
 
     /// Path speed at the top of the profile, mm/min.
@@ -270,24 +492,41 @@ impl Move {
             (self.to[0] - self.from[0]) as f64 / self.steps_per_mm[0],
             (self.to[1] - self.from[1]) as f64 / self.steps_per_mm[1],
         ];
-        let n = self.profile.n.max(1) as f64;
+        let n = ((self.to[0] - self.from[0]).abs())
+            .max((self.to[1] - self.from[1]).abs())
+            .max(1) as f64;
         self.profile.peak_rate() / n * d[0].hypot(d[1]) * 60.0
     }
 
-    /// The steps, in order.
+    /// The steps of this piece, in order.
     pub fn steps(&self) -> MoveSteps<'_> {
         let d = [self.to[0] - self.from[0], self.to[1] - self.from[1]];
-        let n = self.profile.n as i64;
+        let n = d[0].abs().max(d[1].abs());
         let a = self.ideal[0];
         let dir = [self.ideal[1][0] - a[0], self.ideal[1][1] - a[1]];
         let len2 = dir[0] * dir[0] + dir[1] * dir[1];
+        let sign = [d[0].signum(), d[1].signum()];
+        let inc = [2 * d[0].abs(), 2 * d[1].abs()];
+        // The interleave after the steps made before this piece, in closed form: the
+        // accumulator starts at n and gains `inc` a step, giving a step each time it passes
+        // a multiple of 2n.
+        let mut pos = self.from;
+        let mut acc = [n, n];
+        if self.first > 0 {
+            for i in 0..2 {
+                let t = i128::from(n) + i128::from(self.first) * i128::from(inc[i]);
+                let two_n = 2 * i128::from(n);
+                pos[i] += sign[i] * i64::try_from(t / two_n).unwrap_or(0);
+                acc[i] = i64::try_from(t % two_n).unwrap_or(0);
+            }
+        }
         MoveSteps {
             m: self,
             k: 0,
-            pos: self.from,
-            sign: [d[0].signum(), d[1].signum()],
-            inc: [2 * d[0].abs(), 2 * d[1].abs()],
-            acc: [n, n],
+            pos,
+            sign,
+            inc,
+            acc,
             two_n: 2 * n,
             last_tick: 0,
             origin: a,
@@ -295,6 +534,11 @@ impl Move {
             inv_len2: if len2 > 0.0 { 1.0 / len2 } else { 0.0 },
             mm_per_step: [1.0 / self.steps_per_mm[0], 1.0 / self.steps_per_mm[1]],
         }
+    }
+
+    /// Where this piece starts, steps.
+    pub fn start_pos(&self) -> [i64; 2] {
+        self.steps().pos
     }
 }
 
@@ -320,7 +564,7 @@ impl Iterator for MoveSteps<'_> {
 
     #[inline]
     fn next(&mut self) -> Option<StepEvent> {
-        if self.k >= self.m.profile.n {
+        if self.k >= self.m.count {
             return None;
         }
         self.k += 1;
@@ -331,8 +575,7 @@ impl Iterator for MoveSteps<'_> {
                 self.pos[i] += self.sign[i];
             }
         }
-        let t = self.m.profile.time_at(self.k as f64);
-        let tick = ((t * self.m.tick_hz).round() as u64).max(self.last_tick + 1);
+        let tick = self.m.tick_of(self.k).max(self.last_tick + 1);
         self.last_tick = tick;
         // Distance from the stepped point to the programmed segment, mm.
         let p = [
@@ -350,6 +593,8 @@ impl Iterator for MoveSteps<'_> {
 }
 
 /// What one plan item does.
+// Moves are nearly every item of a plan: boxing them would allocate once a move for nothing.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, PartialEq)]
 pub enum Action {
     Move(Move),
@@ -493,6 +738,16 @@ impl Blender {
         }
     }
 
+    /// A blender whose first move continues motion already under way at `entry` (path mm/s):
+    /// the plan re-timed for an override after the moves given out so far.
+    fn continuing(machine: &Machine, entry: f64) -> Blender {
+        Blender {
+            released: 1,
+            entry,
+            ..Blender::new(machine)
+        }
+    }
+
     fn push(&mut self, item: Item) {
         let Action::Move(m) = &item.action else {
             self.flush();
@@ -579,8 +834,17 @@ impl Blender {
         } else {
             self.entry
         };
-        let reach = (v_in * v_in + 2.0 * p.limits.2 * p.length_mm).sqrt();
-        let v_out = p.back.min(reach);
+        let room = 2.0 * p.limits.2 * p.length_mm;
+        let reach = (v_in * v_in + room).sqrt();
+        let mut v_out = p.back.min(reach);
+        // An entry fixed by motion under way when an override lowered the speeds may be too
+        // fast to slow down to this junction's value within the move: it slows down as fast as
+        // it may instead. That is never faster than the plan it replaces, which could stop in
+        // time from the same speed, so no corner or stop is taken faster than it allows.
+        let slowest = v_in * v_in - room;
+        if slowest > v_out * v_out * (1.0 + 1e-9) {
+            v_out = slowest.sqrt();
+        }
         if let Action::Move(m) = &mut p.item.action {
             m.set_junction_speeds(v_in, v_out);
         }
@@ -634,6 +898,10 @@ pub struct Builder<'a> {
     /// Programmed XY end of the last move, machine mm (unquantised): the next ideal line
     /// starts here.
     ideal_xy: [f64; 2],
+    /// The overrides moves are planned for.
+    scale: Scale,
+    /// Path speed (mm/s) at the end of the last item given out, when it was a move.
+    last_exit: Option<f64>,
 }
 
 impl<'a> Builder<'a> {
@@ -650,6 +918,66 @@ impl<'a> Builder<'a> {
                 start.steps[0] as f64 / machine.axes[0].steps_per_mm,
                 start.steps[1] as f64 / machine.axes[1].steps_per_mm,
             ],
+            scale: Scale::default(),
+            last_exit: None,
+        }
+    }
+
+    /// Plans the moves that follow an override at `scale`.
+    pub fn scaled(mut self, scale: Scale) -> Builder<'a> {
+        self.scale = scale;
+        self
+    }
+
+    /// The next timed item, if one is ready; with `piece_ticks`, a move longer than that is
+    /// given out in pieces (each at most that long, at least one step), the rest kept back so
+    /// that [`Builder::retime`] can still change it.
+    fn take_ready(&mut self, piece_ticks: Option<u64>) -> Option<Item> {
+        let mut item = self.blender.ready.pop_front()?;
+        if let (Some(max), Action::Move(m)) = (piece_ticks, &mut item.action) {
+            if m.ticks > max && m.count > 1 {
+                let k = m.steps_within(max).clamp(1, m.count - 1);
+                let rest = m.split_off(k);
+                self.blender.ready.push_front(Item {
+                    line: item.line,
+                    start_tick: 0,
+                    action: Action::Move(rest),
+                });
+            }
+        }
+        self.last_exit = match &item.action {
+            Action::Move(m) => Some(m.exit_speed()),
+            _ => None,
+        };
+        Some(item)
+    }
+
+    /// Re-plans everything not given out yet for the overrides `scale`: every waiting move
+    /// gets its new top speed and the junction speeds are planned again, the first move
+    /// continuing from the speed the last one given out ends at (if it is a move of the same
+    /// chain). Where that speed is above what the new plan wants, it slows down at the axes'
+    /// acceleration. Moves given out already keep their timing.
+    pub fn retime(&mut self, scale: Scale) {
+        if scale == self.scale {
+            return;
+        }
+        self.scale = scale;
+        let old = std::mem::replace(&mut self.blender, Blender::new(self.machine));
+        let pending: Vec<Item> = old
+            .ready
+            .into_iter()
+            .chain(old.window.into_iter().map(|p| p.item))
+            .collect();
+        if let (Some(entry), Some(Action::Move(_))) =
+            (self.last_exit, pending.first().map(|i| &i.action))
+        {
+            self.blender = Blender::continuing(self.machine, entry);
+        }
+        for mut item in pending {
+            if let Action::Move(m) = &mut item.action {
+                m.relimit(scale);
+            }
+            self.blender.push(item);
         }
     }
 
@@ -693,6 +1021,7 @@ impl<'a> Builder<'a> {
         to: [f64; 2],
         z: f64,
         feed_mm_min: Option<f64>,
+        pace: Pace,
     ) -> Result<(), String> {
         self.check_travel(to, z)?;
         let lift = z - self.offset[2] > self.machine.lift_above_mm;
@@ -708,12 +1037,14 @@ impl<'a> Builder<'a> {
             (to[1] * spm[1]).round() as i64,
         ];
         if target != self.steps {
-            let m = Move::new(
+            let m = Move::paced(
                 self.machine,
                 self.steps,
                 target,
                 [self.ideal_xy, to],
                 feed_mm_min,
+                pace,
+                self.scale,
             );
             self.steps = target;
             self.push(line, Action::Move(m));
@@ -843,6 +1174,8 @@ pub struct ProgramStream<'m, R: BufRead> {
     tick: u64,
     error: Option<String>,
     done: bool,
+    /// Longest piece of a move given out at once, ticks (None: whole moves).
+    piece_ticks: Option<u64>,
 }
 
 impl<'m, R: BufRead> ProgramStream<'m, R> {
@@ -883,7 +1216,21 @@ impl<'m, R: BufRead> ProgramStream<'m, R> {
             tick: 0,
             error: None,
             done: false,
+            piece_ticks: None,
         }
+    }
+
+    /// Plans for the overrides `scale` (before the first item is taken).
+    pub fn scaled(mut self, scale: Scale) -> Self {
+        self.builder.scale = scale;
+        self
+    }
+
+    /// Gives long moves out in pieces of at most `ticks`, so that [`Retimable::retime`] reaches
+    /// the rest of a move under way.
+    pub fn in_pieces(mut self, ticks: u64) -> Self {
+        self.piece_ticks = Some(ticks.max(1));
+        self
     }
 
     /// The plan's length and where it leaves the machine (complete once the stream has ended).
@@ -918,8 +1265,14 @@ impl<'m, R: BufRead> ProgramStream<'m, R> {
         match motion {
             Motion::Rapid { to, .. } if run => {
                 let m = [to[0] + off[0], to[1] + off[1]];
-                b.move_to(line, m, to[2] + off[2], Some(self.machine.rapid_mm_min))
-                    .map_err(|e| format!("line {line}: {e}"))?;
+                b.move_to(
+                    line,
+                    m,
+                    to[2] + off[2],
+                    Some(self.machine.rapid_mm_min),
+                    Pace::Rapid,
+                )
+                .map_err(|e| format!("line {line}: {e}"))?;
             }
             Motion::Linear {
                 to, feed_mm_min, ..
@@ -928,7 +1281,7 @@ impl<'m, R: BufRead> ProgramStream<'m, R> {
                 to, feed_mm_min, ..
             } if run => {
                 let m = [to[0] + off[0], to[1] + off[1]];
-                b.move_to(line, m, to[2] + off[2], Some(feed_mm_min))
+                b.move_to(line, m, to[2] + off[2], Some(feed_mm_min), Pace::Feed)
                     .map_err(|e| format!("line {line}: {e}"))?;
             }
             Motion::Dwell { seconds, .. } if run => b.dwell(line, seconds),
@@ -959,7 +1312,7 @@ impl<R: BufRead> Iterator for ProgramStream<'_, R> {
 
     fn next(&mut self) -> Option<Self::Item> {
         loop {
-            if let Some(mut item) = self.builder.blender.ready.pop_front() {
+            if let Some(mut item) = self.builder.take_ready(self.piece_ticks) {
                 item.start_tick = self.tick;
                 self.tick += item.action.ticks();
                 return Some(Ok(item));
@@ -983,6 +1336,60 @@ impl<R: BufRead> Iterator for ProgramStream<'_, R> {
                 self.builder.blender.flush();
             }
         }
+    }
+}
+
+/// A plan given out item by item that can be re-planned for new overrides as it goes: what the
+/// output thread runs through the plan queue.
+pub trait Retimable: Iterator<Item = Result<Item, String>> {
+    /// Re-plans what has not been given out yet for the overrides `scale`.
+    fn retime(&mut self, scale: Scale);
+}
+
+impl<R: BufRead> Retimable for ProgramStream<'_, R> {
+    fn retime(&mut self, scale: Scale) {
+        self.builder.retime(scale);
+        if self.done {
+            // The program's last chain ended with the file.
+            self.builder.blender.flush();
+        }
+    }
+}
+
+/// A few moves built whole (go to zero), given out like a program: re-timed for overrides,
+/// in pieces.
+pub struct PlanStream<'m> {
+    builder: Builder<'m>,
+    piece_ticks: u64,
+    tick: u64,
+}
+
+impl<'m> PlanStream<'m> {
+    pub fn new(mut builder: Builder<'m>, piece_ticks: u64) -> PlanStream<'m> {
+        builder.blender.flush();
+        PlanStream {
+            builder,
+            piece_ticks: piece_ticks.max(1),
+            tick: 0,
+        }
+    }
+}
+
+impl Iterator for PlanStream<'_> {
+    type Item = Result<Item, String>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        let mut item = self.builder.take_ready(Some(self.piece_ticks))?;
+        item.start_tick = self.tick;
+        self.tick += item.action.ticks();
+        Some(Ok(item))
+    }
+}
+
+impl Retimable for PlanStream<'_> {
+    fn retime(&mut self, scale: Scale) {
+        self.builder.retime(scale);
+        self.builder.blender.flush();
     }
 }
 
@@ -1073,6 +1480,7 @@ mod reference {
             to: [f64; 2],
             z: f64,
             feed_mm_min: Option<f64>,
+            pace: Pace,
         ) -> Result<(), String> {
             self.check_travel(to, z)?;
             let lift = z - self.offset[2] > self.machine.lift_above_mm;
@@ -1088,12 +1496,14 @@ mod reference {
                 (to[1] * spm[1]).round() as i64,
             ];
             if target != self.steps {
-                let m = Move::new(
+                let m = Move::paced(
                     self.machine,
                     self.steps,
                     target,
                     [self.ideal_xy, to],
                     feed_mm_min,
+                    pace,
+                    Scale::default(),
                 );
                 self.steps = target;
                 self.push(line, Action::Move(m));
@@ -1269,8 +1679,14 @@ mod reference {
             match motion {
                 Motion::Rapid { to, .. } if run => {
                     let m = [to[0] + offsets_now[0], to[1] + offsets_now[1]];
-                    b.move_to(line, m, to[2] + offsets_now[2], Some(machine.rapid_mm_min))
-                        .map_err(|e| format!("line {line}: {e}"))?;
+                    b.move_to(
+                        line,
+                        m,
+                        to[2] + offsets_now[2],
+                        Some(machine.rapid_mm_min),
+                        Pace::Rapid,
+                    )
+                    .map_err(|e| format!("line {line}: {e}"))?;
                 }
                 Motion::Linear {
                     to, feed_mm_min, ..
@@ -1279,8 +1695,14 @@ mod reference {
                     to, feed_mm_min, ..
                 } if run => {
                     let m = [to[0] + offsets_now[0], to[1] + offsets_now[1]];
-                    b.move_to(line, m, to[2] + offsets_now[2], Some(feed_mm_min))
-                        .map_err(|e| format!("line {line}: {e}"))?;
+                    b.move_to(
+                        line,
+                        m,
+                        to[2] + offsets_now[2],
+                        Some(feed_mm_min),
+                        Pace::Feed,
+                    )
+                    .map_err(|e| format!("line {line}: {e}"))?;
                 }
                 Motion::Dwell { seconds, .. } if run => b.dwell(line, seconds),
                 Motion::Pause {
@@ -1671,6 +2093,308 @@ mod tests {
         assert!(ours > theirs, "{ours} <= {theirs}");
     }
 
+    /// A program streamed in pieces of `piece` ticks; after `cut` items the overrides become
+    /// `scale` (None: never). Every item, in order.
+    fn streamed(
+        m: &Machine,
+        text: &str,
+        piece: u64,
+        cut: usize,
+        scale: Option<Scale>,
+    ) -> Vec<Item> {
+        let lines = text.lines().count() as u32;
+        let mut s = ProgramStream::new(
+            m,
+            text.as_bytes(),
+            lines,
+            &start(),
+            1,
+            Default::default(),
+            u64::MAX,
+        )
+        .in_pieces(piece);
+        let mut items = Vec::new();
+        while let Some(item) = s.next() {
+            items.push(item.unwrap());
+            if items.len() == cut {
+                if let Some(scale) = scale {
+                    s.retime(scale);
+                }
+            }
+        }
+        items
+    }
+
+    /// Every step of a plan: (absolute tick, position).
+    fn all_steps(items: &[Item]) -> Vec<(u64, [i64; 2])> {
+        let mut out = Vec::new();
+        for item in items {
+            if let Action::Move(mv) = &item.action {
+                out.extend(mv.steps().map(|s| (item.start_tick + s.tick, s.pos)));
+            }
+        }
+        out
+    }
+
+    /// The limits a plan must keep whatever the overrides did: the rate never jumps (each move
+    /// or piece enters at the speed the one before it left), never changes faster than the
+    /// acceleration (checked on the profile, step by step), never goes above the axes' top
+    /// rate, starts and stops at the no-ramp rate, and takes no corner faster than a plan
+    /// with no override would allow.
+    fn check_limits(m: &Machine, items: &[Item]) {
+        let start_mm = [
+            m.axes[0].start_rate / m.axes[0].steps_per_mm,
+            m.axes[1].start_rate / m.axes[1].steps_per_mm,
+        ];
+        let mut prev: Option<&Move> = None;
+        for item in items {
+            let Action::Move(mv) = &item.action else {
+                if let Some(p) = prev.take() {
+                    let exit = p.exit_speed() * p.per_mm;
+                    assert!(
+                        exit <= p.ramp_free * (1.0 + 1e-6),
+                        "stops from {exit} > {}",
+                        p.ramp_free
+                    );
+                }
+                continue;
+            };
+            let p = mv.profile;
+            let entry = p.rate_at(0.0) / mv.per_mm;
+            match prev {
+                None => assert!(
+                    p.rate_at(0.0) <= mv.ramp_free * (1.0 + 1e-6),
+                    "starts at {} > {}",
+                    p.rate_at(0.0),
+                    mv.ramp_free
+                ),
+                Some(q) => {
+                    let exit = q.exit_speed();
+                    assert!(
+                        (entry - exit).abs() <= 1e-6 * exit.max(1.0),
+                        "line {}: enters at {entry} mm/s, the move before left at {exit}",
+                        item.line
+                    );
+                    if q.unit != mv.unit {
+                        // A corner: no faster than its no-ramp speed or the stop-to-stop one.
+                        let mut cap = f64::INFINITY;
+                        for (ax, s) in start_mm.iter().enumerate() {
+                            let jump = (q.unit[ax] - mv.unit[ax]).abs();
+                            if jump > 1e-12 {
+                                cap = cap.min(s / jump);
+                            }
+                        }
+                        let floor = (q.ramp_free / q.per_mm).min(mv.ramp_free / mv.per_mm);
+                        assert!(
+                            entry <= cap.max(floor) * (1.0 + 1e-6),
+                            "line {}: corner at {entry} mm/s, allowed {cap} / {floor}",
+                            item.line
+                        );
+                    }
+                }
+            }
+            // Step by step: v² changes by at most 2a a step, never above the axes' top rate.
+            let mut v0 = p.rate_at(0.0);
+            assert!(
+                v0 <= mv.axes_max * (1.0 + 1e-6),
+                "enters at {v0} > {}",
+                mv.axes_max
+            );
+            for k in 1..=mv.count {
+                let v = p.rate_at(k as f64);
+                assert!(
+                    v <= mv.axes_max * (1.0 + 1e-6),
+                    "{v} steps/s > {}",
+                    mv.axes_max
+                );
+                assert!(
+                    (v * v - v0 * v0).abs() <= 2.0 * mv.accel * (1.0 + 1e-6) + 1e-6,
+                    "line {} step {k}: {v0} -> {v} steps/s at {} steps/s²",
+                    item.line,
+                    mv.accel
+                );
+                v0 = v;
+            }
+            // The timing follows the profile.
+            assert!((p.time_at(p.n as f64) - p.seconds()).abs() < 1e-9);
+            prev = Some(mv);
+        }
+        if let Some(p) = prev {
+            assert!(p.exit_speed() * p.per_mm <= p.ramp_free * (1.0 + 1e-6));
+        }
+    }
+
+    #[test]
+    fn moves_given_out_in_pieces_step_as_whole_moves() {
+        let m = machine();
+        for text in test_programs().iter().take(13) {
+            // (Some are refused whole: those are the error tests'.)
+            let Ok(whole) = plan_program(&m, text, &start(), 1) else {
+                continue;
+            };
+            let pieces = streamed(&m, text, 200, 0, None);
+            let (a, b) = (all_steps(&whole.items), all_steps(&pieces));
+            assert_eq!(
+                a.iter().map(|s| s.1).collect::<Vec<_>>(),
+                b.iter().map(|s| s.1).collect::<Vec<_>>(),
+                "{text:.60}"
+            );
+            // Each piece starts its profile where the one before ended in exact time, so the
+            // steps are where the whole move put them, within rounding (no drift).
+            let cuts = pieces.len() - whole.items.len();
+            let worst = a.iter().zip(&b).map(|(x, y)| x.0.abs_diff(y.0)).max();
+            assert!(
+                worst <= Some(1),
+                "{text:.60}: {worst:?} ticks off after {cuts} cuts"
+            );
+            for item in &pieces {
+                if let Action::Move(mv) = &item.action {
+                    assert!(
+                        mv.ticks <= 200 || mv.count == 1,
+                        "a piece of {} ticks",
+                        mv.ticks
+                    );
+                }
+            }
+            check_limits(&m, &pieces);
+        }
+    }
+
+    #[test]
+    fn an_override_re_times_the_move_under_way_from_the_next_piece() {
+        let m = machine();
+        // 100 mm at 2 mm/s = 280 steps/s (the axes allow 500), given out in 10 ms pieces.
+        let text = "G1 X100 F120\n";
+        for (scale, want) in [(0.5, 140.0), (1.5, 420.0), (2.0, 500.0), (0.1, 28.0)] {
+            let items = streamed(
+                &m,
+                text,
+                200,
+                30,
+                Some(Scale {
+                    feed: scale,
+                    rapid: 1.0,
+                }),
+            );
+            check_limits(&m, &items);
+            let moves: Vec<&Move> = items
+                .iter()
+                .filter_map(|i| match &i.action {
+                    Action::Move(mv) => Some(mv),
+                    _ => None,
+                })
+                .collect();
+            // Before: the programmed feed. From the next piece on: the overridden one, reached
+            // at the axes' acceleration (2000 steps/s²) from 280 steps/s.
+            assert!((moves[29].profile.peak_rate() - 280.0).abs() < 1e-6);
+            assert!((moves[30].profile.rate_at(0.0) - 280.0).abs() < 1e-6);
+            assert!((moves[30].v_max - want).abs() < 1e-6, "{}", moves[30].v_max);
+            // It gets there in the time the acceleration needs and stays until the final
+            // stop, never outside the two speeds meanwhile.
+            let ramp = (want - 280.0_f64).abs() / 2000.0 * 20_000.0;
+            let stop = (want - 100.0) / 2000.0 * 20_000.0;
+            let cut_at = items[30].start_tick as f64;
+            let end = all_steps(&items).last().unwrap().0 as f64;
+            for (item, mv) in items.iter().zip(&moves).skip(30) {
+                let t = item.start_tick as f64;
+                let v = mv.profile.rate_at(mv.count as f64 / 2.0);
+                if t > cut_at + ramp + 220.0 && t + mv.ticks as f64 + stop + 220.0 < end {
+                    assert!(
+                        (v - want).abs() < 1e-6,
+                        "scale {scale}: {v} steps/s, want {want}"
+                    );
+                } else {
+                    assert!(
+                        v <= want.max(280.0) + 1e-6 && v >= want.min(100.0) - 1e-6,
+                        "{v}"
+                    );
+                }
+            }
+            assert_eq!(all_steps(&items).last().unwrap().1, [14_000, 0]);
+        }
+        // G0 follows the rapid override (of the rate the axes allow: 500 steps/s), not the feed.
+        let items = streamed(
+            &m,
+            "G0 X100\n",
+            200,
+            5,
+            Some(Scale {
+                feed: 2.0,
+                rapid: 0.25,
+            }),
+        );
+        check_limits(&m, &items);
+        let Action::Move(mv) = &items[items.len() / 2].action else {
+            panic!()
+        };
+        assert!(
+            (mv.profile.rate_at(1.0) - 125.0).abs() < 1e-6,
+            "{:?}",
+            mv.profile
+        );
+    }
+
+    #[test]
+    fn a_cut_slowed_down_mid_chain_decelerates_across_the_short_moves_ahead() {
+        // Collinear moves of 0.1 mm (14 steps) at F200 (467 steps/s): slowing to 10 % at
+        // 2000 steps/s² takes 54 steps, more than the rest of any of them.
+        let m = machine();
+        let prog: String = (1..=60)
+            .map(|i| format!("G1 X{} F200\n", i as f64 * 0.1))
+            .collect();
+        let base = streamed(&m, &prog, 200, 0, None);
+        for cut in [10, 11, 25] {
+            let items = streamed(
+                &m,
+                &prog,
+                200,
+                cut,
+                Some(Scale {
+                    feed: 0.1,
+                    rapid: 1.0,
+                }),
+            );
+            check_limits(&m, &items);
+            assert_eq!(
+                all_steps(&items).last().unwrap().1,
+                all_steps(&base).last().unwrap().1
+            );
+            // Slower in the end: the override did apply.
+            let ticks = |v: &[Item]| all_steps(v).last().unwrap().0;
+            assert!(
+                ticks(&items) > 3 * ticks(&base),
+                "{} vs {}",
+                ticks(&items),
+                ticks(&base)
+            );
+        }
+    }
+
+    #[test]
+    fn overrides_during_the_corpus_keep_every_limit_and_the_path() {
+        let m = machine();
+        let corpus =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/corpus/gcode");
+        let text = std::fs::read_to_string(corpus.join("fusion-1122_jig_28bit_first.nc")).unwrap();
+        let base = streamed(&m, &text, 200, 0, None);
+        let path: Vec<_> = all_steps(&base).into_iter().map(|s| s.1).collect();
+        for (cut, scale) in [(7, (0.3, 0.5)), (50, (2.0, 0.25)), (400, (0.1, 1.0))] {
+            let items = streamed(
+                &m,
+                &text,
+                200,
+                cut,
+                Some(Scale {
+                    feed: scale.0,
+                    rapid: scale.1,
+                }),
+            );
+            check_limits(&m, &items);
+            let got: Vec<_> = all_steps(&items).into_iter().map(|s| s.1).collect();
+            assert!(got == path, "the override at item {cut} changed the path");
+        }
+    }
+
     proptest! {
         #[test]
         fn streamed_polylines_equal_the_whole_chain_plan(
@@ -1719,6 +2443,34 @@ mod tests {
                     }
                 }
             }
+        }
+
+        #[test]
+        fn overrides_at_any_moment_keep_the_limits_and_the_path(
+            pts in proptest::collection::vec((-50i32..50, -50i32..50, 0u8..4), 2..25),
+            cut in 0usize..60,
+            feed in 0.1f64..2.0,
+            rapid in 0.25f64..1.0,
+            piece in 20u64..400,
+        ) {
+            let m = machine();
+            let mut prog = String::from("G1 F900\n");
+            for (x, y, kind) in &pts {
+                prog.push_str(&match kind {
+                    0 => format!("G1 X{} Y{}\n", *x as f64 / 7.0, *y as f64 / 3.0),
+                    1 => format!("G0 X{} Y{}\n", *x as f64 / 5.0, *y as f64 / 9.0),
+                    2 => format!("G2 X{} Y{} R40\n", *x as f64 / 7.0, *y as f64 / 3.0),
+                    _ => "G4 P0.01\n".to_string(),
+                });
+            }
+            // (Random arcs can be impossible ones: those programs are refused whole.)
+            prop_assume!(plan_program(&m, &prog, &start(), 1).is_ok());
+            let base = streamed(&m, &prog, piece, 0, None);
+            let items = streamed(&m, &prog, piece, cut, Some(Scale { feed, rapid }));
+            check_limits(&m, &items);
+            let a: Vec<_> = all_steps(&base).into_iter().map(|s| s.1).collect();
+            let b: Vec<_> = all_steps(&items).into_iter().map(|s| s.1).collect();
+            prop_assert_eq!(a, b);
         }
 
         #[test]

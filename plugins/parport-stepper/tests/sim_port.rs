@@ -955,3 +955,172 @@ fn stop_or_feed_hold_during_a_probe_ends_it_stopped_with_no_step_after() {
         assert_eq!(position.x * 20.0, stopped_at[0] as f64, "{tag}");
     }
 }
+
+/// X steps of a run: (tick, when written) of each, from the recorded writes.
+fn x_steps(r: &Rig) -> Vec<(u64, Instant, i64)> {
+    let port = r.m.sim_port.clone().unwrap();
+    let writes: Vec<Write> = port.lock().writes.iter().copied().collect();
+    let data: Vec<&Write> = writes
+        .iter()
+        .filter(|w| w.register == Register::Data)
+        .collect();
+    let path = replay(&r.cfg.coils, &writes);
+    let mut out = Vec::new();
+    let mut x = 0;
+    for (w, (_, p)) in data.iter().zip(&path) {
+        if p[0] != x {
+            x = p[0];
+            out.push((w.tick, w.at, x));
+        }
+    }
+    out
+}
+
+/// Step rate (steps/s) over windows of `n` steps: (tick at the window's middle, rate).
+fn windowed_rates(ticks: &[u64], n: usize, hz: f64) -> Vec<(f64, f64)> {
+    (0..ticks.len().saturating_sub(n))
+        .step_by(n)
+        .map(|i| {
+            let span = (ticks[i + n] - ticks[i]) as f64;
+            ((ticks[i] + ticks[i + n]) as f64 / 2.0, n as f64 * hz / span)
+        })
+        .collect()
+}
+
+/// In real ticks at 5 kHz (X: 1000 steps/s top, 4000 steps/s²), a feed move at 800 steps/s
+/// gets a 150 % override (1200 asked, capped at the axis's 1000) and then a 50 % one: the step
+/// rate settles to each, the change between never exceeds the acceleration (step rates over
+/// windows of 20 steps, from the recorded port writes), no step comes sooner than the top rate
+/// allows, and the move ends on its exact step. Prints the latency from each command to the
+/// first step that moved differently from a run without overrides (the same plan, stepped in
+/// virtual time) and the time to settle.
+#[test]
+fn feed_overrides_during_a_move_ramp_to_the_new_rate_within_the_limits() {
+    let config = json!({"port":"sim","tick_hz":5000,"spin_us":0,"realtime_priority":false,
+        "axes":{"x":{"steps_per_mm":20,"max_rate":1000,"start_rate":50,"accel":4000},
+                "y":{"steps_per_mm":20,"max_rate":1000,"start_rate":50,"accel":4000}}});
+    let hz = 5000.0;
+    let program = "G1 X100 F2400\n";
+    // The same program with no override, for the step-by-step comparison.
+    let base = rig("override-base", config.clone());
+    base.run(program);
+    base.writes_after_idle();
+    let base_ticks: Vec<u64> = x_steps(&base).iter().map(|s| s.0).collect();
+    assert_eq!(base_ticks.len(), 2000);
+
+    let r = rig_timed("override", config, Timing::Real);
+    let path = r._dir.0.join("p.nc");
+    std::fs::write(&path, program).unwrap();
+    r.m.request(json!({"op":"load_program","run":1,"path":path,"start_line":1}))
+        .unwrap();
+    r.m.request(json!({"op":"run","action":"start"})).unwrap();
+    let mut commands = Vec::new();
+    for (past_mm, feed) in [(15.0, 150.0), (40.0, 50.0)] {
+        r.wait_status(|st| st["machine_position"]["x"].as_f64().unwrap() > past_mm);
+        let at = Instant::now();
+        r.m.request(json!({"op":"command","command":"set_overrides","feed":feed}))
+            .unwrap();
+        commands.push((at, feed));
+    }
+    let st = r.m.request(json!({"op":"status"})).unwrap();
+    assert_eq!(st["feed_override"], 50.0, "{st}");
+    r.wait(|e| matches!(e, Event::RunEnded { .. }));
+    r.writes_after_idle();
+    let steps = x_steps(&r);
+    assert_eq!(steps.last().unwrap().2, 2000, "exact end");
+    assert_eq!(
+        steps.len(),
+        2000,
+        "one write per step, none lost or doubled"
+    );
+    let ticks: Vec<u64> = steps.iter().map(|s| s.0).collect();
+    let gaps: Vec<u64> = ticks.windows(2).map(|w| w[1] - w[0]).collect();
+    assert!(
+        gaps.iter().all(|g| *g >= 5),
+        "a step sooner than 1000 steps/s allows: {:?}",
+        gaps.iter().min()
+    );
+    // Rates over windows of 20 steps: never changing faster than the acceleration (plus the
+    // error of measuring on whole ticks: a tick in 100..250).
+    let rates = windowed_rates(&ticks, 20, hz);
+    for w in rates.windows(2) {
+        let dt = (w[1].0 - w[0].0) / hz;
+        let accel = (w[1].1 - w[0].1).abs() / dt;
+        assert!(
+            accel <= 4000.0 * 1.3,
+            "{:.0} -> {:.0} steps/s in {:.1} ms: {accel:.0} steps/s²",
+            w[0].1,
+            w[1].1,
+            dt * 1000.0
+        );
+    }
+    // Each override: where it first changed the stepping and where the rate settled.
+    let mut from = 0;
+    let _ = &gaps;
+    let mut report = Vec::new();
+    for (k, (at, feed)) in commands.iter().enumerate() {
+        let want = (800.0 * feed / 100.0_f64).min(1000.0);
+        // The tick when the command was given: interpolated between the writes around it.
+        let before = steps.iter().rposition(|s| s.1 <= *at).unwrap();
+        let cmd_tick =
+            steps[before].0 as f64 + at.duration_since(steps[before].1).as_secs_f64() * hz;
+        // The first step that is a tick or more off where it would have been without this
+        // override: the run without overrides for the first, the settled 5 ticks a step for
+        // the second (a ramp's first steps move by less than a tick: this sees a change within
+        // about 10 ms of its start).
+        let expected = |i: usize| -> f64 {
+            if k == 0 {
+                (base_ticks[i] + ticks[0] - base_ticks[0]) as f64
+            } else {
+                ticks[before] as f64 + 5.0 * (i - before) as f64
+            }
+        };
+        let changed = (before.max(from)..ticks.len())
+            .find(|&i| (ticks[i] as f64 - expected(i)).abs() >= 1.0)
+            .unwrap();
+        let first_changed_tick = ticks[changed] as f64;
+        // Settled: the first window from which the rate stays within 2 % of the new one.
+        let next_cmd_tick = commands
+            .get(k + 1)
+            .map(|(a, _)| {
+                let i = steps.iter().rposition(|s| s.1 <= *a).unwrap();
+                ticks[i] as f64
+            })
+            .unwrap_or(ticks[ticks.len() - 60] as f64);
+        let inside: Vec<&(f64, f64)> = rates
+            .iter()
+            .filter(|(t, _)| *t > first_changed_tick && *t < next_cmd_tick)
+            .collect();
+        let settled = inside
+            .iter()
+            .position(|(_, v)| (v - want).abs() > 0.02 * want)
+            .map(|_| {
+                let last_off = inside
+                    .iter()
+                    .rposition(|(_, v)| (v - want).abs() > 0.02 * want)
+                    .unwrap();
+                inside[last_off + 1..].first().map(|w| w.0)
+            })
+            .unwrap_or(inside.first().map(|w| w.0))
+            .unwrap_or_else(|| panic!("override {feed} %: never settled at {want} steps/s"));
+        assert!(
+            inside
+                .iter()
+                .filter(|(t, _)| *t >= settled)
+                .all(|(_, v)| (v - want).abs() <= 0.02 * want),
+            "override {feed} %: {inside:?}"
+        );
+        assert!(
+            inside.len() >= 5,
+            "override {feed} %: too short at the new rate to tell: {inside:?}"
+        );
+        from = changed;
+        report.push(format!(
+            "feed {feed} % ({want} steps/s): first changed step {:.1} ms after the command, settled {:.1} ms after that (the ramp alone: {:.1} ms)",
+            (first_changed_tick - cmd_tick) / hz * 1000.0,
+            (settled - first_changed_tick) / hz * 1000.0,
+            (want - if k == 0 { 800.0 } else { 1000.0 }).abs() / 4000.0 * 1000.0
+        ));
+    }
+    eprintln!("{}", report.join("\n"));
+}
