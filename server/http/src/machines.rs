@@ -457,7 +457,7 @@ pub struct OverridesView {
     responses(
         (status = 200, description = "The overrides in force", body = OverridesView),
         (status = 404, description = "`unknown_machine`", body = ErrorBody),
-        (status = 422, description = "`override_out_of_range` (outside the machine's `override_limits`), `invalid_field`, `unsupported` (the backend cannot apply one; nothing changed)", body = ErrorBody),
+        (status = 422, description = "`override_out_of_range` (outside the machine's `override_limits`), `invalid_field`, `backend_rejected` (message `unsupported: ...`: the backend cannot apply one, saying why; nothing changed)", body = ErrorBody),
         (status = 503, description = "`machine_offline`, `machine_unresponsive`, `shutting_down`", body = ErrorBody),
         (status = 504, description = "`backend_timeout`", body = ErrorBody),
     ))]
