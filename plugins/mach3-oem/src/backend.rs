@@ -390,6 +390,7 @@ impl Inner {
             reason: None,
             inputs,
             outputs,
+            hold: None,
         };
         let Some(mut t) = sh.run else {
             return status;
