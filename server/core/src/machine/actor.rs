@@ -1733,6 +1733,72 @@ mod tests {
         assert_eq!(job_state_events(&store).await.len(), 1);
     }
 
+    /// Issue 26: an M0 reached during a database outage holds the run too (kept in memory,
+    /// stored when the database returns, with the hold's message); the hold says that going
+    /// on waits for the database; cycle start from anyone makes the run `running` again.
+    #[tokio::test]
+    async fn the_run_follows_the_machine_into_a_hold_and_out_of_it_also_during_an_outage() {
+        use fresa_plugin_api::contract::{ContinueWith, Hold, HoldKind};
+        let (mut task, run, _dir) = task_with_run().await;
+        let store = task.store.clone();
+        store.health().mark_down("test outage");
+        let hold = Hold {
+            kind: HoldKind::ProgramPause,
+            message: "M0 at line 3: change clamp".into(),
+            line: Some(3),
+            program_message: Some("change clamp".into()),
+            continue_with: ContinueWith::CycleStart,
+            tool_change: None,
+            blocked: None,
+        };
+        let paused = MachineStatus {
+            state: MachineState::Paused,
+            hold: Some(hold),
+            ..Default::default()
+        };
+        task.handle_events(vec![
+            Event::Status(paused.clone()),
+            Event::StateChanged {
+                from: MachineState::Running,
+                to: MachineState::Paused,
+            },
+        ])
+        .await;
+        assert_eq!(task.run.borrow().map(|r| r.state), Some(RunState::Paused));
+        let mut shown = task.status.borrow().clone();
+        task.holds.explain(&mut shown);
+        let blocked = shown.hold.unwrap().blocked.unwrap();
+        assert!(blocked.contains("t.db"), "{blocked}");
+        // A status without a state change (a position) changes nothing.
+        task.handle_events(vec![Event::Status(paused)]).await;
+        assert_eq!(task.pending.transitions.len(), 1);
+
+        store.health().mark_up();
+        task.flush_pending().await;
+        let stored = store.run(run.id).await.unwrap().unwrap();
+        assert_eq!(stored.state, RunState::Paused);
+        assert_eq!(
+            stored.message.as_deref(),
+            Some("M0 at line 3: change clamp")
+        );
+        let states = job_state_events(&store).await;
+        assert_eq!(states.last().unwrap()["state"], "paused");
+
+        task.handle_events(vec![
+            Event::Status(MachineStatus {
+                state: MachineState::Running,
+                ..Default::default()
+            }),
+            Event::StateChanged {
+                from: MachineState::Paused,
+                to: MachineState::Running,
+            },
+        ])
+        .await;
+        let stored = store.run(run.id).await.unwrap().unwrap();
+        assert_eq!((stored.state, stored.message), (RunState::Running, None));
+    }
+
     #[tokio::test]
     async fn a_transition_that_landed_before_the_outage_cut_its_answer_is_recorded_once() {
         let (mut task, run, _dir) = task_with_run().await;
