@@ -207,8 +207,9 @@ pub struct MachineStatus {
     // --- pause reason additions (issue 26) ---
     /// Why the machine holds, while its state is `paused` (and while it jogs during a
     /// tool-change hold). Absent otherwise, and from backends that do not say.
+    /// (Boxed: most statuses have none, and events carrying a status stay small.)
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub hold: Option<Hold>,
+    pub hold: Option<Box<Hold>>,
 }
 
 /// The value of an output: a switch or a number (e.g. spindle rpm).

@@ -353,7 +353,7 @@ impl<P, X> State<P, X> {
             reason: self.reason.clone(),
             inputs: self.inputs.clone(),
             outputs: self.outputs.clone(),
-            hold: self.hold.clone(),
+            hold: self.hold.clone().map(Box::new),
         }
     }
 

@@ -371,7 +371,7 @@ pub async fn live_hold(app: &App, job_id: i64) -> Option<fresa_plugin_api::contr
             let held = m
                 .run()
                 .is_some_and(|r| r.state == crate::store::RunState::Paused);
-            return m.status().hold.filter(|_| held);
+            return m.status().hold.filter(|_| held).map(|h| *h);
         }
     }
     None

@@ -715,7 +715,7 @@ impl Task {
             let mut st = self.status.borrow().clone();
             self.holds.explain(&mut st);
             let hold = match st.hold {
-                Some(h) if st.state == MachineState::Paused => h,
+                Some(h) if st.state == MachineState::Paused => *h,
                 _ => super::holds::operator_pause(
                     actor.unwrap_or("the machine"),
                     self.holds.reason().as_ref(),
@@ -1753,7 +1753,7 @@ mod tests {
         };
         let paused = MachineStatus {
             state: MachineState::Paused,
-            hold: Some(hold),
+            hold: Some(Box::new(hold)),
             ..Default::default()
         };
         task.handle_events(vec![

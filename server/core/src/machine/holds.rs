@@ -225,7 +225,7 @@ mod tests {
         });
         let mut s = MachineStatus {
             state: MachineState::Paused,
-            hold: Some(h),
+            hold: Some(Box::new(h)),
             ..Default::default()
         };
         holds.explain(&mut s);
@@ -241,7 +241,7 @@ mod tests {
         holds.set_reason(HoldKind::PendantLost, "pendant 1 lost".into());
         let mut s = MachineStatus {
             state: MachineState::Paused,
-            hold: Some(hold(HoldKind::Pause)),
+            hold: Some(Box::new(hold(HoldKind::Pause))),
             ..Default::default()
         };
         holds.health.mark_down("test outage");

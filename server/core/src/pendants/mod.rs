@@ -844,7 +844,7 @@ async fn status_loop(app: Arc<App>, p: Arc<Pendant>) {
                     .hold
                     .as_ref()
                     .filter(|_| st.state == MachineState::Paused || m.run().is_some())
-                    .map(crate::machine::holds::lcd_line);
+                    .map(|h| crate::machine::holds::lcd_line(h));
                 let job = match m.run() {
                     Some(r) => {
                         if run_seen.map(|s| s.0) != Some(r.run_id) {
