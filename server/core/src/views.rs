@@ -174,7 +174,7 @@ impl JobView {
         }
     }
 
-    /// The view with the live reason its run holds (see [`crate::jobs::live_hold`]).
+    /// The view with the live reason its run holds (`jobs::live_hold` finds it).
     pub fn with_hold(mut self, hold: Option<fresa_plugin_api::contract::Hold>) -> JobView {
         self.hold = hold.filter(|_| self.state == "paused");
         self
