@@ -11,14 +11,32 @@ use serde::Serialize;
 use serde_json::json;
 use utoipa::ToSchema;
 
-/// A machine's run settings as the API shows them.
+/// A machine's run settings as the API shows them: [`RunSettings`] and the setter's reference.
 #[derive(Debug, Clone, Serialize, ToSchema)]
 pub struct RunSettingsView {
-    #[serde(flatten)]
-    pub settings: RunSettings,
+    /// M1 holds the run when on.
+    pub optional_stop: bool,
+    /// What M6 does: `hold`, `ignore`, `refuse`.
+    pub tool_change: ToolChangePolicy,
+    /// Where tools are changed (machine coordinates), or null.
+    pub tool_change_position: Option<MachineXyz>,
+    /// The tool length setter, or null.
+    pub tool_setter: Option<crate::store::ToolSetter>,
     /// Machine Z at which the reference tool tripped the setter (tool lengths are measured
     /// from it); null until it is measured, and again after the setter is moved.
     pub tool_setter_reference_z: Option<f64>,
+}
+
+impl RunSettingsView {
+    fn new(s: RunSettings, reference: Option<f64>) -> RunSettingsView {
+        RunSettingsView {
+            optional_stop: s.optional_stop,
+            tool_change: s.tool_change,
+            tool_change_position: s.tool_change_position,
+            tool_setter: s.tool_setter,
+            tool_setter_reference_z: reference,
+        }
+    }
 }
 
 async fn machine_row(app: &App, machine_id: i64) -> Result<MachineRow> {
@@ -34,10 +52,7 @@ async fn machine_row(app: &App, machine_id: i64) -> Result<MachineRow> {
 pub async fn get(app: &App, machine_id: i64) -> Result<RunSettingsView> {
     machine_row(app, machine_id).await?;
     let (settings, reference) = app.store.run_settings(machine_id).await?;
-    Ok(RunSettingsView {
-        settings,
-        tool_setter_reference_z: reference,
-    })
+    Ok(RunSettingsView::new(settings, reference))
 }
 
 fn position(field: &str, p: &MachineXyz) -> Result<()> {
