@@ -415,3 +415,53 @@ fn with_g43_the_measured_length_applies_at_cycle_start_and_the_offset_stays() {
     s.wait_job_state(job, "completed", T);
     assert_every_line_once(&m.executed(), run, 10);
 }
+
+/// STOP while the machine goes to the setter ends the measure there: nothing after it moves
+/// (no probe starts), the answer says `stopped`, and nothing is stored.
+#[test]
+fn stop_during_a_measure_ends_it_and_stores_nothing() {
+    let s = Server::start();
+    // Real time: 200 mm of X at the 1000 mm/min jog feed takes 12 s.
+    let m = sim(
+        &s,
+        "slow-setter",
+        json!({"time_scale": 1, "tool": 1, "tool_lengths": {"1": 30},
+               "travel": {"z": [-100, 0]},
+               "switches": {"probe": {"axis": "z", "at_or_below": -60}}}),
+    );
+    patch_settings(
+        &s,
+        m.id,
+        json!({"tool_setter": {"x": 200, "y": 0, "z": 0, "distance_mm": 55,
+                               "feed_mm_min": 600, "reference_tool": 1}}),
+    );
+    let measuring = {
+        let url = s.url(&format!("/api/v1/machines/{}/tools/1/measure", m.id));
+        std::thread::spawn(move || {
+            let r = reqwest::blocking::Client::new().post(url).send().unwrap();
+            (r.status().as_u16(), r.text().unwrap())
+        })
+    };
+    s.wait_status(m.id, T, "on its way to the setter", |st| {
+        st["state"] == "jogging" && num(&st["machine_position"]["x"]) > 1.0
+    });
+    s.command(m.id, "stop", json!({})).expect(200);
+    let (status, body) = measuring.join().unwrap();
+    assert_eq!(status, 409, "{body}");
+    assert!(body.contains("stopped"), "{body}");
+    let st = s.wait_machine_state(m.id, "idle", T);
+    let x = num(&st["machine_position"]["x"]);
+    assert!(x < 200.0, "stopped on the way: {st}");
+    assert!(
+        close(num(&st["machine_position"]["z"]), 0.0),
+        "no probe went down: {st}"
+    );
+    let settings = s
+        .get(&format!("/api/v1/machines/{}/run-settings", m.id))
+        .expect(200);
+    assert!(settings["tool_setter_reference_z"].is_null(), "{settings}");
+    let tools = s
+        .get(&format!("/api/v1/machines/{}/tools", m.id))
+        .expect(200);
+    assert_eq!(tools, json!([]), "nothing stored");
+}

@@ -182,8 +182,9 @@ pub async fn measure(app: &App, machine_id: i64, tool: i64, actor: &str) -> Resu
     // One ticket for the whole measure: a stop at any point cancels what is left of it.
     let ticket = m.gate().ticket();
     go_to_setter(&m, &setter, max_jog_mm, actor, ticket).await?;
+    // With the measure's ticket: a stop during the approach also cancels the probe.
     let probed = m
-        .probe(
+        .probe_ticketed(
             ProbeAsk {
                 axis: Axis::Z,
                 positive: false,
@@ -192,6 +193,7 @@ pub async fn measure(app: &App, machine_id: i64, tool: i64, actor: &str) -> Resu
                 until: ProbeUntil::Contact,
             },
             actor,
+            ticket,
         )
         .await?;
     // Back up to the setter's Z, tripped or not.
