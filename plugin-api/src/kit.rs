@@ -3,6 +3,9 @@
 //! alarm), the job queue a motion thread works off, run bookkeeping, work offsets, execution
 //! log use, line acknowledgements, event emission in order, and the soft-limit check every
 //! motion passes. A backend keeps only what moves: its motion thread and its planner.
+//! Holds say why (`State::hold`, the status's `hold`); a program's tool-change hold
+//! ([`Kit::program_hold`], [`Kit::serve_tool_change`]) lets jogs, probing moves and offset
+//! changes through while the run waits for cycle start.
 //!
 //! Threads: request threads call the [`Kit`] request methods; one motion thread per machine
 //! takes [`Job`]s ([`Kit::take_job`]), executes them, and reports with [`Kit::finish_job`].

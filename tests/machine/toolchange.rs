@@ -465,3 +465,39 @@ fn stop_during_a_measure_ends_it_and_stores_nothing() {
         .expect(200);
     assert_eq!(tools, json!([]), "nothing stored");
 }
+
+/// The CLI: `fresa machine run-settings` changes and prints the settings, `fresa machine
+/// measure-tool` prints what the setter found.
+#[test]
+fn the_cli_sets_run_settings_and_measures_a_tool() {
+    let s = Server::start();
+    let m = setter_sim(&s, "cli-setter");
+    let id = m.id.to_string();
+    let out = s.cli(&[
+        "machine",
+        "run-settings",
+        &id,
+        "--optional-stop",
+        "on",
+        "--tool-change",
+        "refuse",
+    ]);
+    let text = fresa_tests::output_text(&out);
+    assert!(out.status.success(), "{text}");
+    let printed: Value = fresa_tests::serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(printed["optional_stop"], true, "{text}");
+    assert_eq!(printed["tool_change"], "refuse", "{text}");
+    let out = s.cli(&["machine", "run-settings", &id, "--optional-stop", "maybe"]);
+    assert!(!out.status.success());
+    let out = s.cli(&["machine", "measure-tool", &id, "--tool", "2"]);
+    let text = fresa_tests::output_text(&out);
+    assert!(!out.status.success(), "{text}");
+    assert!(text.contains("reference_not_measured"), "{text}");
+    let out = s.cli(&["machine", "measure-tool", &id, "--tool", "1"]);
+    let text = fresa_tests::output_text(&out);
+    assert!(out.status.success(), "{text}");
+    assert!(
+        text.contains("T1 tripped the setter at machine Z -30.0000; length 0.0000 mm"),
+        "{text}"
+    );
+}
