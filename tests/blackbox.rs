@@ -12,6 +12,7 @@
 //! | `machine::limits` | what is refused before anything moves: soft limits, jog/feed limits, the work a program may cause |
 //! | `machine::overrides` | feed, spindle and rapid overrides: their effect on a run, the machine's range, the record |
 //! | `machine::tools` | tool tables and cutter compensation with them |
+//! | `machine::toolchange` | pauses that say why (M0, M1, feed hold), manual tool changes (M6) and the tool setter |
 //! | `machine::io` | inputs and outputs: switches, alarms, `machine.io` |
 //! | `jobs::runs` | upload, run to completion, download, pause / resume / cancel of a job |
 //! | `jobs::races` | cancel, stop and pause racing a running job: nothing moves after the answer |
@@ -41,6 +42,7 @@ mod machine {
     mod limits;
     mod overrides;
     mod probing;
+    mod toolchange;
     mod tools;
 }
 

@@ -1376,3 +1376,61 @@ fn a_nesting_bomb_uploaded_from_the_sd_card_is_refused_and_the_server_and_link_l
         1
     );
 }
+
+/// Issue 26: why the machine holds is on the pendant's LCD, in the status line of its `N52`
+/// answer: an M0's `(MSG, change clamp)` while the run holds there, and the Start key (cycle
+/// start) goes on. A pendant with `stop_program_on_lost` that is lost pauses the run it
+/// started, and the machine and the job name the lost pendant as the reason.
+#[test]
+fn the_lcd_shows_why_the_machine_holds_and_a_lost_pendant_is_named_as_the_reason() {
+    let s = Server::start();
+    // 4000 mm at 600 mm/min, time scale 0.05: ~20 s, long enough to lose the pendant mid-run.
+    let m = s.sim("mill", 0.05).id;
+    let mut sim = PendantSim::start();
+    let p = add_pendant(
+        &s,
+        "wheel",
+        &sim.addr,
+        Some(m),
+        json!({"stop_program_on_lost": true}),
+    );
+    wait_connected(&s, p, true);
+    let mut program = String::from("G21 G90\nG0 X1\nM0 (MSG, change clamp)\n");
+    program.push_str(&fresa_tests::back_and_forth(4000, 1.0, 600.0));
+    let job = s.upload(m, "clamp", program)["id"].as_i64().unwrap();
+    sim.cmd("key Start");
+    let st = s.wait_status(m, T, "held at the M0", |st| {
+        st["state"] == "paused" && st["hold"]["kind"] == "program_pause"
+    });
+    assert_eq!(st["hold"]["program_message"], "change clamp", "{st}");
+    let j = s.wait_job_state(job, "paused", T);
+    assert_eq!(j["hold"]["program_message"], "change clamp", "{j}");
+    let from = sim.seen.len();
+    sim.cmd("poll-job 20");
+    sim.wait_line_from(from, "the M0's message on the LCD", |l| {
+        l.starts_with("recv N52") && l.contains("LA0002M0 change clamp*")
+    });
+    sim.cmd("poll-job 0");
+
+    // Start is cycle start: the run goes on, on the machine and the job.
+    sim.cmd("key Start");
+    s.wait_job_state(job, "running", T);
+    s.wait_job(job, T, "past the M0", |j| j["line"].as_i64().unwrap() > 5);
+
+    // Lost: the run it started is paused, and says why.
+    sim.cmd("drop");
+    let st = s.wait_status(m, T, "held for the lost pendant", |st| {
+        st["state"] == "paused" && st["hold"]["kind"] == "pendant_lost"
+    });
+    assert!(
+        st["hold"]["message"]
+            .as_str()
+            .unwrap()
+            .contains(&format!("pendant {p}")),
+        "{st}"
+    );
+    assert_eq!(st["hold"]["continue_with"], "resume", "{st}");
+    let j = s.wait_job_state(job, "paused", T);
+    assert_eq!(j["hold"]["kind"], "pendant_lost", "{j}");
+    s.job_action(job, "cancel").expect(200);
+}

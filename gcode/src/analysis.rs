@@ -80,6 +80,9 @@ pub struct Analysis {
     pub dwell_seconds: f64,
     /// Tools loaded by M6, in first-use order (at most 1000 kept).
     pub tools: Vec<u32>,
+    /// The first M6 line: a machine whose tool-change policy is `refuse` refuses the
+    /// program naming it.
+    pub first_tool_change_line: Option<u32>,
     /// Highest feed of a feed move, mm/min (0 if none).
     pub max_feed_mm_min: f64,
     /// Highest spindle speed programmed with the spindle on.
@@ -300,6 +303,7 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
         arc_moves: 0,
         dwell_seconds: 0.0,
         tools: Vec::new(),
+        first_tool_change_line: None,
         max_feed_mm_min: 0.0,
         max_spindle_rpm: 0.0,
         program_end: false,
@@ -399,8 +403,11 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
             Motion::Spindle { rpm, direction, .. } if direction != SpindleDirection::Off => {
                 a.max_spindle_rpm = a.max_spindle_rpm.max(rpm);
             }
-            Motion::ToolChange { tool, .. } if !a.tools.contains(&tool) && a.tools.len() < 1000 => {
-                a.tools.push(tool);
+            Motion::ToolChange { tool, line } => {
+                a.first_tool_change_line.get_or_insert(line);
+                if !a.tools.contains(&tool) && a.tools.len() < 1000 {
+                    a.tools.push(tool);
+                }
             }
             Motion::ProgramEnd { .. } => a.program_end = true,
             Motion::WorkOffsetChange {

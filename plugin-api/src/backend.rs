@@ -25,6 +25,10 @@ pub struct LoadProgram {
     pub tools: Vec<crate::contract::ProgramTool>,
     /// The work budget (see [`Request::LoadProgram`]).
     pub max_segments: Option<u64>,
+    /// M1 holds like M0 (see [`Request::LoadProgram`]).
+    pub optional_stop: bool,
+    /// M6 holds for a manual tool change (see [`Request::LoadProgram`]).
+    pub tool_change: Option<crate::contract::ToolChangeSetup>,
 }
 
 /// A machine backend. Methods may be called concurrently from several host threads (so that
@@ -128,6 +132,11 @@ pub trait MachineBackend: Send + Sync + Sized + 'static {
         let _ = probe;
         Err(PluginError::unsupported("probe"))
     }
+    /// The machine's tool table changed (see [`Request::SetTools`]).
+    fn set_tools(&self, tools: Vec<crate::contract::ProgramTool>) -> Result<(), PluginError> {
+        let _ = tools;
+        Err(PluginError::unsupported("set_tools"))
+    }
 
     // ----- provided -----
 
@@ -209,6 +218,8 @@ pub fn dispatch<B: MachineBackend>(b: &B, request: Request) -> Result<Answer, Pl
             expected_part_zero,
             tools,
             max_segments,
+            optional_stop,
+            tool_change,
         } => b
             .load_program(LoadProgram {
                 run,
@@ -217,6 +228,8 @@ pub fn dispatch<B: MachineBackend>(b: &B, request: Request) -> Result<Answer, Pl
                 expected_part_zero,
                 tools,
                 max_segments,
+                optional_stop,
+                tool_change,
             })
             .map(Answer::Loaded),
         Request::Run { action } => b.run(action).map(Answer::Run),
@@ -230,6 +243,7 @@ pub fn dispatch<B: MachineBackend>(b: &B, request: Request) -> Result<Answer, Pl
                 serde_json::to_value(p).map_err(|e| PluginError::new("internal", e.to_string()))
             })
             .map(Answer::Value),
+        Request::SetTools { tools } => empty(b.set_tools(tools)),
     }
 }
 

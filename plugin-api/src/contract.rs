@@ -204,6 +204,12 @@ pub struct MachineStatus {
     #[serde(default)]
     #[cfg_attr(feature = "openapi", schema(value_type = Object))]
     pub outputs: BTreeMap<String, Option<IoValue>>,
+    // --- pause reason additions (issue 26) ---
+    /// Why the machine holds, while its state is `paused` (and while it jogs during a
+    /// tool-change hold). Absent otherwise, and from backends that do not say.
+    /// (Boxed: most statuses have none, and events carrying a status stay small.)
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hold: Option<Box<Hold>>,
 }
 
 /// The value of an output: a switch or a number (e.g. spindle rpm).
@@ -280,8 +286,109 @@ impl Default for MachineStatus {
             reason: None,
             inputs: BTreeMap::new(),
             outputs: BTreeMap::new(),
+            hold: None,
         }
     }
+}
+
+// ---- pause reasons and tool changes (issue 26) ----------------------------------------------
+
+/// Why a machine holds (see [`MachineStatus::hold`]).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Hold {
+    pub kind: HoldKind,
+    /// What happened, in words for the operator, e.g. `M0 at line 12: change clamp`.
+    pub message: String,
+    /// The program line that held the run (M0, M1, M6).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub line: Option<u32>,
+    /// The program's own `(MSG, ...)` text on that line.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub program_message: Option<String>,
+    /// What the operator does to go on: `cycle_start` after a program stop or a tool change
+    /// (the program asked for the operator), `resume` after a feed hold or a pause.
+    pub continue_with: ContinueWith,
+    /// Kind `tool_change`: which tools, and how the new one's length applies.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tool_change: Option<ToolChangeHold>,
+    /// Set by the host, never by a backend: why going on is refused right now (e.g. the
+    /// database is unavailable, and a run only goes on once it can be recorded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub blocked: Option<String>,
+}
+
+/// What held the machine.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum HoldKind {
+    /// M0 in the program.
+    ProgramPause,
+    /// M1 in the program, with the machine's optional stop on.
+    OptionalStop,
+    /// M6: a manual tool change (see [`ToolChangeHold`]).
+    ToolChange,
+    /// A feed hold (the command, a pendant's Pause key without a run).
+    FeedHold,
+    /// The run was paused (`POST /jobs/{id}/pause`, a pendant's Pause key).
+    Pause,
+    /// Set by the host: the pendant that started the run was lost (`stop_program_on_lost`).
+    PendantLost,
+}
+
+impl HoldKind {
+    /// The kind's wire name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            HoldKind::ProgramPause => "program_pause",
+            HoldKind::OptionalStop => "optional_stop",
+            HoldKind::ToolChange => "tool_change",
+            HoldKind::FeedHold => "feed_hold",
+            HoldKind::Pause => "pause",
+            HoldKind::PendantLost => "pendant_lost",
+        }
+    }
+}
+
+/// The button that applies to a hold (see [`Hold::continue_with`]).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ContinueWith {
+    CycleStart,
+    Resume,
+}
+
+/// A manual tool change the run holds for.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ToolChangeHold {
+    /// The tool in the spindle before the change, when the backend knows it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub from: Option<u32>,
+    /// The tool the program asks for (its last `T` word).
+    pub to: u32,
+    /// G43 (tool length compensation) is in force: at cycle start the new tool's length from
+    /// the tool table takes the old one's place. Otherwise the program runs on the work offset
+    /// alone, and a new tool's length difference is taken up by the work offset's Z (the host's
+    /// tool setter does that).
+    #[serde(default)]
+    pub length_compensation: bool,
+    /// Set by the host: the tool table's descriptions of `from` and `to`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub from_description: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub to_description: Option<String>,
+}
+
+/// How a run holds at M6 (see [`Request::LoadProgram`]'s `tool_change`).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct ToolChangeSetup {
+    /// Machine position to go to for the change: Z first (up to its Z, at the current X Y),
+    /// then X and Y. A does not move. Absent: the machine stays where M6 found it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub position: Option<AxisValues>,
 }
 
 /// Immediate machine commands. Serialised with a `command` tag, e.g. `{"command":"zero","axis":"X"}`.
@@ -450,6 +557,16 @@ pub enum Request {
         /// line) before any motion. Absent: the backend's default (`DEFAULT_MAX_SEGMENTS`).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         max_segments: Option<u64>,
+        // --- tool change and pause additions (issue 26) ---
+        /// The machine's optional stop switch: on, M1 holds the run like M0; absent (off), M1
+        /// is passed over.
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        optional_stop: bool,
+        /// M6 holds the run for a manual tool change (spindle off, to the change position,
+        /// jogging and probing allowed; cycle start goes back to where it held and on; see
+        /// the README). Absent: M6 passes and the backend changes nothing.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        tool_change: Option<ToolChangeSetup>,
     },
     /// Answer: `{}`.
     Run { action: RunAction },
@@ -478,6 +595,11 @@ pub enum Request {
     /// [`Event::ProbeEnded`] with the same `id`. Errors: `unsupported` (no probe, or not on
     /// that axis, with the reason), `out_of_travel`, `busy`, `alarm`.
     Probe(Probe),
+    // --- tool change additions (issue 26) ---
+    /// The machine's tool table changed (e.g. a tool measured during a tool-change hold): use
+    /// it from now on, in the run in progress too (G43 H, and the length a tool change under
+    /// G43 takes). Answer: `{}`. Errors: `unsupported`.
+    SetTools { tools: Vec<ProgramTool> },
 }
 
 impl Request {
@@ -772,6 +894,9 @@ pub enum PendantEvent {
     },
 }
 
+/// The longest status line a pendant's LCD shows (one line of its 20x4 display).
+pub const PENDANT_STATUS_LINE: usize = 20;
+
 /// Job progress for the pendant's display.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct PendantJob {
@@ -790,6 +915,12 @@ pub enum PendantRequest {
         position: AxisValues,
         #[serde(default, skip_serializing_if = "Option::is_none")]
         job: Option<PendantJob>,
+        // --- pause reason additions (issue 26) ---
+        /// One line for the pendant's LCD (ASCII, at most [`PENDANT_STATUS_LINE`]
+        /// characters), e.g. `M0 change clamp` while a run holds; absent when there is
+        /// nothing to say.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        status_line: Option<String>,
     },
     /// The upload was stored as a job: tell the pendant (N53). Answer: `{"sent": bool}`.
     ConfirmUpload { upload: u64 },

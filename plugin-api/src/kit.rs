@@ -3,6 +3,9 @@
 //! alarm), the job queue a motion thread works off, run bookkeeping, work offsets, execution
 //! log use, line acknowledgements, event emission in order, and the soft-limit check every
 //! motion passes. A backend keeps only what moves: its motion thread and its planner.
+//! Holds say why (`State::hold`, the status's `hold`); a program's tool-change hold
+//! ([`Kit::program_hold`], [`Kit::serve_tool_change`]) lets jogs, probing moves and offset
+//! changes through while the run waits for cycle start.
 //!
 //! Threads: request threads call the [`Kit`] request methods; one motion thread per machine
 //! takes [`Job`]s ([`Kit::take_job`]), executes them, and reports with [`Kit::finish_job`].
@@ -10,8 +13,8 @@
 
 use crate::config_fields::{invalid, number, object};
 use crate::contract::{
-    io, Axis, AxisValues, Event, IoValue, MachineState, MachineStatus, OffsetTable, Overrides,
-    Probe, ProbeOutcome, RunOutcome, WorkOffset,
+    io, Axis, AxisValues, ContinueWith, Event, Hold, HoldKind, IoValue, MachineState,
+    MachineStatus, OffsetTable, Overrides, Probe, ProbeOutcome, RunOutcome, WorkOffset,
 };
 use crate::exec_log::ExecLog;
 use crate::PluginError;
@@ -325,12 +328,19 @@ pub struct State<P, X> {
     /// them with [`State::set_io`] so every change is reported.
     pub inputs: BTreeMap<String, Option<bool>>,
     pub outputs: BTreeMap<String, Option<IoValue>>,
+    /// Why the machine holds (the status's `hold`): set with the hold, cleared when the run
+    /// goes on or ends.
+    pub hold: Option<Hold>,
+    /// The tool length offset a program's G43 put in force, mm (0 after G49 and when no run
+    /// is under way): the work position's Z is the tool tip's, machine Z - offset Z - this.
+    pub tool_length_offset: f64,
     pub extra: X,
 }
 
 impl<P, X> State<P, X> {
     pub fn status(&self) -> MachineStatus {
-        let off = self.offsets[self.active.index()];
+        let mut off = self.offsets[self.active.index()];
+        off[Axis::Z.index()] += self.tool_length_offset;
         MachineStatus {
             state: self.state,
             machine_position: AxisValues::from_array(self.pos),
@@ -346,7 +356,33 @@ impl<P, X> State<P, X> {
             reason: self.reason.clone(),
             inputs: self.inputs.clone(),
             outputs: self.outputs.clone(),
+            hold: self.hold.clone().map(Box::new),
         }
+    }
+
+    /// Held for a manual tool change (M6): jogs, probing moves and offset changes are allowed
+    /// (the state is `jogging` while one runs, `paused` otherwise).
+    pub fn in_tool_change(&self) -> bool {
+        self.run.is_some()
+            && matches!(self.state, MachineState::Paused | MachineState::Jogging)
+            && self
+                .hold
+                .as_ref()
+                .is_some_and(|h| h.kind == HoldKind::ToolChange)
+    }
+
+    /// Held for a tool change with nothing moving.
+    pub fn still_in_tool_change(&self) -> bool {
+        self.in_tool_change() && self.state == MachineState::Paused
+    }
+
+    /// [`State::require_still`], except in a tool-change hold with nothing moving (where
+    /// the operator probes, touches off and measures the new tool).
+    pub fn require_still_or_tool_change(&self, what: &str) -> Result<(), PluginError> {
+        if self.still_in_tool_change() {
+            return Ok(());
+        }
+        self.require_still(what)
     }
 
     /// Sets inputs and outputs; a status event goes out at once when anything changed (an
@@ -544,6 +580,8 @@ pub struct Kit<P, X> {
     hold: AtomicBool,
     /// The motion thread confirmed it holds (no new motion until resumed).
     held: AtomicBool,
+    /// End the jog or probe run during a tool-change hold (feed hold, jog cancel), not the run.
+    hold_job_abort: AtomicBool,
 }
 
 impl<P, X> Kit<P, X> {
@@ -572,6 +610,8 @@ impl<P, X> Kit<P, X> {
                 probing: None,
                 inputs: BTreeMap::new(),
                 outputs: BTreeMap::new(),
+                hold: None,
+                tool_length_offset: 0.0,
                 extra,
             }),
             cv: Condvar::new(),
@@ -580,6 +620,7 @@ impl<P, X> Kit<P, X> {
             abort: AtomicBool::new(false),
             hold: AtomicBool::new(false),
             held: AtomicBool::new(false),
+            hold_job_abort: AtomicBool::new(false),
         }
     }
 
@@ -629,9 +670,10 @@ impl<P, X> Kit<P, X> {
 
     // ----- motion thread -----
 
-    /// Stop or shutdown asked the job in progress to end.
+    /// Stop or shutdown asked the job in progress to end (or, during a tool-change hold, a
+    /// feed hold the jog or probe under way).
     pub fn aborted(&self) -> bool {
-        self.abort.load(Ordering::SeqCst)
+        self.abort.load(Ordering::SeqCst) || self.hold_job_abort.load(Ordering::SeqCst)
     }
 
     /// Feed hold or pause is asked for.
@@ -641,11 +683,96 @@ impl<P, X> Kit<P, X> {
 
     /// A program pause (M0) reached by the motion thread: hold now, confirmed at once.
     pub fn program_pause(&self, sh: &mut State<P, X>, ev: &mut Events) {
+        let line = sh.line;
+        let message = match line {
+            Some(l) => format!("M0 at line {l}: program pause"),
+            None => "M0: program pause".to_string(),
+        };
+        self.program_hold(
+            sh,
+            ev,
+            program_hold(HoldKind::ProgramPause, message, line, None),
+        );
+    }
+
+    /// The program holds for `hold` (M0, M1 with the optional stop on, M6), reached by the
+    /// motion thread: hold now, confirmed at once. Cycle start (or resume) goes on.
+    pub fn program_hold(&self, sh: &mut State<P, X>, ev: &mut Events, hold: Hold) {
         self.hold.store(true, Ordering::SeqCst);
+        sh.end = sh.pos;
+        sh.hold = Some(hold);
         if sh.state == MachineState::Running {
             sh.set_state(MachineState::Paused, ev);
+        } else {
+            sh.push_status(ev);
         }
         self.note_held(sh);
+    }
+
+    /// Holds the run for a manual tool change (after [`Kit::program_hold`] with a
+    /// `tool_change` hold) until cycle start or resume (`Ok`) or a stop (`Aborted`). Jogs and
+    /// probing moves queued meanwhile (the kit allows them in this hold) are carried out with
+    /// `run`, the backend's own execution of them, answering a probe's trip; a feed hold or a
+    /// jog cancel ends the one under way (and drops those queued), not the run. A fault
+    /// during one (a limit) ends the run with it.
+    pub fn serve_tool_change(
+        &self,
+        mut run: impl FnMut(&Job<P>) -> Result<Option<[f64; 4]>, Interrupted>,
+    ) -> Result<(), Interrupted> {
+        let mut sh = self.lock();
+        loop {
+            if self.abort.load(Ordering::SeqCst) || sh.shutdown {
+                return Err(Interrupted::Aborted);
+            }
+            match sh.state {
+                MachineState::Running => return Ok(()),
+                MachineState::Paused | MachineState::Jogging => {}
+                // Not left by anything but a stop (which the abort flag says).
+                _ => return Err(Interrupted::Aborted),
+            }
+            let job = if sh.state == MachineState::Jogging {
+                sh.queue.pop_front()
+            } else {
+                None
+            };
+            let Some(job) = job else {
+                if sh.state == MachineState::Jogging {
+                    // Nothing left to run (a feed hold dropped it): held again.
+                    self.hold_job_abort.store(false, Ordering::SeqCst);
+                    let mut ev = Vec::new();
+                    sh.set_state(MachineState::Paused, &mut ev);
+                    self.release(sh, ev);
+                    sh = self.lock();
+                    continue;
+                }
+                self.note_held(&mut sh);
+                sh = self.wait(sh);
+                continue;
+            };
+            drop(sh);
+            let result = run(&job);
+            sh = self.lock();
+            let mut ev = Vec::new();
+            self.hold_job_abort.store(false, Ordering::SeqCst);
+            sh.end = sh.pos;
+            if sh.queue.is_empty() && sh.state == MachineState::Jogging {
+                sh.set_state(MachineState::Paused, &mut ev);
+            } else {
+                sh.push_status(&mut ev);
+            }
+            if let Job::Probe(p) = &job {
+                sh.probing = None;
+                let (outcome, trip, message) = probe_outcome(&result);
+                sh.probe_ended(p.id, outcome, trip, message, &mut ev);
+            }
+            self.release(sh, ev);
+            match result {
+                Err(e @ (Interrupted::Alarm(_) | Interrupted::Tripped { .. })) => return Err(e),
+                _ if self.abort.load(Ordering::SeqCst) => return Err(Interrupted::Aborted),
+                _ => {}
+            }
+            sh = self.lock();
+        }
     }
 
     /// The motion thread holds (starts nothing new until resumed). Called under the lock
@@ -723,20 +850,7 @@ impl<P, X> Kit<P, X> {
         result: Result<Option<[f64; 4]>, Interrupted>,
         update: impl FnOnce(&mut State<P, X>),
     ) {
-        let (outcome, trip, message) = match &result {
-            Ok(Some(t)) => (ProbeOutcome::Tripped, Some(*t), None),
-            Ok(None) => (ProbeOutcome::NotTripped, None, None),
-            Err(Interrupted::Aborted) => (
-                ProbeOutcome::Stopped,
-                None,
-                Some("stopped before the probe changed".to_string()),
-            ),
-            Err(
-                Interrupted::Alarm(m)
-                | Interrupted::Failed(m)
-                | Interrupted::Tripped { message: m, .. },
-            ) => (ProbeOutcome::Failed, None, Some(m.clone())),
-        };
+        let (outcome, trip, message) = probe_outcome(&result);
         let result = result.map(drop);
         self.finish(None, result, update, |sh, ev| {
             sh.probing = None;
@@ -758,6 +872,12 @@ impl<P, X> Kit<P, X> {
         self.hold.store(false, Ordering::SeqCst);
         self.held.store(false, Ordering::SeqCst);
         self.abort.store(false, Ordering::SeqCst);
+        self.hold_job_abort.store(false, Ordering::SeqCst);
+        sh.hold = None;
+        if run.is_some() {
+            // G43 lasts for the run that set it.
+            sh.tool_length_offset = 0.0;
+        }
         sh.end = sh.pos;
         if let Some(run) = run {
             let (outcome, message) = match &result {
@@ -861,7 +981,9 @@ impl<P, X> Kit<P, X> {
                     "cannot jog while the machine probes",
                 ));
             }
-            if !matches!(sh.state, MachineState::Idle | MachineState::Jogging) {
+            let free =
+                sh.run.is_none() && matches!(sh.state, MachineState::Idle | MachineState::Jogging);
+            if !(free || sh.in_tool_change()) {
                 return Err(PluginError::new(
                     "busy",
                     format!("cannot jog while the machine is {}", sh.state.as_str()),
@@ -907,7 +1029,7 @@ impl<P, X> Kit<P, X> {
         }
         self.with(|sh, ev| {
             sh.require_no_alarm("probe")?;
-            sh.require_still("probe")?;
+            sh.require_still_or_tool_change("probe")?;
             match sh.inputs.get(io::PROBE) {
                 None => {
                     return Err(PluginError::new(
@@ -960,6 +1082,7 @@ impl<P, X> Kit<P, X> {
         let mut ev = Vec::new();
         sh.cancel_pending(&mut ev);
         if !sh.busy {
+            sh.hold = None;
             if matches!(
                 sh.state,
                 MachineState::Jogging | MachineState::Running | MachineState::Paused
@@ -987,7 +1110,22 @@ impl<P, X> Kit<P, X> {
         let jogging = self.with(|sh, ev| match sh.state {
             MachineState::Running => {
                 self.hold.store(true, Ordering::SeqCst);
+                sh.hold = Some(if strict {
+                    operator_hold(HoldKind::Pause, "paused by the operator")
+                } else {
+                    operator_hold(HoldKind::FeedHold, "feed hold")
+                });
                 sh.set_state(MachineState::Paused, ev);
+                Ok(false)
+            }
+            // A jog or probe during a tool-change hold ends where it is; the run stays held.
+            MachineState::Jogging if sh.in_tool_change() => {
+                self.hold_job_abort.store(true, Ordering::SeqCst);
+                for id in sh.drop_queued_probes() {
+                    let m = "stopped before the probing move started".to_string();
+                    sh.probe_ended(id, ProbeOutcome::Stopped, None, Some(m), ev);
+                }
+                sh.queue.clear();
                 Ok(false)
             }
             MachineState::Jogging if !strict => Ok(true),
@@ -1001,6 +1139,9 @@ impl<P, X> Kit<P, X> {
             return self.stop();
         }
         self.confirmed("hold", |sh| {
+            if sh.in_tool_change() {
+                return sh.state == MachineState::Paused;
+            }
             !sh.busy || sh.state != MachineState::Paused || self.held.load(Ordering::SeqCst)
         })
     }
@@ -1037,6 +1178,7 @@ impl<P, X> Kit<P, X> {
                 self.resume_locked(sh, ev);
                 Ok(())
             }
+            MachineState::Jogging if sh.in_tool_change() => Err(jogging_in_tool_change()),
             _ if strict && sh.run.is_none() => Err(PluginError::new(
                 "not_running",
                 "no program is running: nothing to resume",
@@ -1048,6 +1190,7 @@ impl<P, X> Kit<P, X> {
     fn resume_locked(&self, sh: &mut State<P, X>, ev: &mut Events) {
         self.held.store(false, Ordering::SeqCst);
         self.hold.store(false, Ordering::SeqCst);
+        sh.hold = None;
         sh.set_state(MachineState::Running, ev);
     }
 
@@ -1062,6 +1205,9 @@ impl<P, X> Kit<P, X> {
                     return Ok(());
                 }
                 MachineState::Running => return Ok(()),
+                MachineState::Jogging if sh.in_tool_change() => {
+                    return Err(jogging_in_tool_change())
+                }
                 _ => {}
             }
             sh.require_still("start a program")?;
@@ -1117,8 +1263,10 @@ impl<P, X> Kit<P, X> {
     /// Sets the active work offset so the work position of `axis` (or all) becomes zero.
     pub fn zero(&self, axis: Option<Axis>) -> Result<OffsetTable, PluginError> {
         self.with(|sh, ev| {
-            sh.require_still("zero")?;
-            let (pos, i) = (sh.pos, sh.active.index());
+            sh.require_still_or_tool_change("zero")?;
+            let (mut pos, i) = (sh.pos, sh.active.index());
+            // Zero is where the tool tip is (G43 in force during a tool-change hold).
+            pos[Axis::Z.index()] -= sh.tool_length_offset;
             match axis {
                 Some(a) => sh.offsets[i][a.index()] = pos[a.index()],
                 None => sh.offsets[i] = pos,
@@ -1196,7 +1344,7 @@ impl<P, X> Kit<P, X> {
             return Err(PluginError::invalid("offset values must be finite numbers"));
         }
         self.with(|sh, ev| {
-            sh.require_still("change offsets")?;
+            sh.require_still_or_tool_change("change offsets")?;
             sh.offsets[offset.index()] = values.to_array();
             if offset == sh.active {
                 sh.push_status(ev);
@@ -1320,6 +1468,65 @@ impl<P, X> Kit<P, X> {
             sh.program = Some(loaded);
             Ok(())
         })
+    }
+}
+
+/// A hold the program asked for (M0, M1, M6): the operator goes on with cycle start.
+pub fn program_hold(
+    kind: HoldKind,
+    message: String,
+    line: Option<u32>,
+    program_message: Option<String>,
+) -> Hold {
+    Hold {
+        kind,
+        message,
+        line,
+        program_message,
+        continue_with: ContinueWith::CycleStart,
+        tool_change: None,
+        blocked: None,
+    }
+}
+
+/// A hold the operator asked for (feed hold, pause): resume goes on.
+fn operator_hold(kind: HoldKind, message: &str) -> Hold {
+    Hold {
+        kind,
+        message: message.to_string(),
+        line: None,
+        program_message: None,
+        continue_with: ContinueWith::Resume,
+        tool_change: None,
+        blocked: None,
+    }
+}
+
+fn jogging_in_tool_change() -> PluginError {
+    PluginError::new(
+        "busy",
+        "a jog or probing move of the tool change is under way: wait for it to end (or feed \
+         hold it) before cycle start",
+    )
+}
+
+/// What a probing move's result reports (see [`Event::ProbeEnded`]).
+fn probe_outcome(
+    result: &Result<Option<[f64; 4]>, Interrupted>,
+) -> (ProbeOutcome, Option<[f64; 4]>, Option<String>) {
+    match result {
+        Ok(Some(t)) => (ProbeOutcome::Tripped, Some(*t), None),
+        Ok(None) => (ProbeOutcome::NotTripped, None, None),
+        Err(Interrupted::Aborted) => (
+            ProbeOutcome::Stopped,
+            None,
+            Some("stopped before the probe changed".to_string()),
+        ),
+        Err(
+            Interrupted::Alarm(m)
+            | Interrupted::Failed(m)
+            | Interrupted::Tripped { message: m, .. },
+        ) => (ProbeOutcome::Failed, None, Some(m.clone())),
     }
 }
 

@@ -193,6 +193,9 @@ impl Request {
                 lane: Lane::Urgent,
                 ..Operation::read("shutdown")
             },
+            // The host stores the table and records `machine.tools` itself; this only tells
+            // the backend. Allowed during a run: a tool measured during a tool-change hold.
+            Request::SetTools { .. } => Operation::read("set_tools"),
         }
     }
 
@@ -310,8 +313,11 @@ mod tests {
                 expected_part_zero: None,
                 tools: vec![],
                 max_segments: None,
+                optional_stop: false,
+                tool_change: None,
             },
             Request::Shutdown,
+            Request::SetTools { tools: vec![] },
         ];
         for action in [
             RunAction::Start,

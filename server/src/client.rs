@@ -97,6 +97,28 @@ pub enum MachineCmd {
         #[arg(long)]
         rapid: Option<f64>,
     },
+    /// Measure the tool in the spindle (taken to be --tool) on the machine's tool setter and
+    /// store its length (relative to the reference tool); during a tool-change hold for it,
+    /// Z is zeroed again for it. Prints the length.
+    MeasureTool {
+        id: i64,
+        #[arg(long)]
+        tool: i64,
+        /// Print the server's JSON answer.
+        #[arg(long)]
+        json: bool,
+    },
+    /// A machine's run settings (optional stop, what M6 does, tool-change position, tool
+    /// setter); with options, change those first.
+    RunSettings {
+        id: i64,
+        /// `on` or `off`: whether M1 holds the run.
+        #[arg(long)]
+        optional_stop: Option<String>,
+        /// What M6 does: `hold`, `ignore` or `refuse`.
+        #[arg(long)]
+        tool_change: Option<String>,
+    },
     /// A machine's tool table (what G41/G42 D<n> offset by); with --load, replace it first.
     Tools {
         id: i64,
@@ -402,6 +424,68 @@ pub async fn machine(server: ServerArgs, cmd: MachineCmd) -> Res {
                     n("work_position"),
                 );
             }
+        }
+        MachineCmd::MeasureTool { id, tool, json } => {
+            let v = c
+                .send(c.req(
+                    reqwest::Method::POST,
+                    &format!("/api/v1/machines/{id}/tools/{tool}/measure"),
+                ))
+                .await?;
+            if json {
+                println!("{v}");
+            } else {
+                let n = |k: &str| v[k].as_f64().unwrap_or_default();
+                println!(
+                    "machine {id}: T{tool} tripped the setter at machine Z {:.4}; length {:.4} mm (reference Z {:.4})",
+                    n("trip_z"),
+                    n("length_mm"),
+                    n("reference_z"),
+                );
+                if let Some(r) = v.get("rezero").filter(|r| !r.is_null()) {
+                    println!(
+                        "Z zeroed again for T{tool}: {} Z {:.4} -> {:.4} (T{} was {:.4} mm)",
+                        r["offset"].as_str().unwrap_or("offset"),
+                        r["before"]["z"].as_f64().unwrap_or_default(),
+                        r["after"]["z"].as_f64().unwrap_or_default(),
+                        r["from_tool"],
+                        r["from_length_mm"].as_f64().unwrap_or_default(),
+                    );
+                }
+                if let Some(note) = v["note"].as_str() {
+                    println!("{note}");
+                }
+            }
+        }
+        MachineCmd::RunSettings {
+            id,
+            optional_stop,
+            tool_change,
+        } => {
+            let mut changes = serde_json::Map::new();
+            if let Some(o) = optional_stop {
+                let on = match o.as_str() {
+                    "on" | "true" => true,
+                    "off" | "false" => false,
+                    other => {
+                        return Err(
+                            format!("--optional-stop takes `on` or `off`, got {other:?}").into(),
+                        )
+                    }
+                };
+                changes.insert("optional_stop".into(), on.into());
+            }
+            if let Some(t) = tool_change {
+                changes.insert("tool_change".into(), t.into());
+            }
+            let path = format!("/api/v1/machines/{id}/run-settings");
+            let v = if changes.is_empty() {
+                c.send(c.req(reqwest::Method::GET, &path)).await?
+            } else {
+                c.send(c.req(reqwest::Method::PATCH, &path).json(&changes))
+                    .await?
+            };
+            println!("{}", serde_json::to_string_pretty(&v)?);
         }
         MachineCmd::Override {
             id,

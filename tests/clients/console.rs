@@ -932,3 +932,80 @@ fn the_console_jogs_while_a_button_or_key_is_held_and_stops_when_let_go() {
     let end = st["machine_position"]["x"].as_f64().unwrap();
     assert!(end < from + max_jog, "stopped once the tab went: x = {end}");
 }
+
+/// Issue 26: a run held at M0 shows why on the machine page (with the Cycle start button
+/// marked as the one that applies) and on the job page (whose resume button says Cycle
+/// start); the hold card's button goes on. Measure tool (issue 25) on a machine with a setter
+/// shows the length.
+#[test]
+fn the_hold_card_and_the_job_page_say_why_the_run_holds_and_what_goes_on() {
+    let s = Server::start();
+    let m = s.create_machine(&json!({
+        "name": "router", "backend": "sim-machine",
+        "config": {"time_scale": 0, "travel": {"z": [-100, 0]},
+                   "switches": {"probe": {"axis": "z", "at_or_below": -20}}}
+    }));
+    s.wait_machine_state(m, "idle", T);
+    s.send(
+        s.req(
+            reqwest::Method::PATCH,
+            &format!("/api/v1/machines/{m}/run-settings"),
+        )
+        .json(
+            &json!({"tool_setter": {"x": 0, "y": 0, "z": 0, "distance_mm": 40,
+                                      "feed_mm_min": 300, "reference_tool": 1}}),
+        ),
+    )
+    .expect(200);
+    let job = s.upload(m, "clamp", "G0 X1\nM0 (MSG, change clamp)\nG0 X2\n")["id"]
+        .as_i64()
+        .unwrap();
+    s.job_action(job, "start").expect(200);
+    s.wait_job_state(job, "paused", T);
+    let b = Browser::start();
+    b.goto(&format!("{}/#/machines/{m}", s.base));
+    let reason = b.wait(
+        "the hold's reason",
+        T,
+        "const r = document.querySelector('#hold-reason'); \
+         return r && r.textContent.includes('change clamp') ? r.textContent : null;",
+    );
+    assert!(
+        reason.as_str().unwrap().starts_with("Held: M0 at line 2"),
+        "{reason}"
+    );
+    assert_eq!(b.wait_text("#hold-continue", T), "Cycle start");
+    assert!(b
+        .js("return document.querySelector('[data-cmd=\"cycle_start\"]').classList.contains('applies') \
+             && !document.querySelector('[data-cmd=\"resume\"]').classList.contains('applies');")
+        .as_bool()
+        .unwrap());
+    b.screenshot("hold-card");
+    b.goto(&format!("{}/#/jobs/{job}", s.base));
+    let held = b.wait_text("#job-hold", T);
+    assert!(
+        held.contains("change clamp") && held.contains("Cycle start goes on"),
+        "{held}"
+    );
+    assert_eq!(b.wait_text("[data-action=\"resume\"]", T), "Cycle start");
+    b.goto(&format!("{}/#/machines/{m}", s.base));
+    b.wait_enabled("#hold-continue", T);
+    b.click("#hold-continue");
+    s.wait_job_state(job, "completed", T);
+    b.wait(
+        "no longer held",
+        T,
+        "return document.querySelector('#hold-reason').textContent === 'Not held';",
+    );
+    b.click("#measure-tool");
+    let result = b.wait(
+        "the measure's result",
+        T,
+        "const r = document.querySelector('#measure-result'); \
+         return r && r.textContent.includes('length') ? r.textContent : null;",
+    );
+    assert!(
+        result.as_str().unwrap().contains("machine Z -20.000"),
+        "{result}"
+    );
+}

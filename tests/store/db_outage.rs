@@ -162,6 +162,16 @@ fn pause_and_cancel_stop_a_job_during_an_outage_and_are_stored_when_it_ends() {
     assert_eq!(paused["state"], "paused", "{paused}");
     let st = s.status(m.id);
     assert_eq!(st["job"]["run"], run, "{st}");
+    // Issue 26: the hold says why it is paused, and that going on waits for the database.
+    let st = s.wait_status(m.id, T, "the hold naming the outage", |st| {
+        st["state"] == "paused" && st["hold"]["blocked"].is_string()
+    });
+    assert_eq!(st["hold"]["kind"], "pause", "{st}");
+    let blocked = st["hold"]["blocked"].as_str().unwrap();
+    assert!(
+        blocked.contains(&format!("127.0.0.1:{}", pg.port)),
+        "{blocked}"
+    );
     refused(s.job_action(job, "resume"), &pg);
     let r = s.job_action(job, "cancel");
     if r.status != 200 {

@@ -667,6 +667,7 @@ impl Inner {
             reason: None,
             inputs,
             outputs,
+            hold: None,
         };
         if let Some(mut t) = sh.probe.filter(|t| !t.ended) {
             t.saw_moving |= p.moving;

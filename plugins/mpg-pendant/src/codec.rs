@@ -58,8 +58,22 @@ pub enum Frame {
     },
     Positions(AxisValues),
     Progress(PendantJob),
+    /// An `N52` whose padding after the line number carries a status line for the LCD (a
+    /// Fresa extension, issue 26): at most [`STATUS_LEN`] ASCII characters (spaces allowed,
+    /// no `*`), `*`-padded. Firmware that does not show it reads the fields before it as
+    /// before.
+    ProgressWithStatus {
+        job: PendantJob,
+        status: String,
+    },
     UploadConfirmed,
 }
+
+/// The longest status line an `N52` carries (one line of the pendant's 20x4 LCD).
+pub const STATUS_LEN: usize = fresa_plugin_api::contract::PENDANT_STATUS_LINE;
+
+/// Where an `N52`'s status line starts (0-based byte index, after `LA0000`).
+const STATUS_AT: usize = 29;
 
 /// The words of an `N02` action frame, as the firmware spells them.
 const KEY_WORDS: [(&str, PendantKey); 15] = [
@@ -230,15 +244,22 @@ impl Frame {
                 }
                 build("51", &s, "")
             }
-            Frame::Progress(j) => {
-                let (el, c1) = mm_ss(j.elapsed_s);
-                let (es, c2) = mm_ss(j.estimated_s);
-                let (nl, c3) = four_digits(j.total_lines);
-                let (la, c4) = four_digits(j.line);
-                if c1 || c2 || c3 || c4 {
-                    note = Some(format!("job progress {j:?} clamped to fit the N52 frame"));
+            Frame::Progress(j) => progress(j, "", &mut note),
+            Frame::ProgressWithStatus { job, status } => {
+                // Only what the LCD can show and the frame can carry.
+                let shown: String = status
+                    .chars()
+                    .map(|c| match c {
+                        '*' => 'x',
+                        c if c.is_ascii_graphic() || c == ' ' => c,
+                        _ => '?',
+                    })
+                    .take(STATUS_LEN)
+                    .collect();
+                if shown != *status {
+                    note = Some(format!("status line {status:?} shown as {shown:?} in N52"));
                 }
-                build("52", &format!("EL{el}ES{es}NL{nl}LA{la}"), "")
+                progress(job, &shown, &mut note)
             }
             Frame::UploadConfirmed => build("53", "Confirm:Gcode-load", ""),
         };
@@ -250,7 +271,17 @@ impl Frame {
         if b[0] != b'N' || b[FRAME_LEN - 1] != b'F' {
             return Err("does not start with N and end with F".into());
         }
-        if !b.iter().all(|c| c.is_ascii_graphic()) {
+        // An N52's status line may have spaces.
+        let spaces_from = if &b[1..3] == b"52" {
+            STATUS_AT
+        } else {
+            FRAME_LEN
+        };
+        let printable = b
+            .iter()
+            .enumerate()
+            .all(|(i, c)| c.is_ascii_graphic() || (*c == b' ' && i >= spaces_from));
+        if !printable {
             return Err("contains a byte that is not printable ASCII".into());
         }
         let kind = &b[1..3];
@@ -409,12 +440,28 @@ impl Frame {
                     (s < 60).then_some(m * 60 + s)
                 };
                 let four = |s: &str| all_digits(s.as_bytes()).then(|| s.parse().ok()).flatten();
-                Ok(Frame::Progress(PendantJob {
+                let job = PendantJob {
                     elapsed_s: secs(&text[2..7]).ok_or_else(bad)?,
                     estimated_s: secs(&text[9..14]).ok_or_else(bad)?,
                     total_lines: four(&text[16..20]).ok_or_else(bad)?,
                     line: four(&text[22..26]).ok_or_else(bad)?,
-                }))
+                };
+                // The rest: a status line, then `*` to the end.
+                let tail = &text[26..];
+                let status = tail.trim_end_matches('*');
+                if status.is_empty() {
+                    return Ok(Frame::Progress(job));
+                }
+                if status.contains('*') || status.len() > STATUS_LEN {
+                    return Err(format!(
+                        "progress: the status line {tail:?} is not at most {STATUS_LEN} \
+                         characters then `*` padding"
+                    ));
+                }
+                Ok(Frame::ProgressWithStatus {
+                    job,
+                    status: status.to_string(),
+                })
             }
             b"53" => Ok(Frame::UploadConfirmed),
             other => Err(format!(
@@ -423,6 +470,18 @@ impl Frame {
             )),
         }
     }
+}
+
+/// An `N52` frame: the job's fields, then `status` (already fitted), then `*`.
+fn progress(j: &PendantJob, status: &str, note: &mut Option<String>) -> [u8; FRAME_LEN] {
+    let (el, c1) = mm_ss(j.elapsed_s);
+    let (es, c2) = mm_ss(j.estimated_s);
+    let (nl, c3) = four_digits(j.total_lines);
+    let (la, c4) = four_digits(j.line);
+    if c1 || c2 || c3 || c4 {
+        *note = Some(format!("job progress {j:?} clamped to fit the N52 frame"));
+    }
+    build("52", &format!("EL{el}ES{es}NL{nl}LA{la}{status}"), "")
 }
 
 fn all_digits(s: &[u8]) -> bool {

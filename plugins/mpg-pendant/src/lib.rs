@@ -72,8 +72,12 @@ impl Plugin for MpgPendant {
         };
         let (t, req) = transport;
         Ok(match req {
-            PendantRequest::PendantStatus { position, job } => {
-                t.set_status(position, job);
+            PendantRequest::PendantStatus {
+                position,
+                job,
+                status_line,
+            } => {
+                t.set_status(position, job, status_line);
                 json!({})
             }
             PendantRequest::ConfirmUpload { upload } => {

@@ -226,10 +226,20 @@ impl Transport {
         &self.shared.cfg.address
     }
 
-    /// Replaces the status cache the pendant's polls are answered from.
-    pub fn set_status(&self, position: AxisValues, job: Option<PendantJob>) {
+    /// Replaces the status cache the pendant's polls are answered from. A status line (why
+    /// the machine holds) rides in the N52 answer, after the job's fields.
+    pub fn set_status(
+        &self,
+        position: AxisValues,
+        job: Option<PendantJob>,
+        status_line: Option<String>,
+    ) {
         let (pos, n1) = Frame::Positions(position).encode_checked();
-        let (prog, n2) = Frame::Progress(job.unwrap_or_default()).encode_checked();
+        let job = job.unwrap_or_default();
+        let (prog, n2) = match status_line.filter(|s| !s.is_empty()) {
+            Some(status) => Frame::ProgressWithStatus { job, status }.encode_checked(),
+            None => Frame::Progress(job).encode_checked(),
+        };
         {
             let mut c = lock(&self.shared.cache);
             c.positions = pos;

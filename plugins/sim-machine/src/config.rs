@@ -29,6 +29,12 @@ pub struct Config {
     /// Simulated input switches, each active while its axis is at or beyond a position, so a
     /// test (or a demo user) presses one by moving onto it.
     pub switches: Vec<Switch>,
+    /// The physical tools (issue 26): how far each tool's tip reaches below the spindle's
+    /// controlled point, mm, by tool number. The `probe` switch is touched by the tip, so a
+    /// longer tool trips it higher up; a tool not listed (and tool 0, none) is 0 mm long.
+    pub tool_lengths: std::collections::BTreeMap<u32, f64>,
+    /// The tool in the spindle at start-up (0: none). A tool-change hold puts the new one in.
+    pub tool: u32,
 }
 
 /// An input switch at a machine position: active while `axis` is at or above `at` (`above`)
@@ -70,6 +76,8 @@ impl Default for Config {
             travel: [None; 4],
             alarm_at_connect: None,
             switches: Vec::new(),
+            tool_lengths: std::collections::BTreeMap::new(),
+            tool: 0,
         }
     }
 }
@@ -128,11 +136,22 @@ impl Config {
                     }
                 },
                 "switches" => cfg.switches = switches(v)?,
+                "tool_lengths" => cfg.tool_lengths = tool_lengths(v)?,
+                "tool" => {
+                    cfg.tool = v
+                        .as_u64()
+                        .and_then(|t| u32::try_from(t).ok())
+                        .ok_or_else(|| {
+                            invalid(format!(
+                                "`tool` must be a tool number (0 for none), got {v}"
+                            ))
+                        })?
+                }
                 other => {
                     return Err(invalid(format!(
                         "unknown config key `{other}` (known: time_scale, rapid_mm_min, \
                          jog_feed_mm_min, execution_log, status_interval_ms, travel, \
-                         alarm_at_connect, switches)"
+                         alarm_at_connect, switches, tool_lengths, tool)"
                     )))
                 }
             }
@@ -146,6 +165,11 @@ impl Config {
         kit::check_travel(&self.travel, pos)
     }
 
+    /// How far the tip of physical tool `tool` reaches below the spindle, mm.
+    pub fn tool_length(&self, tool: u32) -> f64 {
+        self.tool_lengths.get(&tool).copied().unwrap_or(0.0)
+    }
+
     /// Seconds a move of `distance_mm` at `feed_mm_min` takes, scaled.
     pub fn move_seconds(&self, distance_mm: f64, feed_mm_min: f64) -> f64 {
         if self.time_scale == 0.0 || distance_mm <= 0.0 || feed_mm_min <= 0.0 {
@@ -154,6 +178,33 @@ impl Config {
             distance_mm / feed_mm_min * 60.0 * self.time_scale
         }
     }
+}
+
+/// The longest physical tool, mm.
+const MAX_TOOL_LENGTH_MM: f64 = 1000.0;
+
+/// `{"1": 50, "2": 62.5}`: tool number -> length, mm.
+fn tool_lengths(v: &Value) -> Result<std::collections::BTreeMap<u32, f64>, PluginError> {
+    let Value::Object(map) = v else {
+        return Err(invalid(format!(
+            "`tool_lengths` must be an object like {{\"1\": 50, \"2\": 62.5}}, got {v}"
+        )));
+    };
+    let mut out = std::collections::BTreeMap::new();
+    for (k, v) in map {
+        let key = format!("tool_lengths.{k}");
+        let tool: u32 = k
+            .parse()
+            .map_err(|_| invalid(format!("`{key}`: {k:?} is not a tool number")))?;
+        let len = number(&key, v)?;
+        if !(0.0..=MAX_TOOL_LENGTH_MM).contains(&len) {
+            return Err(invalid(format!(
+                "`{key}` must be 0 to {MAX_TOOL_LENGTH_MM} mm, got {len}"
+            )));
+        }
+        out.insert(tool, len);
+    }
+    Ok(out)
 }
 
 /// `{"limit_x_max": {"axis": "x", "at_or_above": 95}, "probe": {"axis": "z", "at_or_below": -20}}`
@@ -268,6 +319,9 @@ mod tests {
             (json!({"travel": {"x": [1]}}), "travel.x"),
             (json!({"travel": {"x": [2, 1]}}), "travel.x"),
             (json!({"alarm_at_connect": true}), "alarm_at_connect"),
+            (json!({"tool_lengths": {"x": 1}}), "tool_lengths.x"),
+            (json!({"tool_lengths": {"2": -1}}), "tool_lengths.2"),
+            (json!({"tool": -1}), "tool"),
             (
                 json!({"switches": {"limit_q": {"axis": "x", "at_or_above": 1}}}),
                 "switches.limit_q",

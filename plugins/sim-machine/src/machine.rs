@@ -7,7 +7,8 @@ use crate::config::{Config, Switch};
 use crate::program::{self, Plan, Refusal, Step};
 use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
 use fresa_plugin_api::contract::{
-    io, Axis, IoValue, MachineState, MachineStatus, OutputName, Overrides, Probe, ProgramLoaded,
+    io, Axis, HoldKind, IoValue, MachineState, MachineStatus, OutputName, Overrides, Probe,
+    ProgramLoaded, ProgramTool, ToolChangeHold, ToolChangeSetup,
 };
 use fresa_plugin_api::exec_log::ExecLog;
 use fresa_plugin_api::kit::{
@@ -55,10 +56,28 @@ const SLICE: Duration = Duration::from_millis(5);
 /// few slices and the thread's scheduling, not a hold.
 const FLOW_GAP: Duration = Duration::from_millis(50);
 
-// The simulated machine keeps nothing beyond the kit's state: its outputs (spindle, flood
-// coolant) and switch inputs are the kit's I/O maps.
-type Kit = kit::Kit<Plan, ()>;
-type State = kit::State<Plan, ()>;
+// The simulated machine keeps, beyond the kit's state (its outputs, spindle and flood coolant,
+// and switch inputs are the kit's I/O maps), only its tools.
+type Kit = kit::Kit<Plan, Tools>;
+type State = kit::State<Plan, Tools>;
+
+/// The tools: the physical one in the spindle, and the lengths the host's tool table gives
+/// (what G43 applies).
+#[derive(Debug, Default)]
+struct Tools {
+    /// Tool number in the spindle (0: none).
+    spindle: u32,
+    /// Tool table lengths, mm, from `load_program` and `set_tools`.
+    table: std::collections::BTreeMap<u32, f64>,
+    /// The tool whose length G43 put in force in the run under way (`None`: G49).
+    g43: Option<u32>,
+}
+
+impl Tools {
+    fn table_length(&self, tool: u32) -> f64 {
+        self.table.get(&tool).copied().unwrap_or(0.0)
+    }
+}
 
 /// The output's name in the status, or why the simulated machine has none of that name.
 fn output_key(name: OutputName) -> Result<&'static str, PluginError> {
@@ -76,9 +95,10 @@ fn off_outputs() -> [(String, Option<IoValue>); 2] {
     [io::SPINDLE, io::COOLANT_FLOOD].map(|k| (k.to_string(), Some(IoValue::On(false))))
 }
 
-/// What a probing move watches: the probe switch, and the level that ends the move.
-struct ProbeWatch<'a> {
-    switch: &'a Switch,
+/// What a probing move watches: the probe switch (where the tool in the spindle meets it),
+/// and the level that ends the move.
+struct ProbeWatch {
+    switch: Switch,
     active: bool,
 }
 
@@ -115,17 +135,38 @@ fn distance(a: &[f64; 4], b: &[f64; 4]) -> f64 {
 }
 
 impl Core {
+    /// The switch as the machine meets it with tool `spindle` in: the `probe` switch is
+    /// touched by the tool's tip, which a longer tool brings down further for the same
+    /// machine Z, so on Z it trips that much higher up. Limits and the rest are the carriage's.
+    fn as_met(&self, sw: &Switch, spindle: u32) -> Switch {
+        let mut sw = sw.clone();
+        if sw.name == io::PROBE && sw.axis == Axis::Z {
+            sw.at += self.cfg.tool_length(spindle);
+        }
+        sw
+    }
+
+    /// The probe switch as the tool in the spindle meets it, if the machine has one.
+    fn probe_switch(&self, spindle: u32) -> Option<Switch> {
+        self.cfg
+            .switches
+            .iter()
+            .find(|s| s.name == io::PROBE)
+            .map(|s| self.as_met(s, spindle))
+    }
+
     /// Reads the switches at the current position into the status. Answers the limit or
     /// e-stop that has just become active, if any (a switch that stays pressed trips once,
     /// so the axis can be jogged off it after a reset).
     fn sense(&self, sh: &mut State, ev: &mut Events) -> Option<String> {
         let mut trip = None;
+        let spindle = sh.extra.spindle;
         let levels: Vec<(String, Option<bool>)> = self
             .cfg
             .switches
             .iter()
             .map(|sw| {
-                let on = sw.active_at(&sh.pos);
+                let on = self.as_met(sw, spindle).active_at(&sh.pos);
                 let was_on = sh.inputs.get(&sw.name) == Some(&Some(true));
                 if on && !was_on && sw.trips() && trip.is_none() {
                     trip = Some(sw.name.clone());
@@ -150,7 +191,14 @@ impl Core {
             let run = job.run();
             let result = catch_unwind(AssertUnwindSafe(|| self.run_job(job)))
                 .unwrap_or_else(|_| Err(Interrupted::Failed("internal error (panic)".into())));
-            self.kit.finish_job(run, result, |_| {});
+            self.kit.finish_job(run, result, |sh| {
+                // A program's end (M2/M30) or abort stops its spindle, as a controller's does.
+                if run.is_some() {
+                    sh.outputs
+                        .insert(io::SPINDLE.to_string(), Some(IoValue::On(false)));
+                    sh.extra.g43 = None;
+                }
+            });
         }
     }
 
@@ -214,13 +262,10 @@ impl Core {
         feed: f64,
         active: bool,
     ) -> Result<Option<[f64; 4]>, Interrupted> {
-        let watch = self
-            .cfg
-            .switches
-            .iter()
-            .find(|s| s.name == io::PROBE)
-            .map(|switch| ProbeWatch { switch, active });
         let sh = self.kit.lock();
+        let watch = self
+            .probe_switch(sh.extra.spindle)
+            .map(|switch| ProbeWatch { switch, active });
         let start = sh.pos;
         let target = target(start);
         self.check(target)?;
@@ -258,6 +303,10 @@ impl Core {
             self.kit.with(|sh, _| match step {
                 Step::Move { feed: Some(f), .. } => sh.feed = f,
                 Step::UseOffset(o) => sh.active = o,
+                Step::ToolLength(t) => {
+                    sh.extra.g43 = t;
+                    sh.tool_length_offset = t.map_or(0.0, |t| sh.extra.table_length(t));
+                }
                 _ => {}
             });
         }
@@ -277,17 +326,27 @@ impl Core {
                     ahead = Some((step_line, step));
                     break;
                 }
-                if let Step::Probe {
-                    to,
-                    feed,
-                    contact,
-                    must_trip,
-                } = step
-                {
-                    let result = self.program_probe(step_line, to, feed, contact, must_trip)?;
-                    steps.probe_result(result);
-                } else {
-                    self.run_step(&step)?;
+                match step {
+                    Step::Probe {
+                        to,
+                        feed,
+                        contact,
+                        must_trip,
+                    } => {
+                        let result = self.program_probe(step_line, to, feed, contact, must_trip)?;
+                        steps.probe_result(result);
+                    }
+                    Step::Pause { optional, message } => {
+                        if !optional || l.plan.optional_stop {
+                            self.program_stop(step_line, optional, message)?;
+                        }
+                    }
+                    Step::ToolChange(tool) => {
+                        if let Some(setup) = &l.plan.tool_change {
+                            self.tool_change(step_line, tool, setup)?;
+                        }
+                    }
+                    step => self.run_step(&step)?,
                 }
             }
             self.kit.lines_done(l.run, line..=line, Vec::new())?;
@@ -313,12 +372,13 @@ impl Core {
             (false, true) => "G38.4",
             (false, false) => "G38.5",
         };
-        let (offset, start) = {
+        let (offset, start, switch) = {
             let sh = self.kit.lock();
-            (sh.offsets[sh.active.index()], sh.pos)
+            let offset =
+                program::with_tool_length(&sh.offsets[sh.active.index()], sh.tool_length_offset);
+            (offset, sh.pos, self.probe_switch(sh.extra.spindle))
         };
         let program = |m: [f64; 4]| [m[0] - offset[0], m[1] - offset[1], m[2] - offset[2]];
-        let switch = self.cfg.switches.iter().find(|s| s.name == io::PROBE);
         let Some(switch) = switch else {
             return Err(Interrupted::Failed(format!(
                 "line {line}: {name} but this machine has no probe input"
@@ -366,7 +426,11 @@ impl Core {
             Step::Move { to, a, feed } => {
                 let target = {
                     let sh = self.kit.lock();
-                    program::machine_target(to, a, &sh.offsets[sh.active.index()], sh.pos[3])
+                    let offset = program::with_tool_length(
+                        &sh.offsets[sh.active.index()],
+                        sh.tool_length_offset,
+                    );
+                    program::machine_target(to, a, &offset, sh.pos[3])
                 };
                 self.check(target)?;
                 match feed {
@@ -381,9 +445,19 @@ impl Core {
                 Pace::Fixed,
                 true,
             ),
-            Step::Pause => {
-                self.kit.with(|sh, ev| self.kit.program_pause(sh, ev));
-                self.timed(None, 0.0, 0.0, Pace::Fixed, false)
+            Step::ToolLength(t) => {
+                self.kit.with(|sh, ev| {
+                    sh.extra.g43 = t;
+                    sh.tool_length_offset = t.map_or(0.0, |t| sh.extra.table_length(t));
+                    sh.push_status(ev);
+                });
+                Ok(())
+            }
+            Step::Spindle(on) => {
+                self.kit.with(|sh, ev| {
+                    sh.set_io([], [(io::SPINDLE.to_string(), Some(IoValue::On(on)))], ev)
+                });
+                Ok(())
             }
             Step::UseOffset(o) => {
                 self.kit.with(|sh, ev| {
@@ -394,11 +468,122 @@ impl Core {
                 });
                 Ok(())
             }
-            // Taken apart by `run_program` (its result feeds the interpreter).
-            Step::Probe { .. } => Err(Interrupted::Failed(
-                "internal error: a probing step outside a program".into(),
-            )),
+            // Taken apart by `run_program` (a probe's result feeds the interpreter; pauses
+            // and tool changes follow the run's options).
+            Step::Probe { .. } | Step::Pause { .. } | Step::ToolChange(_) => Err(
+                Interrupted::Failed("internal error: a program step outside a program".into()),
+            ),
         }
+    }
+
+    /// M0, or M1 with the optional stop on: the run holds, saying why, until cycle start.
+    fn program_stop(
+        &self,
+        line: u32,
+        optional: bool,
+        message: Option<String>,
+    ) -> Result<(), Interrupted> {
+        let (code, kind, what) = if optional {
+            ("M1", HoldKind::OptionalStop, "optional stop")
+        } else {
+            ("M0", HoldKind::ProgramPause, "program pause")
+        };
+        let text = format!(
+            "{code} at line {line}: {}",
+            message.as_deref().unwrap_or(what)
+        );
+        let hold = kit::program_hold(kind, text, Some(line), message);
+        self.kit.with(|sh, ev| self.kit.program_hold(sh, ev, hold));
+        self.timed(None, 0.0, 0.0, Pace::Fixed, false)
+    }
+
+    /// M6 with tool-change holds on: the spindle stops, the machine goes to the change
+    /// position (Z first), the operator puts tool `tool` in (the simulation's spindle holds
+    /// it from here on) and the run holds; jogs and probing moves are carried out meanwhile.
+    /// Cycle start puts the new tool's length in force if G43 is, and goes back to where the
+    /// tool tip was at M6 (up to a safe Z, across, down), then on.
+    fn tool_change(
+        &self,
+        line: u32,
+        tool: u32,
+        setup: &ToolChangeSetup,
+    ) -> Result<(), Interrupted> {
+        // Where the tip was, in program coordinates, and whether G43 is in force.
+        let (held, from, g43) = self.kit.with(|sh, ev| {
+            sh.set_io(
+                [],
+                [(io::SPINDLE.to_string(), Some(IoValue::On(false)))],
+                ev,
+            );
+            let off =
+                program::with_tool_length(&sh.offsets[sh.active.index()], sh.tool_length_offset);
+            let held: [f64; 4] = std::array::from_fn(|i| sh.pos[i] - off[i]);
+            let g43 = sh.extra.g43.is_some();
+            (held, sh.extra.spindle, g43)
+        });
+        let start = self.kit.lock().pos;
+        let change_z = setup.position.map(|p| p.z);
+        if let Some(p) = setup.position {
+            let safe = start[2].max(p.z);
+            let path = [
+                [start[0], start[1], safe, start[3]],
+                [p.x, p.y, safe, start[3]],
+                [p.x, p.y, p.z, start[3]],
+            ];
+            path.iter().try_for_each(|w| self.check(*w))?;
+            path.into_iter()
+                .try_for_each(|w| self.move_to(w, self.cfg.rapid_mm_min, Pace::Rapid, false))?;
+        }
+        let message = match from {
+            0 => format!("M6 at line {line}: put tool T{tool} in"),
+            f if f == tool => format!("M6 at line {line}: tool T{tool} again"),
+            f => format!("M6 at line {line}: change tool T{f} for T{tool}"),
+        };
+        let mut hold = kit::program_hold(HoldKind::ToolChange, message, Some(line), None);
+        hold.tool_change = Some(ToolChangeHold {
+            from: (from != 0).then_some(from),
+            to: tool,
+            length_compensation: g43,
+            from_description: None,
+            to_description: None,
+        });
+        self.kit.with(|sh, ev| {
+            sh.extra.spindle = tool;
+            // The new tool meets the probe switch at its own height.
+            self.sense(sh, ev);
+            self.kit.program_hold(sh, ev, hold);
+        });
+        self.kit.serve_tool_change(|job| match job {
+            Job::Jog(jog) => {
+                let target = jog.target(self.kit.lock().pos);
+                self.check(target)?;
+                self.move_to(target, jog.feed, Pace::Fixed, false).map(|()| None)
+            }
+            Job::Probe(p) => self.run_probe(p),
+            // The kit queues nothing else during a tool-change hold.
+            _ => Ok(None),
+        })?;
+        // Cycle start: the new tool's length under G43, then back to where the tip was.
+        let (target, here) = self.kit.with(|sh, ev| {
+            if g43 {
+                sh.extra.g43 = Some(tool);
+                sh.tool_length_offset = sh.extra.table_length(tool);
+                sh.push_status(ev);
+            }
+            let off =
+                program::with_tool_length(&sh.offsets[sh.active.index()], sh.tool_length_offset);
+            let target: [f64; 4] = std::array::from_fn(|i| held[i] + off[i]);
+            (target, sh.pos)
+        });
+        let safe = here[2].max(target[2]).max(change_z.unwrap_or(f64::MIN));
+        let path = [
+            [here[0], here[1], safe, here[3]],
+            [target[0], target[1], safe, target[3]],
+            target,
+        ];
+        path.iter().try_for_each(|w| self.check(*w))?;
+        path.into_iter()
+            .try_for_each(|w| self.move_to(w, self.cfg.rapid_mm_min, Pace::Rapid, false))
     }
 
     /// A straight move at `feed` (mm/min, before the override `pace` names).
@@ -419,7 +604,7 @@ impl Core {
     /// Where the probe switch's edge lies on the slice from `a` to `b`, if the switch reads
     /// what the probe waits for at `b`.
     fn probe_trip(watch: &ProbeWatch, a: [f64; 4], b: [f64; 4]) -> Option<[f64; 4]> {
-        let sw = watch.switch;
+        let sw = &watch.switch;
         if sw.active_at(&b) != watch.active {
             return None;
         }
@@ -587,9 +772,13 @@ impl SimMachine {
             jog_feed_mm_min: cfg.jog_feed_mm_min,
             travel: cfg.travel,
         };
+        let tools = Tools {
+            spindle: cfg.tool,
+            ..Tools::default()
+        };
         let core = Arc::new(Core {
             cfg,
-            kit: Kit::new(kit_cfg, sink, log, ()),
+            kit: Kit::new(kit_cfg, sink, log, tools),
             flow: Mutex::new(None),
         });
         core.kit.with(|sh, ev| {
@@ -667,7 +856,10 @@ impl MachineBackend for SimMachine {
         let tools =
             fresa_gcode::tool_table(p.tools.iter().map(|t| (t.tool, t.diameter_mm, t.length_mm)));
         let budget = p.max_segments.unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS);
-        let plan = program::plan_file(file, lines, work, xyz, tools, budget);
+        let table: std::collections::BTreeMap<u32, f64> =
+            tools.iter().map(|(n, t)| (*n, t.length_mm)).collect();
+        let plan = program::plan_file(file, lines, work, xyz, tools, budget)
+            .with_run_options(p.optional_stop, p.tool_change);
         let has_probe = self.core.cfg.switches.iter().any(|s| s.name == io::PROBE);
         plan.check(&offsets, active, a, has_probe, |p| {
             self.core.cfg.check_travel(p)
@@ -687,7 +879,24 @@ impl MachineBackend for SimMachine {
             Refusal::Gcode(e) => PluginError::new("invalid_program", e.to_string()),
             Refusal::Travel(m) => PluginError::new("out_of_travel", m),
         })?;
-        kit.install_plan(p.run, plan, lines, p.start_line, start)
+        let loaded = kit.install_plan(p.run, plan, lines, p.start_line, start)?;
+        kit.with(|sh, _| sh.extra.table = table);
+        Ok(loaded)
+    }
+
+    /// The tool table's lengths G43 applies, from now on (in a run too: a tool measured
+    /// during a tool-change hold).
+    fn set_tools(&self, tools: Vec<ProgramTool>) -> Result<(), PluginError> {
+        if let Some(t) = tools.iter().find(|t| !t.length_mm.is_finite()) {
+            return Err(PluginError::invalid(format!(
+                "tool {}: length_mm must be a finite number",
+                t.tool
+            )));
+        }
+        self.kit().with(|sh, _| {
+            sh.extra.table = tools.iter().map(|t| (t.tool, t.length_mm)).collect();
+        });
+        Ok(())
     }
 
     fn reset(&self) -> Result<(), PluginError> {
@@ -773,6 +982,11 @@ impl MachineBackend for SimMachine {
         for step in plan.steps().map_err(invalid)? {
             let (_, step) = step.map_err(invalid)?;
             match step {
+                // Passed over in MDI, as before tool changes and G43 were simulated.
+                Step::ToolChange(_)
+                | Step::ToolLength(_)
+                | Step::Spindle(_)
+                | Step::Pause { optional: true, .. } => {}
                 Step::Move { to, a: to_a, feed } => {
                     let target = program::machine_target(to, to_a, &offsets[active.index()], a);
                     a = target[3];
@@ -792,7 +1006,7 @@ impl MachineBackend for SimMachine {
                             "sim-machine MDI runs moves only; {line:?} has {}",
                             match other {
                                 Step::Dwell(_) => "a dwell",
-                                Step::Pause => "a program pause",
+                                Step::Pause { .. } => "a program pause",
                                 Step::Probe { .. } => "a probing move (use the probe API)",
                                 _ => "a work offset change",
                             }

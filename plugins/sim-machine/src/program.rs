@@ -9,7 +9,7 @@ use std::io::{BufRead, Seek};
 pub const ARC_TOLERANCE_MM: f64 = 0.002;
 
 /// One thing the machine does for a source line.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub enum Step {
     /// Straight move to `to` (program coordinates, mm) at `feed` mm/min, or rapid when `None`.
     /// `a`: where the A axis ends (program degrees) when the move turns it; A and XYZ move
@@ -21,8 +21,17 @@ pub enum Step {
     },
     /// G4: wait this many (unscaled) seconds.
     Dwell(f64),
-    /// M0: pause the run until resumed.
-    Pause,
+    /// M0 (M1 when `optional`): pause the run until resumed, with the line's `(MSG, ...)`.
+    Pause {
+        optional: bool,
+        message: Option<String>,
+    },
+    /// M6: the tool the last T word selected goes into the spindle.
+    ToolChange(u32),
+    /// G43 H (the tool whose length applies) or G49 (`None`).
+    ToolLength(Option<u32>),
+    /// M3/M4 (`true`) or M5.
+    Spindle(bool),
     /// G54..G59 in the program: later moves use this offset.
     UseOffset(WorkOffset),
     /// G38.2-G38.5: probe toward `to` (program coordinates) at `feed` until the probe closes
@@ -52,6 +61,10 @@ pub struct Plan {
     source: Source,
     config: fresa_gcode::Config,
     max_segments: u64,
+    /// M1 holds (the machine's optional stop is on).
+    pub optional_stop: bool,
+    /// M6 holds for a manual tool change, as this says; `None`: M6 passes.
+    pub tool_change: Option<fresa_plugin_api::contract::ToolChangeSetup>,
 }
 
 /// Why a program cannot run here.
@@ -134,14 +147,19 @@ fn step_of(motion: Motion) -> Option<Step> {
         },
         Motion::Dwell { seconds, .. } => Step::Dwell(seconds),
         Motion::Pause {
-            optional: false, ..
-        } => Step::Pause,
+            optional, message, ..
+        } => Step::Pause { optional, message },
+        Motion::ToolChange { tool, .. } => Step::ToolChange(tool),
+        Motion::ToolLengthOffset { tool, .. } => Step::ToolLength(tool),
+        Motion::Spindle { direction, .. } => {
+            Step::Spindle(direction != fresa_gcode::SpindleDirection::Off)
+        }
         Motion::WorkOffset {
             system: system @ 1..=6,
             ..
         } => Step::UseOffset(WorkOffset::ALL[usize::from(system) - 1]),
-        // Spindle, coolant, tool changes, messages, M1 (optional stop off), other work offset
-        // systems and the end of the program do not move the simulated machine.
+        // Coolant, messages, other work offset systems and the end of the program do not move
+        // the simulated machine.
         _ => return None,
     };
     Some(step)
@@ -178,6 +196,8 @@ pub fn plan(
         source: Source::Text(text.to_string()),
         config: config(initial_position, work_offsets, tools),
         max_segments: fresa_gcode::DEFAULT_MAX_SEGMENTS,
+        optional_stop: false,
+        tool_change: None,
     }
 }
 
@@ -196,6 +216,8 @@ pub fn plan_file(
         source: Source::File(file),
         config: config(initial_position, work_offsets, tools),
         max_segments,
+        optional_stop: false,
+        tool_change: None,
     }
 }
 
@@ -206,6 +228,25 @@ impl Plan {
             max_segments,
             ..self
         }
+    }
+
+    /// The same plan with the machine's run options: M1 holds when `optional_stop`, M6 holds
+    /// for a tool change as `tool_change` says.
+    pub fn with_run_options(
+        self,
+        optional_stop: bool,
+        tool_change: Option<fresa_plugin_api::contract::ToolChangeSetup>,
+    ) -> Plan {
+        Plan {
+            optional_stop,
+            tool_change,
+            ..self
+        }
+    }
+
+    /// The length (mm) the tool table gives tool `tool` for G43 (0 when it has none).
+    pub fn table_length(&self, tool: u32) -> f64 {
+        self.config.tools.get(&tool).map_or(0.0, |t| t.length_mm)
     }
 
     /// The steps from the start of the program, interpreted as they are taken.
@@ -246,15 +287,37 @@ impl Plan {
         has_probe: bool,
         check: impl Fn([f64; 4]) -> Result<(), String>,
     ) -> Result<(), Refusal> {
-        let mut offset = offsets[active.index()];
+        let mut current = active;
         let mut machine_a = start_a;
         let mut outside = None;
+        // G43: the tool length in force, and the tool it is of (a tool change under G43 puts
+        // the new tool's in force at cycle start).
+        let mut tlo: Option<u32> = None;
         for step in self.steps().map_err(Refusal::Gcode)? {
             let (line, step) = step.map_err(Refusal::Gcode)?;
             if outside.is_some() {
                 continue;
             }
+            let offset = with_tool_length(
+                &offsets[current.index()],
+                tlo.map_or(0.0, |t| self.table_length(t)),
+            );
             match step {
+                Step::ToolLength(t) => tlo = t,
+                Step::UseOffset(o) => current = o,
+                Step::ToolChange(t) => {
+                    let Some(setup) = &self.tool_change else {
+                        continue;
+                    };
+                    if tlo.is_some() {
+                        tlo = Some(t);
+                    }
+                    if let Some(p) = setup.position {
+                        if let Err(m) = check([p.x, p.y, p.z, machine_a]) {
+                            outside = Some(format!("line {line}: the tool-change position: {m}"));
+                        }
+                    }
+                }
                 Step::Move { to, a, .. } => {
                     let target = machine_target(to, a, &offset, machine_a);
                     machine_a = target[3];
@@ -270,12 +333,19 @@ impl Plan {
                         outside = Some(format!("line {line}: probing move: {m}"));
                     }
                 }
-                Step::UseOffset(o) => offset = offsets[o.index()],
                 _ => {}
             }
         }
         outside.map_or(Ok(()), |m| Err(Refusal::Travel(m)))
     }
+}
+
+/// A work offset with a tool length offset (G43, mm) added to its Z: machine Z = program Z +
+/// offset Z + tool length (a longer tool's spindle stays higher for the same tip position).
+pub fn with_tool_length(offset: &[f64; 4], tool_length: f64) -> [f64; 4] {
+    let mut o = *offset;
+    o[2] += tool_length;
+    o
 }
 
 /// Machine coordinates of program point `to` (and program A `a`, when the move turns A)

@@ -972,3 +972,119 @@ fn switches_press_by_position_trip_named_alarms_and_release() {
         Some(&Some(IoValue::On(true)))
     );
 }
+
+fn held(rig: &Rig) -> MachineStatus {
+    loop {
+        let st = rig.status();
+        if st.state == MachineState::Paused && st.hold.is_some() {
+            return st;
+        }
+        rig.until(|e| matches!(e, Event::Status(s) if s.state == MachineState::Paused));
+    }
+}
+
+/// Issue 26: M6 with tool-change holds on: spindle off, up to the change position's Z and
+/// across, the new tool in (a longer one trips the probe higher up), held with the reason;
+/// jogs and a probe run in the hold (a feed hold ends a jog, not the run); cycle start goes
+/// back up, across and down to where the tip was, then on. M1 holds only with the optional
+/// stop on. Every line is acknowledged once.
+#[test]
+fn a_tool_change_holds_serves_jogs_and_probes_and_goes_back_on_cycle_start() {
+    use fresa_plugin_api::contract::HoldKind;
+    let rig = machine(json!({
+        "time_scale": 0, "tool": 1, "tool_lengths": {"1": 10, "2": 25},
+        "switches": {"probe": {"axis": "z", "at_or_below": -50}},
+    }));
+    let path = program(
+        "G21 G90\nG0 X5 Y5 Z-2\nM3 S1000\nM1 (MSG, skipped)\nT2 M6\nG1 Z-3 F100\nM1 (MSG, not skipped)\nM30\n",
+    );
+    rig.call(
+        json!({"op":"load_program","run":7,"path":path,"start_line":1,
+                    "tool_change": {"position": {"x": 50, "y": 0, "z": 10}}}),
+    );
+    rig.call(json!({"op":"run","action":"start"}));
+    let st = held(&rig);
+    let hold = st.hold.clone().unwrap();
+    assert_eq!(hold.kind, HoldKind::ToolChange, "M1 passed: {hold:?}");
+    let tc = hold.tool_change.unwrap();
+    assert_eq!(
+        (tc.from, tc.to, tc.length_compensation),
+        (Some(1), 2, false)
+    );
+    assert_eq!(hold.line, Some(5));
+    assert_eq!(st.outputs.get("spindle"), Some(&Some(IoValue::On(false))));
+    let at = st.machine_position.to_array();
+    assert!(
+        close(at[0], 50.0) && close(at[1], 0.0) && close(at[2], 10.0),
+        "{st:?}"
+    );
+
+    // A jog in the hold moves; MDI does not.
+    rig.call(json!({"op":"jog","axis":"Z","distance":-20.0}));
+    let st = held(&rig);
+    assert!(close(st.machine_position.z, -10.0), "{st:?}");
+    assert!(rig.m.request(json!({"op":"mdi","line":"G0 X1"})).is_err());
+    // A probe in the hold: T2's tip (25 mm) meets the switch at machine Z -25.
+    rig.call(json!({"op":"probe","id":9,"axis":"Z","distance":-30.0,"feed":100.0}));
+    let ended = rig.until(|e| matches!(e, Event::ProbeEnded { id: 9, .. }));
+    match ended.last() {
+        Some(Event::ProbeEnded { trip: Some(t), .. }) => assert!(close(t.z, -25.0), "{t:?}"),
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(
+        rig.status().hold.map(|h| h.kind),
+        Some(HoldKind::ToolChange)
+    );
+    // Cycle start: back to X5 Y5 Z-2 (up to Z10 first), then the cut, then the M1 (on).
+    rig.call(json!({"op":"run","action":"resume"}));
+    let (events, outcome, message) = rig.until_run_ended(7);
+    assert_eq!(outcome, RunOutcome::Completed, "{message:?}");
+    assert_eq!(acks(&events, 7), (5..=8).collect::<Vec<_>>());
+    let st = rig.status();
+    let at = st.machine_position.to_array();
+    assert!(
+        close(at[0], 5.0) && close(at[1], 5.0) && close(at[2], -3.0),
+        "{st:?}"
+    );
+    // Tool 2 is in now; with the optional stop on, M1 holds.
+    let path = program("G0 Z0\nM1 (MSG, look)\nG0 Z1\n");
+    rig.call(json!({"op":"load_program","run":8,"path":path,"start_line":1,"optional_stop":true}));
+    rig.call(json!({"op":"run","action":"start"}));
+    let hold = held(&rig).hold.unwrap();
+    assert_eq!(hold.kind, HoldKind::OptionalStop);
+    assert_eq!(hold.program_message.as_deref(), Some("look"));
+    rig.call(json!({"op":"command","command":"cycle_start"}));
+    let (_, outcome, _) = rig.until_run_ended(8);
+    assert_eq!(outcome, RunOutcome::Completed);
+}
+
+/// A feed hold during a jog of a tool-change hold ends the jog where it is; the run stays
+/// held, and a stop then cancels it.
+#[test]
+fn a_feed_hold_ends_a_tool_change_jog_not_the_run() {
+    use fresa_plugin_api::contract::HoldKind;
+    // Jog 50 mm at 100 mm/min: 30 s at time scale 1, so it is surely under way.
+    let rig = machine(json!({"time_scale": 1}));
+    let path = program("G0 X1\nT3 M6\nG0 X2\n");
+    rig.call(json!({"op":"load_program","run":4,"path":path,"start_line":1,"tool_change":{}}));
+    rig.call(json!({"op":"run","action":"start"}));
+    held(&rig);
+    rig.call(json!({"op":"jog","axis":"Y","distance":50.0,"feed":100.0}));
+    rig.until(|e| matches!(e, Event::Status(s) if s.machine_position.y > 0.0));
+    // Cycle start waits for the jog to end.
+    let e = rig
+        .m
+        .request(json!({"op":"command","command":"cycle_start"}))
+        .unwrap_err();
+    assert_eq!(e.code, "busy");
+    rig.call(json!({"op":"command","command":"feed_hold"}));
+    let st = rig.status();
+    assert_eq!(st.state, MachineState::Paused, "{st:?}");
+    assert_eq!(st.hold.as_ref().map(|h| h.kind), Some(HoldKind::ToolChange));
+    let y = st.machine_position.y;
+    assert!(y > 0.0 && y < 50.0, "{st:?}");
+    rig.call(json!({"op":"command","command":"stop"}));
+    let (_, outcome, _) = rig.until_run_ended(4);
+    assert_eq!(outcome, RunOutcome::Cancelled);
+    assert_eq!(rig.status().state, MachineState::Idle);
+}

@@ -4,6 +4,7 @@
 import { api, upload } from './api.js';
 import { state, h, gate, act, toast, errorText, position, duration, time, machineName, dialog, forgetJob } from './ui.js';
 import { ToolpathView } from './toolpath.js';
+import { holdText, continueLabel } from './holds.js';
 
 const BOUNDS = (b) => b ? `X ${b.min[0].toFixed(2)}…${b.max[0].toFixed(2)} · Y ${b.min[1].toFixed(2)}…${b.max[1].toFixed(2)} · Z ${b.min[2].toFixed(2)}…${b.max[2].toFixed(2)}` : '—';
 
@@ -54,7 +55,9 @@ function runButtons(j, after) {
   return h('div', { class: 'row wrap' },
     h('button', { dataset: { need: 'motion', action: 'start', off: off(!active) }, onclick: ctl('start') }, s === 'ready' ? 'Start' : 'Run again'),
     h('button', { dataset: { need: 'operator', action: 'pause', off: off(s === 'running') }, onclick: ctl('pause') }, 'Pause'),
-    h('button', { dataset: { need: 'motion', action: 'resume', off: off(['paused', 'interrupted', 'failed'].includes(s)) }, onclick: ctl('resume') }, 'Resume'),
+    // A held run goes on with the button its hold names (a program stop: cycle start).
+    h('button', { dataset: { need: 'motion', action: 'resume', off: off(['paused', 'interrupted', 'failed'].includes(s)) }, onclick: ctl('resume') },
+      s === 'paused' && j.hold ? continueLabel(j.hold) : 'Resume'),
     h('button', { dataset: { need: 'operator', action: 'cancel', off: off(active || s === 'interrupted') }, class: 'danger', onclick: ctl('cancel') }, 'Cancel'));
 }
 
@@ -88,7 +91,9 @@ async function detail(page, id, events) {
       h('p', {}, `Machine ${machineName(cur.machine)} · ${cur.line_count} lines · ${(cur.size_bytes / 1024).toFixed(1)} KB · uploaded ${time(cur.created_at)}`),
       h('p', {}, 'State ', h('span', { class: 'badge state-' + cur.state, id: 'job-state' }, cur.state),
         ` · line ${cur.line}/${cur.line_count} · `, h('span', { id: 'job-percent' }, cur.percent.toFixed(1) + ' %'),
-        cur.run && cur.run.message ? ' · ' + cur.run.message : ''),
+        cur.run && cur.run.message && !cur.hold ? ' · ' + cur.run.message : ''),
+      cur.hold ? h('p', { id: 'job-hold', class: 'hold-reason' }, `Held: ${holdText(cur.hold)} — ${continueLabel(cur.hold)} goes on`,
+        cur.hold.blocked ? h('span', { class: 'error' }, ` (${cur.hold.blocked})`) : '') : '',
       h('progress', { max: 100, value: cur.percent, id: 'job-progress' }),
       runButtons(cur, refresh));
     gate(info);

@@ -5,6 +5,7 @@ import { api } from './api.js';
 import { state, h, gate, mm, act, toast, errorText, position, ioLamps, time } from './ui.js';
 import { urgentButtons, stateBadge, runBlock } from './overview.js';
 import { ToolpathView } from './toolpath.js';
+import { holdBlock } from './holds.js';
 
 const AXES = ['x', 'y', 'z', 'a'];
 const STEPS = [0.001, 0.01, 0.1, 1, 10];
@@ -327,6 +328,8 @@ export async function machinePage(page, { id }, events) {
     h('div', { class: 'row override' }, h('span', { class: 'override-label' }, 'Rapid'), ...rapidButtons, values.rapid),
     ovrError);
 
+  const hold = holdBlock(id, page);
+
   // Part-zero history.
   const pzList = h('tbody');
   const loadPartZeros = async () => {
@@ -362,7 +365,8 @@ export async function machinePage(page, { id }, events) {
     if (preview) preview.setProgress(r.line || 0, s.work_position);
   };
 
-  page.append(header,
+  // Why the machine holds and the button that goes on (issue 26), under the header.
+  page.append(header, hold.banner,
     h('div', { class: 'cols' },
       h('section', { class: 'card' }, h('h2', {}, 'Position'), droEl, droInfo, run.el, lamps),
       h('section', { class: 'card' }, h('h2', {}, 'Jog'),
@@ -374,6 +378,7 @@ export async function machinePage(page, { id }, events) {
       h('section', { class: 'card' }, h('h2', {}, 'Cycle'), cycle, zeros, outputs),
       h('section', { class: 'card' }, h('h2', {}, 'MDI'), mdiForm, mdiError)),
     h('div', { class: 'cols' }, overrideCard, touchCard),
+    hold.el,
     h('section', { class: 'card' }, h('h2', {}, 'Work offsets'),
       h('table', { class: 'offsets' }, h('thead', {}, h('tr', {}, h('th', {}, ''), AXES.map((a) => h('th', {}, a.toUpperCase())), h('th', {}, ''))), offsetsBody)),
     h('section', { class: 'card' }, h('h2', {}, 'Part zero'), h('div', { class: 'row' }, note, record),
@@ -394,6 +399,7 @@ export async function machinePage(page, { id }, events) {
     const l = ioLamps(id);
     lamps.replaceChildren(...(l ? [l] : []));
     drawProbe();
+    hold.update();
   };
   let frame = 0;
   const schedule = () => {

@@ -54,6 +54,22 @@ pub async fn ensure_demo_machine(app: &App) {
                     if let Err(e) = app.store.replace_tools(id, &tools).await {
                         tracing::error!(error = %e, "could not store the demo tool table");
                     }
+                    // A tool setter on the touch plate's switch, at work zero, so "measure
+                    // tool" works on the demo (T1 is the reference).
+                    let settings = crate::store::RunSettings {
+                        tool_setter: Some(crate::store::ToolSetter {
+                            x: 0.0,
+                            y: 0.0,
+                            z: 0.0,
+                            distance_mm: 20.0,
+                            feed_mm_min: 300.0,
+                            reference_tool: 1,
+                        }),
+                        ..Default::default()
+                    };
+                    if let Err(e) = app.store.set_run_settings(id, &settings, false).await {
+                        tracing::error!(error = %e, "could not store the demo run settings");
+                    }
                 }
                 Err(e) => tracing::error!(error = %e, "could not create the demo machine"),
             }

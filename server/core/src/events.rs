@@ -87,6 +87,12 @@ event_kinds! {
     MachineAlarm = "machine.alarm", Audit;
     MachineNode = "machine.node", Audit;
     MachineTools = "machine.tools", Audit;
+    /// A machine's run settings changed (optional stop, tool-change policy and position, tool
+    /// setter): the new settings.
+    MachineRunSettings = "machine.run_settings", Audit;
+    /// A tool's length was measured on the tool setter: the trip, the length stored, and the
+    /// work offset's Z moved for it during a tool change (before and after).
+    MachineToolMeasured = "machine.tool_measured", Audit;
     PendantCreated = "pendant.created", Audit;
     PendantBound = "pendant.bound", Audit;
     PendantMacro = "pendant.macro", Audit;
@@ -770,6 +776,8 @@ mod tests {
                 "machine.alarm",
                 "machine.node",
                 "machine.tools",
+                "machine.run_settings",
+                "machine.tool_measured",
                 "pendant.created",
                 "pendant.bound",
                 "pendant.macro",

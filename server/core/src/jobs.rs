@@ -359,12 +359,38 @@ async fn load_job(app: &App, job_id: i64) -> Result<(JobRow, Arc<Machine>)> {
 
 pub async fn start(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
     let (job, machine) = load_job(app, job_id).await?;
+    crate::run_settings::check_start(app, &job).await?;
     machine.start_job(job, actor).await
 }
 
 pub async fn pause(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
+    pause_because(app, job_id, actor, None).await
+}
+
+/// A pause the host asks for itself, for `reason` (kind and message), which the machine's hold
+/// then shows (a pendant lost).
+pub async fn pause_because(
+    app: &App,
+    job_id: i64,
+    actor: &str,
+    reason: Option<(fresa_plugin_api::contract::HoldKind, String)>,
+) -> Result<RunRow> {
     let (_, machine) = load_job(app, job_id).await?;
-    machine.pause_job(job_id, actor).await
+    machine.pause_job_because(job_id, actor, reason).await
+}
+
+/// Why the job's run holds, while its machine (on this node) holds it: the machine's status's
+/// `hold`, as the job view shows it.
+pub async fn live_hold(app: &App, job_id: i64) -> Option<fresa_plugin_api::contract::Hold> {
+    for m in app.machines.all().await {
+        if m.current_job().is_some_and(|j| j.id == job_id) {
+            let held = m
+                .run()
+                .is_some_and(|r| r.state == crate::store::RunState::Paused);
+            return m.status().hold.filter(|_| held).map(|h| *h);
+        }
+    }
+    None
 }
 
 /// `confirm_part_zero`: the operator accepts whatever part zero the controller reports now,

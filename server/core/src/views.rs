@@ -156,6 +156,10 @@ pub struct JobView {
     /// The latest run, or null.
     #[schema(value_type = Option<Object>)]
     pub run: Option<RunRow>,
+    /// Why the run holds, while it is `paused` and its machine holds it (the machine status's
+    /// `hold`); absent otherwise.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub hold: Option<fresa_plugin_api::contract::Hold>,
 }
 
 impl JobView {
@@ -189,6 +193,13 @@ impl JobView {
             line,
             percent,
             run: run.cloned(),
+            hold: None,
         }
+    }
+
+    /// The view with the live reason its run holds (`jobs::live_hold` finds it).
+    pub fn with_hold(mut self, hold: Option<fresa_plugin_api::contract::Hold>) -> JobView {
+        self.hold = hold.filter(|_| self.state == "paused");
+        self
     }
 }

@@ -85,10 +85,11 @@ pub async fn list(
     Query(p): Query<ListParams>,
 ) -> Result<Json<Vec<JobView>>, ApiError> {
     let jobs = core::list(&app, p.machine, p.limit.unwrap_or(100).clamp(1, 1000)).await?;
-    let out = jobs
-        .iter()
-        .map(|(job, run)| JobView::new(job, run.as_ref()))
-        .collect();
+    let mut out = Vec::with_capacity(jobs.len());
+    for (job, run) in &jobs {
+        let hold = core::live_hold(&app, job.id).await;
+        out.push(JobView::new(job, run.as_ref()).with_hold(hold));
+    }
     Ok(Json(out))
 }
 
@@ -104,7 +105,8 @@ pub async fn get_one(
     Path(id): Path<i64>,
 ) -> Result<Json<JobView>, ApiError> {
     let (job, run) = core::job_with_run(&app, id).await?;
-    Ok(Json(JobView::new(&job, run.as_ref())))
+    let hold = core::live_hold(&app, id).await;
+    Ok(Json(JobView::new(&job, run.as_ref()).with_hold(hold)))
 }
 
 #[utoipa::path(get, path = "/jobs/{id}/gcode", tag = "jobs",
@@ -350,7 +352,8 @@ pub async fn control(
             ))
         }
     };
-    Ok(Json(JobView::new(&job, Some(&run))))
+    let hold = core::live_hold(&app, id).await;
+    Ok(Json(JobView::new(&job, Some(&run)).with_hold(hold)))
 }
 
 #[derive(Deserialize)]

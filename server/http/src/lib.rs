@@ -11,6 +11,7 @@ mod jobs;
 pub(crate) mod machines;
 pub mod openapi;
 mod pendants;
+mod toolchange;
 mod tools;
 mod webhooks;
 
@@ -97,6 +98,9 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
         .routes(needs(Admin, routes!(tools::replace_tools)))
         .routes(needs(Admin, routes!(tools::set_tool)))
         .routes(needs(Admin, routes!(tools::delete_tool)))
+        .routes(needs(Viewer, routes!(toolchange::get_run_settings)))
+        .routes(needs(Operator, routes!(toolchange::patch_run_settings)))
+        .routes(needs(Operator, routes!(toolchange::measure_tool)))
         .routes(needs(Viewer, routes!(jobs::list)))
         .routes(needs(
             Operator,

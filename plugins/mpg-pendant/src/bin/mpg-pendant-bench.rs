@@ -90,6 +90,7 @@ fn round_trip(n: usize, polls: usize, rate_hz: f64) -> Result<(), String> {
                 total_lines: 3,
                 line: 1,
             }),
+            None,
         );
         transports.push(t);
         listeners.push(l);

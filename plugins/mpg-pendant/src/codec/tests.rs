@@ -110,6 +110,42 @@ fn encodings_match_the_spec_byte_for_byte() {
         })),
         "N52EL01:05ES10:00NL0040LA0007***********************F"
     );
+    // Issue 26: a status line for the LCD rides in the padding after the line number.
+    assert_eq!(
+        e(Frame::ProgressWithStatus {
+            job: PendantJob {
+                elapsed_s: 65,
+                estimated_s: 600,
+                total_lines: 40,
+                line: 7
+            },
+            status: "M0 change clamp".into()
+        }),
+        "N52EL01:05ES10:00NL0040LA0007M0 change clamp********F"
+    );
+    assert_eq!(
+        Frame::parse(b"N52EL01:05ES10:00NL0040LA0007M0 change clamp********F").unwrap(),
+        Frame::ProgressWithStatus {
+            job: PendantJob {
+                elapsed_s: 65,
+                estimated_s: 600,
+                total_lines: 40,
+                line: 7
+            },
+            status: "M0 change clamp".into()
+        }
+    );
+    // Too long, or a `*` inside it, or a space anywhere else: not a frame.
+    assert!(Frame::parse(b"N52EL01:05ES10:00NL0040LA0007M0 change clamp now to*F").is_err());
+    assert!(Frame::parse(b"N52EL01:05ES10:00NL0040LA0007M0*change clamp********F").is_err());
+    assert!(Frame::parse(b"N51E+00000.0000x-00012.5000y+00003.2500z+00000.000 aF").is_err());
+    let (b, note) = Frame::ProgressWithStatus {
+        job: PendantJob::default(),
+        status: "M6 T2 3 mm drill * 0.5 flute".into(),
+    }
+    .encode_checked();
+    assert_eq!(&b[29..52], b"M6 T2 3 mm drill x 0***");
+    assert!(note.is_some());
     assert_eq!(
         e(Frame::UploadConfirmed),
         "N53Confirm:Gcode-load*******************************F"
@@ -218,6 +254,15 @@ fn sample_frames() -> Vec<Frame> {
             total_lines: 10,
             line: 9,
         }),
+        Frame::ProgressWithStatus {
+            job: PendantJob {
+                elapsed_s: 5,
+                estimated_s: 3000,
+                total_lines: 10,
+                line: 9,
+            },
+            status: "M0 change clamp".into(),
+        },
         Frame::UploadConfirmed,
     ];
     v.extend(KEY_WORDS.iter().map(|(_, k)| Frame::Key(*k)));

@@ -66,6 +66,8 @@ pub(super) struct Task {
     pub loading: Option<i64>,
     /// A run paused while its program loaded: it was never started, so its resume starts it.
     pub held_before_start: Option<i64>,
+    /// The host's part of why the machine holds (shared with the handle, see `super::holds`).
+    pub holds: Arc<super::holds::HostHolds>,
 }
 
 /// What the store has not been told yet. Written acks first, then transitions in the order they
@@ -217,9 +219,10 @@ impl Task {
             Msg::Pause {
                 job_id,
                 actor,
+                reason,
                 reply,
             } => {
-                let r = self.pause(job_id, &actor).await;
+                let r = self.pause(job_id, &actor, reason).await;
                 let _ = reply.send(r);
             }
             Msg::Resume {
@@ -442,7 +445,10 @@ impl Task {
         if op.needs_store {
             self.store.health().check()?;
         }
-        if op.refused_during_run {
+        // A tool-change hold lets the operator jog and probe (touch off, measure the new tool).
+        let tool_change_motion = matches!(request, Request::Jog { .. } | Request::Probe(_))
+            && super::holds::in_tool_change(&self.status.borrow());
+        if op.refused_during_run && !tool_change_motion {
             self.refuse_during_run(&format!("`{}`", op.name))?;
         }
         if op.changes_offsets {
@@ -548,7 +554,9 @@ impl Task {
     }
 
     fn standing_still(id: i64, st: &MachineStatus, what: &str) -> Result<()> {
-        if st.state.is_busy() {
+        // Held for a tool change with nothing moving: offsets may change (touch-off, setter).
+        let tool_change = st.state == MachineState::Paused && super::holds::in_tool_change(st);
+        if st.state.is_busy() && !tool_change {
             return Err(Error::conflict(
                 "machine_moving",
                 format!(
@@ -708,9 +716,58 @@ impl Task {
     }
 
     async fn record_transition(&self, row: &RunRow, actor: Option<&str>) {
+        let mut data = run_event(row);
+        if row.state == RunState::Paused {
+            // Why: the machine's hold once it reports one, else the pause the host asked for.
+            let mut st = self.status.borrow().clone();
+            self.holds.explain(&mut st);
+            let hold = match st.hold {
+                Some(h) if st.state == MachineState::Paused => *h,
+                _ => super::holds::operator_pause(
+                    actor.unwrap_or("the machine"),
+                    self.holds.reason().as_ref(),
+                ),
+            };
+            data["hold"] = json!(hold);
+        }
         self.bus
-            .record_or_log(EventKind::JobState, Some(self.id), actor, run_event(row))
+            .record_or_log(EventKind::JobState, Some(self.id), actor, data)
             .await;
+    }
+
+    /// After the machine changed state: the run follows it between running and paused when
+    /// the machine held or went on by itself (M0, M1, M6, a feed hold or cycle start from
+    /// anyone), so run and machine say the same. Jogging during a tool-change hold is held.
+    /// The run's pause message is the hold's.
+    async fn follow_machine(&mut self) {
+        let Some(run) = self.run.borrow().clone() else {
+            return;
+        };
+        let (state, held, message) = {
+            let mut st = self.status.borrow().clone();
+            self.holds.explain(&mut st);
+            let held = st.state == MachineState::Paused || super::holds::in_tool_change(&st);
+            (st.state, held, st.hold.map(|h| h.message))
+        };
+        let (from_run, to_run) = match (run.state, state) {
+            (RunState::Running, _) if held => (RunState::Running, RunState::Paused),
+            (RunState::Paused, MachineState::Running) => (RunState::Paused, RunState::Running),
+            _ => return,
+        };
+        if to_run == RunState::Running {
+            self.holds.clear_reason();
+        }
+        let from_states: &'static [RunState] = if from_run == RunState::Running {
+            &[RunState::Running]
+        } else {
+            &[RunState::Paused]
+        };
+        if let Err(e) = self
+            .transition(run.run_id, from_states, to_run, message.as_deref(), None)
+            .await
+        {
+            tracing::error!(machine = self.id, run = run.run_id, error = %e, "could not follow the machine's state");
+        }
     }
 
     /// Ends a run from a backend report. Late or duplicate reports are ignored.
@@ -893,10 +950,10 @@ impl Task {
         let started = async {
             // The table the backend interprets with: the one the upload check used, unless it
             // was edited since (then the backend's own check decides).
-            let tools = self
-                .store
-                .tools(self.id)
-                .await?
+            let rows = self.store.tools(self.id).await?;
+            self.holds.set_tools(&rows);
+            let (optional_stop, tool_change) = self.run_options().await?;
+            let tools = rows
                 .iter()
                 .filter_map(|t| {
                     Some(fresa_plugin_api::contract::ProgramTool {
@@ -915,6 +972,8 @@ impl Task {
                     expected_part_zero,
                     tools,
                     max_segments: Some(self.max_program_segments),
+                    optional_stop,
+                    tool_change,
                 })
                 .await;
             self.loading = None;
@@ -984,6 +1043,30 @@ impl Task {
             .unwrap_or(run))
     }
 
+    /// The machine's run settings as a program is loaded with them: the optional stop, and how
+    /// M6 holds (`refuse` holds too: a program with M6 is refused at its start, so one that
+    /// gets here anyway, a resume, holds rather than runs on with the wrong tool).
+    async fn run_options(
+        &self,
+    ) -> Result<(bool, Option<fresa_plugin_api::contract::ToolChangeSetup>)> {
+        use crate::store::ToolChangePolicy;
+        let (settings, _) = self.store.run_settings(self.id).await?;
+        let tool_change = match settings.tool_change {
+            ToolChangePolicy::Ignore => None,
+            ToolChangePolicy::Hold | ToolChangePolicy::Refuse => {
+                Some(fresa_plugin_api::contract::ToolChangeSetup {
+                    position: settings.tool_change_position.map(|p| AxisValues {
+                        x: p.x,
+                        y: p.y,
+                        z: p.z,
+                        a: 0.0,
+                    }),
+                })
+            }
+        };
+        Ok((settings.optional_stop, tool_change))
+    }
+
     /// The job's latest run: from the store, or, while the database is unreachable, the
     /// current run as the task remembers it (so pause and cancel still work).
     async fn latest(&self, job_id: i64) -> Result<RunRow> {
@@ -1034,7 +1117,12 @@ impl Task {
         }
     }
 
-    async fn pause(&mut self, job_id: i64, actor: &str) -> Result<RunRow> {
+    async fn pause(
+        &mut self,
+        job_id: i64,
+        actor: &str,
+        reason: Option<(fresa_plugin_api::contract::HoldKind, String)>,
+    ) -> Result<RunRow> {
         let run = self.latest(job_id).await?;
         if run.state != RunState::Running {
             return Err(Error::conflict(
@@ -1042,15 +1130,22 @@ impl Task {
                 format!("job {job_id} is {}, not running", run.state),
             ));
         }
+        match reason {
+            Some((kind, message)) => self.holds.set_reason(kind, message),
+            None => self.holds.clear_reason(),
+        }
         // Its program is still loading (this pause is served while the load call is under
         // way): nothing moves yet, so the run is held before it starts instead.
         if self.loading == Some(run.id) {
             self.held_before_start = Some(run.id);
-        } else {
-            self.call(&Request::Run {
+        } else if let Err(e) = self
+            .call(&Request::Run {
                 action: RunAction::Pause,
             })
-            .await?;
+            .await
+        {
+            self.holds.clear_reason();
+            return Err(e);
         }
         self.transition_or_current(&run, &[RunState::Running], RunState::Paused, actor)
             .await
@@ -1076,6 +1171,7 @@ impl Task {
                 };
                 self.motion(ticket, &Request::Run { action }).await?;
                 self.held_before_start = None;
+                self.holds.clear_reason();
                 self.transition_or_current(&run, &[RunState::Paused], RunState::Running, actor)
                     .await
             }
@@ -1237,6 +1333,7 @@ impl Task {
     /// Events arrive decoded (the sink decodes them from the plugin's bytes on its thread).
     async fn handle_events(&mut self, batch: Vec<Event>) {
         let last_status = batch.iter().rposition(|e| matches!(e, Event::Status(_)));
+        let mut changed = false;
         for (i, event) in batch.into_iter().enumerate() {
             match event {
                 Event::Status(s) => self.publish_status(s),
@@ -1249,6 +1346,7 @@ impl Task {
                     if last_status.is_none_or(|j| j < i) {
                         self.status.send_modify(|s| s.state = to);
                     }
+                    changed = true;
                     self.bus.transient(
                         EventKind::MachineState,
                         Some(self.id),
@@ -1320,6 +1418,9 @@ impl Task {
                     self.probe_ended.send_replace(Some(end));
                 }
             }
+        }
+        if changed {
+            self.follow_machine().await;
         }
         self.flush_pending().await;
     }
@@ -1472,6 +1573,7 @@ mod tests {
             line: 0,
             times: None,
         };
+        let store_health = store.health().clone();
         let task = Task {
             id: m,
             lanes: None,
@@ -1492,6 +1594,7 @@ mod tests {
             urgent: Arc::new(tokio::sync::Mutex::new(mpsc::unbounded_channel().1)),
             loading: None,
             held_before_start: None,
+            holds: Arc::new(super::super::holds::HostHolds::new(store_health.clone())),
         };
         (task, run, dir)
     }
@@ -1659,6 +1762,72 @@ mod tests {
         }])
         .await;
         assert_eq!(job_state_events(&store).await.len(), 1);
+    }
+
+    /// Issue 26: an M0 reached during a database outage holds the run too (kept in memory,
+    /// stored when the database returns, with the hold's message); the hold says that going
+    /// on waits for the database; cycle start from anyone makes the run `running` again.
+    #[tokio::test]
+    async fn the_run_follows_the_machine_into_a_hold_and_out_of_it_also_during_an_outage() {
+        use fresa_plugin_api::contract::{ContinueWith, Hold, HoldKind};
+        let (mut task, run, _dir) = task_with_run().await;
+        let store = task.store.clone();
+        store.health().mark_down("test outage");
+        let hold = Hold {
+            kind: HoldKind::ProgramPause,
+            message: "M0 at line 3: change clamp".into(),
+            line: Some(3),
+            program_message: Some("change clamp".into()),
+            continue_with: ContinueWith::CycleStart,
+            tool_change: None,
+            blocked: None,
+        };
+        let paused = MachineStatus {
+            state: MachineState::Paused,
+            hold: Some(Box::new(hold)),
+            ..Default::default()
+        };
+        task.handle_events(vec![
+            Event::Status(paused.clone()),
+            Event::StateChanged {
+                from: MachineState::Running,
+                to: MachineState::Paused,
+            },
+        ])
+        .await;
+        assert_eq!(task.run.borrow().map(|r| r.state), Some(RunState::Paused));
+        let mut shown = task.status.borrow().clone();
+        task.holds.explain(&mut shown);
+        let blocked = shown.hold.unwrap().blocked.unwrap();
+        assert!(blocked.contains("t.db"), "{blocked}");
+        // A status without a state change (a position) changes nothing.
+        task.handle_events(vec![Event::Status(paused)]).await;
+        assert_eq!(task.pending.transitions.len(), 1);
+
+        store.health().mark_up();
+        task.flush_pending().await;
+        let stored = store.run(run.id).await.unwrap().unwrap();
+        assert_eq!(stored.state, RunState::Paused);
+        assert_eq!(
+            stored.message.as_deref(),
+            Some("M0 at line 3: change clamp")
+        );
+        let states = job_state_events(&store).await;
+        assert_eq!(states.last().unwrap()["state"], "paused");
+
+        task.handle_events(vec![
+            Event::Status(MachineStatus {
+                state: MachineState::Running,
+                ..Default::default()
+            }),
+            Event::StateChanged {
+                from: MachineState::Paused,
+                to: MachineState::Running,
+            },
+        ])
+        .await;
+        let stored = store.run(run.id).await.unwrap().unwrap();
+        assert_eq!((stored.state, stored.message), (RunState::Running, None));
     }
 
     #[tokio::test]

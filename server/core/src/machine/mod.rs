@@ -6,6 +6,7 @@
 
 mod actor;
 pub mod deadman;
+pub mod holds;
 mod lanes;
 pub mod limits;
 pub mod probing;
@@ -215,6 +216,8 @@ pub(crate) enum Msg {
     Pause {
         job_id: i64,
         actor: String,
+        /// The host pauses the run itself for this reason (a pendant lost), shown as its hold.
+        reason: Option<(fresa_plugin_api::contract::HoldKind, String)>,
         reply: Reply<RunRow>,
     },
     Resume {
@@ -263,6 +266,8 @@ pub struct Machine {
     probe_ids: AtomicU64,
     /// How the machine moves, once the backend said (see [`Machine::motion_profile`]).
     profile: std::sync::OnceLock<Option<fresa_gcode::MotionProfile>>,
+    /// The host's part of why the machine holds (see [`holds`]).
+    holds: Arc<holds::HostHolds>,
 }
 
 impl Machine {
@@ -327,6 +332,7 @@ impl Machine {
         let (tx, rx) = mpsc::unbounded_channel();
         let (urgent_tx, urgent_rx) = mpsc::unbounded_channel();
         let gate = Arc::new(Gate::default());
+        let holds = Arc::new(holds::HostHolds::new(store.health().clone()));
         let m = Arc::new(Machine {
             id: row.id,
             tx,
@@ -345,6 +351,7 @@ impl Machine {
             probe_ended: probe_rx,
             probe_ids: AtomicU64::new(1),
             profile: std::sync::OnceLock::new(),
+            holds: holds.clone(),
         });
         let task = actor::Task {
             id: row.id,
@@ -366,6 +373,7 @@ impl Machine {
             urgent: Arc::new(tokio::sync::Mutex::new(urgent_rx)),
             loading: None,
             held_before_start: None,
+            holds,
         };
         tokio::spawn(task.run(rx, events));
         tokio::spawn(status_loop(m.clone(), bus, opts.status_interval));
@@ -388,6 +396,7 @@ impl Machine {
             s.state = MachineState::Unresponsive;
             s.reason = Some(why);
         }
+        self.holds.explain(&mut s);
         s
     }
 
@@ -657,6 +666,25 @@ impl Machine {
     /// confirmed motion stopped. A running job is not a jog: refused with `machine_busy`
     /// (pause or cancel the job).
     pub async fn cancel_jogs(&self, actor: &str) -> Result<Value> {
+        // During a tool-change hold the jog belongs to the held run: a feed hold ends it (and
+        // the jogs queued behind it) and leaves the run held.
+        let held = holds::in_tool_change(&self.status());
+        if let (Some(_), true) = (self.run(), held) {
+            self.gate.overtake();
+            self.deadman.release(None);
+            let was = self.status().state;
+            self.urgent(&Request::Command(Command::FeedHold)).await?;
+            self.bus
+                .record_or_log(
+                    EventKind::MachineJogCancel,
+                    Some(self.id),
+                    Some(actor),
+                    json!({"state_before": was, "tool_change_hold": true}),
+                )
+                .await;
+            self.settle().await;
+            return Ok(json!({"stopped": was == MachineState::Jogging}));
+        }
         if let Some(r) = self.run() {
             return Err(Error::conflict(
                 "machine_busy",
@@ -721,6 +749,18 @@ impl Machine {
         actor: &str,
     ) -> Result<()> {
         self.call(Request::SetOffset { offset, values }, actor)
+            .await
+            .map(drop)
+    }
+
+    /// Gives the backend the machine's tool table (see `Request::SetTools`): a tool measured
+    /// during a tool-change hold applies to the run in progress.
+    pub async fn set_tools(
+        &self,
+        tools: Vec<fresa_plugin_api::contract::ProgramTool>,
+        actor: &str,
+    ) -> Result<()> {
+        self.call(Request::SetTools { tools }, actor)
             .await
             .map(drop)
     }
@@ -797,9 +837,21 @@ impl Machine {
 
     /// Pauses the running job; served by the task ahead of ordinary messages (see `Msg::Pause`).
     pub async fn pause_job(&self, job_id: i64, actor: &str) -> Result<RunRow> {
+        self.pause_job_because(job_id, actor, None).await
+    }
+
+    /// [`Machine::pause_job`] by the host itself, for `reason` (kind and message), which the
+    /// hold then shows (e.g. `pendant_lost`).
+    pub async fn pause_job_because(
+        &self,
+        job_id: i64,
+        actor: &str,
+        reason: Option<(fresa_plugin_api::contract::HoldKind, String)>,
+    ) -> Result<RunRow> {
         self.ask_on(&self.urgent_tx, |reply| Msg::Pause {
             job_id,
             actor: actor.into(),
+            reason,
             reply,
         })
         .await

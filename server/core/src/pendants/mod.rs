@@ -524,7 +524,9 @@ async fn stop_motion_of_lost(app: &Arc<App>, p: &Pendant) -> bool {
     if p.stop_program_on_lost() {
         if let (Some(cur), Some(run)) = (m.run(), started) {
             if cur.run_id == run {
-                match crate::jobs::pause(app, cur.job_id, &p.actor()).await {
+                let why = format!("pendant {} (which started the run) was lost", p.id);
+                let reason = Some((fresa_plugin_api::contract::HoldKind::PendantLost, why));
+                match crate::jobs::pause_because(app, cur.job_id, &p.actor(), reason).await {
                     Ok(_) => stopped = true,
                     Err(e) => {
                         tracing::error!(pendant = p.id, error = %e.message, "could not hold the program of a lost pendant")
@@ -834,9 +836,15 @@ async fn status_loop(app: Arc<App>, p: Arc<Pendant>) {
         }
         let m = bound_machine(&app, &p).await;
         bind(&p, m.as_deref());
-        let (position, job) = match &m {
+        let (position, job, status_line) = match &m {
             Some(m) => {
                 let st = m.status();
+                // Why the machine holds, on the LCD (issue 26).
+                let status_line = st
+                    .hold
+                    .as_ref()
+                    .filter(|_| st.state == MachineState::Paused || m.run().is_some())
+                    .map(|h| crate::machine::holds::lcd_line(h));
                 let job = match m.run() {
                     Some(r) => {
                         if run_seen.map(|s| s.0) != Some(r.run_id) {
@@ -863,11 +871,15 @@ async fn status_loop(app: Arc<App>, p: Arc<Pendant>) {
                     }
                     None => None,
                 };
-                (st.work_position, job)
+                (st.work_position, job, status_line)
             }
             None => Default::default(),
         };
-        let req = json!(PendantRequest::PendantStatus { position, job });
+        let req = json!(PendantRequest::PendantStatus {
+            position,
+            job,
+            status_line
+        });
         if last.as_ref() == Some(&req) {
             continue;
         }
