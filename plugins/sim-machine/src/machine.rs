@@ -557,7 +557,8 @@ impl Core {
             Job::Jog(jog) => {
                 let target = jog.target(self.kit.lock().pos);
                 self.check(target)?;
-                self.move_to(target, jog.feed, Pace::Fixed, false).map(|()| None)
+                self.move_to(target, jog.feed, Pace::Fixed, false)
+                    .map(|()| None)
             }
             Job::Probe(p) => self.run_probe(p),
             // The kit queues nothing else during a tool-change hold.

@@ -1795,7 +1795,10 @@ mod tests {
             },
         ])
         .await;
-        assert_eq!(task.run.borrow().map(|r| r.state), Some(RunState::Paused));
+        assert_eq!(
+            task.run.borrow().as_ref().map(|r| r.state),
+            Some(RunState::Paused)
+        );
         let mut shown = task.status.borrow().clone();
         task.holds.explain(&mut shown);
         let blocked = shown.hold.unwrap().blocked.unwrap();
