@@ -58,7 +58,9 @@ pub use arc::{
     budgeted, linearise, segments_for, segments_of, ArcGeometry, Budgeted, Linearise, WorkBudget,
     DEFAULT_MAX_SEGMENTS, MIN_TOLERANCE_MM,
 };
-pub use interp::Interpreter;
+pub use interp::{
+    FeedMode, Interpreter, ModalState, StartError, StartRefusal, StartRefusalReason, WorkOffsetSet,
+};
 
 // Input bounds: whatever a program says, it cannot make the reader recurse without end or put
 // a number no machine can run into a motion. Each is an error naming line, column and limit.
