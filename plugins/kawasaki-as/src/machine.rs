@@ -349,10 +349,7 @@ impl KawasakiMachine {
                 journal,
             });
         });
-        Ok(ProgramLoaded {
-            lines,
-            start_line: actual_line.min(lines.max(1)),
-        })
+        Ok(ProgramLoaded::new(lines, actual_line.min(lines.max(1))))
     }
 
     /// Connects, checks part zero and envelope, starts the robot program and the stream.

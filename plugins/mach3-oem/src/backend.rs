@@ -853,7 +853,7 @@ impl Inner {
                 }]);
             }
         }
-        Ok(ProgramLoaded { lines, start_line })
+        Ok(ProgramLoaded::new(lines, start_line))
     }
 
     fn start(&self) -> Result<Value, PluginError> {
