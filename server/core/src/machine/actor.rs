@@ -1112,7 +1112,7 @@ impl Task {
                 let from = Launch {
                     start_line: next,
                     plan,
-                    resuming: true,
+                    resuming: reopened.from_line.is_none(),
                 };
                 self.launch(job, reopened, from, actor, expected, ticket)
                     .await

@@ -18,9 +18,10 @@ pub(super) struct Launch {
     /// The plan for `start_line` when it is past the first line (made before the run was
     /// created or reopened, so a refusal leaves it as it was).
     pub plan: Option<StartPlan>,
-    /// A resume: a backend that cannot carry out a preamble resumes as it does itself (from
-    /// the line, with no approach), as it did before preambles existed. A start at a line on
-    /// such a backend is refused.
+    /// A resume of a run started from its first line: a backend that cannot carry out a
+    /// preamble resumes it as it does itself (from the line, with no approach), as before
+    /// preambles existed. A start at a line on such a backend is refused, and so is a resume
+    /// of a run started at a line (nothing of it ran: there is nothing to go on with).
     pub resuming: bool,
 }
 
