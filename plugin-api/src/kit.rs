@@ -27,6 +27,10 @@ pub type Events = Vec<Event>;
 /// Soft limits per axis (X Y Z A), machine coordinates, `None` = unlimited.
 pub type Travel = [Option<(f64, f64)>; 4];
 
+/// A preamble's move as [`Kit::check_preamble`] resolves it: its machine target and feed
+/// (mm/min; `None`: rapid).
+pub type ApproachMove = ([f64; 4], Option<f64>);
+
 /// Jog requests queued behind the running one at most.
 pub const MAX_QUEUED_JOGS: usize = 64;
 /// How long stop and hold wait for the motion thread to confirm.
@@ -1322,7 +1326,7 @@ impl<P, X> Kit<P, X> {
         &self,
         pos: [f64; 4],
         p: &Preamble,
-    ) -> Result<Vec<([f64; 4], Option<f64>)>, PluginError> {
+    ) -> Result<Vec<ApproachMove>, PluginError> {
         if p.steps.len() > MAX_PREAMBLE_STEPS {
             return Err(PluginError::invalid(format!(
                 "a preamble has at most {MAX_PREAMBLE_STEPS} steps, got {}",
