@@ -719,7 +719,7 @@ pub struct Preamble {
     pub steps: Vec<PreambleStep>,
 }
 
-/// Most steps a [`Preamble`] may have (a host plans at most 7).
+/// Most steps a [`Preamble`] may have (a host plans at most 6).
 pub const MAX_PREAMBLE_STEPS: usize = 16;
 
 /// One step of a [`Preamble`], tagged `step`, e.g. `{"step":"move","z":10}`.

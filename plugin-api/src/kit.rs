@@ -1304,6 +1304,8 @@ impl<P, X> Kit<P, X> {
     ) -> Result<crate::contract::ProgramLoaded, PluginError> {
         check_start_line(asked, lines)?;
         let start_line = start.min(lines.saturating_add(1));
+        // Every line was done already: nothing runs, so nothing needs approaching.
+        let preamble = preamble.filter(|_| start_line <= lines);
         let leads_here = preamble.as_ref().is_some_and(|p| p.line == start_line);
         self.install(Loaded {
             run,

@@ -561,6 +561,24 @@ fn a_preamble_is_checked_before_it_is_accepted() {
     assert_eq!(e.code, "start_line_moved");
     assert!(e.message.contains("line 3"), "{e}");
     assert_eq!(rig.status().state, MachineState::Idle, "nothing moved");
+    // With every line logged there is nothing to approach: the preamble is dropped and the
+    // run completes at once.
+    let all = std::fs::read_to_string(&log).unwrap()
+        + "{\"run\":31,\"line\":3}\n{\"run\":31,\"line\":4}\n";
+    std::fs::write(&log, all).unwrap();
+    let rig = machine(json!({"time_scale": 0, "execution_log": log}));
+    let here = rig.status().machine_position;
+    let for_3 = json!({"line": 3, "from": here, "steps": [{"step": "move", "x": 1}]});
+    let loaded = rig.call(
+        json!({"op":"load_program","run":31,"path":path,"start_line":3,
+                                 "preamble": for_3}),
+    );
+    assert_eq!(loaded, json!({"lines": 4, "start_line": 5}));
+    rig.call(json!({"op":"run","action":"start"}));
+    let (events, outcome, _) = rig.until_run_ended(31);
+    assert_eq!(outcome, RunOutcome::Completed);
+    assert!(acks(&events, 31).is_empty());
+    assert_eq!(rig.status().machine_position, here, "nothing moved");
 
     // A start the interpreter refuses (inside a loop) is refused at load.
     let looped = program("#1=0\no1 while [#1 LT 2]\nG0 X[#1]\n#1=[#1+1]\no1 endwhile\n");
