@@ -1344,7 +1344,8 @@ impl<P, X> Kit<P, X> {
             return Err(PluginError::new(
                 "machine_moved",
                 format!(
-                    "the preamble was planned from X{:.4} Y{:.4} Z{:.4} A{:.4} but the machine                      is at X{:.4} Y{:.4} Z{:.4} A{:.4}: plan it again",
+                    "the preamble was planned from X{:.4} Y{:.4} Z{:.4} A{:.4} but the machine \
+                     is at X{:.4} Y{:.4} Z{:.4} A{:.4}: plan it again",
                     from[0], from[1], from[2], from[3], pos[0], pos[1], pos[2], pos[3]
                 ),
             ));
@@ -1440,7 +1441,8 @@ fn stale_preamble<P>(l: &Loaded<P>) -> Option<PluginError> {
     Some(PluginError::new(
         "start_line_moved",
         format!(
-            "run {} starts at line {} (the execution log shows the lines before it done), but              its preamble leads to line {}: load it again with a preamble for line {}",
+            "run {} starts at line {} (the execution log shows the lines before it done), but \
+             its preamble leads to line {}: load it again with a preamble for line {}",
             l.run, l.start_line, p.line, l.start_line
         ),
     ))
