@@ -17,8 +17,12 @@ use crate::{
     Warning, MAX_BLOCK_NESTING, MAX_COORDINATE_MM, MAX_DWELL_SECONDS, MAX_FEED, MAX_HELD_EVENTS,
     MAX_SPINDLE_RPM,
 };
+use serde::Serialize;
 use std::f64::consts::TAU;
 use std::io::BufRead;
+
+mod start;
+pub use start::{ModalState, StartError, StartRefusal, StartRefusalReason, WorkOffsetSet};
 
 const MM_PER_INCH: f64 = 25.4;
 /// Most turns accepted for one arc (P word): bounds the chords one line can
@@ -135,10 +139,14 @@ impl Queue {
     }
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum FeedMode {
+/// The feed mode (G93/G94/G95): what an F word means.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub enum FeedMode {
+    /// G94: units per minute.
     PerMinute,
+    /// G93: 1/minutes, on every feed line.
     InverseTime,
+    /// G95: units per spindle revolution.
     PerRevolution,
 }
 
@@ -198,6 +206,8 @@ struct State {
     tool: u32,
     /// The tool in the spindle (M6, M61): G41/G42 without D use its radius.
     spindle_tool: u32,
+    /// G43 H (the tool whose length is applied), `None` after G49 and at the start.
+    tlo: Option<u32>,
     /// 0..9 for G54..G59.3.
     coord: u8,
     g28: Point,
@@ -225,6 +235,7 @@ impl State {
             flood: false,
             tool: 0,
             spindle_tool: 0,
+            tlo: None,
             coord: 0,
             g28: cfg.g28_position,
             g30: cfg.g30_position,
@@ -291,6 +302,15 @@ pub struct Interpreter<R: BufRead> {
     /// A probing move was yielded; its result is applied before the next
     /// line is read (see [`Interpreter::probe_result`]).
     probe_pending: Option<PendingProbe>,
+    /// [`Interpreter::state_at`] in progress: the line it stops before.
+    start_at: Option<start::StartAt>,
+    /// The line in `self.line` runs again instead of reading the next one (the line
+    /// [`Interpreter::state_at`] stopped before).
+    replay: bool,
+    /// The line that turned on the cutter compensation in force.
+    comp_since: Option<u32>,
+    /// The last canned-cycle line with an L (repeats) word above 1, and its L.
+    cycle_repeats: Option<(u32, f64)>,
 }
 
 /// A probing move whose result the rest of the program waits for.
@@ -348,6 +368,10 @@ impl<R: BufRead> Interpreter<R> {
             units_inch_seen: false,
             work_systems: 0,
             probe_pending: None,
+            start_at: None,
+            replay: false,
+            comp_since: None,
+            cycle_repeats: None,
         }
     }
 
@@ -570,6 +594,10 @@ impl<R: BufRead> Interpreter<R> {
     /// was seen). Ok(false) at the end of input.
     #[inline]
     fn next_line(&mut self) -> Result<bool, GcodeError> {
+        if self.replay {
+            self.replay = false;
+            return Ok(true);
+        }
         if !self.flow.buffering {
             return self.read_line();
         }
@@ -1213,6 +1241,9 @@ impl<R: BufRead> Interpreter<R> {
         self.settle_probe();
         if !self.next_line()? {
             return self.end_of_input();
+        }
+        if self.start_at.is_some() && self.stops_here() {
+            return Ok(());
         }
         self.lines_executed += 1;
         if self.flow.skip.is_some() {
@@ -1873,6 +1904,7 @@ impl<R: BufRead> Interpreter<R> {
             } else {
                 None
             };
+            st.tlo = tool;
             queue.push_back(Motion::ToolLengthOffset { line, tool });
         }
         // 15. work coordinate system
@@ -2223,6 +2255,9 @@ impl<R: BufRead> Interpreter<R> {
                         ));
                     }
                     let first = motion_before != MotionMode::Cycle(code);
+                    if let Some(l) = blk.get(b'L').filter(|l| *l > 1.0) {
+                        self.cycle_repeats = Some((line, l));
+                    }
                     let mut cyc = cycle_new.unwrap_or(self.cycle);
                     target = canned_cycle(queue, &mut st, &mut cyc, blk, code, first, scale, line)?;
                     cycle_new = Some(cyc);
@@ -2359,6 +2394,9 @@ impl<R: BufRead> Interpreter<R> {
             self.comp = c;
             if self.cutter_comp_line.is_none() && self.comp.side.is_some() {
                 self.cutter_comp_line = Some(line);
+            }
+            if g_cutter.is_some_and(|g| g.0 != 400) {
+                self.comp_since = Some(line);
             }
         }
         if let Some(c) = cycle_new {
@@ -3384,8 +3422,10 @@ fn restore_modal(
         });
     }
     let (pos, a, tool, g28, g30) = (st.pos, st.a, st.tool, st.g28, st.g30);
-    let (g28_a, g30_a) = (st.g28_a, st.g30_a);
+    let (g28_a, g30_a, tlo) = (st.g28_a, st.g30_a, st.tlo);
     *st = *saved;
+    // No event changes the tool length offset here, so it stays as it is.
+    st.tlo = tlo;
     st.pos = pos;
     st.a = a;
     st.tool = tool;

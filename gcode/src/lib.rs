@@ -63,7 +63,9 @@ pub use arc::{
     DEFAULT_MAX_SEGMENTS, MIN_TOLERANCE_MM,
 };
 pub use estimate::{Estimator, MotionProfile, TimeMark, TimeTable};
-pub use interp::Interpreter;
+pub use interp::{
+    FeedMode, Interpreter, ModalState, StartError, StartRefusal, StartRefusalReason, WorkOffsetSet,
+};
 
 // Input bounds: whatever a program says, it cannot make the reader recurse without end or put
 // a number no machine can run into a motion. Each is an error naming line, column and limit.

@@ -29,6 +29,8 @@ pub struct LoadProgram {
     pub optional_stop: bool,
     /// M6 holds for a manual tool change (see [`Request::LoadProgram`]).
     pub tool_change: Option<crate::contract::ToolChangeSetup>,
+    /// What to do before `start_line` (see [`crate::contract::Preamble`]).
+    pub preamble: Option<crate::contract::Preamble>,
 }
 
 /// A machine backend. Methods may be called concurrently from several host threads (so that
@@ -220,6 +222,7 @@ pub fn dispatch<B: MachineBackend>(b: &B, request: Request) -> Result<Answer, Pl
             max_segments,
             optional_stop,
             tool_change,
+            preamble,
         } => b
             .load_program(LoadProgram {
                 run,
@@ -230,6 +233,7 @@ pub fn dispatch<B: MachineBackend>(b: &B, request: Request) -> Result<Answer, Pl
                 max_segments,
                 optional_stop,
                 tool_change,
+                preamble,
             })
             .map(Answer::Loaded),
         Request::Run { action } => b.run(action).map(Answer::Run),

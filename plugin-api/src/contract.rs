@@ -567,6 +567,12 @@ pub enum Request {
         /// the README). Absent: M6 passes and the backend changes nothing.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         tool_change: Option<ToolChangeSetup>,
+        /// A run that goes on from `start_line` inside the program (a start at a line, a
+        /// resume): what the backend does before that line's first motion (see [`Preamble`]).
+        /// A backend that does it says so in its answer (`"preamble": true`); one that cannot
+        /// do it safely refuses with `unsupported` and the reason.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        preamble: Option<Preamble>,
     },
     /// Answer: `{}`.
     Run { action: RunAction },
@@ -759,6 +765,21 @@ pub struct ProgramTool {
 pub struct ProgramLoaded {
     pub lines: u32,
     pub start_line: u32,
+    /// The backend will carry out the request's preamble before `start_line` (absent: it
+    /// got none, or does not know preambles and ignored it).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub preamble: bool,
+}
+
+impl ProgramLoaded {
+    /// A program of `lines` lines loaded to start at `start_line`, with no preamble.
+    pub fn new(lines: u32, start_line: u32) -> ProgramLoaded {
+        ProgramLoaded {
+            lines,
+            start_line,
+            preamble: false,
+        }
+    }
 }
 
 /// Events a machine backend emits. Serialised with an `event` tag.
@@ -821,6 +842,81 @@ pub enum Event {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         run: Option<i64>,
     },
+}
+
+// --- start at a line additions (issue 26) ---
+
+/// What a backend does before the first motion of a run that goes on from inside a program
+/// (`load_program`'s `start_line` > 1): the host has interpreted the lines before it without
+/// motion and planned how to bring the machine to that line's state and start point. The
+/// backend's own interpreter rebuilds the rest of the modal state from the lines before (units,
+/// distance modes, feed, G92...); these steps are what it must do to the machine, in order.
+/// Moves are straight, in machine coordinates, and checked against the travel with the rest of
+/// the program before anything moves.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Preamble {
+    /// The line it leads to. A backend that starts at another line (its execution log shows
+    /// more of the run done) answers that line and refuses to start this preamble
+    /// (`start_line_moved`): the host plans one for the new line and loads again.
+    pub line: u32,
+    /// The machine position it was planned from: a backend standing elsewhere refuses it
+    /// (`machine_moved`).
+    pub from: AxisValues,
+    pub steps: Vec<PreambleStep>,
+}
+
+/// Most steps a [`Preamble`] may have (a host plans at most 6).
+pub const MAX_PREAMBLE_STEPS: usize = 16;
+
+/// One step of a [`Preamble`], tagged `step`, e.g. `{"step":"move","z":10}`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "step", rename_all = "snake_case", deny_unknown_fields)]
+pub enum PreambleStep {
+    /// Make this work offset the active one (the program's at the line).
+    Offset { offset: WorkOffset },
+    /// Spindle as at the line (`off`, or turning at `rpm`).
+    Spindle { direction: SpindleTurn, rpm: f64 },
+    /// Coolant as at the line.
+    Coolant { mist: bool, flood: bool },
+    /// A straight move to these machine coordinates (an absent axis stays where it is), at
+    /// `feed` mm/min, or at the rapid rate when absent.
+    Move {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        x: Option<f64>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        y: Option<f64>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        z: Option<f64>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        a: Option<f64>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        feed: Option<f64>,
+    },
+}
+
+impl PreambleStep {
+    /// Where a move ends when it starts at machine position `from` (`None`: not a move).
+    pub fn target(&self, from: [f64; 4]) -> Option<[f64; 4]> {
+        match *self {
+            PreambleStep::Move { x, y, z, a, .. } => {
+                let to = [x, y, z, a];
+                Some(std::array::from_fn(|i| to[i].unwrap_or(from[i])))
+            }
+            _ => None,
+        }
+    }
+}
+
+/// Which way the spindle turns (M3, M4) or that it stands (M5).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SpindleTurn {
+    Cw,
+    Ccw,
+    Off,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

@@ -14,7 +14,8 @@
 use crate::config_fields::{invalid, number, object};
 use crate::contract::{
     io, Axis, AxisValues, ContinueWith, Event, Hold, HoldKind, IoValue, MachineState,
-    MachineStatus, OffsetTable, Overrides, Probe, ProbeOutcome, RunOutcome, WorkOffset,
+    MachineStatus, OffsetTable, Overrides, Preamble, PreambleStep, Probe, ProbeOutcome, RunOutcome,
+    WorkOffset, MAX_PREAMBLE_STEPS,
 };
 use crate::exec_log::ExecLog;
 use crate::PluginError;
@@ -29,6 +30,10 @@ pub type EventSink = Arc<dyn Fn(&Event) + Send + Sync>;
 pub type Events = Vec<Event>;
 /// Soft limits per axis (X Y Z A), machine coordinates, `None` = unlimited.
 pub type Travel = [Option<(f64, f64)>; 4];
+
+/// A preamble's move as [`Kit::check_preamble`] resolves it: its machine target and feed
+/// (mm/min; `None`: rapid).
+pub type ApproachMove = ([f64; 4], Option<f64>);
 
 /// Jog requests queued behind the running one at most.
 pub const MAX_QUEUED_JOGS: usize = 64;
@@ -227,6 +232,9 @@ pub struct Loaded<P> {
     pub run: i64,
     pub plan: P,
     pub start_line: u32,
+    /// What to do before `start_line` (checked at load, see [`Kit::check_preamble`]); the
+    /// backend's motion thread carries it out before the program's first line.
+    pub preamble: Option<Preamble>,
 }
 
 /// One incremental jog.
@@ -1211,6 +1219,9 @@ impl<P, X> Kit<P, X> {
                 _ => {}
             }
             sh.require_still("start a program")?;
+            if let Some(e) = sh.program.as_ref().and_then(stale_preamble) {
+                return Err(e);
+            }
             let loaded = sh.program.take().ok_or_else(|| {
                 PluginError::new(
                     "no_program",
@@ -1426,14 +1437,116 @@ impl<P, X> Kit<P, X> {
         asked: u32,
         start: u32,
     ) -> Result<crate::contract::ProgramLoaded, PluginError> {
+        self.install_plan_with(run, plan, (lines, asked, start), None)
+    }
+
+    /// [`Kit::install_plan`] with the preamble the host sent (checked by the backend with
+    /// [`Kit::check_preamble`]). One planned for another line than `start` is kept but
+    /// refused at cycle start (`start_line_moved`): the answer names the line, and the host
+    /// loads again with a preamble for it.
+    pub fn install_plan_with(
+        &self,
+        run: i64,
+        plan: P,
+        (lines, asked, start): (u32, u32, u32),
+        preamble: Option<Preamble>,
+    ) -> Result<crate::contract::ProgramLoaded, PluginError> {
         check_start_line(asked, lines)?;
         let start_line = start.min(lines.saturating_add(1));
+        // Every line was done already: nothing runs, so nothing needs approaching.
+        let preamble = preamble.filter(|_| start_line <= lines);
+        let leads_here = preamble.as_ref().is_some_and(|p| p.line == start_line);
         self.install(Loaded {
             run,
             plan,
             start_line,
+            preamble,
         })?;
-        Ok(crate::contract::ProgramLoaded { lines, start_line })
+        Ok(crate::contract::ProgramLoaded {
+            lines,
+            start_line,
+            preamble: leads_here,
+        })
+    }
+
+    /// Checks a preamble before it is accepted: at most [`MAX_PREAMBLE_STEPS`] steps, finite
+    /// numbers, positive feeds, planned from `pos` (the machine position now; else
+    /// `machine_moved`), and every move's end inside the travel (`out_of_travel`, naming the
+    /// step). Answers the moves, each as its machine target and feed (`None`: rapid).
+    pub fn check_preamble(
+        &self,
+        pos: [f64; 4],
+        p: &Preamble,
+    ) -> Result<Vec<ApproachMove>, PluginError> {
+        if p.steps.len() > MAX_PREAMBLE_STEPS {
+            return Err(PluginError::invalid(format!(
+                "a preamble has at most {MAX_PREAMBLE_STEPS} steps, got {}",
+                p.steps.len()
+            )));
+        }
+        let from = p.from.to_array();
+        if from
+            .iter()
+            .zip(&pos)
+            .any(|(a, b)| !a.is_finite() || (a - b).abs() > 1e-6)
+        {
+            return Err(PluginError::new(
+                "machine_moved",
+                format!(
+                    "the preamble was planned from X{:.4} Y{:.4} Z{:.4} A{:.4} but the machine \
+                     is at X{:.4} Y{:.4} Z{:.4} A{:.4}: plan it again",
+                    from[0], from[1], from[2], from[3], pos[0], pos[1], pos[2], pos[3]
+                ),
+            ));
+        }
+        let mut at = pos;
+        let mut moves = Vec::new();
+        for (i, step) in p.steps.iter().enumerate() {
+            let bad =
+                |what: String| PluginError::invalid(format!("preamble step {}: {what}", i + 1));
+            match *step {
+                PreambleStep::Spindle { rpm, .. } if !(rpm.is_finite() && rpm >= 0.0) => {
+                    return Err(bad(format!("spindle rpm must be 0 or more, got {rpm}")))
+                }
+                PreambleStep::Move { feed: Some(f), .. } if !(f.is_finite() && f > 0.0) => {
+                    return Err(bad(format!("feed must be greater than 0 mm/min, got {f}")))
+                }
+                _ => {}
+            }
+            if let Some(to) = step.target(at) {
+                check_travel(&self.cfg.travel, to).map_err(|m| {
+                    PluginError::new(
+                        "out_of_travel",
+                        format!(
+                            "preamble step {} (the approach to line {}): {m}",
+                            i + 1,
+                            p.line
+                        ),
+                    )
+                })?;
+                let feed = match *step {
+                    PreambleStep::Move { feed, .. } => feed,
+                    _ => None,
+                };
+                moves.push((to, feed));
+                at = to;
+            }
+        }
+        Ok(moves)
+    }
+
+    /// Appends one record of the backend's own shape to the execution log (if there is
+    /// one), e.g. what a preamble did; a record that is not a line is skipped by
+    /// [`ExecLog::last_line`].
+    pub fn log_record<T: serde::Serialize>(&self, record: &T) -> Result<(), Interrupted> {
+        match &self.log {
+            Some(log) => log
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .append_entry(record)
+                .map_err(Interrupted::Failed),
+            None => Ok(()),
+        }
     }
 
     /// `run` requests: start, pause, resume (strict) and cancel (a stop).
@@ -1528,6 +1641,19 @@ fn probe_outcome(
             | Interrupted::Tripped { message: m, .. },
         ) => (ProbeOutcome::Failed, None, Some(m.clone())),
     }
+}
+
+/// A loaded program whose preamble leads to another line than the one it starts from.
+fn stale_preamble<P>(l: &Loaded<P>) -> Option<PluginError> {
+    let p = l.preamble.as_ref().filter(|p| p.line != l.start_line)?;
+    Some(PluginError::new(
+        "start_line_moved",
+        format!(
+            "run {} starts at line {} (the execution log shows the lines before it done), but \
+             its preamble leads to line {}: load it again with a preamble for line {}",
+            l.run, l.start_line, p.line, l.start_line
+        ),
+    ))
 }
 
 /// The [`crate::MachineBackend`] methods a kit-based backend answers straight from its kit,

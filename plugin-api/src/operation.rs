@@ -315,6 +315,7 @@ mod tests {
                 max_segments: None,
                 optional_stop: false,
                 tool_change: None,
+                preamble: None,
             },
             Request::Shutdown,
             Request::SetTools { tools: vec![] },

@@ -39,10 +39,7 @@ impl MachineBackend for Minimal {
     }
     fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {
         self.note(&format!("load {} {}", p.run, p.path));
-        Ok(ProgramLoaded {
-            lines: 3,
-            start_line: p.start_line,
-        })
+        Ok(ProgramLoaded::new(3, p.start_line))
     }
     fn run(&self, action: RunAction) -> Result<RunAnswer, PluginError> {
         self.note(&format!("run {action:?}"));

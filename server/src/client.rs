@@ -163,6 +163,26 @@ pub enum JobCmd {
     },
     /// Follow a job's progress until it ends.
     Watch { id: i64 },
+    // --- start at a line (issue 26) ---
+    /// Start a job: from its first line, or with `--from-line N` from line N (the lines
+    /// before it are interpreted without motion; the machine goes up to a safe Z, takes their
+    /// work offset, spindle and coolant, moves across to the start point and down at feed,
+    /// then runs from N; see `start-preview`).
+    Start {
+        id: i64,
+        #[arg(long)]
+        from_line: Option<u32>,
+    },
+    /// Show what `start --from-line N` would do from where the machine stands: the modal
+    /// state before line N and the preamble, as G-code-like text (or `--json`). Moves nothing.
+    StartPreview {
+        id: i64,
+        #[arg(long)]
+        from_line: u32,
+        /// The server's whole answer as JSON.
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 /// Where the database is: the same settings `fresa serve` resolves.
@@ -899,6 +919,42 @@ pub async fn job(server: ServerArgs, cmd: JobCmd) -> Res {
                     .send(c.req(reqwest::Method::POST, &format!("/api/v1/jobs/{id}/start")))
                     .await?;
                 println!("job {id} {}", r["state"].as_str().unwrap_or("?"));
+            }
+        }
+        JobCmd::Start { id, from_line } => {
+            let mut rb = c.req(reqwest::Method::POST, &format!("/api/v1/jobs/{id}/start"));
+            if let Some(n) = from_line {
+                rb = rb.json(&serde_json::json!({ "from_line": n }));
+            }
+            let r = c.send(rb).await?;
+            let from = r["run"]["from_line"]
+                .as_i64()
+                .map(|n| format!(" from line {n}"))
+                .unwrap_or_default();
+            println!(
+                "job {id} {} (run {}{from})",
+                r["state"].as_str().unwrap_or("?"),
+                r["run"]["id"]
+            );
+        }
+        JobCmd::StartPreview {
+            id,
+            from_line,
+            json,
+        } => {
+            let r = c
+                .send(
+                    c.req(
+                        reqwest::Method::GET,
+                        &format!("/api/v1/jobs/{id}/start-preview"),
+                    )
+                    .query(&[("from_line", from_line)]),
+                )
+                .await?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&r)?);
+            } else {
+                println!("{}", r["gcode"].as_str().unwrap_or(""));
             }
         }
         JobCmd::Watch { id } => {

@@ -273,6 +273,41 @@ fn a_axis_program_is_refused_naming_the_line_and_moves_nothing() {
     assert!(robot.moves().is_empty());
 }
 
+/// The robot's position is unknown until its run starts (the link opens then), so no
+/// approach to a line can be planned or checked: a start at a line is refused `unsupported`
+/// with that reason, and the robot receives nothing (not even a connection).
+#[test]
+fn a_start_at_a_line_is_refused_unsupported_saying_why_and_the_robot_gets_nothing() {
+    let s = Server::start();
+    let robot = Robot::start(s.root(), "fresa-v1", &[]);
+    let m = machine(&s, &robot, "fresa-v1", json!({}));
+    let job = upload(&s, m, &test_program());
+    let msg = s
+        .post(
+            &format!("/api/v1/jobs/{job}/start"),
+            &json!({"from_line": 10}),
+        )
+        .expect_error(422, "unsupported");
+    assert!(
+        msg.contains("kawasaki-as cannot start a program at a line safely")
+            && msg.contains("link to the robot opens only when the run starts"),
+        "{msg}"
+    );
+    let j = s.job(job);
+    assert_eq!(
+        (j["state"].as_str(), j["line"].as_i64()),
+        (Some("failed"), Some(0)),
+        "{j}"
+    );
+    s.job_action(job, "resume").expect_error(422, "unsupported");
+    assert!(
+        robot.entries().iter().all(|e| e["event"] != "connected"),
+        "{:?}",
+        robot.entries()
+    );
+    assert!(robot.moves().is_empty());
+}
+
 #[test]
 fn legacy_envelope_violation_moves_nothing() {
     envelope_violation("legacy");

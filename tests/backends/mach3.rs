@@ -489,6 +489,43 @@ fn losing_the_agent_mid_job_goes_offline_and_the_job_resumes_later(build: Build)
     drop(agent);
 }
 
+/// Mach3 cannot start a file at a line safely from outside (it does not rebuild the modal
+/// state at its Line DRO; its own Run from here needs the operator at its screen): a start at
+/// a line is refused `unsupported` with that reason, and Mach3 is sent nothing. The run it
+/// made is failed, and a resume of it is refused the same way (nothing of it ever ran).
+fn a_start_at_a_line_is_refused_unsupported_saying_why(build: Build) {
+    let agent = Agent::start(build, "127.0.0.1:0");
+    let s = Server::start();
+    let m = machine(&s, "mach3", &agent);
+    reset_to_idle(&s, m);
+    let job = s.upload(m, "jig", std::fs::read(corpus(PROGRAM)).unwrap())["id"]
+        .as_i64()
+        .unwrap();
+    let mut mach = agent.client();
+    let line_dro = dro(&mut mach, 816);
+    let msg = s
+        .post(
+            &format!("/api/v1/jobs/{job}/start"),
+            &json!({"from_line": 300}),
+        )
+        .expect_error(422, "unsupported");
+    assert!(
+        msg.contains("mach3-oem cannot start a program at a line safely")
+            && msg.contains("Run from here"),
+        "{msg}"
+    );
+    let j = s.job(job);
+    assert_eq!(j["state"], "failed", "{j}");
+    assert_eq!(j["run"]["from_line"], 300, "{j}");
+    assert_eq!(j["line"], 0, "{j}");
+    let msg = s.job_action(job, "resume").expect_error(422, "unsupported");
+    assert!(msg.contains("Run from here"), "{msg}");
+    // Mach3 got no program (its line DRO was not set) and ran nothing.
+    assert_eq!(dro(&mut mach, 816), line_dro);
+    assert!(!led(&mut mach, 804), "Mach3 is not running a program");
+    assert_eq!(s.status(m)["state"], "idle");
+}
+
 fn mach3_closing_shows_offline_with_that_reason_and_recovers(build: Build) {
     let agent = Agent::start(build, "127.0.0.1:0");
     let s = Server::start();
@@ -1134,6 +1171,7 @@ on_every_agent!(
     jog_zero_and_offsets_drive_mach3_dros_and_restore_the_distance_mode,
     a_program_runs_to_completion_with_progress_feed_hold_and_reset_toggles_right,
     losing_the_agent_mid_job_goes_offline_and_the_job_resumes_later,
+    a_start_at_a_line_is_refused_unsupported_saying_why,
     mach3_closing_shows_offline_with_that_reason_and_recovers,
     mdi_lines_restore_the_modal_state_and_outputs_switch,
     spindle_and_coolant_toggle_with_read_back_and_show_in_the_status,

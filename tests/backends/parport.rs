@@ -245,6 +245,54 @@ fn pause_resume_and_resume_after_a_crash_run_every_line_once() {
     s.wait_machine_state(m, "idle", T);
 }
 
+/// A start at a line on the LPT router: the preview plans up to the program's highest Z (the
+/// lift), across and down; the run executes lines N.. only and ends where the whole program
+/// ends.
+#[test]
+fn a_start_at_a_line_lifts_moves_across_and_runs_lines_n_on_only() {
+    let s = Server::start();
+    let m = parport_machine(&s, "from-line", json!({}));
+    s.wait_machine_state(m, "idle", T);
+    let program =
+        "G21 G90\nG0 Z5\nG0 X10 Y5\nG1 Z-1 F300\nG1 X20 Y10 F1200\nG2 X30 Y10 I5 J0\nG0 Z5\nM2\n";
+    let job = s.upload(m, "part.nc", program)["id"].as_i64().unwrap();
+    let p = s
+        .get(&format!("/api/v1/jobs/{job}/start-preview?from_line=5"))
+        .expect(200);
+    assert_eq!(p["safe_z"], 5.0, "{p}");
+    let gcode = p["gcode"].as_str().unwrap();
+    assert!(
+        gcode.contains("G53 G0 Z5\nG54\nM5\nM9\nG53 G0 X10 Y5\nG53 G1 Z-1 F300"),
+        "{gcode}"
+    );
+    let io = s.events(&format!("types=machine.io&machine={m}"), None);
+    let r = s
+        .post(
+            &format!("/api/v1/jobs/{job}/start"),
+            &json!({"from_line": 5}),
+        )
+        .expect(200);
+    let run = r["run"]["id"].as_i64().unwrap();
+    s.wait_job_state(job, "completed", T);
+    // The lift went up for the move across, down to the start point's Z, up again at line 7
+    // (without the preamble line 5 would start with the lift down, where it stood).
+    let mut lift = Vec::new();
+    io.until(T, "three lift changes", |e: &SseEvent| {
+        if let Some(on) = e.data["data"]["changed"]["z_lift"].as_bool() {
+            lift.push(on);
+        }
+        lift.len() == 3
+    });
+    assert_eq!(lift, [true, false, true]);
+    let log = read_exec_log(&s.data_dir().join("exec-from-line.log"));
+    let lines: Vec<i64> = log.iter().filter(|e| e.0 == run).map(|e| e.1).collect();
+    assert_eq!(lines, [5, 6, 7, 8]);
+    let st = s.wait_machine_state(m, "idle", T);
+    assert_eq!(axis(&st, "machine_position", "x"), 30.0);
+    assert_eq!(axis(&st, "machine_position", "y"), 10.0);
+    assert_eq!(axis(&st, "machine_position", "z"), 5.0);
+}
+
 /// Two steppers and a Z output have no A axis: a program that turns A is refused at job
 /// start naming the line, before any step (no line executed, the position unchanged).
 #[test]

@@ -1009,3 +1009,39 @@ fn the_hold_card_and_the_job_page_say_why_the_run_holds_and_what_goes_on() {
         "{result}"
     );
 }
+
+/// The job page's "Start at line…": the preview of the state and the preamble comes first (a
+/// line that cannot be started at shows why instead), and only then the start, which runs
+/// lines N.. of the program.
+#[test]
+fn the_job_page_previews_a_start_at_a_line_before_it_starts() {
+    let s = Server::start();
+    let m = s.sim("m", 0.0);
+    let program = "G21 G90\nG0 Z5\nG0 X10 Y10\nS1000 M3\nG1 Z-1 F200\nG1 X20\nG1 Y20\nM30\n";
+    let job = s.upload(m.id, "start-at", program)["id"].as_i64().unwrap();
+    let b = Browser::start();
+    b.goto(&format!("{}/#/jobs/{job}", s.base));
+    b.click("#start-at summary");
+    b.wait_enabled("#start-at-preview", T);
+    b.type_into("#start-line", "99");
+    b.click("#start-at-preview");
+    let refused = b.wait_text("#start-refusal", T);
+    assert!(refused.contains("start_past_end"), "{refused}");
+    assert!(b.js("return document.getElementById('start-at-go') === null;") == true);
+
+    b.type_into("#start-line", "6");
+    b.click("#start-at-preview");
+    let gcode = b.wait_text("#start-preview-gcode", T);
+    assert!(
+        gcode.contains("S1000 M3") && gcode.contains("G53 G0 X10 Y10\nG53 G1 Z-1 F200"),
+        "{gcode}"
+    );
+    b.screenshot("job-start-at-line");
+    assert_eq!(s.job(job)["state"], "ready", "the preview starts nothing");
+    b.wait_enabled("#start-at-go", T);
+    b.click("#start-at-go");
+    let j = s.wait_job_state(job, "completed", T);
+    assert_eq!(j["run"]["from_line"], 6, "{j}");
+    let run = j["run"]["id"].as_i64().unwrap();
+    assert_eq!(m.lines_of(run), vec![6, 7, 8]);
+}

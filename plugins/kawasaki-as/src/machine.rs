@@ -24,6 +24,15 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+/// Why kawasaki-as does not start a program at a line. The link to the robot opens only when a
+/// run starts (connecting ends the robot program's one session), so where the robot stands,
+/// where a safe approach must begin, is unknown when the program is checked against the
+/// envelope; and the spindle is switched by hand, so the robot cannot rebuild it.
+pub const NO_PREAMBLE: &str = "kawasaki-as cannot start a program at a line safely: the link to \
+    the robot opens only when the run starts, so where the robot stands (where an approach to \
+    the line must begin) cannot be checked against the envelope beforehand, and the spindle is \
+    switched by hand";
+
 /// Receives every event the machine emits, from any thread.
 pub type EventSink = Arc<dyn Fn(&Event) + Send + Sync>;
 /// Receives warnings for the host's log.
@@ -354,10 +363,7 @@ impl KawasakiMachine {
                 journal,
             });
         });
-        Ok(ProgramLoaded {
-            lines,
-            start_line: actual_line.min(lines.max(1)),
-        })
+        Ok(ProgramLoaded::new(lines, actual_line.min(lines.max(1))))
     }
 
     /// Connects, checks part zero and envelope, starts the robot program and the stream.
@@ -1110,7 +1116,11 @@ impl MachineBackend for KawasakiMachine {
         Ok(self.status_now())
     }
 
+    /// A start at a line (a preamble) is refused: see [`NO_PREAMBLE`].
     fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {
+        if p.preamble.is_some() {
+            return Err(PluginError::new("unsupported", NO_PREAMBLE));
+        }
         let tools =
             fresa_gcode::tool_table(p.tools.iter().map(|t| (t.tool, t.diameter_mm, t.length_mm)));
         // The converted program is kept whole (the run and resumes index its commands), about

@@ -22,6 +22,17 @@ use std::time::{Duration, Instant};
 
 pub type EventSink = Arc<dyn Fn(&Event) + Send + Sync>;
 
+/// Why mach3-oem does not start a program at a line. Mach3 is handed the file and starts it at
+/// its Line DRO without rebuilding the modal state of the lines before (units, distance mode,
+/// work offset, spindle), and its own "Run from here" (OEM button 1016) opens a dialog on
+/// Mach3's screen for the operator to confirm its preparatory move: from outside, Fresa can
+/// neither carry out a safe approach in Mach3's modal state nor confirm Mach3's.
+pub const NO_PREAMBLE: &str = "mach3-oem cannot start a program at a line safely: Mach3 starts a \
+    file at its Line DRO without rebuilding the modal state of the lines before (units, \
+    distance mode, work offset, spindle), and its own Run from here (OEM button 1016) asks the \
+    operator to confirm its preparatory move on Mach3's screen; use Run from here at the Mach3 \
+    PC instead";
+
 /// How long a started run may show no "running" LED before it counts as ended (Mach3 lights it
 /// a moment after cycle start; a very short program may also finish between two polls).
 const START_GRACE: Duration = Duration::from_secs(2);
@@ -1379,7 +1390,7 @@ impl Inner {
                 }]);
             }
         }
-        Ok(ProgramLoaded { lines, start_line })
+        Ok(ProgramLoaded::new(lines, start_line))
     }
 
     fn start(&self) -> Result<Value, PluginError> {
@@ -1629,7 +1640,11 @@ impl MachineBackend for Mach3Backend {
         Ok(self.inner.status())
     }
 
+    /// A start at a line (a preamble) is refused: see [`NO_PREAMBLE`].
     fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {
+        if p.preamble.is_some() {
+            return Err(PluginError::new("unsupported", NO_PREAMBLE));
+        }
         let tools =
             fresa_gcode::tool_table(p.tools.iter().map(|t| (t.tool, t.diameter_mm, t.length_mm)));
         let budget = p.max_segments.unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS);

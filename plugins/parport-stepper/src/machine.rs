@@ -62,6 +62,8 @@ pub struct Program {
     lines: u32,
     start: Start,
     start_line: u32,
+    /// What to do before `start_line` (checked at load).
+    preamble: Option<fresa_plugin_api::contract::Preamble>,
     tools: fresa_gcode::ToolTable,
     max_segments: u64,
     /// Length and end state of the plan, from the check.
@@ -495,14 +497,15 @@ impl Core {
         let (lines, start, start_line) = (p.lines, p.start, p.start_line);
         let (tools, max_segments) = (p.tools.clone(), p.max_segments);
         let piece = ticks_of(&self.cfg, PIECE);
+        let preamble = p.preamble.clone();
         self.planned(move |lane, machine, scale| {
             let reader = std::io::BufReader::with_capacity(1 << 16, file);
             let stream = ProgramStream::new(
                 machine,
                 reader,
-                lines,
+                (lines, start_line),
                 &start,
-                start_line,
+                preamble.as_ref(),
                 tools,
                 max_segments,
             )
@@ -712,11 +715,14 @@ impl MachineBackend for Stepper {
     fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {
         let kit = self.kit();
         let actual = kit.logged_start(p.run, p.start_line)?;
-        let start = {
+        let (start, pos) = {
             let sh = kit.lock();
             sh.require_still("load a program")?;
-            start(&sh)
+            (start(&sh), sh.pos)
         };
+        if let Some(pre) = &p.preamble {
+            kit.check_preamble(pos, pre)?;
+        }
         let (file, lines) = kit::open_program(&p.path)?;
         let tools = gcode_tools(&p.tools);
         let max_segments = p.max_segments.unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS);
@@ -731,9 +737,9 @@ impl MachineBackend for Stepper {
         let mut stream = ProgramStream::new(
             machine,
             reader,
-            lines,
+            (lines, actual),
             &start,
-            actual,
+            p.preamble.as_ref(),
             tools.clone(),
             max_segments,
         )
@@ -743,6 +749,8 @@ impl MachineBackend for Stepper {
                 "work_budget_exceeded"
             } else if m.contains("outside the travel") {
                 "out_of_travel"
+            } else if stream.start_refused() {
+                "start_refused"
             } else {
                 "invalid_program"
             };
@@ -758,11 +766,12 @@ impl MachineBackend for Stepper {
             lines,
             start,
             start_line: actual,
+            preamble: p.preamble.clone(),
             tools,
             max_segments,
             end: stream.end(),
         };
-        kit.install_plan(p.run, program, lines, p.start_line, actual)
+        kit.install_plan_with(p.run, program, (lines, p.start_line, actual), p.preamble)
     }
 
     fn reset(&self) -> Result<(), PluginError> {

@@ -7,7 +7,7 @@
 //! step counts. Z is a tool lift (on/off), not interpolated.
 
 use fresa_gcode::{budgeted, linearise, Budgeted, Interpreter, Linearise, Motion, WorkBudget};
-use fresa_plugin_api::contract::WorkOffset;
+use fresa_plugin_api::contract::{Preamble, PreambleStep, WorkOffset};
 use std::collections::VecDeque;
 use std::io::BufRead;
 
@@ -1125,9 +1125,9 @@ pub fn plan_program_with_tools(
     let mut stream = ProgramStream::new(
         machine,
         text.as_bytes(),
-        lines,
+        (lines, start_line),
         start,
-        start_line,
+        None,
         tools,
         fresa_gcode::DEFAULT_MAX_SEGMENTS,
     );
@@ -1160,15 +1160,20 @@ pub struct PlanEnd {
 
 /// A program planned as it is read: the items of [`plan_program`], in order, each timed on the
 /// plan's timeline, with memory bounded by the look-ahead whatever the program's length (its
-/// moves and arc chords within a work budget of `max_segments`). Lines before `start_line` are
-/// interpreted for their modal state but not executed. Ends after the first error (named by
-/// line; what was planned before it comes out first, ending at rest).
+/// moves and arc chords within a work budget of `max_segments`). The lines before where the
+/// program first runs `start_line` are interpreted for their modal state but not executed
+/// (`Interpreter::state_at`; a start there it refuses is the stream's error); a preamble's
+/// steps come first, as items of line 0. Ends after the first error (named by line; what was
+/// planned before it comes out first, ending at rest).
 pub struct ProgramStream<'m, R: BufRead> {
     machine: &'m Machine,
     motions: Linearise<Budgeted<Interpreter<R>>>,
     builder: Builder<'m>,
     lines: u32,
-    start_line: u32,
+    /// Past the last line (a run with every line done): interpreted, nothing run.
+    run_nothing: bool,
+    /// The error is the interpreter's refusal of the start line.
+    start_refused: bool,
     offsets: [[f64; 4]; 6],
     offsets_now: [f64; 4],
     tick: u64,
@@ -1179,12 +1184,13 @@ pub struct ProgramStream<'m, R: BufRead> {
 }
 
 impl<'m, R: BufRead> ProgramStream<'m, R> {
+    /// `(lines, start_line)`: the program's length and the line it starts from.
     pub fn new(
         machine: &'m Machine,
         reader: R,
-        lines: u32,
+        (lines, start_line): (u32, u32),
         start: &Start,
-        start_line: u32,
+        preamble: Option<&Preamble>,
         tools: fresa_gcode::ToolTable,
         max_segments: u64,
     ) -> ProgramStream<'m, R> {
@@ -1203,21 +1209,100 @@ impl<'m, R: BufRead> ProgramStream<'m, R> {
         for (i, o) in start.offsets.iter().enumerate() {
             config.work_offsets[i] = [o[0], o[1], o[2]];
         }
-        let interp = Interpreter::new(reader, config);
+        let mut interp = Interpreter::new(reader, config);
+        let run_nothing = start_line > lines;
+        let state = if start_line > 1 && !run_nothing {
+            Some(interp.state_at(start_line))
+        } else {
+            None
+        };
         let budget = WorkBudget::new(max_segments, ARC_TOLERANCE_MM);
-        ProgramStream {
+        let mut stream = ProgramStream {
             machine,
             motions: linearise(budgeted(interp, budget), ARC_TOLERANCE_MM),
             builder: Builder::new(machine, start),
             lines,
-            start_line,
+            run_nothing,
+            start_refused: false,
             offsets: start.offsets,
             offsets_now: off,
             tick: 0,
             error: None,
             done: false,
             piece_ticks: None,
+        };
+        let began = match state {
+            Some(Ok(state)) => {
+                // The work system the lines before left (no action: the preamble selects it).
+                if let Some(o) = offset_of(state.work_offset) {
+                    stream.offsets_now = stream.offsets[o.index()];
+                    stream.builder.offset = stream.offsets_now;
+                }
+                preamble.map_or(Ok(()), |p| stream.approach(p))
+            }
+            Some(Err(e)) => {
+                stream.start_refused = matches!(e, fresa_gcode::StartError::Refused(_));
+                Err(e.to_string())
+            }
+            None => Ok(()),
+        };
+        if let Err(e) = began {
+            stream.error = Some(e);
+            stream.done = true;
+            stream.builder.blender.flush();
         }
+        stream
+    }
+
+    /// Plans a preamble's steps (line 0: nothing is acknowledged for them). The machine has no
+    /// spindle or coolant output, so only its offset and moves do something here.
+    fn approach(&mut self, p: &Preamble) -> Result<(), String> {
+        for (i, step) in p.steps.iter().enumerate() {
+            match *step {
+                PreambleStep::Offset { offset } => {
+                    self.offsets_now = self.offsets[offset.index()];
+                    self.builder.use_offset(0, offset, &self.offsets);
+                }
+                PreambleStep::Move { feed, .. } => {
+                    let (steps, z) = self.builder.position();
+                    let here = [
+                        steps[0] as f64 / self.machine.axes[0].steps_per_mm,
+                        steps[1] as f64 / self.machine.axes[1].steps_per_mm,
+                        z,
+                        0.0,
+                    ];
+                    let Some(to) = step.target(here) else {
+                        continue;
+                    };
+                    if to[3] != 0.0 {
+                        return Err(format!(
+                            "preamble step {}: A{}: this machine has no A axis",
+                            i + 1,
+                            to[3]
+                        ));
+                    }
+                    // The approach's rapids and its feed down follow the overrides as the
+                    // program's own moves do.
+                    let pace = if feed.is_some() {
+                        Pace::Feed
+                    } else {
+                        Pace::Rapid
+                    };
+                    let feed = feed.or(Some(self.machine.rapid_mm_min));
+                    self.builder
+                        .move_to(0, [to[0], to[1]], to[2], feed, pace)
+                        .map_err(|e| format!("preamble step {}: {e}", i + 1))?;
+                }
+                PreambleStep::Spindle { .. } | PreambleStep::Coolant { .. } => {}
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether the stream's error is a start the interpreter refuses (see
+    /// `Interpreter::state_at`).
+    pub fn start_refused(&self) -> bool {
+        self.start_refused
     }
 
     /// Plans for the overrides `scale` (before the first item is taken).
@@ -1259,7 +1344,7 @@ impl<'m, R: BufRead> ProgramStream<'m, R> {
         if matches!(motion, Motion::Probe { .. }) {
             return Err(no_probing_in_programs(line));
         }
-        let run = line >= self.start_line;
+        let run = !self.run_nothing;
         let off = self.offsets_now;
         let b = &mut self.builder;
         match motion {
@@ -1391,6 +1476,15 @@ impl Retimable for PlanStream<'_> {
         self.builder.retime(scale);
         self.builder.blender.flush();
     }
+}
+
+/// The machine's work offset of work system `system` (1..6 = G54..G59); `None` for
+/// G59.1..G59.3, which it does not have.
+fn offset_of(system: u8) -> Option<WorkOffset> {
+    usize::from(system)
+        .checked_sub(1)
+        .and_then(|i| WorkOffset::ALL.get(i))
+        .copied()
 }
 
 /// Why a program that probes is refused whole here, before anything moves.
@@ -1960,6 +2054,81 @@ mod tests {
         assert_eq!(plan.end_steps, [280, 0]);
     }
 
+    /// A preamble comes first as items of line 0: the lift goes up before the XY move to the
+    /// start point and down after it (Z is not interpolated), then the program from its start
+    /// line; a step outside the travel, or one that turns an A axis, is the stream's error.
+    #[test]
+    fn a_preamble_is_planned_before_the_start_line() {
+        let mut m = machine();
+        m.travel = [Some((-100.0, 100.0)), None];
+        let text = "G21 G90\nG0 Z5\nG0 X10 Y5\nG1 Z-1 F300\nG1 X20\n";
+        let pre: Preamble = serde_json::from_value(serde_json::json!({
+            "line": 5, "from": {},
+            "steps": [{"step": "move", "z": 5}, {"step": "offset", "offset": "G54"},
+                      {"step": "spindle", "direction": "cw", "rpm": 1000},
+                      {"step": "move", "x": 10, "y": 5}, {"step": "move", "z": -1, "feed": 300}]
+        }))
+        .unwrap();
+        let lines = text.lines().count() as u32;
+        let stream = ProgramStream::new(
+            &m,
+            text.as_bytes(),
+            (lines, 5),
+            &start(),
+            Some(&pre),
+            Default::default(),
+            u64::MAX,
+        );
+        let items: Vec<Item> = stream.map(Result::unwrap).collect();
+        let kinds: Vec<(u32, &str)> = items
+            .iter()
+            .map(|i| {
+                let k = match &i.action {
+                    Action::Move(_) => "move",
+                    Action::Lift { on: true, .. } => "up",
+                    Action::Lift { on: false, .. } => "down",
+                    Action::UseOffset(_) => "offset",
+                    _ => "other",
+                };
+                (i.line, k)
+            })
+            .collect();
+        assert_eq!(
+            kinds,
+            vec![
+                (0, "up"),
+                (0, "offset"),
+                (0, "move"),
+                (0, "down"),
+                (5, "move")
+            ]
+        );
+        let far: Preamble = serde_json::from_value(serde_json::json!({
+            "line": 5, "from": {}, "steps": [{"step": "move", "x": 1000}]
+        }))
+        .unwrap();
+        let turn: Preamble = serde_json::from_value(serde_json::json!({
+            "line": 5, "from": {}, "steps": [{"step": "move", "a": 90}]
+        }))
+        .unwrap();
+        for (p, says) in [(far, "outside the travel"), (turn, "no A axis")] {
+            let mut stream = ProgramStream::new(
+                &m,
+                text.as_bytes(),
+                (lines, 5),
+                &start(),
+                Some(&p),
+                Default::default(),
+                u64::MAX,
+            );
+            let e = stream.find_map(Result::err).unwrap();
+            assert!(
+                e.starts_with("preamble step 1: ") && e.contains(says),
+                "{e}"
+            );
+        }
+    }
+
     /// The streaming planner against the whole-chain planner of before, item by item (bit for
     /// bit: the same floats come out of the same formulas).
     fn same_as_before(m: &Machine, text: &str, start: &Start, start_line: u32) {
@@ -2053,9 +2222,9 @@ mod tests {
         let mut stream = ProgramStream::new(
             &m,
             prog.as_bytes(),
-            lines,
+            (lines, 1),
             &start(),
-            1,
+            None,
             Default::default(),
             u64::MAX,
         );
@@ -2106,9 +2275,9 @@ mod tests {
         let mut s = ProgramStream::new(
             m,
             text.as_bytes(),
-            lines,
+            (lines, 1),
             &start(),
-            1,
+            None,
             Default::default(),
             u64::MAX,
         )

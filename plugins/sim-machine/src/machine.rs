@@ -7,8 +7,8 @@ use crate::config::{Config, Switch};
 use crate::program::{self, Plan, Refusal, Step};
 use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
 use fresa_plugin_api::contract::{
-    io, Axis, HoldKind, IoValue, MachineState, MachineStatus, OutputName, Overrides, Probe,
-    ProgramLoaded, ProgramTool, ToolChangeHold, ToolChangeSetup,
+    io, Axis, HoldKind, IoValue, MachineState, MachineStatus, OutputName, Overrides, Preamble,
+    PreambleStep, Probe, ProgramLoaded, ProgramTool, SpindleTurn, ToolChangeHold, ToolChangeSetup,
 };
 use fresa_plugin_api::exec_log::ExecLog;
 use fresa_plugin_api::kit::{
@@ -192,10 +192,10 @@ impl Core {
             let result = catch_unwind(AssertUnwindSafe(|| self.run_job(job)))
                 .unwrap_or_else(|_| Err(Interrupted::Failed("internal error (panic)".into())));
             self.kit.finish_job(run, result, |sh| {
-                // A program's end (M2/M30) or abort stops its spindle, as a controller's does.
+                // A program's end (M2/M30, the end of the file) or its abort stops the spindle
+                // and the coolant, as a controller does; G43 ends with it.
                 if run.is_some() {
-                    sh.outputs
-                        .insert(io::SPINDLE.to_string(), Some(IoValue::On(false)));
+                    sh.outputs.extend(off_outputs());
                     sh.extra.g43 = None;
                 }
             });
@@ -287,29 +287,36 @@ impl Core {
     fn run_program(&self, l: Loaded<Plan>) -> Result<(), Interrupted> {
         // A run's timeline starts with its first move.
         self.flow_start(false);
+        if l.start_line > l.plan.lines {
+            // Every line was done before (a resume after the last one): nothing to run.
+            return Ok(());
+        }
         // Interpreted again as it runs (it was checked whole at load): memory stays flat. No
         // step is interpreted ahead of the one running (a probe's result feeds the next).
         let failed = |e: fresa_gcode::GcodeError| Interrupted::Failed(e.to_string());
-        let mut steps = l.plan.steps().map_err(failed)?;
-        let mut ahead: Option<(u32, Step)> = None;
-        // Lines before the start line are interpreted but not executed: only their modal
+        // The lines before the start line are interpreted but not executed: only their modal
         // effects carry over (a probe among them keeps the interpreter's assumption).
-        for next in steps.by_ref() {
-            let (line, step) = next.map_err(failed)?;
-            if line >= l.start_line {
-                ahead = Some((line, step));
-                break;
+        let (state, mut steps) = l.plan.steps_from(l.start_line).map_err(|e| match e {
+            fresa_gcode::StartError::Gcode(e) => failed(e),
+            fresa_gcode::StartError::Refused(r) => Interrupted::Failed(r.to_string()),
+        })?;
+        self.kit.with(|sh, _| {
+            if let Some(o) = program::offset_of(state.work_offset) {
+                sh.active = o;
             }
-            self.kit.with(|sh, _| match step {
-                Step::Move { feed: Some(f), .. } => sh.feed = f,
-                Step::UseOffset(o) => sh.active = o,
-                Step::ToolLength(t) => {
-                    sh.extra.g43 = t;
-                    sh.tool_length_offset = t.map_or(0.0, |t| sh.extra.table_length(t));
-                }
-                _ => {}
-            });
+            if let Some(f) = state.feed_mm_min() {
+                sh.feed = f;
+            }
+            // G43 as the lines before the start left it.
+            sh.extra.g43 = state.tool_length_offset;
+            sh.tool_length_offset = state
+                .tool_length_offset
+                .map_or(0.0, |t| sh.extra.table_length(t));
+        });
+        if let Some(p) = &l.preamble {
+            self.run_preamble(l.run, p)?;
         }
+        let mut ahead: Option<(u32, Step)> = None;
         for line in l.start_line..=l.plan.lines {
             // No new line starts while held or after a stop, even one without motion.
             self.kit.line_gate()?;
@@ -352,6 +359,50 @@ impl Core {
             self.kit.lines_done(l.run, line..=line, Vec::new())?;
         }
         Ok(())
+    }
+
+    /// The preamble of a run that goes on from inside the program: each step in order (a
+    /// pause holds between steps and within a move, a stop ends it), each recorded in the
+    /// execution log as `{"run":R,"preamble_step":I,"step":{...},"from":[x,y,z,a],"to":[...]}`
+    /// (machine positions before and after it), so the approach can be checked afterwards.
+    fn run_preamble(&self, run: i64, p: &Preamble) -> Result<(), Interrupted> {
+        for (i, step) in p.steps.iter().enumerate() {
+            self.kit.line_gate()?;
+            let from = self.kit.lock().pos;
+            match *step {
+                PreambleStep::Offset { offset } => self.kit.with(|sh, ev| {
+                    if sh.active != offset {
+                        sh.active = offset;
+                        sh.push_status(ev);
+                    }
+                }),
+                PreambleStep::Spindle { direction, .. } => {
+                    self.set_output(io::SPINDLE, direction != SpindleTurn::Off)
+                }
+                PreambleStep::Coolant { flood, .. } => self.set_output(io::COOLANT_FLOOD, flood),
+                PreambleStep::Move { feed, .. } => {
+                    let Some(to) = step.target(from) else {
+                        continue;
+                    };
+                    self.check(to)?;
+                    match feed {
+                        Some(f) => self.move_to(to, f, Pace::Feed, false)?,
+                        None => self.move_to(to, self.cfg.rapid_mm_min, Pace::Rapid, false)?,
+                    }
+                }
+            }
+            let to = self.kit.lock().pos;
+            self.kit.log_record(&json!({
+                "run": run, "preamble_step": i + 1, "step": step, "from": from, "to": to,
+            }))?;
+        }
+        Ok(())
+    }
+
+    /// Switches one of the simulated outputs (spindle, flood coolant); the change shows at once.
+    fn set_output(&self, key: &str, on: bool) {
+        self.kit
+            .with(|sh, ev| sh.set_io([], [(key.to_string(), Some(IoValue::On(on)))], ev));
     }
 
     /// A probing move of a program (G38.2-G38.5), in program coordinates: what it found, for
@@ -454,9 +505,7 @@ impl Core {
                 Ok(())
             }
             Step::Spindle(on) => {
-                self.kit.with(|sh, ev| {
-                    sh.set_io([], [(io::SPINDLE.to_string(), Some(IoValue::On(on)))], ev)
-                });
+                self.set_output(io::SPINDLE, on);
                 Ok(())
             }
             Step::UseOffset(o) => {
@@ -466,6 +515,10 @@ impl Core {
                         sh.push_status(ev);
                     }
                 });
+                Ok(())
+            }
+            Step::Coolant { flood } => {
+                self.set_output(io::COOLANT_FLOOD, flood);
                 Ok(())
             }
             // Taken apart by `run_program` (a probe's result feeds the interpreter; pauses
@@ -841,17 +894,19 @@ impl MachineBackend for SimMachine {
     fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {
         let kit = self.kit();
         let start = kit.logged_start(p.run, p.start_line)?;
-        let (work, offsets, active, a) = {
+        let (work, offsets, active, pos) = {
             let sh = kit.lock();
             sh.require_still("load a program")?;
             let st = sh.status();
-            (
-                st.work_position.to_array(),
-                sh.offsets,
-                sh.active,
-                sh.pos[3],
-            )
+            (st.work_position.to_array(), sh.offsets, sh.active, sh.pos)
         };
+        // The preamble's moves are checked with the program's: the A axis the program starts
+        // from is where the approach leaves it.
+        let approach = match &p.preamble {
+            Some(pre) => kit.check_preamble(pos, pre)?,
+            None => Vec::new(),
+        };
+        let a = approach.last().map_or(pos[3], |m| m.0[3]);
         let (file, lines) = kit::open_program(&p.path)?;
         let xyz = offsets.map(|o| [o[0], o[1], o[2]]);
         let tools =
@@ -862,7 +917,7 @@ impl MachineBackend for SimMachine {
         let plan = program::plan_file(file, lines, work, xyz, tools, budget)
             .with_run_options(p.optional_stop, p.tool_change);
         let has_probe = self.core.cfg.switches.iter().any(|s| s.name == io::PROBE);
-        plan.check(&offsets, active, a, has_probe, |p| {
+        plan.check((&offsets, active), a, has_probe, start, |p| {
             self.core.cfg.check_travel(p)
         })
         .map_err(|r| match r {
@@ -879,8 +934,10 @@ impl MachineBackend for SimMachine {
             ),
             Refusal::Gcode(e) => PluginError::new("invalid_program", e.to_string()),
             Refusal::Travel(m) => PluginError::new("out_of_travel", m),
+            Refusal::Start(r) => PluginError::new("start_refused", r.to_string()),
         })?;
-        let loaded = kit.install_plan(p.run, plan, lines, p.start_line, start)?;
+        let loaded =
+            kit.install_plan_with(p.run, plan, (lines, p.start_line, start), p.preamble)?;
         kit.with(|sh, _| sh.extra.table = table);
         Ok(loaded)
     }
@@ -983,10 +1040,12 @@ impl MachineBackend for SimMachine {
         for step in plan.steps().map_err(invalid)? {
             let (_, step) = step.map_err(invalid)?;
             match step {
-                // Passed over in MDI, as before tool changes and G43 were simulated.
+                // Passed over in MDI, as before tool changes and G43 were simulated; an MDI
+                // line does not switch the simulated outputs (set_output does).
                 Step::ToolChange(_)
                 | Step::ToolLength(_)
                 | Step::Spindle(_)
+                | Step::Coolant { .. }
                 | Step::Pause { optional: true, .. } => {}
                 Step::Move { to, a: to_a, feed } => {
                     let target = program::machine_target(to, to_a, &offsets[active.index()], a);

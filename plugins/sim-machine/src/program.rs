@@ -1,7 +1,10 @@
 //! A loaded program: checked whole at load, then interpreted again as it runs, step by step, so
 //! memory does not grow with the program (or with one huge arc).
 
-use fresa_gcode::{budgeted, linearise, Budgeted, GcodeError, Interpreter, Linearise, Motion};
+use fresa_gcode::{
+    budgeted, linearise, Budgeted, GcodeError, Interpreter, Linearise, ModalState, Motion,
+    SpindleDirection, StartError,
+};
 use fresa_plugin_api::contract::WorkOffset;
 use std::io::{BufRead, Seek};
 
@@ -30,10 +33,12 @@ pub enum Step {
     ToolChange(u32),
     /// G43 H (the tool whose length applies) or G49 (`None`).
     ToolLength(Option<u32>),
-    /// M3/M4 (`true`) or M5.
-    Spindle(bool),
     /// G54..G59 in the program: later moves use this offset.
     UseOffset(WorkOffset),
+    /// M3/M4 (true) or M5: the spindle output.
+    Spindle(bool),
+    /// M7/M8/M9: the flood coolant output (the simulated machine has no mist output).
+    Coolant { flood: bool },
     /// G38.2-G38.5: probe toward `to` (program coordinates) at `feed` until the probe closes
     /// (`contact`) or opens; `must_trip`: ending without that is an error of the run. The
     /// result goes back with [`Steps::probe_result`] before the next step is taken.
@@ -76,6 +81,8 @@ pub enum Refusal {
     NoProbe(u32),
     /// A move outside the travel: `line L: message`.
     Travel(String),
+    /// The program cannot start at the line asked for (see `Interpreter::state_at`).
+    Start(fresa_gcode::StartRefusal),
 }
 
 /// The steps of a [`Plan`] in execution order, each with its 1-based source line (<= `lines`).
@@ -151,15 +158,14 @@ fn step_of(motion: Motion) -> Option<Step> {
         } => Step::Pause { optional, message },
         Motion::ToolChange { tool, .. } => Step::ToolChange(tool),
         Motion::ToolLengthOffset { tool, .. } => Step::ToolLength(tool),
-        Motion::Spindle { direction, .. } => {
-            Step::Spindle(direction != fresa_gcode::SpindleDirection::Off)
-        }
         Motion::WorkOffset {
             system: system @ 1..=6,
             ..
         } => Step::UseOffset(WorkOffset::ALL[usize::from(system) - 1]),
-        // Coolant, messages, other work offset systems and the end of the program do not move
-        // the simulated machine.
+        Motion::Spindle { direction, .. } => Step::Spindle(direction != SpindleDirection::Off),
+        Motion::Coolant { flood, .. } => Step::Coolant { flood },
+        // Messages, other work offset systems and the end of the program do not move the
+        // simulated machine.
         _ => return None,
     };
     Some(step)
@@ -251,6 +257,19 @@ impl Plan {
 
     /// The steps from the start of the program, interpreted as they are taken.
     pub fn steps(&self) -> Result<Steps<'_>, GcodeError> {
+        Ok(self.steps_with(self.interpreter()?))
+    }
+
+    /// The steps from where the program first runs `line`, the lines before it interpreted for
+    /// their modal state only (see `Interpreter::state_at`), and that state.
+    pub fn steps_from(&self, line: u32) -> Result<(ModalState, Steps<'_>), StartError> {
+        let mut interp = self.interpreter()?;
+        let state = interp.state_at(line)?;
+        Ok((state, self.steps_with(interp)))
+    }
+
+    /// A new interpreter of the program, from its first line.
+    fn interpreter(&self) -> Result<Interpreter<Box<dyn BufRead + '_>>, GcodeError> {
         let reader: Box<dyn BufRead + '_> = match &self.source {
             Source::File(f) => {
                 let mut f = f;
@@ -264,36 +283,49 @@ impl Plan {
             }
             Source::Text(t) => Box::new(t.as_bytes()),
         };
-        let interp = Interpreter::new(reader, self.config.clone());
-        let budget = fresa_gcode::WorkBudget::new(self.max_segments, ARC_TOLERANCE_MM);
-        Ok(Steps {
-            motions: linearise(budgeted(interp, budget), ARC_TOLERANCE_MM),
-            lines: self.lines,
-        })
+        Ok(Interpreter::new(reader, self.config.clone()))
     }
 
-    /// Interprets the whole program once and checks every move against `check` (given machine
-    /// coordinates), using `offsets` (the machine origins of G54..G59) starting in `active`.
-    /// A G-code error anywhere wins over a move outside the travel (as when the program was
-    /// interpreted whole before its moves were checked).
+    /// The steps of `interp` from here, within the work budget.
+    fn steps_with<'a>(&self, interp: Interpreter<Box<dyn BufRead + 'a>>) -> Steps<'a> {
+        let budget = fresa_gcode::WorkBudget::new(self.max_segments, ARC_TOLERANCE_MM);
+        Steps {
+            motions: linearise(budgeted(interp, budget), ARC_TOLERANCE_MM),
+            lines: self.lines,
+        }
+    }
+
+    /// Interprets the whole program once and checks every move from where it first runs
+    /// `from_line` on against `check` (given machine coordinates), using `offsets` (the
+    /// machine origins of G54..G59) starting in `active` (the lines before `from_line` only
+    /// change the modal state, see `Interpreter::state_at`; a start there it refuses is
+    /// refused). A G-code error anywhere wins over a move outside the travel (as when the
+    /// program was interpreted whole before its moves were checked).
     /// A probing move is checked for its whole distance (it may trip anywhere along it, or not
     /// at all); the moves after it as if it ran its whole way (they may depend on its result);
     /// without a probe input (`has_probe`) the first one refuses the program.
     pub fn check(
         &self,
-        offsets: &[[f64; 4]; 6],
-        active: WorkOffset,
+        (offsets, active): (&[[f64; 4]; 6], WorkOffset),
         start_a: f64,
         has_probe: bool,
+        from_line: u32,
         check: impl Fn([f64; 4]) -> Result<(), String>,
     ) -> Result<(), Refusal> {
-        let mut current = active;
+        if from_line > self.lines {
+            return Ok(());
+        }
+        let (state, steps) = self.steps_from(from_line).map_err(|e| match e {
+            StartError::Gcode(e) => Refusal::Gcode(e),
+            StartError::Refused(r) => Refusal::Start(r),
+        })?;
+        let mut current = offset_of(state.work_offset).unwrap_or(active);
         let mut machine_a = start_a;
         let mut outside = None;
-        // G43: the tool length in force, and the tool it is of (a tool change under G43 puts
-        // the new tool's in force at cycle start).
-        let mut tlo: Option<u32> = None;
-        for step in self.steps().map_err(Refusal::Gcode)? {
+        // G43: the tool length in force (from the lines before the start too), and the tool
+        // it is of (a tool change under G43 puts the new tool's in force at cycle start).
+        let mut tlo: Option<u32> = state.tool_length_offset;
+        for step in steps {
             let (line, step) = step.map_err(Refusal::Gcode)?;
             if outside.is_some() {
                 continue;
@@ -346,6 +378,15 @@ pub fn with_tool_length(offset: &[f64; 4], tool_length: f64) -> [f64; 4] {
     let mut o = *offset;
     o[2] += tool_length;
     o
+}
+
+/// The machine's work offset of work system `system` (1..6 = G54..G59); `None` for
+/// G59.1..G59.3, which it does not have.
+pub fn offset_of(system: u8) -> Option<WorkOffset> {
+    usize::from(system)
+        .checked_sub(1)
+        .and_then(|i| WorkOffset::ALL.get(i))
+        .copied()
 }
 
 /// Machine coordinates of program point `to` (and program A `a`, when the move turns A)
@@ -455,10 +496,10 @@ mod tests {
         };
         let check = |text: &str| {
             plan(text, [0.0; 4], [[0.0; 3]; 6], Default::default()).check(
-                &offsets,
-                WorkOffset::G54,
+                (&offsets, WorkOffset::G54),
                 0.0,
                 true,
+                1,
                 travel,
             )
         };

@@ -445,6 +445,154 @@ fn resume_from_line_skips_earlier_lines_but_keeps_modal_state() {
     assert!(close(st.feed, 254.0), "{st:?}");
 }
 
+/// A start inside the program with a preamble: the steps run in order before the start line
+/// (each recorded in the execution log with where the machine was before and after it), then
+/// the lines from the start on; the spindle and coolant it switched on go off at the end.
+#[test]
+fn a_preamble_runs_before_the_start_line_and_is_logged() {
+    let log = temp_path("exec.log");
+    let rig = machine(json!({"time_scale": 0, "execution_log": log, "travel": {"z": [-50, 50]}}));
+    let path = program("G21 G90\nG0 X10 Y5 Z5\nM3 S1000 M8\nG1 Z-1 F300\nG1 X20\nG1 Y10\nM5 M9\n");
+    let preamble = json!({
+        "line": 5,
+        "from": {"x": 0, "y": 0, "z": 0, "a": 0},
+        "steps": [
+            {"step": "move", "z": 5},
+            {"step": "offset", "offset": "G54"},
+            {"step": "spindle", "direction": "cw", "rpm": 1000},
+            {"step": "coolant", "mist": false, "flood": true},
+            {"step": "move", "x": 10, "y": 5},
+            {"step": "move", "z": -1, "feed": 300},
+        ]
+    });
+    let loaded = rig.call(
+        json!({"op":"load_program","run":21,"path":path,"start_line":5,
+                                 "preamble": preamble}),
+    );
+    assert_eq!(
+        loaded,
+        json!({"lines": 7, "start_line": 5, "preamble": true})
+    );
+    rig.call(json!({"op":"run","action":"start"}));
+    let (events, outcome, message) = rig.until_run_ended(21);
+    assert_eq!(outcome, RunOutcome::Completed, "{message:?}");
+    assert_eq!(acks(&events, 21), vec![5, 6, 7]);
+    // The spindle and coolant were on while it cut, and are off at the end.
+    let lit = events.iter().any(|e| {
+        matches!(e, Event::Status(s) if s.outputs.get("spindle") == Some(&Some(IoValue::On(true)))
+            && s.outputs.get("coolant_flood") == Some(&Some(IoValue::On(true))))
+    });
+    assert!(lit, "{events:?}");
+    let st = rig.status();
+    assert_eq!(st.outputs.get("spindle"), Some(&Some(IoValue::On(false))));
+    assert_eq!(st.machine_position.to_array(), [20.0, 10.0, -1.0, 0.0]);
+    let records: Vec<Value> = std::fs::read_to_string(&log)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let steps: Vec<&Value> = records
+        .iter()
+        .filter(|r| r.get("preamble_step").is_some())
+        .collect();
+    assert_eq!(steps.len(), 6, "{records:?}");
+    assert_eq!(steps[0]["from"], json!([0.0, 0.0, 0.0, 0.0]));
+    assert_eq!(steps[0]["to"], json!([0.0, 0.0, 5.0, 0.0]));
+    assert_eq!(steps[4]["to"], json!([10.0, 5.0, 5.0, 0.0]));
+    assert_eq!(steps[5]["to"], json!([10.0, 5.0, -1.0, 0.0]));
+    // The preamble comes first, then the lines from the start on; resume still reads the
+    // lines only.
+    let first_line = records
+        .iter()
+        .position(|r| r.get("line").is_some())
+        .unwrap();
+    assert!(records[..first_line]
+        .iter()
+        .all(|r| r.get("preamble_step").is_some()));
+}
+
+/// A preamble is refused before anything is loaded when the machine is not where it was
+/// planned from or one of its moves leaves the travel; one planned for another line than the
+/// execution log makes the run start from is kept but refused at start.
+#[test]
+fn a_preamble_is_checked_before_it_is_accepted() {
+    let log = temp_path("exec.log");
+    let cfg = json!({"time_scale": 0, "execution_log": log, "travel": {"z": [-50, 50]}});
+    let rig = machine(cfg);
+    let path = program("G0 X1\nG0 X2\nG0 X3\nG0 X4\n");
+    let load = |preamble: Value, run: i64, start: u32| {
+        rig.m.request(
+            json!({"op":"load_program","run":run,"path":path,"start_line":start,
+                              "preamble": preamble}),
+        )
+    };
+    let moved = json!({"line": 2, "from": {"x": 5}, "steps": []});
+    assert_eq!(load(moved, 30, 2).unwrap_err().code, "machine_moved");
+    let high = json!({"line": 2, "from": {}, "steps": [{"step": "move", "z": 60}]});
+    let e = load(high, 30, 2).unwrap_err();
+    assert_eq!(e.code, "out_of_travel");
+    assert!(e.message.contains("preamble step 1"), "{e}");
+    let bad = json!({"line": 2, "from": {}, "steps": [{"step": "move", "z": 1, "feed": 0}]});
+    assert_eq!(load(bad, 30, 2).unwrap_err().code, "invalid_request");
+
+    // Lines 1 and 2 of run 31 are in the log: a preamble for line 2 does not lead to line 3.
+    rig.call(json!({"op":"load_program","run":31,"path":path,"start_line":1}));
+    rig.call(json!({"op":"run","action":"start"}));
+    rig.until_run_ended(31);
+    let text: String = std::fs::read_to_string(&log)
+        .unwrap()
+        .lines()
+        .filter(|l| !l.contains("\"line\":3") && !l.contains("\"line\":4"))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    std::fs::write(&log, text).unwrap();
+    let rig = machine(json!({"time_scale": 0, "execution_log": log}));
+    let here = rig.status().machine_position;
+    let for_2 = json!({"line": 2, "from": here, "steps": [{"step": "move", "x": 1}]});
+    let loaded = rig.call(
+        json!({"op":"load_program","run":31,"path":path,"start_line":2,
+                                 "preamble": for_2}),
+    );
+    assert_eq!(loaded, json!({"lines": 4, "start_line": 3}));
+    let e = rig
+        .m
+        .request(json!({"op":"run","action":"start"}))
+        .unwrap_err();
+    assert_eq!(e.code, "start_line_moved");
+    assert!(e.message.contains("line 3"), "{e}");
+    assert_eq!(rig.status().state, MachineState::Idle, "nothing moved");
+    // With every line logged there is nothing to approach: the preamble is dropped and the
+    // run completes at once.
+    let all = std::fs::read_to_string(&log).unwrap()
+        + "{\"run\":31,\"line\":3}\n{\"run\":31,\"line\":4}\n";
+    std::fs::write(&log, all).unwrap();
+    let rig = machine(json!({"time_scale": 0, "execution_log": log}));
+    let here = rig.status().machine_position;
+    let for_3 = json!({"line": 3, "from": here, "steps": [{"step": "move", "x": 1}]});
+    let loaded = rig.call(
+        json!({"op":"load_program","run":31,"path":path,"start_line":3,
+                                 "preamble": for_3}),
+    );
+    assert_eq!(loaded, json!({"lines": 4, "start_line": 5}));
+    rig.call(json!({"op":"run","action":"start"}));
+    let (events, outcome, _) = rig.until_run_ended(31);
+    assert_eq!(outcome, RunOutcome::Completed);
+    assert!(acks(&events, 31).is_empty());
+    assert_eq!(rig.status().machine_position, here, "nothing moved");
+
+    // A start the interpreter refuses (inside a loop) is refused at load.
+    let looped = program("#1=0\no1 while [#1 LT 2]\nG0 X[#1]\n#1=[#1+1]\no1 endwhile\n");
+    let e = rig
+        .m
+        .request(json!({"op":"load_program","run":32,"path":looped,"start_line":3}))
+        .unwrap_err();
+    assert_eq!(e.code, "start_refused");
+    assert!(
+        e.message.starts_with("line 3: ") && e.message.contains("loop"),
+        "{e}"
+    );
+}
+
 #[test]
 fn resume_is_idempotent_with_the_execution_log() {
     let log = temp_path("exec.log");

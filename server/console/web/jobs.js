@@ -79,6 +79,53 @@ async function control(id, action, body) {
   }
 }
 
+// --- Start at a line (issue 26) ---------------------------------------------------------------
+// "Start at line…" asks for a line, shows what the server would do from where the machine stands
+// (GET /jobs/{id}/start-preview: the modal state the lines before it leave and the preamble that
+// brings the machine there), and only then offers to start there. A start that cannot be made is
+// shown with its reason and line, and nothing is offered.
+
+function startAtLine(j, after) {
+  const box = h('div', { class: 'start-at', id: 'start-at' });
+  const input = h('input', { type: 'number', id: 'start-line', min: 1, max: j.line_count, step: 1,
+    value: Math.min(j.line_count, Math.max(1, (j.line || 0) + 1)), 'aria-label': 'line to start at', dataset: { need: 'operator' } });
+  const result = h('div', { id: 'start-preview' });
+  const active = ['running', 'paused'].includes(j.state);
+  const preview = async () => {
+    const line = Number(input.value);
+    result.replaceChildren(h('p', { class: 'muted' }, `Planning the start at line ${line}…`));
+    try {
+      const p = await api('GET', `/jobs/${j.id}/start-preview?from_line=${line}`);
+      const st = p.state;
+      const s = p.start;
+      const go = h('button', { class: 'danger', id: 'start-at-go', dataset: { need: 'motion', off: active ? '1' : '0' },
+        onclick: (e) => act(e.currentTarget, () => api('POST', `/jobs/${j.id}/start`, { from_line: line }), `started at line ${line}`)
+          .then(() => { result.replaceChildren(); after(); }).catch(() => {}) }, `Start at line ${line}`);
+      result.replaceChildren(
+        h('table', {}, [
+          ['Start point (machine)', `X ${s.x.toFixed(3)} · Y ${s.y.toFixed(3)} · Z ${s.z.toFixed(3)} · A ${s.a.toFixed(3)}`],
+          ['Safe Z (machine)', p.safe_z.toFixed(3) + ' mm'],
+          ['Down at', p.approach_feed_mm_min.toFixed(0) + ' mm/min'],
+          ['Tool', `T${st.tool_in_spindle} in the spindle` + (st.tool_length_offset === null ? ', no length offset' : `, G43 H${st.tool_length_offset}`)],
+          ['Spindle / coolant', `${st.spindle} ${st.rpm} rpm · ${st.flood ? 'flood' : ''}${st.mist ? ' mist' : ''}${!st.flood && !st.mist ? 'off' : ''}`],
+        ].map(([k, v]) => h('tr', {}, h('th', {}, k), h('td', {}, v)))),
+        h('p', { class: 'muted small' }, 'What the machine does first, then line ' + line + ' and the rest of the program:'),
+        h('pre', { class: 'gcode', id: 'start-preview-gcode' }, p.gcode),
+        h('div', { class: 'row' }, go));
+      gate(result);
+    } catch (e) {
+      result.replaceChildren(h('p', { class: 'error', id: 'start-refusal' }, errorText(e)));
+    }
+  };
+  box.append(h('details', {}, h('summary', {}, 'Start at line…'),
+    h('div', { class: 'row' }, h('label', {}, 'Line ', input),
+      h('button', { id: 'start-at-preview', dataset: { need: 'operator' }, onclick: preview }, 'Preview')),
+    result));
+  return box;
+}
+
+// --- end of start at a line ----------------------------------------------------------------------
+
 async function detail(page, id, events) {
   const j = await api('GET', `/jobs/${id}`);
   const info = h('div');
@@ -95,7 +142,8 @@ async function detail(page, id, events) {
       cur.hold ? h('p', { id: 'job-hold', class: 'hold-reason' }, `Held: ${holdText(cur.hold)} — ${continueLabel(cur.hold)} goes on`,
         cur.hold.blocked ? h('span', { class: 'error' }, ` (${cur.hold.blocked})`) : '') : '',
       h('progress', { max: 100, value: cur.percent, id: 'job-progress' }),
-      runButtons(cur, refresh));
+      runButtons(cur, refresh),
+      startAtLine(cur, refresh));
     gate(info);
     preview.setProgress(cur.line);
   };

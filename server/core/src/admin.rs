@@ -30,6 +30,9 @@ pub struct NewMachine {
     /// The overrides an operator may set (default feed 10-200 %, spindle 50-150 %, rapid
     /// 25-100 %).
     pub override_limits: Option<limits::OverrideLimits>,
+    /// The machine Z (machine coordinates, mm) a start at a line goes up to at least before
+    /// it moves across (default: none, see `crate::start_at`).
+    pub safe_z_mm: Option<f64>,
 }
 
 /// Creates a machine: checks the fields, lets the backend judge its config (the instance it
@@ -62,6 +65,18 @@ pub async fn create_machine(app: &App, req: NewMachine, actor: &str) -> Result<i
     )?;
     let override_limits = req.override_limits.unwrap_or_default();
     override_limits.check_configured()?;
+    if let Some(z) = req
+        .safe_z_mm
+        .filter(|z| !(z.is_finite() && z.abs() <= fresa_gcode::MAX_COORDINATE_MM))
+    {
+        return Err(Error::invalid(
+            "invalid_field",
+            format!(
+                "field `safe_z_mm` must be a machine Z within ±{} mm, got {z}",
+                fresa_gcode::MAX_COORDINATE_MM
+            ),
+        ));
+    }
     let Some(lib) = app.plugins.get(&req.backend) else {
         return Err(Error::invalid(
             "unknown_backend",
@@ -96,6 +111,9 @@ pub async fn create_machine(app: &App, req: NewMachine, actor: &str) -> Result<i
         )
         .await
         .map_err(|e| Error::insert_failed(e, "machine", name))?;
+    if req.safe_z_mm.is_some() {
+        app.store.set_machine_safe_z(id, req.safe_z_mm).await?;
+    }
     let row = app
         .store
         .machine(id)

@@ -358,9 +358,61 @@ async fn load_job(app: &App, job_id: i64) -> Result<(JobRow, Arc<Machine>)> {
 // Run control is the machine's: these find the job's machine and ask its task.
 
 pub async fn start(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
+    start_from(app, job_id, None, actor).await
+}
+
+/// Starts the job from `from_line` (`None`: its first line): the lines before it are
+/// interpreted without motion and the machine is brought to their modal state and the start
+/// point first (see [`crate::start_at`]); a start that cannot be made safely is refused naming
+/// the reason and the line, and creates no run.
+pub async fn start_from(
+    app: &App,
+    job_id: i64,
+    from_line: Option<u32>,
+    actor: &str,
+) -> Result<RunRow> {
     let (job, machine) = load_job(app, job_id).await?;
+    if let Some(n) = from_line {
+        check_start_line(&job, n)?;
+    }
     crate::run_settings::check_start(app, &job).await?;
-    machine.start_job(job, actor).await
+    machine.start_job_from(job, from_line, actor).await
+}
+
+/// What a start at `from_line` would do, from where the machine stands now (`GET
+/// /jobs/{id}/start-preview`): the modal state the lines before it leave and the preamble.
+/// Moves nothing and records nothing.
+pub async fn start_preview(
+    app: &App,
+    job_id: i64,
+    from_line: u32,
+) -> Result<crate::start_at::StartPlan> {
+    let (job, machine) = load_job(app, job_id).await?;
+    check_start_line(&job, from_line)?;
+    let path =
+        crate::programs::local_copy(&app.store, &app.settings.programs_dir(), &job.sha256).await?;
+    let setup = crate::start_at::setup(&app.store, &machine.row(), &machine.status()).await?;
+    crate::start_at::plan(path, from_line, setup).await
+}
+
+/// A start line the job has: 1..=its line count.
+fn check_start_line(job: &JobRow, line: u32) -> Result<()> {
+    if line == 0 {
+        return Err(Error::invalid(
+            "invalid_field",
+            "field `from_line` is 1-based: 0 is not a line",
+        ));
+    }
+    if i64::from(line) > job.line_count {
+        return Err(crate::start_at::refused(
+            fresa_gcode::StartRefusalReason::PastEnd,
+            format!(
+                "line {line}: past the end of the program ({} lines)",
+                job.line_count
+            ),
+        ));
+    }
+    Ok(())
 }
 
 pub async fn pause(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {

@@ -13,6 +13,7 @@
 //!   bridge (crate `fresa-integrations`) count, for `/metrics`.
 //! * [`nodes`]: several nodes on one store: which node drives a machine, heartbeats.
 //! * [`admin`]: creating machines and pendants, moving them between nodes, part zeros.
+//! * [`start_at`]: a start at a line (and a resume): the state before it and the preamble.
 //! * [`app`]: the whole; `startup`: its start-up and shutdown. [`error`]: the core's errors.
 
 pub mod admin;
@@ -31,6 +32,7 @@ pub mod plugins;
 pub mod previews;
 pub mod programs;
 pub mod run_settings;
+pub mod start_at;
 mod startup;
 pub mod store;
 pub mod tool_setter;

@@ -93,6 +93,8 @@ pub struct MachineView {
     pub max_probe_feed_mm_min: f64,
     /// The overrides an operator may set, percent.
     pub override_limits: crate::machine::limits::OverrideLimits,
+    /// The machine Z a start at a line goes up to at least (machine coordinates, mm).
+    pub safe_z_mm: Option<f64>,
     pub state: MachineState,
     /// Why the machine is offline or unresponsive, when it is.
     pub reason: Option<String>,
@@ -114,6 +116,7 @@ impl MachineView {
             max_feed_mm_min: row.max_feed_mm_min,
             max_probe_feed_mm_min: row.max_probe_feed_mm_min,
             override_limits: limits,
+            safe_z_mm: row.safe_z_mm,
             state: status.state,
             reason: status.reason,
             created_at: row.created_at,

@@ -48,7 +48,11 @@ async fn target_machine(app: &SharedApp, method: &Method, path: &str) -> Option<
     match parts.as_slice() {
         // `node` is the store's business: any node moves a machine.
         ["machines", id, sub, ..] if *sub != "node" => id.parse().ok(),
-        ["jobs", id, action] if method == Method::POST && *action != "toolpath" => {
+        // A start preview plans from where the machine stands: its node knows.
+        ["jobs", id, action]
+            if (method == Method::POST && *action != "toolpath")
+                || (method == Method::GET && *action == "start-preview") =>
+        {
             let id: i64 = id.parse().ok()?;
             // Guarded, with the running job known from memory: during a database outage a
             // pause or cancel must not wait for the pool's timeout here.

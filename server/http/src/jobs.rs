@@ -289,6 +289,34 @@ async fn check_machine(app: &SharedApp, machine: Option<i64>) -> Result<(), ApiE
     Ok(())
 }
 
+/// Optional body of `POST /jobs/{id}/start`.
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct StartBody {
+    #[serde(default)]
+    from_line: Option<u32>,
+}
+
+/// The optional body of run control: `from_line` for `start`, `confirm_part_zero` and
+/// `confirm_line` for `resume` (each refuses the other's fields).
+#[derive(ToSchema)]
+#[allow(dead_code)] // describes the JSON `control` reads per action
+pub struct ControlBody {
+    /// `start` only: start at this line (1-based). The lines before it are interpreted without
+    /// motion, then the machine is brought to their modal state (work offset, spindle,
+    /// coolant) and start point: up to a safe Z, across at rapid, down at feed (see
+    /// `GET /jobs/{id}/start-preview`). Refused, naming the reason and the line, inside an
+    /// O-word loop or subroutine, under cutter compensation, on a canned cycle with L > 1, past
+    /// the end, or on a line that never runs.
+    from_line: Option<u32>,
+    /// `resume` only: accept the part zero the controller reports now, even if it differs
+    /// from the run's.
+    confirm_part_zero: Option<bool>,
+    /// `resume` only: for a run whose stored line may be behind (`unstored_line`), the last
+    /// line that was executed, as the operator found it.
+    confirm_line: Option<i64>,
+}
+
 /// Optional body of `POST /jobs/{id}/resume`.
 #[derive(Deserialize, Default, ToSchema)]
 #[serde(deny_unknown_fields)]
@@ -305,14 +333,14 @@ pub struct ResumeBody {
 
 #[utoipa::path(post, path = "/jobs/{id}/{action}", tag = "jobs",
     params(("id" = i64, Path, description = "job id", example = 1),
-           ("action" = inline(JobAction), Path, description = "`resume` also continues an `interrupted` or `failed` run from the next unacknowledged line", example = "start")),
-    request_body(content = Option<ResumeBody>, description = "Only for `resume`, optional"),
+           ("action" = inline(JobAction), Path, description = "`resume` also continues an `interrupted` or `failed` run from the next unacknowledged line, through the same preamble as a start at that line", example = "start")),
+    request_body(content = Option<ControlBody>, description = "Optional: `from_line` for `start`, `confirm_part_zero` / `confirm_line` for `resume`", example = json!({"from_line": 2})),
     responses(
         (status = 200, description = "Done: the job with its run (answered only once true: a `cancel` after motion stopped)", body = JobView),
         (status = 400, description = "`invalid_json`", body = ErrorBody),
         (status = 404, description = "`unknown_job`, `unknown_action`", body = ErrorBody),
         (status = 409, description = "`machine_busy`, `not_started`, `not_running`, `not_resumable`, `not_cancellable`, `part_zero_changed`, `line_unconfirmed` (the stored line may be behind: resume with `confirm_line`), `stopped`, `backend_rejected`", body = ErrorBody),
-        (status = 422, description = "`backend_rejected` (e.g. the program leaves the travel), `invalid_field` (`confirm_line` out of range)", body = ErrorBody),
+        (status = 422, description = "`backend_rejected` (e.g. the program leaves the travel), `invalid_field` (`confirm_line` out of range, `from_line` 0), `unsupported` (the backend cannot start at a line safely; the message says why), `start_in_loop`, `start_in_subroutine`, `start_under_cutter_compensation`, `start_in_canned_cycle_repeat`, `start_past_end`, `start_line_not_run`, `start_unsupported_offset` (the message names the line and the construct; nothing is started)", body = ErrorBody),
         (status = 503, description = "`machine_offline`, `machine_unresponsive`, `machine_unavailable`, `shutting_down`, `database_unavailable` (start and resume; pause and cancel of the running job still work)", body = ErrorBody),
     ))]
 pub async fn control(
@@ -325,7 +353,15 @@ pub async fn control(
     // long as its run is current, and a cancel ends that.
     let job = core::job(&app, id).await?;
     let run = match action.as_str() {
-        "start" => core::start(&app, id, &caller.name).await?,
+        "start" => {
+            let body: StartBody = if body.iter().all(u8::is_ascii_whitespace) {
+                StartBody::default()
+            } else {
+                serde_json::from_slice(&body)
+                    .map_err(|e| ApiError::bad_request("invalid_json", format!("start: {e}")))?
+            };
+            core::start_from(&app, id, body.from_line, &caller.name).await?
+        }
         "pause" => core::pause(&app, id, &caller.name).await?,
         "resume" => {
             // The body is optional: an empty POST resumes without confirming anything.
@@ -354,6 +390,36 @@ pub async fn control(
     };
     let hold = core::live_hold(&app, id).await;
     Ok(Json(JobView::new(&job, Some(&run)).with_hold(hold)))
+}
+
+#[derive(Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct PreviewParams {
+    /// The line to start at (1-based).
+    #[param(example = 2)]
+    from_line: u32,
+}
+
+/// What `POST /jobs/{id}/start {"from_line": N}` would do from where the machine stands now:
+/// the modal state the lines before N leave, and the preamble (as steps and as G-code-like
+/// text, moves in machine coordinates) that brings the machine there. Moves nothing. A start
+/// that cannot be made is refused here with the same code and message.
+#[utoipa::path(get, path = "/jobs/{id}/start-preview", tag = "jobs",
+    params(("id" = i64, Path, description = "job id", example = 1), PreviewParams),
+    responses(
+        (status = 200, description = "The state at the line and the preamble", body = fresa_core::start_at::StartPlan),
+        (status = 400, description = "`invalid_query`", body = ErrorBody),
+        (status = 404, description = "`unknown_job`", body = ErrorBody),
+        (status = 409, description = "`machine_unavailable`", body = ErrorBody),
+        (status = 422, description = "`invalid_field`, `start_in_loop`, `start_in_subroutine`, `start_under_cutter_compensation`, `start_in_canned_cycle_repeat`, `start_past_end`, `start_line_not_run`, `start_unsupported_offset`, `invalid_gcode`", body = ErrorBody),
+    ))]
+pub async fn start_preview(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Query(p): Query<PreviewParams>,
+) -> Result<Json<fresa_core::start_at::StartPlan>, ApiError> {
+    Ok(Json(core::start_preview(&app, id, p.from_line).await?))
 }
 
 #[derive(Deserialize)]

@@ -114,6 +114,7 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
             routes!(jobs::toolpath).map(|r| r.layer(compression())),
         ))
         .routes(needs(Operator, routes!(jobs::control)))
+        .routes(needs(Viewer, routes!(jobs::start_preview)))
         .routes(needs(Viewer, routes!(pendants::list)))
         .routes(needs(Admin, routes!(pendants::create)))
         .routes(needs(Viewer, routes!(pendants::discovered)))

@@ -118,6 +118,11 @@ pub struct NewMachine {
     /// rapid 25-100; a range must hold 100).
     #[serde(default)]
     override_limits: Option<admin::OverrideLimits>,
+    /// The machine Z (machine coordinates, mm) a start at a line or a resume goes up to at
+    /// least before moving across to the start point (default: none; the machine's own Z and
+    /// the program's highest Z before the line decide).
+    #[serde(default)]
+    safe_z_mm: Option<f64>,
 }
 
 #[utoipa::path(post, path = "/machines", tag = "machines",
@@ -140,6 +145,7 @@ pub async fn create(
         max_feed_mm_min: req.max_feed_mm_min,
         max_probe_feed_mm_min: req.max_probe_feed_mm_min,
         override_limits: req.override_limits,
+        safe_z_mm: req.safe_z_mm,
     };
     let id = admin::create_machine(&app, req, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(Created { id })))

@@ -14,14 +14,15 @@
 //! compare-and-set.
 
 use super::lanes::{BackendError, Lanes};
+use super::preamble::Launch;
 use super::{Gate, Msg, RunView};
 use crate::error::{Error, Result};
 use crate::events::EventBus;
 use crate::events::EventKind;
 use crate::store::{JobRow, MachineRow, PartZeroRow, RunRow, RunState, Store};
 use fresa_plugin_api::contract::{
-    AxisValues, Command, Event, MachineState, MachineStatus, OffsetTable, OutputName,
-    ProgramLoaded, Request, RunAction, RunOutcome, WorkOffset,
+    AxisValues, Command, Event, MachineState, MachineStatus, OffsetTable, OutputName, Request,
+    RunAction, RunOutcome, WorkOffset,
 };
 use fresa_plugin_api::operation::Lane;
 use serde_json::{json, Value};
@@ -180,7 +181,7 @@ impl Task {
         }
     }
 
-    async fn handle(&mut self, msg: Msg) {
+    pub(super) async fn handle(&mut self, msg: Msg) {
         match msg {
             Msg::Restore { reply } => {
                 self.restore().await;
@@ -210,10 +211,11 @@ impl Task {
             Msg::Start {
                 job,
                 actor,
+                from_line,
                 ticket,
                 reply,
             } => {
-                let r = self.start(&job, &actor, ticket).await;
+                let r = self.start(&job, &actor, from_line, ticket).await;
                 let _ = reply.send(r);
             }
             Msg::Pause {
@@ -254,7 +256,7 @@ impl Task {
 
     // ---- backend calls ----
 
-    async fn call(&mut self, request: &Request) -> Result<Value> {
+    pub(super) async fn call(&mut self, request: &Request) -> Result<Value> {
         Ok(self.call_raw(request).await?)
     }
 
@@ -344,7 +346,7 @@ impl Task {
         }
     }
 
-    async fn refresh_status(&mut self) -> Result<MachineStatus> {
+    pub(super) async fn refresh_status(&mut self) -> Result<MachineStatus> {
         self.status_from(&Request::Status).await
     }
 
@@ -878,7 +880,15 @@ impl Task {
         })
     }
 
-    async fn start(&mut self, job: &JobRow, actor: &str, ticket: u64) -> Result<RunRow> {
+    /// Starts a new run of `job`, from `from_line` when given: planned first (see
+    /// `crate::start_at`), so a start that cannot be made creates no run.
+    async fn start(
+        &mut self,
+        job: &JobRow,
+        actor: &str,
+        from_line: Option<u32>,
+        ticket: u64,
+    ) -> Result<RunRow> {
         self.store.health().check()?;
         if let Some(e) = self.busy_with_run() {
             return Err(e);
@@ -896,8 +906,14 @@ impl Task {
         if let Some(reason) = &self.unavailable {
             return Err(Error::conflict("machine_offline", reason.clone()));
         }
+        let start_line = from_line.unwrap_or(1);
+        let plan = match start_line {
+            n if n > 1 => Some(self.plan_start(job, n).await?),
+            _ => None,
+        };
         self.gate.check(ticket)?;
-        let run = match self.store.start_run(job.id, self.id).await? {
+        let from = from_line.map(i64::from);
+        let run = match self.store.start_run_from(job.id, self.id, from).await? {
             Ok(r) => r,
             Err(busy) => {
                 return Err(Error::conflict(
@@ -909,16 +925,22 @@ impl Task {
                 ))
             }
         };
-        self.launch(job, run, 1, actor, None, ticket).await
+        let from = Launch {
+            start_line,
+            plan,
+            resuming: false,
+        };
+        self.launch(job, run, from, actor, None, ticket).await
     }
 
-    /// Loads the program into the backend from `start_line` and starts it. On failure the run
-    /// is marked failed with the backend's reason (or cancelled when a stop overtook it).
+    /// Loads the program into the backend from `from.start_line` (with the preamble that leads
+    /// there) and starts it. On failure the run is marked failed with the backend's reason (or
+    /// cancelled when a stop overtook it).
     async fn launch(
         &mut self,
         job: &JobRow,
         run: RunRow,
-        start_line: u32,
+        from: Launch,
         actor: &str,
         expected_part_zero: Option<AxisValues>,
         ticket: u64,
@@ -948,46 +970,11 @@ impl Task {
         self.record(EventKind::JobState, actor, run_event(&run))
             .await;
         let started = async {
-            // The table the backend interprets with: the one the upload check used, unless it
-            // was edited since (then the backend's own check decides).
-            let rows = self.store.tools(self.id).await?;
-            self.holds.set_tools(&rows);
-            let (optional_stop, tool_change) = self.run_options().await?;
-            let tools = rows
-                .iter()
-                .filter_map(|t| {
-                    Some(fresa_plugin_api::contract::ProgramTool {
-                        tool: u32::try_from(t.tool).ok()?,
-                        diameter_mm: t.diameter_mm,
-                        length_mm: t.length_mm,
-                    })
-                })
-                .collect();
-            self.loading = Some(run.id);
             let loaded = self
-                .call(&Request::LoadProgram {
-                    run: run.id,
-                    path: path.to_string_lossy().into_owned(),
-                    start_line,
-                    expected_part_zero,
-                    tools,
-                    max_segments: Some(self.max_program_segments),
-                    optional_stop,
-                    tool_change,
-                })
+                .load_from(job, &run, &path, from, expected_part_zero)
                 .await;
             self.loading = None;
-            let v = loaded?;
-            if let Ok(l) = serde_json::from_value::<ProgramLoaded>(v) {
-                if l.start_line != start_line {
-                    tracing::info!(
-                        run = run.id,
-                        asked = start_line,
-                        actual = l.start_line,
-                        "backend resumed later: it had already executed earlier lines"
-                    );
-                }
-            }
+            loaded?;
             // A stop or cancel that arrived while the program loaded wins: nothing moves.
             self.gate.check(ticket)?;
             // Paused while it loaded: it waits for its resume to start.
@@ -1046,7 +1033,7 @@ impl Task {
     /// The machine's run settings as a program is loaded with them: the optional stop, and how
     /// M6 holds (`refuse` holds too: a program with M6 is refused at its start, so one that
     /// gets here anyway, a resume, holds rather than runs on with the wrong tool).
-    async fn run_options(
+    pub(super) async fn run_options(
         &self,
     ) -> Result<(bool, Option<fresa_plugin_api::contract::ToolChangeSetup>)> {
         use crate::store::ToolChangePolicy;
@@ -1197,6 +1184,13 @@ impl Task {
                         )
                         .await;
                 }
+                // It goes on through the preamble of its next line, planned before the run is
+                // reopened (a start there that cannot be made leaves it as it is).
+                let next = u32::try_from(run.next_line()).unwrap_or(u32::MAX);
+                let plan = match next {
+                    n if n > 1 => Some(self.plan_start(job, n).await?),
+                    _ => None,
+                };
                 self.gate.check(ticket)?;
                 let from = [RunState::Interrupted, RunState::Failed];
                 let reopened = match self.store.reopen_run(run.id, self.id, &from).await? {
@@ -1213,13 +1207,18 @@ impl Task {
                         ))
                     }
                 };
-                let next = u32::try_from(reopened.last_line + 1).unwrap_or(u32::MAX);
+                let next = u32::try_from(reopened.next_line()).unwrap_or(u32::MAX);
                 let expected = if confirm_part_zero {
                     None
                 } else {
                     self.store.run_part_zero(run.id).await?
                 };
-                self.launch(job, reopened, next, actor, expected, ticket)
+                let from = Launch {
+                    start_line: next,
+                    plan,
+                    resuming: reopened.from_line.is_none(),
+                };
+                self.launch(job, reopened, from, actor, expected, ticket)
                     .await
             }
             other => Err(Error::conflict(

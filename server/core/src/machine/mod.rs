@@ -9,6 +9,7 @@ pub mod deadman;
 pub mod holds;
 mod lanes;
 pub mod limits;
+mod preamble;
 pub mod probing;
 pub mod unstored;
 
@@ -208,6 +209,8 @@ pub(crate) enum Msg {
     Start {
         job: JobRow,
         actor: String,
+        /// A start at a line (`None`: from the first; see `crate::start_at`).
+        from_line: Option<u32>,
         ticket: u64,
         reply: Reply<RunRow>,
     },
@@ -825,10 +828,22 @@ impl Machine {
     }
 
     pub async fn start_job(&self, job: JobRow, actor: &str) -> Result<RunRow> {
+        self.start_job_from(job, None, actor).await
+    }
+
+    /// Starts the job from `from_line` (`None`: its first line): the machine is brought to the
+    /// state and start point of that line first (see `crate::start_at`).
+    pub async fn start_job_from(
+        &self,
+        job: JobRow,
+        from_line: Option<u32>,
+        actor: &str,
+    ) -> Result<RunRow> {
         let ticket = self.gate.ticket();
         self.ask(|reply| Msg::Start {
             job,
             actor: actor.into(),
+            from_line,
             ticket,
             reply,
         })

@@ -34,6 +34,17 @@ pub struct RunRow {
     /// (the database could not be written): the highest such line it recorded. `last_line` may
     /// then be behind what ran, and a resume needs `confirm_line` (issue 23).
     pub unstored_line: Option<i64>,
+    /// The line the run was started from (a start at a line, issue 26); `None` from line 1.
+    /// The lines before it never ran and are never acknowledged.
+    pub from_line: Option<i64>,
+}
+
+impl RunRow {
+    /// The line a resume of this run goes on from: the one after the last acknowledged, and
+    /// never one before the line it was started from.
+    pub fn next_line(&self) -> i64 {
+        (self.last_line + 1).max(self.from_line.unwrap_or(1))
+    }
 }
 
 /// A run's state. The database keeps it as the lowercase name; only the machine's task moves a
@@ -196,20 +207,32 @@ impl Store {
         job_id: i64,
         machine_id: i64,
     ) -> Result<std::result::Result<RunRow, RunRow>> {
+        self.start_run_from(job_id, machine_id, None).await
+    }
+
+    /// [`Store::start_run`] of a run started from `from_line` (`None`: the first line).
+    pub async fn start_run_from(
+        &self,
+        job_id: i64,
+        machine_id: i64,
+        from_line: Option<i64>,
+    ) -> Result<std::result::Result<RunRow, RunRow>> {
         let mut tx = self.begin().await?;
         if let Some(b) = self.active_run_except(&mut tx, machine_id, None).await? {
             return Ok(Err(b));
         }
         let now = now_ms();
         let row: RunRow = sqlx::query_as(
-            "INSERT INTO job_runs (job_id, machine_id, state, created_at, started_at, updated_at)
-             VALUES ($1, $2, 'running', $3, $4, $5) RETURNING *",
+            "INSERT INTO job_runs (job_id, machine_id, state, created_at, started_at, updated_at,
+                                   from_line)
+             VALUES ($1, $2, 'running', $3, $4, $5, $6) RETURNING *",
         )
         .bind(job_id)
         .bind(machine_id)
         .bind(now)
         .bind(now)
         .bind(now)
+        .bind(from_line)
         .fetch_one(&mut *tx)
         .await?;
         tx.commit().await?;

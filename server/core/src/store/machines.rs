@@ -26,6 +26,9 @@ pub struct MachineRow {
     pub created_at: i64,
     /// The node that drives it (`None`: not claimed yet; see `Store::claim_unowned`).
     pub node: Option<String>,
+    /// The machine Z (mm) a start at a line goes up to at least before moving across (see
+    /// `crate::start_at`); `None`: not configured.
+    pub safe_z_mm: Option<f64>,
 }
 
 impl MachineRow {
@@ -118,6 +121,16 @@ impl Store {
         }
         tx.commit().await?;
         Ok(id)
+    }
+
+    /// Sets the machine's `safe_z_mm` (start at a line).
+    pub async fn set_machine_safe_z(&self, id: i64, safe_z_mm: Option<f64>) -> Result<()> {
+        sqlx::query("UPDATE machines SET safe_z_mm = $1 WHERE id = $2")
+            .bind(safe_z_mm)
+            .bind(id)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
     }
 
     pub async fn list_machines(&self) -> Result<Vec<MachineRow>> {
