@@ -25,6 +25,8 @@ pub struct LoadProgram {
     pub tools: Vec<crate::contract::ProgramTool>,
     /// The work budget (see [`Request::LoadProgram`]).
     pub max_segments: Option<u64>,
+    /// A height map to apply (see [`Request::LoadProgram`]); a backend that cannot refuses it.
+    pub height_map: Option<crate::heightmap::HeightMap>,
 }
 
 /// A machine backend. Methods may be called concurrently from several host threads (so that
@@ -204,6 +206,7 @@ pub fn dispatch<B: MachineBackend>(b: &B, request: Request) -> Result<Answer, Pl
             expected_part_zero,
             tools,
             max_segments,
+            height_map,
         } => b
             .load_program(LoadProgram {
                 run,
@@ -212,6 +215,7 @@ pub fn dispatch<B: MachineBackend>(b: &B, request: Request) -> Result<Answer, Pl
                 expected_part_zero,
                 tools,
                 max_segments,
+                height_map,
             })
             .map(Answer::Loaded),
         Request::Run { action } => b.run(action).map(Answer::Run),

@@ -450,6 +450,14 @@ pub enum Request {
         /// line) before any motion. Absent: the backend's default (`DEFAULT_MAX_SEGMENTS`).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         max_segments: Option<u64>,
+        // --- height map additions (issue 25) ---
+        /// A height map to apply: every move's Z gets the map's correction under it, moves
+        /// split where they cross grid lines (see [`crate::heightmap`]); in the program's work
+        /// coordinates. A backend that applies it says so in its answer
+        /// ([`ProgramLoaded::height_map`]); one that cannot refuses with `unsupported`, naming
+        /// why. Absent: no correction.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        height_map: Option<crate::heightmap::HeightMap>,
     },
     /// Answer: `{}`.
     Run { action: RunAction },
@@ -612,6 +620,11 @@ pub struct ProgramTool {
 pub struct ProgramLoaded {
     pub lines: u32,
     pub start_line: u32,
+    /// The height map sent with the program is applied (issue 25). A backend built before
+    /// height maps ignores the field it does not know and leaves this out, so the host, seeing
+    /// no confirmation, refuses to start rather than cut uncorrected.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub height_map: bool,
 }
 
 /// Events a machine backend emits. Serialised with an `event` tag.

@@ -804,11 +804,13 @@ impl<P, X> Kit<P, X> {
         before: Events,
     ) -> Result<(), Interrupted> {
         let mut ev = before;
+        // Where the line's motion ended: the motion thread has nothing under way between lines.
+        let pos = self.log.as_ref().map(|_| self.lock().pos);
         for line in lines {
             if let Some(log) = &self.log {
                 log.lock()
                     .unwrap_or_else(|e| e.into_inner())
-                    .append(run, line)
+                    .append_at(run, line, pos)
                     .map_err(Interrupted::Failed)?;
             }
             ev.push(Event::LineAcknowledged { run, line });
@@ -1285,7 +1287,11 @@ impl<P, X> Kit<P, X> {
             plan,
             start_line,
         })?;
-        Ok(crate::contract::ProgramLoaded { lines, start_line })
+        Ok(crate::contract::ProgramLoaded {
+            lines,
+            start_line,
+            height_map: false,
+        })
     }
 
     /// `run` requests: start, pause, resume (strict) and cancel (a stop).

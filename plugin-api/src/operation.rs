@@ -308,6 +308,7 @@ mod tests {
                 expected_part_zero: None,
                 tools: vec![],
                 max_segments: None,
+                height_map: None,
             },
             Request::Shutdown,
         ];

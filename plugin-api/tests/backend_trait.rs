@@ -42,6 +42,7 @@ impl MachineBackend for Minimal {
         Ok(ProgramLoaded {
             lines: 3,
             start_line: p.start_line,
+            height_map: false,
         })
     }
     fn run(&self, action: RunAction) -> Result<RunAnswer, PluginError> {

@@ -10,6 +10,7 @@ use crate::config::{Config, Protocol};
 use crate::convert::{Cmd, Convert, Plan};
 use crate::link::{self, LegacyLink, LinkError, V1Link};
 use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
+use fresa_plugin_api::heightmap::HeightMap;
 use fresa_plugin_api::contract::{
     Artifact, Axis, AxisValues, Event, MachineState, MachineStatus, OffsetTable, ProgramLoaded,
     RunAction, RunAnswer, RunOutcome, WorkOffset,
@@ -270,6 +271,7 @@ impl KawasakiMachine {
         expected_zero: Option<AxisValues>,
         tools: fresa_gcode::ToolTable,
         max_segments: u64,
+        height_map: Option<&HeightMap>,
     ) -> Result<ProgramLoaded, PluginError> {
         if self.core.lock().busy {
             return Err(PluginError::new("busy", "a run is in progress"));
@@ -280,7 +282,7 @@ impl KawasakiMachine {
         let plan = self
             .core
             .convert
-            .plan_bounded(&text, tools, max_segments)
+            .plan_mapped(&text, tools, max_segments, height_map)
             .map_err(|e| match e.kind {
                 fresa_gcode::ErrorKind::Budget if max_segments == crate::convert::MAX_COMMANDS => {
                     PluginError::new(
@@ -308,7 +310,12 @@ impl KawasakiMachine {
             self.core.log_warn(&format!("run {run}: {w}"));
         }
         // Identifies this run of this program to the robot (fresa-v1) and in the journal.
-        let tag = format!("{run}-{:08x}", fnv1a(&text) as u32);
+        // A height map changes every motion: it is part of what the robot ran.
+        let identity = match height_map {
+            Some(m) => format!("{text}\n{}", serde_json::to_string(m).unwrap_or_default()),
+            None => text.clone(),
+        };
+        let tag = format!("{run}-{:08x}", fnv1a(&identity) as u32);
         let mut start_cmd = plan.first_cmd_at(start_line);
         // What this process or the journal knows was done already.
         let seen = self.core.lock().progress.get(&run).copied().unwrap_or(0);
@@ -352,6 +359,7 @@ impl KawasakiMachine {
         Ok(ProgramLoaded {
             lines,
             start_line: actual_line.min(lines.max(1)),
+            height_map: height_map.is_some(),
         })
     }
 
@@ -1011,6 +1019,9 @@ impl MachineBackend for KawasakiMachine {
             .max_segments
             .unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS)
             .min(crate::convert::MAX_COMMANDS);
+        if let Some(map) = &p.height_map {
+            map.validate().map_err(PluginError::invalid)?;
+        }
         self.load(
             p.run,
             &p.path,
@@ -1018,6 +1029,7 @@ impl MachineBackend for KawasakiMachine {
             p.expected_part_zero,
             tools,
             budget,
+            p.height_map.as_ref(),
         )
     }
 

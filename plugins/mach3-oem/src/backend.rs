@@ -20,6 +20,11 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+/// Why a height map is refused: Fresa can only correct points it sends itself.
+pub const HEIGHT_MAP_REFUSAL: &str = "mach3-oem cannot apply a height map: Mach3 interprets the \
+     program file itself, so Fresa never sees the points it cuts (use Mach3's own \
+     auto-levelling, or a backend that streams points: sim-machine, kawasaki-as)";
+
 pub type EventSink = Arc<dyn Fn(&Event) + Send + Sync>;
 
 /// How long a started run may show no "running" LED before it counts as ended (Mach3 lights it
@@ -853,7 +858,11 @@ impl Inner {
                 }]);
             }
         }
-        Ok(ProgramLoaded { lines, start_line })
+        Ok(ProgramLoaded {
+            lines,
+            start_line,
+            height_map: false,
+        })
     }
 
     fn start(&self) -> Result<Value, PluginError> {
@@ -1086,6 +1095,9 @@ impl MachineBackend for Mach3Backend {
     }
 
     fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {
+        if p.height_map.is_some() {
+            return Err(PluginError::new("unsupported", HEIGHT_MAP_REFUSAL));
+        }
         let tools =
             fresa_gcode::tool_table(p.tools.iter().map(|t| (t.tool, t.diameter_mm, t.length_mm)));
         let budget = p.max_segments.unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS);

@@ -273,7 +273,7 @@ impl Core {
                     let result = self.program_probe(step_line, to, feed, contact, must_trip)?;
                     steps.probe_result(result);
                 } else {
-                    self.run_step(&step)?;
+                    self.run_step(&l.plan, &step)?;
                 }
             }
             self.kit.lines_done(l.run, line..=line, Vec::new())?;
@@ -347,18 +347,31 @@ impl Core {
         })
     }
 
-    fn run_step(&self, step: &Step) -> Result<(), Interrupted> {
+    fn run_step(&self, plan: &Plan, step: &Step) -> Result<(), Interrupted> {
         match *step {
             Step::Move { to, a, feed } => {
-                let target = {
+                // With a height map the move runs as the pieces the map splits it into, each
+                // with its Z corrected, from where the machine stands (its program point
+                // found by taking the correction off again: exact, the correction depending on
+                // X and Y only).
+                let targets = {
                     let sh = self.kit.lock();
-                    program::machine_target(to, a, &sh.offsets[sh.active.index()], sh.pos[3])
+                    let offset = sh.offsets[sh.active.index()];
+                    let here: [f64; 3] = std::array::from_fn(|i| sh.pos[i] - offset[i]);
+                    let from = plan
+                        .height_map
+                        .as_ref()
+                        .map_or(here, |m| m.uncorrected(here));
+                    plan.map_move(from, to, a, &offset, sh.pos[3])
                 };
-                self.check(target)?;
-                match feed {
-                    Some(f) => self.move_to(target, f, Pace::Feed),
-                    None => self.move_to(target, self.cfg.rapid_mm_min, Pace::Rapid),
+                for target in targets {
+                    self.check(target)?;
+                    match feed {
+                        Some(f) => self.move_to(target, f, Pace::Feed)?,
+                        None => self.move_to(target, self.cfg.rapid_mm_min, Pace::Rapid)?,
+                    }
                 }
+                Ok(())
             }
             Step::Dwell(seconds) => self.timed(
                 None,
@@ -394,18 +407,20 @@ impl Core {
     }
 
     /// Where the probe switch's edge lies on the slice from `a` to `b`, if the switch reads
-    /// what the probe waits for at `b`.
+    /// what the probe waits for at `b`. The edge is where the axis meets the switch's level
+    /// (a surface's height under the tool): exact for a move along the switch's axis, and
+    /// for any straight move across a tilted plane.
     fn probe_trip(watch: &ProbeWatch, a: [f64; 4], b: [f64; 4]) -> Option<[f64; 4]> {
         let sw = watch.switch;
         if sw.active_at(&b) != watch.active {
             return None;
         }
         let i = sw.axis.index();
-        let span = b[i] - a[i];
-        let t = if span == 0.0 {
+        let (fa, fb) = (a[i] - sw.level_at(&a), b[i] - sw.level_at(&b));
+        let t = if fa == fb {
             0.0
         } else {
-            ((sw.at - a[i]) / span).clamp(0.0, 1.0)
+            (fa / (fa - fb)).clamp(0.0, 1.0)
         };
         Some(std::array::from_fn(|k| a[k] + (b[k] - a[k]) * t))
     }
@@ -608,7 +623,11 @@ impl MachineBackend for SimMachine {
         let tools =
             fresa_gcode::tool_table(p.tools.iter().map(|t| (t.tool, t.diameter_mm, t.length_mm)));
         let budget = p.max_segments.unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS);
-        let plan = program::plan_file(file, lines, work, xyz, tools, budget);
+        if let Some(map) = &p.height_map {
+            map.validate().map_err(PluginError::invalid)?;
+        }
+        let plan = program::plan_file(file, lines, work, xyz, tools, budget)
+            .with_height_map(p.height_map);
         let has_probe = self.core.cfg.switches.iter().any(|s| s.name == io::PROBE);
         plan.check(&offsets, active, a, has_probe, |p| {
             self.core.cfg.check_travel(p)
@@ -627,8 +646,12 @@ impl MachineBackend for SimMachine {
             ),
             Refusal::Gcode(e) => PluginError::new("invalid_program", e.to_string()),
             Refusal::Travel(m) => PluginError::new("out_of_travel", m),
+            Refusal::HeightMap(m) => PluginError::new("unsupported", m),
         })?;
-        kit.install_plan(p.run, plan, lines, p.start_line, start)
+        let mapped = plan.height_map.is_some();
+        let mut loaded = kit.install_plan(p.run, plan, lines, p.start_line, start)?;
+        loaded.height_map = mapped;
+        Ok(loaded)
     }
 
     fn reset(&self) -> Result<(), PluginError> {

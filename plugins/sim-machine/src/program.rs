@@ -3,6 +3,7 @@
 
 use fresa_gcode::{budgeted, linearise, Budgeted, GcodeError, Interpreter, Linearise, Motion};
 use fresa_plugin_api::contract::WorkOffset;
+use fresa_plugin_api::heightmap::HeightMap;
 use std::io::{BufRead, Seek};
 
 /// Chord tolerance for arcs, mm.
@@ -52,6 +53,8 @@ pub struct Plan {
     source: Source,
     config: fresa_gcode::Config,
     max_segments: u64,
+    /// Added to every move's Z, in the work coordinates the program starts in (issue 25).
+    pub height_map: Option<HeightMap>,
 }
 
 /// Why a program cannot run here.
@@ -63,6 +66,8 @@ pub enum Refusal {
     NoProbe(u32),
     /// A move outside the travel: `line L: message`.
     Travel(String),
+    /// Something a height-mapped program cannot do here: `line L: message`.
+    HeightMap(String),
 }
 
 /// The steps of a [`Plan`] in execution order, each with its 1-based source line (<= `lines`).
@@ -178,6 +183,7 @@ pub fn plan(
         source: Source::Text(text.to_string()),
         config: config(initial_position, work_offsets, tools),
         max_segments: fresa_gcode::DEFAULT_MAX_SEGMENTS,
+        height_map: None,
     }
 }
 
@@ -196,6 +202,7 @@ pub fn plan_file(
         source: Source::File(file),
         config: config(initial_position, work_offsets, tools),
         max_segments,
+        height_map: None,
     }
 }
 
@@ -231,8 +238,20 @@ impl Plan {
         })
     }
 
+    /// The same plan with `map` added to every move's Z.
+    pub fn with_height_map(self, map: Option<HeightMap>) -> Plan {
+        Plan {
+            height_map: map,
+            ..self
+        }
+    }
+
     /// Interprets the whole program once and checks every move against `check` (given machine
     /// coordinates), using `offsets` (the machine origins of G54..G59) starting in `active`.
+    /// With a height map, each piece of each move as it will run (see
+    /// [`Plan::map_move`]) is checked, and the pieces count against the work budget; a program
+    /// that probes or selects another work offset is refused (the map's frame is the
+    /// offset's, and a probe's result cannot be corrected).
     /// A G-code error anywhere wins over a move outside the travel (as when the program was
     /// interpreted whole before its moves were checked).
     /// A probing move is checked for its whole distance (it may trip anywhere along it, or not
@@ -249,23 +268,61 @@ impl Plan {
         let mut offset = offsets[active.index()];
         let mut machine_a = start_a;
         let mut outside = None;
+        let start = self.config.initial_position;
+        // Where the machine stands, as the program point a corrected path continues from.
+        let mut from = match &self.height_map {
+            Some(map) => map.uncorrected(start),
+            None => start,
+        };
+        let mut pieces: u64 = 0;
         for step in self.steps().map_err(Refusal::Gcode)? {
             let (line, step) = step.map_err(Refusal::Gcode)?;
             if outside.is_some() {
                 continue;
             }
+            if let Some(refusal) = self.height_map.as_ref().and_then(|_| match step {
+                Step::Probe { .. } => Some(format!(
+                    "line {line}: a height-mapped program cannot probe (G38.x): the map \
+                     corrects programmed Z, not a probe's result"
+                )),
+                Step::UseOffset(o) if o != active => Some(format!(
+                    "line {line}: {} while a height map applies: the map is in the work \
+                     coordinates of {}, where the job started",
+                    o.name(),
+                    active.name()
+                )),
+                _ => None,
+            }) {
+                return Err(Refusal::HeightMap(refusal));
+            }
             match step {
                 Step::Move { to, a, .. } => {
-                    let target = machine_target(to, a, &offset, machine_a);
-                    machine_a = target[3];
-                    if let Err(m) = check(target) {
-                        outside = Some(format!("line {line}: {m}"));
+                    let path = self.map_move(from, to, a, &offset, machine_a);
+                    from = to;
+                    pieces += path.len() as u64;
+                    if pieces > self.max_segments {
+                        return Err(Refusal::Gcode(GcodeError {
+                            line,
+                            column: 1,
+                            kind: fresa_gcode::ErrorKind::Budget,
+                            message: format!(
+                                "work budget exceeded: the height map splits the program's \
+                                 moves into more than {} pieces",
+                                self.max_segments
+                            ),
+                        }));
+                    }
+                    for target in path {
+                        machine_a = target[3];
+                        if let Err(m) = check(target) {
+                            outside = Some(format!("line {line}: {m}"));
+                            break;
+                        }
                     }
                 }
+                Step::Probe { .. } if !has_probe => return Err(Refusal::NoProbe(line)),
                 Step::Probe { to, .. } => {
-                    if !has_probe {
-                        return Err(Refusal::NoProbe(line));
-                    }
+                    from = to;
                     if let Err(m) = check(machine_target(to, None, &offset, machine_a)) {
                         outside = Some(format!("line {line}: probing move: {m}"));
                     }
@@ -275,6 +332,33 @@ impl Plan {
             }
         }
         outside.map_or(Ok(()), |m| Err(Refusal::Travel(m)))
+    }
+}
+
+impl Plan {
+    /// The machine targets of one move from program point `from` to `to` (program A `a` when
+    /// it turns A, from machine A `machine_a`) under `offset`: just the end without a height
+    /// map; with one, the end of each piece the map splits it into, Z corrected, A turning
+    /// along in proportion.
+    pub fn map_move(
+        &self,
+        from: [f64; 3],
+        to: [f64; 3],
+        a: Option<f64>,
+        offset: &[f64; 4],
+        machine_a: f64,
+    ) -> Vec<[f64; 4]> {
+        let end = machine_target(to, a, offset, machine_a);
+        let Some(map) = &self.height_map else {
+            return vec![end];
+        };
+        map.corrected_path(from, to)
+            .into_iter()
+            .map(|(t, p)| {
+                let a = machine_a + (end[3] - machine_a) * t;
+                [p[0] + offset[0], p[1] + offset[1], p[2] + offset[2], a]
+            })
+            .collect()
     }
 }
 

@@ -354,6 +354,20 @@ pub async fn start(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
     machine.start_job(job, actor).await
 }
 
+/// [`start`] with height map `height_map` of the job's machine applied to the program's Z
+/// (issue 25; see `machine::heightmap`).
+pub async fn start_with_height_map(
+    app: &App,
+    job_id: i64,
+    height_map: i64,
+    actor: &str,
+) -> Result<RunRow> {
+    let (job, machine) = load_job(app, job_id).await?;
+    machine
+        .start_job_mapped(job, Some((height_map, &app.store)), actor)
+        .await
+}
+
 pub async fn pause(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
     let (_, machine) = load_job(app, job_id).await?;
     machine.pause_job(job_id, actor).await

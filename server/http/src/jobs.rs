@@ -301,16 +301,41 @@ pub struct ResumeBody {
     confirm_line: Option<i64>,
 }
 
+/// Optional body of `POST /jobs/{id}/start`: every field optional, each a start option of
+/// its own.
+#[derive(Deserialize, Default, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct StartBody {
+    /// A complete height map of the job's machine to apply (issue 25): every move's Z gets the
+    /// probed surface's height under it. Refused before anything moves when the program's
+    /// cutting moves leave the map's area (`outside_height_map`) or the backend cannot apply
+    /// one (`height_map_unsupported`).
+    #[serde(default)]
+    height_map: Option<i64>,
+}
+
+/// The optional JSON body of a run control action: an empty body is its defaults.
+fn body_or_default<T: Default + serde::de::DeserializeOwned>(
+    action: &str,
+    body: &[u8],
+) -> Result<T, ApiError> {
+    if body.iter().all(u8::is_ascii_whitespace) {
+        return Ok(T::default());
+    }
+    serde_json::from_slice(body)
+        .map_err(|e| ApiError::bad_request("invalid_json", format!("{action}: {e}")))
+}
+
 #[utoipa::path(post, path = "/jobs/{id}/{action}", tag = "jobs",
     params(("id" = i64, Path, description = "job id", example = 1),
            ("action" = inline(JobAction), Path, description = "`resume` also continues an `interrupted` or `failed` run from the next unacknowledged line", example = "start")),
-    request_body(content = Option<ResumeBody>, description = "Only for `resume`, optional"),
+    request_body(content = Option<ResumeBody>, description = "Optional: for `resume` a `ResumeBody`, for `start` a `StartBody` (`{\"height_map\": 3}`)"),
     responses(
         (status = 200, description = "Done: the job with its run (answered only once true: a `cancel` after motion stopped)", body = JobView),
         (status = 400, description = "`invalid_json`", body = ErrorBody),
-        (status = 404, description = "`unknown_job`, `unknown_action`", body = ErrorBody),
-        (status = 409, description = "`machine_busy`, `not_started`, `not_running`, `not_resumable`, `not_cancellable`, `part_zero_changed`, `line_unconfirmed` (the stored line may be behind: resume with `confirm_line`), `stopped`, `backend_rejected`", body = ErrorBody),
-        (status = 422, description = "`backend_rejected` (e.g. the program leaves the travel), `invalid_field` (`confirm_line` out of range)", body = ErrorBody),
+        (status = 404, description = "`unknown_job`, `unknown_action`, `unknown_height_map`", body = ErrorBody),
+        (status = 409, description = "`height_map_incomplete`, `machine_busy`, `not_started`, `not_running`, `not_resumable`, `not_cancellable`, `part_zero_changed`, `line_unconfirmed` (the stored line may be behind: resume with `confirm_line`), `stopped`, `backend_rejected`", body = ErrorBody),
+        (status = 422, description = "`backend_rejected` (e.g. the program leaves the travel), `invalid_field` (`confirm_line` out of range), `outside_height_map`, `height_map_unsupported`, `height_map_other_machine`", body = ErrorBody),
         (status = 503, description = "`machine_offline`, `machine_unresponsive`, `machine_unavailable`, `shutting_down`, `database_unavailable` (start and resume; pause and cancel of the running job still work)", body = ErrorBody),
     ))]
 pub async fn control(
@@ -323,7 +348,13 @@ pub async fn control(
     // long as its run is current, and a cancel ends that.
     let job = core::job(&app, id).await?;
     let run = match action.as_str() {
-        "start" => core::start(&app, id, &caller.name).await?,
+        "start" => {
+            let body: StartBody = body_or_default("start", &body)?;
+            match body.height_map {
+                Some(map) => core::start_with_height_map(&app, id, map, &caller.name).await?,
+                None => core::start(&app, id, &caller.name).await?,
+            }
+        }
         "pause" => core::pause(&app, id, &caller.name).await?,
         "resume" => {
             // The body is optional: an empty POST resumes without confirming anything.

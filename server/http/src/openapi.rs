@@ -70,9 +70,11 @@ pub struct ErrorBody {
 /// One Server-Sent Event's `data` (its `event:` field is `type`, its `id:` field is `id`).
 /// Persisted (audit) types: `job.created`, `job.state`, `machine.created`, `machine.command`,
 /// `machine.jog`, `machine.jog_cancel`, `machine.mdi`, `machine.offsets`, `machine.part_zero`, `machine.alarm`,
-/// `machine.tools`, `pendant.*`, `webhook.created`, `webhook.deleted`. Live only (no `id`): `status` (same
+/// `machine.tools`, `pendant.*`, `webhook.created`, `webhook.deleted`, `height_map.ended`,
+/// `height_map.deleted`. Live only (no `id`): `status` (same
 /// schema as `GET /machines/{id}/status`), `job.progress` (`job`, `run`, `line`, `total_lines`,
-/// `percent`), `job.line_report`, `machine.state`. Control: `resync`.
+/// `percent`), `job.line_report`, `machine.state`, `height_map.progress` (`map`, `done`,
+/// `total`, `i`, `j`, `x`, `y`, `z`). Control: `resync`.
 #[derive(Serialize, ToSchema)]
 #[schema(as = Event)]
 pub struct EventDoc {

@@ -209,9 +209,10 @@ impl Task {
                 job,
                 actor,
                 ticket,
+                height_map,
                 reply,
             } => {
-                let r = self.start(&job, &actor, ticket).await;
+                let r = self.start(&job, &actor, ticket, height_map).await;
                 let _ = reply.send(r);
             }
             Msg::Pause {
@@ -814,7 +815,13 @@ impl Task {
         })
     }
 
-    async fn start(&mut self, job: &JobRow, actor: &str, ticket: u64) -> Result<RunRow> {
+    async fn start(
+        &mut self,
+        job: &JobRow,
+        actor: &str,
+        ticket: u64,
+        height_map: Option<super::heightmap::Applied>,
+    ) -> Result<RunRow> {
         self.store.health().check()?;
         if let Some(e) = self.busy_with_run() {
             return Err(e);
@@ -845,11 +852,30 @@ impl Task {
                 ))
             }
         };
-        self.launch(job, run, 1, actor, None, ticket).await
+        // The run records the height map it runs with (a resume applies it again).
+        let run = match &height_map {
+            Some(applied) => {
+                if let Err(e) = self.store.set_run_height_map(run.id, applied.id).await {
+                    let e = Error::from(e);
+                    self.finish_run(run.id, RunState::Failed, Some(&e.message))
+                        .await;
+                    return Err(e);
+                }
+                RunRow {
+                    height_map_id: Some(applied.id),
+                    ..run
+                }
+            }
+            None => run,
+        };
+        let map = height_map.as_ref().map(|a| &a.map);
+        self.launch(job, run, 1, actor, None, ticket, map).await
     }
 
     /// Loads the program into the backend from `start_line` and starts it. On failure the run
     /// is marked failed with the backend's reason (or cancelled when a stop overtook it).
+    /// `height_map`: applied by the backend, which must say so (see `ProgramLoaded`).
+    #[allow(clippy::too_many_arguments)]
     async fn launch(
         &mut self,
         job: &JobRow,
@@ -858,6 +884,7 @@ impl Task {
         actor: &str,
         expected_part_zero: Option<AxisValues>,
         ticket: u64,
+        height_map: Option<&fresa_plugin_api::heightmap::HeightMap>,
     ) -> Result<RunRow> {
         // A job uploaded on another node: its program comes from the shared store first.
         let path =
@@ -907,11 +934,13 @@ impl Task {
                     expected_part_zero,
                     tools,
                     max_segments: Some(self.max_program_segments),
+                    height_map: height_map.cloned(),
                 })
                 .await;
             self.loading = None;
-            let v = loaded?;
-            if let Ok(l) = serde_json::from_value::<ProgramLoaded>(v) {
+            let v = loaded.map_err(|e| super::heightmap::refusal(e, height_map.is_some()))?;
+            let loaded = serde_json::from_value::<ProgramLoaded>(v).ok();
+            if let Some(l) = &loaded {
                 if l.start_line != start_line {
                     tracing::info!(
                         run = run.id,
@@ -920,6 +949,11 @@ impl Task {
                         "backend resumed later: it had already executed earlier lines"
                     );
                 }
+            }
+            // A backend that does not know height maps ignores one: it must not cut
+            // uncorrected.
+            if height_map.is_some() && !loaded.is_some_and(|l| l.height_map) {
+                return Err(super::heightmap::not_confirmed());
             }
             // A stop or cancel that arrived while the program loaded wins: nothing moves.
             self.gate.check(ticket)?;
@@ -1091,6 +1125,19 @@ impl Task {
                         )
                         .await;
                 }
+                // The height map the run started with, as it fits now (refused before the run
+                // is reopened if it is gone or no longer fits).
+                let applied = match run.height_map_id {
+                    Some(id) => {
+                        let status = self.status.borrow().clone();
+                        Some(
+                            super::heightmap::applied_for_job(&self.store, job, id, &status)
+                                .await
+                                .map_err(|e| super::heightmap::for_resume(e, run.id, id))?,
+                        )
+                    }
+                    None => None,
+                };
                 self.gate.check(ticket)?;
                 let from = [RunState::Interrupted, RunState::Failed];
                 let reopened = match self.store.reopen_run(run.id, self.id, &from).await? {
@@ -1113,7 +1160,8 @@ impl Task {
                 } else {
                     self.store.run_part_zero(run.id).await?
                 };
-                self.launch(job, reopened, next, actor, expected, ticket)
+                let map = applied.as_ref().map(|a| &a.map);
+                self.launch(job, reopened, next, actor, expected, ticket, map)
                     .await
             }
             other => Err(Error::conflict(

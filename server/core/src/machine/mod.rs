@@ -6,6 +6,7 @@
 
 mod actor;
 pub mod deadman;
+pub mod heightmap;
 mod lanes;
 pub mod limits;
 pub mod probing;
@@ -195,6 +196,8 @@ pub(crate) enum Msg {
         job: JobRow,
         actor: String,
         ticket: u64,
+        /// The height map to apply (issue 25), checked against the job already.
+        height_map: Option<heightmap::Applied>,
         reply: Reply<RunRow>,
     },
     /// Pause and cancel travel on the task's urgent channel: served before anything queued on
@@ -248,6 +251,8 @@ pub struct Machine {
     probe_ended: watch::Receiver<Option<probing::ProbeEnd>>,
     /// Numbers probing moves, so an end is matched to its own move.
     probe_ids: AtomicU64,
+    /// The height map grid being probed, if any (see [`heightmap`]).
+    grid: heightmap::Slot,
 }
 
 impl Machine {
@@ -329,6 +334,7 @@ impl Machine {
             deadman: deadman::Deadman::default(),
             probe_ended: probe_rx,
             probe_ids: AtomicU64::new(1),
+            grid: Default::default(),
         });
         let task = actor::Task {
             id: row.id,
@@ -739,11 +745,36 @@ impl Machine {
     }
 
     pub async fn start_job(&self, job: JobRow, actor: &str) -> Result<RunRow> {
+        self.start_job_mapped(job, None, actor).await
+    }
+
+    /// [`Machine::start_job`] with height map `height_map` applied (issue 25): refused before
+    /// anything moves when the map does not fit the job (see [`heightmap::applied_for_job`]),
+    /// and while a grid is being probed.
+    pub async fn start_job_mapped(
+        &self,
+        job: JobRow,
+        height_map: Option<(i64, &Store)>,
+        actor: &str,
+    ) -> Result<RunRow> {
+        if let Some(map) = self.grid.current() {
+            return Err(Error::conflict(
+                "machine_busy",
+                format!("machine {} is probing height map {map}", self.id),
+            ));
+        }
         let ticket = self.gate.ticket();
+        let height_map = match height_map {
+            Some((id, store)) => {
+                Some(heightmap::applied_for_job(store, &job, id, &self.status()).await?)
+            }
+            None => None,
+        };
         self.ask(|reply| Msg::Start {
             job,
             actor: actor.into(),
             ticket,
+            height_map,
             reply,
         })
         .await

@@ -157,7 +157,7 @@ impl Machine {
 
     /// [`Machine::probe`] as part of a longer operation that took the gate's `ticket` when it
     /// began: a stop since then refuses it (`stopped`).
-    async fn probe_ticketed(
+    pub(super) async fn probe_ticketed(
         self: &Arc<Self>,
         ask: ProbeAsk,
         actor: &str,

@@ -34,6 +34,8 @@ pub struct RunRow {
     /// (the database could not be written): the highest such line it recorded. `last_line` may
     /// then be behind what ran, and a resume needs `confirm_line` (issue 23).
     pub unstored_line: Option<i64>,
+    /// The height map the run was started with (issue 25), if any; a resume applies it again.
+    pub height_map_id: Option<i64>,
 }
 
 /// A run's state. The database keeps it as the lowercase name; only the machine's task moves a
