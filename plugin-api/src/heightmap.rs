@@ -58,7 +58,9 @@ impl HeightMap {
         }
         for (name, v) in [("x0", self.x0), ("y0", self.y0)] {
             if !v.is_finite() {
-                return Err(format!("height_map.{name} must be a finite number, got {v}"));
+                return Err(format!(
+                    "height_map.{name} must be a finite number, got {v}"
+                ));
             }
         }
         for (name, v) in [("dx", self.dx), ("dy", self.dy)] {
@@ -129,7 +131,10 @@ impl HeightMap {
     /// that crosses none (or only changes Z) gives `[1.0]`. At most `nx + ny + 1` values.
     pub fn split(&self, a: [f64; 2], b: [f64; 2]) -> Vec<f64> {
         let mut ts = Vec::new();
-        for (axis, v0, d, n) in [(0, self.x0, self.dx, self.nx), (1, self.y0, self.dy, self.ny)] {
+        for (axis, v0, d, n) in [
+            (0, self.x0, self.dx, self.nx),
+            (1, self.y0, self.dy, self.ny),
+        ] {
             let span = b[axis] - a[axis];
             if span.abs() <= EPS {
                 continue;
@@ -295,7 +300,11 @@ mod tests {
         };
         assert!(big.validate().is_ok());
         let n = big.split([-1.0, -0.5], [60.0, 61.3]).len();
-        assert_eq!(n, 2 * MAX_POINTS_PER_AXIS as usize + 1, "every line crossed once");
+        assert_eq!(
+            n,
+            2 * MAX_POINTS_PER_AXIS as usize + 1,
+            "every line crossed once"
+        );
     }
 
     #[test]
@@ -333,7 +342,10 @@ mod tests {
         assert_eq!(m.range_over([0.0, 10.0, 0.0, 10.0]), (-1.0, 1.0));
         // A small area inside one cell: its corners.
         let (lo, hi) = m.range_over([2.0, 3.0, 0.0, 0.0]);
-        assert!((lo - 0.2).abs() < 1e-12 && (hi - 0.3).abs() < 1e-12, "{lo} {hi}");
+        assert!(
+            (lo - 0.2).abs() < 1e-12 && (hi - 0.3).abs() < 1e-12,
+            "{lo} {hi}"
+        );
         let s = m.shifted([5.0, -5.0, 0.25]);
         assert_eq!(s.area(), [5.0, 25.0, -5.0, 5.0]);
         assert!((s.correction(15.0, -5.0) - 1.25).abs() < 1e-12);
@@ -344,9 +356,27 @@ mod tests {
         let ok = saddle();
         assert!(ok.validate().is_ok());
         for (m, needle) in [
-            (HeightMap { nx: 1, ..ok.clone() }, "height_map.nx"),
-            (HeightMap { ny: 51, ..ok.clone() }, "height_map.ny"),
-            (HeightMap { dx: 0.0, ..ok.clone() }, "height_map.dx"),
+            (
+                HeightMap {
+                    nx: 1,
+                    ..ok.clone()
+                },
+                "height_map.nx",
+            ),
+            (
+                HeightMap {
+                    ny: 51,
+                    ..ok.clone()
+                },
+                "height_map.ny",
+            ),
+            (
+                HeightMap {
+                    dx: 0.0,
+                    ..ok.clone()
+                },
+                "height_map.dx",
+            ),
             (
                 HeightMap {
                     y0: f64::NAN,

@@ -283,7 +283,11 @@ impl Convert {
             let mut path = |to: [f64; 3]| -> Result<Vec<[f64; 3]>, GcodeError> {
                 let points = match height_map {
                     None => vec![to],
-                    Some(m) => m.corrected_path(from, to).into_iter().map(|(_, p)| p).collect(),
+                    Some(m) => m
+                        .corrected_path(from, to)
+                        .into_iter()
+                        .map(|(_, p)| p)
+                        .collect(),
                 };
                 from = to;
                 moves += points.len() as u64;
@@ -484,7 +488,11 @@ mod tests {
             })
             .collect();
         // Line 1 (from the part zero, on X 0: no crossing), line 2 split at X 10.
-        let want = [[0.0, 5.0, 2.0], [10.0, 5.0, 0.5 + 1.0], [20.0, 5.0, -1.0 + 0.5]];
+        let want = [
+            [0.0, 5.0, 2.0],
+            [10.0, 5.0, 0.5 + 1.0],
+            [20.0, 5.0, -1.0 + 0.5],
+        ];
         assert_eq!(moves.len(), want.len(), "{moves:?}");
         for (got, want) in moves.iter().zip(want) {
             for k in 0..3 {
@@ -493,7 +501,14 @@ mod tests {
         }
         // Without a map: the same program, uncorrected, one motion a move.
         let plain = conv().plan_bounded(text, Default::default(), 1000).unwrap();
-        assert_eq!(plain.cmds.iter().filter(|(_, c)| matches!(c, Cmd::Move { .. })).count(), 2);
+        assert_eq!(
+            plain
+                .cmds
+                .iter()
+                .filter(|(_, c)| matches!(c, Cmd::Move { .. }))
+                .count(),
+            2
+        );
         // The split pieces count against the budget.
         let e = conv()
             .plan_mapped(text, Default::default(), 2, Some(&map))

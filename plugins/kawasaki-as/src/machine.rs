@@ -10,12 +10,12 @@ use crate::config::{Config, Protocol};
 use crate::convert::{Cmd, Convert, Plan};
 use crate::link::{self, LegacyLink, LinkError, V1Link};
 use fresa_plugin_api::backend::{LoadProgram, MachineBackend};
-use fresa_plugin_api::heightmap::HeightMap;
 use fresa_plugin_api::contract::{
     Artifact, Axis, AxisValues, Event, MachineState, MachineStatus, OffsetTable, ProgramLoaded,
     RunAction, RunAnswer, RunOutcome, WorkOffset,
 };
 use fresa_plugin_api::exec_log::ExecLog;
+use fresa_plugin_api::heightmap::HeightMap;
 use fresa_plugin_api::{Host, PluginError};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;

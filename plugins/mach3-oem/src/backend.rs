@@ -1259,6 +1259,29 @@ impl Drop for Mach3Backend {
 mod tests {
     use super::Chunks;
 
+    /// Mach3 runs the program file itself: a height map is refused, saying why, before the
+    /// agent is even asked (none listens here).
+    #[test]
+    #[allow(clippy::unwrap_used)]
+    fn a_height_map_is_refused_naming_why() {
+        use fresa_plugin_api::MachineBackend;
+        use serde_json::json;
+        let b = super::Mach3Backend::new(
+            &json!({"agent": "127.0.0.1:9", "secret": "x"}),
+            std::sync::Arc::new(|_: &fresa_plugin_api::contract::Event| {}),
+        )
+        .unwrap();
+        let e = b
+            .request(
+                json!({"op": "load_program", "run": 1, "path": "/nonexistent.nc",
+                "start_line": 1, "height_map": {"x0": 0, "y0": 0, "dx": 1, "dy": 1, "nx": 2,
+                "ny": 2, "z": [0, 0, 0, 0]}}),
+            )
+            .unwrap_err();
+        assert_eq!(e.code, "unsupported", "{e}");
+        assert!(e.message.contains("Mach3 interprets"), "{e}");
+    }
+
     #[test]
     #[allow(clippy::unwrap_used)]
     fn chunks_split_on_char_boundaries() {

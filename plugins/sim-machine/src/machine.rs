@@ -626,8 +626,8 @@ impl MachineBackend for SimMachine {
         if let Some(map) = &p.height_map {
             map.validate().map_err(PluginError::invalid)?;
         }
-        let plan = program::plan_file(file, lines, work, xyz, tools, budget)
-            .with_height_map(p.height_map);
+        let plan =
+            program::plan_file(file, lines, work, xyz, tools, budget).with_height_map(p.height_map);
         let has_probe = self.core.cfg.switches.iter().any(|s| s.name == io::PROBE);
         plan.check(&offsets, active, a, has_probe, |p| {
             self.core.cfg.check_travel(p)

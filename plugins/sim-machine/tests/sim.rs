@@ -998,9 +998,14 @@ fn a_height_map_corrects_z_along_the_split_path() {
     let log = temp_path("exec.log");
     let rig = machine(json!({"time_scale": 0, "status_interval_ms": 0, "execution_log": log}));
     let path = program("G21 G90\nG0 X-5 Y1 Z1\nG1 X25 Y9 Z-0.1 F600\nG1 X10 Y5\n");
-    let loaded = rig.call(json!({"op":"load_program","run":3,"path":path,"start_line":1,
-                                 "height_map": saddle_map()}));
-    assert_eq!(loaded, json!({"lines": 4, "start_line": 1, "height_map": true}));
+    let loaded = rig.call(
+        json!({"op":"load_program","run":3,"path":path,"start_line":1,
+                                 "height_map": saddle_map()}),
+    );
+    assert_eq!(
+        loaded,
+        json!({"lines": 4, "start_line": 1, "height_map": true})
+    );
     rig.call(json!({"op":"run","action":"start"}));
     let (events, outcome, message) = rig.until_run_ended(3);
     assert_eq!(outcome, RunOutcome::Completed, "{message:?}");
@@ -1032,7 +1037,9 @@ fn a_height_map_corrects_z_along_the_split_path() {
         .collect();
     let end_z = |line: u64| {
         let e = logged.iter().find(|e| e["line"] == line).unwrap();
-        e["pos"][2].as_f64().unwrap_or_else(|| panic!("no pos in {e}"))
+        e["pos"][2]
+            .as_f64()
+            .unwrap_or_else(|| panic!("no pos in {e}"))
     };
     assert!(close(end_z(2), 1.0 + saddle(0.0, 1.0)), "{logged:?}");
     assert!(close(end_z(3), -0.1 + saddle(20.0, 9.0)), "{logged:?}");
@@ -1043,15 +1050,18 @@ fn a_height_map_corrects_z_along_the_split_path() {
 /// map is refused naming the field.
 #[test]
 fn height_mapped_programs_that_probe_or_change_offset_are_refused() {
-    let rig = machine(json!({"time_scale": 0, "switches": {"probe": {"axis": "z", "at_or_below": -5}}}));
+    let rig =
+        machine(json!({"time_scale": 0, "switches": {"probe": {"axis": "z", "at_or_below": -5}}}));
     for (text, line) in [
         ("G0 X1\nG38.2 Z-10 F100\n", "line 2"),
         ("G0 X1\nG55\nG0 X2\n", "line 2"),
     ] {
         let e = rig
             .m
-            .request(json!({"op":"load_program","run":4,"path":program(text),"start_line":1,
-                            "height_map": saddle_map()}))
+            .request(
+                json!({"op":"load_program","run":4,"path":program(text),"start_line":1,
+                            "height_map": saddle_map()}),
+            )
             .unwrap_err();
         assert_eq!(e.code, "unsupported", "{e}");
         assert!(e.message.starts_with(line), "{e}");
@@ -1060,8 +1070,10 @@ fn height_mapped_programs_that_probe_or_change_offset_are_refused() {
     bad["nx"] = json!(4);
     let e = rig
         .m
-        .request(json!({"op":"load_program","run":4,"path":program("G0 X1\n"),"start_line":1,
-                        "height_map": bad}))
+        .request(
+            json!({"op":"load_program","run":4,"path":program("G0 X1\n"),"start_line":1,
+                        "height_map": bad}),
+        )
         .unwrap_err();
     assert_eq!(e.code, "invalid_request");
     assert!(e.message.contains("height_map.z"), "{e}");
@@ -1069,8 +1081,10 @@ fn height_mapped_programs_that_probe_or_change_offset_are_refused() {
     let rig = machine(json!({"time_scale": 0, "travel": {"z": [-1, 0]}}));
     let e = rig
         .m
-        .request(json!({"op":"load_program","run":5,"path":program("G1 X10 Y5 Z-0.05 F100\n"),
-                        "start_line":1, "height_map": saddle_map()}))
+        .request(
+            json!({"op":"load_program","run":5,"path":program("G1 X10 Y5 Z-0.05 F100\n"),
+                        "start_line":1, "height_map": saddle_map()}),
+        )
         .unwrap_err();
     assert_eq!(e.code, "out_of_travel", "{e}");
 }
@@ -1091,11 +1105,18 @@ fn a_probe_trips_on_a_tilted_surface_at_its_height_there() {
         let z = rig.status().machine_position.z;
         rig.call(json!({"op":"probe","id":1,"axis":"Z","distance": -5.0 - z,"feed":300}));
         let seen = rig.until(|e| matches!(e, Event::ProbeEnded { .. }));
-        let Some(Event::ProbeEnded { trip: Some(trip), .. }) = seen.last() else {
+        let Some(Event::ProbeEnded {
+            trip: Some(trip), ..
+        }) = seen.last()
+        else {
             panic!("{seen:?}");
         };
         let want = -1.0 + 0.01 * x - 0.02 * y;
-        assert!(close(trip.z, want), "at X{x} Y{y}: trip {} != {want}", trip.z);
+        assert!(
+            close(trip.z, want),
+            "at X{x} Y{y}: trip {} != {want}",
+            trip.z
+        );
         rig.call(json!({"op":"jog","axis":"Z","distance": 2.0, "feed": 3000}));
         rig.wait_idle();
     }

@@ -117,7 +117,11 @@ pub async fn list(
     Ok(Json(rows.iter().map(HeightMapView::from_row).collect()))
 }
 
-async fn one(app: &SharedApp, id: i64, hid: i64) -> Result<fresa_core::store::HeightMapRow, ApiError> {
+async fn one(
+    app: &SharedApp,
+    id: i64,
+    hid: i64,
+) -> Result<fresa_core::store::HeightMapRow, ApiError> {
     app.store
         .height_map(hid)
         .await?

@@ -363,7 +363,11 @@ impl Machine {
             s if s.is_busy() => {
                 return Err(Error::conflict(
                     "machine_busy",
-                    format!("machine {} is {}; wait for it to be idle", self.id, s.as_str()),
+                    format!(
+                        "machine {} is {}; wait for it to be idle",
+                        self.id,
+                        s.as_str()
+                    ),
                 ))
             }
             s => {
@@ -530,11 +534,7 @@ impl Grid<'_> {
     /// The work offset must stay the one the grid started with: its heights are in it.
     fn check_zero(&self) -> Result<()> {
         let now = work_zero(&self.m.status());
-        if now
-            .iter()
-            .zip(self.zero)
-            .any(|(a, b)| (a - b).abs() > 1e-9)
-        {
+        if now.iter().zip(self.zero).any(|(a, b)| (a - b).abs() > 1e-9) {
             return Err(Error::conflict(
                 "offset_changed",
                 format!(
@@ -734,7 +734,11 @@ fn grid_of(row: &HeightMapRow, zero_now: [f64; 3]) -> Result<HeightMap> {
 }
 
 /// How map `row` fits `job` with the machine's work zero as `status` shows it.
-pub fn fit(row: &HeightMapRow, job: &JobRow, status: &MachineStatus) -> Result<(HeightMapFit, HeightMap)> {
+pub fn fit(
+    row: &HeightMapRow,
+    job: &JobRow,
+    status: &MachineStatus,
+) -> Result<(HeightMapFit, HeightMap)> {
     if row.machine_id != job.machine_id {
         return Err(Error::invalid(
             "height_map_other_machine",
@@ -1001,7 +1005,14 @@ mod tests {
     #[test]
     fn a_map_fits_a_program_inside_it_and_names_the_overhang_otherwise() {
         let r = row(
-            vec![Some(0.0), Some(0.1), Some(0.2), Some(-0.1), Some(0.3), Some(0.4)],
+            vec![
+                Some(0.0),
+                Some(0.1),
+                Some(0.2),
+                Some(-0.1),
+                Some(0.3),
+                Some(0.4),
+            ],
             "complete",
         );
         let st = MachineStatus::default();
@@ -1011,7 +1022,10 @@ mod tests {
         assert!(f.correction_min >= -0.1 && f.correction_max <= 0.4, "{f:?}");
         let (f, _) = fit(&r, &job(Some(([-1.5, 1.0, -1.0], [19.0, 12.0, 0.0]))), &st).unwrap();
         let o = f.overhang.unwrap();
-        assert!(o.contains("X -1.500 is 1.500 mm past") && o.contains("Y 12.000"), "{o}");
+        assert!(
+            o.contains("X -1.500 is 1.500 mm past") && o.contains("Y 12.000"),
+            "{o}"
+        );
         // Without cutting moves: fits, the range over the whole map.
         let (f, _) = fit(&r, &job(None), &st).unwrap();
         assert!(f.fits);
