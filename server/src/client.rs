@@ -7,6 +7,8 @@ use std::path::PathBuf;
 
 type Res = Result<(), Box<dyn std::error::Error>>;
 
+mod heightmap;
+
 #[derive(Args)]
 pub struct ServerArgs {
     /// Server URL.
@@ -97,6 +99,14 @@ pub enum MachineCmd {
         #[arg(long)]
         rapid: Option<f64>,
     },
+    /// Probe a height map: a grid over an area of the work coordinates (probe down at each
+    /// point from the clearance Z). Follows it until it ends and prints the heights; exits 1
+    /// unless it completed.
+    HeightMap {
+        id: i64,
+        #[command(flatten)]
+        grid: heightmap::GridArgs,
+    },
     /// A machine's tool table (what G41/G42 D<n> offset by); with --load, replace it first.
     Tools {
         id: i64,
@@ -141,6 +151,14 @@ pub enum JobCmd {
     },
     /// Follow a job's progress until it ends.
     Watch { id: i64 },
+    /// Start a job (a new run) and print its state.
+    Start {
+        id: i64,
+        /// Apply this height map of the job's machine (`fresa machine height-map`): every
+        /// move's Z follows the probed surface.
+        #[arg(long)]
+        height_map: Option<i64>,
+    },
 }
 
 /// Where the database is: the same settings `fresa serve` resolves.
@@ -303,6 +321,7 @@ pub async fn machine(server: ServerArgs, cmd: MachineCmd) -> Res {
                 .await?;
             print!("{}", status_text(&s));
         }
+        MachineCmd::HeightMap { id, grid } => return heightmap::probe(&c, id, grid).await,
         MachineCmd::JogCancel { id } => {
             let v = c
                 .send(c.req(
@@ -803,6 +822,26 @@ pub async fn job(server: ServerArgs, cmd: JobCmd) -> Res {
                     .await?;
                 println!("job {id} {}", r["state"].as_str().unwrap_or("?"));
             }
+        }
+        JobCmd::Start { id, height_map } => {
+            let mut body = serde_json::json!({});
+            if let Some(h) = height_map {
+                body["height_map"] = h.into();
+            }
+            let r = c
+                .send(
+                    c.req(reqwest::Method::POST, &format!("/api/v1/jobs/{id}/start"))
+                        .json(&body),
+                )
+                .await?;
+            println!(
+                "job {id} {} (run {}{})",
+                r["state"].as_str().unwrap_or("?"),
+                r["run"]["id"],
+                height_map
+                    .map(|h| format!(", height map {h}"))
+                    .unwrap_or_default()
+            );
         }
         JobCmd::Watch { id } => {
             // Subscribe first, then read the current state, so no transition falls in between.
