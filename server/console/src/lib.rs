@@ -39,6 +39,7 @@ assets! {
     "pendants.js" => "text/javascript; charset=utf-8",
     "events.js" => "text/javascript; charset=utf-8",
     "plugins.js" => "text/javascript; charset=utf-8",
+    "heightmap.js" => "text/javascript; charset=utf-8",
     "favicon.svg" => "image/svg+xml",
 }
 
