@@ -843,7 +843,13 @@ fn a_height_map_is_probed_plotted_and_chosen_for_a_job_in_the_browser() {
     b.goto(&format!("{}/#/machines/{m}", s.base));
     b.click("#height-maps-link");
     b.wait_text("#hm-form", T);
-    for (field, value) in [("x1", "20"), ("y1", "10"), ("nx", "3"), ("ny", "3"), ("feed", "300")] {
+    for (field, value) in [
+        ("x1", "20"),
+        ("y1", "10"),
+        ("nx", "3"),
+        ("ny", "3"),
+        ("feed", "300"),
+    ] {
         b.type_into(&format!("#hm-{field}"), value);
     }
     b.click("#hm-start");
@@ -853,7 +859,12 @@ fn a_height_map_is_probed_plotted_and_chosen_for_a_job_in_the_browser() {
         "const t = document.querySelector('#hm-title'); \
          return t && t.textContent.includes('complete') ? t.textContent : null;",
     );
-    let hid: i64 = title.as_str().unwrap()[4..].split(' ').next().unwrap().parse().unwrap();
+    let hid: i64 = title.as_str().unwrap()[4..]
+        .split(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
     let map = s
         .get(&format!("/api/v1/machines/{m}/height-maps/{hid}"))
         .expect(200);
@@ -871,13 +882,15 @@ fn a_height_map_is_probed_plotted_and_chosen_for_a_job_in_the_browser() {
          return n > c.width * c.height / 2;",
     );
     assert_eq!(coloured, json!(true));
-    assert!(b
-        .wait_text("#hm-list", T)
-        .contains("9/9"));
+    assert!(b.wait_text("#hm-list", T).contains("9/9"));
     b.screenshot("height-map");
 
     // A job on the map's area: the start offers the map and shows its correction range.
-    let job = s.upload(m, "trace.nc", "G0 Z2\nG0 X2 Y2\nG1 Z-0.1 F300\nG1 X18 Y8\nG0 Z2\n")["id"]
+    let job = s.upload(
+        m,
+        "trace.nc",
+        "G0 Z2\nG0 X2 Y2\nG1 Z-0.1 F300\nG1 X18 Y8\nG0 Z2\n",
+    )["id"]
         .as_i64()
         .unwrap();
     b.goto(&format!("{}/#/jobs/{job}", s.base));

@@ -15,7 +15,6 @@ use fresa_plugin_api::contract::{
     RunAction, RunAnswer, RunOutcome, WorkOffset,
 };
 use fresa_plugin_api::exec_log::ExecLog;
-use fresa_plugin_api::heightmap::HeightMap;
 use fresa_plugin_api::{Host, PluginError};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -263,16 +262,15 @@ impl KawasakiMachine {
         }
     }
 
+    /// `p`'s program converted within `max_segments` with `tools`, kept for the run.
     fn load(
         &self,
-        run: i64,
-        path: &str,
-        start_line: u32,
-        expected_zero: Option<AxisValues>,
+        p: &LoadProgram,
         tools: fresa_gcode::ToolTable,
         max_segments: u64,
-        height_map: Option<&HeightMap>,
     ) -> Result<ProgramLoaded, PluginError> {
+        let (run, path, start_line) = (p.run, p.path.as_str(), p.start_line);
+        let (expected_zero, height_map) = (p.expected_part_zero, p.height_map.as_ref());
         if self.core.lock().busy {
             return Err(PluginError::new("busy", "a run is in progress"));
         }
@@ -1022,15 +1020,7 @@ impl MachineBackend for KawasakiMachine {
         if let Some(map) = &p.height_map {
             map.validate().map_err(PluginError::invalid)?;
         }
-        self.load(
-            p.run,
-            &p.path,
-            p.start_line,
-            p.expected_part_zero,
-            tools,
-            budget,
-            p.height_map.as_ref(),
-        )
+        self.load(&p, tools, budget)
     }
 
     fn run(&self, action: RunAction) -> Result<RunAnswer, PluginError> {
