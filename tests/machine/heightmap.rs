@@ -360,3 +360,30 @@ fn stop_during_a_grid_ends_it_and_nothing_moves_after() {
     let d = del.until(T, "height_map.deleted", |e| e.event == "height_map.deleted");
     assert_eq!(d.last().unwrap().data["data"]["map"], hid);
 }
+
+/// A probe that runs its whole distance without touching fails the map, naming the point;
+/// the points before it are kept.
+#[test]
+fn a_probe_that_never_touches_fails_the_map_naming_the_point() {
+    let s = Server::start();
+    let m = mapped_sim(&s, "short", 0.0);
+    // From Z 2 down 2.9 mm reaches Z -0.9; the surface at the first point (X 0, Y 0) is at
+    // Z -1, below that.
+    let mut body = grid();
+    body["distance"] = json!(2.9);
+    let hid = start_grid(&s, m.id, &body);
+    let map = wait_map_end(&s, m.id, hid);
+    assert_eq!(map["state"], "failed", "{map}");
+    let msg = map["message"].as_str().unwrap();
+    assert!(
+        msg.starts_with("probe_not_tripped: point (0, 0) at X0.000 Y0.000"),
+        "{msg}"
+    );
+    assert_eq!(map["probed"], 0, "{map}");
+    // It stopped where the probe ended (2.9 mm below the clearance), nothing after.
+    let st = s.wait_machine_state(m.id, "idle", T);
+    assert!(
+        close(st["work_position"]["z"].as_f64().unwrap(), -0.9),
+        "{st}"
+    );
+}

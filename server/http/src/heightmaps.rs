@@ -169,6 +169,7 @@ pub async fn delete(
 
 #[derive(Deserialize, IntoParams)]
 #[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
 pub struct FitParams {
     /// The job whose program the map would correct.
     #[param(example = 1)]
