@@ -9,6 +9,7 @@
 //! |---|---|
 //! | `machine::api` | a machine over the REST API: listing, jog, zero, work offsets, part zero, MDI |
 //! | `machine::probing` | probing moves and touch-off: the offset set, refusals, STOP and a lost client during a probe |
+//! | `machine::heightmap` | height maps: a grid probed and stored, a job run with one, what is refused, STOP during a grid |
 //! | `machine::limits` | what is refused before anything moves: soft limits, jog/feed limits, the work a program may cause |
 //! | `machine::overrides` | feed, spindle and rapid overrides: their effect on a run, the machine's range, the record |
 //! | `machine::tools` | tool tables and cutter compensation with them |
@@ -39,6 +40,7 @@
 
 mod machine {
     mod api;
+    mod heightmap;
     mod io;
     mod limits;
     mod overrides;

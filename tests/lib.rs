@@ -829,6 +829,21 @@ impl Sim {
             .collect()
     }
 
+    /// `(line, [x, y, z, a])`: where the machine was (machine coordinates) when each line of
+    /// `run` finished, as the sim logged it.
+    pub fn line_positions(&self, run: i64) -> Vec<(i64, [f64; 4])> {
+        let text = std::fs::read_to_string(&self.log).unwrap_or_default();
+        text.lines()
+            .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+            .filter(|v| v["run"].as_i64() == Some(run))
+            .filter_map(|v| {
+                let p = v["pos"].as_array()?;
+                let at = |i: usize| p.get(i).and_then(Value::as_f64);
+                Some((v["line"].as_i64()?, [at(0)?, at(1)?, at(2)?, at(3)?]))
+            })
+            .collect()
+    }
+
     /// How many lines of `run` the execution log holds.
     pub fn count_of(&self, run: i64) -> usize {
         self.lines_of(run).len()

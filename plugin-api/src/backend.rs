@@ -31,6 +31,8 @@ pub struct LoadProgram {
     pub tool_change: Option<crate::contract::ToolChangeSetup>,
     /// What to do before `start_line` (see [`crate::contract::Preamble`]).
     pub preamble: Option<crate::contract::Preamble>,
+    /// A height map to apply (see [`Request::LoadProgram`]); a backend that cannot refuses it.
+    pub height_map: Option<crate::heightmap::HeightMap>,
 }
 
 /// A machine backend. Methods may be called concurrently from several host threads (so that
@@ -223,6 +225,7 @@ pub fn dispatch<B: MachineBackend>(b: &B, request: Request) -> Result<Answer, Pl
             optional_stop,
             tool_change,
             preamble,
+            height_map,
         } => b
             .load_program(LoadProgram {
                 run,
@@ -234,6 +237,7 @@ pub fn dispatch<B: MachineBackend>(b: &B, request: Request) -> Result<Answer, Pl
                 optional_stop,
                 tool_change,
                 preamble,
+                height_map,
             })
             .map(Answer::Loaded),
         Request::Run { action } => b.run(action).map(Answer::Run),

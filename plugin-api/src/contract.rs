@@ -513,6 +513,9 @@ pub enum RunAction {
 /// A request the host sends a machine backend. Serialised with an `op` tag.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "op", rename_all = "snake_case")]
+// `load_program` carries the most (tools, preamble, height map): one request is made per call
+// and never kept in bulk, so boxing its fields would only add allocations.
+#[allow(clippy::large_enum_variant)]
 pub enum Request {
     /// Open the link to the controller (idempotent). Answer: `MachineStatus`.
     Connect,
@@ -573,6 +576,14 @@ pub enum Request {
         /// do it safely refuses with `unsupported` and the reason.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         preamble: Option<Preamble>,
+        // --- height map additions (issue 25) ---
+        /// A height map to apply: every move's Z gets the map's correction under it, moves
+        /// split where they cross grid lines (see [`crate::heightmap`]); in the program's work
+        /// coordinates. A backend that applies it says so in its answer
+        /// ([`ProgramLoaded::height_map`]); one that cannot refuses with `unsupported`, naming
+        /// why. Absent: no correction.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        height_map: Option<crate::heightmap::HeightMap>,
     },
     /// Answer: `{}`.
     Run { action: RunAction },
@@ -769,15 +780,22 @@ pub struct ProgramLoaded {
     /// got none, or does not know preambles and ignored it).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub preamble: bool,
+    /// The height map sent with the program is applied (issue 25). A backend built before
+    /// height maps ignores the field it does not know and leaves this out, so the host, seeing
+    /// no confirmation, refuses to start rather than cut uncorrected.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub height_map: bool,
 }
 
 impl ProgramLoaded {
-    /// A program of `lines` lines loaded to start at `start_line`, with no preamble.
+    /// A program of `lines` lines loaded to start at `start_line`, with no preamble and no
+    /// height map.
     pub fn new(lines: u32, start_line: u32) -> ProgramLoaded {
         ProgramLoaded {
             lines,
             start_line,
             preamble: false,
+            height_map: false,
         }
     }
 }

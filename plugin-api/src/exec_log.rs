@@ -9,7 +9,7 @@ use std::fs::{File, OpenOptions};
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Entry {
     pub run: i64,
     pub line: u32,
@@ -17,6 +17,11 @@ pub struct Entry {
     /// each line took, e.g. under an override). Absent in logs written before it existed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub at_ms: Option<u64>,
+    /// Where the machine was when the line finished: machine coordinates X, Y, Z, A (mm,
+    /// degrees), an independent record of the path executed (e.g. with a height map). Absent
+    /// in logs written before it existed, and from backends that do not know it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pos: Option<[f64; 4]>,
 }
 
 /// An open, append-only execution log.
@@ -52,11 +57,21 @@ impl ExecLog {
     /// Appends one entry and flushes it to the operating system (one `write` call, so a torn
     /// entry can only be the last line, which [`ExecLog::last_line`] skips).
     pub fn append(&mut self, run: i64, line: u32) -> Result<(), String> {
+        self.append_at(run, line, None)
+    }
+
+    /// [`ExecLog::append`] with the machine position where the line finished.
+    pub fn append_at(&mut self, run: i64, line: u32, pos: Option<[f64; 4]>) -> Result<(), String> {
         let at_ms = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .ok()
             .map(|d| d.as_millis() as u64);
-        self.append_entry(&Entry { run, line, at_ms })
+        self.append_entry(&Entry {
+            run,
+            line,
+            at_ms,
+            pos,
+        })
     }
 
     /// Appends any one-line JSON record (backends with their own record shape).

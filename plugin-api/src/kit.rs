@@ -932,11 +932,13 @@ impl<P, X> Kit<P, X> {
         before: Events,
     ) -> Result<(), Interrupted> {
         let mut ev = before;
+        // Where the line's motion ended: the motion thread has nothing under way between lines.
+        let pos = self.log.as_ref().map(|_| self.lock().pos);
         for line in lines {
             if let Some(log) = &self.log {
                 log.lock()
                     .unwrap_or_else(|e| e.into_inner())
-                    .append(run, line)
+                    .append_at(run, line, pos)
                     .map_err(Interrupted::Failed)?;
             }
             ev.push(Event::LineAcknowledged { run, line });
@@ -1466,6 +1468,7 @@ impl<P, X> Kit<P, X> {
             lines,
             start_line,
             preamble: leads_here,
+            height_map: false,
         })
     }
 

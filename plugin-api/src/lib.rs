@@ -11,6 +11,8 @@
 //! * [`plugin`]: the lower-level [`Plugin`] trait and [`export_plugin!`] (any plugin kind).
 //! * [`config_fields`]: for Rust plugins: config values read with errors naming the key.
 //! * [`exec_log`]: for Rust machine backends: the execution log behind idempotent resume.
+//! * [`heightmap`]: height maps (a probed grid of Z corrections) and how a backend applies one
+//!   to a program's path (bilinear interpolation, moves split at grid lines).
 //! * [`host`]: for the server: load a library, check it, create and call instances.
 //! * [`quiet`]: rate-limited warnings (first one, then one a minute with a count), for plugins
 //!   and the server.
@@ -21,6 +23,7 @@ pub mod config_fields;
 pub mod contract;
 mod error;
 pub mod exec_log;
+pub mod heightmap;
 pub mod host;
 pub mod kit;
 pub mod operation;

@@ -316,6 +316,7 @@ mod tests {
                 optional_stop: false,
                 tool_change: None,
                 preamble: None,
+                height_map: None,
             },
             Request::Shutdown,
             Request::SetTools { tools: vec![] },

@@ -7,6 +7,8 @@ use std::path::PathBuf;
 
 type Res = Result<(), Box<dyn std::error::Error>>;
 
+mod heightmap;
+
 #[derive(Args)]
 pub struct ServerArgs {
     /// Server URL.
@@ -119,6 +121,14 @@ pub enum MachineCmd {
         #[arg(long)]
         tool_change: Option<String>,
     },
+    /// Probe a height map: a grid over an area of the work coordinates (probe down at each
+    /// point from the clearance Z). Follows it until it ends and prints the heights; exits 1
+    /// unless it completed.
+    HeightMap {
+        id: i64,
+        #[command(flatten)]
+        grid: heightmap::GridArgs,
+    },
     /// A machine's tool table (what G41/G42 D<n> offset by); with --load, replace it first.
     Tools {
         id: i64,
@@ -163,7 +173,7 @@ pub enum JobCmd {
     },
     /// Follow a job's progress until it ends.
     Watch { id: i64 },
-    // --- start at a line (issue 26) ---
+    // --- start at a line (issue 26), height maps (issue 25) ---
     /// Start a job: from its first line, or with `--from-line N` from line N (the lines
     /// before it are interpreted without motion; the machine goes up to a safe Z, takes their
     /// work offset, spindle and coolant, moves across to the start point and down at feed,
@@ -172,6 +182,10 @@ pub enum JobCmd {
         id: i64,
         #[arg(long)]
         from_line: Option<u32>,
+        /// Apply this height map of the job's machine (`fresa machine height-map`): every
+        /// move's Z follows the probed surface.
+        #[arg(long)]
+        height_map: Option<i64>,
     },
     /// Show what `start --from-line N` would do from where the machine stands: the modal
     /// state before line N and the preamble, as G-code-like text (or `--json`). Moves nothing.
@@ -345,6 +359,7 @@ pub async fn machine(server: ServerArgs, cmd: MachineCmd) -> Res {
                 .await?;
             print!("{}", status_text(&s));
         }
+        MachineCmd::HeightMap { id, grid } => return heightmap::probe(&c, id, grid).await,
         MachineCmd::JogCancel { id } => {
             let v = c
                 .send(c.req(
@@ -921,20 +936,35 @@ pub async fn job(server: ServerArgs, cmd: JobCmd) -> Res {
                 println!("job {id} {}", r["state"].as_str().unwrap_or("?"));
             }
         }
-        JobCmd::Start { id, from_line } => {
-            let mut rb = c.req(reqwest::Method::POST, &format!("/api/v1/jobs/{id}/start"));
+        JobCmd::Start {
+            id,
+            from_line,
+            height_map,
+        } => {
+            let mut body = serde_json::json!({});
             if let Some(n) = from_line {
-                rb = rb.json(&serde_json::json!({ "from_line": n }));
+                body["from_line"] = n.into();
             }
-            let r = c.send(rb).await?;
+            if let Some(h) = height_map {
+                body["height_map"] = h.into();
+            }
+            let r = c
+                .send(
+                    c.req(reqwest::Method::POST, &format!("/api/v1/jobs/{id}/start"))
+                        .json(&body),
+                )
+                .await?;
             let from = r["run"]["from_line"]
                 .as_i64()
                 .map(|n| format!(" from line {n}"))
                 .unwrap_or_default();
             println!(
-                "job {id} {} (run {}{from})",
+                "job {id} {} (run {}{from}{})",
                 r["state"].as_str().unwrap_or("?"),
-                r["run"]["id"]
+                r["run"]["id"],
+                height_map
+                    .map(|h| format!(", height map {h}"))
+                    .unwrap_or_default()
             );
         }
         JobCmd::StartPreview {

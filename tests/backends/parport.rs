@@ -393,3 +393,67 @@ fn a_50_percent_feed_override_doubles_the_line_times_and_a_spindle_one_is_refuse
     assert_eq!(axis(&st, "machine_position", "x"), 0.0, "{st}");
     assert_eq!(overrides(&s, m), [50.0, 100.0, 100.0]);
 }
+
+/// parport-stepper's Z is an on/off tool lift, so it refuses a job with a height map before
+/// anything moves, naming why (the run fails at its start; nothing is executed).
+#[test]
+fn a_job_with_a_height_map_is_refused_naming_the_z_lift() {
+    let mut s = Server::start();
+    let m = parport_machine(&s, "lifter", json!({}));
+    s.wait_machine_state(m, "idle", T);
+    // A grid cannot be probed here (its probing axes are X and Y): the map is stored straight
+    // into the (stopped) server's database, as one measured elsewhere would be.
+    s.terminate();
+    let db = s.data_dir().join("fresa.db");
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let hid = rt.block_on(async {
+        let store = fresa_core::store::Store::open(&db).await.unwrap();
+        let points = json!([0.0, 0.1, -0.1, 0.05]).to_string();
+        let id = store
+            .insert_height_map(fresa_core::store::NewHeightMap {
+                machine_id: m,
+                area: [0.0, 10.0, 0.0, 10.0],
+                nx: 2,
+                ny: 2,
+                clearance: 2.0,
+                distance: 5.0,
+                feed: 100.0,
+                offset: [0.0; 3],
+                points: &points,
+                created_by: "test",
+            })
+            .await
+            .unwrap();
+        assert!(store
+            .finish_height_map(id, "complete", &points, None)
+            .await
+            .unwrap());
+        id
+    });
+    drop(rt);
+    s.spawn().unwrap();
+    s.wait_machine_state(m, "idle", T);
+    let job = s.upload(m, "pcb.nc", "G21 G90\nG0 X1 Y1\nG1 X5 Y5 F300\n")["id"]
+        .as_i64()
+        .unwrap();
+    let msg = s
+        .post(
+            &format!("/api/v1/jobs/{job}/start"),
+            &json!({"height_map": hid}),
+        )
+        .expect_error(422, "height_map_unsupported");
+    assert!(msg.contains("Z is an on/off tool lift"), "{msg}");
+    let j = s.job(job);
+    assert_eq!(j["state"], "failed", "{j}");
+    assert_eq!(j["run"]["height_map_id"], hid, "{j}");
+    let st = s.status(m);
+    assert_eq!(
+        axis(&st, "machine_position", "x"),
+        0.0,
+        "nothing moved: {st}"
+    );
+    assert!(read_exec_log(&s.data_dir().join("exec-lifter.log")).is_empty());
+}

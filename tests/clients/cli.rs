@@ -738,3 +738,106 @@ fn machine_touch_off_and_probe_print_what_they_found() {
         output_text(&out)
     );
 }
+
+/// `fresa machine height-map` probes a grid, follows it and prints the heights (rows from the
+/// highest Y down); `fresa job start ID --height-map HID` runs a job with it.
+#[test]
+fn machine_height_map_probes_a_grid_and_job_start_applies_it() {
+    let s = Server::start();
+    let m = s.create_machine(&serde_json::json!({
+        "name": "leveller", "backend": "sim-machine",
+        "config": {"time_scale": 0, "travel": {"z": [-20, 10]},
+                   "switches": {"probe": {"axis": "z", "at_or_below": -1, "slope_x": 0.01}}},
+    }));
+    s.wait_machine_state(m, "idle", T);
+    let id = m.to_string();
+    let out = s.cli(&[
+        "machine",
+        "height-map",
+        &id,
+        "--x0",
+        "0",
+        "--x1",
+        "10",
+        "--y0",
+        "-5",
+        "--y1",
+        "5",
+        "--nx",
+        "2",
+        "--ny",
+        "3",
+        "--clearance",
+        "1",
+        "--distance",
+        "4",
+        "--feed",
+        "300",
+    ]);
+    assert!(out.status.success(), "{}", output_text(&out));
+    let text = stdout(&out);
+    assert!(text.contains("(complete): 6 of 6 points"), "{text}");
+    // The top row (Y 5): Z -1 at X 0, -0.9 at X 10.
+    let top = text
+        .lines()
+        .find(|l| l.trim_start().starts_with("5.000"))
+        .unwrap_or_else(|| panic!("no Y 5 row: {text}"));
+    let cols: Vec<&str> = top.split_whitespace().collect();
+    assert_eq!(cols, ["5.000", "-1.0000", "-0.9000"], "{text}");
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("6/6"),
+        "progress on stderr: {}",
+        output_text(&out)
+    );
+    let hid = s
+        .get(&format!("/api/v1/machines/{m}/height-maps"))
+        .expect(200)[0]["id"]
+        .as_i64()
+        .unwrap();
+    let job = s.upload(
+        m,
+        "cut.nc",
+        "G0 Z1\nG0 X2 Y0\nG1 Z-0.1 F300\nG1 X8\nG0 Z1\n",
+    )["id"]
+        .as_i64()
+        .unwrap();
+    let out = s.cli(&[
+        "job",
+        "start",
+        &job.to_string(),
+        "--height-map",
+        &hid.to_string(),
+    ]);
+    assert!(out.status.success(), "{}", output_text(&out));
+    assert!(
+        stdout(&out).contains(&format!("height map {hid}")),
+        "{}",
+        output_text(&out)
+    );
+    s.wait_job_state(job, "completed", T);
+    assert_eq!(s.job(job)["run"]["height_map_id"], hid);
+    // Too many points: the server's refusal, exit non-zero.
+    let out = s.cli(&[
+        "machine",
+        "height-map",
+        &id,
+        "--x0",
+        "0",
+        "--x1",
+        "10",
+        "--y0",
+        "0",
+        "--y1",
+        "5",
+        "--nx",
+        "51",
+        "--ny",
+        "2",
+    ]);
+    assert!(!out.status.success(), "{}", output_text(&out));
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("invalid_field"),
+        "{}",
+        output_text(&out)
+    );
+}

@@ -1045,3 +1045,90 @@ fn the_job_page_previews_a_start_at_a_line_before_it_starts() {
     let run = j["run"]["id"].as_i64().unwrap();
     assert_eq!(m.lines_of(run), vec![6, 7, 8]);
 }
+
+/// The height-map page: a grid probed from its form, followed live, shown as a colour plot
+/// with the range in its legend; on the job's page the map is offered for the start, with how
+/// it fits the program, and the run uses it.
+#[test]
+fn a_height_map_is_probed_plotted_and_chosen_for_a_job_in_the_browser() {
+    let s = Server::start();
+    let m = s.create_machine(&json!({
+        "name": "pcb", "backend": "sim-machine", "max_jog_mm": 60.0,
+        "config": {"time_scale": 0, "travel": {"z": [-20, 10]},
+                   "switches": {"probe": {"axis": "z", "at_or_below": -1,
+                                          "slope_x": 0.01, "slope_y": -0.02}}}
+    }));
+    s.wait_machine_state(m, "idle", T);
+    let b = Browser::start();
+    b.goto(&format!("{}/#/machines/{m}", s.base));
+    b.click("#height-maps-link");
+    b.wait_text("#hm-form", T);
+    for (field, value) in [
+        ("x1", "20"),
+        ("y1", "10"),
+        ("nx", "3"),
+        ("ny", "3"),
+        ("feed", "300"),
+    ] {
+        b.type_into(&format!("#hm-{field}"), value);
+    }
+    b.click("#hm-start");
+    let title = b.wait(
+        "the map complete",
+        T,
+        "const t = document.querySelector('#hm-title'); \
+         return t && t.textContent.includes('complete') ? t.textContent : null;",
+    );
+    let hid: i64 = title.as_str().unwrap()[4..]
+        .split(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    let map = s
+        .get(&format!("/api/v1/machines/{m}/height-maps/{hid}"))
+        .expect(200);
+    assert_eq!(map["probed"], 9, "{map}");
+    // The legend shows the range the API reports; the plot is drawn in colour.
+    let shown = b.js(
+        "const l = document.querySelector('#hm-legend'); \
+         return [+l.querySelector('[data-min]').dataset.min, +l.querySelector('[data-max]').dataset.max];",
+    );
+    assert_eq!(shown, json!([map["min"], map["max"]]), "{map}");
+    let coloured = b.js(
+        "const c = document.querySelector('#hm-plot'); const d = c.getContext('2d') \
+         .getImageData(0, 0, c.width, c.height).data; let n = 0; \
+         for (let k = 0; k < d.length; k += 4) if (d[k] !== d[k + 1] || d[k + 1] !== d[k + 2]) n++; \
+         return n > c.width * c.height / 2;",
+    );
+    assert_eq!(coloured, json!(true));
+    assert!(b.wait_text("#hm-list", T).contains("9/9"));
+    b.screenshot("height-map");
+
+    // A job on the map's area: the start offers the map and shows its correction range.
+    let job = s.upload(
+        m,
+        "trace.nc",
+        "G0 Z2\nG0 X2 Y2\nG1 Z-0.1 F300\nG1 X18 Y8\nG0 Z2\n",
+    )["id"]
+        .as_i64()
+        .unwrap();
+    b.goto(&format!("{}/#/jobs/{job}", s.base));
+    b.wait(
+        "the map offered",
+        T,
+        &format!("return !!document.querySelector('#start-height-map option[value=\"{hid}\"]');"),
+    );
+    b.select("#start-height-map", &hid.to_string());
+    let fit = b.wait(
+        "the fit shown",
+        T,
+        "const f = document.querySelector('#height-map-fit'); \
+         return f && f.textContent.includes('Z correction') ? f.textContent : null;",
+    );
+    assert!(fit.as_str().unwrap().starts_with("fits"), "{fit}");
+    b.click("button[data-action=start]");
+    s.wait_job_state(job, "completed", T);
+    assert_eq!(s.job(job)["run"]["height_map_id"], hid);
+    b.wait_text("#job-height-map", T);
+}

@@ -29,6 +29,21 @@ const NOT_ON_THE_DEMO: &[(&str, &str, &str)] = &[
         "/api/v1/machines/{id}/jog/keepalive",
         "only while a continuous jog is held (machine::api's continuous-jog test keeps one alive)",
     ),
+    (
+        "get",
+        "/api/v1/machines/{id}/height-maps/{hid}",
+        "only once a grid was probed (machine::heightmap probes them and reads them back)",
+    ),
+    (
+        "delete",
+        "/api/v1/machines/{id}/height-maps/{hid}",
+        "only once a grid was probed (machine::heightmap deletes a stopped one)",
+    ),
+    (
+        "get",
+        "/api/v1/machines/{id}/height-maps/{hid}/fit",
+        "only with a probed map and a job (machine::heightmap checks fits and overhangs)",
+    ),
 ];
 
 struct Op {

@@ -4,6 +4,7 @@
 use crate::config::Speeds;
 use fresa_gcode::{linearise, GcodeError, Interpreter, Motion, Unsupported};
 use fresa_plugin_api::config_fields::invalid;
+use fresa_plugin_api::heightmap::HeightMap;
 use fresa_plugin_api::PluginError;
 use serde_json::Value;
 
@@ -244,6 +245,20 @@ impl Convert {
         tools: fresa_gcode::ToolTable,
         max_segments: u64,
     ) -> Result<Plan, GcodeError> {
+        self.plan_mapped(text, tools, max_segments, None)
+    }
+
+    /// [`Convert::plan_bounded`] with a height map (issue 25): every move's Z gets the map's
+    /// correction, each move split where it crosses a grid line (`fresa_plugin_api::heightmap`),
+    /// in program coordinates before the axis mapping. The pieces count against
+    /// `max_segments`.
+    pub fn plan_mapped(
+        &self,
+        text: &str,
+        tools: fresa_gcode::ToolTable,
+        max_segments: u64,
+        height_map: Option<&HeightMap>,
+    ) -> Result<Plan, GcodeError> {
         let lines = u32::try_from(text.lines().count()).unwrap_or(u32::MAX);
         let config = fresa_gcode::Config {
             arc_tolerance_mm: self.arc_tolerance_mm,
@@ -257,9 +272,38 @@ impl Convert {
         let mut warnings = Vec::new();
         let budget = fresa_gcode::WorkBudget::new(max_segments, self.arc_tolerance_mm);
         let motions = fresa_gcode::budgeted(&mut interp, budget);
+        // The program point the robot is at (uncorrected): the part zero at the start.
+        let mut from = height_map.map_or([0.0; 3], |m| m.uncorrected([0.0; 3]));
+        let mut moves: u64 = 0;
         for motion in linearise(motions, self.arc_tolerance_mm) {
             let motion = motion?;
             let line = motion.line().clamp(1, lines.max(1));
+            // The points a move goes through: its end, or with a height map each piece's end,
+            // corrected.
+            let mut path = |to: [f64; 3]| -> Result<Vec<[f64; 3]>, GcodeError> {
+                let points = match height_map {
+                    None => vec![to],
+                    Some(m) => m
+                        .corrected_path(from, to)
+                        .into_iter()
+                        .map(|(_, p)| p)
+                        .collect(),
+                };
+                from = to;
+                moves += points.len() as u64;
+                if height_map.is_some() && moves > max_segments {
+                    return Err(GcodeError {
+                        line,
+                        column: 1,
+                        kind: fresa_gcode::ErrorKind::Budget,
+                        message: format!(
+                            "work budget exceeded: the height map splits the program's moves \
+                             into more than {max_segments} robot motions"
+                        ),
+                    });
+                }
+                Ok(points)
+            };
             // The robot's six joints place the tool in X/Y/Z only; a program that turns a
             // rotary table is refused whole, before anything moves.
             if let Some(a) = motion.rotary() {
@@ -283,13 +327,17 @@ impl Convert {
                 });
             }
             match motion {
-                Motion::Rapid { to, .. } => cmds.push((
-                    line,
-                    Cmd::Move {
-                        rapid: true,
-                        to: self.mapping.map(to),
-                    },
-                )),
+                Motion::Rapid { to, .. } => {
+                    for p in path(to)? {
+                        cmds.push((
+                            line,
+                            Cmd::Move {
+                                rapid: true,
+                                to: self.mapping.map(p),
+                            },
+                        ));
+                    }
+                }
                 // `linearise` leaves no arcs; an arc here would be a bug there, and its end
                 // point is still a correct (if coarse) target.
                 Motion::Linear {
@@ -303,13 +351,15 @@ impl Convert {
                         speed = Some(v);
                         cmds.push((line, Cmd::Speed(v)));
                     }
-                    cmds.push((
-                        line,
-                        Cmd::Move {
-                            rapid: false,
-                            to: self.mapping.map(to),
-                        },
-                    ));
+                    for p in path(to)? {
+                        cmds.push((
+                            line,
+                            Cmd::Move {
+                                rapid: false,
+                                to: self.mapping.map(p),
+                            },
+                        ));
+                    }
                 }
                 Motion::Dwell { seconds, .. } => cmds.push((line, Cmd::Dwell(seconds.max(0.0)))),
                 Motion::Pause {
@@ -408,6 +458,62 @@ mod tests {
         assert_eq!(m.describe(), "X=X, Y=-Y, Z=-Z");
         let m = Mapping::from_json(&json!({"x": "-Y", "y": "+X"})).unwrap();
         assert_eq!(m.map([1.0, 2.0, 3.0]), [-2.0, 1.0, -3.0]);
+    }
+
+    /// A height map corrects every motion's Z in program coordinates, before the axis
+    /// mapping, and splits a move where it crosses grid lines; the pieces count against the
+    /// budget.
+    #[test]
+    fn a_height_map_corrects_and_splits_the_robot_motions() {
+        // Correction 0 at X 0, 1 at X 10, 0.5 at X 20 (the same along Y).
+        let map = HeightMap {
+            x0: 0.0,
+            y0: 0.0,
+            dx: 10.0,
+            dy: 10.0,
+            nx: 3,
+            ny: 2,
+            z: vec![0.0, 1.0, 0.5, 0.0, 1.0, 0.5],
+        };
+        let text = "G0 X0 Y5 Z2\nG1 X20 Y5 Z-1 F600\n";
+        let plan = conv()
+            .plan_mapped(text, Default::default(), 1000, Some(&map))
+            .unwrap();
+        let moves: Vec<[f64; 3]> = plan
+            .cmds
+            .iter()
+            .filter_map(|(_, c)| match c {
+                Cmd::Move { to, .. } => Some(Mapping::default().unmap(*to)),
+                _ => None,
+            })
+            .collect();
+        // Line 1 (from the part zero, on X 0: no crossing), line 2 split at X 10.
+        let want = [
+            [0.0, 5.0, 2.0],
+            [10.0, 5.0, 0.5 + 1.0],
+            [20.0, 5.0, -1.0 + 0.5],
+        ];
+        assert_eq!(moves.len(), want.len(), "{moves:?}");
+        for (got, want) in moves.iter().zip(want) {
+            for k in 0..3 {
+                assert!((got[k] - want[k]).abs() < 1e-9, "{moves:?}");
+            }
+        }
+        // Without a map: the same program, uncorrected, one motion a move.
+        let plain = conv().plan_bounded(text, Default::default(), 1000).unwrap();
+        assert_eq!(
+            plain
+                .cmds
+                .iter()
+                .filter(|(_, c)| matches!(c, Cmd::Move { .. }))
+                .count(),
+            2
+        );
+        // The split pieces count against the budget.
+        let e = conv()
+            .plan_mapped(text, Default::default(), 2, Some(&map))
+            .unwrap_err();
+        assert_eq!((e.line, e.kind), (2, fresa_gcode::ErrorKind::Budget), "{e}");
     }
 
     #[test]

@@ -276,15 +276,15 @@ impl KawasakiMachine {
         }
     }
 
+    /// `p`'s program converted within `max_segments` with `tools`, kept for the run.
     fn load(
         &self,
-        run: i64,
-        path: &str,
-        start_line: u32,
-        expected_zero: Option<AxisValues>,
+        p: &LoadProgram,
         tools: fresa_gcode::ToolTable,
         max_segments: u64,
     ) -> Result<ProgramLoaded, PluginError> {
+        let (run, path, start_line) = (p.run, p.path.as_str(), p.start_line);
+        let (expected_zero, height_map) = (p.expected_part_zero, p.height_map.as_ref());
         if self.core.lock().busy {
             return Err(PluginError::new("busy", "a run is in progress"));
         }
@@ -294,7 +294,7 @@ impl KawasakiMachine {
         let plan = self
             .core
             .convert
-            .plan_bounded(&text, tools, max_segments)
+            .plan_mapped(&text, tools, max_segments, height_map)
             .map_err(|e| match e.kind {
                 fresa_gcode::ErrorKind::Budget if max_segments == crate::convert::MAX_COMMANDS => {
                     PluginError::new(
@@ -322,7 +322,12 @@ impl KawasakiMachine {
             self.core.log_warn(&format!("run {run}: {w}"));
         }
         // Identifies this run of this program to the robot (fresa-v1) and in the journal.
-        let tag = format!("{run}-{:08x}", fnv1a(&text) as u32);
+        // A height map changes every motion: it is part of what the robot ran.
+        let identity = match height_map {
+            Some(m) => format!("{text}\n{}", serde_json::to_string(m).unwrap_or_default()),
+            None => text.clone(),
+        };
+        let tag = format!("{run}-{:08x}", fnv1a(&identity) as u32);
         let mut start_cmd = plan.first_cmd_at(start_line);
         // What this process or the journal knows was done already.
         let seen = self.core.lock().progress.get(&run).copied().unwrap_or(0);
@@ -363,7 +368,10 @@ impl KawasakiMachine {
                 journal,
             });
         });
-        Ok(ProgramLoaded::new(lines, actual_line.min(lines.max(1))))
+        Ok(ProgramLoaded {
+            height_map: height_map.is_some(),
+            ..ProgramLoaded::new(lines, actual_line.min(lines.max(1)))
+        })
     }
 
     /// Connects, checks part zero and envelope, starts the robot program and the stream.
@@ -1129,14 +1137,10 @@ impl MachineBackend for KawasakiMachine {
             .max_segments
             .unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS)
             .min(crate::convert::MAX_COMMANDS);
-        self.load(
-            p.run,
-            &p.path,
-            p.start_line,
-            p.expected_part_zero,
-            tools,
-            budget,
-        )
+        if let Some(map) = &p.height_map {
+            map.validate().map_err(PluginError::invalid)?;
+        }
+        self.load(&p, tools, budget)
     }
 
     fn run(&self, action: RunAction) -> Result<RunAnswer, PluginError> {

@@ -20,6 +20,11 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+/// Why a height map is refused: Fresa can only correct points it sends itself.
+pub const HEIGHT_MAP_REFUSAL: &str = "mach3-oem cannot apply a height map: Mach3 interprets the \
+     program file itself, so Fresa never sees the points it cuts (use Mach3's own \
+     auto-levelling, or a backend that streams points: sim-machine, kawasaki-as)";
+
 pub type EventSink = Arc<dyn Fn(&Event) + Send + Sync>;
 
 /// Why mach3-oem does not start a program at a line. Mach3 is handed the file and starts it at
@@ -1645,6 +1650,9 @@ impl MachineBackend for Mach3Backend {
         if p.preamble.is_some() {
             return Err(PluginError::new("unsupported", NO_PREAMBLE));
         }
+        if p.height_map.is_some() {
+            return Err(PluginError::new("unsupported", HEIGHT_MAP_REFUSAL));
+        }
         let tools =
             fresa_gcode::tool_table(p.tools.iter().map(|t| (t.tool, t.diameter_mm, t.length_mm)));
         let budget = p.max_segments.unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS);
@@ -1809,6 +1817,29 @@ impl Drop for Mach3Backend {
 #[cfg(test)]
 mod tests {
     use super::Chunks;
+
+    /// Mach3 runs the program file itself: a height map is refused, saying why, before the
+    /// agent is even asked (none listens here).
+    #[test]
+    #[allow(clippy::unwrap_used)]
+    fn a_height_map_is_refused_naming_why() {
+        use fresa_plugin_api::MachineBackend;
+        use serde_json::json;
+        let b = super::Mach3Backend::new(
+            &json!({"agent": "127.0.0.1:9", "secret": "x"}),
+            std::sync::Arc::new(|_: &fresa_plugin_api::contract::Event| {}),
+        )
+        .unwrap();
+        let e = b
+            .request(
+                json!({"op": "load_program", "run": 1, "path": "/nonexistent.nc",
+                "start_line": 1, "height_map": {"x0": 0, "y0": 0, "dx": 1, "dy": 1, "nx": 2,
+                "ny": 2, "z": [0, 0, 0, 0]}}),
+            )
+            .unwrap_err();
+        assert_eq!(e.code, "unsupported", "{e}");
+        assert!(e.message.contains("Mach3 interprets"), "{e}");
+    }
 
     #[test]
     #[allow(clippy::unwrap_used)]

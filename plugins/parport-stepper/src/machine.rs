@@ -713,6 +713,13 @@ impl MachineBackend for Stepper {
     }
 
     fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {
+        if p.height_map.is_some() {
+            return Err(PluginError::new(
+                "unsupported",
+                "parport-stepper cannot apply a height map: its Z is an on/off tool lift \
+                 (the `z_lift` output), with no Z positions to correct",
+            ));
+        }
         let kit = self.kit();
         let actual = kit.logged_start(p.run, p.start_line)?;
         let (start, pos) = {

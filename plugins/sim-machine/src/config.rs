@@ -37,8 +37,9 @@ pub struct Config {
     pub tool: u32,
 }
 
-/// An input switch at a machine position: active while `axis` is at or above `at` (`above`)
-/// or at or below it.
+/// An input switch at a machine position: active while `axis` is at or above its level
+/// (`above`) or at or below it. The level is `at`, or, for a Z switch with a surface (uneven
+/// stock under a probe), `at + slope_x*x + slope_y*y + slope_xy*x*y` at the machine's X, Y.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Switch {
     /// Its input name (`limit_x_max`, `probe`, ...).
@@ -46,15 +47,25 @@ pub struct Switch {
     pub axis: Axis,
     pub at: f64,
     pub above: bool,
+    /// `slope_x`, `slope_y`, `slope_xy` (Z switches only; zero: a flat level).
+    pub surface: [f64; 3],
 }
 
 impl Switch {
+    /// Where the switch's edge lies on its axis with the machine at `pos` (X, Y matter for a
+    /// surface).
+    pub fn level_at(&self, pos: &[f64; 4]) -> f64 {
+        let [sx, sy, sxy] = self.surface;
+        self.at + sx * pos[0] + sy * pos[1] + sxy * pos[0] * pos[1]
+    }
+
     pub fn active_at(&self, pos: &[f64; 4]) -> bool {
         let p = pos[self.axis.index()];
+        let level = self.level_at(pos);
         if self.above {
-            p >= self.at
+            p >= level
         } else {
-            p <= self.at
+            p <= level
         }
     }
 
@@ -229,6 +240,7 @@ fn switches(v: &Value) -> Result<Vec<Switch>, PluginError> {
         };
         let mut axis = None;
         let mut at = None;
+        let mut surface = [0.0; 3];
         for (k, v) in spec {
             let field = format!("{key}.{k}");
             match k.as_str() {
@@ -253,9 +265,13 @@ fn switches(v: &Value) -> Result<Vec<Switch>, PluginError> {
                         "`{key}`: give one of `at_or_above` and `at_or_below`"
                     )))
                 }
+                "slope_x" => surface[0] = number(&field, v)?,
+                "slope_y" => surface[1] = number(&field, v)?,
+                "slope_xy" => surface[2] = number(&field, v)?,
                 other => {
                     return Err(invalid(format!(
-                        "`{key}`: unknown key `{other}` (known: axis, at_or_above, at_or_below)"
+                        "`{key}`: unknown key `{other}` (known: axis, at_or_above, at_or_below, \
+                         slope_x, slope_y, slope_xy)"
                     )))
                 }
             }
@@ -263,11 +279,23 @@ fn switches(v: &Value) -> Result<Vec<Switch>, PluginError> {
         let axis = axis.ok_or_else(|| invalid(format!("`{key}.axis` is required")))?;
         let (at, above) =
             at.ok_or_else(|| invalid(format!("`{key}` needs `at_or_above` or `at_or_below`")))?;
+        if axis != Axis::Z && surface != [0.0; 3] {
+            return Err(invalid(format!(
+                "`{key}`: a surface (`slope_x`, `slope_y`, `slope_xy`) is for a Z switch only"
+            )));
+        }
+        // A surface steeper than 1:1 is no stock a probe could follow down.
+        if surface.iter().any(|s| s.abs() > 1.0) {
+            return Err(invalid(format!(
+                "`{key}`: slopes must be between -1 and 1, got {surface:?}"
+            )));
+        }
         out.push(Switch {
             name: name.clone(),
             axis,
             at,
             above,
+            surface,
         });
     }
     Ok(out)
@@ -303,6 +331,16 @@ mod tests {
         assert!(max.trips());
         let probe = c.switches.iter().find(|s| s.name == "probe").unwrap();
         assert!(probe.active_at(&[0.0, 0.0, -20.0, 0.0]) && !probe.trips());
+        // A tilted, twisted surface under the probe.
+        let c = Config::from_json(&json!({"switches": {"probe": {
+            "axis": "z", "at_or_below": -1, "slope_x": 0.01, "slope_y": -0.02, "slope_xy": 0.001
+        }}}))
+        .unwrap();
+        let probe = &c.switches[0];
+        let level = -1.0 + 0.01 * 10.0 - 0.02 * 20.0 + 0.001 * 200.0;
+        assert!((probe.level_at(&[10.0, 20.0, 0.0, 0.0]) - level).abs() < 1e-12);
+        assert!(probe.active_at(&[10.0, 20.0, level, 0.0]));
+        assert!(!probe.active_at(&[10.0, 20.0, level + 1e-9, 0.0]));
     }
 
     #[test]
@@ -337,6 +375,18 @@ mod tests {
             (
                 json!({"switches": {"probe": {"axis": "z", "at_or_above": "x"}}}),
                 "switches.probe.at_or_above",
+            ),
+            (
+                json!({"switches": {"probe": {"axis": "z", "at_or_below": 0, "slope_x": "1"}}}),
+                "switches.probe.slope_x",
+            ),
+            (
+                json!({"switches": {"limit_x": {"axis": "x", "at_or_above": 9, "slope_y": 0.1}}}),
+                "switches.limit_x",
+            ),
+            (
+                json!({"switches": {"probe": {"axis": "z", "at_or_below": 0, "slope_y": 2}}}),
+                "switches.probe",
             ),
         ] {
             let e = Config::from_json(&cfg).unwrap_err();

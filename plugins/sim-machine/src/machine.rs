@@ -314,7 +314,7 @@ impl Core {
                 .map_or(0.0, |t| sh.extra.table_length(t));
         });
         if let Some(p) = &l.preamble {
-            self.run_preamble(l.run, p)?;
+            self.run_preamble(l.run, p, l.plan.height_map.as_ref())?;
         }
         let mut ahead: Option<(u32, Step)> = None;
         for line in l.start_line..=l.plan.lines {
@@ -353,7 +353,7 @@ impl Core {
                             self.tool_change(step_line, tool, setup)?;
                         }
                     }
-                    step => self.run_step(&step)?,
+                    step => self.run_step(&l.plan, &step)?,
                 }
             }
             self.kit.lines_done(l.run, line..=line, Vec::new())?;
@@ -365,7 +365,14 @@ impl Core {
     /// pause holds between steps and within a move, a stop ends it), each recorded in the
     /// execution log as `{"run":R,"preamble_step":I,"step":{...},"from":[x,y,z,a],"to":[...]}`
     /// (machine positions before and after it), so the approach can be checked afterwards.
-    fn run_preamble(&self, run: i64, p: &Preamble) -> Result<(), Interrupted> {
+    /// With a height map, each move's Z gets the map's correction under its end (its work
+    /// X/Y), so the approach ends where the corrected program goes on.
+    fn run_preamble(
+        &self,
+        run: i64,
+        p: &Preamble,
+        map: Option<&fresa_plugin_api::heightmap::HeightMap>,
+    ) -> Result<(), Interrupted> {
         for (i, step) in p.steps.iter().enumerate() {
             self.kit.line_gate()?;
             let from = self.kit.lock().pos;
@@ -381,9 +388,19 @@ impl Core {
                 }
                 PreambleStep::Coolant { flood, .. } => self.set_output(io::COOLANT_FLOOD, flood),
                 PreambleStep::Move { feed, .. } => {
-                    let Some(to) = step.target(from) else {
+                    let Some(mut to) = step.target(from) else {
                         continue;
                     };
+                    if let Some(map) = map {
+                        let offset = {
+                            let sh = self.kit.lock();
+                            program::with_tool_length(
+                                &sh.offsets[sh.active.index()],
+                                sh.tool_length_offset,
+                            )
+                        };
+                        to[2] += map.correction(to[0] - offset[0], to[1] - offset[1]);
+                    }
                     self.check(to)?;
                     match feed {
                         Some(f) => self.move_to(to, f, Pace::Feed, false)?,
@@ -472,22 +489,34 @@ impl Core {
         })
     }
 
-    fn run_step(&self, step: &Step) -> Result<(), Interrupted> {
+    fn run_step(&self, plan: &Plan, step: &Step) -> Result<(), Interrupted> {
         match *step {
             Step::Move { to, a, feed } => {
-                let target = {
+                // With a height map the move runs as the pieces the map splits it into, each
+                // with its Z corrected, from where the machine stands (its program point
+                // found by taking the correction off again: exact, the correction depending on
+                // X and Y only).
+                let targets = {
                     let sh = self.kit.lock();
                     let offset = program::with_tool_length(
                         &sh.offsets[sh.active.index()],
                         sh.tool_length_offset,
                     );
-                    program::machine_target(to, a, &offset, sh.pos[3])
+                    let here: [f64; 3] = std::array::from_fn(|i| sh.pos[i] - offset[i]);
+                    let from = plan
+                        .height_map
+                        .as_ref()
+                        .map_or(here, |m| m.uncorrected(here));
+                    plan.map_move(from, to, a, &offset, sh.pos[3])
                 };
-                self.check(target)?;
-                match feed {
-                    Some(f) => self.move_to(target, f, Pace::Feed, true),
-                    None => self.move_to(target, self.cfg.rapid_mm_min, Pace::Rapid, true),
+                for target in targets {
+                    self.check(target)?;
+                    match feed {
+                        Some(f) => self.move_to(target, f, Pace::Feed, true)?,
+                        None => self.move_to(target, self.cfg.rapid_mm_min, Pace::Rapid, true)?,
+                    }
                 }
+                Ok(())
             }
             Step::Dwell(seconds) => self.timed(
                 None,
@@ -656,18 +685,20 @@ impl Core {
     }
 
     /// Where the probe switch's edge lies on the slice from `a` to `b`, if the switch reads
-    /// what the probe waits for at `b`.
+    /// what the probe waits for at `b`. The edge is where the axis meets the switch's level
+    /// (a surface's height under the tool): exact for a move along the switch's axis, and
+    /// for any straight move across a tilted plane.
     fn probe_trip(watch: &ProbeWatch, a: [f64; 4], b: [f64; 4]) -> Option<[f64; 4]> {
         let sw = &watch.switch;
         if sw.active_at(&b) != watch.active {
             return None;
         }
         let i = sw.axis.index();
-        let span = b[i] - a[i];
-        let t = if span == 0.0 {
+        let (fa, fb) = (a[i] - sw.level_at(&a), b[i] - sw.level_at(&b));
+        let t = if fa == fb {
             0.0
         } else {
-            ((sw.at - a[i]) / span).clamp(0.0, 1.0)
+            (fa / (fa - fb)).clamp(0.0, 1.0)
         };
         Some(std::array::from_fn(|k| a[k] + (b[k] - a[k]) * t))
     }
@@ -912,10 +943,14 @@ impl MachineBackend for SimMachine {
         let tools =
             fresa_gcode::tool_table(p.tools.iter().map(|t| (t.tool, t.diameter_mm, t.length_mm)));
         let budget = p.max_segments.unwrap_or(fresa_gcode::DEFAULT_MAX_SEGMENTS);
+        if let Some(map) = &p.height_map {
+            map.validate().map_err(PluginError::invalid)?;
+        }
         let table: std::collections::BTreeMap<u32, f64> =
             tools.iter().map(|(n, t)| (*n, t.length_mm)).collect();
         let plan = program::plan_file(file, lines, work, xyz, tools, budget)
-            .with_run_options(p.optional_stop, p.tool_change);
+            .with_run_options(p.optional_stop, p.tool_change)
+            .with_height_map(p.height_map);
         let has_probe = self.core.cfg.switches.iter().any(|s| s.name == io::PROBE);
         plan.check((&offsets, active), a, has_probe, start, |p| {
             self.core.cfg.check_travel(p)
@@ -935,9 +970,12 @@ impl MachineBackend for SimMachine {
             Refusal::Gcode(e) => PluginError::new("invalid_program", e.to_string()),
             Refusal::Travel(m) => PluginError::new("out_of_travel", m),
             Refusal::Start(r) => PluginError::new("start_refused", r.to_string()),
+            Refusal::HeightMap(m) => PluginError::new("unsupported", m),
         })?;
-        let loaded =
+        let mapped = plan.height_map.is_some();
+        let mut loaded =
             kit.install_plan_with(p.run, plan, (lines, p.start_line, start), p.preamble)?;
+        loaded.height_map = mapped;
         kit.with(|sh, _| sh.extra.table = table);
         Ok(loaded)
     }

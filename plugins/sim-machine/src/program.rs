@@ -6,6 +6,7 @@ use fresa_gcode::{
     SpindleDirection, StartError,
 };
 use fresa_plugin_api::contract::WorkOffset;
+use fresa_plugin_api::heightmap::HeightMap;
 use std::io::{BufRead, Seek};
 
 /// Chord tolerance for arcs, mm.
@@ -70,6 +71,8 @@ pub struct Plan {
     pub optional_stop: bool,
     /// M6 holds for a manual tool change, as this says; `None`: M6 passes.
     pub tool_change: Option<fresa_plugin_api::contract::ToolChangeSetup>,
+    /// Added to every move's Z, in the work coordinates the program starts in (issue 25).
+    pub height_map: Option<HeightMap>,
 }
 
 /// Why a program cannot run here.
@@ -83,6 +86,8 @@ pub enum Refusal {
     Travel(String),
     /// The program cannot start at the line asked for (see `Interpreter::state_at`).
     Start(fresa_gcode::StartRefusal),
+    /// Something a height-mapped program cannot do here: `line L: message`.
+    HeightMap(String),
 }
 
 /// The steps of a [`Plan`] in execution order, each with its 1-based source line (<= `lines`).
@@ -204,6 +209,7 @@ pub fn plan(
         max_segments: fresa_gcode::DEFAULT_MAX_SEGMENTS,
         optional_stop: false,
         tool_change: None,
+        height_map: None,
     }
 }
 
@@ -224,6 +230,7 @@ pub fn plan_file(
         max_segments,
         optional_stop: false,
         tool_change: None,
+        height_map: None,
     }
 }
 
@@ -295,12 +302,24 @@ impl Plan {
         }
     }
 
+    /// The same plan with `map` added to every move's Z.
+    pub fn with_height_map(self, map: Option<HeightMap>) -> Plan {
+        Plan {
+            height_map: map,
+            ..self
+        }
+    }
+
     /// Interprets the whole program once and checks every move from where it first runs
     /// `from_line` on against `check` (given machine coordinates), using `offsets` (the
     /// machine origins of G54..G59) starting in `active` (the lines before `from_line` only
     /// change the modal state, see `Interpreter::state_at`; a start there it refuses is
-    /// refused). A G-code error anywhere wins over a move outside the travel (as when the
-    /// program was interpreted whole before its moves were checked).
+    /// refused). With a height map, each piece of each move as it will run (see
+    /// [`Plan::map_move`]) is checked, and the pieces count against the work budget; a program
+    /// that probes or selects another work offset is refused (the map's frame is the
+    /// offset's, and a probe's result cannot be corrected). A G-code error anywhere wins over a
+    /// move outside the travel (as when the program was interpreted whole before its moves
+    /// were checked).
     /// A probing move is checked for its whole distance (it may trip anywhere along it, or not
     /// at all); the moves after it as if it ran its whole way (they may depend on its result);
     /// without a probe input (`has_probe`) the first one refuses the program.
@@ -319,12 +338,26 @@ impl Plan {
             StartError::Gcode(e) => Refusal::Gcode(e),
             StartError::Refused(r) => Refusal::Start(r),
         })?;
-        let mut current = offset_of(state.work_offset).unwrap_or(active);
+        let active = offset_of(state.work_offset).unwrap_or(active);
+        let mut current = active;
         let mut machine_a = start_a;
         let mut outside = None;
         // G43: the tool length in force (from the lines before the start too), and the tool
         // it is of (a tool change under G43 puts the new tool's in force at cycle start).
         let mut tlo: Option<u32> = state.tool_length_offset;
+        // Where the tool is when the program's own moves begin: where it stands, or (a start
+        // at a line) where the preamble brings it, the program's position before that line;
+        // with a map, as the program point a corrected path continues from.
+        let start = if from_line > 1 {
+            state.position
+        } else {
+            self.config.initial_position
+        };
+        let mut from = match &self.height_map {
+            Some(map) => map.uncorrected(start),
+            None => start,
+        };
+        let mut pieces: u64 = 0;
         for step in steps {
             let (line, step) = step.map_err(Refusal::Gcode)?;
             if outside.is_some() {
@@ -334,6 +367,21 @@ impl Plan {
                 &offsets[current.index()],
                 tlo.map_or(0.0, |t| self.table_length(t)),
             );
+            if let Some(refusal) = self.height_map.as_ref().and_then(|_| match step {
+                Step::Probe { .. } => Some(format!(
+                    "line {line}: a height-mapped program cannot probe (G38.x): the map \
+                     corrects programmed Z, not a probe's result"
+                )),
+                Step::UseOffset(o) if o != active => Some(format!(
+                    "line {line}: {} while a height map applies: the map is in the work \
+                     coordinates of {}, where the job started",
+                    o.name(),
+                    active.name()
+                )),
+                _ => None,
+            }) {
+                return Err(Refusal::HeightMap(refusal));
+            }
             match step {
                 Step::ToolLength(t) => tlo = t,
                 Step::UseOffset(o) => current = o,
@@ -351,16 +399,32 @@ impl Plan {
                     }
                 }
                 Step::Move { to, a, .. } => {
-                    let target = machine_target(to, a, &offset, machine_a);
-                    machine_a = target[3];
-                    if let Err(m) = check(target) {
-                        outside = Some(format!("line {line}: {m}"));
+                    let path = self.map_move(from, to, a, &offset, machine_a);
+                    from = to;
+                    pieces += path.len() as u64;
+                    if pieces > self.max_segments {
+                        return Err(Refusal::Gcode(GcodeError {
+                            line,
+                            column: 1,
+                            kind: fresa_gcode::ErrorKind::Budget,
+                            message: format!(
+                                "work budget exceeded: the height map splits the program's \
+                                 moves into more than {} pieces",
+                                self.max_segments
+                            ),
+                        }));
+                    }
+                    for target in path {
+                        machine_a = target[3];
+                        if let Err(m) = check(target) {
+                            outside = Some(format!("line {line}: {m}"));
+                            break;
+                        }
                     }
                 }
+                Step::Probe { .. } if !has_probe => return Err(Refusal::NoProbe(line)),
                 Step::Probe { to, .. } => {
-                    if !has_probe {
-                        return Err(Refusal::NoProbe(line));
-                    }
+                    from = to;
                     if let Err(m) = check(machine_target(to, None, &offset, machine_a)) {
                         outside = Some(format!("line {line}: probing move: {m}"));
                     }
@@ -387,6 +451,33 @@ pub fn offset_of(system: u8) -> Option<WorkOffset> {
         .checked_sub(1)
         .and_then(|i| WorkOffset::ALL.get(i))
         .copied()
+}
+
+impl Plan {
+    /// The machine targets of one move from program point `from` to `to` (program A `a` when
+    /// it turns A, from machine A `machine_a`) under `offset`: just the end without a height
+    /// map; with one, the end of each piece the map splits it into, Z corrected, A turning
+    /// along in proportion.
+    pub fn map_move(
+        &self,
+        from: [f64; 3],
+        to: [f64; 3],
+        a: Option<f64>,
+        offset: &[f64; 4],
+        machine_a: f64,
+    ) -> Vec<[f64; 4]> {
+        let end = machine_target(to, a, offset, machine_a);
+        let Some(map) = &self.height_map else {
+            return vec![end];
+        };
+        map.corrected_path(from, to)
+            .into_iter()
+            .map(|(t, p)| {
+                let a = machine_a + (end[3] - machine_a) * t;
+                [p[0] + offset[0], p[1] + offset[1], p[2] + offset[2], a]
+            })
+            .collect()
+    }
 }
 
 /// Machine coordinates of program point `to` (and program A `a`, when the move turns A)

@@ -1236,3 +1236,152 @@ fn a_feed_hold_ends_a_tool_change_jog_not_the_run() {
     assert_eq!(outcome, RunOutcome::Cancelled);
     assert_eq!(rig.status().state, MachineState::Idle);
 }
+
+/// The surface z = 0.1 + 0.01 x - 0.02 y + 0.001 x y probed on a 3 x 3 grid over X 0..20,
+/// Y 0..10 (bilinear, so the map reproduces it exactly inside the area).
+fn saddle(x: f64, y: f64) -> f64 {
+    0.1 + 0.01 * x - 0.02 * y + 0.001 * x * y
+}
+
+fn saddle_map() -> Value {
+    let mut z = Vec::new();
+    for j in 0..3 {
+        for i in 0..3 {
+            z.push(saddle(10.0 * f64::from(i), 5.0 * f64::from(j)));
+        }
+    }
+    json!({"x0": 0, "y0": 0, "dx": 10, "dy": 5, "nx": 3, "ny": 3, "z": z})
+}
+
+/// A height-mapped run: every move's Z gets the map's correction, and a long move is split
+/// where it crosses grid lines, so the path follows the map cell by cell (seen in the status
+/// of every piece at time scale 0); outside the area the edge's correction holds. The
+/// execution log records where each line ended.
+#[test]
+fn a_height_map_corrects_z_along_the_split_path() {
+    let log = temp_path("exec.log");
+    let rig = machine(json!({"time_scale": 0, "status_interval_ms": 0, "execution_log": log}));
+    let path = program("G21 G90\nG0 X-5 Y1 Z1\nG1 X25 Y9 Z-0.1 F600\nG1 X10 Y5\n");
+    let loaded = rig.call(
+        json!({"op":"load_program","run":3,"path":path,"start_line":1,
+                                 "height_map": saddle_map()}),
+    );
+    assert_eq!(
+        loaded,
+        json!({"lines": 4, "start_line": 1, "height_map": true})
+    );
+    rig.call(json!({"op":"run","action":"start"}));
+    let (events, outcome, message) = rig.until_run_ended(3);
+    assert_eq!(outcome, RunOutcome::Completed, "{message:?}");
+    // Program Z along line 3 (X -5 -> 25, Z 1 -> -0.1), and the correction there.
+    let line3_z = |x: f64| 1.0 + (x + 5.0) / 30.0 * (-1.1);
+    let corr = |x: f64, y: f64| saddle(x.clamp(0.0, 20.0), y.clamp(0.0, 10.0));
+    let positions: Vec<[f64; 4]> = events
+        .iter()
+        .filter_map(|e| match e {
+            Event::Status(s) => Some(s.machine_position.to_array()),
+            _ => None,
+        })
+        .collect();
+    // Line 3 crosses X 0, 10 and 20 (at Y 7/3, 5, 23/3): a piece ends on each, corrected.
+    for x in [0.0, 10.0, 20.0] {
+        let p = positions
+            .iter()
+            .find(|p| close(p[0], x) && p[1] > 1.5 && p[1] < 8.5)
+            .unwrap_or_else(|| panic!("no piece ended at X {x}: {positions:?}"));
+        let want = line3_z(x) + corr(p[0], p[1]);
+        assert!(close(p[2], want), "X {x}: Z {} != {want}", p[2]);
+    }
+    // The log's end positions: line 2 outside the area (corner's correction), line 3 outside
+    // past X 20 (the edge's), line 4 at a grid point.
+    let logged: Vec<Value> = std::fs::read_to_string(&log)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let end_z = |line: u64| {
+        let e = logged.iter().find(|e| e["line"] == line).unwrap();
+        e["pos"][2]
+            .as_f64()
+            .unwrap_or_else(|| panic!("no pos in {e}"))
+    };
+    assert!(close(end_z(2), 1.0 + saddle(0.0, 1.0)), "{logged:?}");
+    assert!(close(end_z(3), -0.1 + saddle(20.0, 9.0)), "{logged:?}");
+    assert!(close(end_z(4), -0.1 + saddle(10.0, 5.0)), "{logged:?}");
+}
+
+/// What a height-mapped program cannot do is refused at load, naming the line; a malformed
+/// map is refused naming the field.
+#[test]
+fn height_mapped_programs_that_probe_or_change_offset_are_refused() {
+    let rig =
+        machine(json!({"time_scale": 0, "switches": {"probe": {"axis": "z", "at_or_below": -5}}}));
+    for (text, line) in [
+        ("G0 X1\nG38.2 Z-10 F100\n", "line 2"),
+        ("G0 X1\nG55\nG0 X2\n", "line 2"),
+    ] {
+        let e = rig
+            .m
+            .request(
+                json!({"op":"load_program","run":4,"path":program(text),"start_line":1,
+                            "height_map": saddle_map()}),
+            )
+            .unwrap_err();
+        assert_eq!(e.code, "unsupported", "{e}");
+        assert!(e.message.starts_with(line), "{e}");
+    }
+    let mut bad = saddle_map();
+    bad["nx"] = json!(4);
+    let e = rig
+        .m
+        .request(
+            json!({"op":"load_program","run":4,"path":program("G0 X1\n"),"start_line":1,
+                        "height_map": bad}),
+        )
+        .unwrap_err();
+    assert_eq!(e.code, "invalid_request");
+    assert!(e.message.contains("height_map.z"), "{e}");
+    // The travel check includes the correction: Z -0.05 is inside -1..0, corrected it is not.
+    let rig = machine(json!({"time_scale": 0, "travel": {"z": [-1, 0]}}));
+    let e = rig
+        .m
+        .request(
+            json!({"op":"load_program","run":5,"path":program("G1 X10 Y5 Z-0.05 F100\n"),
+                        "start_line":1, "height_map": saddle_map()}),
+        )
+        .unwrap_err();
+    assert_eq!(e.code, "out_of_travel", "{e}");
+}
+
+/// A probing move onto a tilted surface trips at the surface's height under the tool.
+#[test]
+fn a_probe_trips_on_a_tilted_surface_at_its_height_there() {
+    let rig = machine(json!({"time_scale": 0, "switches": {"probe": {
+        "axis": "z", "at_or_below": -1, "slope_x": 0.01, "slope_y": -0.02}}}));
+    for (x, y) in [(0.0, 0.0), (10.0, 0.0), (20.0, 5.0)] {
+        let here = rig.status().machine_position;
+        rig.call(json!({"op":"jog","axis":"X","distance": x - here.x, "feed": 3000}));
+        rig.wait_idle();
+        if y != here.y {
+            rig.call(json!({"op":"jog","axis":"Y","distance": y - here.y, "feed": 3000}));
+            rig.wait_idle();
+        }
+        let z = rig.status().machine_position.z;
+        rig.call(json!({"op":"probe","id":1,"axis":"Z","distance": -5.0 - z,"feed":300}));
+        let seen = rig.until(|e| matches!(e, Event::ProbeEnded { .. }));
+        let Some(Event::ProbeEnded {
+            trip: Some(trip), ..
+        }) = seen.last()
+        else {
+            panic!("{seen:?}");
+        };
+        let want = -1.0 + 0.01 * x - 0.02 * y;
+        assert!(
+            close(trip.z, want),
+            "at X{x} Y{y}: trip {} != {want}",
+            trip.z
+        );
+        rig.call(json!({"op":"jog","axis":"Z","distance": 2.0, "feed": 3000}));
+        rig.wait_idle();
+    }
+}

@@ -40,6 +40,7 @@ assets! {
     "events.js" => "text/javascript; charset=utf-8",
     "plugins.js" => "text/javascript; charset=utf-8",
     "holds.js" => "text/javascript; charset=utf-8",
+    "heightmap.js" => "text/javascript; charset=utf-8",
     "favicon.svg" => "image/svg+xml",
 }
 

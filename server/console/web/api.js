@@ -89,7 +89,7 @@ export const EVENT_TYPES = ['status', 'machine.state', 'machine.io', 'job.progre
   'machine.created', 'machine.offsets', 'machine.part_zero', 'machine.touch_off', 'machine.alarm', 'machine.command',
   'machine.jog', 'machine.jog_cancel', 'machine.mdi', 'pendant.created', 'pendant.connected', 'pendant.lost', 'pendant.bound',
   'pendant.macro', 'pendant.refused', 'pendant.deleted', 'pendant.upload', 'pendant.upload_rejected',
-  'pendant.rewind', 'job.line_report', 'resync'];
+  'pendant.rewind', 'job.line_report', 'height_map.progress', 'height_map.ended', 'height_map.deleted', 'resync'];
 
 export class Events {
   constructor() {

@@ -9,6 +9,7 @@ import { jobsPage } from './jobs.js';
 import { pendantsPage } from './pendants.js';
 import { eventsPage } from './events.js';
 import { pluginsPage } from './plugins.js';
+import { heightMapPage } from './heightmap.js';
 
 export const events = new Events();
 
@@ -17,6 +18,7 @@ let rendering = 0;
 
 function route() {
   const parts = (location.hash.replace(/^#\/?/, '') || '').split('/').filter(Boolean);
+  if (parts[0] === 'machines' && parts[1] && parts[2] === 'height-maps') return ['heightmaps', { id: +parts[1] }];
   if (parts[0] === 'machines' && parts[1]) return ['machine', { id: +parts[1] }];
   if (['jobs', 'pendants', 'events', 'plugins'].includes(parts[0])) {
     return [parts[0], { job: parts[1] ? +parts[1] : null }];
@@ -24,14 +26,14 @@ function route() {
   return ['overview', {}];
 }
 
-const PAGES = { overview, machine: machinePage, jobs: jobsPage, pendants: pendantsPage, events: eventsPage, plugins: pluginsPage };
+const PAGES = { overview, machine: machinePage, jobs: jobsPage, pendants: pendantsPage, events: eventsPage, plugins: pluginsPage, heightmaps: heightMapPage };
 
 async function render() {
   const my = ++rendering;
   if (cleanup) { try { cleanup(); } catch (_) { /* page gone */ } cleanup = null; }
   const [name, params] = route();
   for (const a of document.querySelectorAll('[data-nav]')) {
-    a.classList.toggle('active', a.dataset.nav === name || (name === 'machine' && a.dataset.nav === 'overview'));
+    a.classList.toggle('active', a.dataset.nav === name || (['machine', 'heightmaps'].includes(name) && a.dataset.nav === 'overview'));
   }
   const view = document.getElementById('view');
   const page = h('div', { class: 'page', dataset: { page: name } });

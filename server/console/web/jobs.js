@@ -5,6 +5,7 @@ import { api, upload } from './api.js';
 import { state, h, gate, act, toast, errorText, position, duration, time, machineName, dialog, forgetJob } from './ui.js';
 import { ToolpathView } from './toolpath.js';
 import { holdText, continueLabel } from './holds.js';
+import { heightMapChoice } from './heightmap.js';
 
 const BOUNDS = (b) => b ? `X ${b.min[0].toFixed(2)}…${b.max[0].toFixed(2)} · Y ${b.min[1].toFixed(2)}…${b.max[1].toFixed(2)} · Z ${b.min[2].toFixed(2)}…${b.max[2].toFixed(2)}` : '—';
 
@@ -46,14 +47,15 @@ export function gcodeExcerpt(text, line, column) {
   return out;
 }
 
-function runButtons(j, after) {
-  const ctl = (action, body) => (ev) => act(ev.currentTarget, () => control(j.id, action, body), `${action} sent`).then(after).catch(() => {});
+function runButtons(j, after, startBody) {
+  // `startBody()`: the start's options chosen beside the buttons (a height map), if any.
+  const ctl = (action, body) => (ev) => act(ev.currentTarget, () => control(j.id, action, typeof body === 'function' ? body() : body), `${action} sent`).then(after).catch(() => {});
   const s = j.state;
   const active = ['running', 'paused'].includes(s);
   // What the run's state allows (the server checks again); `gate` adds the role and stream.
   const off = (allowed) => (allowed ? '0' : '1');
   return h('div', { class: 'row wrap' },
-    h('button', { dataset: { need: 'motion', action: 'start', off: off(!active) }, onclick: ctl('start') }, s === 'ready' ? 'Start' : 'Run again'),
+    h('button', { dataset: { need: 'motion', action: 'start', off: off(!active) }, onclick: ctl('start', startBody) }, s === 'ready' ? 'Start' : 'Run again'),
     h('button', { dataset: { need: 'operator', action: 'pause', off: off(s === 'running') }, onclick: ctl('pause') }, 'Pause'),
     // A held run goes on with the button its hold names (a program stop: cycle start).
     h('button', { dataset: { need: 'motion', action: 'resume', off: off(['paused', 'interrupted', 'failed'].includes(s)) }, onclick: ctl('resume') },
@@ -131,6 +133,7 @@ async function detail(page, id, events) {
   const info = h('div');
   const previewBox = h('div', { class: 'preview-box' });
   const preview = new ToolpathView(previewBox);
+  const mapChoice = heightMapChoice(j.machine, id);
   const refresh = async () => {
     forgetJob(id);
     const cur = await api('GET', `/jobs/${id}`);
@@ -142,7 +145,9 @@ async function detail(page, id, events) {
       cur.hold ? h('p', { id: 'job-hold', class: 'hold-reason' }, `Held: ${holdText(cur.hold)} — ${continueLabel(cur.hold)} goes on`,
         cur.hold.blocked ? h('span', { class: 'error' }, ` (${cur.hold.blocked})`) : '') : '',
       h('progress', { max: 100, value: cur.percent, id: 'job-progress' }),
-      runButtons(cur, refresh),
+      cur.run && cur.run.height_map_id ? h('p', { class: 'muted small', id: 'job-height-map' }, `run with height map ${cur.run.height_map_id}`) : null,
+      mapChoice.el,
+      runButtons(cur, refresh, mapChoice.body),
       startAtLine(cur, refresh));
     gate(info);
     preview.setProgress(cur.line);

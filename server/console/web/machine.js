@@ -280,7 +280,8 @@ export async function machinePage(page, { id }, events) {
   showAxis();
   const touchCard = h('section', { class: 'card', id: 'touch-card' }, h('h2', {}, 'Touch-off'),
     h('div', { class: 'row wrap' }, h('label', {}, 'Axis ', axisSel), plateField, diameterField, distField, feedField, retractField),
-    h('div', { class: 'row' }, touchButton, probeLamp), touchResult);
+    h('div', { class: 'row' }, touchButton, probeLamp), touchResult,
+    h('p', {}, h('a', { href: `#/machines/${id}/height-maps`, id: 'height-maps-link' }, 'Height maps (probe a grid) →')));
 
   // Overrides: feed and spindle by slider (sent on release) or ±10 %, rapid at 25/50/100 %,
   // each within the machine's range; allowed during a run (that is when they matter). What the

@@ -101,6 +101,11 @@ event_kinds! {
     PendantUpload = "pendant.upload", Audit;
     WebhookCreated = "webhook.created", Audit;
     WebhookDeleted = "webhook.deleted", Audit;
+    /// A height map's grid probed one more point (issue 25).
+    HeightMapProgress = "height_map.progress", Transient;
+    /// A height map's grid ended: `complete`, `stopped` or `failed`, with what it probed.
+    HeightMapEnded = "height_map.ended", Audit;
+    HeightMapDeleted = "height_map.deleted", Audit;
 }
 
 impl EventKind {
@@ -761,7 +766,8 @@ mod tests {
                 "job.progress",
                 "job.line_report",
                 "machine.io",
-                "machine.state"
+                "machine.state",
+                "height_map.progress"
             ]
         );
         assert_eq!(
@@ -786,6 +792,8 @@ mod tests {
                 "pendant.upload",
                 "webhook.created",
                 "webhook.deleted",
+                "height_map.ended",
+                "height_map.deleted",
             ]
         );
     }

@@ -358,17 +358,19 @@ async fn load_job(app: &App, job_id: i64) -> Result<(JobRow, Arc<Machine>)> {
 // Run control is the machine's: these find the job's machine and ask its task.
 
 pub async fn start(app: &App, job_id: i64, actor: &str) -> Result<RunRow> {
-    start_from(app, job_id, None, actor).await
+    start_with(app, job_id, None, None, actor).await
 }
 
 /// Starts the job from `from_line` (`None`: its first line): the lines before it are
 /// interpreted without motion and the machine is brought to their modal state and the start
 /// point first (see [`crate::start_at`]); a start that cannot be made safely is refused naming
-/// the reason and the line, and creates no run.
-pub async fn start_from(
+/// the reason and the line, and creates no run. With `height_map`, that map of the job's
+/// machine is applied to the program's Z (issue 25; see `machine::heightmap`).
+pub async fn start_with(
     app: &App,
     job_id: i64,
     from_line: Option<u32>,
+    height_map: Option<i64>,
     actor: &str,
 ) -> Result<RunRow> {
     let (job, machine) = load_job(app, job_id).await?;
@@ -376,7 +378,8 @@ pub async fn start_from(
         check_start_line(&job, n)?;
     }
     crate::run_settings::check_start(app, &job).await?;
-    machine.start_job_from(job, from_line, actor).await
+    let map = height_map.map(|id| (id, &app.store));
+    machine.start_job_with(job, from_line, map, actor).await
 }
 
 /// What a start at `from_line` would do, from where the machine stands now (`GET

@@ -185,6 +185,12 @@ impl App {
             }
             record_interrupted(&bus, &run).await;
         }
+        crate::machine::heightmap::fail_leftovers(&store, &bus, &app.settings.node.name)
+            .await
+            .map_err(|source| StartError::Store {
+                database: db.clone(),
+                source,
+            })?;
         if app.settings.demo {
             crate::demo::ensure_demo_machine(&app).await;
         }

@@ -289,14 +289,6 @@ async fn check_machine(app: &SharedApp, machine: Option<i64>) -> Result<(), ApiE
     Ok(())
 }
 
-/// Optional body of `POST /jobs/{id}/start`.
-#[derive(Deserialize, Default)]
-#[serde(deny_unknown_fields)]
-struct StartBody {
-    #[serde(default)]
-    from_line: Option<u32>,
-}
-
 /// The optional body of run control: `from_line` for `start`, `confirm_part_zero` and
 /// `confirm_line` for `resume` (each refuses the other's fields).
 #[derive(ToSchema)]
@@ -309,6 +301,9 @@ pub struct ControlBody {
     /// O-word loop or subroutine, under cutter compensation, on a canned cycle with L > 1, past
     /// the end, or on a line that never runs.
     from_line: Option<u32>,
+    /// `start` only: a complete height map of the job's machine to apply (issue 25; see
+    /// `StartBody`).
+    height_map: Option<i64>,
     /// `resume` only: accept the part zero the controller reports now, even if it differs
     /// from the run's.
     confirm_part_zero: Option<bool>,
@@ -331,16 +326,44 @@ pub struct ResumeBody {
     confirm_line: Option<i64>,
 }
 
+/// Optional body of `POST /jobs/{id}/start`: every field optional, each a start option of
+/// its own.
+#[derive(Deserialize, Default, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct StartBody {
+    /// Start at this line (1-based): see `ControlBody::from_line`.
+    #[serde(default)]
+    from_line: Option<u32>,
+    /// A complete height map of the job's machine to apply (issue 25): every move's Z gets the
+    /// probed surface's height under it. Refused before anything moves when the program's
+    /// cutting moves leave the map's area (`outside_height_map`) or the backend cannot apply
+    /// one (`height_map_unsupported`).
+    #[serde(default)]
+    height_map: Option<i64>,
+}
+
+/// The optional JSON body of a run control action: an empty body is its defaults.
+fn body_or_default<T: Default + serde::de::DeserializeOwned>(
+    action: &str,
+    body: &[u8],
+) -> Result<T, ApiError> {
+    if body.iter().all(u8::is_ascii_whitespace) {
+        return Ok(T::default());
+    }
+    serde_json::from_slice(body)
+        .map_err(|e| ApiError::bad_request("invalid_json", format!("{action}: {e}")))
+}
+
 #[utoipa::path(post, path = "/jobs/{id}/{action}", tag = "jobs",
     params(("id" = i64, Path, description = "job id", example = 1),
            ("action" = inline(JobAction), Path, description = "`resume` also continues an `interrupted` or `failed` run from the next unacknowledged line, through the same preamble as a start at that line", example = "start")),
-    request_body(content = Option<ControlBody>, description = "Optional: `from_line` for `start`, `confirm_part_zero` / `confirm_line` for `resume`", example = json!({"from_line": 2})),
+    request_body(content = Option<ControlBody>, description = "Optional: `from_line` and `height_map` for `start`, `confirm_part_zero` / `confirm_line` for `resume`", example = json!({"from_line": 2})),
     responses(
         (status = 200, description = "Done: the job with its run (answered only once true: a `cancel` after motion stopped)", body = JobView),
         (status = 400, description = "`invalid_json`", body = ErrorBody),
-        (status = 404, description = "`unknown_job`, `unknown_action`", body = ErrorBody),
-        (status = 409, description = "`machine_busy`, `not_started`, `not_running`, `not_resumable`, `not_cancellable`, `part_zero_changed`, `line_unconfirmed` (the stored line may be behind: resume with `confirm_line`), `stopped`, `backend_rejected`", body = ErrorBody),
-        (status = 422, description = "`backend_rejected` (e.g. the program leaves the travel), `invalid_field` (`confirm_line` out of range, `from_line` 0), `unsupported` (the backend cannot start at a line safely; the message says why), `start_in_loop`, `start_in_subroutine`, `start_under_cutter_compensation`, `start_in_canned_cycle_repeat`, `start_past_end`, `start_line_not_run`, `start_unsupported_offset` (the message names the line and the construct; nothing is started)", body = ErrorBody),
+        (status = 404, description = "`unknown_job`, `unknown_action`, `unknown_height_map`", body = ErrorBody),
+        (status = 409, description = "`height_map_incomplete`, `machine_busy`, `not_started`, `not_running`, `not_resumable`, `not_cancellable`, `part_zero_changed`, `line_unconfirmed` (the stored line may be behind: resume with `confirm_line`), `stopped`, `backend_rejected`", body = ErrorBody),
+        (status = 422, description = "`backend_rejected` (e.g. the program leaves the travel), `outside_height_map`, `height_map_unsupported`, `invalid_field` (`confirm_line` out of range, `from_line` 0), `unsupported` (the backend cannot start at a line safely; the message says why), `start_in_loop`, `start_in_subroutine`, `start_under_cutter_compensation`, `start_in_canned_cycle_repeat`, `start_past_end`, `start_line_not_run`, `start_unsupported_offset` (the message names the line and the construct; nothing is started)", body = ErrorBody),
         (status = 503, description = "`machine_offline`, `machine_unresponsive`, `machine_unavailable`, `shutting_down`, `database_unavailable` (start and resume; pause and cancel of the running job still work)", body = ErrorBody),
     ))]
 pub async fn control(
@@ -354,13 +377,8 @@ pub async fn control(
     let job = core::job(&app, id).await?;
     let run = match action.as_str() {
         "start" => {
-            let body: StartBody = if body.iter().all(u8::is_ascii_whitespace) {
-                StartBody::default()
-            } else {
-                serde_json::from_slice(&body)
-                    .map_err(|e| ApiError::bad_request("invalid_json", format!("start: {e}")))?
-            };
-            core::start_from(&app, id, body.from_line, &caller.name).await?
+            let body: StartBody = body_or_default("start", &body)?;
+            core::start_with(&app, id, body.from_line, body.height_map, &caller.name).await?
         }
         "pause" => core::pause(&app, id, &caller.name).await?,
         "resume" => {

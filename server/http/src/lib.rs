@@ -7,6 +7,7 @@ pub mod error;
 mod events;
 pub mod forward;
 mod guard;
+mod heightmaps;
 mod jobs;
 pub(crate) mod machines;
 pub mod openapi;
@@ -94,6 +95,11 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
         .routes(needs(Viewer, routes!(machines::part_zeros)))
         .routes(needs(Operator, routes!(machines::record_part_zero)))
         .routes(needs(Viewer, routes!(machines::as_program)))
+        .routes(needs(Operator, routes!(heightmaps::create)))
+        .routes(needs(Viewer, routes!(heightmaps::list)))
+        .routes(needs(Viewer, routes!(heightmaps::get_one)))
+        .routes(needs(Operator, routes!(heightmaps::delete)))
+        .routes(needs(Viewer, routes!(heightmaps::fit)))
         .routes(needs(Viewer, routes!(tools::list_tools)))
         .routes(needs(Admin, routes!(tools::replace_tools)))
         .routes(needs(Admin, routes!(tools::set_tool)))

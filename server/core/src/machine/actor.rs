@@ -213,9 +213,12 @@ impl Task {
                 actor,
                 from_line,
                 ticket,
+                height_map,
                 reply,
             } => {
-                let r = self.start(&job, &actor, from_line, ticket).await;
+                let r = self
+                    .start(&job, &actor, from_line, ticket, height_map)
+                    .await;
                 let _ = reply.send(r);
             }
             Msg::Pause {
@@ -881,13 +884,15 @@ impl Task {
     }
 
     /// Starts a new run of `job`, from `from_line` when given: planned first (see
-    /// `crate::start_at`), so a start that cannot be made creates no run.
+    /// `crate::start_at`), so a start that cannot be made creates no run; with
+    /// `height_map` applied by the backend.
     async fn start(
         &mut self,
         job: &JobRow,
         actor: &str,
         from_line: Option<u32>,
         ticket: u64,
+        height_map: Option<super::heightmap::Applied>,
     ) -> Result<RunRow> {
         self.store.health().check()?;
         if let Some(e) = self.busy_with_run() {
@@ -925,17 +930,36 @@ impl Task {
                 ))
             }
         };
+        // The run records the height map it runs with (a resume applies it again).
+        let run = match &height_map {
+            Some(applied) => {
+                if let Err(e) = self.store.set_run_height_map(run.id, applied.id).await {
+                    let e = Error::from(e);
+                    self.finish_run(run.id, RunState::Failed, Some(&e.message))
+                        .await;
+                    return Err(e);
+                }
+                RunRow {
+                    height_map_id: Some(applied.id),
+                    ..run
+                }
+            }
+            None => run,
+        };
         let from = Launch {
             start_line,
             plan,
             resuming: false,
         };
-        self.launch(job, run, from, actor, None, ticket).await
+        let map = height_map.as_ref().map(|a| &a.map);
+        self.launch(job, run, from, actor, None, ticket, map).await
     }
 
     /// Loads the program into the backend from `from.start_line` (with the preamble that leads
     /// there) and starts it. On failure the run is marked failed with the backend's reason (or
-    /// cancelled when a stop overtook it).
+    /// cancelled when a stop overtook it). `height_map`: applied by the backend, which must
+    /// say so (see `ProgramLoaded`).
+    #[allow(clippy::too_many_arguments)]
     async fn launch(
         &mut self,
         job: &JobRow,
@@ -944,6 +968,7 @@ impl Task {
         actor: &str,
         expected_part_zero: Option<AxisValues>,
         ticket: u64,
+        height_map: Option<&fresa_plugin_api::heightmap::HeightMap>,
     ) -> Result<RunRow> {
         // A job uploaded on another node: its program comes from the shared store first.
         let path =
@@ -971,7 +996,7 @@ impl Task {
             .await;
         let started = async {
             let loaded = self
-                .load_from(job, &run, &path, from, expected_part_zero)
+                .load_from(job, &run, &path, from, expected_part_zero, height_map)
                 .await;
             self.loading = None;
             loaded?;
@@ -1191,6 +1216,19 @@ impl Task {
                     n if n > 1 => Some(self.plan_start(job, n).await?),
                     _ => None,
                 };
+                // The height map the run started with, as it fits now (refused before the run
+                // is reopened if it is gone or no longer fits).
+                let applied = match run.height_map_id {
+                    Some(id) => {
+                        let status = self.status.borrow().clone();
+                        Some(
+                            super::heightmap::applied_for_job(&self.store, job, id, &status)
+                                .await
+                                .map_err(|e| super::heightmap::for_resume(e, run.id, id))?,
+                        )
+                    }
+                    None => None,
+                };
                 self.gate.check(ticket)?;
                 let from = [RunState::Interrupted, RunState::Failed];
                 let reopened = match self.store.reopen_run(run.id, self.id, &from).await? {
@@ -1218,7 +1256,8 @@ impl Task {
                     plan,
                     resuming: reopened.from_line.is_none(),
                 };
-                self.launch(job, reopened, from, actor, expected, ticket)
+                let map = applied.as_ref().map(|a| &a.map);
+                self.launch(job, reopened, from, actor, expected, ticket, map)
                     .await
             }
             other => Err(Error::conflict(

@@ -6,6 +6,7 @@
 
 mod actor;
 pub mod deadman;
+pub mod heightmap;
 pub mod holds;
 mod lanes;
 pub mod limits;
@@ -212,6 +213,8 @@ pub(crate) enum Msg {
         /// A start at a line (`None`: from the first; see `crate::start_at`).
         from_line: Option<u32>,
         ticket: u64,
+        /// The height map to apply (issue 25), checked against the job already.
+        height_map: Option<heightmap::Applied>,
         reply: Reply<RunRow>,
     },
     /// Pause and cancel travel on the task's urgent channel: served before anything queued on
@@ -271,6 +274,8 @@ pub struct Machine {
     profile: std::sync::OnceLock<Option<fresa_gcode::MotionProfile>>,
     /// The host's part of why the machine holds (see [`holds`]).
     holds: Arc<holds::HostHolds>,
+    /// The height map grid being probed, if any (see [`heightmap`]).
+    grid: heightmap::Slot,
 }
 
 impl Machine {
@@ -355,6 +360,7 @@ impl Machine {
             probe_ids: AtomicU64::new(1),
             profile: std::sync::OnceLock::new(),
             holds: holds.clone(),
+            grid: Default::default(),
         });
         let task = actor::Task {
             id: row.id,
@@ -828,7 +834,7 @@ impl Machine {
     }
 
     pub async fn start_job(&self, job: JobRow, actor: &str) -> Result<RunRow> {
-        self.start_job_from(job, None, actor).await
+        self.start_job_with(job, None, None, actor).await
     }
 
     /// Starts the job from `from_line` (`None`: its first line): the machine is brought to the
@@ -839,12 +845,48 @@ impl Machine {
         from_line: Option<u32>,
         actor: &str,
     ) -> Result<RunRow> {
+        self.start_job_with(job, from_line, None, actor).await
+    }
+
+    /// [`Machine::start_job`] with height map `height_map` applied (issue 25).
+    pub async fn start_job_mapped(
+        &self,
+        job: JobRow,
+        height_map: Option<(i64, &Store)>,
+        actor: &str,
+    ) -> Result<RunRow> {
+        self.start_job_with(job, None, height_map, actor).await
+    }
+
+    /// Starts the job from `from_line` (`None`: its first line) with height map `height_map`
+    /// applied: refused before anything moves when the map does not fit the job (see
+    /// [`heightmap::applied_for_job`]), and while a grid is being probed.
+    pub async fn start_job_with(
+        &self,
+        job: JobRow,
+        from_line: Option<u32>,
+        height_map: Option<(i64, &Store)>,
+        actor: &str,
+    ) -> Result<RunRow> {
+        if let Some(map) = self.grid.current() {
+            return Err(Error::conflict(
+                "machine_busy",
+                format!("machine {} is probing height map {map}", self.id),
+            ));
+        }
         let ticket = self.gate.ticket();
+        let height_map = match height_map {
+            Some((id, store)) => {
+                Some(heightmap::applied_for_job(store, &job, id, &self.status()).await?)
+            }
+            None => None,
+        };
         self.ask(|reply| Msg::Start {
             job,
             actor: actor.into(),
             from_line,
             ticket,
+            height_map,
             reply,
         })
         .await

@@ -68,6 +68,7 @@ impl Task {
         path: &Path,
         mut from: Launch,
         expected_part_zero: Option<AxisValues>,
+        height_map: Option<&fresa_plugin_api::heightmap::HeightMap>,
     ) -> Result<()> {
         // The table the backend interprets with: the one the upload check used, unless it was
         // edited since (then the backend's own check decides).
@@ -108,8 +109,15 @@ impl Task {
                     preamble: preamble.clone(),
                     optional_stop,
                     tool_change,
+                    height_map: height_map.cloned(),
                 })
-                .await;
+                .await
+                // An `unsupported` refusal with a preamble sent is the preamble's (handled
+                // below); without one, a mapped program's is the map's.
+                .map_err(|e| match preamble {
+                    Some(_) => e,
+                    None => super::heightmap::refusal(e, height_map.is_some()),
+                });
             let answer = match answer {
                 Err(e) if preamble.is_some() && unsupported(&e).is_some() => {
                     let why = unsupported(&e).unwrap_or_default().to_string();
@@ -132,6 +140,11 @@ impl Task {
             // answer) starts where asked and carries out no preamble.
             let loaded = serde_json::from_value::<ProgramLoaded>(answer)
                 .unwrap_or_else(|_| ProgramLoaded::new(0, from.start_line));
+            // A backend that does not know height maps ignores one: it must not cut
+            // uncorrected.
+            if height_map.is_some() && !loaded.height_map {
+                return Err(super::heightmap::not_confirmed());
+            }
             if loaded.start_line != from.start_line {
                 tracing::info!(
                     run = run.id,

@@ -37,6 +37,8 @@ pub struct RunRow {
     /// The line the run was started from (a start at a line, issue 26); `None` from line 1.
     /// The lines before it never ran and are never acknowledged.
     pub from_line: Option<i64>,
+    /// The height map the run was started with (issue 25), if any; a resume applies it again.
+    pub height_map_id: Option<i64>,
 }
 
 impl RunRow {

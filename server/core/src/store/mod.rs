@@ -83,6 +83,7 @@ pub struct Store {
 mod backup;
 mod events;
 pub mod health;
+mod heightmaps;
 mod jobs;
 mod machines;
 mod nodes;
@@ -99,6 +100,7 @@ mod webhooks;
 pub use backup::{backup_database, BackupError};
 pub use events::{EventRow, EVENTS_CHANNEL};
 pub use health::{DbHealth, DbState};
+pub use heightmaps::{HeightMapRow, NewHeightMap};
 pub use jobs::{JobRow, NewJob, RunRow, RunState};
 pub use machines::{MachineRow, PartZeroRow};
 pub use nodes::NodeRow;
