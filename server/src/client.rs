@@ -59,6 +59,40 @@ pub enum MachineCmd {
     /// Touch-off on a plate: probe down onto it, set the active work offset so Z reads the
     /// plate's thickness there, retract. Nothing changes if it does not touch. With --axis X
     /// or Y (and --toward, --tool-diameter): edge finding, the part's edge becomes 0.
+    /// Find a bore's (`--kind bore`: the tool inside the hole at the probing depth) or a
+    /// boss's (`--kind boss`: the tool above it) centre by probing; ends on the centre and,
+    /// unless --no-zero, puts the active work offset's X/Y zero there. Prints the centre and
+    /// both diameters.
+    FindCentre {
+        id: i64,
+        /// `bore` or `boss`.
+        #[arg(long, default_value = "bore")]
+        kind: String,
+        /// The tool's diameter, mm.
+        #[arg(long)]
+        tool_diameter: f64,
+        /// Bore: mm to probe out each way; boss: mm to probe in (default 2 x clearance).
+        #[arg(long)]
+        distance: Option<f64>,
+        /// mm/min, at most the machine's max_probe_feed_mm_min.
+        #[arg(long)]
+        feed: f64,
+        /// Leave the work offset as it is.
+        #[arg(long)]
+        no_zero: bool,
+        /// Boss: its diameter roughly, mm.
+        #[arg(long)]
+        boss_diameter: Option<f64>,
+        /// Boss: how far outside it the tool goes down, mm.
+        #[arg(long)]
+        clearance: Option<f64>,
+        /// Boss: how far below the start Z to probe, mm.
+        #[arg(long)]
+        depth: Option<f64>,
+        /// Print the server's JSON answer.
+        #[arg(long)]
+        json: bool,
+    },
     TouchOff {
         id: i64,
         #[arg(long, default_value = "Z")]
@@ -411,6 +445,58 @@ pub async fn machine(server: ServerArgs, cmd: MachineCmd) -> Res {
                     "machine {id}: probe tripped at {} (came to rest {:.4} mm past it)",
                     position_text(&v["trip"]),
                     v["overshoot_mm"].as_f64().unwrap_or_default()
+                );
+            }
+        }
+        MachineCmd::FindCentre {
+            id,
+            kind,
+            tool_diameter,
+            distance,
+            feed,
+            no_zero,
+            boss_diameter,
+            clearance,
+            depth,
+            json,
+        } => {
+            let mut body = serde_json::json!({
+                "kind": kind, "tool_diameter_mm": tool_diameter, "feed": feed,
+                "set_zero": !no_zero,
+            });
+            for (k, v) in [
+                ("distance", distance),
+                ("boss_diameter_mm", boss_diameter),
+                ("clearance_mm", clearance),
+                ("depth_mm", depth),
+            ] {
+                if let Some(v) = v {
+                    body[k] = v.into();
+                }
+            }
+            let v = c
+                .send(
+                    c.req(
+                        reqwest::Method::POST,
+                        &format!("/api/v1/machines/{id}/find-centre"),
+                    )
+                    .json(&body),
+                )
+                .await?;
+            if json {
+                println!("{v}");
+            } else {
+                let n = |k: &str| v[k].as_f64().unwrap_or_default();
+                println!(
+                    "machine {id}: {kind} centre at machine X{:.4} Y{:.4}, diameter X {:.4} Y {:.4}{}",
+                    v["centre"]["x"].as_f64().unwrap_or_default(),
+                    v["centre"]["y"].as_f64().unwrap_or_default(),
+                    n("diameter_x"),
+                    n("diameter_y"),
+                    v["offset"]
+                        .as_str()
+                        .map(|o| format!("; {o} X/Y zero set there"))
+                        .unwrap_or_default()
                 );
             }
         }

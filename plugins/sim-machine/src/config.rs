@@ -49,6 +49,33 @@ pub struct Switch {
     pub above: bool,
     /// `slope_x`, `slope_y`, `slope_xy` (Z switches only; zero: a flat level).
     pub surface: [f64; 3],
+    /// A round wall in the XY plane instead of a level (the probe only): a bore or a boss,
+    /// met by the tool's centre (the simulated tool has no radius). `axis`, `at`, `above` and
+    /// `surface` do not apply then.
+    pub circle: Option<Circle>,
+}
+
+/// A round wall for centre finding (`switches.probe.bore` / `.boss`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Circle {
+    pub x: f64,
+    pub y: f64,
+    pub radius: f64,
+    /// A bore: active at or beyond the radius (the wall around the tool). A boss: active
+    /// within it, at or below `top` (the stud under and beside the tool).
+    pub bore: bool,
+    pub top: f64,
+}
+
+impl Circle {
+    fn active_at(&self, pos: &[f64; 4]) -> bool {
+        let d = (pos[0] - self.x).hypot(pos[1] - self.y);
+        if self.bore {
+            d >= self.radius
+        } else {
+            d <= self.radius && pos[2] <= self.top
+        }
+    }
 }
 
 impl Switch {
@@ -60,6 +87,9 @@ impl Switch {
     }
 
     pub fn active_at(&self, pos: &[f64; 4]) -> bool {
+        if let Some(c) = &self.circle {
+            return c.active_at(pos);
+        }
         let p = pos[self.axis.index()];
         let level = self.level_at(pos);
         if self.above {
@@ -238,6 +268,10 @@ fn switches(v: &Value) -> Result<Vec<Switch>, PluginError> {
                 "`{key}` must be an object with `axis` and `at_or_above` or `at_or_below`, got {spec}"
             )));
         };
+        if let Some(c) = circle(name, &key, spec)? {
+            out.push(c);
+            continue;
+        }
         let mut axis = None;
         let mut at = None;
         let mut surface = [0.0; 3];
@@ -296,9 +330,83 @@ fn switches(v: &Value) -> Result<Vec<Switch>, PluginError> {
             at,
             above,
             surface,
+            circle: None,
         });
     }
     Ok(out)
+}
+
+/// `{"bore": {"x", "y", "diameter"}}` or `{"boss": {"x", "y", "diameter", "top_z"}}` (the
+/// probe only), or `None` for a level switch.
+fn circle(
+    name: &str,
+    key: &str,
+    spec: &serde_json::Map<String, Value>,
+) -> Result<Option<Switch>, PluginError> {
+    let (kind, v) = match (spec.get("bore"), spec.get("boss")) {
+        (None, None) => return Ok(None),
+        (Some(v), None) => ("bore", v),
+        (None, Some(v)) => ("boss", v),
+        (Some(_), Some(_)) => {
+            return Err(invalid(format!("`{key}`: give one of `bore` and `boss`")))
+        }
+    };
+    if name != io::PROBE {
+        return Err(invalid(format!(
+            "`{key}.{kind}`: only the probe can be a round wall"
+        )));
+    }
+    if spec.len() != 1 {
+        return Err(invalid(format!(
+            "`{key}`: `{kind}` stands alone (no `axis`, `at_or_above`, ... beside it)"
+        )));
+    }
+    let Value::Object(c) = v else {
+        return Err(invalid(format!(
+            "`{key}.{kind}` must be an object with `x`, `y` and `diameter`, got {v}"
+        )));
+    };
+    let (mut x, mut y, mut d, mut top) = (None, None, None, None);
+    for (k, v) in c {
+        let field = format!("{key}.{kind}.{k}");
+        let n = number(&field, v)?;
+        match k.as_str() {
+            "x" => x = Some(n),
+            "y" => y = Some(n),
+            "diameter" if n > 0.0 => d = Some(n),
+            "diameter" => {
+                return Err(invalid(format!("`{field}` must be more than 0, got {n}")))
+            }
+            "top_z" if kind == "boss" => top = Some(n),
+            other => {
+                return Err(invalid(format!(
+                    "`{key}.{kind}`: unknown key `{other}` (known: x, y, diameter{})",
+                    if kind == "boss" { ", top_z" } else { "" }
+                )))
+            }
+        }
+    }
+    let need = |v: Option<f64>, f: &str| {
+        v.ok_or_else(|| invalid(format!("`{key}.{kind}.{f}` is required")))
+    };
+    Ok(Some(Switch {
+        name: name.to_string(),
+        axis: Axis::X,
+        at: 0.0,
+        above: true,
+        surface: [0.0; 3],
+        circle: Some(Circle {
+            x: need(x, "x")?,
+            y: need(y, "y")?,
+            radius: need(d, "diameter")? / 2.0,
+            bore: kind == "bore",
+            top: if kind == "boss" {
+                need(top, "top_z")?
+            } else {
+                f64::INFINITY
+            },
+        }),
+    }))
 }
 
 #[cfg(test)]

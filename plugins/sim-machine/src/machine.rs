@@ -693,6 +693,21 @@ impl Core {
         if sw.active_at(&b) != watch.active {
             return None;
         }
+        if sw.circle.is_some() {
+            // A round wall: where along the slice its state changes, by halving (to well
+            // below a micrometre), the point on the side that reads what the probe waits for.
+            let at = |t: f64| -> [f64; 4] { std::array::from_fn(|k| a[k] + (b[k] - a[k]) * t) };
+            let (mut lo, mut hi) = (0.0, 1.0);
+            for _ in 0..60 {
+                let mid = (lo + hi) / 2.0;
+                if sw.active_at(&at(mid)) == watch.active {
+                    hi = mid;
+                } else {
+                    lo = mid;
+                }
+            }
+            return Some(at(hi));
+        }
         let i = sw.axis.index();
         let (fa, fb) = (a[i] - sw.level_at(&a), b[i] - sw.level_at(&b));
         let t = if fa == fb {

@@ -86,6 +86,7 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
         .routes(needs(Operator, routes!(machines::jog_cancel)))
         .routes(needs(Operator, routes!(machines::probe)))
         .routes(needs(Operator, routes!(machines::touch_off)))
+        .routes(needs(Operator, routes!(machines::find_centre)))
         .routes(needs(Operator, routes!(machines::overrides)))
         .routes(needs(Operator, routes!(machines::jog_keepalive)))
         .routes(needs(Operator, routes!(machines::command)))

@@ -5,6 +5,7 @@ use axum::extract::State;
 use axum::http::StatusCode;
 use axum::Extension;
 use fresa_core::admin;
+use fresa_core::machine::centre::{CentreAsk, CentreKind, CentreReport};
 use fresa_core::machine::probing::{ProbeAsk, ProbeReport, TouchOffAsk, TouchOffReport};
 use fresa_core::machine::{limits, Machine};
 use fresa_core::store::MachineRow;
@@ -560,6 +561,85 @@ pub async fn touch_off(
         retract_mm: req.retract_mm,
     };
     Ok(Json(m.touch_off(ask, &caller.name).await?))
+}
+
+fn default_clearance() -> f64 {
+    5.0
+}
+
+#[derive(Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct FindCentreReq {
+    /// `bore` (the tool inside a hole, at the probing depth) or `boss` (above a round stud).
+    kind: CentreKind,
+    /// The tool's (or probe tip's) diameter, mm.
+    tool_diameter_mm: f64,
+    /// Bore: how far to probe out each way; boss: how far to probe in from outside it
+    /// (default twice `clearance_mm`). mm, at most `max_jog_mm`.
+    #[serde(default)]
+    distance: Option<f64>,
+    /// Probing feed, mm/min, at most the machine's `max_probe_feed_mm_min`.
+    feed: f64,
+    /// Put the active work offset's X/Y zero on the centre (default true).
+    #[serde(default = "yes")]
+    set_zero: bool,
+    /// Boss: its diameter, roughly, mm.
+    #[serde(default)]
+    boss_diameter_mm: Option<f64>,
+    /// Boss: how far outside it the tool goes down, mm (default 5).
+    #[serde(default = "default_clearance")]
+    clearance_mm: f64,
+    /// Boss: how far below the start Z to probe, mm.
+    #[serde(default)]
+    depth_mm: Option<f64>,
+}
+
+fn yes() -> bool {
+    true
+}
+
+/// Finds a bore's or a boss's centre by probing X both ways, Y both ways through the X
+/// chord's midpoint, and X again through the centre; ends on the centre and, with `set_zero`,
+/// moves the active work offset so X and Y read 0 there. A probe that finds no wall changes
+/// nothing. Recorded as `machine.touch_off` (`source` `bore_centre` / `boss_centre`).
+#[utoipa::path(post, path = "/machines/{id}/find-centre", tag = "machines",
+    params(("id" = i64, Path, description = "machine id", example = 1)),
+    request_body(content = FindCentreReq, example = json!({"kind": "bore", "tool_diameter_mm": 6, "distance": 20, "feed": 100})),
+    responses(
+        (status = 200, description = "The centre and both diameters (and the offset, when set)", body = CentreReport),
+        (status = 404, description = "`unknown_machine`", body = ErrorBody),
+        (status = 409, description = "`probe_already_in_state`, `stopped`, `probe_failed`, `machine_busy`, `machine_moving`, `machine_moved`", body = ErrorBody),
+        (status = 422, description = "`probe_not_tripped` (no wall within the distance; nothing changed), `probe_unsupported`, `out_of_travel`, `probe_too_far`, `feed_out_of_range`, `invalid_field`", body = ErrorBody),
+        (status = 503, description = "`machine_offline`, `machine_unresponsive`, `shutting_down`, `database_unavailable`", body = ErrorBody),
+        (status = 504, description = "`backend_timeout`, `probe_unconfirmed`", body = ErrorBody),
+    ))]
+pub async fn find_centre(
+    State(app): State<SharedApp>,
+    Path(id): Path<i64>,
+    Extension(caller): Extension<Caller>,
+    Json(req): Json<FindCentreReq>,
+) -> Result<Json<CentreReport>, ApiError> {
+    let m = machine(&app, id).await?;
+    let ask = CentreAsk {
+        kind: req.kind,
+        tool_diameter_mm: req.tool_diameter_mm,
+        distance: match (req.kind, req.distance) {
+            (_, Some(d)) => d,
+            (CentreKind::Boss, None) => 2.0 * req.clearance_mm,
+            (CentreKind::Bore, None) => {
+                return Err(ApiError::unprocessable(
+                    "invalid_field",
+                    "field `distance` is needed for a bore: how far to probe out each way",
+                ))
+            }
+        },
+        feed: req.feed,
+        set_zero: req.set_zero,
+        boss_diameter_mm: req.boss_diameter_mm,
+        clearance_mm: req.clearance_mm,
+        depth_mm: req.depth_mm,
+    };
+    Ok(Json(m.find_centre(ask, &caller.name).await?))
 }
 
 #[derive(Deserialize, ToSchema)]

@@ -5,11 +5,13 @@
 //! they ask for is true. Stop, feed hold and reset skip the task's queue (see [`lanes`]).
 
 mod actor;
+pub mod centre;
 pub mod deadman;
 pub mod heightmap;
 pub mod holds;
 mod lanes;
 pub mod limits;
+mod moves;
 mod preamble;
 pub mod probing;
 pub mod unstored;

@@ -8,6 +8,7 @@
 //! (an HTTP client's connection drops and its request future is dropped) the motion is
 //! stopped, as a lost pendant's is.
 
+use super::moves::StopIfDropped;
 use super::{Machine, Msg};
 use crate::error::{Error, ErrorKind, Result};
 use crate::events::EventKind;
@@ -31,8 +32,6 @@ pub const MAX_TOOL_DIAMETER_MM: f64 = 100.0;
 /// and says the backend never reported its end. Doubled, plus this.
 const PROBE_GRACE: Duration = Duration::from_secs(10);
 
-/// How long the retract after a touch-off may take to end before the answer says so.
-const RETRACT_SETTLE: Duration = Duration::from_secs(60);
 
 /// A probing move's end as the backend reported it.
 #[derive(Debug, Clone, PartialEq)]
@@ -95,40 +94,6 @@ pub struct TouchOffReport {
     pub after: AxisValues,
     /// Work position once retracted: the axis reads the plate's thickness plus the retract.
     pub work_position: AxisValues,
-}
-
-/// Stops the machine if dropped while armed: the caller of a probing move went away.
-struct StopIfDropped {
-    machine: Arc<Machine>,
-    actor: String,
-    armed: bool,
-}
-
-impl StopIfDropped {
-    fn disarm(mut self) {
-        self.armed = false;
-    }
-}
-
-impl Drop for StopIfDropped {
-    fn drop(&mut self) {
-        if !self.armed {
-            return;
-        }
-        let (m, actor) = (self.machine.clone(), format!("lost:{}", self.actor));
-        // Dropped inside the runtime (a request future); outside it there is no caller to lose.
-        if let Ok(rt) = tokio::runtime::Handle::try_current() {
-            rt.spawn(async move {
-                tracing::warn!(
-                    machine = m.id,
-                    "the caller of a probing move went away; stopping it"
-                );
-                if let Err(e) = m.cancel_jogs(&actor).await {
-                    tracing::error!(machine = m.id, error = %e, "could not stop a probe whose caller went away");
-                }
-            });
-        }
-    }
 }
 
 /// A backend refusal of the probe under its own code where the API has one.
@@ -209,11 +174,7 @@ impl Machine {
         };
         // Armed before the request is sent: a caller dropped while it waits in the queue
         // leaves a probe that nobody would watch.
-        let guard = StopIfDropped {
-            machine: self.clone(),
-            actor: actor.to_string(),
-            armed: true,
-        };
+        let guard = StopIfDropped::arm(self, actor);
         let sent = self
             .ask(|reply| Msg::Call {
                 request: Request::Probe(probe),
@@ -412,8 +373,7 @@ impl Machine {
             } else {
                 ask.retract_mm
             };
-            let mut watch = self.subscribe_status();
-            self.jog_ticketed(ask.axis, back, None, actor, ticket)
+            self.move_by(ask.axis, back, actor, ticket)
                 .await
                 .map_err(|e| {
                     Error::new(
@@ -430,17 +390,6 @@ impl Machine {
                         ),
                     )
                 })?;
-            self.sync().await;
-            let still = watch.wait_for(|s| s.state != MachineState::Jogging);
-            if tokio::time::timeout(RETRACT_SETTLE, still).await.is_err() {
-                return Err(Error::conflict(
-                    "machine_moving",
-                    format!(
-                        "the offset was set, but the retract had not ended after \
-                         {RETRACT_SETTLE:?}"
-                    ),
-                ));
-            }
         }
         Ok(TouchOffReport {
             trip,
