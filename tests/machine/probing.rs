@@ -536,3 +536,109 @@ fn an_x_edge_touch_off_puts_zero_on_the_parts_edge() {
     assert_eq!(e.data["data"]["tool_diameter_mm"], 6.0, "{:?}", e.data);
     assert_eq!(e.data["data"]["axis"], "X", "{:?}", e.data);
 }
+
+/// A sim machine whose probe is a round wall (`bore` or `boss`: `{"x", "y", "diameter"[,
+/// "top_z"]}`), met by the tool's centre; instant (time scale 0).
+fn round_sim(s: &Server, name: &str, shape: Value) -> i64 {
+    let m = s.create_machine(&json!({
+        "name": name,
+        "backend": "sim-machine",
+        "max_jog_mm": 60.0,
+        "max_probe_feed_mm_min": 1500.0,
+        "config": {"time_scale": 0, "switches": {"probe": shape}},
+    }));
+    s.wait_machine_state(m, "idle", T);
+    m
+}
+
+fn xy(v: &Value) -> (f64, f64) {
+    (v["x"].as_f64().unwrap(), v["y"].as_f64().unwrap())
+}
+
+/// Centre finding: a bore of 46 mm (the sim's wall at radius 20 around machine X30 Y20, met
+/// by a 6 mm tool's centre) from a start off its centre, and a 14 mm boss (radius 10 around
+/// X-40 Y10, top at Z -5) from above it: each ends on the centre with both diameters right and
+/// G54's X/Y there, recorded as a touch-off; a bore with no wall within the distance changes
+/// nothing and says so.
+#[test]
+fn a_bore_and_a_boss_centre_are_found_and_zeroed() {
+    let s = Server::start();
+    let close = |a: f64, b: f64| (a - b).abs() < 1e-3;
+
+    let bore = round_sim(
+        &s,
+        "bore",
+        json!({"bore": {"x": 30, "y": 20, "diameter": 40}}),
+    );
+    s.jog(bore, "X", 25.0).expect(200);
+    s.jog(bore, "Y", 17.0).expect(200);
+    s.wait_machine_state(bore, "idle", T);
+    let r = s
+        .post(
+            &format!("/api/v1/machines/{bore}/find-centre"),
+            &json!({"kind": "bore", "tool_diameter_mm": 6, "distance": 30, "feed": 600}),
+        )
+        .expect(200);
+    let (cx, cy) = xy(&r["centre"]);
+    assert!(close(cx, 30.0) && close(cy, 20.0), "{r}");
+    assert!(close(r["diameter_x"].as_f64().unwrap(), 46.0), "{r}");
+    assert!(close(r["diameter_y"].as_f64().unwrap(), 46.0), "{r}");
+    let (ox, oy) = xy(&g54(&s, bore));
+    assert!(close(ox, 30.0) && close(oy, 20.0), "G54 on the centre");
+    let (wx, wy) = xy(&s.status(bore)["work_position"]);
+    assert!(close(wx, 0.0) && close(wy, 0.0), "X/Y read 0 on the centre");
+    let touch = first_event(&s, "machine.touch_off");
+    assert_eq!(
+        touch.data["data"]["source"], "bore_centre",
+        "{:?}",
+        touch.data
+    );
+
+    // Too short a distance to reach the wall: nothing changes.
+    let e = s
+        .post(
+            &format!("/api/v1/machines/{bore}/find-centre"),
+            &json!({"kind": "bore", "tool_diameter_mm": 6, "distance": 5, "feed": 600,
+                    "set_zero": true}),
+        )
+        .expect_error(422, "probe_not_tripped");
+    assert!(e.contains("X+"), "{e}");
+    assert_eq!(xy(&g54(&s, bore)), (30.0, 20.0));
+
+    // A boss: up above it, down beside it at each side.
+    let boss = round_sim(
+        &s,
+        "boss",
+        json!({"boss": {"x": -40, "y": 10, "diameter": 20, "top_z": -5}}),
+    );
+    s.jog(boss, "X", -39.0).expect(200);
+    s.jog(boss, "Y", 11.5).expect(200);
+    s.wait_machine_state(boss, "idle", T);
+    let r = s
+        .post(
+            &format!("/api/v1/machines/{boss}/find-centre"),
+            &json!({"kind": "boss", "tool_diameter_mm": 6, "boss_diameter_mm": 14,
+                    "clearance_mm": 5, "depth_mm": 10, "feed": 600, "set_zero": false}),
+        )
+        .expect(200);
+    let (cx, cy) = xy(&r["centre"]);
+    assert!(close(cx, -40.0) && close(cy, 10.0), "{r}");
+    assert!(close(r["diameter_x"].as_f64().unwrap(), 14.0), "{r}");
+    assert!(close(r["diameter_y"].as_f64().unwrap(), 14.0), "{r}");
+    assert!(
+        r["offset"].is_null(),
+        "set_zero false leaves the offset: {r}"
+    );
+    let st = s.status(boss);
+    assert_eq!(
+        z(&st["machine_position"]),
+        0.0,
+        "back up where it started: {st}"
+    );
+    // A boss needs its diameter and depth.
+    s.post(
+        &format!("/api/v1/machines/{boss}/find-centre"),
+        &json!({"kind": "boss", "tool_diameter_mm": 6, "feed": 600}),
+    )
+    .expect_error(422, "invalid_field");
+}

@@ -374,9 +374,7 @@ fn circle(
             "x" => x = Some(n),
             "y" => y = Some(n),
             "diameter" if n > 0.0 => d = Some(n),
-            "diameter" => {
-                return Err(invalid(format!("`{field}` must be more than 0, got {n}")))
-            }
+            "diameter" => return Err(invalid(format!("`{field}` must be more than 0, got {n}"))),
             "top_z" if kind == "boss" => top = Some(n),
             other => {
                 return Err(invalid(format!(
@@ -499,6 +497,44 @@ mod tests {
         ] {
             let e = Config::from_json(&cfg).unwrap_err();
             assert_eq!(e.code, "invalid_config");
+            assert!(e.message.contains(key), "{key}: {}", e.message);
+        }
+    }
+
+    /// A round probe wall: a bore is active from its radius out, a boss within it and at or
+    /// below its top; refused for other switches, beside level keys, or without its fields.
+    #[test]
+    fn round_probe_walls_parse_and_refuse_what_does_not_fit() {
+        let c = Config::from_json(
+            &json!({"switches": {"probe": {"bore": {"x": 1, "y": 2, "diameter": 10}}}}),
+        )
+        .unwrap();
+        let bore = &c.switches[0];
+        assert!(!bore.active_at(&[1.0, 2.0, 0.0, 0.0]) && bore.active_at(&[6.0, 2.0, 0.0, 0.0]));
+        let c = Config::from_json(&json!({"switches": {"probe": {"boss": {"x": 0, "y": 0, "diameter": 10, "top_z": -1}}}}))
+            .unwrap();
+        let boss = &c.switches[0];
+        assert!(boss.active_at(&[4.0, 0.0, -2.0, 0.0]));
+        assert!(!boss.active_at(&[4.0, 0.0, 0.0, 0.0]) && !boss.active_at(&[6.0, 0.0, -2.0, 0.0]));
+        for (spec, key) in [
+            (
+                json!({"door": {"bore": {"x": 0, "y": 0, "diameter": 1}}}),
+                "switches.door.bore",
+            ),
+            (
+                json!({"probe": {"bore": {"x": 0, "y": 0, "diameter": 1}, "axis": "z"}}),
+                "switches.probe",
+            ),
+            (
+                json!({"probe": {"boss": {"x": 0, "y": 0, "diameter": 1}}}),
+                "switches.probe.boss.top_z",
+            ),
+            (
+                json!({"probe": {"bore": {"x": 0, "y": 0, "diameter": -1}}}),
+                "switches.probe.bore.diameter",
+            ),
+        ] {
+            let e = Config::from_json(&json!({"switches": spec})).unwrap_err();
             assert!(e.message.contains(key), "{key}: {}", e.message);
         }
     }

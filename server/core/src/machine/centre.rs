@@ -88,11 +88,13 @@ fn invalid(field: &str, m: String) -> Error {
 impl CentreAsk {
     /// Each field within what a tool, a bore and the machine allow; the boss's fields given.
     fn check(&self, max_jog: f64) -> Result<()> {
-        if !(self.tool_diameter_mm.is_finite() && (0.0..=100.0).contains(&self.tool_diameter_mm))
-        {
+        if !(self.tool_diameter_mm.is_finite() && (0.0..=100.0).contains(&self.tool_diameter_mm)) {
             return Err(invalid(
                 "tool_diameter_mm",
-                format!("{} is not a tool's diameter in mm (0 to 100)", self.tool_diameter_mm),
+                format!(
+                    "{} is not a tool's diameter in mm (0 to 100)",
+                    self.tool_diameter_mm
+                ),
             ));
         }
         if self.kind == CentreKind::Boss {
@@ -120,11 +122,16 @@ impl CentreAsk {
                     format!("{depth} must be more than 0 and at most {max_jog} mm (`max_jog_mm`)"),
                 ));
             }
-            if !(self.clearance_mm.is_finite() && self.clearance_mm > 0.0 && self.clearance_mm <= 100.0)
+            if !(self.clearance_mm.is_finite()
+                && self.clearance_mm > 0.0
+                && self.clearance_mm <= 100.0)
             {
                 return Err(invalid(
                     "clearance_mm",
-                    format!("{} must be more than 0 and at most 100 mm", self.clearance_mm),
+                    format!(
+                        "{} must be more than 0 and at most 100 mm",
+                        self.clearance_mm
+                    ),
                 ));
             }
         }
@@ -147,13 +154,14 @@ impl Machine {
         let tool = ask.tool_diameter_mm;
         let (x, y) = match ask.kind {
             CentreKind::Bore => {
-                let x = self.bore_chord(Axis::X, &ask, actor, ticket).await?;
+                // The first X chord only finds the centre's X (its Y was anywhere).
+                self.bore_chord(Axis::X, &ask, actor, ticket).await?;
                 let y = self.bore_chord(Axis::Y, &ask, actor, ticket).await?;
                 let x = self.bore_chord(Axis::X, &ask, actor, ticket).await?;
                 (x, y)
             }
             CentreKind::Boss => {
-                let x = self.boss_chord(Axis::X, &ask, actor, ticket).await?;
+                self.boss_chord(Axis::X, &ask, actor, ticket).await?;
                 let y = self.boss_chord(Axis::Y, &ask, actor, ticket).await?;
                 let x = self.boss_chord(Axis::X, &ask, actor, ticket).await?;
                 (x, y)
@@ -268,7 +276,8 @@ impl Machine {
         let minus = self.touch(axis, false, ask, actor, ticket).await?;
         let chord = Chord { plus, minus };
         let rest = self.status().machine_position.get(axis);
-        self.move_by(axis, chord.mid() - rest, actor, ticket).await?;
+        self.move_by(axis, chord.mid() - rest, actor, ticket)
+            .await?;
         Ok(chord)
     }
 
@@ -282,7 +291,9 @@ impl Machine {
         ticket: u64,
     ) -> Result<Chord> {
         let (Some(d), Some(depth)) = (ask.boss_diameter_mm, ask.depth_mm) else {
-            return Err(Error::internal("a boss's centre without its diameter or depth"));
+            return Err(Error::internal(
+                "a boss's centre without its diameter or depth",
+            ));
         };
         let out = d / 2.0 + ask.clearance_mm + ask.tool_diameter_mm / 2.0;
         let here = self.status().machine_position.get(axis);
@@ -302,7 +313,8 @@ impl Machine {
             minus: ends[1],
         };
         let rest = self.status().machine_position.get(axis);
-        self.move_by(axis, chord.mid() - rest, actor, ticket).await?;
+        self.move_by(axis, chord.mid() - rest, actor, ticket)
+            .await?;
         Ok(chord)
     }
 }

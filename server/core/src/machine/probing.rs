@@ -13,7 +13,7 @@ use super::{Machine, Msg};
 use crate::error::{Error, ErrorKind, Result};
 use crate::events::EventKind;
 use fresa_plugin_api::contract::{
-    Axis, AxisValues, MachineState, Probe, ProbeOutcome, ProbeUntil, Request, WorkOffset,
+    Axis, AxisValues, Probe, ProbeOutcome, ProbeUntil, Request, WorkOffset,
 };
 use serde::Serialize;
 use serde_json::json;
@@ -31,7 +31,6 @@ pub const MAX_TOOL_DIAMETER_MM: f64 = 100.0;
 /// How long a probe may overrun its nominal time (distance at feed) before the host stops it
 /// and says the backend never reported its end. Doubled, plus this.
 const PROBE_GRACE: Duration = Duration::from_secs(10);
-
 
 /// A probing move's end as the backend reported it.
 #[derive(Debug, Clone, PartialEq)]
