@@ -1,6 +1,8 @@
 //! Measures the web console (README: Console, Measurements): what a first visit transfers, and
 //! how long a 1,000,000-line program's toolpath takes to be served and drawn in headless
-//! Chromium. A measurement, not a test: `cargo bench -p fresa-tests --bench console`.
+//! Chromium, and how smooth pages stay while machines run. A measurement, not a test:
+//! `cargo bench -p fresa-tests --bench console` (all of it), or with section names after `--`
+//! (`first-page`, `million`, `overview`, `running`) only those.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -45,13 +47,66 @@ fn million_line_program() -> String {
     p
 }
 
+/// Frame gaps (from requestAnimationFrame) and long main-thread tasks over `ms` milliseconds,
+/// with the status events an extra stream receives meanwhile:
+/// [frames, p50, p99, max, gaps over 50 ms, status events, long tasks, longest task ms].
+const FRAME_GAPS: &str = "const ms = arguments[0]; const done = arguments[arguments.length - 1]; \
+     const gaps = []; let last = performance.now(); const tasks = []; \
+     const po = new PerformanceObserver((l) => { for (const e of l.getEntries()) tasks.push(e.duration); }); \
+     try { po.observe({ type: 'longtask' }); } catch (_) {} \
+     let statuses = 0; const es = new EventSource('/api/v1/events?types=status'); \
+     es.addEventListener('status', () => statuses++); \
+     const end = last + ms; \
+     function f(t) { gaps.push(t - last); last = t; if (t < end) requestAnimationFrame(f); \
+       else { es.close(); po.disconnect(); gaps.sort((a, b) => a - b); \
+         done([gaps.length, gaps[Math.floor(gaps.length * 0.5)], gaps[Math.floor(gaps.length * 0.99)], gaps[gaps.length - 1], \
+               gaps.filter(g => g > 50).length, statuses, tasks.length, Math.max(0, ...tasks)]); } } \
+     requestAnimationFrame(f);";
+
+fn frame_gaps(b: &Browser, ms: u64) -> fresa_tests::serde_json::Value {
+    b.js_async(&format!(
+        "return (function() {{ {} }}).apply(null, [{ms}, arguments[arguments.length - 1]]);",
+        FRAME_GAPS
+    ))
+}
+
+fn print_gaps(what: &str, v: &fresa_tests::serde_json::Value) {
+    println!(
+        "{what}: {} frames, frame gap p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms, {} gaps over 50 ms; \
+         {} status events received; {} long tasks (longest {:.0} ms)",
+        v[0], v[1].as_f64().unwrap_or(0.0), v[2].as_f64().unwrap_or(0.0),
+        v[3].as_f64().unwrap_or(0.0), v[4], v[5], v[6], v[7].as_f64().unwrap_or(0.0)
+    );
+}
+
 fn main() {
+    let only: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with("--"))
+        .collect();
+    let want = |section: &str| only.is_empty() || only.iter().any(|o| o == section);
     let s = Server::start_demo();
     let http = reqwest::blocking::Client::builder()
         .timeout(T)
         .build()
         .unwrap();
+    let b = Browser::start();
+    // First: the first page is measured with nothing in the browser's cache.
+    if want("first-page") {
+        first_page(&s, &b, &http);
+    }
+    if want("million") {
+        million(&s, &b, &http);
+    }
+    if want("overview") {
+        overview(&s, &b);
+    }
+    if want("running") {
+        running_job(&s, &b);
+    }
+}
 
+fn first_page(s: &Server, b: &Browser, http: &reqwest::blocking::Client) {
     // 1. First page: every file a first visit loads, as gzip travels (what curl sees) ...
     let mut raw = 0usize;
     let mut gz = 0usize;
@@ -74,7 +129,6 @@ fn main() {
         fresa_console::ASSETS.len()
     );
     // ... and as the browser counts it (Resource Timing transferSize, headers included).
-    let b = Browser::start();
     b.goto(&s.base);
     b.wait(
         "the overview",
@@ -85,7 +139,9 @@ fn main() {
          return [n, ...performance.getEntriesByType('resource')] \
            .filter(e => !e.name.includes('/api/')).reduce((s, e) => s + e.transferSize, 0);");
     println!("first page in Chromium: {browser_bytes} bytes transferred (without API calls)");
+}
 
+fn million(s: &Server, b: &Browser, http: &reqwest::blocking::Client) {
     // 2. A 1M-line program: upload (not part of the measure), then served + drawn.
     let program = million_line_program();
     let lines = program.lines().count();
@@ -136,7 +192,9 @@ fn main() {
         );
     }
     b.screenshot("million-line-toolpath");
+}
 
+fn overview(s: &Server, b: &Browser) {
     // 3. Twenty machines running jobs on one overview: status events at the status rate for
     //    each; how smooth is the page? (frame gaps from requestAnimationFrame over 10 s)
     // The first 5000 lines of the zigzag: about two minutes of motion, with no program pause.
@@ -160,21 +218,41 @@ fn main() {
         T,
         "return document.querySelectorAll('[data-machine]').length === 20;",
     );
-    let stats = b.js_async(
-        "const done = arguments[arguments.length - 1]; const gaps = []; let last = performance.now(); \
-         let statuses = 0; const es = new EventSource('/api/v1/events?types=status'); \
-         es.addEventListener('status', () => statuses++); \
-         const end = last + 10000; \
-         function f(t) { gaps.push(t - last); last = t; if (t < end) requestAnimationFrame(f); \
-           else { es.close(); gaps.sort((a, b) => a - b); \
-             done([gaps.length, gaps[Math.floor(gaps.length * 0.5)], gaps[Math.floor(gaps.length * 0.99)], gaps[gaps.length - 1], \
-                   gaps.filter(g => g > 50).length, statuses]); } } \
-         requestAnimationFrame(f);",
-    );
-    println!(
-        "20 running machines on the overview for 10 s: {} frames, frame gap p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms, {} gaps over 50 ms; {} status events received",
-        stats[0], stats[1].as_f64().unwrap_or(0.0), stats[2].as_f64().unwrap_or(0.0),
-        stats[3].as_f64().unwrap_or(0.0), stats[4], stats[5]
-    );
+    let stats = frame_gaps(b, 10_000);
+    print_gaps("20 running machines on the overview for 10 s", &stats);
     b.screenshot("overview-20-machines");
+}
+
+/// 4. The run screen while a 1,000,000-line job runs in real time on a simulated machine: how
+///    smooth the machine page (DRO, listing, toolpath with the executed part) and the job page
+///    stay, 10 s each, status events at 10 Hz.
+fn running_job(s: &Server, b: &Browser) {
+    let m = s.sim("runner", 1.0);
+    let t = Instant::now();
+    let job = s.upload(m.id, "million-running", million_line_program().into_bytes());
+    let id = job["id"].as_i64().unwrap();
+    println!(
+        "running: 1M lines uploaded in {:.2} s",
+        t.elapsed().as_secs_f64()
+    );
+    s.job_action(id, "start").expect(200);
+    s.wait_status(m.id, T, "the job running", |st| st["state"] == "running");
+    for (what, page) in [
+        ("machine page", format!("#/machines/{}", m.id)),
+        ("job page", format!("#/jobs/{id}")),
+    ] {
+        b.goto(&format!("{}/{page}", s.base));
+        b.wait(
+            "the toolpath to be drawn",
+            T,
+            "const c = document.querySelector('canvas.toolpath'); return c && c.dataset.drawMs;",
+        );
+        let v = frame_gaps(b, 10_000);
+        print_gaps(
+            &format!("1M-line job running in real time, {what} for 10 s"),
+            &v,
+        );
+    }
+    b.screenshot("running-job");
+    s.job_action(id, "cancel").expect(200);
 }

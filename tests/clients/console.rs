@@ -8,8 +8,9 @@
 mod browser;
 
 use browser::Browser;
-use fresa_tests::serde_json::json;
+use fresa_tests::serde_json::{json, Value};
 use fresa_tests::{corpus, wait_for, Opts, Server};
+use std::fmt::Write as _;
 use std::time::Duration;
 
 const T: Duration = Duration::from_secs(60);
@@ -82,6 +83,7 @@ fn console_files_are_typed_cached_compressed_and_guarded() {
 struct Decoded {
     n: usize,
     moves: u32,
+    decimation: f32,
     bounds: [f32; 6],
     pts: Vec<[f32; 3]>,
     lines: Vec<u32>,
@@ -102,6 +104,7 @@ fn decode(b: &[u8]) -> Decoded {
     Decoded {
         n,
         moves: u(8),
+        decimation: f(12),
         bounds,
         pts,
         lines,
@@ -126,6 +129,7 @@ fn toolpath_is_the_programs_path_bounded_in_size() {
         n,
         moves,
         bounds,
+        decimation: _,
         pts,
         lines,
         kinds,
@@ -1131,4 +1135,735 @@ fn a_height_map_is_probed_plotted_and_chosen_for_a_job_in_the_browser() {
     s.wait_job_state(job, "completed", T);
     assert_eq!(s.job(job)["run"]["height_map_id"], hid);
     b.wait_text("#job-height-map", T);
+}
+
+// --- The toolpath's shape, the run screen and shop-floor legibility (issue 27) -----------------
+
+/// Distance from `p` to the segment `a`-`b`.
+fn segment_distance(p: [f64; 3], a: [f64; 3], b: [f64; 3]) -> f64 {
+    let ab: [f64; 3] = std::array::from_fn(|i| b[i] - a[i]);
+    let ap: [f64; 3] = std::array::from_fn(|i| p[i] - a[i]);
+    let len2: f64 = ab.iter().map(|c| c * c).sum();
+    let t = if len2 > 0.0 {
+        (ap.iter().zip(&ab).map(|(x, y)| x * y).sum::<f64>() / len2).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    ap.iter()
+        .zip(&ab)
+        .map(|(x, y)| (x - t * y) * (x - t * y))
+        .sum::<f64>()
+        .sqrt()
+}
+
+/// Checks a served toolpath against the exact path (start, then each move's end with its
+/// line): its vertices are points of the path in order, every exact point lies within the
+/// decimation distance of the drawn segment that stands for it, and points along every drawn
+/// segment lie within that distance of the moves it stands for.
+fn assert_within_decimation(d: &Decoded, exact: &[([f64; 3], u32)]) {
+    let tol = d.decimation as f64 + 1e-3;
+    let mut at = Vec::with_capacity(d.n);
+    let mut i = 0;
+    for (k, (p, line)) in d.pts.iter().zip(&d.lines).enumerate() {
+        while i < exact.len() {
+            let (q, l) = exact[i];
+            if l == *line && (0..3).all(|c| q[c] as f32 == p[c]) {
+                break;
+            }
+            i += 1;
+        }
+        assert!(
+            i < exact.len(),
+            "vertex {k} {p:?} (line {line}) is not a point of the path, in order"
+        );
+        at.push(i);
+        i += 1;
+    }
+    assert_eq!(
+        at.last(),
+        Some(&(exact.len() - 1)),
+        "the path's end is drawn"
+    );
+    let f64s = |p: [f32; 3]| p.map(|c| c as f64);
+    for k in 1..d.n {
+        let (a, b) = (f64s(d.pts[k - 1]), f64s(d.pts[k]));
+        let moves = &exact[at[k - 1]..=at[k]];
+        for (p, line) in moves {
+            let e = segment_distance(*p, a, b);
+            assert!(
+                e <= tol,
+                "line {line} {p:?} is {e} mm from the drawn path (decimation {tol})"
+            );
+        }
+        for s in 1..4 {
+            let f = s as f64 / 4.0;
+            let q: [f64; 3] = std::array::from_fn(|c| a[c] + f * (b[c] - a[c]));
+            let e = moves
+                .windows(2)
+                .map(|w| segment_distance(q, w[0].0, w[1].0))
+                .fold(f64::INFINITY, f64::min);
+            assert!(
+                e <= tol,
+                "drawn point {q:?} is {e} mm from the path (decimation {tol})"
+            );
+        }
+    }
+}
+
+/// A zig-zag of 200 mm strokes, one stroke a line, a million lines in all (Y 0.0002 mm further
+/// each stroke), and its exact path.
+fn million_line_zigzag() -> (String, Vec<([f64; 3], u32)>) {
+    let mut p = String::with_capacity(16 << 20);
+    p.push_str("G21 G90\nG1 F3000\n");
+    let mut exact = Vec::with_capacity(1_000_000);
+    exact.push(([0.0, 0.0, 0.0], 0));
+    for i in 0..999_997u32 {
+        let x = if i % 2 == 0 { 200.0 } else { 0.0 };
+        let y = format!("{:.4}", i as f64 * 0.0002);
+        let _ = writeln!(p, "X{x} Y{y}");
+        exact.push(([x, y.parse().unwrap(), 0.0], i + 3));
+    }
+    p.push_str("M30\n");
+    (p, exact)
+}
+
+/// Pixels of the cut colour (blue) on the toolpath canvas: their bounding box [x0, y0, x1, y1].
+const BLUE_BOX: &str = "const c = document.querySelector('canvas.toolpath'); \
+    const t = document.createElement('canvas'); t.width = c.width; t.height = c.height; \
+    const g = t.getContext('2d'); g.drawImage(c, 0, 0); \
+    const d = g.getImageData(0, 0, t.width, t.height).data; \
+    let x0 = 1e9, y0 = 1e9, x1 = -1, y1 = -1; \
+    for (let y = 0; y < t.height; y++) for (let x = 0; x < t.width; x++) { \
+      const i = 4 * (y * t.width + x); \
+      if (d[i + 2] > d[i] + 60 && d[i + 2] > d[i + 1] + 20) { x0 = Math.min(x0, x); x1 = Math.max(x1, x); y0 = Math.min(y0, y); y1 = Math.max(y1, y); } } \
+    return x1 < 0 ? null : [x0, y0, x1, y1];";
+
+/// Issue 27: the million-line zig-zag the old decimation drew as an empty box (every vertex on
+/// X = 0) is served within its decimation distance of the exact path, keeping its strokes, and
+/// the console draws those vertices across the part's 200 mm.
+#[test]
+fn a_million_line_zigzag_is_served_and_drawn_across_its_strokes() {
+    let s = Server::start();
+    let m = s.sim("mill", 0.0);
+    let (program, exact) = million_line_zigzag();
+    let job = s.upload(m.id, "zigzag", program)["id"].as_i64().unwrap();
+    let r = raw_get(&s, &format!("/api/v1/jobs/{job}/toolpath"), &[]);
+    assert_eq!(r.status(), 200);
+    let d = decode(&r.bytes().unwrap());
+    assert_eq!(d.moves as usize, exact.len() - 1);
+    assert!(d.n <= 250_000, "{} vertices", d.n);
+    assert!(
+        d.decimation > 0.0 && d.decimation < 0.5,
+        "decimation {} mm",
+        d.decimation
+    );
+    assert_within_decimation(&d, &exact);
+    let left = d.pts.iter().filter(|p| p[0] == 0.0).count();
+    let right = d.pts.iter().filter(|p| p[0] == 200.0).count();
+    assert!(
+        left > d.n / 3 && right > d.n / 3,
+        "strokes kept: {left} vertices at X0, {right} at X200 of {}",
+        d.n
+    );
+
+    let b = Browser::start();
+    b.goto(&format!("{}/#/jobs/{job}", s.base));
+    let drawn = b.wait(
+        "the toolpath drawn",
+        Duration::from_secs(120),
+        "const c = document.querySelector('canvas.toolpath'); \
+         if (!c || !c.dataset.drawMs) return null; const p = c.toolpath; let l = 0, r = 0; \
+         for (let i = 0; i < p.n; i++) { const x = p.positions[3 * i]; if (x === 0) l++; else if (x === 200) r++; } \
+         return [p.n, p.decimation, l, r];",
+    );
+    assert_eq!(
+        drawn,
+        json!([d.n, d.decimation, left, right]),
+        "the page draws what the server sent"
+    );
+    // The picture: the cut colour fills the part's square, not a line at X = 0.
+    let bbox = b.wait("the path's pixels", T, BLUE_BOX);
+    let (w, h) = (
+        bbox[2].as_f64().unwrap() - bbox[0].as_f64().unwrap(),
+        bbox[3].as_f64().unwrap() - bbox[1].as_f64().unwrap(),
+    );
+    assert!(
+        h > 100.0 && w / h > 0.9 && w / h < 1.1,
+        "the 200 x 200 mm zig-zag spans {w} x {h} px"
+    );
+    let dims = b.wait_text("#toolpath-dims", T);
+    assert_eq!(dims, "200.00 × 200.00 × 0.00 mm");
+    b.screenshot("million-line-zigzag");
+}
+
+/// The text of `css` once it matches `re`-like `test` (a JS expression on `t`).
+fn wait_js(b: &Browser, what: &str, script: &str) -> Value {
+    b.wait(what, T, script)
+}
+
+/// Issue 27: the machine page is the run screen: the job's name, line of total, elapsed and the
+/// server's remaining time move while a real-time sim job runs, the listing follows the line
+/// executing (its text is the program's), and so does the job page's line.
+#[test]
+fn the_run_screen_follows_a_real_time_job() {
+    let s = Server::start();
+    let m = s.sim("mill", 1.0);
+    // 300 moves of 2 mm at 600 mm/min: 0.2 s each, a minute in all.
+    let program = fresa_tests::back_and_forth(300, 2.0, 600.0);
+    let job = s.upload(m.id, "real-time", program.clone())["id"]
+        .as_i64()
+        .unwrap();
+    let b = Browser::start();
+    b.goto(&format!("{}/#/machines/{}", s.base, m.id));
+    b.wait_text("#run-none", T);
+    s.job_action(job, "start").expect(200);
+    let name = b.wait(
+        "the run screen to show the job",
+        T,
+        "const n = document.querySelector('#run-job'); const c = document.querySelector('#run-card > div:not([hidden])'); \
+         return n && n.textContent.includes('real-time') ? n.textContent : null;",
+    );
+    assert_eq!(name, json!(format!("{job} · real-time")));
+    let figures = "const l = document.querySelector('#run-line'), r = document.querySelector('#run-remaining'), \
+         e = document.querySelector('#run-elapsed'); \
+         return [+l.dataset.line, r.dataset.seconds === '' ? null : +r.dataset.seconds, e.textContent, l.textContent];";
+    let first = wait_js(
+        &b,
+        "the line and the time left",
+        &format!(
+            "const v = (() => {{ {figures} }})(); return v[0] >= 2 && v[1] !== null ? v : null;"
+        ),
+    );
+    let (line0, left0) = (first[0].as_i64().unwrap(), first[1].as_f64().unwrap());
+    assert!(first[3].as_str().unwrap().ends_with("/ 300"), "{first}");
+    let later = wait_js(
+        &b,
+        "the line to move on and the time left to fall",
+        &format!(
+            "const v = (() => {{ {figures} }})(); return v[0] >= {} && v[1] < {left0} && v[2] !== '—' ? v : null;",
+            line0 + 5
+        ),
+    );
+    assert!(later[1].as_f64().unwrap() > 0.0, "{later}");
+    // The server agrees on where it is (it acknowledges lines as they end).
+    let server_line = s.job(job)["line"].as_i64().unwrap();
+    assert!(
+        server_line >= later[0].as_i64().unwrap() - 1,
+        "page {later} vs server {server_line}"
+    );
+    // The listing shows the line executing, with the program's text.
+    let row = wait_js(
+        &b,
+        "the listing's current line",
+        "const r = document.querySelector('#run-listing .current'); \
+         return r ? [+r.dataset.line, r.textContent] : null;",
+    );
+    let n = row[0].as_i64().unwrap();
+    let text = program.lines().nth(n as usize - 1).unwrap();
+    assert_eq!(row[1], json!(format!("{n}{text}")));
+    assert!(n >= line0, "listing at {n}, run at {line0}");
+    let scrolled = b.js(
+        "const l = document.querySelector('#run-listing'), r = l.querySelector('.current'); \
+         return r.offsetTop >= l.scrollTop && r.offsetTop + r.offsetHeight <= l.scrollTop + l.clientHeight;",
+    );
+    assert_eq!(scrolled, json!(true), "the current line is in view");
+    // The toolpath shows the executed part over the rest.
+    b.wait(
+        "executed vertices drawn",
+        T,
+        "const c = document.querySelector('#run-card canvas.toolpath'); return c && +c.dataset.executed > 2;",
+    );
+    b.screenshot("run-screen");
+    // The job page's line moves too.
+    b.goto(&format!("{}/#/jobs/{job}", s.base));
+    let a = wait_js(
+        &b,
+        "the job page's line",
+        "const l = document.querySelector('#job-line'); return l && +l.dataset.line > 0 ? +l.dataset.line : null;",
+    );
+    wait_js(
+        &b,
+        "the job page's line to move",
+        &format!(
+            "const l = document.querySelector('#job-line'), r = document.querySelector('#job-remaining'); \
+             return +l.dataset.line > {} && r.textContent !== '—';",
+            a.as_i64().unwrap()
+        ),
+    );
+    s.job_action(job, "cancel").expect(200);
+}
+
+/// `[disabled, title, the why line of its card]` of `css`.
+fn why(b: &Browser, css: &str) -> (bool, String, String) {
+    let v = b.js(&format!(
+        "const e = document.querySelector({}); const g = e.closest('[data-why-group]'); \
+         const w = g && g.querySelector('.why'); \
+         return [e.disabled, e.title, w && !w.hidden ? w.textContent : ''];",
+        json!(css)
+    ));
+    (
+        v[0].as_bool().unwrap(),
+        v[1].as_str().unwrap_or("").to_string(),
+        v[2].as_str().unwrap_or("").to_string(),
+    )
+}
+
+/// Issue 27: during a run, controls the run forbids are disabled with the reason beside them;
+/// pause, a feed hold (job and machine both `paused`, with the reason), a cancel that asks
+/// first, its event in a sentence with who did it; and with the stream lost everything that
+/// moves or changes state is disabled, saying why, except STOP and feed hold.
+#[test]
+fn controls_that_cannot_act_are_disabled_with_the_reason() {
+    let mut s = Server::start();
+    let m = s.sim("mill", 1.0);
+    let program = fresa_tests::back_and_forth(600, 2.0, 600.0);
+    let job = s.upload(m.id, "long", program)["id"].as_i64().unwrap();
+    let b = Browser::start();
+    b.goto(&format!("{}/#/machines/{}", s.base, m.id));
+    b.wait_enabled("[data-jog=\"X+\"]", T);
+    s.job_action(job, "start").expect(200);
+    b.wait(
+        "the run screen running",
+        T,
+        "const e = document.querySelector('#run-state'); return e && e.textContent === 'running';",
+    );
+    b.wait(
+        "the jog disabled",
+        T,
+        "return document.querySelector('[data-jog=\"X+\"]').disabled;",
+    );
+    let running = format!("job {job} is running on this machine");
+    for css in [
+        "[data-jog=\"X+\"]",
+        "[data-cmd=\"home\"]",
+        "[data-cmd=\"go_to_zero\"]",
+        "form:has(#mdi) button[type=submit]",
+    ] {
+        let (off, title, line) = why(&b, css);
+        assert!(off, "{css} enabled during a run");
+        assert_eq!(title, running, "{css}");
+        assert!(line.contains(&running), "{css}: {line}");
+    }
+    for css in [
+        "[data-cmd=\"zero\"]",
+        "tr[data-offset=\"G55\"] td.row button:first-child",
+        "#record-part-zero",
+    ] {
+        let (off, title, line) = why(&b, css);
+        assert!(off, "{css} enabled during a run");
+        assert!(title.contains("the machine is running"), "{css}: {title}");
+        assert!(line.contains("the machine is running"), "{css}: {line}");
+    }
+    for css in [
+        "[data-cmd=\"stop\"]",
+        "[data-cmd=\"feed_hold\"]",
+        "[data-run=\"pause\"]",
+        "[data-run=\"cancel\"]",
+        "[data-override=\"feed+\"]",
+        "#jog-cancel",
+    ] {
+        assert!(!b.disabled(css), "{css} disabled during a run");
+    }
+    // Resume shows (instead of Pause) only once the job is paused.
+    assert_eq!(
+        b.js("return [document.querySelector('[data-run=\"pause\"]').hidden, document.querySelector('[data-run=\"resume\"]').hidden];"),
+        json!([false, true])
+    );
+    b.screenshot("run-screen-disabled");
+
+    // Pause from the run screen: the job and the machine are paused, and the screen says why.
+    b.click("[data-run=\"pause\"]");
+    s.wait_job_state(job, "paused", T);
+    s.wait_status(m.id, T, "the machine paused", |st| st["state"] == "paused");
+    let held = b.wait(
+        "the pause's reason",
+        T,
+        "const h = document.querySelector('#run-hold'); return h && !h.hidden && h.textContent.includes('paused by') ? h.textContent : null;",
+    );
+    assert!(held.as_str().unwrap().contains("Resume goes on"), "{held}");
+    assert_eq!(b.wait_text("#run-state", T), "paused");
+    b.click("[data-run=\"resume\"]");
+    s.wait_job_state(job, "running", T);
+
+    // A feed hold: the machine and the job both say paused, with the reason.
+    b.wait_enabled("[data-cmd=\"feed_hold\"]", T);
+    b.click("[data-cmd=\"feed_hold\"]");
+    let j = s.wait_job_state(job, "paused", T);
+    let st = s.wait_status(m.id, T, "the machine paused", |st| st["state"] == "paused");
+    assert_eq!(j["hold"]["kind"], "feed_hold", "{j}");
+    assert_eq!(st["hold"]["message"], j["hold"]["message"]);
+    let reason = j["hold"]["message"].as_str().unwrap().to_string();
+    b.wait(
+        "the feed hold's reason on the run screen",
+        T,
+        &format!(
+            "const h = document.querySelector('#run-hold'); return !h.hidden && h.textContent.includes({}) \
+             && document.querySelector('#run-state').textContent === 'paused';",
+            json!(reason)
+        ),
+    );
+    b.goto(&format!("{}/#/jobs/{job}", s.base));
+    let on_job = b.wait_text("#job-hold", T);
+    assert!(on_job.contains(&reason), "{on_job}");
+    assert_eq!(b.wait_text("#job-state", T), "paused");
+    b.goto(&format!("{}/#/machines/{}", s.base, m.id));
+    b.click("[data-run=\"resume\"]");
+    s.wait_job_state(job, "running", T);
+
+    // Cancel asks first; kept, the job runs on; confirmed, it is cancelled.
+    b.click("[data-run=\"cancel\"]");
+    b.wait(
+        "the dialog",
+        T,
+        "return document.getElementById('dialog').open;",
+    );
+    assert!(b.wait_text("#cancel-dialog", T).contains("stops at line"));
+    b.screenshot("run-screen-cancel-dialog");
+    b.click("#dialog button[value=\"no\"]");
+    b.wait(
+        "the dialog closed",
+        T,
+        "return !document.getElementById('dialog').open;",
+    );
+    assert_eq!(s.job(job)["state"], "running");
+    b.click("[data-run=\"cancel\"]");
+    b.wait(
+        "the dialog",
+        T,
+        "return document.getElementById('dialog').open;",
+    );
+    b.click("#dialog button[value=\"yes\"]");
+    let j = s.wait_job_state(job, "cancelled", T);
+    let line = j["line"].as_i64().unwrap();
+    let pct = (100.0 * line as f64 / 600.0).round() as i64;
+
+    // The events page says it in a sentence, with who.
+    b.goto(&format!("{}/#/events", s.base));
+    let sentence = format!("local cancelled job {job} at line {line}, {pct} %");
+    b.wait(
+        "the cancel in words",
+        T,
+        &format!(
+            "return [...document.querySelectorAll('table.events td.what')].some(td => td.textContent === {});",
+            json!(sentence)
+        ),
+    );
+    b.wait(
+        "the start and the feed hold in words",
+        T,
+        &format!(
+            "const t = [...document.querySelectorAll('table.events td.what')].map(td => td.textContent); \
+             return t.includes('local started job {job}') && t.includes('local sent a feed hold');"
+        ),
+    );
+    b.screenshot("events-sentences");
+
+    // The stream lost: what moves or changes state is disabled and says why; STOP and feed
+    // hold are not.
+    b.goto(&format!("{}/#/machines/{}", s.base, m.id));
+    b.wait_enabled("[data-cmd=\"zero\"]", T);
+    s.kill();
+    b.wait(
+        "the lost-connection banner",
+        T,
+        "const c = document.getElementById('conn'); return !c.hidden;",
+    );
+    for css in [
+        "[data-jog=\"X+\"]",
+        "[data-cmd=\"zero\"]",
+        "[data-cmd=\"reset\"]",
+        "[data-cmd=\"cycle_start\"]",
+        "tr[data-offset=\"G55\"] td.row button:first-child",
+        "[data-override=\"feed+\"]",
+        "#record-part-zero",
+        "form:has(#mdi) button[type=submit]",
+        "#keyboard-jog",
+    ] {
+        let (off, title, line) = why(&b, css);
+        assert!(off, "{css} enabled with the stream lost");
+        assert!(title.contains("live connection is lost"), "{css}: {title}");
+        assert!(line.contains("live connection is lost"), "{css}: {line}");
+    }
+    assert!(!b.disabled("[data-cmd=\"stop\"]"));
+    assert!(!b.disabled("[data-cmd=\"feed_hold\"]"));
+    b.screenshot("machine-stream-lost-reasons");
+}
+
+/// The pages a phone or tablet visits, with what shows each is there.
+fn pages(s: &Server, mill: i64, job: i64) -> Vec<(String, &'static str)> {
+    vec![
+        (format!("{}/#/", s.base), "[data-machine]"),
+        (format!("{}/#/machines/1", s.base), "[data-dro=\"x\"]"),
+        (
+            format!("{}/#/machines/{mill}", s.base),
+            "#run-listing .current",
+        ),
+        (format!("{}/#/jobs", s.base), "table.jobs tbody tr"),
+        (
+            format!("{}/#/jobs/{job}", s.base),
+            "canvas.toolpath[data-draw-ms]",
+        ),
+        (format!("{}/#/pendants", s.base), "[data-pendant]"),
+        (format!("{}/#/events", s.base), "table.events tbody tr"),
+        (format!("{}/#/plugins", s.base), "[data-plugin]"),
+        (format!("{}/#/machines/1/height-maps", s.base), "#hm-form"),
+    ]
+}
+
+/// Issue 27: no page scrolls sideways on a 390 px phone or an 820 px tablet; on the phone the
+/// navigation takes one short band and the DRO and the jog pad fit one screen.
+#[test]
+fn every_page_fits_a_phone_and_a_tablet_without_scrolling_sideways() {
+    let s = Server::start_demo();
+    let mill = s.sim("mill-2", 1.0);
+    let job = s.upload(
+        mill.id,
+        "phone",
+        fresa_tests::back_and_forth(2000, 2.0, 600.0),
+    )["id"]
+        .as_i64()
+        .unwrap();
+    s.job_action(job, "start").expect(200);
+    let b = Browser::start();
+    b.goto(&s.base);
+    for (w, h, device) in [(390, 844, "phone"), (820, 1180, "tablet")] {
+        b.viewport(w, h);
+        for (url, ready) in pages(&s, mill.id, job) {
+            b.goto(&url);
+            b.wait(
+                &format!("{url} at {w} px"),
+                T,
+                &format!("return !!document.querySelector({});", json!(ready)),
+            );
+            let wide = b.js(
+                "const w = innerWidth; if (document.documentElement.scrollWidth <= w) return null; \
+                 return [document.documentElement.scrollWidth, [...document.querySelectorAll('body *')] \
+                   .filter(e => e.getBoundingClientRect().right > w + 0.5) \
+                   .map(e => e.tagName + '.' + e.className + '#' + e.id).slice(0, 8)];",
+            );
+            assert_eq!(wide, Value::Null, "{url} scrolls sideways at {w} px");
+            let name = url.rsplit('#').next().unwrap().replace('/', "-");
+            b.screenshot(&format!("{device}{name}"));
+        }
+    }
+    // The phone: a short navigation band; DRO and jog pad on one screen under the sticky bar.
+    b.viewport(390, 844);
+    b.goto(&format!("{}/#/machines/1", s.base));
+    dro(&b, "x");
+    let fit = b.js(
+        "const top = document.querySelector('header.top').getBoundingClientRect().height; \
+         const bar = document.querySelector('.sticky-bar').getBoundingClientRect().height; \
+         const dro = document.querySelector('.dro').closest('.card').getBoundingClientRect(); \
+         const pad = document.querySelector('.jog').getBoundingClientRect(); \
+         return [top, bar + pad.bottom - dro.top, innerHeight];",
+    );
+    let (nav, both, screen) = (
+        fit[0].as_f64().unwrap(),
+        fit[1].as_f64().unwrap(),
+        fit[2].as_f64().unwrap(),
+    );
+    assert!(nav <= 100.0, "the navigation takes {nav} px");
+    assert!(
+        both <= screen,
+        "DRO and jog pad take {both} px under the sticky bar, the screen {screen}"
+    );
+    b.js("document.querySelector('.dro').closest('.card').scrollIntoView(); \
+          window.scrollBy(0, -document.querySelector('.sticky-bar').getBoundingClientRect().height);");
+    b.screenshot("phone-dro-and-jog");
+    s.job_action(job, "cancel").expect(200);
+}
+
+/// The relative luminance (0 black .. 1 white) of a CSS colour `rgb(r, g, b)`.
+fn luminance(css: &Value) -> f64 {
+    let v: Vec<f64> = css
+        .as_str()
+        .unwrap()
+        .trim_start_matches("rgba(")
+        .trim_start_matches("rgb(")
+        .trim_end_matches(')')
+        .split(',')
+        .take(3)
+        .map(|c| c.trim().parse::<f64>().unwrap() / 255.0)
+        .collect();
+    0.2126 * v[0] + 0.7152 * v[1] + 0.0722 * v[2]
+}
+
+/// Issue 27: dark mode by the switch (remembered) or the system's; disabled controls distinct
+/// from enabled ones in both themes; positions in mm or inch; numbers at a fixed resolution;
+/// MDI history per machine with ↑ and ↓.
+#[test]
+fn dark_mode_units_number_formats_and_mdi_history() {
+    let s = Server::start_demo();
+    let b = Browser::start();
+    b.goto(&format!("{}/#/machines/1", s.base));
+    assert_eq!(dro(&b, "x"), "0.000");
+    let bg = "return getComputedStyle(document.body).backgroundColor;";
+    assert!(luminance(&b.js(bg)) > 0.8, "light by default here");
+    // Enabled and disabled buttons side by side: the disabled one is hatched and dashed.
+    let contrast = "const c = document.querySelector('.card'); \
+        const on = document.createElement('button'), off = document.createElement('button'); \
+        off.disabled = true; c.append(on, off); \
+        const a = getComputedStyle(on), d = getComputedStyle(off); \
+        const r = [a.borderTopStyle, d.borderTopStyle, a.color, d.color, d.backgroundImage !== 'none']; \
+        on.remove(); off.remove(); return r;";
+    let light = b.js(contrast);
+    assert_eq!(
+        (light[0].clone(), light[1].clone()),
+        (json!("solid"), json!("dashed"))
+    );
+    assert!(light[4].as_bool().unwrap(), "disabled is hatched: {light}");
+    assert!(
+        (luminance(&light[2]) - luminance(&light[3])).abs() > 0.25,
+        "{light}"
+    );
+
+    b.click("#theme-switch");
+    b.wait(
+        "the dark theme",
+        T,
+        "return document.documentElement.dataset.theme === 'dark';",
+    );
+    assert!(luminance(&b.js(bg)) < 0.1, "dark: {}", b.js(bg));
+    let dark = b.js(contrast);
+    assert_eq!(
+        (dark[0].clone(), dark[1].clone()),
+        (json!("solid"), json!("dashed"))
+    );
+    assert!(
+        (luminance(&dark[2]) - luminance(&dark[3])).abs() > 0.25,
+        "{dark}"
+    );
+    b.reload();
+    b.wait(
+        "the dark theme remembered",
+        T,
+        "return document.documentElement.dataset.theme === 'dark' && !!document.querySelector('[data-dro]');",
+    );
+    b.screenshot("machine-dark");
+    // Back to light for the rest; a system in dark mode gives a dark page with no choice made.
+    b.click("#theme-switch");
+    let system = Browser::start_with(&["--force-dark-mode"]);
+    system.goto(&s.base);
+    system.wait(
+        "the overview",
+        T,
+        "return !!document.querySelector('[data-machine]');",
+    );
+    assert_eq!(
+        system.js("return [matchMedia('(prefers-color-scheme: dark)').matches, document.documentElement.dataset.theme || null];"),
+        json!([true, null])
+    );
+    assert!(luminance(&system.js(bg)) < 0.1);
+    drop(system);
+
+    // Units: 25.4 mm is shown as 1.0000 in once switched, and stays so.
+    s.jog(1, "X", 25.4).expect(200);
+    s.wait_status(1, T, "idle at X 25.4", |st| st["state"] == "idle");
+    b.wait(
+        "X 25.400",
+        T,
+        "return document.querySelector('[data-dro=\"x\"]').textContent === '25.400';",
+    );
+    b.click("#units-switch");
+    b.wait(
+        "X in inches",
+        T,
+        "return document.querySelector('[data-dro=\"x\"]').textContent === '1.0000';",
+    );
+    b.reload();
+    assert_eq!(dro(&b, "x"), "1.0000");
+    b.click("#units-switch");
+    assert_eq!(dro(&b, "x"), "25.400");
+
+    // An inch program: its analysis at a fixed resolution (610 mm/min, not 609.5999999999999),
+    // and it says it is in inches.
+    let job = s.upload(
+        1,
+        "inch",
+        std::fs::read(corpus("cncjs-circle-inch.gcode")).unwrap(),
+    );
+    let feed = job["analysis"]["max_feed_mm_min"].as_f64().unwrap();
+    b.goto(&format!("{}/#/jobs/{}", s.base, job["id"]));
+    let analysis = b.wait_text("#analysis", T);
+    assert!(analysis.contains("inch program"), "{analysis}");
+    assert!(
+        analysis.contains(&format!("{} mm/min", feed.round() as i64)),
+        "feed {feed}: {analysis}"
+    );
+    let length = b.js(
+        "const r = [...document.querySelectorAll('#analysis tr')].find(r => r.textContent.startsWith('Cutting length')); \
+         return r.querySelector('td').textContent;",
+    );
+    assert!(
+        length.as_str().is_some_and(
+            |t| t.ends_with(" mm") && t.split('.').nth(1).is_some_and(|f| f.len() == 4)
+        ),
+        "one decimal: {length}"
+    );
+
+    // MDI history: ↑ brings back the lines sent, newest first; ↓ goes forward again; kept per
+    // machine in this browser.
+    b.goto(&format!("{}/#/machines/1", s.base));
+    for line in ["G91 G0 Z1", "G91 G0 Z-1"] {
+        b.type_into("#mdi", line);
+        b.click("form:has(#mdi) button[type=submit]");
+        b.wait(
+            "the MDI line sent",
+            T,
+            "return document.querySelector('#mdi').value === '';",
+        );
+        s.wait_status(1, T, "idle after the MDI", |st| st["state"] == "idle");
+        b.wait_enabled("form:has(#mdi) button[type=submit]", T);
+    }
+    b.reload();
+    b.wait_text("#mdi", T);
+    let key = |k: &str| {
+        b.js(&format!(
+            "const i = document.querySelector('#mdi'); i.focus(); \
+             i.dispatchEvent(new KeyboardEvent('keydown', {{key: '{k}', bubbles: true}})); return i.value;"
+        ))
+    };
+    assert_eq!(key("ArrowUp"), json!("G91 G0 Z-1"));
+    assert_eq!(key("ArrowUp"), json!("G91 G0 Z1"));
+    assert_eq!(key("ArrowUp"), json!("G91 G0 Z1"), "the oldest stays");
+    assert_eq!(key("ArrowDown"), json!("G91 G0 Z-1"));
+    assert_eq!(key("ArrowDown"), json!(""), "back to what was typed");
+}
+
+/// Issue 27: the program listing's window of lines (`GET /jobs/{id}/gcode?from_line=&lines=`)
+/// is those lines of the stored program, anywhere in a long one; bad windows are refused.
+#[test]
+fn a_window_of_a_programs_lines_is_served() {
+    let s = Server::start();
+    let m = s.sim("mill", 0.0);
+    let program = fresa_tests::back_and_forth(5000, 2.0, 600.0);
+    let job = s.upload(m.id, "window", program.clone())["id"]
+        .as_i64()
+        .unwrap();
+    let lines: Vec<&str> = program.lines().collect();
+    for (from, n) in [(1, 5), (1024, 3), (4990, 20)] {
+        let r = s.get(&format!(
+            "/api/v1/jobs/{job}/gcode?from_line={from}&lines={n}"
+        ));
+        assert_eq!(r.status, 200, "{}", r.text);
+        let want: String = lines[from - 1..]
+            .iter()
+            .take(n)
+            .map(|l| format!("{l}\n"))
+            .collect();
+        assert_eq!(r.text, want, "from {from}");
+    }
+    assert_eq!(
+        s.get(&format!("/api/v1/jobs/{job}/gcode?from_line=6000&lines=5"))
+            .text,
+        ""
+    );
+    s.get(&format!("/api/v1/jobs/{job}/gcode?from_line=0"))
+        .expect_error(400, "invalid_query");
+    s.get(&format!("/api/v1/jobs/{job}/gcode?from_line=1&lines=501"))
+        .expect_error(400, "invalid_query");
+    s.get(&format!("/api/v1/jobs/{job}/gcode?bogus=1"))
+        .expect_error(400, "invalid_query");
+    // Without a window: the whole program, as before.
+    assert_eq!(s.get(&format!("/api/v1/jobs/{job}/gcode")).text, program);
 }

@@ -557,3 +557,27 @@ fn part_zero_zeroing_and_offsets_are_refused_while_the_machine_moves() {
     assert!(row["x"].as_f64().unwrap() > 0.0, "{row}");
     s.command(m.id, "zero", json!({"axis": "X"})).expect(200);
 }
+
+/// Issue 27: a zero's `machine.offsets` event (the offsets the backend computed) comes after
+/// its `machine.command` and names the same actor, as the command did it.
+#[test]
+fn a_zeros_offsets_event_follows_its_command_and_names_who() {
+    let s = Server::start();
+    let m = s.sim("m", 0.0);
+    s.wait_machine_state(m.id, "idle", T);
+    s.command(m.id, "zero", json!({"axis": "X"})).expect(200);
+    let seen = s
+        .events("types=machine.command,machine.offsets", Some(0))
+        .until(T, "the zero's offsets event", |e| {
+            e.event == "machine.offsets"
+        });
+    let offsets = seen.last().unwrap();
+    let command = seen
+        .iter()
+        .position(|e| e.event == "machine.command" && e.data["data"]["command"] == "zero")
+        .unwrap_or_else(|| panic!("no zero command before its offsets: {seen:?}"));
+    assert_eq!(command + 1, seen.len() - 1, "{seen:?}");
+    assert_eq!(offsets.data["actor"], "local", "{:?}", offsets.data);
+    assert_eq!(offsets.data["actor"], seen[command].data["actor"]);
+    assert!(offsets.id > seen[command].id);
+}

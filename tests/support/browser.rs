@@ -42,6 +42,11 @@ pub struct Browser {
 
 impl Browser {
     pub fn start() -> Browser {
+        Browser::start_with(&[])
+    }
+
+    /// A browser with extra Chromium switches (e.g. `--force-dark-mode`: the system's theme).
+    pub fn start_with(extra: &[&str]) -> Browser {
         require(CHROMIUM, "chromium");
         require(CHROMEDRIVER, "chromium-driver");
         let mut driver = Command::new(CHROMEDRIVER)
@@ -71,17 +76,28 @@ impl Browser {
             .prefix("fresa-chromium-")
             .tempdir()
             .unwrap();
+        let mut args: Vec<String> = [
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--disable-dev-shm-usage",
+            "--enable-unsafe-swiftshader",
+            "--window-size=1280,1000",
+        ]
+        .iter()
+        .map(|a| a.to_string())
+        .collect();
+        args.push(format!("--user-data-dir={}", profile.path().display()));
+        args.extend(extra.iter().map(|a| a.to_string()));
         let caps = json!({
             "goog:chromeOptions": {
                 "binary": CHROMIUM,
-                "args": [
-                    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
-                    "--no-first-run", "--disable-background-networking",
-                    "--disable-component-update", "--disable-sync",
-                    "--disable-dev-shm-usage", "--enable-unsafe-swiftshader",
-                    "--window-size=1280,1000",
-                    format!("--user-data-dir={}", profile.path().display()),
-                ],
+                "args": args,
             }
         });
         let rt = tokio::runtime::Builder::new_current_thread()
@@ -238,6 +254,32 @@ impl Browser {
         self.rt
             .block_on(self.c().set_window_size(width, height))
             .unwrap();
+    }
+
+    /// Resizes the window so that the page's viewport (`innerWidth` x `innerHeight`) is
+    /// `width` x `height` CSS pixels, whatever the window's frame takes.
+    pub fn viewport(&self, width: u32, height: u32) {
+        self.resize(width, height);
+        let inner = self.js("return [innerWidth, innerHeight];");
+        let (iw, ih) = (
+            inner[0].as_i64().unwrap_or(0),
+            inner[1].as_i64().unwrap_or(0),
+        );
+        let (dw, dh) = (width as i64 - iw, height as i64 - ih);
+        if dw != 0 || dh != 0 {
+            self.resize((width as i64 + dw) as u32, (height as i64 + dh) as u32);
+        }
+        let inner = self.js("return [innerWidth, innerHeight];");
+        assert_eq!(
+            inner,
+            json!([width, height]),
+            "cannot give the page a {width} x {height} viewport"
+        );
+    }
+
+    /// Reloads the page.
+    pub fn reload(&self) {
+        self.rt.block_on(self.c().refresh()).unwrap();
     }
 
     /// Saves a PNG of the viewport under [`screenshot_dir`] and returns its path.

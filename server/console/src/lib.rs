@@ -41,6 +41,8 @@ assets! {
     "plugins.js" => "text/javascript; charset=utf-8",
     "holds.js" => "text/javascript; charset=utf-8",
     "heightmap.js" => "text/javascript; charset=utf-8",
+    "prefs.js" => "text/javascript; charset=utf-8",
+    "runscreen.js" => "text/javascript; charset=utf-8",
     "favicon.svg" => "image/svg+xml",
 }
 

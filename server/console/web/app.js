@@ -10,6 +10,7 @@ import { pendantsPage } from './pendants.js';
 import { eventsPage } from './events.js';
 import { pluginsPage } from './plugins.js';
 import { heightMapPage } from './heightmap.js';
+import { initPrefs } from './prefs.js';
 
 export const events = new Events();
 
@@ -55,7 +56,7 @@ function showConnection(connected) {
   const banner = document.getElementById('conn');
   banner.hidden = connected;
   banner.textContent = connected ? '' :
-    'Live connection to the server lost — positions may be stale and motion controls are disabled until it is back.';
+    'Live connection to the server lost — positions may be stale, and every control that moves or changes a machine is disabled until it is back (STOP and feed hold still work).';
   document.body.classList.toggle('offline', !connected);
   gate(document);
 }
@@ -151,6 +152,7 @@ function wire() {
   window.addEventListener('hashchange', render);
 }
 
+initPrefs();
 wire();
 showConnection(false);
 start().catch((e) => {

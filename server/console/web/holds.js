@@ -29,7 +29,7 @@ export function holdBlock(id, page) {
   } }, 'Cycle start');
   const tool = h('input', { id: 'measure-tool-number', type: 'number', min: 1, step: 1, value: 1, 'aria-label': 'tool number' });
   const result = h('p', { id: 'measure-result', class: 'muted' });
-  const measure = h('button', { id: 'measure-tool', dataset: { need: 'motion' }, onclick: async (ev) => {
+  const measure = h('button', { id: 'measure-tool', dataset: { need: 'motion', when: 'no-run', toolChange: 'ok' }, onclick: async (ev) => {
     const n = parseInt(tool.value, 10);
     result.className = 'muted';
     result.textContent = `Measuring T${n} on the tool setter…`;
@@ -46,7 +46,7 @@ export function holdBlock(id, page) {
   } }, 'Measure tool');
   const banner = h('section', { class: 'card hold-banner', id: 'hold-banner', hidden: true },
     h('div', { class: 'row wrap' }, reason, go), blocked);
-  const el = h('section', { class: 'card', id: 'hold-card' }, h('h2', {}, 'Tool setter'),
+  const el = h('section', { class: 'card', id: 'hold-card', dataset: { whyGroup: '' } }, h('h2', {}, 'Tool setter'), h('p', { class: 'why', hidden: true }),
     h('div', { class: 'row wrap' }, h('label', {}, 'Tool ', tool), measure), result);
   let shownTool = null;
   return {

@@ -2,26 +2,30 @@
 // its line and column shown in the program, the job list with run control, and a job's preview.
 
 import { api, upload } from './api.js';
-import { state, h, gate, act, toast, errorText, position, duration, time, machineName, dialog, forgetJob } from './ui.js';
+import { state, h, gate, act, toast, errorText, position, duration, time, machineName, dialog, forgetJob, coord, length, feed, fixed, percent, display } from './ui.js';
 import { ToolpathView } from './toolpath.js';
 import { holdText, continueLabel } from './holds.js';
 import { heightMapChoice } from './heightmap.js';
 
-const BOUNDS = (b) => b ? `X ${b.min[0].toFixed(2)}…${b.max[0].toFixed(2)} · Y ${b.min[1].toFixed(2)}…${b.max[1].toFixed(2)} · Z ${b.min[2].toFixed(2)}…${b.max[2].toFixed(2)}` : '—';
+// Positions at the display resolution (mm or inch, the header's switch), lengths grouped.
+const BOUNDS = (b) => b ? `X ${coord(b.min[0])}…${coord(b.max[0])} · Y ${coord(b.min[1])}…${coord(b.max[1])} · Z ${coord(b.min[2])}…${coord(b.max[2])} ${display.units}` : '—';
 
 export function analysisView(a) {
   if (!a) return h('p', { class: 'muted' }, 'no analysis stored');
   const rows = [
-    ['Lines', `${a.lines} (${a.motion_lines} with motion)`],
+    ['Lines', `${fixed(a.lines)} (${fixed(a.motion_lines)} with motion)`],
     ['Cutting bounds', BOUNDS(a.cutting_bounds)],
     ['Rapid bounds', BOUNDS(a.rapid_bounds)],
-    ['Cutting length', a.cutting_length_mm.toFixed(1) + ' mm'],
-    ['Rapid length', a.rapid_length_mm.toFixed(1) + ' mm'],
+    ['Cutting length', length(a.cutting_length_mm)],
+    ['Rapid length', length(a.rapid_length_mm)],
     ['Estimated time', duration(a.estimated_seconds)],
-    ['Moves', `${a.rapid_moves} rapid · ${a.linear_moves} linear · ${a.arc_moves} arc`],
-    ['Max feed / spindle', `${a.max_feed_mm_min} mm/min · ${a.max_spindle_rpm} rpm`],
+    ['Moves', `${fixed(a.rapid_moves)} rapid · ${fixed(a.linear_moves)} linear · ${fixed(a.arc_moves)} arc`],
+    ['Max feed / spindle', `${feed(a.max_feed_mm_min)} · ${fixed(a.max_spindle_rpm)} rpm`],
     ['Tools', a.tools.length ? a.tools.map((t) => 'T' + t).join(' ') : '—'],
   ];
+  if (a.units_inch_seen) {
+    rows.unshift(['Units', display.units === 'in' ? 'inch program (G20), shown in inches' : 'inch program (G20), shown in mm: the header\'s "mm" button switches to inches']);
+  }
   const warnings = (a.warnings || []).slice(0, 50).map((w) => h('li', {}, `line ${w.line}, column ${w.column}: ${w.message}`));
   return h('div', { class: 'analysis', id: 'analysis' },
     h('table', {}, rows.map(([k, v]) => h('tr', {}, h('th', {}, k), h('td', {}, v)))),
@@ -50,6 +54,15 @@ export function gcodeExcerpt(text, line, column) {
 function runButtons(j, after, startBody) {
   // `startBody()`: the start's options chosen beside the buttons (a height map), if any.
   const ctl = (action, body) => (ev) => act(ev.currentTarget, () => control(j.id, action, typeof body === 'function' ? body() : body), `${action} sent`).then(after).catch(() => {});
+  // Cancel ends the run for good: asked first (issue 27).
+  const confirmCancel = async (ev) => {
+    const el = ev.currentTarget;
+    const answer = await dialog(`Cancel job ${j.id}?`, h('div', { id: 'cancel-dialog' },
+      h('p', {}, `Job ${j.id}${j.name ? ` "${j.name}"` : ''} stops${j.line ? ` at line ${fixed(j.line)}` : ''}; the machine stops.`),
+      h('p', { class: 'muted small' }, 'A cancelled run does not resume: the job can be started again, or from a line.')),
+    [['Keep the job', 'no'], ['Cancel the job', 'yes', 'danger']]);
+    if (answer === 'yes') ctl('cancel')({ currentTarget: el });
+  };
   const s = j.state;
   const active = ['running', 'paused'].includes(s);
   // What the run's state allows (the server checks again); `gate` adds the role and stream.
@@ -60,11 +73,11 @@ function runButtons(j, after, startBody) {
     // A held run goes on with the button its hold names (a program stop: cycle start).
     h('button', { dataset: { need: 'motion', action: 'resume', off: off(['paused', 'interrupted', 'failed'].includes(s)) }, onclick: ctl('resume') },
       s === 'paused' && j.hold ? continueLabel(j.hold) : 'Resume'),
-    h('button', { dataset: { need: 'operator', action: 'cancel', off: off(active || s === 'interrupted') }, class: 'danger', onclick: ctl('cancel') }, 'Cancel'));
+    h('button', { dataset: { need: 'motion', action: 'cancel', off: off(active || s === 'interrupted') }, class: 'danger small cancel', onclick: confirmCancel }, 'Cancel…'));
 }
 
 /** Run control; a resume the controller refuses because its part zero moved asks the operator. */
-async function control(id, action, body) {
+export async function control(id, action, body) {
   try {
     return await api('POST', `/jobs/${id}/${action}`, body);
   } catch (e) {
@@ -134,18 +147,21 @@ async function detail(page, id, events) {
   const previewBox = h('div', { class: 'preview-box' });
   const preview = new ToolpathView(previewBox);
   const mapChoice = heightMapChoice(j.machine, id);
+  const analysisBox = h('div', {}, analysisView(j.analysis));
   const refresh = async () => {
     forgetJob(id);
     const cur = await api('GET', `/jobs/${id}`);
     info.replaceChildren(
       h('p', {}, `Machine ${machineName(cur.machine)} · ${cur.line_count} lines · ${(cur.size_bytes / 1024).toFixed(1)} KB · uploaded ${time(cur.created_at)}`),
       h('p', {}, 'State ', h('span', { class: 'badge state-' + cur.state, id: 'job-state' }, cur.state),
-        ` · line ${cur.line}/${cur.line_count} · `, h('span', { id: 'job-percent' }, cur.percent.toFixed(1) + ' %'),
+        ' · line ', h('span', { id: 'job-line', dataset: { line: cur.line } }, `${fixed(cur.line)} / ${fixed(cur.line_count)}`), ' · ',
+        h('span', { id: 'job-percent' }, cur.percent.toFixed(1) + ' %'),
+        ' · remaining ', h('span', { id: 'job-remaining' }, '—'),
         cur.run && cur.run.message && !cur.hold ? ' · ' + cur.run.message : ''),
       cur.hold ? h('p', { id: 'job-hold', class: 'hold-reason' }, `Held: ${holdText(cur.hold)} — ${continueLabel(cur.hold)} goes on`,
         cur.hold.blocked ? h('span', { class: 'error' }, ` (${cur.hold.blocked})`) : '') : '',
       h('progress', { max: 100, value: cur.percent, id: 'job-progress' }),
-      cur.run && cur.run.height_map_id ? h('p', { class: 'muted small', id: 'job-height-map' }, `run with height map ${cur.run.height_map_id}`) : null,
+      cur.run && cur.run.height_map_id ? h('p', { class: 'muted small', id: 'job-height-map' }, `run with height map ${cur.run.height_map_id}`) : '',
       mapChoice.el,
       runButtons(cur, refresh, mapChoice.body),
       startAtLine(cur, refresh));
@@ -153,25 +169,38 @@ async function detail(page, id, events) {
     preview.setProgress(cur.line);
   };
   page.append(h('p', {}, h('a', { href: '#/jobs' }, '← all jobs')), h('h1', {}, j.name),
-    h('div', { class: 'cols' }, h('section', { class: 'card' }, info, analysisView(j.analysis)),
+    h('div', { class: 'cols' }, h('section', { class: 'card' }, info, analysisBox),
       h('section', { class: 'card' }, h('h2', {}, 'Toolpath'), previewBox)));
   await refresh();
   preview.load(id).catch((e) => previewBox.replaceChildren(h('p', { class: 'error' }, errorText(e))));
-  const progress = (e) => {
-    if (e.data.job !== id) return;
-    const pct = e.data.percent ?? (100 * e.data.line / j.line_count);
+  // Line, percent and time left move with the run (the status's job: the server's estimate).
+  const progress = (p) => {
+    if (!p || p.job !== id) return;
+    const line = p.line || 0;
+    const pct = p.percent ?? (100 * line / j.line_count);
     const bar = info.querySelector('#job-progress');
     if (bar) bar.value = pct;
-    const p = info.querySelector('#job-percent');
-    if (p) p.textContent = pct.toFixed(1) + ' %';
-    preview.setProgress(e.data.line, (state.status.get(j.machine) || {}).work_position);
+    const pe = info.querySelector('#job-percent');
+    if (pe) pe.textContent = pct.toFixed(1) + ' %';
+    const le = info.querySelector('#job-line');
+    if (le) { le.textContent = `${fixed(line)} / ${fixed(j.line_count)}`; le.dataset.line = line; }
+    const re = info.querySelector('#job-remaining');
+    if (re && 'remaining_s' in p) { re.textContent = duration(p.remaining_s); re.dataset.seconds = p.remaining_s; }
+    preview.setProgress(line, (state.status.get(j.machine) || {}).work_position);
   };
   const offs = [
-    events.on('job.progress', progress),
+    events.on('job.progress', (e) => progress(e.data)),
     events.on('job.state', (e) => { if (e.data.job === id) { refresh(); preview.setProgress(e.data.line); } }),
-    events.on('status', (e) => { if (e.machine === j.machine) preview.setProgress(null, e.data.work_position); }),
+    events.on('status', (e) => {
+      if (e.machine !== j.machine) return;
+      if (e.data.job) progress(e.data.job);
+      preview.setProgress(null, e.data.work_position);
+    }),
   ];
-  return () => { offs.forEach((f) => f()); preview.destroy(); };
+  progress((state.status.get(j.machine) || {}).job);
+  const onUnits = () => { analysisBox.replaceChildren(analysisView(j.analysis)); refresh().catch(() => {}); };
+  document.addEventListener('fresa:units', onUnits);
+  return () => { offs.forEach((f) => f()); preview.destroy(); document.removeEventListener('fresa:units', onUnits); };
 }
 
 export async function jobsPage(page, params, events) {

@@ -1,11 +1,13 @@
-// One machine: DRO, step jog, cycle controls, outputs, MDI, offsets, part zeros, and the
-// running job's toolpath. STOP and feed hold stay on screen (sticky bar).
+// One machine: DRO, step jog, cycle controls, outputs, MDI, offsets, part zeros, and the run
+// screen (the running job: listing, toolpath, pause/resume/cancel). STOP and feed hold stay on
+// screen (sticky bar). Controls that cannot act now (a job runs, the machine moves, the live
+// stream is lost) are disabled, each card saying why (`data-when`, `ui.gate`).
 
 import { api } from './api.js';
-import { state, h, gate, mm, act, toast, errorText, position, ioLamps, time } from './ui.js';
-import { urgentButtons, stateBadge, runBlock } from './overview.js';
-import { ToolpathView } from './toolpath.js';
+import { state, h, gate, mm, coord, feed as feedText, act, toast, errorText, position, ioLamps, time } from './ui.js';
+import { urgentButtons, stateBadge } from './overview.js';
 import { holdBlock } from './holds.js';
+import { runScreen } from './runscreen.js';
 
 const AXES = ['x', 'y', 'z', 'a'];
 const STEPS = [0.001, 0.01, 0.1, 1, 10];
@@ -19,8 +21,38 @@ export function markColumn(line, column) {
     h('mark', { class: 'col' }, line.slice(i, i + 1) || ' '), line.slice(i + 1));
 }
 
+/** A card whose disabled controls say why in its `.why` line (see `ui.gate`). */
+function card(title, ...children) {
+  return h('section', { class: 'card', dataset: { whyGroup: '' } }, h('h2', {}, title), h('p', { class: 'why', hidden: true }), ...children);
+}
+
+/** MDI history per machine in this browser: the last 50 distinct lines, newest last. */
+function mdiHistory(id) {
+  const key = `fresa.mdi.${id}`;
+  let lines = [];
+  try { lines = JSON.parse(localStorage.getItem(key) || '[]').filter((l) => typeof l === 'string'); } catch (_) { /* none */ }
+  let at = lines.length;
+  let draft = '';
+  return {
+    add(line) {
+      lines = lines.filter((l) => l !== line);
+      lines.push(line);
+      lines = lines.slice(-50);
+      localStorage.setItem(key, JSON.stringify(lines));
+      at = lines.length;
+    },
+    /** The line ArrowUp (-1) or ArrowDown (+1) brings, from what is typed now. */
+    step(dir, typed) {
+      if (at === lines.length) draft = typed;
+      at = Math.max(0, Math.min(lines.length, at + dir));
+      return at === lines.length ? draft : lines[at];
+    },
+  };
+}
+
 export async function machinePage(page, { id }, events) {
   const m = state.machines.get(id) || await api('GET', `/machines/${id}`);
+  page.dataset.gateMachine = id;
   const cmd = (command, extra) => api('POST', `/machines/${id}/commands`, Object.assign({ command }, extra || {}));
 
   // Header with the urgent buttons, sticky on small screens.
@@ -38,7 +70,6 @@ export async function machinePage(page, { id }, events) {
     (mpos[a] = h('span', { class: 'dro-m num muted', dataset: { mpos: a } }, '—')))));
   const droInfo = h('div', { class: 'muted' });
   const lamps = h('div');
-  const run = runBlock(id);
 
   // Step jog, bounded by the machine's limits (the server refuses anything past them too), or
   // hold-to-jog ("Hold" in the step list): the axis moves while the button or key is held
@@ -106,7 +137,7 @@ export async function machinePage(page, { id }, events) {
   };
   const jogButton = (a, sign) => {
     const key = a.toUpperCase() + (sign > 0 ? '+' : '-');
-    const b = h('button', { dataset: { need: 'motion', jog: key } }, a.toUpperCase() + (sign > 0 ? '+' : '−'));
+    const b = h('button', { dataset: { need: 'motion', when: 'no-run', toolChange: 'ok', jog: key } }, a.toUpperCase() + (sign > 0 ? '+' : '−'));
     b.addEventListener('click', (ev) => { if (!holding()) stepJog(a, sign, ev.currentTarget); });
     b.addEventListener('pointerdown', (ev) => {
       if (!holding() || b.disabled) return;
@@ -163,21 +194,21 @@ export async function machinePage(page, { id }, events) {
       .catch((e) => { jogError.textContent = errorText(e); });
   } }, 'Cancel jog');
 
-  const button = (label, command, need, extra) => h('button', { dataset: { need, cmd: command },
+  const button = (label, command, when, extra) => h('button', { dataset: { need: 'motion', when, cmd: command },
     onclick: (ev) => act(ev.currentTarget, () => cmd(command, extra), label + ' sent').catch(() => {}) }, label);
   const cycle = h('div', { class: 'row wrap' },
-    button('Cycle start', 'cycle_start', 'motion'), button('Resume', 'resume', 'motion'),
-    button('Reset', 'reset', 'operator'), button('Home', 'home', 'motion'),
-    button('Go to zero', 'go_to_zero', 'motion'));
+    button('Cycle start', 'cycle_start'), button('Resume', 'resume'),
+    button('Reset', 'reset'), button('Home', 'home', 'no-run'),
+    button('Go to zero', 'go_to_zero', 'no-run'));
   const zeros = h('div', { class: 'row wrap' }, h('span', { class: 'muted' }, 'Zero'),
-    AXES.map((a) => button(a.toUpperCase(), 'zero', 'operator', { axis: a.toUpperCase() })),
-    button('All', 'zero', 'operator'));
+    AXES.map((a) => button(a.toUpperCase(), 'zero', 'still', { axis: a.toUpperCase() })),
+    button('All', 'zero', 'still'));
   const outputs = h('div', { class: 'row wrap' });
   const drawOutputs = () => {
     const io = (state.io.get(id) || {}).outputs;
     outputs.replaceChildren(h('span', { class: 'muted' }, 'Outputs'), ...OUTPUTS
       .filter(([name]) => !io || Object.keys(io).some((k) => k === name || k.startsWith(name + '_')))
-      .map(([name, label]) => h('button', { dataset: { need: 'operator', output: name },
+      .map(([name, label]) => h('button', { dataset: { need: 'motion', when: name === 'z_lift' ? undefined : 'not-cutting', output: name },
         onclick: (ev) => act(ev.currentTarget, () => cmd('toggle_output', { name }), label + ' toggled').catch(() => {}) }, label)));
     gate(outputs);
   };
@@ -186,13 +217,23 @@ export async function machinePage(page, { id }, events) {
   const mdiInput = h('input', { id: 'mdi', type: 'text', placeholder: 'G91 G0 Z5', autocomplete: 'off', spellcheck: 'false' });
   const mdiError = h('div', { class: 'error', id: 'mdi-error' });
   const mdiForm = h('form', { class: 'row' }, mdiInput,
-    h('button', { type: 'submit', dataset: { need: 'motion' } }, 'Send MDI'));
+    h('button', { type: 'submit', dataset: { need: 'motion', when: 'no-run' } }, 'Send MDI'));
+  // ↑ and ↓ bring back the lines sent before (kept per machine in this browser).
+  const history = mdiHistory(id);
+  mdiInput.addEventListener('keydown', (ev) => {
+    if (ev.key !== 'ArrowUp' && ev.key !== 'ArrowDown') return;
+    ev.preventDefault();
+    mdiInput.value = history.step(ev.key === 'ArrowUp' ? -1 : 1, mdiInput.value);
+  });
   mdiForm.addEventListener('submit', async (ev) => {
     ev.preventDefault();
     mdiError.replaceChildren();
     const line = mdiInput.value;
+    if (mdiForm.querySelector('button').disabled) return;
     try {
       await api('POST', `/machines/${id}/mdi`, { line });
+      history.add(line);
+      mdiInput.value = '';
       toast('MDI sent', 'ok');
     } catch (e) {
       const pos = position(e.message);
@@ -206,13 +247,13 @@ export async function machinePage(page, { id }, events) {
     const o = await api('GET', `/machines/${id}/offsets`);
     offsetsBody.replaceChildren(...OFFSETS.map((name) => {
       const v = o.offsets[name] || {};
-      const inputs = AXES.map((a) => h('input', { type: 'number', step: 'any', value: v[a] ?? 0, 'aria-label': `${name} ${a}`, dataset: { need: 'operator' } }));
-      const save = h('button', { dataset: { need: 'operator' }, onclick: async (ev) => {
+      const inputs = AXES.map((a) => h('input', { type: 'number', step: 'any', value: v[a] ?? 0, 'aria-label': `${name} ${a}`, dataset: { need: 'motion', when: 'still' } }));
+      const save = h('button', { dataset: { need: 'motion', when: 'still' }, onclick: async (ev) => {
         const body = {};
         AXES.forEach((a, i) => { body[a] = parseFloat(inputs[i].value); });
         await act(ev.currentTarget, () => api('PUT', `/machines/${id}/offsets/${name}`, body), name + ' saved').catch(() => {});
       } }, 'Save');
-      const select = h('button', { dataset: { need: 'operator' }, onclick: (ev) =>
+      const select = h('button', { dataset: { need: 'motion', when: 'still' }, onclick: (ev) =>
         act(ev.currentTarget, () => cmd('select_offset', { offset: name }), name + ' active').then(loadOffsets).catch(() => {}) }, 'Use');
       return h('tr', { class: o.active === name ? 'active' : '', dataset: { offset: name } },
         h('th', {}, name, o.active === name ? ' ●' : ''), inputs.map((i) => h('td', {}, i)), h('td', { class: 'row' }, save, select));
@@ -245,7 +286,7 @@ export async function machinePage(page, { id }, events) {
   const value = (label) => parseFloat(label.querySelector('input').value);
   const probeLamp = h('span', { id: 'probe-lamp', class: 'lamp unknown in' }, 'probe');
   const touchResult = h('p', { id: 'touch-result', class: 'muted' });
-  const touchButton = h('button', { id: 'touch-off', dataset: { need: 'motion' }, onclick: async (ev) => {
+  const touchButton = h('button', { id: 'touch-off', dataset: { need: 'motion', when: 'no-run', toolChange: 'ok' }, onclick: async (ev) => {
     const choice = axisSel.value;
     const axis = choice[0];
     const body = { axis, plate_mm: value(plateField), distance: value(distField), feed: value(feedField), retract_mm: value(retractField) };
@@ -273,12 +314,11 @@ export async function machinePage(page, { id }, events) {
     probeLamp.title = has ? `probe ${v === null ? 'unknown' : v ? 'closed (touching)' : 'open'}` : 'no probe input';
     touchButton.dataset.off = has ? '' : '1';
     touchButton.dataset.tip = has ? '' : 'this machine reports no probe input';
-    gate(touchCard);
     if (!has) touchResult.textContent = 'This machine reports no probe input: touch-off needs one.';
     else if (touchResult.textContent.startsWith('This machine reports no probe')) touchResult.textContent = '';
   };
   showAxis();
-  const touchCard = h('section', { class: 'card', id: 'touch-card' }, h('h2', {}, 'Touch-off'),
+  const touchCard = h('section', { class: 'card', id: 'touch-card', dataset: { whyGroup: '' } }, h('h2', {}, 'Touch-off'), h('p', { class: 'why', hidden: true }),
     h('div', { class: 'row wrap' }, h('label', {}, 'Axis ', axisSel), plateField, diameterField, distField, feedField, retractField),
     h('div', { class: 'row' }, touchButton, probeLamp), touchResult,
     h('p', {}, h('a', { href: `#/machines/${id}/height-maps`, id: 'height-maps-link' }, 'Height maps (probe a grid) →')));
@@ -300,17 +340,17 @@ export async function machinePage(page, { id }, events) {
   const sliderRow = (kind, label, min, max) => {
     const clamp = (v) => Math.max(min, Math.min(max, v));
     const slider = (sliders[kind] = h('input', { type: 'range', id: `override-${kind}`, min, max, step: 1, value: 100,
-      'aria-label': `${label} override (%)`, dataset: { need: 'operator' } }));
+      'aria-label': `${label} override (%)`, dataset: { need: 'motion' } }));
     slider.addEventListener('input', () => { values[kind].textContent = slider.value + ' %'; });
     slider.addEventListener('change', () => setOverride(slider, kind, parseFloat(slider.value)));
-    const step = (d) => h('button', { dataset: { need: 'operator', override: `${kind}${d > 0 ? '+' : '-'}` },
+    const step = (d) => h('button', { dataset: { need: 'motion', override: `${kind}${d > 0 ? '+' : '-'}` },
       onclick: (ev) => setOverride(ev.currentTarget, kind, clamp(parseFloat(slider.value) + d)) }, (d > 0 ? '+' : '−') + Math.abs(d));
     values[kind] = h('span', { class: 'num', dataset: { overrideValue: kind } }, '100 %');
     return h('div', { class: 'row override' }, h('span', { class: 'override-label' }, label), step(-10), slider, step(10), values[kind]);
   };
   values.rapid = h('span', { class: 'num', dataset: { overrideValue: 'rapid' } }, '100 %');
   const rapidButtons = [25, 50, 100].filter((v) => v >= lim.rapid_min).map((v) => h('button', {
-    dataset: { need: 'operator', override: `rapid${v}` },
+    dataset: { need: 'motion', override: `rapid${v}` },
     onclick: (ev) => setOverride(ev.currentTarget, 'rapid', v) }, v + ' %'));
   const drawOverrides = () => {
     const st = state.status.get(id) || {};
@@ -323,7 +363,7 @@ export async function machinePage(page, { id }, events) {
     values.rapid.textContent = r + ' %';
     rapidButtons.forEach((b) => b.classList.toggle('active', parseFloat(b.textContent) === r));
   };
-  const overrideCard = h('section', { class: 'card', id: 'override-card' }, h('h2', {}, 'Overrides'),
+  const overrideCard = h('section', { class: 'card', id: 'override-card', dataset: { whyGroup: '' } }, h('h2', {}, 'Overrides'), h('p', { class: 'why', hidden: true }),
     sliderRow('feed', 'Feed', lim.feed_min, lim.feed_max),
     sliderRow('spindle', 'Spindle', lim.spindle_min, lim.spindle_max),
     h('div', { class: 'row override' }, h('span', { class: 'override-label' }, 'Rapid'), ...rapidButtons, values.rapid),
@@ -338,78 +378,62 @@ export async function machinePage(page, { id }, events) {
     pzList.replaceChildren(...(rows.length ? rows.slice(0, 20).map((r) => {
       const p = r.position || r;
       return h('tr', {}, h('td', {}, time(r.created_at || r.time || 0)),
-        AXES.map((a) => h('td', { class: 'num' }, mm(p[a]))), h('td', {}, r.source || ''), h('td', {}, r.actor || ''), h('td', {}, r.note || ''));
+        AXES.map((a) => h('td', { class: 'num' }, coord(p[a]))), h('td', {}, r.source || ''), h('td', {}, r.actor || ''), h('td', {}, r.note || ''));
     }) : [h('tr', {}, h('td', { colspan: 8, class: 'muted' }, 'none recorded'))]));
   };
   const note = h('input', { type: 'text', placeholder: 'note (optional)', maxlength: 200, 'aria-label': 'part zero note' });
-  const record = h('button', { id: 'record-part-zero', dataset: { need: 'operator' }, onclick: (ev) =>
+  const record = h('button', { id: 'record-part-zero', dataset: { need: 'motion', when: 'still' }, onclick: (ev) =>
     act(ev.currentTarget, () => api('POST', `/machines/${id}/part-zero`, note.value ? { note: note.value } : {}), 'Part zero recorded')
       .then(loadPartZeros).catch(() => {}) }, 'Record here');
 
-  // The running job's toolpath with the tool position.
-  const previewBox = h('div', { class: 'preview-box' });
-  let preview = null;
-  let previewJob = null;
-  const drawPreview = async () => {
-    const r = state.runs.get(id);
-    if (!r || !r.job) {
-      if (!preview) previewBox.replaceChildren(h('p', { class: 'muted' }, 'No job running. Start one from Jobs.'));
-      return;
-    }
-    if (previewJob !== r.job) {
-      previewJob = r.job;
-      if (preview) preview.destroy();
-      preview = new ToolpathView(previewBox);
-      try { await preview.load(r.job); } catch (e) { previewBox.replaceChildren(h('p', { class: 'error' }, errorText(e))); }
-    }
-    const s = state.status.get(id) || {};
-    if (preview) preview.setProgress(r.line || 0, s.work_position);
-  };
+  // The run screen: the running job, its listing and toolpath (runscreen.js).
+  const run = runScreen(id);
 
   // Why the machine holds and the button that goes on (issue 26), under the header.
   page.append(header, hold.banner,
     h('div', { class: 'cols' },
-      h('section', { class: 'card' }, h('h2', {}, 'Position'), droEl, droInfo, run.el, lamps),
-      h('section', { class: 'card' }, h('h2', {}, 'Jog'),
+      card('Position', droEl, droInfo, lamps),
+      Object.assign(card('Jog',
         h('div', { class: 'row wrap' }, h('label', {}, 'Step ', stepSel), h('label', {}, 'Feed ', feed, ' mm/min')),
-        h('p', { class: 'muted small' }, `At most ${m.max_jog_mm} mm per step and ${m.max_feed_mm_min} mm/min.`),
-        jogPad, h('div', { class: 'row' }, jogCancel, kbSwitch, kbBadge),
-        h('p', { class: 'muted small' }, 'Keys: ← → X, ↑ ↓ Y, PgUp PgDn Z.'), jogError)),
+        h('p', { class: 'muted small limits-hint' }, `At most ${m.max_jog_mm} mm per step and ${m.max_feed_mm_min} mm/min.`),
+        jogPad, h('div', { class: 'row wrap' }, jogCancel, kbSwitch, kbBadge),
+        h('p', { class: 'muted small' }, 'Keys: ← → X, ↑ ↓ Y, PgUp PgDn Z.'), jogError), { className: 'card jog-card' })),
+    run.el,
     h('div', { class: 'cols' },
-      h('section', { class: 'card' }, h('h2', {}, 'Cycle'), cycle, zeros, outputs),
-      h('section', { class: 'card' }, h('h2', {}, 'MDI'), mdiForm, mdiError)),
+      card('Cycle', cycle, zeros, outputs),
+      card('MDI', mdiForm, h('p', { class: 'muted small' }, '↑ ↓: lines sent before'), mdiError)),
     h('div', { class: 'cols' }, overrideCard, touchCard),
     hold.el,
-    h('section', { class: 'card' }, h('h2', {}, 'Work offsets'),
+    card('Work offsets',
       h('table', { class: 'offsets' }, h('thead', {}, h('tr', {}, h('th', {}, ''), AXES.map((a) => h('th', {}, a.toUpperCase())), h('th', {}, ''))), offsetsBody)),
-    h('section', { class: 'card' }, h('h2', {}, 'Part zero'), h('div', { class: 'row' }, note, record),
-      h('table', {}, h('thead', {}, h('tr', {}, h('th', {}, 'when'), AXES.map((a) => h('th', {}, a.toUpperCase())), h('th', {}, 'source'), h('th', {}, 'who'), h('th', {}, 'note'))), pzList)),
-    h('section', { class: 'card' }, h('h2', {}, 'Running job'), previewBox));
+    card('Part zero', h('div', { class: 'row' }, note, record),
+      h('table', {}, h('thead', {}, h('tr', {}, h('th', {}, 'when'), AXES.map((a) => h('th', {}, a.toUpperCase())), h('th', {}, 'source'), h('th', {}, 'who'), h('th', {}, 'note'))), pzList)));
 
   const update = () => {
     const s = state.status.get(id) || {};
     const row = state.machines.get(id) || m;
     badge.replaceChildren(stateBadge(s.state || row.state, row.reason || s.reason || s.alarm));
     for (const a of AXES) {
-      dro[a].textContent = mm((s.work_position || {})[a]);
-      mpos[a].textContent = 'M ' + mm((s.machine_position || {})[a]);
+      const w = coord((s.work_position || {})[a]), mp = 'M ' + coord((s.machine_position || {})[a]);
+      if (dro[a].textContent !== w) dro[a].textContent = w;
+      if (mpos[a].textContent !== mp) mpos[a].textContent = mp;
     }
-    droInfo.textContent = `offset ${s.active_offset || '—'} · feed ${s.feed ?? '—'} mm/min · override ${s.feed_override ?? '—'} %`;
+    droInfo.textContent = `offset ${s.active_offset || '—'} · feed ${feedText(s.feed)} · override ${s.feed_override ?? '—'} %`;
     drawOverrides();
     run.update();
     const l = ioLamps(id);
     lamps.replaceChildren(...(l ? [l] : []));
     drawProbe();
     hold.update();
+    gate(page);
   };
   let frame = 0;
   const schedule = () => {
-    if (!frame) frame = requestAnimationFrame(() => { frame = 0; update(); drawPreview(); });
+    if (!frame) frame = requestAnimationFrame(() => { frame = 0; update(); });
   };
   update();
   drawOutputs();
   await Promise.all([loadOffsets(), loadPartZeros()]).catch((e) => toast(errorText(e)));
-  drawPreview();
   const mine = (fn) => (e) => { if (e.machine === id) fn(e); };
   const offs = [
     events.on('status', mine(schedule)),
@@ -420,6 +444,11 @@ export async function machinePage(page, { id }, events) {
     events.on('machine.offsets', mine(() => loadOffsets().catch(() => {}))),
     events.on('machine.part_zero', mine(() => loadPartZeros().catch(() => {}))),
   ];
+  const onUnits = () => { schedule(); loadPartZeros().catch(() => {}); };
+  document.addEventListener('fresa:units', onUnits);
   const tick = setInterval(schedule, 1000);
-  return () => { offs.forEach((f) => f()); clearInterval(tick); cancelAnimationFrame(frame); if (preview) preview.destroy(); keyboardOff(); };
+  return () => {
+    offs.forEach((f) => f()); clearInterval(tick); cancelAnimationFrame(frame); run.destroy(); keyboardOff();
+    document.removeEventListener('fresa:units', onUnits);
+  };
 }

@@ -1,7 +1,7 @@
 // The workshop at a glance: a card per machine, updated in place from the event stream.
 
 import { api } from './api.js';
-import { state, h, gate, mm, duration, act, ioLamps } from './ui.js';
+import { state, h, gate, coord, duration, act, ioLamps, fixed } from './ui.js';
 
 const AXES = ['x', 'y', 'z', 'a'];
 
@@ -34,7 +34,7 @@ export function runBlock(id) {
       const total = r.total_lines || 0;
       const pct = r.percent !== undefined ? r.percent : total ? (100 * (r.line || 0)) / total : 0;
       bar.value = pct;
-      label.textContent = `${r.name || 'job ' + r.job} — ${pct.toFixed(1)} % · line ${r.line || 0}/${total}` +
+      label.textContent = `${r.name || 'job ' + r.job} — ${pct.toFixed(1)} % · line ${fixed(r.line || 0)}/${fixed(total)}` +
         (r.state === 'paused' ? ' · paused' : '');
       const elapsed = r.started_at ? (Date.now() - r.started_at) / 1000 : NaN;
       // The server's time left by line (with the machine's acceleration and the overrides in
@@ -72,7 +72,7 @@ function card(m) {
       offset.textContent = s.active_offset ? 'offset ' + s.active_offset : '';
       for (const kind of ['work', 'machine']) {
         const p = s[kind + '_position'] || {};
-        for (const a of AXES) pos[kind + a].textContent = mm(p[a]);
+        for (const a of AXES) pos[kind + a].textContent = coord(p[a]);
       }
       run.update();
       const l = ioLamps(m.id);
@@ -121,5 +121,7 @@ export async function overview(page, _params, events) {
     events.on('reloaded', () => build()),
   ];
   const tick = setInterval(() => mark(), 1000); // elapsed/remaining clocks
-  return () => { offs.forEach((f) => f()); clearInterval(tick); cancelAnimationFrame(frame); };
+  const onUnits = () => mark();
+  document.addEventListener('fresa:units', onUnits);
+  return () => { offs.forEach((f) => f()); clearInterval(tick); cancelAnimationFrame(frame); document.removeEventListener('fresa:units', onUnits); };
 }

@@ -39,24 +39,83 @@ export function h(tag, props, ...children) {
 
 /**
  * Controls say what they need with `data-need`: `operator`/`admin` (a role) or `motion`
- * (operator, and the live stream must be up: never move a machine the page cannot watch).
- * STOP and feed hold need only the role.
+ * (operator, and the live stream must be up: never move or change a machine the page cannot
+ * watch). STOP, feed hold, jog cancel and pause need only the role. `data-when` adds what the
+ * machine must be doing (see `machineBlock`), the machine being the closest
+ * `[data-gate-machine]`. A disabled control says why in its title, and a `[data-why-group]`
+ * (a card) shows the reasons of its disabled controls in its `.why` line, beside them.
  */
 export function gate(root = document) {
+  const groups = new Set();
+  const within = root.closest ? root.closest('[data-why-group]') : null;
+  if (within) groups.add(within);
   for (const el of root.querySelectorAll('[data-need]')) {
-    const need = el.dataset.need;
-    let ok = need === 'motion' ? can('operator') && state.connected : can(need);
-    // `data-off`: not possible in the current state (e.g. pausing a finished job).
-    if (ok && (el.dataset.busy === '1' || el.dataset.off === '1')) ok = false;
-    el.disabled = !ok;
-    el.title = ok || el.dataset.off === '1' ? (el.dataset.tip || '') :
-      !can(need === 'motion' ? 'operator' : need) ? `needs the ${need === 'motion' ? 'operator' : need} role` :
-        'the live connection is lost: motion is disabled until it is back';
+    const why = blocked(el);
+    const off = !!why;
+    if (el.disabled !== off) el.disabled = off;
+    const title = why && why !== BUSY ? why : (el.dataset.tip || '');
+    if (el.title !== title) el.title = title;
+    if (why && why !== BUSY) el.dataset.why = why; else delete el.dataset.why;
+    const g = el.closest('[data-why-group]');
+    if (g) groups.add(g);
   }
+  for (const g of root.querySelectorAll ? root.querySelectorAll('[data-why-group]') : []) groups.add(g);
+  for (const g of groups) {
+    const line = g.querySelector('.why');
+    if (!line) continue;
+    const reasons = [...new Set([...g.querySelectorAll('[data-why]')].filter((e) => !e.closest('[hidden]')).map((e) => e.dataset.why))];
+    const text = reasons.length ? 'Disabled: ' + reasons.join(' · ') : '';
+    if (line.textContent !== text) line.textContent = text;
+    line.hidden = !text;
+  }
+}
+
+const BUSY = 'busy';
+
+/** Why a control cannot act now ('' when it can). */
+function blocked(el) {
+  const need = el.dataset.need;
+  const role = need === 'motion' ? 'operator' : need;
+  if (!can(role)) return `needs the ${role} role`;
+  if (need === 'motion' && !state.connected) return 'the live connection is lost (positions may be stale)';
+  if (el.dataset.busy === '1') return BUSY;
+  if (el.dataset.off === '1') return el.dataset.tip || 'not possible now';
+  if (el.dataset.when) {
+    const host = el.closest('[data-gate-machine]');
+    if (host) return machineBlock(+host.dataset.gateMachine, el.dataset.when, el.dataset.toolChange === 'ok');
+  }
+  return '';
+}
+
+const MOVING = ['jogging', 'homing', 'running', 'paused', 'probing'];
+
+/**
+ * What a machine's state forbids, as the server refuses it (so the page disables it first):
+ * `no-run`: motion a running job forbids (jog, MDI, home, probing; a tool-change hold allows
+ * jogs and probes when `toolChange`); `still`: offset and part-zero changes, which wait until
+ * the machine stands still; `not-cutting`: spindle and coolant while a job cuts.
+ */
+export function machineBlock(id, when, toolChange) {
+  const s = state.status.get(id) || {};
+  const st = s.state || (state.machines.get(id) || {}).state;
+  if (st === 'offline' || st === 'unresponsive') return `the machine is ${st}`;
+  const run = state.runs.get(id) || s.job;
+  const inToolChange = !!s.hold && s.hold.kind === 'tool_change' && (st === 'paused' || st === 'jogging');
+  const job = run ? `job ${run.job} ` : 'a job ';
+  if (when === 'no-run') {
+    if (run && !(toolChange && inToolChange)) return job + (st === 'paused' ? 'is paused on this machine' : 'is running on this machine');
+  } else if (when === 'still') {
+    if (MOVING.includes(st) && !(st === 'paused' && inToolChange)) return `the machine is ${st}: wait until it stands still`;
+  } else if (when === 'not-cutting') {
+    if (run && st === 'running') return job + 'is cutting: pause it first';
+  }
+  return '';
 }
 
 export function toast(message, kind = 'error') {
   const box = document.getElementById('toasts');
+  // A few at a time: they tell what just happened, and must not pile up over the page.
+  while (box.childElementCount >= 3) box.firstChild.remove();
   const el = h('div', { class: 'toast ' + kind, role: kind === 'error' ? 'alert' : 'status' }, message);
   box.append(el);
   setTimeout(() => el.remove(), kind === 'error' ? 8000 : 3000);
@@ -82,7 +141,52 @@ export async function act(button, fn, okMessage) {
 }
 
 export function mm(v) {
-  return typeof v === 'number' ? v.toFixed(3) : '—';
+  return typeof v === 'number' && isFinite(v) ? v.toFixed(3) : '—';
+}
+
+// --- Display units and number formats (issue 27) ------------------------------------------------
+// Positions at the display's resolution: 0.001 mm or 0.0001 in (the switch in the header, kept
+// in this browser). The API is always mm; only what is shown changes.
+
+const UNITS_KEY = 'fresa.units';
+
+export const display = { units: localStorage.getItem(UNITS_KEY) === 'in' ? 'in' : 'mm' };
+
+export function setUnits(u) {
+  display.units = u === 'in' ? 'in' : 'mm';
+  localStorage.setItem(UNITS_KEY, display.units);
+  document.dispatchEvent(new CustomEvent('fresa:units'));
+}
+
+/** A position in mm, shown in the display units at their resolution. */
+export function coord(v) {
+  if (typeof v !== 'number' || !isFinite(v)) return '—';
+  return display.units === 'in' ? (v / 25.4).toFixed(4) : v.toFixed(3);
+}
+
+/** `n` with `digits` decimals and thousands grouped (1,234.5). */
+export function fixed(n, digits = 0) {
+  if (typeof n !== 'number' || !isFinite(n)) return '—';
+  return n.toLocaleString('en-US', { minimumFractionDigits: digits, maximumFractionDigits: digits });
+}
+
+/** A length in mm in the display units: 609.6 mm, 12,345.6 mm, 199,999 m; 24.000 in. */
+export function length(v) {
+  if (typeof v !== 'number' || !isFinite(v)) return '—';
+  if (display.units === 'in') return Math.abs(v) >= 12000 ? fixed(v / 304.8, 0) + ' ft' : fixed(v / 25.4, 2) + ' in';
+  return Math.abs(v) >= 100000 ? fixed(v / 1000, 0) + ' m' : fixed(v, 1) + ' mm';
+}
+
+/** A feed in mm/min in the display units: 610 mm/min, 24.0 in/min. */
+export function feed(v) {
+  if (typeof v !== 'number' || !isFinite(v)) return '—';
+  return display.units === 'in' ? fixed(v / 25.4, 1) + ' in/min' : fixed(v, 0) + ' mm/min';
+}
+
+/** A percentage as the server rounds it: 28 %, 28.5 %. */
+export function percent(v) {
+  if (typeof v !== 'number' || !isFinite(v)) return '—';
+  return (Number.isInteger(v) ? String(v) : v.toFixed(1)) + ' %';
 }
 
 export function duration(s) {

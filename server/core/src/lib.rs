@@ -25,6 +25,7 @@ pub mod error;
 pub mod events;
 pub mod integrations;
 pub mod jobs;
+pub mod listing;
 pub mod machine;
 pub mod nodes;
 pub mod pendants;

@@ -109,17 +109,38 @@ pub async fn get_one(
     Ok(Json(JobView::new(&job, run.as_ref()).with_hold(hold)))
 }
 
+#[derive(Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct GcodeParams {
+    /// Only the lines from this one (1-based): a window of the program, e.g. for a listing
+    /// around the line running (default: the whole program).
+    #[param(example = 1)]
+    from_line: Option<u32>,
+    /// How many lines from `from_line` (1..=500, default 100); each is cut at 512 bytes.
+    #[param(example = 20)]
+    lines: Option<u32>,
+}
+
 #[utoipa::path(get, path = "/jobs/{id}/gcode", tag = "jobs",
-    params(("id" = i64, Path, description = "job id", example = 1)),
+    params(("id" = i64, Path, description = "job id", example = 1), GcodeParams),
     responses(
-        (status = 200, description = "The stored program", content_type = "text/plain", body = String),
+        (status = 200, description = "The stored program, or with `from_line`/`lines` that window of its lines (each ending with a newline; empty past the end)", content_type = "text/plain", body = String),
+        (status = 400, description = "`invalid_query`: `from_line` 0 or `lines` out of range", body = ErrorBody),
         (status = 404, description = "`unknown_job`", body = ErrorBody),
         (status = 503, description = "`database_unavailable`: the store cannot be read and no machine of this node runs the job", body = ErrorBody),
     ))]
 pub async fn gcode(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
+    Query(p): Query<GcodeParams>,
 ) -> Result<Response, ApiError> {
+    if p.from_line.is_some() || p.lines.is_some() {
+        let text =
+            fresa_core::listing::window(&app, id, p.from_line.unwrap_or(1), p.lines.unwrap_or(100))
+                .await?;
+        return Ok(([(header::CONTENT_TYPE, "text/plain; charset=utf-8")], text).into_response());
+    }
     let (_, path) = core::program(&app, id).await?;
     let file = tokio::fs::File::open(&path).await.map_err(|e| {
         ApiError::internal(format!("program file {} is missing: {e}", path.display()))

@@ -497,6 +497,7 @@ impl Task {
         if matches!(request, Request::Status | Request::Connect) {
             self.publish_answer(answer.clone())?;
         }
+        let mut computed_offsets = None;
         if op.changes_offsets {
             match &request {
                 // The values given are the ones kept.
@@ -508,12 +509,18 @@ impl Task {
                 }
                 // The backend computed the new offsets; persist what it now has.
                 _ => {
-                    self.persist_backend_offsets().await?;
+                    computed_offsets = Some(self.persist_backend_offsets().await?);
                 }
             }
         }
         if let Some(event) = op.audit {
             self.record(event.into(), actor, audit_data(&request, &answer))
+                .await;
+        }
+        // The offsets a command computed (zero, select offset) are recorded after the command,
+        // as its consequence, with its actor.
+        if let Some(table) = computed_offsets {
+            self.record(EventKind::MachineOffsets, actor, json!(table))
                 .await;
         }
         if op.refreshes_status {
@@ -522,6 +529,7 @@ impl Task {
         Ok(answer)
     }
 
+    /// Reads the backend's offsets and stores them; the caller records `machine.offsets`.
     async fn persist_backend_offsets(&mut self) -> Result<OffsetTable> {
         let v = self.call(&Request::GetOffsets).await?;
         let table: OffsetTable = serde_json::from_value(v).map_err(|e| {
@@ -540,9 +548,6 @@ impl Task {
             .await?;
         self.row
             .send_modify(|r| r.active_offset = table.active.name().to_string());
-        self.bus
-            .record_or_log(EventKind::MachineOffsets, Some(self.id), None, json!(table))
-            .await;
         Ok(table)
     }
 
