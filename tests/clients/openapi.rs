@@ -30,6 +30,11 @@ const NOT_ON_THE_DEMO: &[(&str, &str, &str)] = &[
         "only while a continuous jog is held (machine::api's continuous-jog test keeps one alive)",
     ),
     (
+        "post",
+        "/api/v1/machines/{id}/find-centre",
+        "only with the tool in a bore or over a boss (machine::probing finds both on round sim walls)",
+    ),
+    (
         "get",
         "/api/v1/machines/{id}/height-maps/{hid}",
         "only once a grid was probed (machine::heightmap probes them and reads them back)",
