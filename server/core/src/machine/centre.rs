@@ -13,7 +13,7 @@ use super::probing::ProbeAsk;
 use super::Machine;
 use crate::error::{Error, Result};
 use crate::events::EventKind;
-use fresa_plugin_api::contract::{Axis, AxisValues, ProbeUntil, Request, WorkOffset};
+use fresa_plugin_api::contract::{Axis, AxisValues, ProbeUntil, WorkOffset};
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 use std::sync::Arc;
@@ -178,16 +178,7 @@ impl Machine {
         let (mut offset, mut before, mut after) = (None, None, None);
         if ask.set_zero {
             let active = status.active_offset;
-            let table: fresa_plugin_api::contract::OffsetTable =
-                serde_json::from_value(self.call(Request::GetOffsets, actor).await?).map_err(
-                    |e| Error::internal(format!("the backend's offset table is unreadable: {e}")),
-                )?;
-            let was = table
-                .offsets
-                .iter()
-                .find(|(o, _)| *o == active)
-                .map(|(_, v)| *v)
-                .unwrap_or_default();
+            let was = self.offset_values(active, actor).await?;
             // The work position there, plus the offset: X and Y read 0 (whatever else the
             // backend folds into the work position stays as it was).
             let mut now = was;

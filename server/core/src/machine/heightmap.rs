@@ -232,26 +232,7 @@ fn check_ask(ask: &GridAsk, row: &crate::store::MachineRow) -> Result<()> {
             ask.distance
         ));
     }
-    if ask.distance > row.max_jog_mm {
-        return Err(Error::invalid(
-            "probe_too_far",
-            format!(
-                "field `distance`: {} mm exceeds this machine's limit of {} mm per move \
-                 (`max_jog_mm`)",
-                ask.distance, row.max_jog_mm
-            ),
-        ));
-    }
-    if !(ask.feed.is_finite() && ask.feed > 0.0 && ask.feed <= row.max_probe_feed_mm_min) {
-        return Err(Error::invalid(
-            "feed_out_of_range",
-            format!(
-                "field `feed`: {} mm/min is outside 0..{} mm/min (the machine's \
-                 `max_probe_feed_mm_min`)",
-                ask.feed, row.max_probe_feed_mm_min
-            ),
-        ));
-    }
+    super::limits::check_probe(row, ask.distance, ask.feed)?;
     if let Some(f) = ask.travel_feed {
         if !(f.is_finite() && f > 0.0 && f <= row.max_feed_mm_min) {
             return Err(Error::invalid(

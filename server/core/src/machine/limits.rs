@@ -267,6 +267,32 @@ pub fn parse_command(raw: &serde_json::Value) -> Result<fresa_plugin_api::contra
     Ok(cmd)
 }
 
+/// A probing move's distance (at most `max_jog_mm`) and feed (more than 0, at most
+/// `max_probe_feed_mm_min`), for every operation that probes.
+pub fn check_probe(row: &MachineRow, distance: f64, feed: f64) -> Result<()> {
+    if distance > row.max_jog_mm {
+        return Err(Error::invalid(
+            "probe_too_far",
+            format!(
+                "field `distance`: {distance} mm exceeds this machine's limit of {} mm per \
+                 move (`max_jog_mm`)",
+                row.max_jog_mm
+            ),
+        ));
+    }
+    if !(feed.is_finite() && feed > 0.0 && feed <= row.max_probe_feed_mm_min) {
+        return Err(Error::invalid(
+            "feed_out_of_range",
+            format!(
+                "field `feed`: {feed} mm/min is outside 0..{} mm/min (the machine's \
+                 `max_probe_feed_mm_min`)",
+                row.max_probe_feed_mm_min
+            ),
+        ));
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

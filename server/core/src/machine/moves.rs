@@ -81,7 +81,11 @@ impl Machine {
         let n = (distance.abs() / row.max_jog_mm).ceil().max(1.0);
         let step = distance / n;
         for _ in 0..(n as u32) {
-            self.jog_ticketed(axis, step, None, actor, ticket).await?;
+            if let Err(e) = self.jog_ticketed(axis, step, None, actor, ticket).await {
+                // Refused (a stop came first, a limit): nothing of ours to stop.
+                guard.disarm();
+                return Err(e);
+            }
         }
         self.sync().await;
         // The backend's jog feed is not known here: bounded by the slowest a jog may be asked

@@ -9,7 +9,7 @@
 //! stopped, as a lost pendant's is.
 
 use super::moves::StopIfDropped;
-use super::{Machine, Msg};
+use super::{limits, Machine, Msg};
 use crate::error::{Error, ErrorKind, Result};
 use crate::events::EventKind;
 use fresa_plugin_api::contract::{
@@ -110,6 +110,28 @@ fn probe_refusal(e: Error) -> Error {
 }
 
 impl Machine {
+    /// Work offset `offset` as the backend holds it now.
+    pub(super) async fn offset_values(
+        &self,
+        offset: WorkOffset,
+        actor: &str,
+    ) -> Result<AxisValues> {
+        let table: fresa_plugin_api::contract::OffsetTable =
+            serde_json::from_value(self.call(Request::GetOffsets, actor).await?).map_err(|e| {
+                Error::new(
+                    ErrorKind::Backend,
+                    "backend_error",
+                    format!("the backend's offset table is unreadable: {e}"),
+                )
+            })?;
+        Ok(table
+            .offsets
+            .iter()
+            .find(|(o, _)| *o == offset)
+            .map(|(_, v)| *v)
+            .unwrap_or_default())
+    }
+
     /// Sends one probing move and waits for its end. Refused before anything moves when the
     /// distance or feed is outside the machine's limits (`max_jog_mm`, `max_probe_feed_mm_min`),
     /// and by the backend when the probe already reads what it looks for, the whole distance
@@ -138,26 +160,7 @@ impl Machine {
                 ),
             ));
         }
-        if ask.distance > row.max_jog_mm {
-            return Err(Error::invalid(
-                "probe_too_far",
-                format!(
-                    "field `distance`: {} mm exceeds this machine's limit of {} mm per move \
-                     (`max_jog_mm`)",
-                    ask.distance, row.max_jog_mm
-                ),
-            ));
-        }
-        if !(ask.feed.is_finite() && ask.feed > 0.0 && ask.feed <= row.max_probe_feed_mm_min) {
-            return Err(Error::invalid(
-                "feed_out_of_range",
-                format!(
-                    "field `feed`: {} mm/min is outside 0..{} mm/min (the machine's \
-                     `max_probe_feed_mm_min`)",
-                    ask.feed, row.max_probe_feed_mm_min
-                ),
-            ));
-        }
+        limits::check_probe(&row, ask.distance, ask.feed)?;
         let id = self.probe_ids.fetch_add(1, Ordering::Relaxed);
         let mut ended = self.probe_ended.clone();
         let probe = Probe {
@@ -333,20 +336,7 @@ impl Machine {
         let rest_work = status.work_position.to_array()[i];
         let work_at_trip = rest_work - (status.machine_position.to_array()[i] - trip.to_array()[i]);
         let offset = status.active_offset;
-        let table: fresa_plugin_api::contract::OffsetTable =
-            serde_json::from_value(self.call(Request::GetOffsets, actor).await?).map_err(|e| {
-                Error::new(
-                    ErrorKind::Backend,
-                    "backend_error",
-                    format!("the backend's offset table is unreadable: {e}"),
-                )
-            })?;
-        let before = table
-            .offsets
-            .iter()
-            .find(|(o, _)| *o == offset)
-            .map(|(_, v)| *v)
-            .unwrap_or_default();
+        let before = self.offset_values(offset, actor).await?;
         // Where the tool's controlled point is, seen from the part's surface behind the plate.
         let toward = if ask.positive { 1.0 } else { -1.0 };
         let reads = -toward * (ask.plate_mm + radius);
