@@ -1772,8 +1772,13 @@ fn dark_mode_units_number_formats_and_mdi_history() {
     );
     b.reload();
     assert_eq!(dro(&b, "x"), "1.0000");
+    // The switch re-renders on its next frame: wait for it rather than read at once.
     b.click("#units-switch");
-    assert_eq!(dro(&b, "x"), "25.400");
+    b.wait(
+        "X back in mm",
+        T,
+        "return document.querySelector('[data-dro=\"x\"]').textContent === '25.400';",
+    );
 
     // An inch program: its analysis at a fixed resolution (610 mm/min, not 609.5999999999999),
     // and it says it is in inches.
