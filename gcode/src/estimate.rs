@@ -36,6 +36,11 @@ pub struct MotionProfile {
     /// (what a stepper can start or stop at without a ramp). At a corner the path slows until
     /// no axis's speed jumps by more; 0: the machine stops at every corner.
     pub corner_jump_mm_s: f64,
+    /// The limits above are each axis's, not the path's (a step generator whose axes run at
+    /// their own rates): a straight move's top speed and acceleration are the limits divided by
+    /// the largest share of the move any one axis makes, so a diagonal runs faster than either
+    /// axis alone. Arcs keep the path limits (their direction turns all the way).
+    pub per_axis: bool,
 }
 
 impl Default for MotionProfile {
@@ -46,6 +51,7 @@ impl Default for MotionProfile {
             max_feed_mm_min: 0.0,
             accel_mm_s2: 0.0,
             corner_jump_mm_s: 0.0,
+            per_axis: false,
         }
     }
 }
@@ -131,6 +137,8 @@ struct Pending {
     len: f64,
     /// Cruise speed, mm/s.
     v: f64,
+    /// Acceleration along the path, mm/s².
+    a: f64,
     /// Unit direction at the end (the next junction's; an arc's differs from its start's).
     dir_out: Point,
     /// The highest speed the junction into this move allows (mm/s).
@@ -172,22 +180,35 @@ impl Estimator {
         self.profile.accel_mm_s2
     }
 
-    fn feed_speed(&self, feed_mm_min: f64) -> f64 {
+    /// The path speed of a feed move (mm/s); `reach` scales the machine's cap (see
+    /// [`MotionProfile::per_axis`]).
+    fn feed_speed(&self, feed_mm_min: f64, reach: f64) -> f64 {
         let p = &self.profile;
         let mut f = feed_mm_min.max(p.min_feed_mm_min);
         if p.max_feed_mm_min > 0.0 {
-            f = f.min(p.max_feed_mm_min);
+            f = f.min(p.max_feed_mm_min * reach);
         }
         f / 60.0
     }
 
-    fn rapid_speed(&self) -> f64 {
+    fn rapid_speed(&self, reach: f64) -> f64 {
         let r = if self.profile.rapid_mm_min > 0.0 {
             self.profile.rapid_mm_min
         } else {
             5000.0
         };
-        r / 60.0
+        r * reach / 60.0
+    }
+
+    /// How much faster than one axis's limits a straight move along `dir` may run: 1 for path
+    /// limits; with per-axis limits, 1 / the largest component of the unit direction.
+    fn reach(&self, dir: Point) -> f64 {
+        let major = dir.iter().fold(0.0_f64, |m, c| m.max(c.abs()));
+        if self.profile.per_axis && major > 1e-12 {
+            1.0 / major
+        } else {
+            1.0
+        }
     }
 
     /// Takes one motion of the program.
@@ -195,8 +216,7 @@ impl Estimator {
         let line = m.line();
         match *m {
             Motion::Rapid { from, to, .. } => {
-                let v = self.rapid_speed();
-                self.straight(line, Kind::Rapid, from, to, v);
+                self.straight(line, Kind::Rapid, from, to, None);
             }
             Motion::Linear {
                 from,
@@ -205,18 +225,18 @@ impl Estimator {
                 a,
                 ..
             } => {
-                let v = self.feed_speed(feed_mm_min);
                 let d = dist(from, to);
                 match a {
                     // A rotary-only move: its feed is degrees per minute, no junctions.
                     Some(r) if d == 0.0 => {
                         self.stop(line);
+                        let v = self.feed_speed(feed_mm_min, 1.0);
                         if v > 0.0 {
                             self.other_s += (r.to - r.from).abs() / v;
                         }
                         self.mark(line);
                     }
-                    _ => self.straight(line, Kind::Feed, from, to, v),
+                    _ => self.straight(line, Kind::Feed, from, to, Some(feed_mm_min)),
                 }
             }
             Motion::Probe {
@@ -227,23 +247,24 @@ impl Estimator {
             } => {
                 // Probing stops where it trips: planned as its whole way, from and to a stop.
                 self.stop(line);
-                let v = self.feed_speed(feed_mm_min);
-                self.straight(line, Kind::Feed, from, to, v);
+                self.straight(line, Kind::Feed, from, to, Some(feed_mm_min));
                 self.stop(line);
             }
             Motion::Arc { feed_mm_min, .. } => {
                 if let Some(g) = ArcGeometry::from_motion(m) {
-                    let mut v = self.feed_speed(feed_mm_min);
+                    let reach = self.arc_reach(&g);
+                    let mut v = self.feed_speed(feed_mm_min, reach);
+                    let a = self.a() * reach;
                     // Around a curve the path's centripetal acceleration v²/r is the
                     // machine's too.
                     let r = g.r0.max(g.r1);
-                    if self.a() > 0.0 && r > 0.0 {
-                        v = v.min((self.a() * r).sqrt());
+                    if a > 0.0 && r > 0.0 {
+                        v = v.min((a * r).sqrt());
                     }
                     let eps = 1e-4;
                     let dir_in = unit(g.from, g.point_at(eps));
                     let dir_out = unit(g.point_at(1.0 - eps), g.to);
-                    self.enqueue(line, Kind::Feed, g.length(), v, dir_in, dir_out);
+                    self.enqueue(line, Kind::Feed, g.length(), (v, a), dir_in, dir_out);
                 }
             }
             Motion::Dwell { seconds, .. } => {
@@ -263,20 +284,61 @@ impl Estimator {
         self.last_line = self.last_line.max(line);
     }
 
-    fn straight(&mut self, line: u32, kind: Kind, from: Point, to: Point, v: f64) {
+    /// [`Estimator::reach`] averaged over an arc, whose direction turns (the harmonic mean
+    /// of 32 chords: time, not speed, adds up along the path). A step generator runs an arc as
+    /// short straight moves, each at its own axes' limits.
+    fn arc_reach(&self, g: &ArcGeometry) -> f64 {
+        const CHORDS: u32 = 32;
+        if !self.profile.per_axis {
+            return 1.0;
+        }
+        let mut slowness = 0.0;
+        let mut prev = g.from;
+        for i in 1..=CHORDS {
+            let p = g.point_at(f64::from(i) / f64::from(CHORDS));
+            slowness += 1.0 / self.reach(unit(prev, p));
+            prev = p;
+        }
+        f64::from(CHORDS) / slowness
+    }
+
+    /// A straight move at `feed_mm_min` (None: a rapid).
+    fn straight(
+        &mut self,
+        line: u32,
+        kind: Kind,
+        from: Point,
+        to: Point,
+        feed_mm_min: Option<f64>,
+    ) {
         let len = dist(from, to);
         if len <= 0.0 {
             return;
         }
         let d = unit(from, to);
-        self.enqueue(line, kind, len, v, d, d);
+        let reach = self.reach(d);
+        let v = match feed_mm_min {
+            Some(f) => self.feed_speed(f, reach),
+            None => self.rapid_speed(reach),
+        };
+        let a = self.a() * reach;
+        self.enqueue(line, kind, len, (v, a), d, d);
     }
 
-    fn enqueue(&mut self, line: u32, kind: Kind, len: f64, v: f64, dir_in: Point, dir_out: Point) {
+    /// Queues a move of `len` mm at cruise speed and acceleration `(v, a)`.
+    fn enqueue(
+        &mut self,
+        line: u32,
+        kind: Kind,
+        len: f64,
+        (v, a): (f64, f64),
+        dir_in: Point,
+        dir_out: Point,
+    ) {
         if !(len > 0.0 && v > 0.0 && len.is_finite() && v.is_finite()) {
             return;
         }
-        if self.a() <= 0.0 {
+        if a <= 0.0 {
             // Speed changes at once: the move takes its length at its speed.
             self.add(line, kind, len / v);
             return;
@@ -290,6 +352,7 @@ impl Estimator {
             kind,
             len,
             v,
+            a,
             dir_out,
             cap_in,
         });
@@ -319,7 +382,6 @@ impl Estimator {
 
     /// Plans the queued moves with a stop after the last one, and releases the first `n`.
     fn plan(&mut self, n: usize) {
-        let a = self.a();
         let len = self.queue.len();
         if len == 0 {
             return;
@@ -329,7 +391,7 @@ impl Estimator {
         let mut exit = 0.0_f64;
         for k in (0..len).rev() {
             let m = self.queue[k];
-            let reachable = (exit * exit + 2.0 * a * m.len).sqrt();
+            let reachable = (exit * exit + 2.0 * m.a * m.len).sqrt();
             let cap = if k == 0 {
                 self.entry.min(m.v)
             } else {
@@ -344,8 +406,8 @@ impl Estimator {
         for k in 0..n {
             let m = self.queue[k];
             let next_cap = entry_max.get(k + 1).copied().unwrap_or(0.0);
-            let v_out = next_cap.min((v_in * v_in + 2.0 * a * m.len).sqrt());
-            let t = trapezoid(m.len, m.v, v_in, v_out, a);
+            let v_out = next_cap.min((v_in * v_in + 2.0 * m.a * m.len).sqrt());
+            let t = trapezoid(m.len, m.v, v_in, v_out, m.a);
             self.add(m.line, m.kind, t);
             v_in = v_out;
         }
@@ -506,6 +568,50 @@ mod tests {
         // exactly at the middle: 0.2 s.
         let short = table("G1 X1 F6000\n", p).total();
         assert!((short - 0.2).abs() < 1e-9, "{short}");
+    }
+
+    /// Per-axis limits: a 3-4-5 diagonal's X makes 4/5 of it, so its path may run at 5/4 of
+    /// the axis limit (and accelerate 5/4 as hard); an X-only move keeps the limit.
+    #[test]
+    fn per_axis_limits_let_a_diagonal_run_faster_than_one_axis() {
+        let p = MotionProfile {
+            rapid_mm_min: 600.0,
+            max_feed_mm_min: 600.0,
+            per_axis: true,
+            ..MotionProfile::default()
+        };
+        let diagonal = table(
+            "G1 X40 Y30 F6000
+",
+            p,
+        )
+        .total();
+        assert!((diagonal - 50.0 / 12.5).abs() < 1e-9, "{diagonal}");
+        let along_x = table(
+            "G0 X40
+", p,
+        )
+        .total();
+        assert!((along_x - 4.0).abs() < 1e-9, "{along_x}");
+        // A programmed feed under the cap is the path's feed either way.
+        let slow = table(
+            "G1 X40 Y30 F300
+",
+            p,
+        )
+        .total();
+        assert!((slow - 10.0).abs() < 1e-9, "{slow}");
+        let path = MotionProfile {
+            per_axis: false,
+            ..p
+        };
+        let diagonal = table(
+            "G1 X40 Y30 F6000
+",
+            path,
+        )
+        .total();
+        assert!((diagonal - 5.0).abs() < 1e-9, "{diagonal}");
     }
 
     /// A loop runs its lines again: the table stays in line order (its time on the furthest

@@ -685,6 +685,11 @@ pub struct MotionProfile {
     /// machine stops at every corner (with acceleration).
     #[serde(default)]
     pub corner_jump_mm_s: f64,
+    /// The limits above are each axis's, not the path's: a diagonal straight move runs at the
+    /// limits divided by the largest share any one axis makes of it (a step generator whose
+    /// axes run at their own rates). False: path limits.
+    #[serde(default)]
+    pub per_axis: bool,
 }
 
 /// A probing move: `axis` moves by `distance` (signed: its sign is the direction) at `feed`

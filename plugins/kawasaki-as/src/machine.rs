@@ -1100,6 +1100,7 @@ impl MachineBackend for KawasakiMachine {
             max_feed_mm_min: s.cut_max_mm_s * 60.0,
             accel_mm_s2: 0.0,
             corner_jump_mm_s: 0.0,
+            per_axis: false,
         })
     }
 

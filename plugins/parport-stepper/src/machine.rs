@@ -692,24 +692,9 @@ impl MachineBackend for Stepper {
         Ok(self.kit().connect(None))
     }
 
-    /// From the axes' limits: the slower axis's acceleration, top speed and no-ramp speed (the
-    /// planner's corner rule: no axis's speed jumps by more than its start rate), in mm.
+    /// From the axes' limits (see [`planner::motion_profile`]).
     fn motion_profile(&self) -> Result<fresa_plugin_api::contract::MotionProfile, PluginError> {
-        let m = &self.core.cfg.machine;
-        let min = |f: fn(&planner::AxisLimits) -> f64| {
-            m.axes
-                .iter()
-                .map(|a| f(a) / a.steps_per_mm)
-                .fold(f64::INFINITY, f64::min)
-        };
-        let max_feed = min(|a| a.max_rate) * 60.0;
-        Ok(fresa_plugin_api::contract::MotionProfile {
-            rapid_mm_min: m.rapid_mm_min.min(max_feed),
-            min_feed_mm_min: 0.0,
-            max_feed_mm_min: max_feed,
-            accel_mm_s2: min(|a| a.accel),
-            corner_jump_mm_s: min(|a| a.start_rate),
-        })
+        Ok(planner::motion_profile(&self.core.cfg.machine))
     }
 
     fn load_program(&self, p: LoadProgram) -> Result<ProgramLoaded, PluginError> {

@@ -933,6 +933,7 @@ impl MachineBackend for SimMachine {
             max_feed_mm_min: 0.0,
             accel_mm_s2: 0.0,
             corner_jump_mm_s: 0.0,
+            per_axis: false,
         })
     }
 

@@ -810,6 +810,7 @@ impl Machine {
                     max_feed_mm_min: p.max_feed_mm_min,
                     accel_mm_s2: p.accel_mm_s2,
                     corner_jump_mm_s: p.corner_jump_mm_s,
+                    per_axis: p.per_axis,
                 }),
             Err(e) if e.message.contains("unsupported") => None,
             Err(_) => return None,
