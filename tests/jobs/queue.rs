@@ -353,13 +353,22 @@ fn fresh_database() -> String {
         .block_on(fresa_core::store::test_postgres::fresh_database())
 }
 
-#[test]
-fn on_postgresql_a_waiting_queue_survives_a_kill() {
-    let db = fresh_database();
+/// A node of the store at `database`, beating fast (as `store::nodes` does).
+fn node(database: &str, name: &str) -> Server {
     let mut s = Server::unstarted(Opts::default());
-    s.write_config(&format!("database_url = \"{db}\"\n"));
+    s.write_config(&format!(
+        "database_url = \"{database}\"\nnode_name = \"{name}\"\n\
+         node_heartbeat_ms = 100\nnode_offline_after_ms = 1500\n"
+    ));
     s.spawn()
-        .unwrap_or_else(|e| panic!("server did not start: {e}"));
+        .unwrap_or_else(|e| panic!("node {name} did not start: {e}"));
+    s
+}
+
+#[test]
+fn on_postgresql_a_waiting_queue_survives_a_kill_and_dispatch_reaches_another_node() {
+    let db = fresh_database();
+    let mut s = node(&db, "hall-a");
     let m = s.sim("mill", 0.1);
     let lines = 30;
     let job = s.upload(m.id, "bracket", back_and_forth(lines, 1.0, 600.0))["id"]
@@ -376,4 +385,58 @@ fn on_postgresql_a_waiting_queue_survives_a_kill() {
     let second = confirm(&s, m.id);
     wait_queue(&s, m.id, "idle");
     assert_every_line_once(&m.executed(), second, lines as i64);
+
+    // Dispatch through another node: it asks hall-a, which drives the machine.
+    let b = node(&db, "hall-b");
+    wait_for(T, "node B to see the machine idle", || {
+        let v = b.get(&format!("/api/v1/machines/{}", m.id)).expect(200);
+        (v["state"] == "idle").then_some(())
+    });
+    let v = b
+        .post("/api/v1/queue", &json!({"job": job, "machines": [m.id]}))
+        .expect(200);
+    assert_eq!(v["machine"], m.id, "{v}");
+    let third = v["run"].as_i64().unwrap();
+    wait_for(
+        T,
+        "the dispatched part to complete on hall-a's machine",
+        || (m.count_of(third) == lines).then_some(()),
+    );
+    assert_every_line_once(&m.executed(), third, lines as i64);
+}
+
+#[test]
+fn the_cli_adds_lists_and_confirms() {
+    let s = Server::start();
+    let m = s.sim("mill", 0.1);
+    let job = s.upload(m.id, "bracket", back_and_forth(30, 1.0, 600.0))["id"]
+        .as_i64()
+        .unwrap();
+    let (id, job_s) = (m.id.to_string(), job.to_string());
+    let text = |o: std::process::Output| {
+        assert!(o.status.success(), "{}", fresa_tests::output_text(&o));
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    };
+    let out = text(s.cli(&["queue", "add", &id, "--job", &job_s, "--count", "2"]));
+    assert!(out.contains("waiting_confirm"), "{out}");
+    let out = text(s.cli(&["queue", "list", &id]));
+    assert!(
+        out.contains("waiting_confirm") && out.contains("ENTRY"),
+        "{out}"
+    );
+    let out = text(s.cli(&["queue", "confirm", &id]));
+    assert!(out.contains("run"), "{out}");
+    let q = wait_queue(&s, m.id, "waiting_confirm");
+    assert_eq!(q["entries"][0]["done"], 1, "{q}");
+    let out = text(s.cli(&["queue", "list", &id, "--json"]));
+    let v: Value = serde_json::from_str(out.trim()).unwrap();
+    assert_eq!(v["entries"][0]["done"], 1, "{v}");
+    // Refusals name the problem and fail the command.
+    let o = s.cli(&["queue", "release", &id]);
+    assert!(!o.status.success());
+    assert!(
+        fresa_tests::output_text(&o).contains("queue_not_held"),
+        "{}",
+        fresa_tests::output_text(&o)
+    );
 }
