@@ -440,3 +440,66 @@ fn the_cli_adds_lists_and_confirms() {
         fresa_tests::output_text(&o)
     );
 }
+
+#[test]
+fn a_refused_start_keeps_the_queue_waiting_and_dispatch_skips_a_machine_past_whose_travel_it_goes()
+{
+    let s = Server::start();
+    // Soft limits X -10..100: the program below (X 150) leaves them.
+    let small = s.sim_with(
+        "small",
+        0.1,
+        json!({"config": {
+            "time_scale": 0.1,
+            "execution_log": s.data_dir().join("exec-small.log"),
+            "travel": {"x": [-10, 100], "y": [-10, 200], "z": [-100, 0]},
+        }}),
+    );
+    let big = s.sim("big", 0.1);
+    let mut program = String::from("G21 G90\nG0 X150\n");
+    for i in 0..10 {
+        program.push_str(&format!("G1 X{} F3000\n", 150 + i % 2));
+    }
+    let lines = 12;
+    let job = s.upload(small.id, "wide", program)["id"].as_i64().unwrap();
+    let q = add(&s, small.id, job, 1, true);
+    let entry = q["entries"][0]["id"].as_i64().unwrap();
+    // The confirm gets the start's refusal; the queue still waits and nothing ran.
+    let r = s.post_empty(&format!("/api/v1/machines/{}/queue/confirm", small.id));
+    assert_eq!(r.status, 422, "{}", r.text);
+    let q = queue(&s, small.id);
+    assert_eq!(q["state"], "waiting_confirm", "{q}");
+    assert_eq!(q["entries"][0]["done"], 0, "{q}");
+    assert!(
+        small.executed().is_empty(),
+        "nothing ran on the small machine"
+    );
+
+    // Dispatch: the small machine (its queue emptied) refuses the program, the big one runs it.
+    s.send(s.req(
+        reqwest::Method::DELETE,
+        &format!("/api/v1/machines/{}/queue/{entry}", small.id),
+    ))
+    .expect(200);
+    let v = s
+        .post(
+            "/api/v1/queue",
+            &json!({"job": job, "machines": [small.id, big.id]}),
+        )
+        .expect(200);
+    assert_eq!(v["machine"], big.id, "{v}");
+    assert_eq!(v["refused"][0]["machine"], small.id, "{v}");
+    assert_eq!(
+        v["refused"][0]["code"], r.body["code"],
+        "the start's own refusal: {v}"
+    );
+    let run = v["run"].as_i64().unwrap();
+    wait_for(T, "the part to complete on the big machine", || {
+        (big.count_of(run) == lines).then_some(())
+    });
+    assert_every_line_once(&big.executed(), run, lines as i64);
+    assert!(
+        small.executed().is_empty(),
+        "nothing ran on the small machine"
+    );
+}

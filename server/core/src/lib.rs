@@ -34,6 +34,7 @@ pub mod plugins;
 pub mod previews;
 pub mod programs;
 pub mod queue;
+pub mod queue_state;
 pub mod run_settings;
 pub mod start_at;
 mod startup;

@@ -21,11 +21,11 @@
 use crate::app::{App, SharedApp};
 use crate::error::{Error, Result};
 use crate::events::EventKind;
+pub use crate::queue_state::{Queues, Summary};
 use crate::store::{QueueEntryRow, QueueStateRow, RunState};
 use fresa_plugin_api::contract::MachineState;
 use serde::Serialize;
 use serde_json::json;
-use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -35,47 +35,6 @@ pub const MAX_ENTRIES: usize = 100;
 pub const MAX_COUNT: i64 = 10_000;
 /// Most machines one dispatch may name.
 pub const MAX_DISPATCH_MACHINES: usize = 64;
-
-/// The queues' shared state on this node: one lock orders every change (an operator's and the
-/// runner's), and what the pendants' LCD and status read without the database.
-#[derive(Default)]
-pub struct Queues {
-    lock: tokio::sync::Mutex<()>,
-    summary: std::sync::Mutex<HashMap<i64, Summary>>,
-}
-
-/// A queue as the pendant's LCD needs it.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Summary {
-    pub state: String,
-    /// The next part (1-based) and the entry's count, while a part waits.
-    pub part: Option<(i64, i64)>,
-}
-
-impl Queues {
-    fn note(&self, machine: i64, summary: Summary) {
-        if let Ok(mut m) = self.summary.lock() {
-            m.insert(machine, summary);
-        }
-    }
-
-    /// The machine's queue as last seen by this node.
-    pub fn summary(&self, machine: i64) -> Option<Summary> {
-        self.summary.lock().ok()?.get(&machine).cloned()
-    }
-
-    /// One LCD line (at most 20 characters) while the queue waits for the operator.
-    pub fn lcd_line(&self, machine: i64) -> Option<String> {
-        let s = self.summary(machine)?;
-        match (s.state.as_str(), s.part) {
-            ("waiting_confirm", Some((n, of))) => Some(format!("PART {n}/{of} START")),
-            ("waiting_confirm", None) => Some("NEXT PART START".into()),
-            ("held", _) => Some("QUEUE HELD".into()),
-            _ => None,
-        }
-        .map(|l| l.chars().take(20).collect())
-    }
-}
 
 /// One entry as the API shows it.
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
@@ -267,7 +226,7 @@ pub async fn add(
             ),
         ));
     }
-    let _guard = app.queues.lock.lock().await;
+    let _guard = app.queues.lock().await;
     let (cur, entries) = load(app, machine).await?;
     if entries.len() >= MAX_ENTRIES {
         return Err(Error::conflict(
@@ -326,7 +285,7 @@ fn unknown_entry(machine: i64, entry: i64) -> Error {
 /// Removes an entry; not the one whose part is running (stop or cancel that run first).
 pub async fn remove(app: &App, machine: i64, entry: i64, actor: &str) -> Result<QueueView> {
     check_machine(app, machine).await?;
-    let _guard = app.queues.lock.lock().await;
+    let _guard = app.queues.lock().await;
     let (cur, _) = load(app, machine).await?;
     if cur.state == "running" && cur.entry == Some(entry) {
         return Err(Error::conflict(
@@ -386,7 +345,7 @@ pub async fn move_entry(
             format!("field `position` is 1-based, got {position}"),
         ));
     }
-    let _guard = app.queues.lock.lock().await;
+    let _guard = app.queues.lock().await;
     let health = app.store.health();
     if !health
         .guard(app.store.move_queue_entry(machine, entry, position))
@@ -411,7 +370,7 @@ pub async fn move_entry(
 /// A refused start leaves the queue waiting and answers the refusal.
 pub async fn confirm(app: &App, machine: i64, actor: &str) -> Result<Started> {
     check_machine(app, machine).await?;
-    let _guard = app.queues.lock.lock().await;
+    let _guard = app.queues.lock().await;
     let (cur, entries) = load(app, machine).await?;
     if cur.state != "waiting_confirm" {
         return Err(not_waiting(machine, &cur));
@@ -463,7 +422,7 @@ pub async fn waits_for_confirm(app: &App, machine: i64) -> bool {
 /// Ends a hold: a part still running goes on; otherwise the next part waits for a confirm.
 pub async fn release(app: &App, machine: i64, actor: &str) -> Result<QueueView> {
     check_machine(app, machine).await?;
-    let _guard = app.queues.lock.lock().await;
+    let _guard = app.queues.lock().await;
     let (cur, entries) = load(app, machine).await?;
     if cur.state != "held" {
         return Err(Error::conflict(
@@ -565,7 +524,7 @@ async fn step(app: &App, first: bool) {
     if !app.store.health().is_up() {
         return;
     }
-    let _guard = app.queues.lock.lock().await;
+    let _guard = app.queues.lock().await;
     let states = match app.store.queue_states().await {
         Ok(s) => s,
         Err(e) => {
@@ -681,7 +640,7 @@ pub async fn take(app: &App, machine: i64, job_id: i64, actor: &str) -> Result<S
         )
     })?;
     let job = crate::jobs::job(app, job_id).await?;
-    let _guard = app.queues.lock.lock().await;
+    let _guard = app.queues.lock().await;
     let (cur, entries) = load(app, machine).await?;
     if cur.state != "idle" || !entries.is_empty() {
         return Err(Error::conflict(
