@@ -263,6 +263,23 @@ fn dispatch_gives_the_part_to_the_free_machine_and_names_why_others_refused() {
         "the part did not run on the busy machine"
     );
 
+    // Again: the free machine runs the same job (no second copy of the program).
+    let again = s
+        .post(
+            "/api/v1/queue",
+            &json!({"job": job, "machines": [busy.id, free.id]}),
+        )
+        .expect(200);
+    assert_eq!(
+        (&again["machine"], &again["job"]),
+        (&v["machine"], &v["job"]),
+        "{again}"
+    );
+    let run2 = again["run"].as_i64().unwrap();
+    wait_for(T, "the second part to complete", || {
+        (free.count_of(run2) == lines).then_some(())
+    });
+    s.wait_job_state(copy, "completed", T);
     // Both busy now: 409 naming why each refused.
     let (_, other_run) = s.upload_and_start(free.id, "long2", &back_and_forth(3000, 1.0, 600.0));
     let r = s.post(

@@ -682,8 +682,15 @@ pub async fn take(app: &App, machine: i64, job_id: i64, actor: &str) -> Result<S
     })
 }
 
-/// The same program as a job of `machine` (a row: the program file is shared by its hash).
+/// The same program as a job of `machine`: the newest of its last 100 jobs with the same
+/// program, or else a copy of the row (the program file is shared by its hash), so repeated
+/// dispatches do not pile up copies.
 async fn copy_job(app: &App, job: &crate::store::JobRow, machine: i64, actor: &str) -> Result<i64> {
+    let health = app.store.health();
+    let theirs = health.read(app.store.list_jobs(Some(machine), 100)).await?;
+    if let Some(same) = theirs.iter().find(|j| j.sha256 == job.sha256) {
+        return Ok(same.id);
+    }
     let id = app
         .store
         .health()

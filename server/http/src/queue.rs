@@ -175,8 +175,8 @@ pub struct TakeReq {
 }
 
 /// Starts one part of a job on this machine if it is free (idle, no run, an idle empty
-/// queue): what `POST /queue` asks of each machine it tries. A job of another machine is
-/// copied to this one first (same program).
+/// queue): what `POST /queue` asks of each machine it tries. For a job of another machine it
+/// runs its own newest job with the same program, or a copy made for it.
 #[utoipa::path(post, path = "/machines/{id}/queue/take", tag = "queue",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = TakeReq, example = json!({"job": 1})),
