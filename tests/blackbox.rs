@@ -20,6 +20,7 @@
 //! | `jobs::estimate` | the run-time estimate and the time left against real-time sim runs |
 //! | `jobs::chaos` | many clients sending random run control at once: the run state machine holds |
 //! | `jobs::resume` | a server killed or stopped mid-job: the run comes back and resumes exactly once |
+//! | `jobs::queue` | job queues per machine: parts one after another after each confirm, holds, restarts, dispatch to a free machine |
 //! | `jobs::start_at` | start at a line: the preview, the preamble, refusals, a resume through the preamble |
 //! | `backends::mach3`, `parport`, `kawasaki`, `wine` | one backend (or the Windows build) end to end against its simulator |
 //! | `pendants` | MPG pendants: the plugin, its simulator, keys, wheel, uploads, a lost link |
@@ -52,6 +53,7 @@ mod machine {
 mod jobs {
     mod chaos;
     mod estimate;
+    mod queue;
     mod races;
     mod resume;
     mod runs;

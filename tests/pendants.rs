@@ -1434,3 +1434,63 @@ fn the_lcd_shows_why_the_machine_holds_and_a_lost_pendant_is_named_as_the_reason
     assert_eq!(j["hold"]["kind"], "pendant_lost", "{j}");
     s.job_action(job, "cancel").expect(200);
 }
+
+/// Issue 28: while the machine's job queue waits for the next part, the LCD says so and START
+/// confirms it (the queue's part starts, not the machine's newest job).
+#[test]
+fn start_confirms_the_next_part_of_a_waiting_queue_and_the_lcd_says_so() {
+    let s = Server::start();
+    let m = s.sim("mill", 0.1);
+    let mut sim = PendantSim::start();
+    let p = add_pendant(&s, "wheel", &sim.addr, Some(m.id), json!({}));
+    wait_connected(&s, p, true);
+    let lines = 30;
+    let program = fresa_tests::back_and_forth(lines, 1.0, 600.0);
+    let job = s.upload(m.id, "bracket", program.clone())["id"]
+        .as_i64()
+        .unwrap();
+    let queue = format!("/api/v1/machines/{}/queue", m.id);
+    s.post(&queue, &json!({"job": job, "count": 2})).expect(200);
+    // Newer than the queue's job: a Start with no queue waiting would start this one.
+    let newer = s.upload(m.id, "newer", program)["id"].as_i64().unwrap();
+    let lcd = |sim: &mut PendantSim, text: &str| {
+        let from = sim.seen.len();
+        sim.cmd("poll-job 20");
+        sim.wait_line_from(from, text, |l| {
+            l.starts_with("recv N52") && l.contains(&format!("{text}*"))
+        });
+        sim.cmd("poll-job 0");
+    };
+    let mut runs = Vec::new();
+    for part in 1..=2 {
+        lcd(&mut sim, &format!("PART {part}/2 START"));
+        sim.cmd("key Start");
+        let confirmed = s
+            .events("types=queue.confirm", Some(0))
+            .until(T, "the pendant's confirm", |e| {
+                e.data["data"]["part"] == part
+            })
+            .pop()
+            .unwrap();
+        assert_eq!(
+            confirmed.data["actor"],
+            format!("pendant:{p}"),
+            "{:?}",
+            confirmed.data
+        );
+        let run = confirmed.data["data"]["run"].as_i64().unwrap();
+        wait_for(T, "the part to complete", || {
+            let q = s.get(&queue).expect(200);
+            (q["state"] != "running" && m.count_of(run) == lines).then_some(())
+        });
+        runs.push(run);
+    }
+    let logged: std::collections::BTreeSet<i64> = m.executed().iter().map(|e| e.0).collect();
+    assert_eq!(
+        logged,
+        runs.iter().copied().collect(),
+        "the two confirmed parts ran"
+    );
+    assert_eq!(s.get(&queue).expect(200)["state"], "idle");
+    assert!(s.job(newer)["run"].is_null(), "the newer job never ran");
+}

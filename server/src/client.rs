@@ -8,6 +8,7 @@ use std::path::PathBuf;
 type Res = Result<(), Box<dyn std::error::Error>>;
 
 mod heightmap;
+pub mod queue;
 
 #[derive(Args)]
 pub struct ServerArgs {

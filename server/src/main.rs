@@ -43,6 +43,13 @@ enum Cmd {
         #[command(subcommand)]
         command: client::JobCmd,
     },
+    /// Job queues per machine (confirm between parts) and dispatch to a free machine.
+    Queue {
+        #[command(flatten)]
+        server: client::ServerArgs,
+        #[command(subcommand)]
+        command: client::queue::QueueCmd,
+    },
     /// Follow a running server's event stream, one line per event.
     Events {
         #[command(flatten)]
@@ -259,6 +266,7 @@ fn main() -> ExitCode {
             }
             Cmd::Machine { server, command } => client::machine(server, command).await,
             Cmd::Job { server, command } => client::job(server, command).await,
+            Cmd::Queue { server, command } => client::queue::run(server, command).await,
             Cmd::Events { server, filter } => client::events(server, filter).await,
             Cmd::Token { command } => client::token(command).await,
             Cmd::Backup { file, data } => client::backup(file, data).await,

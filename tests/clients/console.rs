@@ -1872,3 +1872,41 @@ fn a_window_of_a_programs_lines_is_served() {
     // Without a window: the whole program, as before.
     assert_eq!(s.get(&format!("/api/v1/jobs/{job}/gcode")).text, program);
 }
+
+/// Issue 28: the machine page's queue banner says which part waits for its confirm, and its
+/// button starts that part; the banner follows the queue to the next part.
+#[test]
+fn the_queue_banner_says_which_part_waits_and_its_button_starts_it() {
+    let s = Server::start();
+    let m = s.sim("mill", 0.0);
+    let job = s.upload(m.id, "bracket", "G21 G90\nG0 X1\nG0 X2\n")["id"]
+        .as_i64()
+        .unwrap();
+    s.post(
+        &format!("/api/v1/machines/{}/queue", m.id),
+        &json!({"job": job, "count": 2}),
+    )
+    .expect(200);
+    let b = Browser::start();
+    b.goto(&format!("{}/#/machines/{}", s.base, m.id));
+    let banner = |part: &str| {
+        b.wait(
+            &format!("the banner for part {part}"),
+            T,
+            &format!(
+                "const e = document.querySelector('#queue-banner'); \
+                 const t = document.querySelector('#queue-text'); \
+                 return e && !e.hidden && t.textContent.includes('part {part} of 2') \
+                   ? t.textContent : null;"
+            ),
+        )
+    };
+    banner("1");
+    assert!(m.executed().is_empty(), "nothing ran before the confirm");
+    b.screenshot("queue-banner");
+    b.wait_enabled("#queue-confirm", T);
+    b.click("#queue-confirm");
+    banner("2");
+    let runs: std::collections::BTreeSet<i64> = m.executed().iter().map(|e| e.0).collect();
+    assert_eq!(runs.len(), 1, "the confirmed part ran, once: {runs:?}");
+}

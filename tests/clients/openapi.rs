@@ -49,6 +49,11 @@ const NOT_ON_THE_DEMO: &[(&str, &str, &str)] = &[
         "/api/v1/machines/{id}/height-maps/{hid}/fit",
         "only with a probed map and a job (machine::heightmap checks fits and overhangs)",
     ),
+    (
+        "post",
+        "/api/v1/machines/{id}/queue/release",
+        "only while a queue holds (jobs::queue stops a part and releases the queue)",
+    ),
 ];
 
 struct Op {
@@ -381,6 +386,19 @@ fn documented_examples_get_their_documented_status() {
                     let a = send_example(s, create, None);
                     assert_eq!(a.status, create.success(), "setup {parent}: {}", a.text);
                 }
+            }
+        }
+        // Queue operations (issue 28) act on a job, and an entry's and the confirm on a queued
+        // part: the jobs example's program, queued by the queue's own example.
+        if op.method != "get" && op.path.contains("queue") {
+            let example = |p: &str| ops.iter().find(|o| o.path == p && o.method == "post");
+            let job = example("/api/v1/jobs").expect("the upload is documented");
+            let a = send_example(s, job, None);
+            assert_eq!(a.status, job.success(), "setup a job: {}", a.text);
+            if op.path.contains("{entry}") || op.path.ends_with("/confirm") {
+                let add = example("/api/v1/machines/{id}/queue").expect("queue add documented");
+                let a = send_example(s, add, None);
+                assert_eq!(a.status, add.success(), "setup a queued part: {}", a.text);
             }
         }
         let a = send_example(s, op, None);

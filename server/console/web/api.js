@@ -89,7 +89,12 @@ export const EVENT_TYPES = ['status', 'machine.state', 'machine.io', 'job.progre
   'machine.created', 'machine.offsets', 'machine.part_zero', 'machine.touch_off', 'machine.alarm', 'machine.command',
   'machine.jog', 'machine.jog_cancel', 'machine.mdi', 'pendant.created', 'pendant.connected', 'pendant.lost', 'pendant.bound',
   'pendant.macro', 'pendant.refused', 'pendant.deleted', 'pendant.upload', 'pendant.upload_rejected',
-  'pendant.rewind', 'job.line_report', 'height_map.progress', 'height_map.ended', 'height_map.deleted', 'resync'];
+  'pendant.rewind', 'job.line_report', 'height_map.progress', 'height_map.ended', 'height_map.deleted',
+  'queue.add', 'queue.remove', 'queue.move', 'queue.waiting_confirm', 'queue.confirm', 'queue.started', 'queue.hold',
+  'queue.release', 'queue.done', 'queue.dispatch', 'resync'];
+
+/** A machine's job queue changed (issue 28). */
+export const QUEUE_EVENTS = EVENT_TYPES.filter((t) => t.startsWith('queue.'));
 
 export class Events {
   constructor() {

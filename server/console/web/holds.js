@@ -77,3 +77,27 @@ export function holdBlock(id, page) {
     },
   };
 }
+
+/** The machine's job queue (issue 28): a banner while it waits for the next part (which part,
+ *  and the button that starts it once it is loaded) or holds (why, and Release). */
+export function queueBanner(id) {
+  const text = h('p', { id: 'queue-text', class: 'hold-reason' });
+  const load = () => api('GET', `/machines/${id}/queue`).then(show).catch(() => {});
+  const confirm = h('button', { id: 'queue-confirm', class: 'applies', dataset: { need: 'motion' }, onclick: (ev) =>
+    act(ev.currentTarget, () => api('POST', `/machines/${id}/queue/confirm`), 'Part started').then(load).catch(() => {}) }, 'Part loaded: start');
+  const release = h('button', { id: 'queue-release', dataset: { need: 'motion' }, onclick: (ev) =>
+    act(ev.currentTarget, () => api('POST', `/machines/${id}/queue/release`), 'Queue released').then(load).catch(() => {}) }, 'Release');
+  const el = h('section', { class: 'card hold-banner', id: 'queue-banner', hidden: true },
+    h('div', { class: 'row wrap' }, text, confirm, release));
+  function show(q) {
+    const entry = (q.entries || []).find((e) => e.id === q.entry);
+    el.hidden = q.state !== 'waiting_confirm' && q.state !== 'held';
+    confirm.hidden = q.state !== 'waiting_confirm';
+    release.hidden = q.state !== 'held';
+    text.textContent = q.state === 'held' ? `Queue held: ${q.reason || 'no reason recorded'}`
+      : entry ? `Queue: part ${entry.done + 1} of ${entry.count} (job ${entry.job}) waits for its confirm`
+      : 'Queue: the next part waits for its confirm';
+    gate(el);
+  }
+  return { el, load };
+}

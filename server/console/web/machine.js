@@ -3,10 +3,10 @@
 // screen (sticky bar). Controls that cannot act now (a job runs, the machine moves, the live
 // stream is lost) are disabled, each card saying why (`data-when`, `ui.gate`).
 
-import { api } from './api.js';
+import { api, QUEUE_EVENTS } from './api.js';
 import { state, h, gate, mm, coord, feed as feedText, act, toast, errorText, position, ioLamps, time } from './ui.js';
 import { urgentButtons, stateBadge } from './overview.js';
-import { holdBlock } from './holds.js';
+import { holdBlock, queueBanner } from './holds.js';
 import { runScreen } from './runscreen.js';
 
 const AXES = ['x', 'y', 'z', 'a'];
@@ -370,6 +370,8 @@ export async function machinePage(page, { id }, events) {
     ovrError);
 
   const hold = holdBlock(id, page);
+  // The job queue's banner (issue 28): the next part waits for its confirm, or the queue holds.
+  const queue = queueBanner(id);
 
   // Part-zero history.
   const pzList = h('tbody');
@@ -390,7 +392,7 @@ export async function machinePage(page, { id }, events) {
   const run = runScreen(id);
 
   // Why the machine holds and the button that goes on (issue 26), under the header.
-  page.append(header, hold.banner,
+  page.append(header, hold.banner, queue.el,
     h('div', { class: 'cols' },
       card('Position', droEl, droInfo, lamps),
       Object.assign(card('Jog',
@@ -433,7 +435,7 @@ export async function machinePage(page, { id }, events) {
   };
   update();
   drawOutputs();
-  await Promise.all([loadOffsets(), loadPartZeros()]).catch((e) => toast(errorText(e)));
+  await Promise.all([loadOffsets(), loadPartZeros(), queue.load()]).catch((e) => toast(errorText(e)));
   const mine = (fn) => (e) => { if (e.machine === id) fn(e); };
   const offs = [
     events.on('status', mine(schedule)),
@@ -443,6 +445,7 @@ export async function machinePage(page, { id }, events) {
     events.on('reloaded', schedule),
     events.on('machine.offsets', mine(() => loadOffsets().catch(() => {}))),
     events.on('machine.part_zero', mine(() => loadPartZeros().catch(() => {}))),
+    ...QUEUE_EVENTS.map((t) => events.on(t, mine(queue.load))),
   ];
   const onUnits = () => { schedule(); loadPartZeros().catch(() => {}); };
   document.addEventListener('fresa:units', onUnits);

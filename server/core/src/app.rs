@@ -24,6 +24,8 @@ pub struct App {
     pub integrations: crate::integrations::IntegrationStats,
     /// Toolpath previews: cached, bounded, abandoned when their clients leave.
     pub previews: crate::previews::Previews,
+    /// Job queues: the lock that orders their changes, and what the pendants' LCD shows.
+    pub queues: crate::queue_state::Queues,
     /// Whether requests must carry a token (any non-loopback bind).
     pub auth_required: bool,
     /// The secret nodes of one store vouch for forwarded requests with (from the store).

@@ -106,6 +106,23 @@ event_kinds! {
     /// A height map's grid ended: `complete`, `stopped` or `failed`, with what it probed.
     HeightMapEnded = "height_map.ended", Audit;
     HeightMapDeleted = "height_map.deleted", Audit;
+    /// Job queues (issue 28): an entry of N parts added to a machine's queue.
+    QueueAdd = "queue.add", Audit;
+    QueueRemove = "queue.remove", Audit;
+    QueueMove = "queue.move", Audit;
+    /// The next part waits for an operator's confirm ("next part loaded").
+    QueueWaiting = "queue.waiting_confirm", Audit;
+    /// An operator confirmed and the part started: `machine`, `entry`, `job`, `run`, `part`.
+    QueueConfirm = "queue.confirm", Audit;
+    /// A part started without a confirm (`confirm_between` false): as `queue.confirm`.
+    QueueStarted = "queue.started", Audit;
+    /// The queue holds (a part stopped, failed, was cancelled or interrupted): `reason`.
+    QueueHold = "queue.hold", Audit;
+    QueueRelease = "queue.release", Audit;
+    /// The machine's queue has no parts left.
+    QueueDone = "queue.done", Audit;
+    /// `POST /queue` gave a part to a free machine: `machine`, `job`, `run`, `refused`.
+    QueueDispatch = "queue.dispatch", Audit;
 }
 
 impl EventKind {
@@ -794,6 +811,16 @@ mod tests {
                 "webhook.deleted",
                 "height_map.ended",
                 "height_map.deleted",
+                "queue.add",
+                "queue.remove",
+                "queue.move",
+                "queue.waiting_confirm",
+                "queue.confirm",
+                "queue.started",
+                "queue.hold",
+                "queue.release",
+                "queue.done",
+                "queue.dispatch",
             ]
         );
     }

@@ -13,6 +13,7 @@
 //!   bridge (crate `fresa-integrations`) count, for `/metrics`.
 //! * [`nodes`]: several nodes on one store: which node drives a machine, heartbeats.
 //! * [`admin`]: creating machines and pendants, moving them between nodes, part zeros.
+//! * [`queue`]: job queues per machine (parts with a confirm between them) and dispatch.
 //! * [`start_at`]: a start at a line (and a resume): the state before it and the preamble.
 //! * [`app`]: the whole; `startup`: its start-up and shutdown. [`error`]: the core's errors.
 
@@ -32,6 +33,8 @@ pub mod pendants;
 pub mod plugins;
 pub mod previews;
 pub mod programs;
+pub mod queue;
+pub mod queue_state;
 pub mod run_settings;
 pub mod start_at;
 mod startup;

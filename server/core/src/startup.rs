@@ -140,6 +140,7 @@ impl App {
             shutdown,
             integrations: Default::default(),
             previews,
+            queues: Default::default(),
             auth_required,
             node_secret,
             _lock: lock,
@@ -209,6 +210,8 @@ impl App {
         if app.settings.demo {
             crate::demo::ensure_demo_pendant(&app).await;
         }
+        // After the machines: it moves on only the queues of machines this node drives.
+        crate::queue::spawn_runner(&app);
         crate::pendants::start_all(&app).await;
         Ok(app)
     }

@@ -196,3 +196,64 @@ async fn forward(
         .body(Body::from_stream(answer.bytes_stream()))
         .map_err(|e| ApiError::internal(format!("cannot pass on node {}'s answer: {e}", node.name)))
 }
+
+/// Asks the node that drives `machine` to start a part of `job` there if it is free (`POST
+/// /machines/{id}/queue/take`, as a forwarded request under the caller's name and role): for
+/// a dispatch over machines of several nodes. The refusal: its code and message.
+pub(crate) async fn take_remote(
+    app: &SharedApp,
+    machine: i64,
+    node: &RemoteNode,
+    job: i64,
+    caller: &Caller,
+) -> Result<fresa_core::queue::Started, (String, String)> {
+    if let Some(reason) = &node.down {
+        let e = unreachable(machine, reason);
+        return Err((e.code.to_string(), e.message));
+    }
+    let path = format!("/api/v1/machines/{machine}/queue/take");
+    let body = serde_json::json!({"job": job}).to_string();
+    let mut req = Request::new(Body::from(body));
+    *req.method_mut() = Method::POST;
+    req.headers_mut().insert(
+        axum::http::header::CONTENT_TYPE,
+        axum::http::HeaderValue::from_static("application/json"),
+    );
+    req.extensions_mut().insert(caller.clone());
+    let st = ForwardState::new(app.clone());
+    let answer = forward(&st, machine, node, req, Some(&path))
+        .await
+        .map_err(|e| (e.code.to_string(), e.message))?;
+    let status = answer.status();
+    let bytes = axum::body::to_bytes(answer.into_body(), 1 << 20)
+        .await
+        .map_err(|e| {
+            (
+                "node_no_answer".to_string(),
+                format!("node {}'s answer could not be read: {e}", node.name),
+            )
+        })?;
+    let value: serde_json::Value = serde_json::from_slice(&bytes).unwrap_or_default();
+    if status.is_success() {
+        let field = |k: &str| value[k].as_i64();
+        return match (field("job"), field("run")) {
+            (Some(job), Some(run)) => Ok(fresa_core::queue::Started {
+                machine,
+                job,
+                run,
+                entry: None,
+            }),
+            _ => Err((
+                "internal".to_string(),
+                format!("node {} answered without a run: {value}", node.name),
+            )),
+        };
+    }
+    Err((
+        value["code"].as_str().unwrap_or("internal").to_string(),
+        value["message"]
+            .as_str()
+            .map(str::to_string)
+            .unwrap_or_else(|| format!("node {} answered {status}", node.name)),
+    ))
+}

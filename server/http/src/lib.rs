@@ -12,6 +12,7 @@ mod jobs;
 pub(crate) mod machines;
 pub mod openapi;
 mod pendants;
+mod queue;
 mod toolchange;
 mod tools;
 mod webhooks;
@@ -122,6 +123,14 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
         ))
         .routes(needs(Operator, routes!(jobs::control)))
         .routes(needs(Viewer, routes!(jobs::start_preview)))
+        .routes(needs(Viewer, routes!(queue::get)))
+        .routes(needs(Operator, routes!(queue::add)))
+        .routes(needs(Operator, routes!(queue::remove)))
+        .routes(needs(Operator, routes!(queue::move_entry)))
+        .routes(needs(Operator, routes!(queue::confirm)))
+        .routes(needs(Operator, routes!(queue::release)))
+        .routes(needs(Operator, routes!(queue::take)))
+        .routes(needs(Operator, routes!(queue::dispatch)))
         .routes(needs(Viewer, routes!(pendants::list)))
         .routes(needs(Admin, routes!(pendants::create)))
         .routes(needs(Viewer, routes!(pendants::discovered)))

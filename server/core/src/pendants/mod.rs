@@ -633,7 +633,8 @@ async fn key_pressed(
     }
 }
 
-/// Start: resume a paused run, otherwise start the machine's newest job.
+/// Start: resume a paused run; while the machine's queue waits for a confirm, confirm it (the
+/// next part is loaded: issue 28); otherwise start the machine's newest job.
 async fn start_key(app: &Arc<App>, p: &Pendant, m: &Machine, actor: &str) -> Result<(), Error> {
     if let Some(r) = m.run() {
         // Resume whatever the published run says: it can lag a pause the machine's task has
@@ -648,6 +649,11 @@ async fn start_key(app: &Arc<App>, p: &Pendant, m: &Machine, actor: &str) -> Res
             )),
             Err(e) => Err(e),
         };
+    }
+    if crate::queue::waits_for_confirm(app, m.id).await {
+        let started = crate::queue::confirm(app, m.id, actor).await?;
+        *lock(&p.started_run) = Some(started.run);
+        return Ok(());
     }
     let job = app
         .store
@@ -844,7 +850,9 @@ async fn status_loop(app: Arc<App>, p: Arc<Pendant>) {
                     .hold
                     .as_ref()
                     .filter(|_| st.state == MachineState::Paused || m.run().is_some())
-                    .map(|h| crate::machine::holds::lcd_line(h));
+                    .map(|h| crate::machine::holds::lcd_line(h))
+                    // Otherwise, a queue waiting for the next part or held (issue 28).
+                    .or_else(|| app.queues.lcd_line(m.id));
                 let job = match m.run() {
                     Some(r) => {
                         if run_seen.map(|s| s.0) != Some(r.run_id) {
