@@ -20,6 +20,7 @@
 //! | `jobs::estimate` | the run-time estimate and the time left against real-time sim runs |
 //! | `jobs::chaos` | many clients sending random run control at once: the run state machine holds |
 //! | `jobs::resume` | a server killed or stopped mid-job: the run comes back and resumes exactly once |
+//! | `jobs::records` | the shop's records: part records, utilisation, maintenance counters and their events |
 //! | `jobs::start_at` | start at a line: the preview, the preamble, refusals, a resume through the preamble |
 //! | `backends::mach3`, `parport`, `kawasaki`, `wine` | one backend (or the Windows build) end to end against its simulator |
 //! | `pendants` | MPG pendants: the plugin, its simulator, keys, wheel, uploads, a lost link |
@@ -53,6 +54,7 @@ mod jobs {
     mod chaos;
     mod estimate;
     mod races;
+    mod records;
     mod resume;
     mod runs;
     mod start_at;

@@ -43,6 +43,20 @@ enum Cmd {
         #[command(subcommand)]
         command: client::JobCmd,
     },
+    /// Part records: every run that ended, newest first (a table, --json or --csv).
+    Parts {
+        #[command(flatten)]
+        server: client::ServerArgs,
+        #[command(flatten)]
+        args: client::PartsArgs,
+    },
+    /// Reports from the shop's records.
+    Report {
+        #[command(flatten)]
+        server: client::ServerArgs,
+        #[command(subcommand)]
+        command: client::ReportCmd,
+    },
     /// Follow a running server's event stream, one line per event.
     Events {
         #[command(flatten)]
@@ -260,6 +274,8 @@ fn main() -> ExitCode {
             Cmd::Machine { server, command } => client::machine(server, command).await,
             Cmd::Job { server, command } => client::job(server, command).await,
             Cmd::Events { server, filter } => client::events(server, filter).await,
+            Cmd::Parts { server, args } => client::parts(server, args).await,
+            Cmd::Report { server, command } => client::report(server, command).await,
             Cmd::Token { command } => client::token(command).await,
             Cmd::Backup { file, data } => client::backup(file, data).await,
             Cmd::Gcode { command } => client::gcode(command),

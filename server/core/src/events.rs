@@ -106,6 +106,12 @@ event_kinds! {
     /// A height map's grid ended: `complete`, `stopped` or `failed`, with what it probed.
     HeightMapEnded = "height_map.ended", Audit;
     HeightMapDeleted = "height_map.deleted", Audit;
+    /// A maintenance interval of a machine came due (once per crossing): `name`, `counter`,
+    /// `every`, `value` (the counter now), `since_done` (the counter since it was last done).
+    MachineMaintenanceDue = "machine.maintenance_due", Audit;
+    /// A maintenance interval was marked done (its interval starts again): `name`, `counter`,
+    /// `value`.
+    MachineMaintenanceDone = "machine.maintenance_done", Audit;
 }
 
 impl EventKind {

@@ -32,6 +32,8 @@ pub mod pendants;
 pub mod plugins;
 pub mod previews;
 pub mod programs;
+pub mod records;
+pub mod reports;
 pub mod run_settings;
 pub mod start_at;
 mod startup;

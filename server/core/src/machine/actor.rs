@@ -743,6 +743,16 @@ impl Task {
         self.bus
             .record_or_log(EventKind::JobState, Some(self.id), actor, data)
             .await;
+        // Every stored end of a run passes here (also one kept through an outage): its part
+        // record, written off the task (it reads the job, tools and audit log).
+        if !row.state.is_active() {
+            let (store, row) = (self.store.clone(), row.clone());
+            tokio::spawn(async move {
+                if let Err(e) = crate::records::record_part(&store, &row).await {
+                    tracing::error!(run = row.id, error = %e, "could not write the part record");
+                }
+            });
+        }
     }
 
     /// After the machine changed state: the run follows it between running and paused when

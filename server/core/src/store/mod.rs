@@ -88,6 +88,7 @@ mod jobs;
 mod machines;
 mod nodes;
 mod pendants;
+mod records;
 mod run_settings;
 #[cfg(any(test, feature = "test-support"))]
 pub mod test_postgres;
@@ -105,6 +106,7 @@ pub use jobs::{JobRow, NewJob, RunRow, RunState};
 pub use machines::{MachineRow, PartZeroRow};
 pub use nodes::NodeRow;
 pub use pendants::{MacroAction, PendantRow};
+pub use records::{CountersRow, MarkRow, PartFilter, PartRow};
 pub use run_settings::{MachineXyz, RunSettings, ToolChangePolicy, ToolSetter};
 pub use tokens::{is_unique_violation, TokenInfo, TokenRow};
 pub use tools::ToolRow;
