@@ -6,7 +6,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use fresa_tests::serde_json::{json, Value};
+use fresa_tests::serde_json::{self, json, Value};
 use fresa_tests::{assert_every_line_once, back_and_forth, sha256_hex, wait_for, Opts, Server};
 use std::time::Duration;
 
@@ -218,6 +218,18 @@ fn part_records_match_the_runs_and_their_csv_matches_the_json() {
         let act: f64 = col(row, "actual_s").parse().unwrap();
         assert!((act - p["actual_s"].as_f64().unwrap()).abs() < 0.001);
     }
+
+    // The CLI prints the server's CSV, and its table names both runs.
+    let mid = m.id.to_string();
+    let out = s.cli(&["parts", "--machine", &mid, "--csv"]);
+    assert!(out.status.success(), "{}", fresa_tests::output_text(&out));
+    assert_eq!(parse_csv(&String::from_utf8_lossy(&out.stdout)), rows);
+    let out = s.cli(&["parts", "--machine", &mid]);
+    let table = String::from_utf8_lossy(&out.stdout).to_string();
+    assert!(
+        out.status.success() && table.contains("cancelled") && table.contains("short.nc"),
+        "{table}"
+    );
 }
 
 /// The utilisation report's cutting seconds against the sim's execution log.
@@ -292,6 +304,17 @@ fn utilisation_cutting_seconds_match_the_execution_log() {
             m.id
         )),
         "{metrics}"
+    );
+    let out = s.cli(&["report", "utilisation", "--json"]);
+    assert!(out.status.success(), "{}", fresa_tests::output_text(&out));
+    let cli: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(
+        cli["machines"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|x| x["machine"] == m.id && x["total"]["cutting"].as_f64() >= Some(cutting)),
+        "{cli}"
     );
     s.get("/api/v1/reports/utilisation?from=2026-01-02&to=2026-01-01")
         .expect_error(400, "invalid_query");

@@ -275,6 +275,12 @@ const RUN_AUDIT_LIMIT: i64 = 5000;
 /// force from the store: the job, the machine's work offset and tool table, the part zero, and
 /// who ran it from the audit log.
 pub async fn record_part(store: &Store, run: &RunRow) -> std::result::Result<(), sqlx::Error> {
+    // The stored run: a line the backend acknowledged as it stopped may have landed since.
+    let run = &match store.run(run.id).await? {
+        Some(r) if r.state.is_active() => return Ok(()),
+        Some(r) => r,
+        None => run.clone(),
+    };
     let Some(job) = store.job(run.job_id).await? else {
         return Ok(());
     };

@@ -80,8 +80,10 @@ impl Store {
     /// Writes the record of a run that ended; a run that ends again (a failed run resumed)
     /// replaces its record, keeping its id.
     pub async fn upsert_part(&self, p: &PartRow) -> Result<()> {
-        let mut tx = self.begin().await?;
-        sqlx::query(
+        // Lines only rise: two writes of one end (the end, then a late acknowledged line) may
+        // land in either order.
+        let max = self.pick("MAX", "GREATEST");
+        let sql = format!(
             "INSERT INTO part_records (run_id, job_id, machine_id, machine_name, node,
                program_name, program_sha256, work_offset, work_zero, part_zero, tool_table,
                tool_table_sha256, operators, confirmations, outcome, message, line_count,
@@ -94,36 +96,39 @@ impl Store {
                tool_table_sha256 = excluded.tool_table_sha256, operators = excluded.operators,
                confirmations = excluded.confirmations, outcome = excluded.outcome,
                message = excluded.message, from_line = excluded.from_line,
-               last_line = excluded.last_line, lines_run = excluded.lines_run,
+               last_line = {max}(part_records.last_line, excluded.last_line),
+               lines_run = {max}(part_records.lines_run, excluded.lines_run),
                estimate_s = excluded.estimate_s, actual_s = excluded.actual_s,
-               started_at = excluded.started_at, ended_at = excluded.ended_at",
-        )
-        .bind(p.run_id)
-        .bind(p.job_id)
-        .bind(p.machine_id)
-        .bind(&p.machine_name)
-        .bind(&p.node)
-        .bind(&p.program_name)
-        .bind(&p.program_sha256)
-        .bind(&p.work_offset)
-        .bind(&p.work_zero)
-        .bind(&p.part_zero)
-        .bind(&p.tool_table)
-        .bind(&p.tool_table_sha256)
-        .bind(&p.operators)
-        .bind(&p.confirmations)
-        .bind(&p.outcome)
-        .bind(&p.message)
-        .bind(p.line_count)
-        .bind(p.from_line)
-        .bind(p.last_line)
-        .bind(p.lines_run)
-        .bind(p.estimate_s)
-        .bind(p.actual_s)
-        .bind(p.started_at)
-        .bind(p.ended_at)
-        .execute(&mut *tx)
-        .await?;
+               started_at = excluded.started_at, ended_at = excluded.ended_at"
+        );
+        let mut tx = self.begin().await?;
+        sqlx::query(&sql)
+            .bind(p.run_id)
+            .bind(p.job_id)
+            .bind(p.machine_id)
+            .bind(&p.machine_name)
+            .bind(&p.node)
+            .bind(&p.program_name)
+            .bind(&p.program_sha256)
+            .bind(&p.work_offset)
+            .bind(&p.work_zero)
+            .bind(&p.part_zero)
+            .bind(&p.tool_table)
+            .bind(&p.tool_table_sha256)
+            .bind(&p.operators)
+            .bind(&p.confirmations)
+            .bind(&p.outcome)
+            .bind(&p.message)
+            .bind(p.line_count)
+            .bind(p.from_line)
+            .bind(p.last_line)
+            .bind(p.lines_run)
+            .bind(p.estimate_s)
+            .bind(p.actual_s)
+            .bind(p.started_at)
+            .bind(p.ended_at)
+            .execute(&mut *tx)
+            .await?;
         tx.commit().await
     }
 
