@@ -408,6 +408,7 @@ const DAY_MS: i64 = 86_400_000;
 /// `to` at now). Days with no counted time are left out.
 pub fn split_by_day(changes: &[(String, i64)], from: i64, to: i64) -> Vec<DayUse> {
     let mut days: Vec<DayUse> = Vec::new();
+    let mut current_day = i64::MIN;
     for (i, (state, since)) in changes.iter().enumerate() {
         let start = (*since).max(from);
         let end = changes.get(i + 1).map_or(to, |(_, next)| *next).min(to);
@@ -415,10 +416,10 @@ pub fn split_by_day(changes: &[(String, i64)], from: i64, to: i64) -> Vec<DayUse
         while t < end {
             let day_start = t.div_euclid(DAY_MS) * DAY_MS;
             let piece_end = (day_start + DAY_MS).min(end);
-            let label = crate::store::utc_text(day_start, false)[..10].to_string();
-            if days.last().map(|d| &d.day) != Some(&label) {
+            if day_start != current_day {
+                current_day = day_start;
                 days.push(DayUse {
-                    day: label,
+                    day: crate::store::utc_text(day_start, false)[..10].to_string(),
                     ..Default::default()
                 });
             }

@@ -154,9 +154,10 @@ impl Store {
             next(&mut sql, " AND ended_at < ?");
         }
         if f.before.is_some() {
-            next(&mut sql, " AND (ended_at < ?");
-            next(&mut sql, " OR (ended_at = ?");
-            next(&mut sql, " AND id < ?))");
+            // A row value: both databases walk the index from there (an OR of the two
+            // comparisons made PostgreSQL scan).
+            next(&mut sql, " AND (ended_at, id) < (?");
+            next(&mut sql, ", ?)");
         }
         next(&mut sql, " ORDER BY ended_at DESC, id DESC LIMIT ?");
         let mut q = sqlx::query_as::<_, PartRow>(&sql);
@@ -164,7 +165,7 @@ impl Store {
             q = q.bind(v);
         }
         if let Some((at, id)) = f.before {
-            q = q.bind(at).bind(at).bind(id);
+            q = q.bind(at).bind(id);
         }
         q.bind(f.limit).fetch_all(&self.pool).await
     }
