@@ -21,6 +21,7 @@
 //! | `jobs::chaos` | many clients sending random run control at once: the run state machine holds |
 //! | `jobs::resume` | a server killed or stopped mid-job: the run comes back and resumes exactly once |
 //! | `jobs::queue` | job queues per machine: parts one after another after each confirm, holds, restarts, dispatch to a free machine |
+//! | `jobs::records` | the shop's records: part records, utilisation, maintenance counters and their events |
 //! | `jobs::start_at` | start at a line: the preview, the preamble, refusals, a resume through the preamble |
 //! | `backends::mach3`, `parport`, `kawasaki`, `wine` | one backend (or the Windows build) end to end against its simulator |
 //! | `pendants` | MPG pendants: the plugin, its simulator, keys, wheel, uploads, a lost link |
@@ -55,6 +56,7 @@ mod jobs {
     mod estimate;
     mod queue;
     mod races;
+    mod records;
     mod resume;
     mod runs;
     mod start_at;

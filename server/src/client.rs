@@ -9,6 +9,8 @@ type Res = Result<(), Box<dyn std::error::Error>>;
 
 mod heightmap;
 pub mod queue;
+mod records;
+pub use records::{PartsArgs, ReportCmd};
 
 #[derive(Args)]
 pub struct ServerArgs {
@@ -363,6 +365,16 @@ impl Client {
         }
         Ok(body)
     }
+}
+
+/// `fresa parts`.
+pub async fn parts(server: ServerArgs, args: PartsArgs) -> Res {
+    records::parts(Client::new(server), args).await
+}
+
+/// `fresa report ...`.
+pub async fn report(server: ServerArgs, cmd: ReportCmd) -> Res {
+    records::report(Client::new(server), cmd).await
 }
 
 pub async fn machine(server: ServerArgs, cmd: MachineCmd) -> Res {

@@ -50,6 +50,20 @@ enum Cmd {
         #[command(subcommand)]
         command: client::queue::QueueCmd,
     },
+    /// Part records: every run that ended, newest first (a table, --json or --csv).
+    Parts {
+        #[command(flatten)]
+        server: client::ServerArgs,
+        #[command(flatten)]
+        args: client::PartsArgs,
+    },
+    /// Reports from the shop's records.
+    Report {
+        #[command(flatten)]
+        server: client::ServerArgs,
+        #[command(subcommand)]
+        command: client::ReportCmd,
+    },
     /// Follow a running server's event stream, one line per event.
     Events {
         #[command(flatten)]
@@ -268,6 +282,8 @@ fn main() -> ExitCode {
             Cmd::Job { server, command } => client::job(server, command).await,
             Cmd::Queue { server, command } => client::queue::run(server, command).await,
             Cmd::Events { server, filter } => client::events(server, filter).await,
+            Cmd::Parts { server, args } => client::parts(server, args).await,
+            Cmd::Report { server, command } => client::report(server, command).await,
             Cmd::Token { command } => client::token(command).await,
             Cmd::Backup { file, data } => client::backup(file, data).await,
             Cmd::Gcode { command } => client::gcode(command),

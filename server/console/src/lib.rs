@@ -43,6 +43,7 @@ assets! {
     "heightmap.js" => "text/javascript; charset=utf-8",
     "prefs.js" => "text/javascript; charset=utf-8",
     "runscreen.js" => "text/javascript; charset=utf-8",
+    "records.js" => "text/javascript; charset=utf-8",
     "favicon.svg" => "image/svg+xml",
 }
 

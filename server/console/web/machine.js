@@ -8,6 +8,7 @@ import { state, h, gate, mm, coord, feed as feedText, act, toast, errorText, pos
 import { urgentButtons, stateBadge } from './overview.js';
 import { holdBlock, queueBanner } from './holds.js';
 import { runScreen } from './runscreen.js';
+import { recordsCard } from './records.js';
 
 const AXES = ['x', 'y', 'z', 'a'];
 const STEPS = [0.001, 0.01, 0.1, 1, 10];
@@ -55,10 +56,13 @@ export async function machinePage(page, { id }, events) {
   page.dataset.gateMachine = id;
   const cmd = (command, extra) => api('POST', `/machines/${id}/commands`, Object.assign({ command }, extra || {}));
 
+  // Counters, maintenance and utilisation (records.js); its due badge sits in the header.
+  const records = recordsCard(id);
+
   // Header with the urgent buttons, sticky on small screens.
   const badge = h('span');
   const header = h('div', { class: 'sticky-bar' },
-    h('h1', {}, m.name, ' ', h('span', { class: 'muted small' }, m.backend)), badge,
+    h('h1', {}, m.name, ' ', h('span', { class: 'muted small' }, m.backend)), badge, records.badge,
     h('div', { class: 'row urgent' }, urgentButtons(id)));
 
   // DRO.
@@ -409,7 +413,8 @@ export async function machinePage(page, { id }, events) {
     card('Work offsets',
       h('table', { class: 'offsets' }, h('thead', {}, h('tr', {}, h('th', {}, ''), AXES.map((a) => h('th', {}, a.toUpperCase())), h('th', {}, ''))), offsetsBody)),
     card('Part zero', h('div', { class: 'row' }, note, record),
-      h('table', {}, h('thead', {}, h('tr', {}, h('th', {}, 'when'), AXES.map((a) => h('th', {}, a.toUpperCase())), h('th', {}, 'source'), h('th', {}, 'who'), h('th', {}, 'note'))), pzList)));
+      h('table', {}, h('thead', {}, h('tr', {}, h('th', {}, 'when'), AXES.map((a) => h('th', {}, a.toUpperCase())), h('th', {}, 'source'), h('th', {}, 'who'), h('th', {}, 'note'))), pzList)),
+    records.el);
 
   const update = () => {
     const s = state.status.get(id) || {};
@@ -435,7 +440,7 @@ export async function machinePage(page, { id }, events) {
   };
   update();
   drawOutputs();
-  await Promise.all([loadOffsets(), loadPartZeros(), queue.load()]).catch((e) => toast(errorText(e)));
+  await Promise.all([loadOffsets(), loadPartZeros(), queue.load(), records.load()]).catch((e) => toast(errorText(e)));
   const mine = (fn) => (e) => { if (e.machine === id) fn(e); };
   const offs = [
     events.on('status', mine(schedule)),
@@ -446,12 +451,16 @@ export async function machinePage(page, { id }, events) {
     events.on('machine.offsets', mine(() => loadOffsets().catch(() => {}))),
     events.on('machine.part_zero', mine(() => loadPartZeros().catch(() => {}))),
     ...QUEUE_EVENTS.map((t) => events.on(t, mine(queue.load))),
+    events.on('machine.maintenance_due', mine(() => records.load())),
+    events.on('machine.maintenance_done', mine(() => records.load())),
   ];
+  // Counters and the chart move slowly: a reload a minute.
+  const recordsTick = setInterval(() => records.load(), 60000);
   const onUnits = () => { schedule(); loadPartZeros().catch(() => {}); };
   document.addEventListener('fresa:units', onUnits);
   const tick = setInterval(schedule, 1000);
   return () => {
-    offs.forEach((f) => f()); clearInterval(tick); cancelAnimationFrame(frame); run.destroy(); keyboardOff();
+    offs.forEach((f) => f()); clearInterval(tick); clearInterval(recordsTick); cancelAnimationFrame(frame); run.destroy(); keyboardOff();
     document.removeEventListener('fresa:units', onUnits);
   };
 }

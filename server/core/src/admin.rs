@@ -33,6 +33,9 @@ pub struct NewMachine {
     /// The machine Z (machine coordinates, mm) a start at a line goes up to at least before
     /// it moves across (default: none, see `crate::start_at`).
     pub safe_z_mm: Option<f64>,
+    /// Maintenance intervals (default none), e.g. `[{"name": "lubricate",
+    /// "every_spindle_hours": 40}]`: each raises `machine.maintenance_due` once it comes due.
+    pub maintenance: Option<Vec<crate::records::MaintenanceItem>>,
 }
 
 /// Creates a machine: checks the fields, lets the backend judge its config (the instance it
@@ -77,6 +80,8 @@ pub async fn create_machine(app: &App, req: NewMachine, actor: &str) -> Result<i
             ),
         ));
     }
+    let maintenance = req.maintenance.unwrap_or_default();
+    crate::records::MaintenanceItem::check_all(&maintenance)?;
     let Some(lib) = app.plugins.get(&req.backend) else {
         return Err(Error::invalid(
             "unknown_backend",
@@ -113,6 +118,11 @@ pub async fn create_machine(app: &App, req: NewMachine, actor: &str) -> Result<i
         .map_err(|e| Error::insert_failed(e, "machine", name))?;
     if req.safe_z_mm.is_some() {
         app.store.set_machine_safe_z(id, req.safe_z_mm).await?;
+    }
+    if !maintenance.is_empty() {
+        let text = serde_json::to_string(&maintenance)
+            .map_err(|e| Error::internal(format!("maintenance: {e}")))?;
+        app.store.set_machine_maintenance(id, &text).await?;
     }
     let row = app
         .store

@@ -54,6 +54,11 @@ pub async fn ensure_demo_machine(app: &App) {
                     if let Err(e) = app.store.replace_tools(id, &tools).await {
                         tracing::error!(error = %e, "could not store the demo tool table");
                     }
+                    // A maintenance interval, so the counters and "done" have one to show.
+                    let maintenance = r#"[{"name":"lubricate","every_spindle_hours":40}]"#;
+                    if let Err(e) = app.store.set_machine_maintenance(id, maintenance).await {
+                        tracing::error!(error = %e, "could not store the demo maintenance interval");
+                    }
                     // A tool setter on the touch plate's switch, at work zero, so "measure
                     // tool" works on the demo (T1 is the reference).
                     let settings = crate::store::RunSettings {

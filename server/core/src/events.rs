@@ -123,6 +123,12 @@ event_kinds! {
     QueueDone = "queue.done", Audit;
     /// `POST /queue` gave a part to a free machine: `machine`, `job`, `run`, `refused`.
     QueueDispatch = "queue.dispatch", Audit;
+    /// A maintenance interval of a machine came due (once per crossing): `name`, `counter`,
+    /// `every`, `value` (the counter now), `since_done` (the counter since it was last done).
+    MachineMaintenanceDue = "machine.maintenance_due", Audit;
+    /// A maintenance interval was marked done (its interval starts again): `name`, `counter`,
+    /// `value`.
+    MachineMaintenanceDone = "machine.maintenance_done", Audit;
 }
 
 impl EventKind {

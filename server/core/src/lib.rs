@@ -35,6 +35,8 @@ pub mod previews;
 pub mod programs;
 pub mod queue;
 pub mod queue_state;
+pub mod records;
+pub mod reports;
 pub mod run_settings;
 pub mod start_at;
 mod startup;

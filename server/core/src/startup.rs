@@ -264,6 +264,15 @@ impl App {
     /// The rest of shutdown, once motion is stopped: pendants and SSE streams.
     pub async fn stop_rest(&self, limit: std::time::Duration) {
         self.shutdown.cancel();
+        // Maintenance counters and the `offline` state change, so a restart goes on from here.
+        let machines = self.machines.all().await;
+        let flushes = machines.iter().map(|m| m.flush_records(&self.store));
+        if tokio::time::timeout(limit, futures_util::future::join_all(flushes))
+            .await
+            .is_err()
+        {
+            tracing::warn!("maintenance counters were not stored within {limit:?}");
+        }
         if tokio::time::timeout(limit, self.pendants.stop_all())
             .await
             .is_err()

@@ -13,6 +13,7 @@ pub(crate) mod machines;
 pub mod openapi;
 mod pendants;
 mod queue;
+mod records;
 mod toolchange;
 mod tools;
 mod webhooks;
@@ -109,6 +110,10 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
         .routes(needs(Viewer, routes!(toolchange::get_run_settings)))
         .routes(needs(Operator, routes!(toolchange::patch_run_settings)))
         .routes(needs(Operator, routes!(toolchange::measure_tool)))
+        .routes(needs(Viewer, routes!(records::parts)))
+        .routes(needs(Viewer, routes!(records::utilisation)))
+        .routes(needs(Viewer, routes!(records::counters)))
+        .routes(needs(Admin, routes!(records::maintenance_done)))
         .routes(needs(Viewer, routes!(jobs::list)))
         .routes(needs(
             Operator,
@@ -391,6 +396,7 @@ async fn metrics(
         "# TYPE fresa_event_subscribers gauge\nfresa_event_subscribers {}",
         app.bus.subscribers()
     );
+    out.push_str(&records_metrics(&app).await);
     out.push_str(&app.integrations.prometheus());
     if let Some(axum::Extension(a)) = admission {
         out.push_str(&a.prometheus());
@@ -403,6 +409,55 @@ async fn metrics(
         )],
         out,
     ))
+}
+
+/// The shop's records in `/metrics`: seconds per utilisation state since start, and each
+/// machine's maintenance counters (as stored plus counted since; they never go backwards).
+async fn records_metrics(app: &fresa_core::App) -> String {
+    use std::fmt::Write;
+    let mut out = String::from(
+        "# HELP fresa_machine_state_seconds_total Seconds each machine spent in each utilisation state since the server started.\n# TYPE fresa_machine_state_seconds_total counter\n",
+    );
+    let mut counters = String::from(
+        "# HELP fresa_machine_spindle_seconds_total Spindle-on time of each machine.\n# TYPE fresa_machine_spindle_seconds_total counter\n# HELP fresa_machine_motion_seconds_total Motion time (running, jogging, homing) of each machine.\n# TYPE fresa_machine_motion_seconds_total counter\n# HELP fresa_machine_distance_mm_total Distance travelled per axis.\n# TYPE fresa_machine_distance_mm_total counter\n# HELP fresa_machine_jobs_total Runs ended on each machine.\n# TYPE fresa_machine_jobs_total counter\n# HELP fresa_maintenance_due 1 while a maintenance interval is due.\n# TYPE fresa_maintenance_due gauge\n",
+    );
+    for m in app.machines.all().await {
+        for (state, secs) in m.state_seconds() {
+            let _ = writeln!(
+                out,
+                "fresa_machine_state_seconds_total{{machine=\"{}\",state=\"{state}\"}} {secs:.3}",
+                m.id
+            );
+        }
+        let c = m.counters();
+        let id = m.id;
+        let _ = writeln!(
+            counters,
+            "fresa_machine_spindle_seconds_total{{machine=\"{id}\"}} {:.3}\nfresa_machine_motion_seconds_total{{machine=\"{id}\"}} {:.3}\nfresa_machine_jobs_total{{machine=\"{id}\"}} {}",
+            c.spindle_hours * 3600.0,
+            c.motion_hours * 3600.0,
+            c.jobs
+        );
+        if let Some(d) = c.distance_mm.as_object() {
+            for (axis, v) in d {
+                let _ = writeln!(
+                    counters,
+                    "fresa_machine_distance_mm_total{{machine=\"{id}\",axis=\"{axis}\"}} {:.3}",
+                    v.as_f64().unwrap_or(0.0)
+                );
+            }
+        }
+        for item in &c.maintenance {
+            let name = item.name.as_str();
+            let _ = writeln!(
+                counters,
+                "fresa_maintenance_due{{machine=\"{id}\",name=\"{name}\"}} {}",
+                u8::from(item.due)
+            );
+        }
+    }
+    out.push_str(&counters);
+    out
 }
 
 #[utoipa::path(get, path = "/plugins", tag = "system",

@@ -124,6 +124,11 @@ pub struct NewMachine {
     /// the program's highest Z before the line decide).
     #[serde(default)]
     safe_z_mm: Option<f64>,
+    /// Maintenance intervals, each a `name` and one of `every_spindle_hours`,
+    /// `every_motion_hours`, `every_jobs` (default none; at most 32). Each raises
+    /// `machine.maintenance_due` once when it comes due (see `GET /machines/{id}/counters`).
+    #[serde(default)]
+    maintenance: Option<Vec<fresa_core::records::MaintenanceItem>>,
 }
 
 #[utoipa::path(post, path = "/machines", tag = "machines",
@@ -147,6 +152,7 @@ pub async fn create(
         max_probe_feed_mm_min: req.max_probe_feed_mm_min,
         override_limits: req.override_limits,
         safe_z_mm: req.safe_z_mm,
+        maintenance: req.maintenance,
     };
     let id = admin::create_machine(&app, req, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(Created { id })))

@@ -71,7 +71,8 @@ pub struct ErrorBody {
 /// Persisted (audit) types: `job.created`, `job.state`, `machine.created`, `machine.command`,
 /// `machine.jog`, `machine.jog_cancel`, `machine.mdi`, `machine.offsets`, `machine.part_zero`, `machine.alarm`,
 /// `machine.tools`, `machine.run_settings`, `machine.tool_measured`, `pendant.*`, `webhook.created`,
-/// `webhook.deleted`, `height_map.ended`, `height_map.deleted`, `queue.*` (job queues). Live only (no `id`): `status` (same
+/// `webhook.deleted`, `height_map.ended`, `height_map.deleted`, `queue.*` (job queues),
+/// `machine.maintenance_due`, `machine.maintenance_done`. Live only (no `id`): `status` (same
 /// schema as `GET /machines/{id}/status`), `job.progress` (`job`, `run`, `line`, `total_lines`,
 /// `percent`), `job.line_report`, `machine.state`, `height_map.progress` (`map`, `done`,
 /// `total`, `i`, `j`, `x`, `y`, `z`). Control: `resync`.

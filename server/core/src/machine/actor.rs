@@ -743,6 +743,16 @@ impl Task {
         self.bus
             .record_or_log(EventKind::JobState, Some(self.id), actor, data)
             .await;
+        // Every stored end of a run passes here (also one kept through an outage): its part
+        // record, written off the task (it reads the job, tools and audit log).
+        if !row.state.is_active() {
+            let (store, row) = (self.store.clone(), row.clone());
+            tokio::spawn(async move {
+                if let Err(e) = crate::records::record_part(&store, &row).await {
+                    tracing::error!(run = row.id, error = %e, "could not write the part record");
+                }
+            });
+        }
     }
 
     /// After the machine changed state: the run follows it between running and paused when
@@ -815,6 +825,18 @@ impl Task {
             }
             self.pending.acks.remove(&run);
             self.show_ack(run, line);
+            // A line the backend reported as it stopped, after the run's end was stored: the
+            // part record is written again with it.
+            if self.run.borrow().as_ref().is_none_or(|r| r.run_id != run) {
+                let store = self.store.clone();
+                tokio::spawn(async move {
+                    if let Ok(Some(row)) = store.run(run).await {
+                        if let Err(e) = crate::records::record_part(&store, &row).await {
+                            tracing::error!(run, error = %e, "could not update the part record");
+                        }
+                    }
+                });
+            }
         }
         while let Some(t) = self.pending.transitions.front() {
             let written = health

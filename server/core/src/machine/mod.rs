@@ -6,6 +6,7 @@
 
 mod actor;
 pub mod centre;
+pub mod counters;
 pub mod deadman;
 pub mod heightmap;
 pub mod holds;
@@ -278,6 +279,8 @@ pub struct Machine {
     holds: Arc<holds::HostHolds>,
     /// The height map grid being probed, if any (see [`heightmap`]).
     grid: heightmap::Slot,
+    /// State changes and maintenance counters (see [`counters`]).
+    records: Arc<counters::Records>,
 }
 
 impl Machine {
@@ -363,7 +366,9 @@ impl Machine {
             profile: std::sync::OnceLock::new(),
             holds: holds.clone(),
             grid: Default::default(),
+            records: Default::default(),
         });
+        let task_store = store.clone();
         let task = actor::Task {
             id: row.id,
             lanes,
@@ -387,7 +392,8 @@ impl Machine {
             holds,
         };
         tokio::spawn(task.run(rx, events));
-        tokio::spawn(status_loop(m.clone(), bus, opts.status_interval));
+        tokio::spawn(status_loop(m.clone(), bus.clone(), opts.status_interval));
+        tokio::spawn(counters::track(m.clone(), task_store, bus));
         let (reply, done) = oneshot::channel();
         if m.tx.send(Msg::Restore { reply }).is_ok() {
             let _ = done.await;

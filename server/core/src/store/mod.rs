@@ -89,6 +89,7 @@ mod machines;
 mod nodes;
 mod pendants;
 mod queue;
+mod records;
 mod run_settings;
 #[cfg(any(test, feature = "test-support"))]
 pub mod test_postgres;
@@ -107,6 +108,7 @@ pub use machines::{MachineRow, PartZeroRow};
 pub use nodes::NodeRow;
 pub use pendants::{MacroAction, PendantRow};
 pub use queue::{QueueEntryRow, QueueStateRow};
+pub use records::{CountersRow, MarkRow, PartFilter, PartRow};
 pub use run_settings::{MachineXyz, RunSettings, ToolChangePolicy, ToolSetter};
 pub use tokens::{is_unique_violation, TokenInfo, TokenRow};
 pub use tools::ToolRow;

@@ -72,6 +72,7 @@ on_both!(
     tool_tables_are_per_machine_and_replaced_whole,
     a_transaction_the_database_ended_itself_leaves_the_pool_usable,
     unstored_lines_mark_a_run_until_the_operator_confirms_its_line,
+    counters_and_part_lines_only_rise_and_maintenance_is_raised_once,
 );
 
 /// Issue 23: start-up marks a run the previous process could not store all acknowledged lines
@@ -747,4 +748,113 @@ async fn reads_are_tried_during_an_outage_and_refused_like_writes_when_they_fail
         .unwrap_err();
     assert_eq!(own.code, "internal");
     assert!(!h.is_up(), "a read never ends an outage");
+}
+
+async fn counters_and_part_lines_only_rise_and_maintenance_is_raised_once(s: &Store) {
+    use super::{CountersRow, PartFilter, PartRow};
+    let (m, j) = machine_with_job(s, 10).await;
+    let high = CountersRow {
+        spindle_ms: 5000,
+        motion_ms: 7000,
+        distance_x: 12.5,
+        jobs: 3,
+        ..Default::default()
+    };
+    s.raise_counters(m, &high).await.unwrap();
+    // A writer behind (a late retry, another node) cannot lower them.
+    let low = CountersRow {
+        spindle_ms: 1000,
+        motion_ms: 9000,
+        jobs: 1,
+        ..Default::default()
+    };
+    s.raise_counters(m, &low).await.unwrap();
+    let c = s.counters(m).await.unwrap().unwrap();
+    assert_eq!(
+        (c.spindle_ms, c.motion_ms, c.distance_x, c.jobs),
+        (5000, 9000, 12.5, 3)
+    );
+
+    // Raised once per crossing until done.
+    assert!(s.raise_maintenance_due(m, "lube").await.unwrap());
+    assert!(!s.raise_maintenance_due(m, "lube").await.unwrap());
+    s.maintenance_done(m, "lube", 1.5, "alice").await.unwrap();
+    let marks = s.maintenance_marks(m).await.unwrap();
+    assert_eq!((marks[0].done_value, marks[0].due_raised), (1.5, 0));
+    assert_eq!(marks[0].done_by.as_deref(), Some("alice"));
+    assert!(s.raise_maintenance_due(m, "lube").await.unwrap());
+
+    // One record per run; its lines only rise; pages by (ended_at, id).
+    let part = |run_id: i64, last_line: i64, ended_at: i64| PartRow {
+        id: 0,
+        run_id,
+        job_id: j,
+        machine_id: m,
+        machine_name: "m".into(),
+        node: None,
+        program_name: "p.nc".into(),
+        program_sha256: "x".into(),
+        work_offset: "G54".into(),
+        work_zero: None,
+        part_zero: None,
+        tool_table: "[]".into(),
+        tool_table_sha256: "y".into(),
+        operators: "[]".into(),
+        confirmations: "[]".into(),
+        outcome: "cancelled".into(),
+        message: None,
+        line_count: 10,
+        from_line: None,
+        last_line,
+        lines_run: last_line,
+        estimate_s: Some(1.0),
+        actual_s: None,
+        started_at: None,
+        ended_at,
+    };
+    s.upsert_part(&part(1, 7, 100)).await.unwrap();
+    s.upsert_part(&part(1, 6, 100)).await.unwrap();
+    s.upsert_part(&part(2, 3, 100)).await.unwrap();
+    s.upsert_part(&part(3, 3, 200)).await.unwrap();
+    let all = s
+        .parts(&PartFilter {
+            limit: 10,
+            ..Default::default()
+        })
+        .await
+        .unwrap();
+    let runs: Vec<i64> = all.iter().map(|p| p.run_id).collect();
+    assert_eq!(runs, [3, 2, 1]);
+    assert_eq!((all[2].last_line, all[2].lines_run), (7, 7));
+    let after = s
+        .parts(&PartFilter {
+            machine: Some(m),
+            before: Some((all[1].ended_at, all[1].id)),
+            limit: 10,
+            ..Default::default()
+        })
+        .await
+        .unwrap();
+    assert_eq!(after.iter().map(|p| p.run_id).collect::<Vec<_>>(), [1]);
+    let window = s
+        .parts(&PartFilter {
+            job: Some(j),
+            from: Some(150),
+            to: Some(250),
+            limit: 10,
+            ..Default::default()
+        })
+        .await
+        .unwrap();
+    assert_eq!(window.iter().map(|p| p.run_id).collect::<Vec<_>>(), [3]);
+
+    // The state in force at `from` and the changes after it.
+    for (state, since) in [("idle", 10), ("cutting", 50), ("held", 90), ("idle", 120)] {
+        s.insert_machine_state(m, state, since).await.unwrap();
+    }
+    let states = s.machine_states(m, 60, 120).await.unwrap();
+    assert_eq!(
+        states,
+        [("cutting".to_string(), 50), ("held".to_string(), 90)]
+    );
 }
