@@ -125,8 +125,8 @@ pub fn parametric(bytes: u64, out: &mut impl Write) -> io::Result<u64> {
     let mut w = Counting { out, n: 0 };
     writeln!(w, "(synthetic parametric program, {bytes} bytes)")?;
     writeln!(w, "G90 G94 G17 G21")?;
-    writeln!(w, "#<feed> = 1200")?;
-    writeln!(w, "#<step> = 0.25")?;
+    writeln!(w, "#<_pfeed> = 1200")?;
+    writeln!(w, "#<_pstep> = 0.25")?;
     writeln!(w, "#1 = 0 (x)")?;
     writeln!(w, "#2 = 0 (angle)")?;
     writeln!(w, "#3 = -1 (depth)")?;
@@ -135,7 +135,7 @@ pub fn parametric(bytes: u64, out: &mut impl Write) -> io::Result<u64> {
         "o100 sub (arc of radius #1 around the current point's left)"
     )?;
     writeln!(w, "  #10 = [#5420 - #1]")?;
-    writeln!(w, "  G3 X#10 Y#5421 I[-#1 / 2] J0 F#<feed>")?;
+    writeln!(w, "  G3 X#10 Y#5421 I[-#1 / 2] J0 F#<_pfeed>")?;
     writeln!(w, "o100 endsub")?;
     writeln!(w, "S12000 M3")?;
     writeln!(w, "G0 X0 Y0 Z5")?;
@@ -146,9 +146,9 @@ pub fn parametric(bytes: u64, out: &mut impl Write) -> io::Result<u64> {
         writeln!(w, "(pass {pass})")?;
         for k in 0..40 {
             match k % 8 {
-                0 => writeln!(w, "#1 = [#1 + #<step>]")?,
+                0 => writeln!(w, "#1 = [#1 + #<_pstep>]")?,
                 1 => writeln!(w, "#2 = [#2 + 3.6]")?,
-                2 => writeln!(w, "G1 X[#1 * 0.5 + 10] Y[SIN[#2] * 25] F#<feed>")?,
+                2 => writeln!(w, "G1 X[#1 * 0.5 + 10] Y[SIN[#2] * 25] F#<_pfeed>")?,
                 3 => writeln!(w, "G1 X[COS[#2] * 25 + #1 / 4] Y[#1 MOD 50]")?,
                 4 => writeln!(w, "#<y> = [ABS[#2 MOD 90 - 45] - 20]")?,
                 5 => writeln!(w, "G1 Y#<y>")?,
