@@ -156,10 +156,10 @@ fn sync_pos(sh: &mut State, cfg: &Config) {
         .insert(io::Z_LIFT.to_string(), Some(IoValue::On(sh.extra.lift)));
 }
 
-/// The output loop's lateness against its deadlines over the last 2 s of ticks it timed
+/// The output loop's lateness against its deadlines over the last 10 s of ticks it timed
 /// (microseconds; p50 and p99 to the 0.5 us bucket above): numbers in the status's `outputs`,
 /// so a shop sees its PC's real jitter in the status and in `/metrics`
-/// (`fresa_machine_output{io="loop_lateness_p99_us"}`). Absent until the loop has timed 2 s
+/// (`fresa_machine_output{io="loop_lateness_p99_us"}`). Absent until the loop has timed 10 s
 /// of ticks; they stay at the last figures while it idles.
 const LATENESS_P50: &str = "loop_lateness_p50_us";
 const LATENESS_P99: &str = "loop_lateness_p99_us";
@@ -210,7 +210,7 @@ impl Core {
     }
 
     /// Shows input levels that changed (debounced) in the status at once.
-    /// Also shows the loop's lateness over the last 2 s of ticks (see [`io_lateness`]).
+    /// Also shows the loop's lateness over the last 10 s of ticks (see [`LATENESS_P50`]).
     fn show_inputs(&self, out: &mut Output) {
         let levels = out.take_shown_inputs();
         let late = out.pacer.take_lateness();

@@ -39,14 +39,15 @@ struct Lateness {
     counts: Box<[u32; LATENESS_BUCKETS]>,
     n: u64,
     max_ns: u64,
-    /// Ticks per window (2 s of ticks); 0: not recorded (virtual time).
+    /// Ticks per window (10 s of ticks: each report is a `machine.io` event, so not too
+    /// often); 0: not recorded (virtual time).
     window: u64,
     ready: Option<LatenessReport>,
 }
 
 impl Lateness {
     fn new(period: Option<Duration>) -> Lateness {
-        let window = period.map_or(0, |p| (2.0 / p.as_secs_f64()).ceil() as u64);
+        let window = period.map_or(0, |p| (10.0 / p.as_secs_f64()).ceil() as u64);
         Lateness {
             counts: Box::new([0; LATENESS_BUCKETS]),
             n: 0,
@@ -119,7 +120,7 @@ impl Pacer {
         self.next
     }
 
-    /// The lateness of the last full window (2 s of ticks), once: the loop's real jitter on
+    /// The lateness of the last full window (10 s of ticks), once: the loop's real jitter on
     /// this PC, for the status.
     pub fn take_lateness(&mut self) -> Option<LatenessReport> {
         self.lateness.ready.take()
@@ -426,18 +427,18 @@ mod tests {
     /// edges), with the maximum exact; a new window starts empty.
     #[test]
     fn lateness_windows_report_quantiles_and_the_exact_maximum() {
-        // 1 kHz: a window is 2,000 ticks.
+        // 1 kHz: a window is 10,000 ticks.
         let mut l = Lateness::new(Some(Duration::from_millis(1)));
-        for i in 0..1_970u64 {
+        for i in 0..9_850u64 {
             l.record(Duration::from_nanos(200 + i % 100)); // bucket 0
         }
-        for _ in 0..29 {
-            l.record(Duration::from_micros(7)); // 29 ticks at 7 us: the 99th percentile
+        for _ in 0..149 {
+            l.record(Duration::from_micros(7)); // 149 ticks at 7 us: the 99th percentile
         }
         assert!(l.ready.is_none());
         l.record(Duration::from_millis(3)); // beyond the histogram: max only
         let r = l.ready.take().unwrap();
-        assert_eq!(r.ticks, 2_000);
+        assert_eq!(r.ticks, 10_000);
         assert_eq!(r.p50_us, 0.5);
         assert_eq!(r.p99_us, 7.5);
         assert_eq!(r.max_us, 3000.0);
