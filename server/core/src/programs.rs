@@ -657,6 +657,59 @@ mod tests {
         assert_eq!(c.finish().unwrap_err().code, "empty_program");
     }
 
+    /// The analysis that runs while the program arrives (in odd-sized chunks, more than the
+    /// tap's blocks in flight) is the one a separate pass over the stored file gives; a
+    /// program with an error gets the same error; a rejected upload leaves no file.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn the_analysis_alongside_equals_the_analysis_of_the_file() {
+        let dir = std::env::temp_dir().join(format!("fresa-tap-{}", rand::random::<u64>()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut text = String::from("G21 G90\n(a comment)\n");
+        for i in 0..60_000 {
+            text.push_str(&format!(
+                "G1 X{}.5 Y-{}.25 F{}\n",
+                i % 97,
+                i % 13,
+                300 + i % 7
+            ));
+            if i % 50 == 0 {
+                text.push_str("G2 X0 Y0 I1 J0\n");
+            }
+        }
+        text.push_str("M2\n");
+        let opts = fresa_gcode::AnalysisOptions::default();
+        let bad = "G0 X1\nG1 Y2 Q\n".repeat(3);
+        for program in [text.as_str(), bad.as_str()] {
+            let mut p = PendingProgram::create(&dir, u64::MAX).await.unwrap();
+            p.analyse_alongside(opts.clone());
+            for chunk in program.as_bytes().chunks(7_919) {
+                p.write(chunk).await.unwrap();
+            }
+            let stored = p.finish(None).await.unwrap();
+            let file = std::fs::read(stored.temp_path().unwrap()).unwrap();
+            assert_eq!(file, program.as_bytes());
+            let alongside = stored.alongside.as_ref().unwrap();
+            assert_eq!(alongside.opts, opts);
+            let again = fresa_gcode::analyse(&file[..], &opts);
+            match (&alongside.result, &again) {
+                (Ok(a), Ok(b)) => {
+                    assert_eq!(a, b);
+                    assert!(a.motion_lines > 60_000, "{}", a.motion_lines);
+                }
+                (Err(a), Err(b)) => assert_eq!(a, b),
+                (a, b) => panic!("alongside {a:?} but from the file {b:?}"),
+            }
+        }
+        // Not UTF-8: refused, its temporary file gone, the analysis thread left to end.
+        let mut p = PendingProgram::create(&dir, u64::MAX).await.unwrap();
+        p.analyse_alongside(opts.clone());
+        p.write(b"G0 X1\n").await.unwrap();
+        assert_eq!(p.write(b"G1 \xff\n").await.unwrap_err().code, "not_utf8");
+        drop(p);
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 0);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
     /// A full disk under an upload is 503 `disk_full` (issue 23), not 500: `/dev/full` answers
     /// every write with ENOSPC, as a full filesystem does.
     #[cfg(target_os = "linux")]
