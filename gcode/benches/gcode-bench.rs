@@ -5,10 +5,15 @@
 //! Run (from the workspace root):
 //!   CARGO_TARGET_DIR=/work/target-gcode cargo bench -p fresa-gcode --bench gcode-bench
 //! Options after `--`: `--mem-mb N` (synthetic program size, default 1024,
+//! 0 to skip), `--synth-mb N` (the generated CAM-style program analysed as an
+//! upload analyses it, default 200; the parametric one is a quarter of it;
 //! 0 to skip), `--secs S` (time per measurement, default 0.5), `--python P`
 //! (a python with pygcode installed: adds pygcode as a second independent
 //! parser; `benches/with-pygcode.sh` sets that up).
 #![allow(clippy::unwrap_used, clippy::expect_used)]
+
+#[path = "support/synth.rs"]
+mod synth;
 
 use fresa_gcode::{analyse, linearise, AnalysisOptions, Config, Interpreter, Motion};
 use std::hint::black_box;
@@ -222,6 +227,11 @@ fn main() {
     }
     let dir = corpus_dir();
     let pocket = std::fs::read(dir.join("cncjs-tball-pocket.gcode")).unwrap();
+
+    let synth_mb = opt("--synth-mb", if smoke { 1.0 } else { 200.0 });
+    if synth_mb > 0.0 {
+        synthetic(synth_mb, smoke);
+    }
 
     // Memory first, so that nothing else has raised the high-water mark.
     if mem_mb > 0.0 {
@@ -484,4 +494,50 @@ fn pygcode_seconds(python: &str, file: &std::path::Path) -> f64 {
         .nth(1)
         .and_then(|s| s.parse().ok())
         .expect("pygcode bench output")
+}
+
+/// The upload's analysis (`analyse`, default options) of the generated programs of
+/// `benches/support/synth.rs`: a CAM-style one of `mb` MB and a parametric one of a quarter
+/// of that, held in memory; best of 3 runs (1 in a smoke run).
+fn synthetic(mb: f64, smoke: bool) {
+    println!(
+        "## Generated programs, analysed as an upload is (`analyse`, best of {})",
+        if smoke { 1 } else { 3 }
+    );
+    println!();
+    println!("| program | MB | lines | motion lines | analyse | MB/s | M lines/s |");
+    println!("|---|---:|---:|---:|---:|---:|---:|");
+    for (name, size) in [
+        ("CAM (G0/G1/G2/G3, comments)", mb),
+        ("parametric (expressions, parameters, O-words)", mb / 4.0),
+    ] {
+        let mut src = Vec::new();
+        let bytes = (size * 1e6) as u64;
+        if name.starts_with("CAM") {
+            synth::cam(bytes, &mut src).unwrap();
+        } else {
+            synth::parametric(bytes, &mut src).unwrap();
+        }
+        let lines = memchr_count(&src);
+        let mut best = f64::MAX;
+        let mut motion_lines = 0;
+        for _ in 0..if smoke { 1 } else { 3 } {
+            let start = Instant::now();
+            let a = analyse(&src[..], &AnalysisOptions::default()).unwrap();
+            best = best.min(start.elapsed().as_secs_f64());
+            motion_lines = a.motion_lines;
+        }
+        println!(
+            "| {name} | {:.1} | {lines} | {motion_lines} | {:.3} s | {:.0} | {:.2} |",
+            src.len() as f64 / 1e6,
+            best,
+            src.len() as f64 / best / 1e6,
+            lines as f64 / best / 1e6
+        );
+    }
+    println!();
+}
+
+fn memchr_count(b: &[u8]) -> usize {
+    b.iter().filter(|&&c| c == b'\n').count()
 }

@@ -5,7 +5,7 @@
 //! the cost of one pass, free of start-up and of other load on the machine.
 //!
 //!   cargo build --release -p fresa-gcode --example instructions
-//!   valgrind --tool=cachegrind --cache-sim=no target/release/examples/instructions FILE 2 [lin]
+//!   valgrind --tool=cachegrind --cache-sim=no target/release/examples/instructions FILE 2 [lin|an]
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fresa_gcode::{linearise, Config, Interpreter};
@@ -13,13 +13,18 @@ use std::hint::black_box;
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
-    let path = args.get(1).expect("usage: instructions FILE REPS [lin]");
+    let path = args.get(1).expect("usage: instructions FILE REPS [lin|an]");
     let reps: usize = args.get(2).map_or(1, |r| r.parse().expect("REPS"));
     let lin = args.get(3).is_some_and(|a| a == "lin");
+    // `an`: the whole analysis, as an upload runs it.
+    let an = args.get(3).is_some_and(|a| a == "an");
     let src = std::fs::read(path).expect("read FILE");
     let mut n = 0u64;
     for _ in 0..reps {
-        if lin {
+        if an {
+            let a = fresa_gcode::analyse(&src[..], &fresa_gcode::AnalysisOptions::default());
+            n += a.unwrap().motion_lines;
+        } else if lin {
             for m in linearise(Interpreter::new(&src[..], Config::default()), 0.002) {
                 black_box(m.unwrap());
                 n += 1;

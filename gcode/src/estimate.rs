@@ -159,6 +159,8 @@ pub struct Estimator {
     /// Lines between two kept marks (doubles when the table fills).
     stride: u32,
     last_line: u32,
+    /// Scratch for [`Estimator::plan`], kept between calls.
+    entry_max: Vec<f64>,
 }
 
 impl Estimator {
@@ -173,6 +175,7 @@ impl Estimator {
             table: TimeTable::default(),
             stride: 1,
             last_line: 0,
+            entry_max: Vec::new(),
         }
     }
 
@@ -315,12 +318,26 @@ impl Estimator {
         if len <= 0.0 {
             return;
         }
-        let d = unit(from, to);
-        let reach = self.reach(d);
-        let v = match feed_mm_min {
-            Some(f) => self.feed_speed(f, reach),
-            None => self.rapid_speed(reach),
+        let speed = |e: &Self, reach: f64| match feed_mm_min {
+            Some(f) => e.feed_speed(f, reach),
+            None => e.rapid_speed(reach),
         };
+        if self.a() <= 0.0 && !self.profile.per_axis {
+            // No junctions to plan and no axis shares: the direction is not needed.
+            let v = speed(self, 1.0);
+            if v > 0.0 && len.is_finite() && v.is_finite() {
+                self.add(line, kind, len / v);
+            }
+            return;
+        }
+        // `unit(from, to)` without computing the length again (same divisions, same bits).
+        let d = [
+            (to[0] - from[0]) / len,
+            (to[1] - from[1]) / len,
+            (to[2] - from[2]) / len,
+        ];
+        let reach = self.reach(d);
+        let v = speed(self, reach);
         let a = self.a() * reach;
         self.enqueue(line, kind, len, (v, a), d, d);
     }
@@ -387,7 +404,9 @@ impl Estimator {
             return;
         }
         // Backward: the fastest entry each move allows given it can still slow to the next.
-        let mut entry_max = vec![0.0; len];
+        let mut entry_max = std::mem::take(&mut self.entry_max);
+        entry_max.clear();
+        entry_max.resize(len, 0.0);
         let mut exit = 0.0_f64;
         for k in (0..len).rev() {
             let m = self.queue[k];
@@ -413,6 +432,7 @@ impl Estimator {
         }
         self.queue.drain(..n);
         self.entry = v_in;
+        self.entry_max = entry_max;
     }
 
     fn add(&mut self, line: u32, kind: Kind, seconds: f64) {

@@ -2482,10 +2482,11 @@ fn check_word_ranges(blk: &Block, scale: f64, feed_mode: FeedMode) -> Result<(),
     if present == 0 {
         return Ok(());
     }
-    for i in 0..blk.vals.len() {
-        if present & (1 << i) == 0 {
-            continue;
-        }
+    // Only the words present, lowest letter first (the order errors are found in).
+    let mut rest = present;
+    while rest != 0 {
+        let i = rest.trailing_zeros() as usize;
+        rest &= rest - 1;
         let v = blk.vals[i];
         let bit_i = 1u32 << i;
         let (value, limit, unit) = if bit_i & LENGTH_WORDS != 0 {

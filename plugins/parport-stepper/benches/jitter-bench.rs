@@ -2,12 +2,14 @@
 //! the simulated port (which timestamps every write), stepping both motors every tick.
 //!
 //! Run (from the workspace root):
-//!   cargo bench -p fresa-parport-stepper --bench jitter-bench -- [--hz 20000] [--secs 5] [--cpu N] [--spin-us 20]
+//!   cargo bench -p fresa-parport-stepper --bench jitter-bench -- [--hz 20000] [--secs 5] [--cpu N] [--spin-us 20] [--no-rt]
 //! `--cpu N` pins the loop to CPU N (pick an idle one). Real-time priority is tried and reported.
 //! Under `cargo test --all-targets` (no `--bench` argument) it does a quick smoke run.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use fresa_parport_stepper::output::{realtime_priority, Output, Pacer};
+use fresa_parport_stepper::output::{
+    pin_to_cpu, realtime_priority, tight_timer_slack, Output, Pacer,
+};
 use fresa_parport_stepper::port::{Register, SharedSimPort, SimPort};
 use fresa_parport_stepper::Config;
 use std::sync::{Arc, Mutex};
@@ -30,25 +32,20 @@ fn main() {
     let hz = arg("--hz").unwrap_or(20_000.0);
     let secs = arg("--secs").unwrap_or(if full { 5.0 } else { 0.05 });
     let spin_us = arg("--spin-us").unwrap_or(20.0);
-    #[cfg(target_os = "linux")]
     if let Some(cpu) = arg("--cpu") {
-        // SAFETY: a zeroed cpu_set_t is valid; CPU_SET writes within it.
-        unsafe {
-            let mut set: libc::cpu_set_t = std::mem::zeroed();
-            libc::CPU_SET(cpu as usize, &mut set);
-            if libc::sched_setaffinity(0, std::mem::size_of_val(&set), &set) != 0 {
-                println!(
-                    "could not pin to CPU {cpu}: {}",
-                    std::io::Error::last_os_error()
-                );
-            }
+        if let Err(e) = pin_to_cpu(cpu as usize) {
+            println!("could not pin to CPU {cpu}: {e}");
         }
     }
-    #[cfg(not(target_os = "linux"))]
-    if arg("--cpu").is_some() {
-        println!("--cpu: pinning to a CPU is only implemented on Linux");
+    // As the plugin's output thread does.
+    if let Err(e) = tight_timer_slack() {
+        println!("could not set the timer slack: {e}");
     }
-    let rt = realtime_priority();
+    let rt = if std::env::args().any(|a| a == "--no-rt") {
+        Err("--no-rt".to_string())
+    } else {
+        realtime_priority()
+    };
     let ticks = (hz * secs) as u64;
     let config = serde_json::json!({"port": "sim", "tick_hz": hz, "spin_us": spin_us,
         "axes": {"x": {"max_rate": hz / 2.0}, "y": {"max_rate": hz / 2.0}}});

@@ -121,6 +121,8 @@ pub struct Config {
     /// Below this much time to the next tick the loop spins instead of sleeping.
     pub spin: Duration,
     pub realtime_priority: bool,
+    /// CPU the output thread is pinned to (`cpu`), if any.
+    pub cpu: Option<usize>,
     pub inputs: Vec<Input>,
     /// How long an input's new level must hold before the status shows it (switch bounce).
     /// Trips do not wait for it: a limit or e-stop stops the motors in the tick that reads it.
@@ -326,10 +328,12 @@ impl Config {
         let mut tick_hz = 20_000.0;
         let mut idle_off_ms = 15.0;
         // Spinning the whole period at SCHED_FIFO trips the kernel's real-time throttling (95 % of
-        // each second by default) and stalls the loop for 50 ms; 20 us keeps it sleeping part
-        // of every 50 us tick (see the README's jitter measurements).
-        let mut spin_us = 20.0;
+        // each second by default) and stalls the loop for 50 ms; 40 us still sleeps part of
+        // every 50 us tick, and covers a stock kernel's wake-up latency (15-25 us measured on
+        // a VM), so the tick starts on time (see the README's jitter measurements).
+        let mut spin_us = 40.0;
         let mut realtime_priority = true;
+        let mut cpu = None;
         let mut rapid_mm_min = 6000.0;
         let mut jog_feed_mm_min = 300.0;
         let mut execution_log = None;
@@ -371,6 +375,19 @@ impl Config {
                 "idle_off_ms" => idle_off_ms = positive(key, v)?,
                 "spin_us" => spin_us = non_negative(key, v)?,
                 "realtime_priority" => realtime_priority = boolean(key, v)?,
+                "cpu" => {
+                    cpu = match v {
+                        Value::Null => None,
+                        v => match v.as_u64() {
+                            Some(n) if n < 1024 => Some(n as usize),
+                            _ => {
+                                return Err(invalid(format!(
+                                    "`cpu` must be a CPU number from 0 to 1023 (or null), got {v}"
+                                )))
+                            }
+                        },
+                    }
+                }
                 "rapid_mm_min" => rapid_mm_min = positive(key, v)?,
                 "jog_feed_mm_min" => jog_feed_mm_min = positive(key, v)?,
                 "status_interval_ms" => status_interval_ms = non_negative(key, v)?,
@@ -461,6 +478,7 @@ impl Config {
             idle_off: Duration::from_secs_f64(idle_off_ms / 1000.0),
             spin: Duration::from_secs_f64(spin_us / 1e6),
             realtime_priority,
+            cpu,
             inputs: ins,
             input_debounce: Duration::from_secs_f64(input_debounce_ms / 1000.0),
             jog_feed_mm_min,

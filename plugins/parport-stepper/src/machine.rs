@@ -3,7 +3,7 @@
 //! executes plans, reads the inputs every tick and reports what happened.
 
 use crate::config::{Config, Input, InputFunction, PortSpec};
-use crate::output::{realtime_priority, Output, Pacer};
+use crate::output::{pin_to_cpu, realtime_priority, tight_timer_slack, Output, Pacer};
 use crate::planner::{
     self, Action, Builder, Item, Machine, Pace, PlanEnd, PlanStream, ProgramStream, Retimable,
     Scale, Start,
@@ -156,6 +156,15 @@ fn sync_pos(sh: &mut State, cfg: &Config) {
         .insert(io::Z_LIFT.to_string(), Some(IoValue::On(sh.extra.lift)));
 }
 
+/// The output loop's lateness against its deadlines over the last 10 s of ticks it timed
+/// (microseconds; p50 and p99 to the 0.5 us bucket above): numbers in the status's `outputs`,
+/// so a shop sees its PC's real jitter in the status and in `/metrics`
+/// (`fresa_machine_output{io="loop_lateness_p99_us"}`). Absent until the loop has timed 10 s
+/// of ticks; they stay at the last figures while it idles.
+const LATENESS_P50: &str = "loop_lateness_p50_us";
+const LATENESS_P99: &str = "loop_lateness_p99_us";
+const LATENESS_MAX: &str = "loop_lateness_max_us";
+
 /// Why a job stops at an input: the alarm names it.
 fn tripped(input: &Input) -> Interrupted {
     Interrupted::Tripped {
@@ -201,10 +210,28 @@ impl Core {
     }
 
     /// Shows input levels that changed (debounced) in the status at once.
+    /// Also shows the loop's lateness over the last 10 s of ticks (see [`LATENESS_P50`]).
     fn show_inputs(&self, out: &mut Output) {
-        if let Some(levels) = out.take_shown_inputs() {
-            self.kit.with(|sh, ev| sh.set_io(levels, [], ev));
+        let levels = out.take_shown_inputs();
+        let late = out.pacer.take_lateness();
+        if levels.is_none() && late.is_none() {
+            return;
         }
+        let outputs = late.map(|r| {
+            let us = |v: f64| Some(IoValue::Number((v * 10.0).round() / 10.0));
+            [
+                (LATENESS_P50.to_string(), us(r.p50_us)),
+                (LATENESS_P99.to_string(), us(r.p99_us)),
+                (LATENESS_MAX.to_string(), us(r.max_us)),
+            ]
+        });
+        self.kit.with(|sh, ev| {
+            sh.set_io(
+                levels.unwrap_or_default(),
+                outputs.into_iter().flatten(),
+                ev,
+            )
+        });
     }
 
     // ----- output thread -----
@@ -1111,7 +1138,38 @@ impl Stepper {
         });
         let worker_core = Arc::clone(&core);
         let want_rt = core.cfg.realtime_priority && timing == Timing::Real;
+        let cpu = core.cfg.cpu.filter(|_| timing == Timing::Real);
+        let period = 1.0 / core.cfg.machine.tick_hz;
+        let always_spins = core.cfg.spin.as_secs_f64() >= period;
         let worker = MotionThread::spawn("parport output", move || {
+            if timing == Timing::Real {
+                if let Err(e) = tight_timer_slack() {
+                    log(
+                        LogLevel::Warn,
+                        &format!("output loop could not set its timer slack to 1 ns ({e}); its sleeps may end up to 50 us late"),
+                    );
+                }
+            }
+            if let Some(cpu) = cpu {
+                match pin_to_cpu(cpu) {
+                    Ok(()) => log(LogLevel::Info, &format!("output loop pinned to CPU {cpu}")),
+                    Err(e) => log(
+                        LogLevel::Warn,
+                        &format!("output loop could NOT be pinned to CPU {cpu} ({e}); it runs on any CPU"),
+                    ),
+                }
+            }
+            if want_rt && always_spins {
+                if let Some(limit) = rt_throttle_limit() {
+                    log(
+                        LogLevel::Warn,
+                        &format!(
+                            "output loop spins every whole tick (spin_us >= the {:.1} us period) at real-time priority, but the kernel throttles real-time threads (kernel.sched_rt_runtime_us = {limit}): expect the loop to stall about 50 ms each second. Set `sysctl kernel.sched_rt_runtime_us=-1`, or lower spin_us or tick_hz",
+                            period * 1e6
+                        ),
+                    );
+                }
+            }
             if want_rt {
                 match realtime_priority() {
                         Ok(()) => log(LogLevel::Info, "output loop runs with real-time priority (SCHED_FIFO)"),
@@ -1157,6 +1215,14 @@ impl Stepper {
             Ok(on)
         })
     }
+}
+
+/// The kernel's real-time runtime limit (`kernel.sched_rt_runtime_us`) when real-time threads
+/// are throttled (None: not throttled, or not known).
+fn rt_throttle_limit() -> Option<i64> {
+    let text = std::fs::read_to_string("/proc/sys/kernel/sched_rt_runtime_us").ok()?;
+    let v: i64 = text.trim().parse().ok()?;
+    (v >= 0).then_some(v)
 }
 
 #[cfg(target_os = "linux")]

@@ -16,6 +16,87 @@ pub struct Pacer {
     next: Instant,
     /// Times the loop fell so far behind that it gave up catching up.
     pub overruns: u64,
+    /// How late each wait ended against its deadline, over the current window.
+    lateness: Lateness,
+}
+
+/// Lateness figures of the output loop over a window of ticks, microseconds.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LatenessReport {
+    pub p50_us: f64,
+    pub p99_us: f64,
+    pub max_us: f64,
+    pub ticks: u64,
+}
+
+/// Buckets of [`LATENESS_BUCKET_NS`]: 0 to 200 us; later ticks count in the last one (the
+/// maximum is kept exactly).
+const LATENESS_BUCKETS: usize = 400;
+const LATENESS_BUCKET_NS: u64 = 500;
+
+/// A fixed histogram of lateness (no allocation in the loop, one increment a tick).
+struct Lateness {
+    counts: Box<[u32; LATENESS_BUCKETS]>,
+    n: u64,
+    max_ns: u64,
+    /// Ticks per window (10 s of ticks: each report is a `machine.io` event, so not too
+    /// often); 0: not recorded (virtual time).
+    window: u64,
+    ready: Option<LatenessReport>,
+}
+
+impl Lateness {
+    fn new(period: Option<Duration>) -> Lateness {
+        let window = period.map_or(0, |p| (10.0 / p.as_secs_f64()).ceil() as u64);
+        Lateness {
+            counts: Box::new([0; LATENESS_BUCKETS]),
+            n: 0,
+            max_ns: 0,
+            window,
+            ready: None,
+        }
+    }
+
+    #[inline]
+    fn record(&mut self, late: Duration) {
+        if self.window == 0 {
+            return;
+        }
+        let ns = u64::try_from(late.as_nanos()).unwrap_or(u64::MAX);
+        let b = ((ns / LATENESS_BUCKET_NS) as usize).min(LATENESS_BUCKETS - 1);
+        self.counts[b] += 1;
+        self.max_ns = self.max_ns.max(ns);
+        self.n += 1;
+        if self.n >= self.window {
+            self.ready = Some(self.report());
+            self.counts.fill(0);
+            self.n = 0;
+            self.max_ns = 0;
+        }
+    }
+
+    /// The upper edge of the bucket holding quantile `q` (so a figure is never too low).
+    fn quantile_us(&self, q: f64) -> f64 {
+        let want = ((self.n as f64) * q).ceil().max(1.0) as u64;
+        let mut seen = 0u64;
+        for (i, &c) in self.counts.iter().enumerate() {
+            seen += u64::from(c);
+            if seen >= want {
+                let edge = (i as u64 + 1) * LATENESS_BUCKET_NS;
+                return edge.min(self.max_ns.max(1)) as f64 / 1000.0;
+            }
+        }
+        self.max_ns as f64 / 1000.0
+    }
+
+    fn report(&self) -> LatenessReport {
+        LatenessReport {
+            p50_us: self.quantile_us(0.5),
+            p99_us: self.quantile_us(0.99),
+            max_us: self.max_ns as f64 / 1000.0,
+            ticks: self.n,
+        }
+    }
 }
 
 impl Pacer {
@@ -25,6 +106,7 @@ impl Pacer {
             spin,
             next: Instant::now(),
             overruns: 0,
+            lateness: Lateness::new(period),
         }
     }
 
@@ -38,7 +120,14 @@ impl Pacer {
         self.next
     }
 
-    /// Waits for the next tick's deadline.
+    /// The lateness of the last full window (10 s of ticks), once: the loop's real jitter on
+    /// this PC, for the status.
+    pub fn take_lateness(&mut self) -> Option<LatenessReport> {
+        self.lateness.ready.take()
+    }
+
+    /// Waits for the next tick's deadline: sleeps until `spin` before it (the kernel's wake-up
+    /// is late by tens of microseconds on a stock kernel), then spins to it.
     pub fn wait(&mut self) {
         let Some(period) = self.period else { return };
         self.next += period;
@@ -47,6 +136,7 @@ impl Pacer {
             // A whole tick missed (preempted, overloaded): shift the schedule instead of
             // catching up, since a burst of late ticks would step a motor faster than its
             // max rate and lose steps. Motion is delayed, never compressed.
+            self.lateness.record(now - (self.next - period));
             self.next = now;
             self.overruns += 1;
             return;
@@ -54,9 +144,12 @@ impl Pacer {
         if self.next > now + self.spin {
             std::thread::sleep(self.next - now - self.spin);
         }
-        while Instant::now() < self.next {
+        let mut t = Instant::now();
+        while t < self.next {
             std::hint::spin_loop();
+            t = Instant::now();
         }
+        self.lateness.record(t - self.next);
     }
 }
 
@@ -254,6 +347,54 @@ impl Output {
     }
 }
 
+/// Sets the calling thread's timer slack to 1 ns: a normal thread's sleeps may end up to
+/// 50 us late (the default slack), which is a whole tick at 20 kHz. (Real-time threads have
+/// none.) Err says why not.
+pub fn tight_timer_slack() -> Result<(), String> {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: PR_SET_TIMERSLACK takes a plain integer argument; no memory is passed.
+        let r = unsafe { libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong, 0, 0, 0) };
+        if r == 0 {
+            Ok(())
+        } else {
+            Err(io::Error::last_os_error().to_string())
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        Err("only implemented on Linux".into())
+    }
+}
+
+/// Pins the calling thread to CPU `cpu` (an isolated or otherwise idle core keeps other work
+/// from delaying ticks). Err says why not.
+pub fn pin_to_cpu(cpu: usize) -> Result<(), String> {
+    #[cfg(target_os = "linux")]
+    {
+        if cpu >= libc::CPU_SETSIZE as usize {
+            return Err(format!("CPU {cpu} is out of range"));
+        }
+        // SAFETY: a zeroed cpu_set_t is valid; CPU_SET writes within it (cpu checked above);
+        // sched_setaffinity reads it for the calling thread.
+        let r = unsafe {
+            let mut set: libc::cpu_set_t = std::mem::zeroed();
+            libc::CPU_SET(cpu, &mut set);
+            libc::sched_setaffinity(0, std::mem::size_of_val(&set), &set)
+        };
+        if r == 0 {
+            Ok(())
+        } else {
+            Err(io::Error::last_os_error().to_string())
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        let _ = cpu;
+        Err("only implemented on Linux".into())
+    }
+}
+
 /// Asks for real-time (SCHED_FIFO) priority for the calling thread. Err says why not.
 pub fn realtime_priority() -> Result<(), String> {
     #[cfg(target_os = "linux")]
@@ -274,5 +415,39 @@ pub fn realtime_priority() -> Result<(), String> {
     #[cfg(not(target_os = "linux"))]
     {
         Err("only implemented on Linux".into())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    /// The window's figures come from the recorded lateness, never below it (bucket upper
+    /// edges), with the maximum exact; a new window starts empty.
+    #[test]
+    fn lateness_windows_report_quantiles_and_the_exact_maximum() {
+        // 1 kHz: a window is 10,000 ticks.
+        let mut l = Lateness::new(Some(Duration::from_millis(1)));
+        for i in 0..9_850u64 {
+            l.record(Duration::from_nanos(200 + i % 100)); // bucket 0
+        }
+        for _ in 0..149 {
+            l.record(Duration::from_micros(7)); // 149 ticks at 7 us: the 99th percentile
+        }
+        assert!(l.ready.is_none());
+        l.record(Duration::from_millis(3)); // beyond the histogram: max only
+        let r = l.ready.take().unwrap();
+        assert_eq!(r.ticks, 10_000);
+        assert_eq!(r.p50_us, 0.5);
+        assert_eq!(r.p99_us, 7.5);
+        assert_eq!(r.max_us, 3000.0);
+        l.record(Duration::from_micros(1));
+        assert_eq!(l.n, 1);
+        assert_eq!(l.max_ns, 1000);
+        // Virtual time records nothing.
+        let mut v = Lateness::new(None);
+        v.record(Duration::from_micros(5));
+        assert_eq!((v.n, v.ready), (0, None));
     }
 }

@@ -39,18 +39,9 @@ pub async fn store_program(
         Some(n) if !n.is_empty() => n.to_string(),
         _ => format!("program-{}", &program.sha256[..12]),
     };
-    let config = fresa_gcode::Config {
-        unsupported: unsupported_policy(app, machine_id).await?,
-        tools: crate::tools::gcode_table(app, machine_id).await?,
-        ..fresa_gcode::Config::default()
-    };
-    // The time estimate with the machine's own rapid rate, acceleration and cornering (when
-    // this node drives it and its backend says).
-    let profile = match app.machines.get(machine_id).await {
-        Some(m) => m.motion_profile().await,
-        None => None,
-    };
-    let analysis = analyse(&program, config, profile, app.settings.max_program_segments).await?;
+    let opts = analysis_options(app, machine_id).await?;
+    let mut program = program;
+    let analysis = analyse(&mut program, opts).await?;
     let sha = program.sha256.clone();
     let (lines, bytes) = (program.lines, program.bytes);
     let dir = app.settings.programs_dir();
@@ -114,6 +105,28 @@ pub async fn store_program(
     })
 }
 
+/// How a program for `machine_id` is analysed: its unsupported-word policy and tool table, the
+/// work budget, and the time estimate with the machine's own rapid rate, acceleration and
+/// cornering (when this node drives it and its backend says). An upload asks for these before
+/// its first byte, to analyse the program as it arrives.
+pub async fn analysis_options(app: &App, machine_id: i64) -> Result<fresa_gcode::AnalysisOptions> {
+    let config = fresa_gcode::Config {
+        unsupported: unsupported_policy(app, machine_id).await?,
+        tools: crate::tools::gcode_table(app, machine_id).await?,
+        ..fresa_gcode::Config::default()
+    };
+    let profile = match app.machines.get(machine_id).await {
+        Some(m) => m.motion_profile().await,
+        None => None,
+    };
+    Ok(fresa_gcode::AnalysisOptions {
+        config,
+        max_segments: app.settings.max_program_segments,
+        profile,
+        ..fresa_gcode::AnalysisOptions::default()
+    })
+}
+
 /// A machine whose config says `"unsupported": "skip_with_warning"` gets its programs analysed
 /// with that policy (its backend converts them the same way); every other machine: errors.
 async fn unsupported_policy(app: &App, machine_id: i64) -> Result<fresa_gcode::Unsupported> {
@@ -130,25 +143,27 @@ async fn unsupported_policy(app: &App, machine_id: i64) -> Result<fresa_gcode::U
 /// policy and tool table): a program with an error never becomes a job, and the stored analysis
 /// (bounds, length, ETA) serves previews and progress.
 async fn analyse(
-    program: &StoredProgram,
-    config: fresa_gcode::Config,
-    profile: Option<fresa_gcode::MotionProfile>,
-    max_segments: u64,
+    program: &mut StoredProgram,
+    opts: fresa_gcode::AnalysisOptions,
 ) -> Result<Option<serde_json::Value>> {
     let path = program
         .temp_path()
         .ok_or_else(|| Error::internal("program file already moved"))?
         .to_path_buf();
+    let max_segments = opts.max_segments;
+    // The analysis that ran as the upload arrived, if it ran with these very options.
+    let done = program
+        .alongside
+        .take()
+        .filter(|a| a.opts == opts)
+        .map(|a| a.result);
     let result = tokio::task::spawn_blocking(move || {
         let open =
             || std::fs::File::open(&path).map(|f| std::io::BufReader::with_capacity(1 << 16, f));
-        let opts = fresa_gcode::AnalysisOptions {
-            config,
-            max_segments,
-            profile,
-            ..fresa_gcode::AnalysisOptions::default()
+        let mut analysis = match done {
+            Some(a) => a,
+            None => fresa_gcode::analyse(open()?, &opts),
         };
-        let mut analysis = fresa_gcode::analyse(open()?, &opts);
         // A program that probes: which moves depend on the result, and the bounds of both
         // ends of what the probes can return (a second interpretation, side by side).
         if let Ok(a) = analysis.as_mut() {

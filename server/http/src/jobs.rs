@@ -188,6 +188,10 @@ pub async fn upload(
     let idle = app.settings.upload_idle_timeout;
     let dir = app.settings.programs_dir();
     let mut pending = PendingProgram::create(&dir, limit).await?;
+    // The machine is known before the body: the program is analysed as it arrives.
+    if let (false, Some(m)) = (is_multipart, params.machine) {
+        pending.analyse_alongside(core::analysis_options(&app, m).await?);
+    }
     let mut file_name = None;
     if is_multipart {
         let mut mp = Multipart::from_request(req, &())
