@@ -227,24 +227,8 @@ fn restore_default_sigpipe() {
     }
 }
 
-/// The server's threads share two malloc arenas instead of one each (glibc's default is up to
-/// eight per core: every tokio worker, blocking-pool and plugin thread that allocates gets its
-/// own, and each keeps freed memory). The heap is small and the hot paths allocate little, so
-/// two arenas cost no measurable speed and save resident memory (README: Measurements).
-fn limit_malloc_arenas() {
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    // SAFETY: `mallopt` only sets an allocator parameter; called before any other thread
-    // exists. Its result (0 on an unknown parameter) leaves the default, which is harmless.
-    unsafe {
-        libc::mallopt(libc::M_ARENA_MAX, 2);
-    }
-}
-
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    if matches!(cli.command, Cmd::Serve(_)) && std::env::var_os("MALLOC_ARENA_MAX").is_none() {
-        limit_malloc_arenas();
-    }
     // The service manager's calls block (they wait for the service), and `service run` builds
     // its own runtime inside the service's thread: neither runs on this one.
     if let Cmd::Service { command } = cli.command {
