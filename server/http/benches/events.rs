@@ -83,7 +83,17 @@ fn main() {
     let open = Arc::new(AtomicUsize::new(0));
     let refused = Arc::new(AtomicUsize::new(0));
     let t0 = Instant::now();
-    for _ in 0..streams {
+    // In batches, each answered before the next: at the connection cap a connection whose head
+    // was not read yet may be closed to make room (see README: Limits), as a burst of thousands
+    // of connects would see.
+    for i in 0..streams {
+        if i % 256 == 0 {
+            let deadline = Instant::now() + Duration::from_secs(60);
+            while open.load(Ordering::Relaxed) + refused.load(Ordering::Relaxed) < i {
+                assert!(Instant::now() < deadline, "streams stopped opening at {i}");
+                std::thread::sleep(Duration::from_millis(5));
+            }
+        }
         let (events, open, refused) = (events.clone(), open.clone(), refused.clone());
         rt.spawn(async move {
             let Ok(mut s) = tokio::net::TcpStream::connect(("127.0.0.1", port)).await else {
@@ -103,7 +113,12 @@ fn main() {
             let mut tail: Vec<u8> = Vec::new();
             loop {
                 let n = match s.read(&mut buf).await {
-                    Ok(0) | Err(_) => return,
+                    Ok(0) | Err(_) => {
+                        if first {
+                            refused.fetch_add(1, Ordering::Relaxed);
+                        }
+                        return;
+                    }
                     Ok(n) => n,
                 };
                 if first {
