@@ -84,7 +84,7 @@ fn resync_frame(data: &serde_json::Value) -> Bytes {
 }
 
 /// A comment line: keeps proxies and clients from closing a quiet stream.
-const KEEP_ALIVE: &[u8] = b": \n\n";
+const KEEP_ALIVE: &[u8] = b":\n\n";
 
 #[utoipa::path(get, path = "/events", tag = "events",
     params(Filter,
