@@ -59,7 +59,8 @@ pub async fn run(
     }
     systemd::ready();
     systemd::spawn_watchdog(app.clone());
-    warn_if_too_few_files(app.settings.max_connections);
+    // Streams hold connections outside `max_connections` (see `admission::Connection`).
+    warn_if_too_few_files(app.settings.max_connections + app.settings.edges.max_event_streams);
     let drain = tokio_util::sync::CancellationToken::new();
     let limits = ConnLimits::from(&app.settings);
     let mut server = tokio::spawn(accept_loop(
@@ -201,8 +202,9 @@ fn bind(addr: std::net::SocketAddr) -> io::Result<TcpListener> {
 /// Descriptors the server needs besides client connections (database, plugins, pendants, ...).
 const OTHER_FILES: u64 = 128;
 
-/// Says so at start-up when `max_connections` cannot all be open under the process's soft limit
-/// on open files: the cap would then not prevent EMFILE.
+/// Says so at start-up when `max_connections` and `max_event_streams` (given added up) cannot
+/// all be open under the process's soft limit on open files: the caps would then not prevent
+/// EMFILE.
 fn warn_if_too_few_files(max_connections: usize) {
     #[cfg(target_os = "linux")]
     {
@@ -217,9 +219,9 @@ fn warn_if_too_few_files(max_connections: usize) {
         if let Some(soft) = soft {
             if max_connections as u64 + OTHER_FILES > soft {
                 tracing::warn!(
-                    "max_connections = {max_connections} plus about {OTHER_FILES} other files \
-                     exceeds the open-file limit of {soft}: raise LimitNOFILE (ulimit -n) or \
-                     lower max_connections"
+                    "max_connections plus max_event_streams = {max_connections} plus about \
+                     {OTHER_FILES} other files exceeds the open-file limit of {soft}: raise \
+                     LimitNOFILE (ulimit -n) or lower max_connections or max_event_streams"
                 );
             }
         }
@@ -234,6 +236,7 @@ struct ConnLimits {
     header_read_timeout: Duration,
     idle_timeout: Duration,
     max_connections: usize,
+    max_event_streams: usize,
 }
 
 impl From<&Settings> for ConnLimits {
@@ -242,6 +245,7 @@ impl From<&Settings> for ConnLimits {
             header_read_timeout: s.header_read_timeout,
             idle_timeout: s.idle_timeout,
             max_connections: s.max_connections,
+            max_event_streams: s.edges.max_event_streams,
         }
     }
 }
@@ -265,6 +269,9 @@ async fn accept_loop(
 ) {
     let max = limits.max_connections;
     let permits = Arc::new(Semaphore::new(max));
+    // The places of connections that carry an event stream (`admission::Connection`).
+    let stream_places = limits.max_event_streams;
+    let streams = Arc::new(Semaphore::new(stream_places));
     let lingering = Arc::new(Semaphore::new(MAX_LINGERING_REFUSALS));
     // HTTP/1 only (as before): `auto` would otherwise first wait for a 24-byte HTTP/2 preface,
     // a wait the header read timeout does not cover.
@@ -286,11 +293,14 @@ async fn accept_loop(
         tokio::spawn(serve_connection(
             builder.clone(),
             stream,
-            peer,
             router.clone(),
             limits.idle_timeout,
             drain.clone(),
-            (permit, slot, open.register()),
+            (
+                fresa_http::admission::Connection::new(peer, permit, streams.clone()),
+                slot,
+                open.register(),
+            ),
         ));
     };
     loop {
@@ -378,8 +388,10 @@ async fn accept_loop(
     // New connections are refused from here on.
     drop(listener);
     drop(permit);
-    // Every open connection holds a permit: all of them back means all closed.
+    // Every open connection holds a permit, of one cap or the other: all of them back means
+    // all closed.
     let _ = permits.acquire_many(max as u32).await;
+    let _ = streams.acquire_many(stream_places as u32).await;
 }
 
 /// Refused connections (`max_connections_per_client`) being answered at once; beyond it a
@@ -471,14 +483,17 @@ impl AcceptErrors {
 async fn serve_connection(
     builder: Arc<auto::Builder<TokioExecutor>>,
     stream: TcpStream,
-    peer: std::net::SocketAddr,
     router: fresa_http::Service,
     idle: Duration,
     drain: CancellationToken,
-    held: (OwnedSemaphorePermit, ConnectionSlot, OpenConnection),
+    held: (
+        fresa_http::admission::Connection,
+        ConnectionSlot,
+        OpenConnection,
+    ),
 ) {
-    // Held until the connection ends: its permit, its address's count, its entry in the list.
-    let (_permit, _slot, me) = held;
+    // Held until the connection ends: its place, its address's count, its entry in the list.
+    let (connection, _slot, me) = held;
     let activity = me.activity.clone();
     let io = TokioIo::new(Tracked {
         inner: stream,
@@ -488,11 +503,12 @@ async fn serve_connection(
     let service = hyper::service::service_fn(move |req: hyper::Request<Incoming>| {
         let router = router.clone();
         let guard = InFlight::enter(in_flight.clone());
+        let connection = connection.clone();
         async move {
             let mut req = req.map(axum::body::Body::new);
-            // Who is calling, for the per-address limits (see `fresa_http::admission`).
-            req.extensions_mut()
-                .insert(axum::extract::ConnectInfo(peer));
+            // Who is calling, for the per-address limits, and the connection's place under the
+            // caps (see `fresa_http::admission`).
+            req.extensions_mut().insert(connection);
             let resp = tower::ServiceExt::oneshot(router, req).await?;
             Ok::<_, std::convert::Infallible>(resp.map(|inner| CountedBody {
                 inner,

@@ -338,7 +338,7 @@ fn a_stop_is_answered_while_streams_and_silent_clients_hold_every_connection() {
     let got = answers(&mut streams, Duration::from_secs(60));
     let open: Vec<usize> = (0..got.len()).filter(|&i| got[i].status == 200).collect();
     assert_eq!(open.len(), DEFAULT_MAX_EVENT_STREAMS);
-    // More silent connections than the rest of the slots: every one is taken, and more wait.
+    // More silent connections than the connection slots: every one is taken, and more wait.
     let silent: Vec<TcpStream> = (0..600).map(|_| stalled(&s, b"")).collect();
     s.wait_log(T, "connection limit reached");
 
@@ -358,15 +358,61 @@ fn a_stop_is_answered_while_streams_and_silent_clients_hold_every_connection() {
     );
     assert!(seen.contains("\"stop\""), "{seen}");
     // Room was made by closing silent connections, never a stream, and the server holds
-    // about the cap.
+    // about the caps: the streams' connections hold places of their own (`max_event_streams`),
+    // outside `max_connections`.
     let sockets = server_sockets(&s);
-    assert!(sockets <= 512 + 40, "{sockets} sockets open");
+    assert!(
+        sockets <= 512 + DEFAULT_MAX_EVENT_STREAMS + 40,
+        "{sockets} sockets open"
+    );
     let metrics = http.get(s.url("/metrics")).send().unwrap().text().unwrap();
     assert!(metrics.contains("fresa_event_streams 256\n"), "{metrics}");
     assert!(
         !metrics.contains("fresa_connections_closed_at_cap_total 0\n"),
         "{metrics}"
     );
+    drop(silent);
+}
+
+/// Streams have a cap of their own (issue 29): with `max_event_streams` far above
+/// `max_connections`, every stream is served, and the connection slots all stay for short
+/// requests: a stop is answered while silent clients hold more than the connection cap.
+#[test]
+fn streams_beyond_max_connections_leave_every_connection_slot_for_a_stop() {
+    let mut s = Server::unstarted(fresa_tests::Opts::default());
+    s.write_config("max_connections = 16\nmax_event_streams = 64\n");
+    s.spawn().unwrap();
+    let m = s.sim("m", 0.0);
+    // Eight at a time, each batch answered before the next: at the connection cap the oldest
+    // connection without a request in progress makes room, which a stream whose head was not
+    // read yet could be.
+    let mut streams: Vec<TcpStream> = Vec::new();
+    for _ in 0..8 {
+        let mut batch: Vec<TcpStream> = (0..8).map(|_| raw_stream(&s, "")).collect();
+        let statuses: Vec<u16> = answers(&mut batch, T).iter().map(|a| a.status).collect();
+        assert!(statuses.iter().all(|&c| c == 200), "{statuses:?}");
+        streams.extend(batch);
+    }
+    // A 65th is over the stream cap.
+    let mut extra = [raw_stream(&s, "")];
+    assert_eq!(answers(&mut extra, T)[0].status, 503);
+    let silent: Vec<TcpStream> = (0..24).map(|_| stalled(&s, b"")).collect();
+    s.wait_log(T, "connection limit reached");
+    let http = prompt_client();
+    let r = http
+        .post(s.url(&format!("/api/v1/machines/{}/commands", m.id)))
+        .json(&json!({"command": "stop"}))
+        .send()
+        .expect("POST stop while streams and silent clients are open");
+    assert_eq!(r.status().as_u16(), 200, "stop: {:?}", r.text());
+    let seen = read_until(
+        &mut streams[63],
+        "event: machine.command",
+        "the stop's audit event",
+    );
+    assert!(seen.contains("\"stop\""), "{seen}");
+    let metrics = http.get(s.url("/metrics")).send().unwrap().text().unwrap();
+    assert!(metrics.contains("fresa_event_streams 64\n"), "{metrics}");
     drop(silent);
 }
 

@@ -460,19 +460,15 @@ pub const DEFAULT_MAX_AUTH_FAILURES_PER_MINUTE: u32 = 20;
 /// screens (one stream each), and the other half is kept for short requests.
 /// `file`: the four keys as the config file gives them.
 fn edge_limits(file: EdgeKeys, max_connections: usize) -> Result<EdgeLimits, ConfigError> {
+    // Not bounded by `max_connections`: a stream's connection leaves that cap for this one
+    // once the stream is admitted, so streams never take the connections a stop needs.
     let max_event_streams = bounded(
         "max_event_streams",
         file.max_event_streams,
         max_connections / 2,
         0,
-        max_connections.saturating_sub(1),
-    )
-    .map_err(|e| {
-        ConfigError::Invalid(format!(
-            "{e} (it must stay below max_connections = {max_connections}, so that a stop \
-             always finds a connection)"
-        ))
-    })?;
+        MAX_MAX_CONNECTIONS,
+    )?;
     Ok(EdgeLimits {
         max_event_streams,
         max_event_streams_per_client: bounded(
@@ -1079,13 +1075,16 @@ mod tests {
                 max_auth_failures_per_minute: 20,
             }
         );
-        // Follows a smaller connection cap, always below it.
+        // By default half the connection cap; a cap of its own when given (streams leave
+        // `max_connections` once admitted), so it may be far above it.
         let e = resolve("max_connections = 8\n").unwrap().edges;
         assert_eq!((e.max_event_streams, e.max_connections_per_client), (4, 8));
         let e = resolve("max_connections = 1\n").unwrap().edges;
         assert_eq!(e.max_event_streams, 0);
+        let e = resolve("max_event_streams = 10000\n").unwrap().edges;
+        assert_eq!(e.max_event_streams, 10_000);
         for (toml, needle) in [
-            ("max_event_streams = 512\n", "below max_connections = 512"),
+            ("max_event_streams = 100001\n", "max_event_streams"),
             (
                 "max_event_streams_per_client = 0\n",
                 "max_event_streams_per_client",

@@ -188,6 +188,10 @@ pub struct BusEvent {
     /// `data` as JSON text, likewise (what MQTT publishes as a status).
     #[serde(skip)]
     data_json: OnceLock<String>,
+    /// The whole SSE frame (`event:`, `data:`, `id:`), likewise: every stream sends the same
+    /// shared bytes, so a client costs no copy of the event.
+    #[serde(skip)]
+    sse: OnceLock<bytes::Bytes>,
 }
 
 impl BusEvent {
@@ -210,6 +214,7 @@ impl BusEvent {
             node,
             json: OnceLock::new(),
             data_json: OnceLock::new(),
+            sse: OnceLock::new(),
         }
     }
 
@@ -229,6 +234,34 @@ impl BusEvent {
     pub fn data_json(&self) -> &str {
         self.data_json.get_or_init(|| self.data.to_string())
     }
+
+    /// This event as one Server-Sent Events frame, made once and shared by every stream.
+    pub fn sse(&self) -> bytes::Bytes {
+        self.sse
+            .get_or_init(|| sse_frame(&self.kind, self.json(), self.id))
+            .clone()
+    }
+}
+
+/// One SSE frame: `event: KIND`, `data: JSON`, `id: ID` (if any), then an empty line. `json`
+/// is compact JSON, which holds no line break (one inside a string is escaped); a stray one
+/// would end the frame early, so each line becomes a `data:` line of its own, as SSE defines.
+pub fn sse_frame(kind: &str, json: &str, id: Option<i64>) -> bytes::Bytes {
+    let mut f = String::with_capacity(json.len() + kind.len() + 32);
+    f.push_str("event: ");
+    f.extend(kind.chars().filter(|c| !matches!(c, '\n' | '\r')));
+    f.push('\n');
+    for line in json.split(['\n', '\r']) {
+        f.push_str("data: ");
+        f.push_str(line);
+        f.push('\n');
+    }
+    if let Some(id) = id {
+        use std::fmt::Write;
+        let _ = writeln!(f, "id: {id}");
+    }
+    f.push('\n');
+    bytes::Bytes::from(f)
 }
 
 impl From<EventRow> for BusEvent {

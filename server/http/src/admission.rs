@@ -118,9 +118,57 @@ impl IntoResponse for Refusal {
 
 /// The address a request came from (set by the accept loop), as one form per address.
 pub fn peer(req: &axum::extract::Request) -> Option<IpAddr> {
-    req.extensions()
-        .get::<ConnectInfo<SocketAddr>>()
-        .map(|c| c.0.ip().to_canonical())
+    let addr = match req.extensions().get::<Connection>() {
+        Some(c) => c.peer(),
+        None => req.extensions().get::<ConnectInfo<SocketAddr>>()?.0,
+    };
+    Some(addr.ip().to_canonical())
+}
+
+/// A connection as the accept loop tells each of its requests: who is at the other end, and
+/// the connection's place under `max_connections` (a semaphore permit it holds while open).
+/// An event stream trades that place for one under `max_event_streams`
+/// ([`Connection::into_stream`]): a stream holds its connection for as long as it lasts, so
+/// counting it under `max_connections` would let streams crowd out short requests such as a
+/// stop, and would tie how many streams a server may serve to how many connections it keeps.
+#[derive(Clone)]
+pub struct Connection(Arc<Held>);
+
+struct Held {
+    peer: SocketAddr,
+    permit: Mutex<tokio::sync::OwnedSemaphorePermit>,
+    streams: Arc<tokio::sync::Semaphore>,
+}
+
+impl Connection {
+    /// `permit`: the connection's place under `max_connections`; `streams`: the places under
+    /// `max_event_streams`, as many as that.
+    pub fn new(
+        peer: SocketAddr,
+        permit: tokio::sync::OwnedSemaphorePermit,
+        streams: Arc<tokio::sync::Semaphore>,
+    ) -> Connection {
+        Connection(Arc::new(Held {
+            peer,
+            permit: Mutex::new(permit),
+            streams,
+        }))
+    }
+
+    pub fn peer(&self) -> SocketAddr {
+        self.0.peer
+    }
+
+    /// Gives the connection's place under `max_connections` back for a stream's place, which
+    /// it holds until it closes (the stream's answer closes the connection when it ends).
+    /// Called once the stream was admitted ([`Admission::open_stream`] counts the same cap),
+    /// so a place is free, except for the moment between a stream's end and its connection's
+    /// close: then the connection keeps its old place.
+    pub fn into_stream(&self) {
+        if let Ok(p) = self.0.streams.clone().try_acquire_owned() {
+            *lock(&self.0.permit) = p;
+        }
+    }
 }
 
 impl Admission {

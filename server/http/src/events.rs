@@ -6,18 +6,17 @@
 use super::error::{ApiError, Query};
 use crate::admission::Admission;
 use crate::auth::{ByToken, Caller};
+use axum::body::{Body, Bytes};
 use axum::extract::State;
 use axum::http::HeaderMap;
-use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::Extension;
 use fresa_core::events::{BusEvent, EventKind};
 use fresa_core::SharedApp;
-use futures_util::Stream;
 use serde::Deserialize;
-use std::convert::Infallible;
 use std::sync::Arc;
 use tokio::sync::broadcast::error::RecvError;
+use tokio::sync::mpsc::Sender;
 
 #[derive(Deserialize, Default, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]
@@ -73,14 +72,19 @@ fn known_types(types: Option<&str>) -> Result<Vec<String>, ApiError> {
     Ok(out)
 }
 
-/// The event's JSON is made once per event (`BusEvent::json`), not once per client.
-fn to_sse(e: &BusEvent) -> Event {
-    let mut ev = Event::default().event(e.kind.as_str()).data(e.json());
-    if let Some(id) = e.id {
-        ev = ev.id(id.to_string());
-    }
-    ev
+/// The event's whole SSE frame is made once per event (`BusEvent::sse`) and shared by every
+/// client: with thousands of streams, a copy per client would cost more than the event.
+fn to_sse(e: &BusEvent) -> Bytes {
+    e.sse()
 }
+
+/// A `resync` frame (made per client: what it missed is its own).
+fn resync_frame(data: &serde_json::Value) -> Bytes {
+    fresa_core::events::sse_frame("resync", &data.to_string(), None)
+}
+
+/// A comment line: keeps proxies and clients from closing a quiet stream.
+const KEEP_ALIVE: &[u8] = b":\n\n";
 
 #[utoipa::path(get, path = "/events", tag = "events",
     params(Filter,
@@ -101,7 +105,8 @@ pub async fn stream(
     Extension(caller): Extension<Caller>,
     by_token: Option<Extension<ByToken>>,
     admission: Option<Extension<Arc<Admission>>>,
-) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, Response> {
+    connection: Option<Extension<crate::admission::Connection>>,
+) -> Result<Response, Response> {
     let last_id = match headers.get("last-event-id") {
         Some(v) => Some(
             v.to_str()
@@ -143,6 +148,10 @@ pub async fn stream(
         ),
         None => None,
     };
+    // From here on the connection counts under `max_event_streams`, not `max_connections`.
+    if let Some(Extension(c)) = &connection {
+        c.into_stream();
+    }
     // Subscribe before replaying so nothing falls between the replay and the live stream.
     let mut rx = app.bus.subscribe();
     let shutdown = app.shutdown.clone();
@@ -184,8 +193,8 @@ pub async fn stream(
                         }
                     }
                     Err(RecvError::Lagged(n)) => {
-                        let ev = Event::default().event("resync").data(
-                            serde_json::json!({"reason": "client fell behind", "missed": n, "after": sent_up_to}).to_string(),
+                        let ev = resync_frame(
+                            &serde_json::json!({"reason": "client fell behind", "missed": n, "after": sent_up_to}),
                         );
                         if tx.send(ev).await.is_err() { return; }
                         if !replay(&store, &matcher, &mut sent_up_to, &tx).await { return; }
@@ -195,11 +204,25 @@ pub async fn stream(
             }
         }
     });
+    let s = KeepAlive {
+        frames: s,
+        quiet: Box::pin(tokio::time::sleep(keepalive)),
+        every: keepalive,
+    };
     let s = futures_util::StreamExt::map(s, move |e| {
         let _held = &slot;
-        e
+        Ok::<_, std::convert::Infallible>(e)
     });
-    Ok(Sse::new(s).keep_alive(KeepAlive::new().interval(keepalive)))
+    Ok((
+        [
+            (axum::http::header::CONTENT_TYPE, "text/event-stream"),
+            (axum::http::header::CACHE_CONTROL, "no-cache"),
+            // Its place is a stream's now (see `Connection::into_stream`): not reused.
+            (axum::http::header::CONNECTION, "close"),
+        ],
+        Body::from_stream(s),
+    )
+        .into_response())
 }
 
 /// Sends `resync` when a replay after `after` cannot be complete, and returns where the replay
@@ -210,7 +233,7 @@ pub async fn stream(
 async fn resync_if_gap(
     store: &fresa_core::store::Store,
     after: i64,
-    tx: &tokio::sync::mpsc::Sender<Event>,
+    tx: &Sender<Bytes>,
 ) -> Option<(i64, bool)> {
     let marks = async {
         Ok::<_, sqlx::Error>((
@@ -251,9 +274,8 @@ fn retention_gap(after: i64, pruned: i64) -> serde_json::Value {
 }
 
 /// False if the client went away.
-async fn send_resync(tx: &tokio::sync::mpsc::Sender<Event>, data: serde_json::Value) -> bool {
-    let ev = Event::default().event("resync").data(data.to_string());
-    tx.send(ev).await.is_ok()
+async fn send_resync(tx: &Sender<Bytes>, data: serde_json::Value) -> bool {
+    tx.send(resync_frame(&data)).await.is_ok()
 }
 
 /// Sends persisted events after `*after`, page by page. Returns false if the client went away.
@@ -261,7 +283,7 @@ async fn replay(
     store: &fresa_core::store::Store,
     matcher: &Matcher,
     after: &mut i64,
-    tx: &tokio::sync::mpsc::Sender<Event>,
+    tx: &Sender<Bytes>,
 ) -> bool {
     loop {
         let page = match store.events_after(*after, 500).await {
@@ -286,12 +308,45 @@ async fn replay(
 
 /// A stream fed by a task through a small channel: the task ends when the client disconnects
 /// (send fails) or on shutdown, which ends the stream.
-fn async_stream<F, Fut>(f: F) -> impl Stream<Item = Result<Event, Infallible>>
+fn async_stream<F, Fut>(f: F) -> tokio_stream::wrappers::ReceiverStream<Bytes>
 where
-    F: FnOnce(tokio::sync::mpsc::Sender<Event>) -> Fut,
+    F: FnOnce(Sender<Bytes>) -> Fut,
     Fut: std::future::Future<Output = ()> + Send + 'static,
 {
     let (tx, rx) = tokio::sync::mpsc::channel(64);
     tokio::spawn(f(tx));
-    futures_util::StreamExt::map(tokio_stream::wrappers::ReceiverStream::new(rx), Ok)
+    tokio_stream::wrappers::ReceiverStream::new(rx)
+}
+
+/// The frames, and a comment whenever none came for `every` (as axum's `KeepAlive` does), so
+/// proxies and clients do not take a quiet stream for a dead one.
+struct KeepAlive {
+    frames: tokio_stream::wrappers::ReceiverStream<Bytes>,
+    quiet: std::pin::Pin<Box<tokio::time::Sleep>>,
+    every: std::time::Duration,
+}
+
+impl futures_util::Stream for KeepAlive {
+    type Item = Bytes;
+
+    fn poll_next(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<Bytes>> {
+        use std::future::Future;
+        use std::task::Poll;
+        let next = std::pin::Pin::new(&mut self.frames).poll_next(cx);
+        let frame = match next {
+            Poll::Ready(frame) => frame,
+            Poll::Pending => {
+                if self.quiet.as_mut().poll(cx).is_pending() {
+                    return Poll::Pending;
+                }
+                Some(Bytes::from_static(KEEP_ALIVE))
+            }
+        };
+        let at = tokio::time::Instant::now() + self.every;
+        self.quiet.as_mut().reset(at);
+        Poll::Ready(frame)
+    }
 }

@@ -41,17 +41,20 @@ impl ForwardState {
     }
 }
 
-/// The machine a request acts on through its task, if it is one to forward.
+/// The machine a request acts on through its task, if it is one to forward. Parsed in place (no
+/// allocation): every request under `/api/v1` passes here.
 async fn target_machine(app: &SharedApp, method: &Method, path: &str) -> Option<i64> {
     let path = path.strip_prefix("/api/v1").unwrap_or(path);
-    let parts: Vec<&str> = path.trim_matches('/').split('/').collect();
-    match parts.as_slice() {
+    let mut parts = path.trim_matches('/').split('/');
+    let (first, id, sub) = (parts.next()?, parts.next()?, parts.next()?);
+    match first {
         // `node` is the store's business: any node moves a machine.
-        ["machines", id, sub, ..] if *sub != "node" => id.parse().ok(),
+        "machines" if sub != "node" => id.parse().ok(),
         // A start preview plans from where the machine stands: its node knows.
-        ["jobs", id, action]
-            if (method == Method::POST && *action != "toolpath")
-                || (method == Method::GET && *action == "start-preview") =>
+        "jobs"
+            if parts.next().is_none()
+                && ((method == Method::POST && sub != "toolpath")
+                    || (method == Method::GET && sub == "start-preview")) =>
         {
             let id: i64 = id.parse().ok()?;
             // Guarded, with the running job known from memory: during a database outage a
@@ -69,14 +72,18 @@ pub async fn middleware(State(st): State<ForwardState>, req: Request, next: Next
     if req.extensions().get::<ForwardedBy>().is_some() {
         return next.run(req).await;
     }
-    let path = req
-        .extensions()
-        .get::<OriginalUri>()
-        .map(|u| u.0.clone())
-        .unwrap_or_else(|| req.uri().clone());
+    let path = match req.extensions().get::<OriginalUri>() {
+        Some(u) => &u.0,
+        None => req.uri(),
+    };
     let Some(machine) = target_machine(&st.app, req.method(), path.path()).await else {
         return next.run(req).await;
     };
+    // The common case, answered from memory: this node drives the machine.
+    if st.app.machines.is_local(machine) {
+        return next.run(req).await;
+    }
+    let path = path.clone();
     let node = match st.app.machine_owner(machine).await {
         Ok(Owner::Remote(node)) => node,
         Ok(Owner::Local | Owner::Unknown) => return next.run(req).await,

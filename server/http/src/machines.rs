@@ -186,13 +186,22 @@ pub async fn status(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
     Query(wait): Query<StatusWait>,
-) -> Result<Json<StatusView>, ApiError> {
+) -> Result<axum::response::Response, ApiError> {
     match app.machines.get(id).await {
         Some(m) => {
             if let Some(target) = wait.until {
                 wait_for_state(&m, target, wait.timeout_s).await?;
             }
-            Ok(Json(m.status_view()))
+            use axum::response::IntoResponse;
+            // Serialised once per change and shared by every poll (see `status_json`).
+            Ok((
+                [(
+                    axum::http::header::CONTENT_TYPE,
+                    axum::http::HeaderValue::from_static("application/json"),
+                )],
+                m.status_json()?,
+            )
+                .into_response())
         }
         // Reached for another node's machine only while that node is unreachable (otherwise
         // the request was forwarded): offline, and why.
@@ -200,7 +209,9 @@ pub async fn status(
             let row = app.store.machine(id).await?.ok_or_else(|| {
                 ApiError::not_found("unknown_machine", format!("no machine with id {id}"))
             })?;
-            Ok(Json(StatusView::remote(id, app.remote_status(&row).await)))
+            Ok(axum::response::IntoResponse::into_response(Json(
+                StatusView::remote(id, app.remote_status(&row).await),
+            )))
         }
     }
 }

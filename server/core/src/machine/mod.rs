@@ -35,7 +35,7 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::sync::{mpsc, oneshot, watch, RwLock};
+use tokio::sync::{mpsc, oneshot, watch};
 
 pub struct MachineOptions {
     pub timeout: Duration,
@@ -281,6 +281,17 @@ pub struct Machine {
     grid: heightmap::Slot,
     /// State changes and maintenance counters (see [`counters`]).
     records: Arc<counters::Records>,
+    /// `status_view` serialised, for status polls (see [`Machine::status_json`]).
+    status_json: std::sync::Mutex<StatusJson>,
+}
+
+/// The last status serialised, and the receivers that say whether it is still current: a watch
+/// receiver's `has_changed` is one atomic load, so a poll costs no clone and no serialisation
+/// until the task publishes a new status or run.
+struct StatusJson {
+    status: watch::Receiver<MachineStatus>,
+    run: watch::Receiver<Option<RunView>>,
+    json: Option<bytes::Bytes>,
 }
 
 impl Machine {
@@ -352,9 +363,9 @@ impl Machine {
             urgent_tx,
             lanes: lanes.clone(),
             unavailable: unavailable.clone(),
-            status: status_rx,
+            status: status_rx.clone(),
             row: row_rx,
-            run: run_rx,
+            run: run_rx.clone(),
             job: job_rx,
             launched: launched_rx,
             gate: gate.clone(),
@@ -367,6 +378,11 @@ impl Machine {
             holds: holds.clone(),
             grid: Default::default(),
             records: Default::default(),
+            status_json: std::sync::Mutex::new(StatusJson {
+                status: status_rx.clone(),
+                run: run_rx.clone(),
+                json: None,
+            }),
         });
         let task_store = store.clone();
         let task = actor::Task {
@@ -440,6 +456,48 @@ impl Machine {
             machine: self.id,
             job,
         }
+    }
+
+    /// [`Machine::status_view`] as JSON, serialised once per change of the status or the run
+    /// and shared by every poll until the next one. Not cached while the backend is unresponsive
+    /// or the machine holds: those views also depend on the call lanes' clock and on the host's
+    /// holds (`holds::HostHolds::explain`, which reads the database's health), which publish no
+    /// change of their own.
+    pub fn status_json(&self) -> Result<bytes::Bytes> {
+        if self.unresponsive().is_none() {
+            let mut c = self
+                .status_json
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            // An error: the task ended (shutdown); the last values are still read.
+            let changed =
+                c.status.has_changed().unwrap_or(true) || c.run.has_changed().unwrap_or(true);
+            if !changed {
+                if let Some(json) = &c.json {
+                    return Ok(json.clone());
+                }
+            }
+            let status = c.status.borrow_and_update().clone();
+            let job = c
+                .run
+                .borrow_and_update()
+                .as_ref()
+                .map(|r| r.progress(status.feed_override, status.rapid_override));
+            if status.hold.is_none() {
+                let view = StatusView {
+                    status,
+                    machine: self.id,
+                    job,
+                };
+                let json = bytes::Bytes::from(serde_json::to_vec(&view).map_err(unserialisable)?);
+                c.json = Some(json.clone());
+                return Ok(json);
+            }
+            c.json = None;
+        }
+        Ok(bytes::Bytes::from(
+            serde_json::to_vec(&self.status_view()).map_err(unserialisable)?,
+        ))
     }
 
     pub fn run(&self) -> Option<RunView> {
@@ -1014,25 +1072,45 @@ async fn status_loop(machine: Arc<Machine>, bus: EventBus, interval: Duration) {
     }
 }
 
-/// All live machines, by id.
+fn unserialisable(e: serde_json::Error) -> Error {
+    Error::internal(format!("cannot serialise the machine status: {e}"))
+}
+
+/// All live machines, by id. A plain lock, never held across an await: every status poll and
+/// forwarding decision reads it, and a read is a few nanoseconds.
 #[derive(Default)]
 pub struct Machines {
-    map: RwLock<HashMap<i64, Arc<Machine>>>,
+    map: std::sync::RwLock<HashMap<i64, Arc<Machine>>>,
 }
 
 impl Machines {
+    fn read(&self) -> std::sync::RwLockReadGuard<'_, HashMap<i64, Arc<Machine>>> {
+        self.map
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+    fn write(&self) -> std::sync::RwLockWriteGuard<'_, HashMap<i64, Arc<Machine>>> {
+        self.map
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
     pub async fn insert(&self, m: Arc<Machine>) {
-        self.map.write().await.insert(m.id, m);
+        self.write().insert(m.id, m);
     }
     pub async fn get(&self, id: i64) -> Option<Arc<Machine>> {
-        self.map.read().await.get(&id).cloned()
+        self.read().get(&id).cloned()
+    }
+    /// Whether this node drives machine `id`, without waiting (the forwarding layer asks this
+    /// on every machine request).
+    pub fn is_local(&self, id: i64) -> bool {
+        self.read().contains_key(&id)
     }
     /// Forgets a machine (moved to another node); the caller stops its backend.
     pub async fn remove(&self, id: i64) -> Option<Arc<Machine>> {
-        self.map.write().await.remove(&id)
+        self.write().remove(&id)
     }
     pub async fn all(&self) -> Vec<Arc<Machine>> {
-        let mut v: Vec<_> = self.map.read().await.values().cloned().collect();
+        let mut v: Vec<_> = self.read().values().cloned().collect();
         v.sort_by_key(|m| m.id);
         v
     }

@@ -1,0 +1,206 @@
+//! Status polls against the framework's limit (README: Measurements, "Status reads"): a
+//! release-built `fresa serve --demo` and a bare axum route serving the very bytes fresa answers
+//! for `GET /api/v1/machines/1/status`, each pinned to CPU 0, loaded in turn by `wrk` pinned to
+//! CPU 1, several rounds each (A B A B, so drift on a shared machine hits both alike).
+//! A measurement, not a test:
+//!
+//! ```text
+//! cargo build --release -p fresa-server -p fresa-sim-machine
+//! cargo bench -p fresa-http --bench status [-- ROUNDS SECONDS CONNECTIONS]
+//! ```
+//!
+//! `FRESA_BIN` names another `fresa` binary (its directory must hold the sim-machine plugin),
+//! e.g. an older build to compare against. Needs `wrk` and `taskset` on PATH.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+const PATH: &str = "/api/v1/machines/1/status";
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    // The bare server: `status --bare PORT FILE` (this binary started again by itself).
+    if args.first().map(String::as_str) == Some("--bare") {
+        bare(args[1].parse().unwrap(), &args[2]);
+        return;
+    }
+    let nums: Vec<u64> = args.iter().filter_map(|a| a.parse().ok()).collect();
+    let rounds = nums.first().copied().unwrap_or(5);
+    let seconds = nums.get(1).copied().unwrap_or(8);
+    let connections = nums.get(2).copied().unwrap_or(32);
+
+    let fresa = std::env::var_os("FRESA_BIN")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| workspace_root().join("target/release/fresa"));
+    assert!(
+        fresa.is_file(),
+        "no {} (cargo build --release -p fresa-server -p fresa-sim-machine)",
+        fresa.display()
+    );
+    let data = tempdir();
+    let fresa_port = free_port();
+    let mut server = Killed(
+        Command::new("taskset")
+            .args(["-c", "0"])
+            .arg(&fresa)
+            .args(["serve", "--demo", "--listen"])
+            .arg(format!("127.0.0.1:{fresa_port}"))
+            .arg("--data-dir")
+            .arg(data.join("data"))
+            .arg("--plugin-dir")
+            .arg(fresa.parent().unwrap())
+            .env("FRESA_LOG", "warn")
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("start fresa"),
+    );
+    let body = wait_for_status(fresa_port);
+    let file = data.join("status.json");
+    std::fs::write(&file, &body).unwrap();
+    let bare_port = free_port();
+    let _bare = Killed(
+        Command::new("taskset")
+            .args(["-c", "0"])
+            .arg(std::env::current_exe().unwrap())
+            .arg("--bare")
+            .arg(bare_port.to_string())
+            .arg(&file)
+            .spawn()
+            .expect("start the bare server"),
+    );
+    let bare_body = wait_for_status(bare_port);
+    assert_eq!(
+        bare_body.len(),
+        body.len(),
+        "the bare route serves other bytes"
+    );
+    println!(
+        "{} bytes of status JSON; wrk -t1 -c{connections} -d{seconds}s, {rounds} rounds each",
+        body.len()
+    );
+    let mut ratios = Vec::new();
+    for round in 1..=rounds {
+        let f = wrk(fresa_port, seconds, connections);
+        let b = wrk(bare_port, seconds, connections);
+        println!(
+            "round {round}: fresa {f:>8.0} req/s   bare axum {b:>8.0} req/s   {:>5.1} %",
+            100.0 * f / b
+        );
+        ratios.push(f / b);
+    }
+    ratios.sort_by(f64::total_cmp);
+    println!(
+        "median fresa / bare axum: {:.1} % (min {:.1} %, max {:.1} %)",
+        100.0 * ratios[ratios.len() / 2],
+        100.0 * ratios[0],
+        100.0 * ratios[ratios.len() - 1]
+    );
+    let _ = server.0.kill();
+    let _ = std::fs::remove_dir_all(&data);
+}
+
+/// A process killed when dropped (also when the bench panics).
+struct Killed(Child);
+
+impl Drop for Killed {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// The same route with nothing around it: what axum and hyper cost by themselves, on a runtime
+/// built as fresa builds its own (`Runtime::new`).
+fn bare(port: u16, file: &str) {
+    let body = axum::body::Bytes::from(std::fs::read(file).unwrap());
+    let app = axum::Router::new().route(
+        PATH,
+        axum::routing::get(move || {
+            let body = body.clone();
+            async move {
+                (
+                    [(axum::http::header::CONTENT_TYPE, "application/json")],
+                    body,
+                )
+            }
+        }),
+    );
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let l = tokio::net::TcpListener::bind(SocketAddr::from(([127, 0, 0, 1], port)))
+            .await
+            .unwrap();
+        axum::serve(l, app).await.unwrap();
+    });
+}
+
+/// Requests a second with `wrk`, on CPU 1.
+fn wrk(port: u16, seconds: u64, connections: u64) -> f64 {
+    let out = Command::new("taskset")
+        .args(["-c", "1", "wrk", "-t1"])
+        .arg(format!("-c{connections}"))
+        .arg(format!("-d{seconds}s"))
+        .arg(format!("http://127.0.0.1:{port}{PATH}"))
+        .output()
+        .expect("run wrk (apt-get install wrk)");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        !text.contains("Non-2xx"),
+        "some answers were not 200:\n{text}"
+    );
+    text.lines()
+        .find_map(|l| l.strip_prefix("Requests/sec:"))
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no Requests/sec in wrk's output:\n{text}"))
+}
+
+fn get(port: u16) -> Option<Vec<u8>> {
+    let mut s = TcpStream::connect(("127.0.0.1", port)).ok()?;
+    s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    write!(
+        s,
+        "GET {PATH} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n"
+    )
+    .ok()?;
+    let mut answer = Vec::new();
+    s.read_to_end(&mut answer).ok()?;
+    let split = answer.windows(4).position(|w| w == b"\r\n\r\n")?;
+    answer
+        .starts_with(b"HTTP/1.1 200")
+        .then(|| answer[split + 4..].to_vec())
+}
+
+fn wait_for_status(port: u16) -> Vec<u8> {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        if let Some(body) = get(port) {
+            return body;
+        }
+        assert!(Instant::now() < deadline, "no status from port {port}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn tempdir() -> PathBuf {
+    let d = std::env::temp_dir().join(format!("fresa-status-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn workspace_root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
