@@ -860,6 +860,8 @@ mod tests {
                 "queue.release",
                 "queue.done",
                 "queue.dispatch",
+                "machine.maintenance_due",
+                "machine.maintenance_done",
             ]
         );
     }
