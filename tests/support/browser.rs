@@ -224,8 +224,11 @@ impl Browser {
             .unwrap()
     }
 
-    /// Replaces an input's text as a user would type it.
+    /// Replaces an input's text as a user would type it, once the page has rendered it enabled
+    /// (pages render after their first requests answer, as `click` waits for them too).
+    #[track_caller]
     pub fn type_into(&self, css: &str, text: &str) {
+        self.wait_enabled(css, Duration::from_secs(30));
         self.rt.block_on(async {
             let e = self.c().find(Locator::Css(css)).await.unwrap();
             e.clear().await.unwrap();
@@ -233,7 +236,9 @@ impl Browser {
         });
     }
 
+    #[track_caller]
     pub fn select(&self, css: &str, value: &str) {
+        self.wait_enabled(css, Duration::from_secs(30));
         self.rt.block_on(async {
             let e = self.c().find(Locator::Css(css)).await.unwrap();
             e.select_by_value(value).await.unwrap();
