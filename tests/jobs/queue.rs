@@ -300,6 +300,50 @@ fn dispatch_gives_the_part_to_the_free_machine_and_names_why_others_refused() {
     s.command(free.id, "stop", json!({})).expect(200);
 }
 
+/// A part given to another machine is checked as that machine's own upload would be: with its
+/// tool table. A machine without the program's cutter refuses it naming the line; the machine
+/// that has it runs a job whose analysis is its own (its cutter's bounds, not the source's).
+#[test]
+fn dispatch_checks_the_program_with_the_chosen_machines_tool_table() {
+    const COMPENSATED: &str =
+        "G21 G90 F600\nG0 X-10 Y-10 Z2\nG41 D3 G1 X0 Y0\nG1 Z-1\nG1 X40\nG1 Y20\nG0 Z2\nG40 G0 X50 Y30\nM2\n";
+    let s = Server::start();
+    let thin = s.sim("thin", 0.0);
+    let none = s.sim("none", 0.0);
+    let thick = s.sim("thick", 0.0);
+    for (m, d) in [(thin.id, 2.0), (thick.id, 10.0)] {
+        s.put(
+            &format!("/api/v1/machines/{m}/tools"),
+            &json!([{"tool": 3, "diameter_mm": d}]),
+        )
+        .expect(200);
+    }
+    let job = s.upload(thin.id, "compensated", COMPENSATED);
+    assert_eq!(job["analysis"]["cutting_bounds"]["max"][0], 39.0, "{job}");
+    let v = s
+        .post(
+            "/api/v1/queue",
+            &json!({"job": job["id"], "machines": [none.id, thick.id]}),
+        )
+        .expect(200);
+    assert_eq!(v["machine"], thick.id, "{v}");
+    let refused = &v["refused"][0];
+    assert_eq!(
+        (&refused["machine"], &refused["code"]),
+        (&json!(none.id), &json!("invalid_gcode")),
+        "{v}"
+    );
+    let why = refused["message"].as_str().unwrap_or_default();
+    assert!(why.contains("line 3") && why.contains("D3"), "{v}");
+    let copy = s.get(&format!("/api/v1/jobs/{}", v["job"])).expect(200);
+    assert_eq!(
+        copy["analysis"]["cutting_bounds"]["max"][0], 35.0,
+        "the copy's analysis is the thick cutter's: {copy}"
+    );
+    s.wait_job_state(v["job"].as_i64().unwrap(), "completed", T);
+    assert!(!runs_logged(&none).contains(&v["run"].as_i64().unwrap()));
+}
+
 #[test]
 fn queue_changes_are_audited_and_entries_reorder_and_leave() {
     let s = Server::start();

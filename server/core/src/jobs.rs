@@ -150,13 +150,37 @@ async fn analyse(
         .temp_path()
         .ok_or_else(|| Error::internal("program file already moved"))?
         .to_path_buf();
-    let max_segments = opts.max_segments;
     // The analysis that ran as the upload arrived, if it ran with these very options.
     let done = program
         .alongside
         .take()
         .filter(|a| a.opts == opts)
         .map(|a| a.result);
+    analyse_file(path, done, opts).await
+}
+
+/// The analysis a job of stored program `sha256` for `machine_id` stores (that machine's
+/// unsupported-word policy, tool table and motion profile), or the error that refuses it: a
+/// program given to another machine (dispatch) is checked as its own upload would be.
+pub async fn analysis_for(
+    app: &App,
+    sha256: &str,
+    machine_id: i64,
+) -> Result<Option<serde_json::Value>> {
+    let path =
+        crate::programs::local_copy(&app.store, &app.settings.programs_dir(), sha256).await?;
+    let opts = analysis_options(app, machine_id).await?;
+    analyse_file(path, None, opts).await
+}
+
+/// Analyses the program at `path` with `opts` (or finishes `done`, an analysis already run on
+/// the same bytes with them).
+async fn analyse_file(
+    path: std::path::PathBuf,
+    done: Option<std::result::Result<fresa_gcode::Analysis, fresa_gcode::GcodeError>>,
+    opts: fresa_gcode::AnalysisOptions,
+) -> Result<Option<serde_json::Value>> {
+    let max_segments = opts.max_segments;
     let result = tokio::task::spawn_blocking(move || {
         let open =
             || std::fs::File::open(&path).map(|f| std::io::BufReader::with_capacity(1 << 16, f));

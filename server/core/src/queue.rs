@@ -226,7 +226,7 @@ pub async fn add(
             ),
         ));
     }
-    let _guard = app.queues.lock().await;
+    let _guard = app.queues.lock(machine).await;
     let (cur, entries) = load(app, machine).await?;
     if entries.len() >= MAX_ENTRIES {
         return Err(Error::conflict(
@@ -285,7 +285,7 @@ fn unknown_entry(machine: i64, entry: i64) -> Error {
 /// Removes an entry; not the one whose part is running (stop or cancel that run first).
 pub async fn remove(app: &App, machine: i64, entry: i64, actor: &str) -> Result<QueueView> {
     check_machine(app, machine).await?;
-    let _guard = app.queues.lock().await;
+    let _guard = app.queues.lock(machine).await;
     let (cur, _) = load(app, machine).await?;
     if cur.state == "running" && cur.entry == Some(entry) {
         return Err(Error::conflict(
@@ -345,7 +345,7 @@ pub async fn move_entry(
             format!("field `position` is 1-based, got {position}"),
         ));
     }
-    let _guard = app.queues.lock().await;
+    let _guard = app.queues.lock(machine).await;
     let health = app.store.health();
     if !health
         .guard(app.store.move_queue_entry(machine, entry, position))
@@ -370,7 +370,7 @@ pub async fn move_entry(
 /// A refused start leaves the queue waiting and answers the refusal.
 pub async fn confirm(app: &App, machine: i64, actor: &str) -> Result<Started> {
     check_machine(app, machine).await?;
-    let _guard = app.queues.lock().await;
+    let _guard = app.queues.lock(machine).await;
     let (cur, entries) = load(app, machine).await?;
     if cur.state != "waiting_confirm" {
         return Err(not_waiting(machine, &cur));
@@ -422,7 +422,7 @@ pub async fn waits_for_confirm(app: &App, machine: i64) -> bool {
 /// Ends a hold: a part still running goes on; otherwise the next part waits for a confirm.
 pub async fn release(app: &App, machine: i64, actor: &str) -> Result<QueueView> {
     check_machine(app, machine).await?;
-    let _guard = app.queues.lock().await;
+    let _guard = app.queues.lock(machine).await;
     let (cur, entries) = load(app, machine).await?;
     if cur.state != "held" {
         return Err(Error::conflict(
@@ -524,7 +524,6 @@ async fn step(app: &App, first: bool) {
     if !app.store.health().is_up() {
         return;
     }
-    let _guard = app.queues.lock().await;
     let states = match app.store.queue_states().await {
         Ok(s) => s,
         Err(e) => {
@@ -537,7 +536,17 @@ async fn step(app: &App, first: bool) {
         if app.machines.get(machine).await.is_none() {
             continue;
         }
-        let cur = current(Some(row));
+        // Only a running queue moves by itself; the others change through the API, which
+        // notes their summary. The first pass notes every queue's, for the LCD.
+        if row.state != "running" && !first {
+            continue;
+        }
+        let _guard = app.queues.lock(machine).await;
+        // Read again under the lock: an operator may have changed it meanwhile.
+        let cur = match app.store.queue_state(machine).await {
+            Ok(r) => current(r),
+            Err(_) => continue,
+        };
         if cur.state == "running" {
             if let Err(e) = advance(app, machine, &cur, first).await {
                 tracing::warn!(machine, error = %e, "queue runner: cannot move the queue on");
@@ -640,7 +649,7 @@ pub async fn take(app: &App, machine: i64, job_id: i64, actor: &str) -> Result<S
         )
     })?;
     let job = crate::jobs::job(app, job_id).await?;
-    let _guard = app.queues.lock().await;
+    let _guard = app.queues.lock(machine).await;
     let (cur, entries) = load(app, machine).await?;
     if cur.state != "idle" || !entries.is_empty() {
         return Err(Error::conflict(
@@ -683,14 +692,17 @@ pub async fn take(app: &App, machine: i64, job_id: i64, actor: &str) -> Result<S
 }
 
 /// The same program as a job of `machine`: the newest of its last 100 jobs with the same
-/// program, or else a copy of the row (the program file is shared by its hash), so repeated
-/// dispatches do not pile up copies.
+/// program, or else a new job of that program (the file is shared by its hash) analysed for
+/// this machine (its tool table, unsupported-word policy and motion profile: a program this
+/// machine would refuse at upload is refused here too), so repeated dispatches do not pile up
+/// copies.
 async fn copy_job(app: &App, job: &crate::store::JobRow, machine: i64, actor: &str) -> Result<i64> {
     let health = app.store.health();
     let theirs = health.read(app.store.list_jobs(Some(machine), 100)).await?;
     if let Some(same) = theirs.iter().find(|j| j.sha256 == job.sha256) {
         return Ok(same.id);
     }
+    let analysis = crate::jobs::analysis_for(app, &job.sha256, machine).await?;
     let id = app
         .store
         .health()
@@ -700,7 +712,7 @@ async fn copy_job(app: &App, job: &crate::store::JobRow, machine: i64, actor: &s
             sha256: &job.sha256,
             size_bytes: job.size_bytes,
             line_count: job.line_count,
-            analysis: job.analysis.clone(),
+            analysis: analysis.map(|a| a.to_string()),
             source: "dispatch",
         }))
         .await?;

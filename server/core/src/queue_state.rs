@@ -3,12 +3,16 @@
 //! from `queue` so `app` can hold it without depending on the queue's logic.
 
 use std::collections::HashMap;
+use std::sync::Arc;
 
-/// The queues' shared state on this node: one lock orders every change (an operator's and the
-/// runner's), and what the pendants' LCD and status read without the database.
+/// The queues' shared state on this node: a lock per machine orders the changes of its queue
+/// (an operator's and the runner's), and what the pendants' LCD and status read without the
+/// database.
 #[derive(Default)]
 pub struct Queues {
-    lock: tokio::sync::Mutex<()>,
+    /// One per machine that had a queue change (so at most one per machine of the node): a
+    /// start that waits on a slow backend holds up that machine's queue only.
+    locks: std::sync::Mutex<HashMap<i64, Arc<tokio::sync::Mutex<()>>>>,
     summary: std::sync::Mutex<HashMap<i64, Summary>>,
 }
 
@@ -21,9 +25,14 @@ pub struct Summary {
 }
 
 impl Queues {
-    /// Held across each change of a queue (and the start it may make).
-    pub(crate) async fn lock(&self) -> tokio::sync::MutexGuard<'_, ()> {
-        self.lock.lock().await
+    /// Held across each change of `machine`'s queue (and the start it may make).
+    pub(crate) async fn lock(&self, machine: i64) -> tokio::sync::OwnedMutexGuard<()> {
+        let lock = match self.locks.lock() {
+            Ok(mut m) => m.entry(machine).or_default().clone(),
+            // A panic while inserting leaves the map as it was: a fresh lock is as good.
+            Err(poisoned) => poisoned.into_inner().entry(machine).or_default().clone(),
+        };
+        lock.lock_owned().await
     }
 
     pub(crate) fn note(&self, machine: i64, summary: Summary) {
