@@ -233,3 +233,52 @@ fn job_state_events_of_instant_jobs_end_with_the_final_state() {
         assert_eq!(seq, ["running", "completed"], "job {id}");
     }
 }
+
+/// A quiet stream gets a keep-alive comment (`:` and a blank line) every `sse_keepalive_secs`,
+/// and frames that come meanwhile go out whole: proxies and clients see it alive.
+#[test]
+fn a_quiet_stream_gets_keep_alive_comments_between_its_events() {
+    use std::io::{Read, Write};
+    let mut s = Server::unstarted(Default::default());
+    s.write_config("sse_keepalive_secs = 1\n");
+    s.spawn()
+        .unwrap_or_else(|e| panic!("server did not start: {e}"));
+    let port: u16 = s.base.rsplit(':').next().unwrap().parse().unwrap();
+    let mut c = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    // Only machine.created events: nothing else in this test makes one after the first.
+    c.write_all(b"GET /api/v1/events?types=machine.created HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        .unwrap();
+    c.set_read_timeout(Some(T)).unwrap();
+    let mut got = Vec::new();
+    let mut buf = [0u8; 4096];
+    let mut read_until = |got: &mut Vec<u8>, what: &str, done: &dyn Fn(&str) -> bool| {
+        while !done(&String::from_utf8_lossy(got)) {
+            let n = c
+                .read(&mut buf)
+                .unwrap_or_else(|e| panic!("waiting for {what}: {e}"));
+            assert!(n > 0, "the stream closed waiting for {what}");
+            got.extend_from_slice(&buf[..n]);
+        }
+    };
+    read_until(&mut got, "two keep-alives", &|t| {
+        t.matches(":\n\n").count() >= 2
+    });
+    let text = String::from_utf8_lossy(&got).into_owned();
+    assert!(text.starts_with("HTTP/1.1 200"), "{text}");
+    assert!(text.contains("text/event-stream"), "{text}");
+    // An event between keep-alives comes out as its own whole frame, then the comments go on
+    // (the body is chunked: a comment after the frame is its own chunk).
+    let m = s.sim("m", 0.0);
+    read_until(
+        &mut got,
+        "the machine.created frame and a keep-alive after it",
+        &|t| {
+            t.find("event: machine.created")
+                .is_some_and(|i| t[i..].contains(":\n\n"))
+        },
+    );
+    let text = String::from_utf8_lossy(&got).into_owned();
+    let frame = &text[text.find("event: machine.created").unwrap()..];
+    assert!(frame.contains("\"name\":\"m\""), "{frame}");
+    assert!(frame.contains(&format!("\"machine\":{}", m.id)), "{frame}");
+}

@@ -204,14 +204,14 @@ pub async fn stream(
             }
         }
     });
-    let s = KeepAlive {
-        frames: s,
-        quiet: Box::pin(tokio::time::sleep(keepalive)),
-        every: keepalive,
-    };
-    let s = futures_util::StreamExt::map(s, move |e| {
+    // A comment whenever no frame came for `keepalive` (as axum's `KeepAlive` did), so proxies
+    // and clients do not take a quiet stream for a dead one.
+    let mut quiet = tokio::time::interval_at(tokio::time::Instant::now() + keepalive, keepalive);
+    quiet.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let s = tokio_stream::StreamExt::timeout_repeating(s, quiet);
+    let s = futures_util::StreamExt::map(s, move |frame| {
         let _held = &slot;
-        Ok::<_, std::convert::Infallible>(e)
+        Ok::<_, std::convert::Infallible>(frame.unwrap_or(Bytes::from_static(KEEP_ALIVE)))
     });
     Ok((
         [
@@ -316,37 +316,4 @@ where
     let (tx, rx) = tokio::sync::mpsc::channel(64);
     tokio::spawn(f(tx));
     tokio_stream::wrappers::ReceiverStream::new(rx)
-}
-
-/// The frames, and a comment whenever none came for `every` (as axum's `KeepAlive` does), so
-/// proxies and clients do not take a quiet stream for a dead one.
-struct KeepAlive {
-    frames: tokio_stream::wrappers::ReceiverStream<Bytes>,
-    quiet: std::pin::Pin<Box<tokio::time::Sleep>>,
-    every: std::time::Duration,
-}
-
-impl futures_util::Stream for KeepAlive {
-    type Item = Bytes;
-
-    fn poll_next(
-        mut self: std::pin::Pin<&mut Self>,
-        cx: &mut std::task::Context<'_>,
-    ) -> std::task::Poll<Option<Bytes>> {
-        use std::future::Future;
-        use std::task::Poll;
-        let next = std::pin::Pin::new(&mut self.frames).poll_next(cx);
-        let frame = match next {
-            Poll::Ready(frame) => frame,
-            Poll::Pending => {
-                if self.quiet.as_mut().poll(cx).is_pending() {
-                    return Poll::Pending;
-                }
-                Some(Bytes::from_static(KEEP_ALIVE))
-            }
-        };
-        let at = tokio::time::Instant::now() + self.every;
-        self.quiet.as_mut().reset(at);
-        Poll::Ready(frame)
-    }
 }
