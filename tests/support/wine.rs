@@ -160,6 +160,17 @@ fn set_up(name: &str) -> PathBuf {
         .expect("profile dir has a parent")
         .to_path_buf();
     let prefix = target.join(name);
+    // A prefix made before 32-bit Wine was installed has an empty `syswow64`, and 32-bit
+    // programs then die at once ("could not load kernel32.dll"); `wineboot --update` does not
+    // fill it, so such a prefix is made again.
+    let lacks_32_bit = Path::new(WINE32_LOADER).is_file()
+        && prefix.join("system.reg").is_file()
+        && !prefix
+            .join("drive_c/windows/syswow64/kernel32.dll")
+            .is_file();
+    if lacks_32_bit {
+        std::fs::remove_dir_all(&prefix).expect("remove a Wine prefix made without 32-bit Wine");
+    }
     if !prefix.join("system.reg").is_file() {
         let mut cmd = Command::new("wine");
         cmd.args(["wineboot", "--init"])
