@@ -271,6 +271,13 @@ fn the_document_is_valid_openapi_3_1_and_public() {
         );
     }
     python_check(&doc, None);
+    // Made on the first request and kept: the next answer is the same text.
+    let (first, again) = (
+        s.get("/api/v1/openapi.json").text,
+        s.get("/api/v1/openapi.json").text,
+    );
+    assert!(first.len() > 100_000, "{} bytes", first.len());
+    assert_eq!(first, again);
 }
 
 #[test]

@@ -45,6 +45,10 @@ pub enum StartError {
     },
     #[error("cannot read the records of unstored acknowledged lines: {0}")]
     Unstored(String),
+    /// The plugin loader's thread panicked or was cancelled (a plugin's own failure to load is
+    /// logged and skipped by the loader, not this).
+    #[error("loading the plugins failed: {0}")]
+    PluginLoad(tokio::task::JoinError),
 }
 
 impl App {
@@ -58,6 +62,10 @@ impl App {
         // Before the store is touched: a second server must not mark the first one's runs.
         let lock = DataDirLock::acquire(&settings.data_dir)?;
         remove_upload_leftovers(&settings.programs_dir());
+        // Loaded on a blocking thread while the store opens (migrations on a first start): the
+        // two do not depend on each other, and each takes milliseconds.
+        let plugin_dirs = settings.plugin_dirs.clone();
+        let plugins = tokio::task::spawn_blocking(move || Registry::load(&plugin_dirs));
         let db = settings.database_label();
         if settings.database_url.is_none() {
             refuse_lost_database(&settings.db_path(), &settings.programs_dir())?;
@@ -105,7 +113,7 @@ impl App {
                 return Err(StartError::NoTokens(settings.listen));
             }
         }
-        let plugins = Registry::load(&settings.plugin_dirs);
+        let plugins = plugins.await.map_err(StartError::PluginLoad)?;
         if plugins.names().is_empty() {
             tracing::warn!(
                 dirs = ?settings.plugin_dirs,
