@@ -1488,7 +1488,11 @@ fn controls_that_cannot_act_are_disabled_with_the_reason() {
     // A feed hold: the machine and the job both say paused, with the reason.
     b.wait_enabled("[data-cmd=\"feed_hold\"]", T);
     b.click("[data-cmd=\"feed_hold\"]");
-    let j = s.wait_job_state(job, "paused", T);
+    // The job's `hold` is the machine status's, which follows the run's pause at the next
+    // status poll: wait for both.
+    let j = s.wait_job(job, T, "paused with its hold", |j| {
+        j["state"] == "paused" && j["hold"].is_object()
+    });
     let st = s.wait_status(m.id, T, "the machine paused", |st| st["state"] == "paused");
     assert_eq!(j["hold"]["kind"], "feed_hold", "{j}");
     assert_eq!(st["hold"]["message"], j["hold"]["message"]);
