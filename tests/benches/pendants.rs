@@ -11,7 +11,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fresa_mpg_pendant::codec::{Decoded, Decoder, Frame, Info};
-use fresa_tests::{back_and_forth, Server};
+use fresa_tests::{back_and_forth, cpu_ticks, rss_kib, Server};
 use serde_json::json;
 use std::io::{Read, Write};
 use std::net::TcpListener;
@@ -78,25 +78,6 @@ fn pendant(listener: TcpListener, measure_from: Instant, stop: &AtomicBool) -> V
         }
     }
     out
-}
-
-/// utime + stime of `pid`, in clock ticks (100 per second on Linux).
-fn cpu_ticks(pid: u32) -> u64 {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap();
-    // Fields after the command name (which may hold spaces) start at ") ".
-    let rest = &stat[stat.rfind(") ").unwrap() + 2..];
-    let f: Vec<&str> = rest.split_whitespace().collect();
-    f[11].parse::<u64>().unwrap() + f[12].parse::<u64>().unwrap()
-}
-
-fn rss_kib(pid: u32) -> u64 {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
-        .and_then(|v| v.split_whitespace().next())
-        .and_then(|v| v.parse().ok())
-        .unwrap()
 }
 
 /// Polls `pendants` fake pendants for `secs` after the warm-up; `connect` makes each one's

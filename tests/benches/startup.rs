@@ -28,17 +28,8 @@ fn healthy(port: u16) -> bool {
 
 /// `RssAnon` and `RssFile` of `pid`, MiB.
 fn rss(pid: u32) -> (f64, f64) {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
-    let field = |name: &str| {
-        status
-            .lines()
-            .find_map(|l| l.strip_prefix(name))
-            .and_then(|v| v.split_whitespace().next())
-            .and_then(|v| v.parse::<f64>().ok())
-            .unwrap()
-            / 1024.0
-    };
-    (field("RssAnon:"), field("RssFile:"))
+    let mib = |field| fresa_tests::status_kib(pid, field) as f64 / 1024.0;
+    (mib("RssAnon"), mib("RssFile"))
 }
 
 /// One start: milliseconds to ready, and the RSS split 3 s later.
