@@ -2,13 +2,16 @@
 //! trusted); on any other bind every request needs one. A token given anyway is always checked.
 
 use super::error::ApiError;
-use axum::extract::{Request, State};
+use crate::admission::Admission;
+use crate::middleware::{Fast, Middleware, Next};
+use axum::extract::Request;
 use axum::http::StatusCode;
-use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::routing::MethodRouter;
 use fresa_core::SharedApp;
+use futures_util::future::BoxFuture;
 use sha2::{Digest, Sha256};
+use std::sync::Arc;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Role {
@@ -39,7 +42,8 @@ impl Role {
 /// Who is calling: stored in request extensions for handlers (audit) to read.
 #[derive(Debug, Clone)]
 pub struct Caller {
-    pub name: String,
+    /// Shared: the local caller's name is made once, not per request.
+    pub name: Arc<str>,
     pub role: Role,
 }
 
@@ -145,7 +149,7 @@ fn forwarded_caller(app: &SharedApp, req: &Request) -> Option<Result<(Caller, St
     Some(match (valid, role) {
         (true, Some(role)) => Ok((
             Caller {
-                name: header(CALLER_NAME).unwrap_or_else(|| "node".into()),
+                name: header(CALLER_NAME).map_or_else(|| Arc::from("node"), Arc::from),
                 role,
             },
             header(FORWARDED_BY).unwrap_or_default(),
@@ -163,50 +167,94 @@ fn forwarded_caller(app: &SharedApp, req: &Request) -> Option<Result<(Caller, St
 #[derive(Debug, Clone, Copy)]
 pub struct ByToken;
 
-pub async fn middleware(
-    State(app): State<SharedApp>,
-    mut req: Request,
-    next: Next,
-) -> Result<Response, ApiError> {
-    // Wrong secrets are counted and limited per address (see `admission`).
-    let admission = req
-        .extensions()
-        .get::<std::sync::Arc<crate::admission::Admission>>()
-        .cloned();
-    let peer = crate::admission::peer(&req);
-    let may_check = || match &admission {
-        Some(a) => a.may_check_token(peer),
-        None => Ok(()),
-    };
-    let failed = |e: ApiError| {
-        if let Some(a) = &admission {
-            a.token_failed(peer, e.code);
-        }
-        e
-    };
-    if req.headers().contains_key(NODE_TOKEN) {
-        if let Err(refused) = may_check() {
-            return Ok(refused.into_response());
+/// Says who is calling before any route runs (see [`Caller`]); a plain [`Middleware`] so the
+/// common case (a tokenless caller on a loopback-only server) costs no allocation.
+#[derive(Clone)]
+pub struct Authenticate {
+    app: SharedApp,
+    /// Wrong secrets are counted and limited per address (see `admission`).
+    admission: Option<Arc<Admission>>,
+    /// The caller of a tokenless request where none is needed, made once.
+    local: Caller,
+}
+
+impl Authenticate {
+    pub fn new(app: SharedApp, admission: Option<Arc<Admission>>) -> Authenticate {
+        Authenticate {
+            app,
+            admission,
+            local: Caller {
+                name: Arc::from("local"),
+                role: Role::Admin,
+            },
         }
     }
-    if let Some(forwarded) = forwarded_caller(&app, &req) {
-        let (caller, node) = forwarded.map_err(failed)?;
-        req.extensions_mut().insert(caller);
-        req.extensions_mut().insert(ForwardedBy(node));
-        req.extensions_mut().insert(ByToken);
-        return Ok(next.run(req).await);
+}
+
+impl Middleware for Authenticate {
+    fn fast(&self, mut req: Request) -> Fast {
+        let headers = req.headers();
+        let token_given = headers.contains_key(axum::http::header::AUTHORIZATION)
+            || headers.contains_key(NODE_TOKEN)
+            || req
+                .uri()
+                .query()
+                .is_some_and(|q| q.contains("access_token="));
+        if token_given || self.app.auth_required {
+            return Fast::Slow(req);
+        }
+        req.extensions_mut().insert(self.local.clone());
+        Fast::Pass(req)
     }
-    let caller =
-        match bearer(&req)? {
+
+    fn slow(self, req: Request, next: impl Next) -> BoxFuture<'static, Response> {
+        Box::pin(async move {
+            match self.check(req).await {
+                Ok(req) => next.run(req).await,
+                Err(refused) => refused,
+            }
+        })
+    }
+}
+
+impl Authenticate {
+    /// The request with its [`Caller`] (and [`ForwardedBy`], [`ByToken`]) set, or the refusal.
+    async fn check(&self, mut req: Request) -> Result<Request, Response> {
+        let app = &self.app;
+        let peer = crate::admission::peer(&req);
+        let may_check = || match &self.admission {
+            Some(a) => a.may_check_token(peer),
+            None => Ok(()),
+        };
+        let failed = |e: ApiError| {
+            if let Some(a) = &self.admission {
+                a.token_failed(peer, e.code);
+            }
+            e.into_response()
+        };
+        if req.headers().contains_key(NODE_TOKEN) {
+            may_check().map_err(IntoResponse::into_response)?;
+        }
+        if let Some(forwarded) = forwarded_caller(app, &req) {
+            let (caller, node) = forwarded.map_err(failed)?;
+            req.extensions_mut().insert(caller);
+            req.extensions_mut().insert(ForwardedBy(node));
+            req.extensions_mut().insert(ByToken);
+            return Ok(req);
+        }
+        let caller = match bearer(&req).map_err(IntoResponse::into_response)? {
             Some(secret) => {
-                if let Err(refused) = may_check() {
-                    return Ok(refused.into_response());
-                }
-                match app.store.token_by_hash(&hash_token(&secret)).await? {
+                may_check().map_err(IntoResponse::into_response)?;
+                let found = app
+                    .store
+                    .token_by_hash(&hash_token(&secret))
+                    .await
+                    .map_err(|e| ApiError::from(e).into_response())?;
+                match found {
                     Some(t) => {
                         req.extensions_mut().insert(ByToken);
                         Caller {
-                            name: t.name,
+                            name: Arc::from(t.name),
                             role: Role::parse(&t.role).unwrap_or(Role::Viewer),
                         }
                     }
@@ -223,15 +271,14 @@ pub async fn middleware(
                 StatusCode::UNAUTHORIZED,
                 "token_required",
                 "this server is reachable from the network: send `Authorization: Bearer <token>` \
-                 (create one with `fresa token create`)",
-            )),
-            None => Caller {
-                name: "local".into(),
-                role: Role::Admin,
-            },
+                     (create one with `fresa token create`)",
+            )
+            .into_response()),
+            None => self.local.clone(),
         };
-    req.extensions_mut().insert(caller);
-    Ok(next.run(req).await)
+        req.extensions_mut().insert(caller);
+        Ok(req)
+    }
 }
 
 /// A route's handler that needs at least `role`; the role is declared where the route is

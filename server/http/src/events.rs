@@ -104,7 +104,7 @@ pub async fn stream(
     Query(f): Query<Filter>,
     Extension(caller): Extension<Caller>,
     by_token: Option<Extension<ByToken>>,
-    admission: Option<Extension<Arc<Admission>>>,
+    Extension(admission): Extension<Option<Arc<Admission>>>,
     connection: Option<Extension<crate::admission::Connection>>,
 ) -> Result<Response, Response> {
     let last_id = match headers.get("last-event-id") {
@@ -142,8 +142,8 @@ pub async fn stream(
     // which are fewer than the connections (see `admission`); freed when the body is dropped.
     // Counted per token; tokenless local callers only against the server's cap.
     let slot = match admission {
-        Some(Extension(a)) => Some(
-            a.open_stream(by_token.map(|_| caller.name.as_str()))
+        Some(a) => Some(
+            a.open_stream(by_token.map(|_| &*caller.name))
                 .map_err(IntoResponse::into_response)?,
         ),
         None => None,

@@ -13,13 +13,14 @@ use crate::auth::{
     Caller, ForwardedBy, ANSWERED_BY, CALLER_NAME, CALLER_ROLE, FORWARDED_BY, NODE_TOKEN,
 };
 use crate::error::ApiError;
+use crate::middleware::{Fast, Middleware, Next};
 use axum::body::Body;
-use axum::extract::{OriginalUri, Request, State};
+use axum::extract::{OriginalUri, Request};
 use axum::http::{HeaderMap, HeaderName, Method, StatusCode};
-use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use fresa_core::nodes::{Owner, RemoteNode};
 use fresa_core::SharedApp;
+use futures_util::future::BoxFuture;
 use std::time::Duration;
 
 #[derive(Clone)]
@@ -41,70 +42,103 @@ impl ForwardState {
     }
 }
 
-/// The machine a request acts on through its task, if it is one to forward. Parsed in place (no
+/// What a request acts on through a machine's task, read from its path in place (no
 /// allocation): every request under `/api/v1` passes here.
-async fn target_machine(app: &SharedApp, method: &Method, path: &str) -> Option<i64> {
+enum Target {
+    /// Not a machine's business (lists, jobs' reads, the store's own changes).
+    None,
+    Machine(i64),
+    /// A job's control or start preview: the job's machine, looked up.
+    Job(i64),
+}
+
+fn target(method: &Method, path: &str) -> Target {
     let path = path.strip_prefix("/api/v1").unwrap_or(path);
     let mut parts = path.trim_matches('/').split('/');
-    let (first, id, sub) = (parts.next()?, parts.next()?, parts.next()?);
+    let (Some(first), Some(id), Some(sub)) = (parts.next(), parts.next(), parts.next()) else {
+        return Target::None;
+    };
+    let id = || id.parse().ok();
     match first {
         // `node` is the store's business: any node moves a machine.
-        "machines" if sub != "node" => id.parse().ok(),
+        "machines" if sub != "node" => id().map_or(Target::None, Target::Machine),
         // A start preview plans from where the machine stands: its node knows.
         "jobs"
             if parts.next().is_none()
                 && ((method == Method::POST && sub != "toolpath")
                     || (method == Method::GET && sub == "start-preview")) =>
         {
-            let id: i64 = id.parse().ok()?;
-            // Guarded, with the running job known from memory: during a database outage a
-            // pause or cancel must not wait for the pool's timeout here.
-            fresa_core::jobs::job(app, id)
-                .await
-                .ok()
-                .map(|j| j.machine_id)
+            id().map_or(Target::None, Target::Job)
         }
-        _ => None,
+        _ => Target::None,
     }
 }
 
-pub async fn middleware(State(st): State<ForwardState>, req: Request, next: Next) -> Response {
-    if req.extensions().get::<ForwardedBy>().is_some() {
-        return next.run(req).await;
-    }
-    let path = match req.extensions().get::<OriginalUri>() {
+fn path(req: &Request) -> &axum::http::Uri {
+    match req.extensions().get::<OriginalUri>() {
         Some(u) => &u.0,
         None => req.uri(),
-    };
-    let Some(machine) = target_machine(&st.app, req.method(), path.path()).await else {
-        return next.run(req).await;
-    };
-    // The common case, answered from memory: this node drives the machine.
-    if st.app.machines.is_local(machine) {
-        return next.run(req).await;
     }
-    let path = path.clone();
-    let node = match st.app.machine_owner(machine).await {
-        Ok(Owner::Remote(node)) => node,
-        Ok(Owner::Local | Owner::Unknown) => return next.run(req).await,
-        Err(e) => return ApiError::from(e).into_response(),
-    };
-    if let Some(reason) = &node.down {
-        // A status read still answers: the machine is offline, and why.
-        if req.method() == Method::GET && path.path().ends_with("/status") {
+}
+
+impl Middleware for ForwardState {
+    /// Not forwarded: a request another node forwarded, one no machine's task serves, and the
+    /// common case, a machine this node drives (answered from memory).
+    fn fast(&self, req: Request) -> Fast {
+        if req.extensions().get::<ForwardedBy>().is_some() {
+            return Fast::Pass(req);
+        }
+        match target(req.method(), path(&req).path()) {
+            Target::None => Fast::Pass(req),
+            Target::Machine(m) if self.app.machines.is_local(m) => Fast::Pass(req),
+            Target::Machine(_) | Target::Job(_) => Fast::Slow(req),
+        }
+    }
+
+    fn slow(self, req: Request, next: impl Next) -> BoxFuture<'static, Response> {
+        Box::pin(self.slow_path(req, next))
+    }
+}
+
+impl ForwardState {
+    /// A job's machine looked up, a remote machine's owner asked, the request forwarded.
+    async fn slow_path(self, req: Request, next: impl Next) -> Response {
+        let machine = match target(req.method(), path(&req).path()) {
+            Target::Machine(m) => m,
+            // Guarded, with the running job known from memory: during a database outage a
+            // pause or cancel must not wait for the pool's timeout here.
+            Target::Job(job) => match fresa_core::jobs::job(&self.app, job).await {
+                Ok(j) => j.machine_id,
+                Err(_) => return next.run(req).await,
+            },
+            Target::None => return next.run(req).await,
+        };
+        if self.app.machines.is_local(machine) {
             return next.run(req).await;
         }
-        return unreachable(machine, reason).into_response();
+        let path = path(&req).clone();
+        let node = match self.app.machine_owner(machine).await {
+            Ok(Owner::Remote(node)) => node,
+            Ok(Owner::Local | Owner::Unknown) => return next.run(req).await,
+            Err(e) => return ApiError::from(e).into_response(),
+        };
+        if let Some(reason) = &node.down {
+            // A status read still answers: the machine is offline, and why.
+            if req.method() == Method::GET && path.path().ends_with("/status") {
+                return next.run(req).await;
+            }
+            return unreachable(machine, reason).into_response();
+        }
+        forward(
+            &self,
+            machine,
+            &node,
+            req,
+            path.path_and_query().map(|p| p.as_str()),
+        )
+        .await
+        .unwrap_or_else(IntoResponse::into_response)
     }
-    forward(
-        &st,
-        machine,
-        &node,
-        req,
-        path.path_and_query().map(|p| p.as_str()),
-    )
-    .await
-    .unwrap_or_else(IntoResponse::into_response)
 }
 
 fn unreachable(machine: i64, why: &str) -> ApiError {

@@ -10,6 +10,7 @@ mod guard;
 mod heightmaps;
 mod jobs;
 pub(crate) mod machines;
+mod middleware;
 pub mod openapi;
 mod pendants;
 mod queue;
@@ -35,10 +36,12 @@ use utoipa_axum::routes;
 /// A route is added only as `.routes(needs(ROLE, routes!(handler)))`: the handler's
 /// `#[utoipa::path(METHOD, path = ...)]` gives its method and path, so the router and the
 /// OpenAPI description (`GET /api/v1/openapi.json`) are built from the same lines.
-pub fn router(app: SharedApp) -> Router {
-    let (router, _) = described_router(app.clone());
+///
+/// `admission` (shared with the accept loop) is what the event stream and `/metrics` read and
+/// authentication counts wrong tokens in; only those routes carry it.
+pub fn router(app: SharedApp, admission: Option<std::sync::Arc<admission::Admission>>) -> Router {
+    let (router, _) = described_router(app.clone(), admission);
     let router = router
-        .layer(axum::Extension(openapi::Document::default()))
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed);
     // CORS only when some origin is allowed: deny-by-default needs no layer at all.
@@ -66,7 +69,7 @@ pub fn router(app: SharedApp) -> Router {
 
 /// The OpenAPI description of [`router`], as served (for tools and tests without a server).
 pub fn openapi_document(app: SharedApp) -> String {
-    doc_json(&described_router(app).1)
+    doc_json(&described_router(app, None).1)
 }
 
 fn doc_json(doc: &utoipa::openapi::OpenApi) -> String {
@@ -76,8 +79,13 @@ fn doc_json(doc: &utoipa::openapi::OpenApi) -> String {
     })
 }
 
-fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::OpenApi) {
+fn described_router(
+    app: SharedApp,
+    admission: Option<std::sync::Arc<admission::Admission>>,
+) -> (Router<SharedApp>, utoipa::openapi::OpenApi) {
     use auth::Role::{Admin, Operator, Viewer};
+    let authenticate = auth::Authenticate::new(app.clone(), admission.clone());
+    let with_admission = axum::Extension(admission);
     let api = OpenApiRouter::new()
         .routes(needs(Viewer, routes!(machines::list)))
         .routes(needs(Admin, routes!(machines::create)))
@@ -150,26 +158,24 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
         .routes(needs(Admin, routes!(webhooks::delete)))
         .routes(needs(Viewer, routes!(plugins)))
         .routes(needs(Viewer, routes!(whoami)))
-        .routes(needs(Viewer, routes!(events::stream)))
+        .routes(needs(
+            Viewer,
+            routes!(events::stream).map(|r| r.layer(with_admission.clone())),
+        ))
         .routes(needs(Viewer, routes!(nodes)))
         .routes(needs(Admin, routes!(machines::set_node)))
-        // Inside auth (runs after it): forwarding needs to know the caller.
-        .layer(axum::middleware::from_fn_with_state(
+        // Authentication, then forwarding (it needs to know the caller), as one layer.
+        .layer(middleware::Layer((
+            authenticate.clone(),
             forward::ForwardState::new(app.clone()),
-            forward::middleware,
-        ))
-        .layer(axum::middleware::from_fn_with_state(
-            app.clone(),
-            auth::middleware,
-        ))
+        )))
         // Outside the auth layer: the description is public (see `openapi::openapi_json`).
-        .routes(public(routes!(openapi::openapi_json)));
+        .routes(public(routes!(openapi::openapi_json).map(|r| {
+            r.layer(axum::Extension(openapi::Document::default()))
+        })));
     let metrics = OpenApiRouter::new()
-        .routes(needs(Viewer, routes!(metrics)))
-        .layer(axum::middleware::from_fn_with_state(
-            app.clone(),
-            auth::middleware,
-        ));
+        .routes(needs(Viewer, routes!(metrics)).map(|r| r.layer(with_admission.clone())))
+        .layer(middleware::Layer(authenticate));
     // The console's files need no token (the API calls they make do); still behind the guard.
     OpenApiRouter::with_openapi(openapi::ApiDoc::openapi())
         .nest("/api/v1", api)
@@ -190,7 +196,7 @@ fn described_router(app: SharedApp) -> (Router<SharedApp>, utoipa::openapi::Open
 pub fn service(app: SharedApp, admission: std::sync::Arc<admission::Admission>) -> Service {
     use tower::Layer;
     let settings = std::sync::Arc::new(app.settings.clone());
-    guard::Guard(settings).layer(router(app).layer(axum::Extension(admission)))
+    guard::Guard(settings).layer(router(app, Some(admission)))
 }
 
 /// What `service` returns: serve it with hyper (requests with an axum `Body`).
@@ -223,7 +229,7 @@ async fn whoami(
     axum::Extension(caller): axum::Extension<auth::Caller>,
 ) -> Json<serde_json::Value> {
     Json(serde_json::json!({
-        "name": caller.name,
+        "name": &*caller.name,
         "role": caller.role.name(),
         "auth_required": app.auth_required,
     }))
@@ -315,7 +321,7 @@ async fn healthz(State(app): State<SharedApp>) -> impl IntoResponse {
     ))]
 async fn metrics(
     State(app): State<SharedApp>,
-    admission: Option<axum::Extension<std::sync::Arc<admission::Admission>>>,
+    axum::Extension(admission): axum::Extension<Option<std::sync::Arc<admission::Admission>>>,
 ) -> Result<impl IntoResponse, error::ApiError> {
     use std::fmt::Write;
     let mut out = String::new();
@@ -397,7 +403,7 @@ async fn metrics(
     );
     out.push_str(&records_metrics(&app).await);
     out.push_str(&app.integrations.prometheus());
-    if let Some(axum::Extension(a)) = admission {
+    if let Some(a) = admission {
         out.push_str(&a.prometheus());
     }
     out.push_str(&app.previews.prometheus());
