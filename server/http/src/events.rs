@@ -14,9 +14,9 @@ use axum::Extension;
 use fresa_core::events::{BusEvent, EventKind};
 use fresa_core::SharedApp;
 use serde::Deserialize;
+use std::collections::VecDeque;
 use std::sync::Arc;
 use tokio::sync::broadcast::error::RecvError;
-use tokio::sync::mpsc::Sender;
 
 #[derive(Deserialize, Default, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]
@@ -152,58 +152,22 @@ pub async fn stream(
     if let Some(Extension(c)) = &connection {
         c.into_stream();
     }
-    // Subscribe before replaying so nothing falls between the replay and the live stream.
-    let mut rx = app.bus.subscribe();
-    let shutdown = app.shutdown.clone();
-    let store = app.store.clone();
+    let feed = Feed {
+        // Subscribed before the replay, so nothing falls between the replay and the live bus.
+        rx: app.bus.subscribe(),
+        store: app.store.clone(),
+        matcher,
+        sent_up_to: last_id.unwrap_or(0),
+        ready: VecDeque::new(),
+        resume: last_id.map(Resume::Asked),
+    };
     let keepalive = app.settings.sse_keepalive;
-    let s = async_stream(move |tx| async move {
-        let mut sent_up_to = last_id.unwrap_or(0);
-        if let Some(after) = last_id {
-            let Some((start, resynced)) = resync_if_gap(&store, after, &tx).await else {
-                return;
-            };
-            sent_up_to = start;
-            if !replay(&store, &matcher, &mut sent_up_to, &tx).await {
-                return;
-            }
-            // A retention pass during the replay may have deleted events before the replay
-            // read them: say so (at worst needlessly, if they had been sent already).
-            if !resynced {
-                if let Ok(pruned) = store.events_pruned_through().await {
-                    if pruned > start && !send_resync(&tx, retention_gap(start, pruned)).await {
-                        return;
-                    }
-                }
-            }
-        }
-        loop {
-            tokio::select! {
-                _ = shutdown.cancelled() => return,
-                // The client went away: let go of the bus now, not at the next matching event.
-                _ = tx.closed() => return,
-                r = rx.recv() => match r {
-                    Ok(e) => {
-                        if let Some(id) = e.id {
-                            if id <= sent_up_to { continue; }
-                            sent_up_to = id;
-                        }
-                        if matcher.matches(&e) && tx.send(to_sse(&e)).await.is_err() {
-                            return;
-                        }
-                    }
-                    Err(RecvError::Lagged(n)) => {
-                        let ev = resync_frame(
-                            &serde_json::json!({"reason": "client fell behind", "missed": n, "after": sent_up_to}),
-                        );
-                        if tx.send(ev).await.is_err() { return; }
-                        if !replay(&store, &matcher, &mut sent_up_to, &tx).await { return; }
-                    }
-                    Err(RecvError::Closed) => return,
-                }
-            }
-        }
+    // The stream is polled by the connection's own task: no task and channel per stream, and
+    // shutdown is one registration for the stream's life rather than one per event.
+    let s = futures_util::stream::unfold(feed, |mut feed| async move {
+        feed.next().await.map(|frame| (frame, feed))
     });
+    let s = futures_util::StreamExt::take_until(s, app.shutdown.clone().cancelled_owned());
     // A comment whenever no frame came for `keepalive` (as axum's `KeepAlive` did), so proxies
     // and clients do not take a quiet stream for a dead one.
     let mut quiet = tokio::time::interval_at(tokio::time::Instant::now() + keepalive, keepalive);
@@ -225,44 +189,136 @@ pub async fn stream(
         .into_response())
 }
 
-/// Sends `resync` when a replay after `after` cannot be complete, and returns where the replay
-/// starts and whether `resync` was sent (None: the client went away). Two gaps: retention
-/// deleted events after `after` (the client gets what remains after it), or `after` is beyond
-/// every id this log has given (the store was restored from a backup: new events reuse those
-/// ids, so the client starts from the log's end instead of skipping them).
-async fn resync_if_gap(
-    store: &fresa_core::store::Store,
-    after: i64,
-    tx: &Sender<Bytes>,
-) -> Option<(i64, bool)> {
-    let marks = async {
-        Ok::<_, sqlx::Error>((
-            store.events_pruned_through().await?,
-            store.last_event_id().await?,
-        ))
-    };
-    let (pruned, last) = match marks.await {
-        Ok(m) => m,
-        Err(e) => {
-            tracing::error!(error = %e, "cannot read the event log's bounds for a replay");
-            return Some((after, false));
+/// Where a stream that asked to resume (`Last-Event-ID`) stands before it goes live.
+enum Resume {
+    /// Resume after this id: first check it against the log's bounds.
+    Asked(i64),
+    /// Replaying from the log (after a resume or a lag); `Some(start)`: once done, say so if
+    /// a retention pass deleted events after `start` meanwhile.
+    Replaying(Option<i64>),
+}
+
+/// One client's events: a replay from the log where asked or needed, then the live bus.
+struct Feed {
+    rx: tokio::sync::broadcast::Receiver<Arc<BusEvent>>,
+    store: fresa_core::store::Store,
+    matcher: Matcher,
+    sent_up_to: i64,
+    /// Frames to send before anything else: a `resync` and a page of the replay (at most
+    /// [`REPLAY_PAGE`] events, so a replay holds one page in memory at a time).
+    ready: VecDeque<Bytes>,
+    resume: Option<Resume>,
+}
+
+/// Events read from the log per replay query.
+const REPLAY_PAGE: i64 = 500;
+
+impl Feed {
+    /// The next frame; `None` once the bus is closed.
+    async fn next(&mut self) -> Option<Bytes> {
+        loop {
+            if let Some(frame) = self.ready.pop_front() {
+                return Some(frame);
+            }
+            match self.resume.take() {
+                Some(Resume::Asked(after)) => self.check_gap(after).await,
+                Some(Resume::Replaying(start)) => self.replay_page(start).await,
+                None => {}
+            }
+            if !self.ready.is_empty() || self.resume.is_some() {
+                continue;
+            }
+            match self.rx.recv().await {
+                Ok(e) => {
+                    if let Some(id) = e.id {
+                        if id <= self.sent_up_to {
+                            continue;
+                        }
+                        self.sent_up_to = id;
+                    }
+                    if self.matcher.matches(&e) {
+                        return Some(to_sse(&e));
+                    }
+                }
+                Err(RecvError::Lagged(n)) => {
+                    self.ready.push_back(resync_frame(&serde_json::json!({
+                        "reason": "client fell behind", "missed": n, "after": self.sent_up_to,
+                    })));
+                    self.resume = Some(Resume::Replaying(None));
+                }
+                Err(RecvError::Closed) => return None,
+            }
         }
-    };
-    let (data, start) = if after > last {
-        (
-            serde_json::json!({
+    }
+
+    /// Queues `resync` when a replay after `after` cannot be complete, then the replay. Two
+    /// gaps: retention deleted events after `after` (the client gets what remains after it),
+    /// or `after` is beyond every id this log has given (the store was restored from a backup:
+    /// new events reuse those ids, so the client starts from the log's end instead of skipping
+    /// them).
+    async fn check_gap(&mut self, after: i64) {
+        let marks = async {
+            Ok::<_, sqlx::Error>((
+                self.store.events_pruned_through().await?,
+                self.store.last_event_id().await?,
+            ))
+        };
+        let (pruned, last) = match marks.await {
+            Ok(m) => m,
+            Err(e) => {
+                tracing::error!(error = %e, "cannot read the event log's bounds for a replay");
+                self.resume = Some(Resume::Replaying(Some(after)));
+                return;
+            }
+        };
+        if after > last {
+            self.ready.push_back(resync_frame(&serde_json::json!({
                 "reason": "this id is newer than the event log (restored from a backup?)",
                 "after": after,
                 "last_event_id": last,
-            }),
-            last,
-        )
-    } else if after < pruned {
-        (retention_gap(after, pruned), after)
-    } else {
-        return Some((after, false));
-    };
-    send_resync(tx, data).await.then_some((start, true))
+            })));
+            self.sent_up_to = last;
+            self.resume = Some(Resume::Replaying(None));
+        } else if after < pruned {
+            self.ready
+                .push_back(resync_frame(&retention_gap(after, pruned)));
+            self.resume = Some(Resume::Replaying(None));
+        } else {
+            // A retention pass during the replay may delete events before the replay reads
+            // them: checked once it is done.
+            self.resume = Some(Resume::Replaying(Some(after)));
+        }
+    }
+
+    /// One page of persisted events after `sent_up_to`; the replay goes on while pages come.
+    async fn replay_page(&mut self, start: Option<i64>) {
+        let page = match self.store.events_after(self.sent_up_to, REPLAY_PAGE).await {
+            Ok(p) => p,
+            Err(e) => {
+                tracing::error!(error = %e, "event replay failed");
+                return;
+            }
+        };
+        if page.is_empty() {
+            if let Some(start) = start {
+                if let Ok(pruned) = self.store.events_pruned_through().await {
+                    if pruned > start {
+                        self.ready
+                            .push_back(resync_frame(&retention_gap(start, pruned)));
+                    }
+                }
+            }
+            return;
+        }
+        for row in page {
+            let e = BusEvent::from(row);
+            self.sent_up_to = e.id.unwrap_or(self.sent_up_to);
+            if self.matcher.matches(&e) {
+                self.ready.push_back(to_sse(&e));
+            }
+        }
+        self.resume = Some(Resume::Replaying(start));
+    }
 }
 
 fn retention_gap(after: i64, pruned: i64) -> serde_json::Value {
@@ -271,49 +327,4 @@ fn retention_gap(after: i64, pruned: i64) -> serde_json::Value {
         "after": after,
         "pruned_through": pruned,
     })
-}
-
-/// False if the client went away.
-async fn send_resync(tx: &Sender<Bytes>, data: serde_json::Value) -> bool {
-    tx.send(resync_frame(&data)).await.is_ok()
-}
-
-/// Sends persisted events after `*after`, page by page. Returns false if the client went away.
-async fn replay(
-    store: &fresa_core::store::Store,
-    matcher: &Matcher,
-    after: &mut i64,
-    tx: &Sender<Bytes>,
-) -> bool {
-    loop {
-        let page = match store.events_after(*after, 500).await {
-            Ok(p) => p,
-            Err(e) => {
-                tracing::error!(error = %e, "event replay failed");
-                return true;
-            }
-        };
-        if page.is_empty() {
-            return true;
-        }
-        for row in page {
-            let e = BusEvent::from(row);
-            *after = e.id.unwrap_or(*after);
-            if matcher.matches(&e) && tx.send(to_sse(&e)).await.is_err() {
-                return false;
-            }
-        }
-    }
-}
-
-/// A stream fed by a task through a small channel: the task ends when the client disconnects
-/// (send fails) or on shutdown, which ends the stream.
-fn async_stream<F, Fut>(f: F) -> tokio_stream::wrappers::ReceiverStream<Bytes>
-where
-    F: FnOnce(Sender<Bytes>) -> Fut,
-    Fut: std::future::Future<Output = ()> + Send + 'static,
-{
-    let (tx, rx) = tokio::sync::mpsc::channel(64);
-    tokio::spawn(f(tx));
-    tokio_stream::wrappers::ReceiverStream::new(rx)
 }
