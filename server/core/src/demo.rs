@@ -85,16 +85,27 @@ pub async fn ensure_demo_machine(app: &App) {
 
 pub const DEMO_PENDANT: &str = "demo-pendant";
 
-/// Starts `mpg-pendant-sim` (found next to this executable) on a free loopback port and makes
-/// sure a pendant named `demo-pendant` points at it, bound to the demo machine. The simulator
-/// exits when this process does (its stdin is a pipe we hold). Missing simulator: log and go on.
-pub async fn ensure_demo_pendant(app: &App) {
-    if let Err(e) = try_demo_pendant(app).await {
-        tracing::warn!("demo pendant not started: {e}");
+/// The demo pendant's simulator process, started early (see [`start_pendant_sim`]).
+pub struct PendantSim {
+    child: tokio::process::Child,
+    lines: tokio::io::Lines<tokio::io::BufReader<tokio::process::ChildStdout>>,
+}
+
+/// Starts `mpg-pendant-sim` (found next to this executable) on a free loopback port. Called at
+/// the very start, so the process starts while the store opens rather than after it (a few
+/// milliseconds of a first start). The simulator exits when this process does (its stdin is a
+/// pipe we hold). Missing simulator: log and go on.
+pub fn start_pendant_sim() -> Option<PendantSim> {
+    match spawn_pendant_sim() {
+        Ok(sim) => Some(sim),
+        Err(e) => {
+            tracing::warn!("demo pendant not started: {e}");
+            None
+        }
     }
 }
 
-async fn try_demo_pendant(app: &App) -> Result<(), String> {
+fn spawn_pendant_sim() -> Result<PendantSim, String> {
     use tokio::io::AsyncBufReadExt;
     let exe = std::env::current_exe().map_err(|e| e.to_string())?;
     let sim = exe
@@ -110,7 +121,23 @@ async fn try_demo_pendant(app: &App) -> Result<(), String> {
         .spawn()
         .map_err(|e| format!("cannot start {}: {e}", sim.display()))?;
     let stdout = child.stdout.take().ok_or("no stdout")?;
-    let mut lines = tokio::io::BufReader::new(stdout).lines();
+    let lines = tokio::io::BufReader::new(stdout).lines();
+    Ok(PendantSim { child, lines })
+}
+
+/// Makes sure a pendant named `demo-pendant` points at the simulator `sim` started, bound to
+/// the demo machine.
+pub async fn ensure_demo_pendant(app: &App, sim: PendantSim) {
+    if let Err(e) = try_demo_pendant(app, sim).await {
+        tracing::warn!("demo pendant not started: {e}");
+    }
+}
+
+async fn try_demo_pendant(app: &App, sim: PendantSim) -> Result<(), String> {
+    let PendantSim {
+        mut child,
+        mut lines,
+    } = sim;
     let first = tokio::time::timeout(std::time::Duration::from_secs(10), lines.next_line())
         .await
         .map_err(|_| "the simulator did not say where it listens".to_string())?

@@ -62,6 +62,12 @@ impl App {
         // Before the store is touched: a second server must not mark the first one's runs.
         let lock = DataDirLock::acquire(&settings.data_dir)?;
         remove_upload_leftovers(&settings.programs_dir());
+        // A process of its own: it starts while the store opens.
+        let pendant_sim = if settings.demo {
+            crate::demo::start_pendant_sim()
+        } else {
+            None
+        };
         // Loaded on a blocking thread while the store opens (migrations on a first start): the
         // two do not depend on each other, and each takes milliseconds.
         let plugin_dirs = settings.plugin_dirs.clone();
@@ -215,8 +221,8 @@ impl App {
                 load_machine(&app, row).await;
             }
         }
-        if app.settings.demo {
-            crate::demo::ensure_demo_pendant(&app).await;
+        if let Some(sim) = pendant_sim {
+            crate::demo::ensure_demo_pendant(&app, sim).await;
         }
         // After the machines: it moves on only the queues of machines this node drives.
         crate::queue::spawn_runner(&app);
