@@ -81,6 +81,7 @@ pub struct Store {
 }
 
 mod backup;
+pub(crate) mod baseline;
 mod events;
 pub mod health;
 mod heightmaps;
@@ -116,7 +117,11 @@ pub use webhooks::{DeliveryOutcome, WebhookRow, WebhookTarget};
 
 impl Store {
     /// Opens (creating if needed) the SQLite database at `path` and applies the migrations.
+    /// A new one is made from the baseline schema (see [`baseline`]).
     pub async fn open(path: &Path) -> Result<Store> {
+        if matches!(std::fs::metadata(path), Err(e) if e.kind() == std::io::ErrorKind::NotFound) {
+            baseline::create(path).await?;
+        }
         Store::connect(&sqlite_url(path)).await
     }
 
@@ -169,7 +174,7 @@ impl Store {
             }
         };
         match dialect {
-            Dialect::Sqlite => sqlx::migrate!("../../migrations").run(&pool).await?,
+            Dialect::Sqlite => baseline::MIGRATOR.run(&pool).await?,
             Dialect::Postgres => {
                 sqlx::migrate!("../../migrations/postgres")
                     .run(&pool)

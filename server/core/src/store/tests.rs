@@ -858,3 +858,133 @@ async fn counters_and_part_lines_only_rise_and_maintenance_is_raised_once(s: &St
         [("cutting".to_string(), 50), ("held".to_string(), 90)]
     );
 }
+
+/// The SQLite schema and rows of the store at `path`, as the baseline file writes them:
+/// every statement SQLite keeps (in the order it made them) and every row as an `INSERT`.
+async fn sqlite_dump(path: &std::path::Path) -> String {
+    let mut conn = {
+        use sqlx::ConnectOptions;
+        sqlx::sqlite::SqliteConnectOptions::new()
+            .filename(path)
+            .connect()
+            .await
+            .unwrap()
+    };
+    let mut out: Vec<String> = sqlx::query_scalar(
+        "SELECT sql || ';' FROM sqlite_master WHERE sql IS NOT NULL AND name NOT LIKE 'sqlite_%' \
+         AND name != '_sqlx_migrations' ORDER BY rowid",
+    )
+    .fetch_all(&mut conn)
+    .await
+    .unwrap();
+    let tables: Vec<String> = sqlx::query_scalar(
+        "SELECT name FROM sqlite_master WHERE type = 'table' AND name NOT LIKE 'sqlite_%' \
+         AND name != '_sqlx_migrations' ORDER BY rowid",
+    )
+    .fetch_all(&mut conn)
+    .await
+    .unwrap();
+    for t in tables {
+        let columns: Vec<String> =
+            sqlx::query_scalar(&format!("SELECT name FROM pragma_table_info('{t}')"))
+                .fetch_all(&mut conn)
+                .await
+                .unwrap();
+        let values = columns
+            .iter()
+            .map(|c| format!("quote({c})"))
+            .collect::<Vec<_>>()
+            .join(" || ',' || ");
+        let rows: Vec<String> = sqlx::query_scalar(&format!(
+            "SELECT 'INSERT INTO {t} VALUES(' || {values} || ');' FROM {t} ORDER BY rowid"
+        ))
+        .fetch_all(&mut conn)
+        .await
+        .unwrap();
+        out.extend(rows);
+    }
+    format!(
+        "-- Generated: see server/core/src/store/baseline.rs. Do not edit.\n\n{}\n",
+        out.join("\n\n")
+    )
+}
+
+/// A new store is made from the baseline (`migrations/baseline/sqlite.sql`, see `baseline`):
+/// it must hold exactly what one made by running every migration holds, and record the same
+/// migrations (with sqlx's checksums, so opening it again migrates nothing and fails nothing).
+/// `FRESA_WRITE_BASELINE=1` rewrites the baseline from the migrations (then set
+/// `baseline::VERSION` to the last one).
+#[tokio::test]
+async fn a_new_store_from_the_baseline_equals_one_from_every_migration() {
+    let dir = std::env::temp_dir().join(format!(
+        "fresa-baseline-{}-{}",
+        std::process::id(),
+        rand::random::<u64>()
+    ));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (chain, fresh) = (dir.join("chain.db"), dir.join("fresh.db"));
+    Store::connect(&sqlite_url(&chain)).await.unwrap();
+    if std::env::var_os("FRESA_WRITE_BASELINE").is_some() {
+        let file = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../migrations/baseline/sqlite.sql"
+        );
+        std::fs::write(file, sqlite_dump(&chain).await).unwrap();
+        let last = super::baseline::MIGRATOR.iter().map(|m| m.version).max();
+        panic!("baseline rewritten: set baseline::VERSION to {last:?} and run again");
+    }
+    let s = Store::open(&fresh).await.unwrap();
+    assert!(
+        !dir.join("fresh.db.new").exists(),
+        "the half-made file was left"
+    );
+    let (a, b) = (sqlite_dump(&chain).await, sqlite_dump(&fresh).await);
+    assert_eq!(
+        a, b,
+        "a store from the baseline differs from one from the migrations: rewrite the baseline \
+         (FRESA_WRITE_BASELINE=1, see this test)"
+    );
+    let applied = |s: Store| async move {
+        sqlx::query_as::<_, (i64, Vec<u8>)>(
+            "SELECT version, checksum FROM _sqlx_migrations ORDER BY version",
+        )
+        .fetch_all(&s.pool)
+        .await
+        .unwrap()
+    };
+    let expected: Vec<(i64, Vec<u8>)> = super::baseline::MIGRATOR
+        .iter()
+        .map(|m| (m.version, m.checksum.to_vec()))
+        .collect();
+    assert_eq!(applied(s.clone()).await, expected);
+    assert_eq!(
+        applied(Store::connect(&sqlite_url(&chain)).await.unwrap()).await,
+        expected
+    );
+    // Opened again: nothing to migrate, nothing refused, and it works.
+    drop(s);
+    let again = Store::open(&fresh).await.unwrap();
+    assert_eq!(applied(again.clone()).await, expected);
+    assert!(again.list_machines().await.unwrap().is_empty());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A first start stopped while it made the store leaves `NAME.new` (and its WAL): the next
+/// start removes it and makes the store anew.
+#[tokio::test]
+async fn a_half_made_store_is_replaced_at_the_next_start() {
+    let dir = std::env::temp_dir().join(format!(
+        "fresa-halfmade-{}-{}",
+        std::process::id(),
+        rand::random::<u64>()
+    ));
+    std::fs::create_dir_all(&dir).unwrap();
+    let db = dir.join("fresa.db");
+    std::fs::write(dir.join("fresa.db.new"), b"half a store").unwrap();
+    std::fs::write(dir.join("fresa.db.new-wal"), b"half a log").unwrap();
+    let s = Store::open(&db).await.unwrap();
+    assert!(s.list_machines().await.unwrap().is_empty());
+    assert!(!dir.join("fresa.db.new").exists());
+    assert!(!dir.join("fresa.db.new-wal").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
