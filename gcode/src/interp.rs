@@ -1319,7 +1319,12 @@ impl<R: BufRead> Interpreter<R> {
                     return Ok(());
                 }
                 self.words_seen = true;
-                match self.execute() {
+                let r = if self.is_plain_move() {
+                    self.execute_plain_move()
+                } else {
+                    self.execute()
+                };
+                match r {
                     Ok(()) => Ok(()),
                     Err(e) => {
                         self.queue.clear();
@@ -1388,6 +1393,112 @@ impl<R: BufRead> Interpreter<R> {
         } else {
             1.0
         }
+    }
+
+    /// The line is the common CAM move, `[N..] [G0|G1] X.. Y.. Z.. [F..]`, in a state where
+    /// nothing else changes how it runs: G0/G1 mode (or set on the line), G94, no cutter
+    /// compensation, no G92/G52 or G10 offsets, no canned-cycle level to forget. Such a line
+    /// (nine in ten of a CAM program's) takes [`Interpreter::execute_plain_move`], which does
+    /// what [`Interpreter::execute_line`] would, without its classification of every word and
+    /// group and its copy of the whole state. The conditions are the ones under which the
+    /// general path runs no other branch; anything else takes the general path.
+    #[inline(always)]
+    fn is_plain_move(&self) -> bool {
+        const WORDS: u32 = bit(b'X') | bit(b'Y') | bit(b'Z') | bit(b'F') | bit(b'N');
+        const AXES: u32 = bit(b'X') | bit(b'Y') | bit(b'Z');
+        let blk = &self.blk;
+        let motion_ok = match blk.ng {
+            0 => matches!(self.st.motion, MotionMode::Rapid | MotionMode::Linear),
+            // Setting the motion mode also ends a series of canned cycles (their
+            // initial level): left to the general path.
+            1 => matches!(blk.g[0].0, 0 | 10) && self.cycle.initial.is_none(),
+            _ => false,
+        };
+        motion_ok
+            && blk.nm == 0
+            && blk.mask & !WORDS == 0
+            && blk.mask & AXES != 0
+            && blk.msg.is_none()
+            && blk.debug.is_none()
+            && self.st.feed_mode == FeedMode::PerMinute
+            && self.comp.side.is_none()
+            && !self.comp.arc_not_allowed
+            && !self.g92_active
+            && !self.offsets_changed
+    }
+
+    /// [`Interpreter::execute_line`] for a line [`Interpreter::is_plain_move`] accepted: the
+    /// same checks, events and errors in the same order (units, word ranges, feed, target,
+    /// the move, the state, then the reach checks), on the state in place. Nothing is written
+    /// before the last check that can fail short of the reach checks, which the general path
+    /// also makes after its commit.
+    #[inline(always)]
+    fn execute_plain_move(&mut self) -> Result<(), LexError> {
+        let blk = &self.blk;
+        let line = self.line_no;
+        let motion = match blk.ng {
+            0 => self.st.motion,
+            _ if blk.g[0].0 == 0 => MotionMode::Rapid,
+            _ => MotionMode::Linear,
+        };
+        let scale = Self::scale(self.st.inch);
+        check_word_ranges(blk, scale, FeedMode::PerMinute)?;
+        let mut feed = self.st.feed;
+        if let Some(f) = blk.get(b'F') {
+            if f < 0.0 {
+                return Err((
+                    blk.pos_of(b'F') as usize,
+                    ErrorKind::Invalid,
+                    "negative feed rate".to_string(),
+                ));
+            }
+            feed = Some(f * scale);
+        }
+        if self.st.inch {
+            self.units_inch_seen = true;
+        }
+        let pos = self.st.pos;
+        let mut target = pos;
+        for (i, letter) in [b'X', b'Y', b'Z'].into_iter().enumerate() {
+            if let Some(v) = blk.get(letter) {
+                target[i] = if self.st.absolute {
+                    v * scale
+                } else {
+                    pos[i] + v * scale
+                };
+            }
+        }
+        // No A word: A stays (`between` still decides, as on the general path).
+        let a = RotaryMove::between(self.st.a, self.st.a);
+        let m = if motion == MotionMode::Rapid {
+            Motion::Rapid {
+                line,
+                from: pos,
+                to: target,
+                a,
+            }
+        } else {
+            Motion::Linear {
+                line,
+                from: pos,
+                to: target,
+                feed_mm_min: feed_mm_min(feed, blk)?,
+                a,
+            }
+        };
+        self.queue.push_back(m);
+        self.st.pos = target;
+        self.st.motion = motion;
+        self.st.feed = feed;
+        for m in self.queue.iter() {
+            check_motion_reach(m, &self.blk)?;
+        }
+        check_reach(
+            "the programmed position is",
+            &self.st.pos,
+            Some(self.st.a),
+            &self.blk,
+        )
     }
 
     /// Interprets the lexed block. Works on a copy of the state and commits it
@@ -2171,7 +2282,7 @@ impl<R: BufRead> Interpreter<R> {
                     });
                 }
                 MotionMode::Linear => {
-                    let mut feed = feed_mm_min(&st, blk)?;
+                    let mut feed = feed_mm_min(st.feed, blk)?;
                     if st.feed_mode != FeedMode::PerMinute {
                         // A rotary-only move's length is in degrees (LinuxCNC).
                         let mut length = len3(st.pos, target);
@@ -2197,7 +2308,7 @@ impl<R: BufRead> Interpreter<R> {
                             "G53 with a spline".to_string(),
                         ));
                     }
-                    let feed = feed_mm_min(&st, blk)?;
+                    let feed = feed_mm_min(st.feed, blk)?;
                     spline_pq_new = Some(spline_motion(
                         &self.cfg,
                         queue,
@@ -2224,7 +2335,7 @@ impl<R: BufRead> Interpreter<R> {
                             "G53 with an arc".to_string(),
                         ));
                     }
-                    let feed = feed_mm_min(&st, blk)?;
+                    let feed = feed_mm_min(st.feed, blk)?;
                     let mut m = arc_motion_of(
                         &self.cfg,
                         &st,
@@ -2283,7 +2394,7 @@ impl<R: BufRead> Interpreter<R> {
                             format!("{name} with an A axis move is not supported"),
                         ));
                     }
-                    let feed = feed_mm_min(&st, blk)?;
+                    let feed = feed_mm_min(st.feed, blk)?;
                     // LinuxCNC's rule (rs274 2.9): a G38.2/G38.4 that would not move at all is
                     // an error; G38.3/G38.5 may (smartprobe.ngc relies on it).
                     if matches!(code, 382 | 384) && len3(st.pos, target) < 1e-9 {
@@ -3067,7 +3178,7 @@ fn compensated_move(
             .straight(line, true, 0.0, st.pos, target, st.inch, &mut out)
             .map_err(|e| comp_err(at, e))?,
         MotionMode::Linear => {
-            let mut feed = feed_mm_min(st, blk)?;
+            let mut feed = feed_mm_min(st.feed, blk)?;
             if st.feed_mode != FeedMode::PerMinute {
                 feed = feed_in_mode(st, blk, feed, len3(st.pos, target))?;
             }
@@ -3075,7 +3186,7 @@ fn compensated_move(
                 .map_err(|e| comp_err(at, e))?;
         }
         MotionMode::Cw | MotionMode::Ccw => {
-            let feed = feed_mm_min(st, blk)?;
+            let feed = feed_mm_min(st.feed, blk)?;
             let mut m = arc_motion_of(
                 cfg,
                 st,
@@ -3577,8 +3688,9 @@ fn rest_is_comment(b: &[u8], mut i: usize) -> Result<(), LexError> {
     Ok(())
 }
 
-fn feed_mm_min(st: &State, blk: &Block) -> Result<f64, LexError> {
-    match st.feed {
+/// The feed in force (`feed`, mm/min) for a feed move of this line, or the error naming it.
+fn feed_mm_min(feed: Option<f64>, blk: &Block) -> Result<f64, LexError> {
+    match feed {
         None => Err((
             first_of(
                 blk,
