@@ -1442,7 +1442,19 @@ impl<R: BufRead> Interpreter<R> {
             _ => MotionMode::Linear,
         };
         let scale = Self::scale(self.st.inch);
-        check_word_ranges(blk, scale, FeedMode::PerMinute)?;
+        // `check_word_ranges`'s bounds for these words, tested at once; when one fails,
+        // `check_word_ranges` itself finds the word to name (the first, in letter order).
+        let within = |letter: u8, limit: f64| match blk.get(letter) {
+            Some(v) => (v * scale).abs() <= limit,
+            None => true,
+        };
+        if !(within(b'F', MAX_FEED)
+            & within(b'X', MAX_COORDINATE_MM)
+            & within(b'Y', MAX_COORDINATE_MM)
+            & within(b'Z', MAX_COORDINATE_MM))
+        {
+            check_word_ranges(blk, scale, FeedMode::PerMinute)?;
+        }
         let mut feed = self.st.feed;
         if let Some(f) = blk.get(b'F') {
             if f < 0.0 {
@@ -1490,6 +1502,13 @@ impl<R: BufRead> Interpreter<R> {
         self.st.pos = target;
         self.st.motion = motion;
         self.st.feed = feed;
+        // The reach checks below, at once for the usual case: this move the only event
+        // queued, its end (the new position) and A within reach. Otherwise they run one by
+        // one, for the error to name.
+        let reach = |v: f64| v.abs() <= MAX_COORDINATE_MM;
+        if self.queue.count() == 1 && target.iter().all(|&v| reach(v)) && reach(self.st.a) {
+            return Ok(());
+        }
         for m in self.queue.iter() {
             check_motion_reach(m, &self.blk)?;
         }
