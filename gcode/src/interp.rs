@@ -1494,7 +1494,11 @@ impl<R: BufRead> Interpreter<R> {
                 line,
                 from: pos,
                 to: target,
-                feed_mm_min: feed_mm_min(feed, blk)?,
+                feed_mm_min: match feed {
+                    // The usual case, inline; `feed_mm_min` makes the errors (and passes NaN).
+                    Some(f) if f > 0.0 => f,
+                    _ => feed_mm_min(feed, blk)?,
+                },
                 a,
             }
         };
@@ -2703,6 +2707,9 @@ fn check_motion_reach(m: &Motion, blk: &Block) -> Result<(), LexError> {
             check_reach("the arc centre is at", centre, None, blk)?;
             // Its chords go where the arc bulges, beyond both ends.
             if let Some(g) = crate::ArcGeometry::from_motion(m) {
+                if arc_clearly_within_reach(&g) {
+                    return Ok(());
+                }
                 let (lo, hi) = g.bounds();
                 check_reach("the arc reaches", &lo, None, blk)?;
                 check_reach("the arc reaches", &hi, None, blk)?;
@@ -2717,6 +2724,21 @@ fn check_motion_reach(m: &Motion, blk: &Block) -> Result<(), LexError> {
         }
         _ => Ok(()),
     }
+}
+
+/// The arc stays well inside [`MAX_COORDINATE_MM`] without its exact bounds (an `atan2` and
+/// up to four extrema): in the plane it keeps within the larger radius of its centre, along
+/// the normal between its two ends. The margin (1 mm, far above the rounding of those sums)
+/// makes this only say yes where the exact bounds pass too; otherwise they decide.
+#[inline]
+fn arc_clearly_within_reach(g: &crate::ArcGeometry) -> bool {
+    let limit = MAX_COORDINATE_MM - 1.0;
+    let (a, b, n) = g.axes;
+    let r = g.r0.max(g.r1);
+    g.centre[a].abs() + r <= limit
+        && g.centre[b].abs() + r <= limit
+        && g.from[n].abs() <= limit
+        && g.to[n].abs() <= limit
 }
 
 #[inline]
