@@ -346,18 +346,17 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
     // The last point the rapid and the cutting bounds took in (see `grow_move`).
     let mut rapid_last: Option<Point> = None;
     let mut cut_last: Option<Point> = None;
-    for m in it.by_ref() {
-        let m = m?;
-        budget.charge(&m)?;
+    it.for_each_motion(|m: &Motion| -> Result<(), GcodeError> {
+        budget.charge(m)?;
         // A straight move's length, measured once for the estimate and the path length.
-        let (is_move, len) = match m {
+        let (is_move, len) = match *m {
             Motion::Rapid { from, to, .. }
             | Motion::Linear { from, to, .. }
             | Motion::Probe { from, to, .. } => (true, dist(from, to)),
             Motion::Arc { .. } => (true, 0.0),
             _ => (false, 0.0),
         };
-        estimator.push_straight_len(&m, len);
+        estimator.push_straight_len(m, len);
         let line = m.line();
         if is_move {
             if line != last_motion_line {
@@ -369,7 +368,7 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
                 mixed_at = Some((line, active_system));
             }
         }
-        if let Motion::WorkOffset { system, .. } = m {
+        if let Motion::WorkOffset { system, .. } = *m {
             active_system = system;
         }
         if let Some(r) = m.rotary() {
@@ -379,7 +378,7 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
             b.min = b.min.min(lo);
             b.max = b.max.max(hi);
         }
-        match m {
+        match *m {
             Motion::Rapid { from, to, .. } => {
                 a.rapid_moves += 1;
                 a.rapid_length_mm += len;
@@ -398,7 +397,7 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
             }
             Motion::Arc { feed_mm_min, .. } => {
                 a.arc_moves += 1;
-                if let Some(g) = ArcGeometry::from_motion(&m) {
+                if let Some(g) = ArcGeometry::from_motion(m) {
                     let d = g.length();
                     a.cutting_length_mm += d;
                     let (lo, hi) = g.bounds();
@@ -461,7 +460,8 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
             }
             _ => {}
         }
-    }
+        Ok(())
+    })?;
     a.time_table = estimator.finish();
     a.estimated_seconds = a.time_table.total();
     a.segments = budget.used();
