@@ -58,6 +58,13 @@ impl Queue {
     /// empty queue: the ring is full before anything goes to `overflow`.
     #[inline]
     fn push_back(&mut self, m: Motion) {
+        self.push_back_inlined(m);
+    }
+    /// [`Queue::push_back`], always inlined: for the plain move's one push per line (see
+    /// [`Interpreter::execute_plain_move`]), where the motion is then built in its slot
+    /// instead of on the stack and copied there by a call.
+    #[inline(always)]
+    fn push_back_inlined(&mut self, m: Motion) {
         if self.len < QUEUE_CAP {
             self.items[(self.head + self.len) % QUEUE_CAP] = Some(m);
             self.len += 1;
@@ -406,6 +413,11 @@ impl<R: BufRead> Interpreter<R> {
 
     /// Applies the pending probe's result (or the stand-alone assumption).
     fn settle_probe(&mut self) {
+        // Tested before `take`: taking moves the whole pending probe out and back for every
+        // line, probing or not.
+        if self.probe_pending.is_none() {
+            return;
+        }
         let Some(p) = self.probe_pending.take() else {
             return;
         };
@@ -540,6 +552,10 @@ impl<R: BufRead> Interpreter<R> {
     fn read_line(&mut self) -> Result<bool, GcodeError> {
         self.line.clear();
         let mut any = false;
+        // Whether the text taken is ASCII, tested in the reader's buffer as it is taken: the
+        // line just copied, read back in 8-byte words, stalled the processor (loads that
+        // straddle the copy's stores cannot be forwarded from them).
+        let mut ascii = true;
         loop {
             let buf = match self.reader.fill_buf() {
                 Ok(b) => b,
@@ -558,11 +574,13 @@ impl<R: BufRead> Interpreter<R> {
             }
             any = true;
             if let Some(i) = memchr::memchr(b'\n', buf) {
+                ascii &= buf[..i].is_ascii();
                 self.line.extend_from_slice(&buf[..i]);
                 self.reader.consume(i + 1);
                 break;
             }
             let n = buf.len();
+            ascii &= buf.is_ascii();
             self.line.extend_from_slice(buf);
             self.reader.consume(n);
             if self.line.len() > self.cfg.max_line_bytes {
@@ -595,7 +613,7 @@ impl<R: BufRead> Interpreter<R> {
         if self.line_no == 1 && self.line.starts_with(b"\xEF\xBB\xBF") {
             self.line.drain(..3);
         }
-        if !self.line.is_ascii() {
+        if !ascii {
             if let Err(e) = std::str::from_utf8(&self.line) {
                 return Err(GcodeError {
                     line: self.line_no,
@@ -1521,7 +1539,7 @@ impl<R: BufRead> Interpreter<R> {
                 a,
             }
         };
-        self.queue.push_back(m);
+        self.queue.push_back_inlined(m);
         self.st.pos = target;
         self.st.motion = motion;
         self.st.feed = feed;
