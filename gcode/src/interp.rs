@@ -1466,9 +1466,9 @@ impl<R: BufRead> Interpreter<R> {
 
     /// [`Interpreter::execute_line`] for a line [`Interpreter::is_plain_move`] accepted: the
     /// same checks, events and errors in the same order (units, word ranges, feed, target,
-    /// the move, the state, then the reach checks), on the state in place. Nothing is written
-    /// before the last check that can fail short of the reach checks, which the general path
-    /// also makes after its commit.
+    /// the move, the state, then the reach checks), on the state in place. As there, the state
+    /// is written only after every check but the reach checks, which the general path also
+    /// makes after its commit (`units_inch_seen`, which it sets before its move, aside).
     #[inline(always)]
     fn execute_plain_move(&mut self) -> Result<(), LexError> {
         let blk = &self.blk;
