@@ -6,6 +6,9 @@
 //!
 //!   cargo build --release -p fresa-gcode --example instructions
 //!   valgrind --tool=cachegrind --cache-sim=no target/release/examples/instructions FILE 2 [lin|an]
+//!
+//! `json` prints the analysis as JSON (one pass) instead, so two builds can be
+//! compared byte for byte: `instructions FILE 1 json > a.json`.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fresa_gcode::{linearise, Config, Interpreter};
@@ -19,6 +22,14 @@ fn main() {
     // `an`: the whole analysis, as an upload runs it.
     let an = args.get(3).is_some_and(|a| a == "an");
     let src = std::fs::read(path).expect("read FILE");
+    if args.get(3).is_some_and(|a| a == "json") {
+        // An error is part of the result too: print it the same way.
+        match fresa_gcode::analyse(&src[..], &fresa_gcode::AnalysisOptions::default()) {
+            Ok(a) => println!("{}", serde_json::to_string(&a).unwrap()),
+            Err(e) => println!("error: {}", serde_json::to_string(&e).unwrap()),
+        }
+        return;
+    }
     let mut n = 0u64;
     for _ in 0..reps {
         if an {

@@ -1,7 +1,7 @@
 //! Whole-program analysis in one streaming pass (constant memory).
 
 use crate::arc::{ArcGeometry, WorkBudget};
-use crate::estimate::{Estimator, MotionProfile, TimeTable};
+use crate::estimate::{dist, Estimator, MotionProfile, TimeTable};
 use crate::{Config, GcodeError, Interpreter, Motion, Point, SpindleDirection, Warning};
 use serde::{Deserialize, Serialize};
 use std::io::BufRead;
@@ -177,10 +177,19 @@ impl Default for AnalysisOptions {
     }
 }
 
+/// Grows `b` by a straight move from `from` to `to`. `last` is the point `b` took in last
+/// (the end of the move before, when it was one of these): a move that starts there, as
+/// nearly every move does, adds only its end. Taking in a point again changes nothing (`min`
+/// and `max` of a value and itself, to the bit), so the bounds are the same either way.
 #[inline]
-fn dist(a: Point, b: Point) -> f64 {
-    let (dx, dy, dz) = (b[0] - a[0], b[1] - a[1], b[2] - a[2]);
-    (dx * dx + dy * dy + dz * dz).sqrt()
+fn grow_move(b: &mut Option<Bounds>, last: &mut Option<Point>, from: Point, to: Point) {
+    match (b.as_mut(), *last) {
+        (Some(bounds), Some(l)) if l.map(f64::to_bits) == from.map(f64::to_bits) => {
+            bounds.include(to)
+        }
+        _ => grow(b, from, to),
+    }
+    *last = Some(to);
 }
 
 /// How a program's path depends on where its probes trip: the program run as
@@ -334,18 +343,21 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
         rapid_mm_min: rapid_rate,
         ..MotionProfile::default()
     }));
-    for m in it.by_ref() {
-        let m = m?;
-        budget.charge(&m)?;
-        estimator.push(&m);
+    // The last point the rapid and the cutting bounds took in (see `grow_move`).
+    let mut rapid_last: Option<Point> = None;
+    let mut cut_last: Option<Point> = None;
+    it.for_each_motion(|m: &Motion| -> Result<(), GcodeError> {
+        budget.charge(m)?;
+        // A straight move's length, measured once for the estimate and the path length.
+        let (is_move, len) = match *m {
+            Motion::Rapid { from, to, .. }
+            | Motion::Linear { from, to, .. }
+            | Motion::Probe { from, to, .. } => (true, dist(from, to)),
+            Motion::Arc { .. } => (true, 0.0),
+            _ => (false, 0.0),
+        };
+        estimator.push_straight_len(m, len);
         let line = m.line();
-        let is_move = matches!(
-            m,
-            Motion::Rapid { .. }
-                | Motion::Linear { .. }
-                | Motion::Arc { .. }
-                | Motion::Probe { .. }
-        );
         if is_move {
             if line != last_motion_line {
                 a.motion_lines += 1;
@@ -356,7 +368,7 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
                 mixed_at = Some((line, active_system));
             }
         }
-        if let Motion::WorkOffset { system, .. } = m {
+        if let Motion::WorkOffset { system, .. } = *m {
             active_system = system;
         }
         if let Some(r) = m.rotary() {
@@ -366,11 +378,11 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
             b.min = b.min.min(lo);
             b.max = b.max.max(hi);
         }
-        match m {
+        match *m {
             Motion::Rapid { from, to, .. } => {
                 a.rapid_moves += 1;
-                a.rapid_length_mm += dist(from, to);
-                grow(&mut a.rapid_bounds, from, to);
+                a.rapid_length_mm += len;
+                grow_move(&mut a.rapid_bounds, &mut rapid_last, from, to);
             }
             Motion::Linear {
                 from,
@@ -379,25 +391,25 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
                 ..
             } => {
                 a.linear_moves += 1;
-                let d = dist(from, to);
-                a.cutting_length_mm += d;
+                a.cutting_length_mm += len;
                 a.max_feed_mm_min = a.max_feed_mm_min.max(feed_mm_min);
-                grow(&mut a.cutting_bounds, from, to);
+                grow_move(&mut a.cutting_bounds, &mut cut_last, from, to);
             }
             Motion::Arc { feed_mm_min, .. } => {
                 a.arc_moves += 1;
-                if let Some(g) = ArcGeometry::from_motion(&m) {
+                if let Some(g) = ArcGeometry::from_motion(m) {
                     let d = g.length();
                     a.cutting_length_mm += d;
                     let (lo, hi) = g.bounds();
                     grow(&mut a.cutting_bounds, lo, hi);
+                    cut_last = None;
                 }
                 a.max_feed_mm_min = a.max_feed_mm_min.max(feed_mm_min);
             }
             Motion::Probe { line, from, to, .. } => {
                 a.probe_moves += 1;
                 a.first_probe_line.get_or_insert(line);
-                grow(&mut a.cutting_bounds, from, to);
+                grow_move(&mut a.cutting_bounds, &mut cut_last, from, to);
             }
             Motion::Dwell { seconds, .. } => a.dwell_seconds += seconds,
             Motion::Spindle { rpm, direction, .. } if direction != SpindleDirection::Off => {
@@ -448,7 +460,8 @@ pub fn analyse<R: BufRead>(reader: R, opts: &AnalysisOptions) -> Result<Analysis
             }
             _ => {}
         }
-    }
+        Ok(())
+    })?;
     a.time_table = estimator.finish();
     a.estimated_seconds = a.time_table.total();
     a.segments = budget.used();

@@ -196,6 +196,7 @@ pub fn segments_for(radius: f64, sweep_rad: f64, tolerance: f64) -> u64 {
 /// Segments `m` becomes when linearised at `tolerance_mm`: 1 for a rapid or straight move, the
 /// number of chords [`linearise`] makes of an arc (computed from its radius, sweep and the
 /// tolerance, without making them), 0 for anything that does not move.
+#[inline]
 pub fn segments_of(m: &Motion, tolerance_mm: f64) -> u64 {
     match m {
         Motion::Rapid { .. } | Motion::Linear { .. } | Motion::Probe { .. } => 1,
@@ -241,23 +242,30 @@ impl WorkBudget {
 
     /// Counts `m`'s segments; an [`ErrorKind::Budget`] error at its line once the total would
     /// pass the limit (nothing is counted then).
+    #[inline]
     pub fn charge(&mut self, m: &Motion) -> Result<(), GcodeError> {
         let n = segments_of(m, self.tolerance_mm);
         let total = self.used.saturating_add(n);
         if total > self.limit {
-            return Err(GcodeError {
-                line: m.line(),
-                column: 1,
-                kind: ErrorKind::Budget,
-                message: format!(
-                    "work budget exceeded: this move makes {n} segments (arcs as chords of {} mm) \
-                     on top of the {} before it, more than the budget of {} segments",
-                    self.tolerance_mm, self.used, self.limit
-                ),
-            });
+            return Err(self.exceeded(m, n));
         }
         self.used = total;
         Ok(())
+    }
+
+    /// The error of [`WorkBudget::charge`], out of line: charging runs once per motion.
+    #[cold]
+    fn exceeded(&self, m: &Motion, n: u64) -> GcodeError {
+        GcodeError {
+            line: m.line(),
+            column: 1,
+            kind: ErrorKind::Budget,
+            message: format!(
+                "work budget exceeded: this move makes {n} segments (arcs as chords of {} mm) \
+                     on top of the {} before it, more than the budget of {} segments",
+                self.tolerance_mm, self.used, self.limit
+            ),
+        }
     }
 }
 

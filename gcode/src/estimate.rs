@@ -216,10 +216,24 @@ impl Estimator {
 
     /// Takes one motion of the program.
     pub fn push(&mut self, m: &Motion) {
+        let len = match *m {
+            Motion::Rapid { from, to, .. }
+            | Motion::Linear { from, to, .. }
+            | Motion::Probe { from, to, .. } => dist(from, to),
+            _ => 0.0,
+        };
+        self.push_straight_len(m, len);
+    }
+
+    /// [`Estimator::push`] with the length of a rapid, linear or probing move already known
+    /// (`len` = its `from`-`to` distance, computed as [`dist`] does; ignored for other
+    /// motions): the analysis measures it too, and a square root per move is worth sparing.
+    #[inline]
+    pub(crate) fn push_straight_len(&mut self, m: &Motion, len: f64) {
         let line = m.line();
         match *m {
             Motion::Rapid { from, to, .. } => {
-                self.straight(line, Kind::Rapid, from, to, None);
+                self.straight(line, Kind::Rapid, from, to, len, None);
             }
             Motion::Linear {
                 from,
@@ -228,7 +242,7 @@ impl Estimator {
                 a,
                 ..
             } => {
-                let d = dist(from, to);
+                let d = len;
                 match a {
                     // A rotary-only move: its feed is degrees per minute, no junctions.
                     Some(r) if d == 0.0 => {
@@ -239,7 +253,7 @@ impl Estimator {
                         }
                         self.mark(line);
                     }
-                    _ => self.straight(line, Kind::Feed, from, to, Some(feed_mm_min)),
+                    _ => self.straight(line, Kind::Feed, from, to, len, Some(feed_mm_min)),
                 }
             }
             Motion::Probe {
@@ -250,7 +264,7 @@ impl Estimator {
             } => {
                 // Probing stops where it trips: planned as its whole way, from and to a stop.
                 self.stop(line);
-                self.straight(line, Kind::Feed, from, to, Some(feed_mm_min));
+                self.straight(line, Kind::Feed, from, to, len, Some(feed_mm_min));
                 self.stop(line);
             }
             Motion::Arc { feed_mm_min, .. } => {
@@ -305,16 +319,17 @@ impl Estimator {
         f64::from(CHORDS) / slowness
     }
 
-    /// A straight move at `feed_mm_min` (None: a rapid).
+    /// A straight move of `len` = `dist(from, to)` at `feed_mm_min` (None: a rapid).
+    #[inline]
     fn straight(
         &mut self,
         line: u32,
         kind: Kind,
         from: Point,
         to: Point,
+        len: f64,
         feed_mm_min: Option<f64>,
     ) {
-        let len = dist(from, to);
         if len <= 0.0 {
             return;
         }
@@ -519,7 +534,9 @@ fn trapezoid(len: f64, v: f64, v_in: f64, v_out: f64, a: f64) -> f64 {
     }
 }
 
-fn dist(a: Point, b: Point) -> f64 {
+/// The distance from `a` to `b`; `analysis` measures moves the same way, to the bit.
+#[inline]
+pub(crate) fn dist(a: Point, b: Point) -> f64 {
     let d = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
     (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
 }

@@ -58,6 +58,13 @@ impl Queue {
     /// empty queue: the ring is full before anything goes to `overflow`.
     #[inline]
     fn push_back(&mut self, m: Motion) {
+        self.push_back_inlined(m);
+    }
+    /// [`Queue::push_back`], always inlined: for the plain move's one push per line (see
+    /// [`Interpreter::execute_plain_move`]), where the motion is then built in its slot
+    /// instead of on the stack and copied there by a call.
+    #[inline(always)]
+    fn push_back_inlined(&mut self, m: Motion) {
         if self.len < QUEUE_CAP {
             self.items[(self.head + self.len) % QUEUE_CAP] = Some(m);
             self.len += 1;
@@ -74,6 +81,25 @@ impl Queue {
         self.head = (self.head + 1) % QUEUE_CAP;
         self.len -= 1;
         m
+    }
+    /// The first event waiting, where it waits (see [`Interpreter::for_each_motion`]).
+    #[inline]
+    fn front(&self) -> Option<&Motion> {
+        if self.len == 0 {
+            return self.overflow.front();
+        }
+        self.items[self.head].as_ref()
+    }
+    /// Drops the first event waiting, once [`Queue::front`] has been looked at.
+    #[inline]
+    fn drop_front(&mut self) {
+        if self.len == 0 {
+            self.overflow.pop_front();
+            return;
+        }
+        self.items[self.head] = None;
+        self.head = (self.head + 1) % QUEUE_CAP;
+        self.len -= 1;
     }
     #[inline(never)]
     fn pop_overflow(&mut self) -> Option<Motion> {
@@ -387,6 +413,11 @@ impl<R: BufRead> Interpreter<R> {
 
     /// Applies the pending probe's result (or the stand-alone assumption).
     fn settle_probe(&mut self) {
+        // Tested before `take`: taking moves the whole pending probe out and back for every
+        // line, probing or not.
+        if self.probe_pending.is_none() {
+            return;
+        }
         let Some(p) = self.probe_pending.take() else {
             return;
         };
@@ -521,6 +552,10 @@ impl<R: BufRead> Interpreter<R> {
     fn read_line(&mut self) -> Result<bool, GcodeError> {
         self.line.clear();
         let mut any = false;
+        // Whether the text taken is ASCII, tested in the reader's buffer as it is taken: the
+        // line just copied, read back in 8-byte words, stalled the processor (loads that
+        // straddle the copy's stores cannot be forwarded from them).
+        let mut ascii = true;
         loop {
             let buf = match self.reader.fill_buf() {
                 Ok(b) => b,
@@ -539,11 +574,13 @@ impl<R: BufRead> Interpreter<R> {
             }
             any = true;
             if let Some(i) = memchr::memchr(b'\n', buf) {
+                ascii &= buf[..i].is_ascii();
                 self.line.extend_from_slice(&buf[..i]);
                 self.reader.consume(i + 1);
                 break;
             }
             let n = buf.len();
+            ascii &= buf.is_ascii();
             self.line.extend_from_slice(buf);
             self.reader.consume(n);
             if self.line.len() > self.cfg.max_line_bytes {
@@ -576,7 +613,7 @@ impl<R: BufRead> Interpreter<R> {
         if self.line_no == 1 && self.line.starts_with(b"\xEF\xBB\xBF") {
             self.line.drain(..3);
         }
-        if !self.line.is_ascii() {
+        if !ascii {
             if let Err(e) = std::str::from_utf8(&self.line) {
                 return Err(GcodeError {
                     line: self.line_no,
@@ -1319,7 +1356,12 @@ impl<R: BufRead> Interpreter<R> {
                     return Ok(());
                 }
                 self.words_seen = true;
-                match self.execute() {
+                let r = if self.is_plain_move() {
+                    self.execute_plain_move()
+                } else {
+                    self.execute()
+                };
+                match r {
                     Ok(()) => Ok(()),
                     Err(e) => {
                         self.queue.clear();
@@ -1388,6 +1430,135 @@ impl<R: BufRead> Interpreter<R> {
         } else {
             1.0
         }
+    }
+
+    /// The line is the common CAM move, `[N..] [G0|G1] X.. Y.. Z.. [F..]`, in a state where
+    /// nothing else changes how it runs: G0/G1 mode (or set on the line), G94, no cutter
+    /// compensation, no G92/G52 or G10 offsets, no canned-cycle level to forget. Such a line
+    /// (nine in ten of a CAM program's) takes [`Interpreter::execute_plain_move`], which does
+    /// what [`Interpreter::execute_line`] would, without its classification of every word and
+    /// group and its copy of the whole state. The conditions are the ones under which the
+    /// general path runs no other branch; anything else takes the general path.
+    #[inline(always)]
+    fn is_plain_move(&self) -> bool {
+        const WORDS: u32 = bit(b'X') | bit(b'Y') | bit(b'Z') | bit(b'F') | bit(b'N');
+        const AXES: u32 = bit(b'X') | bit(b'Y') | bit(b'Z');
+        let blk = &self.blk;
+        let motion_ok = match blk.ng {
+            0 => matches!(self.st.motion, MotionMode::Rapid | MotionMode::Linear),
+            // Setting the motion mode also ends a series of canned cycles (their
+            // initial level): left to the general path.
+            1 => matches!(blk.g[0].0, 0 | 10) && self.cycle.initial.is_none(),
+            _ => false,
+        };
+        motion_ok
+            && blk.nm == 0
+            && blk.mask & !WORDS == 0
+            && blk.mask & AXES != 0
+            && blk.msg.is_none()
+            && blk.debug.is_none()
+            && self.st.feed_mode == FeedMode::PerMinute
+            && self.comp.side.is_none()
+            && !self.comp.arc_not_allowed
+            && !self.g92_active
+            && !self.offsets_changed
+    }
+
+    /// [`Interpreter::execute_line`] for a line [`Interpreter::is_plain_move`] accepted: the
+    /// same checks, events and errors in the same order (units, word ranges, feed, target,
+    /// the move, the state, then the reach checks), on the state in place. As there, the state
+    /// is written only after every check but the reach checks, which the general path also
+    /// makes after its commit (`units_inch_seen`, which it sets before its move, aside).
+    #[inline(always)]
+    fn execute_plain_move(&mut self) -> Result<(), LexError> {
+        let blk = &self.blk;
+        let line = self.line_no;
+        let motion = match blk.ng {
+            0 => self.st.motion,
+            _ if blk.g[0].0 == 0 => MotionMode::Rapid,
+            _ => MotionMode::Linear,
+        };
+        let scale = Self::scale(self.st.inch);
+        // `check_word_ranges`'s bounds for these words, tested at once; when one fails,
+        // `check_word_ranges` itself finds the word to name (the first, in letter order).
+        let within = |letter: u8, limit: f64| match blk.get(letter) {
+            Some(v) => (v * scale).abs() <= limit,
+            None => true,
+        };
+        if !(within(b'F', MAX_FEED)
+            & within(b'X', MAX_COORDINATE_MM)
+            & within(b'Y', MAX_COORDINATE_MM)
+            & within(b'Z', MAX_COORDINATE_MM))
+        {
+            check_word_ranges(blk, scale, FeedMode::PerMinute)?;
+        }
+        let mut feed = self.st.feed;
+        if let Some(f) = blk.get(b'F') {
+            if f < 0.0 {
+                return Err((
+                    blk.pos_of(b'F') as usize,
+                    ErrorKind::Invalid,
+                    "negative feed rate".to_string(),
+                ));
+            }
+            feed = Some(f * scale);
+        }
+        if self.st.inch {
+            self.units_inch_seen = true;
+        }
+        let pos = self.st.pos;
+        let mut target = pos;
+        for (i, letter) in [b'X', b'Y', b'Z'].into_iter().enumerate() {
+            if let Some(v) = blk.get(letter) {
+                target[i] = if self.st.absolute {
+                    v * scale
+                } else {
+                    pos[i] + v * scale
+                };
+            }
+        }
+        // No A word: A stays (`between` still decides, as on the general path).
+        let a = RotaryMove::between(self.st.a, self.st.a);
+        let m = if motion == MotionMode::Rapid {
+            Motion::Rapid {
+                line,
+                from: pos,
+                to: target,
+                a,
+            }
+        } else {
+            Motion::Linear {
+                line,
+                from: pos,
+                to: target,
+                feed_mm_min: match feed {
+                    // The usual case, inline; `feed_mm_min` makes the errors (and passes NaN).
+                    Some(f) if f > 0.0 => f,
+                    _ => feed_mm_min(feed, blk)?,
+                },
+                a,
+            }
+        };
+        self.queue.push_back_inlined(m);
+        self.st.pos = target;
+        self.st.motion = motion;
+        self.st.feed = feed;
+        // The reach checks below, at once for the usual case: this move the only event
+        // queued, its end (the new position) and A within reach. Otherwise they run one by
+        // one, for the error to name.
+        let reach = |v: f64| v.abs() <= MAX_COORDINATE_MM;
+        if self.queue.count() == 1 && target.iter().all(|&v| reach(v)) && reach(self.st.a) {
+            return Ok(());
+        }
+        for m in self.queue.iter() {
+            check_motion_reach(m, &self.blk)?;
+        }
+        check_reach(
+            "the programmed position is",
+            &self.st.pos,
+            Some(self.st.a),
+            &self.blk,
+        )
     }
 
     /// Interprets the lexed block. Works on a copy of the state and commits it
@@ -2171,7 +2342,7 @@ impl<R: BufRead> Interpreter<R> {
                     });
                 }
                 MotionMode::Linear => {
-                    let mut feed = feed_mm_min(&st, blk)?;
+                    let mut feed = feed_mm_min(st.feed, blk)?;
                     if st.feed_mode != FeedMode::PerMinute {
                         // A rotary-only move's length is in degrees (LinuxCNC).
                         let mut length = len3(st.pos, target);
@@ -2197,7 +2368,7 @@ impl<R: BufRead> Interpreter<R> {
                             "G53 with a spline".to_string(),
                         ));
                     }
-                    let feed = feed_mm_min(&st, blk)?;
+                    let feed = feed_mm_min(st.feed, blk)?;
                     spline_pq_new = Some(spline_motion(
                         &self.cfg,
                         queue,
@@ -2224,7 +2395,7 @@ impl<R: BufRead> Interpreter<R> {
                             "G53 with an arc".to_string(),
                         ));
                     }
-                    let feed = feed_mm_min(&st, blk)?;
+                    let feed = feed_mm_min(st.feed, blk)?;
                     let mut m = arc_motion_of(
                         &self.cfg,
                         &st,
@@ -2283,7 +2454,7 @@ impl<R: BufRead> Interpreter<R> {
                             format!("{name} with an A axis move is not supported"),
                         ));
                     }
-                    let feed = feed_mm_min(&st, blk)?;
+                    let feed = feed_mm_min(st.feed, blk)?;
                     // LinuxCNC's rule (rs274 2.9): a G38.2/G38.4 that would not move at all is
                     // an error; G38.3/G38.5 may (smartprobe.ngc relies on it).
                     if matches!(code, 382 | 384) && len3(st.pos, target) < 1e-9 {
@@ -2573,6 +2744,9 @@ fn check_motion_reach(m: &Motion, blk: &Block) -> Result<(), LexError> {
             check_reach("the arc centre is at", centre, None, blk)?;
             // Its chords go where the arc bulges, beyond both ends.
             if let Some(g) = crate::ArcGeometry::from_motion(m) {
+                if arc_clearly_within_reach(&g) {
+                    return Ok(());
+                }
                 let (lo, hi) = g.bounds();
                 check_reach("the arc reaches", &lo, None, blk)?;
                 check_reach("the arc reaches", &hi, None, blk)?;
@@ -2587,6 +2761,21 @@ fn check_motion_reach(m: &Motion, blk: &Block) -> Result<(), LexError> {
         }
         _ => Ok(()),
     }
+}
+
+/// The arc stays well inside [`MAX_COORDINATE_MM`] without its exact bounds (an `atan2` and
+/// up to four extrema): in the plane it keeps within the larger radius of its centre, along
+/// the normal between its two ends. The margin (1 mm, far above the rounding of those sums)
+/// makes this only say yes where the exact bounds pass too; otherwise they decide.
+#[inline]
+fn arc_clearly_within_reach(g: &crate::ArcGeometry) -> bool {
+    let limit = MAX_COORDINATE_MM - 1.0;
+    let (a, b, n) = g.axes;
+    let r = g.r0.max(g.r1);
+    g.centre[a].abs() + r <= limit
+        && g.centre[b].abs() + r <= limit
+        && g.from[n].abs() <= limit
+        && g.to[n].abs() <= limit
 }
 
 #[inline]
@@ -3067,7 +3256,7 @@ fn compensated_move(
             .straight(line, true, 0.0, st.pos, target, st.inch, &mut out)
             .map_err(|e| comp_err(at, e))?,
         MotionMode::Linear => {
-            let mut feed = feed_mm_min(st, blk)?;
+            let mut feed = feed_mm_min(st.feed, blk)?;
             if st.feed_mode != FeedMode::PerMinute {
                 feed = feed_in_mode(st, blk, feed, len3(st.pos, target))?;
             }
@@ -3075,7 +3264,7 @@ fn compensated_move(
                 .map_err(|e| comp_err(at, e))?;
         }
         MotionMode::Cw | MotionMode::Ccw => {
-            let feed = feed_mm_min(st, blk)?;
+            let feed = feed_mm_min(st.feed, blk)?;
             let mut m = arc_motion_of(
                 cfg,
                 st,
@@ -3577,8 +3766,9 @@ fn rest_is_comment(b: &[u8], mut i: usize) -> Result<(), LexError> {
     Ok(())
 }
 
-fn feed_mm_min(st: &State, blk: &Block) -> Result<f64, LexError> {
-    match st.feed {
+/// The feed in force (`feed`, mm/min) for a feed move of this line, or the error naming it.
+fn feed_mm_min(feed: Option<f64>, blk: &Block) -> Result<f64, LexError> {
+    match feed {
         None => Err((
             first_of(
                 blk,
@@ -3906,6 +4096,34 @@ fn same_group_m(a: u16, b: u16, off: u32) -> LexError {
         ErrorKind::Invalid,
         format!("{} and {} are in the same modal group", mname(a), mname(b)),
     )
+}
+
+impl<R: BufRead> Interpreter<R> {
+    /// Runs the program to its end, as iterating does, handing each motion to `f` where it
+    /// waits in the queue instead of moving it out: a [`Motion`] is a hundred bytes, and
+    /// copying each out of the queue and through `Option<Result<..>>` cost [`crate::analyse`]
+    /// (which keeps nothing of it) a tenth of its time. The same motions in the same order;
+    /// the first error, the interpreter's or `f`'s, ends it.
+    pub(crate) fn for_each_motion<E: From<GcodeError>>(
+        &mut self,
+        mut f: impl FnMut(&Motion) -> Result<(), E>,
+    ) -> Result<(), E> {
+        loop {
+            while let Some(m) = self.queue.front() {
+                let r = f(m);
+                self.queue.drop_front();
+                r?;
+            }
+            if self.done {
+                return Ok(());
+            }
+            if let Err(e) = self.step() {
+                self.done = true;
+                self.queue.clear();
+                return Err(e.into());
+            }
+        }
+    }
 }
 
 impl<R: BufRead> Iterator for Interpreter<R> {

@@ -139,36 +139,48 @@ fn parse_number_hot(b: &[u8], i: &mut usize) -> Result<f64, LexError> {
         neg = b[j] == b'-';
         j += 1;
     }
-    let mut mant: u64 = 0;
-    let mut ndig = 0u32;
-    while j < b.len() && b[j].is_ascii_digit() {
-        mant = mant.wrapping_mul(10).wrapping_add(u64::from(b[j] - b'0'));
-        ndig += 1;
-        j += 1;
-    }
-    let mut frac = 0u32;
+    let (mut mant, int_digits) = digits(b, j, 0);
+    j += int_digits;
+    let mut frac = 0;
     if j < b.len() && b[j] == b'.' {
         j += 1;
-        while j < b.len() && b[j].is_ascii_digit() {
-            mant = mant.wrapping_mul(10).wrapping_add(u64::from(b[j] - b'0'));
-            frac += 1;
-            j += 1;
-        }
-        ndig += frac;
+        (mant, frac) = digits(b, j, mant);
+        j += frac;
     }
+    let ndig = int_digits + frac;
     // "X1 Y2" ends at the blank; "X1 2" (LinuxCNC: 12) continues past it.
     let mut k = j;
     while k < b.len() && (b[k] == b' ' || b[k] == b'\t') {
         k += 1;
     }
     let continues = k > j && k < b.len() && (b[k].is_ascii_digit() || b[k] == b'.');
-    if ndig > 0 && ndig <= 19 && mant < (1u64 << 53) && (frac as usize) < POW10.len() && !continues
-    {
+    // Up to 15 digits the mantissa is below 2^53 and the power of ten within the table: one
+    // comparison for the usual case; up to 19 digits the values decide.
+    let exact = (1..=15).contains(&ndig)
+        || (ndig > 0 && ndig <= 19 && mant < (1u64 << 53) && frac < POW10.len());
+    if exact && !continues {
         *i = j;
-        let v = mant as f64 / POW10[frac as usize];
+        let v = mant as f64 / POW10[frac];
         return Ok(if neg { -v } else { v });
     }
     parse_number_general(b, i)
+}
+
+/// The run of ASCII digits at `b[j..]` appended to `mant` (`mant * 10 + digit` each,
+/// wrapping: the caller only uses a mantissa of at most 19 digits): (mantissa, digits).
+#[inline(always)]
+fn digits(b: &[u8], j: usize, mut mant: u64) -> (u64, usize) {
+    let rest = b.get(j..).unwrap_or_default();
+    let mut n = 0;
+    for &c in rest {
+        let d = c.wrapping_sub(b'0');
+        if d > 9 {
+            break;
+        }
+        mant = mant.wrapping_mul(10).wrapping_add(u64::from(d));
+        n += 1;
+    }
+    (mant, n)
 }
 
 /// General scanner: blanks anywhere (LinuxCNC), long mantissas, errors.
