@@ -1550,9 +1550,16 @@ impl<R: BufRead> Interpreter<R> {
         if self.queue.count() == 1 && target.iter().all(|&v| reach(v)) && reach(self.st.a) {
             return Ok(());
         }
+        self.check_line_reach()
+    }
+
+    /// The line's queued motions and the programmed position within reach, one by one (so
+    /// an error names the word and what is out of reach).
+    fn check_line_reach(&self) -> Result<(), LexError> {
         for m in self.queue.iter() {
             check_motion_reach(m, &self.blk)?;
         }
+        // Moves that cutter compensation holds back come out later: their programmed end.
         check_reach(
             "the programmed position is",
             &self.st.pos,
@@ -2617,17 +2624,7 @@ impl<R: BufRead> Interpreter<R> {
         }
         // What the words add up to (G91 steps, offsets, cycle repeats, compensation) stays
         // within reach too; checked before any event of the line comes out.
-        for m in self.queue.iter() {
-            check_motion_reach(m, &self.blk)?;
-        }
-        // Moves that cutter compensation holds back come out later: their programmed end.
-        check_reach(
-            "the programmed position is",
-            &self.st.pos,
-            Some(self.st.a),
-            &self.blk,
-        )?;
-        Ok(())
+        self.check_line_reach()
     }
 }
 
