@@ -1493,14 +1493,7 @@ impl<R: BufRead> Interpreter<R> {
             check_word_ranges(blk, scale, FeedMode::PerMinute)?;
         }
         let mut feed = self.st.feed;
-        if let Some(f) = blk.get(b'F') {
-            if f < 0.0 {
-                return Err((
-                    blk.pos_of(b'F') as usize,
-                    ErrorKind::Invalid,
-                    "negative feed rate".to_string(),
-                ));
-            }
+        if let Some(f) = feed_word(blk)? {
             feed = Some(f * scale);
         }
         if self.st.inch {
@@ -1923,14 +1916,7 @@ impl<R: BufRead> Interpreter<R> {
         let scale = Self::scale(st.inch);
         check_word_ranges(blk, scale, st.feed_mode)?;
         // 3. feed
-        if let Some(f) = blk.get(b'F') {
-            if f < 0.0 {
-                return Err((
-                    blk.pos_of(b'F') as usize,
-                    ErrorKind::Invalid,
-                    "negative feed rate".to_string(),
-                ));
-            }
+        if let Some(f) = feed_word(blk)? {
             // Inverse time is 1/minutes, no length: not scaled by G20.
             st.feed = Some(if st.feed_mode == FeedMode::InverseTime {
                 f
@@ -2645,6 +2631,18 @@ const ANGLE_WORDS: u32 = bit(b'A') | (1 << POLAR_A);
 /// [`MAX_SPINDLE_RPM`]), named at its word: a value no machine can run is a typo or an attack,
 /// and must fail the upload check, not the job.
 #[inline]
+/// The line's F word, refused if negative.
+fn feed_word(blk: &Block) -> Result<Option<f64>, LexError> {
+    match blk.get(b'F') {
+        Some(f) if f < 0.0 => Err((
+            blk.pos_of(b'F') as usize,
+            ErrorKind::Invalid,
+            "negative feed rate".to_string(),
+        )),
+        f => Ok(f),
+    }
+}
+
 fn check_word_ranges(blk: &Block, scale: f64, feed_mode: FeedMode) -> Result<(), LexError> {
     let present = blk.mask & (LENGTH_WORDS | ANGLE_WORDS | bit(b'F') | bit(b'S'));
     if present == 0 {
