@@ -18,9 +18,8 @@ use std::task::{Context, Poll};
 pub(crate) trait Middleware: Clone + Send + Sync + 'static {
     /// The common case, decided without waiting: [`Fast::Pass`] sends the request (with what
     /// this middleware added to it) straight on, [`Fast::Slow`] hands it back for
-    /// [`Self::slow`]. Which one depends on the request alone, so [`Self::slow`] may be run
-    /// after a `fast` that passed (a pair's later member took the slow path) and must then do
-    /// the same.
+    /// [`Self::slow`]. [`Self::slow`] must also take a request `fast` would have passed: in a
+    /// pair, the first member's `slow` runs whenever the second member's `fast` did not pass.
     fn fast(&self, req: Request) -> Fast;
 
     /// Everything else; `next` is what comes after this middleware. Boxed (this path is the

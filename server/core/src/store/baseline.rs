@@ -80,13 +80,14 @@ fn remove_leftovers(new: &Path) {
     for suffix in ["", "-wal", "-shm"] {
         let mut name = new.as_os_str().to_os_string();
         name.push(suffix);
-        match std::fs::remove_file(PathBuf::from(name)) {
+        let file = PathBuf::from(name);
+        match std::fs::remove_file(&file) {
             Ok(()) => {
-                tracing::info!(file = %new.display(), "removed a store a stopped first start left")
+                tracing::info!(file = %file.display(), "removed what a stopped first start left of a new store")
             }
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
             Err(e) => {
-                tracing::warn!(file = %new.display(), error = %e, "cannot remove a half-made store")
+                tracing::warn!(file = %file.display(), error = %e, "cannot remove a half-made store")
             }
         }
     }
