@@ -1016,11 +1016,17 @@ impl Task {
             state: RunState::Running,
             line: run.last_line,
             times: time_table(job),
+            announced: false,
         }));
         // The store says `running` from here on, and so does the audit log, before the backend
         // can finish or fail the run (so it never shows `completed` or `failed` without it).
         self.record(EventKind::JobState, actor, run_event(&run))
             .await;
+        self.run.send_modify(|v| {
+            if let Some(v) = v.as_mut().filter(|v| v.run_id == run.id) {
+                v.announced = true;
+            }
+        });
         let started = async {
             let loaded = self
                 .load_from(job, &run, &path, from, expected_part_zero, height_map)
@@ -1637,6 +1643,7 @@ mod tests {
             state: run.state,
             line: 0,
             times: None,
+            announced: true,
         };
         let store_health = store.health().clone();
         let task = Task {

@@ -59,6 +59,9 @@ pub struct RunView {
     pub line: i64,
     /// The program's time by line (from its analysis), for the time left.
     pub times: Option<Arc<fresa_gcode::TimeTable>>,
+    /// Its `job.state running` event is on the bus. Until then the status loop sends no
+    /// `job.progress` for it, so no stream sees a run's progress before the run's start.
+    pub announced: bool,
 }
 
 impl RunView {
@@ -1058,12 +1061,19 @@ async fn status_loop(machine: Arc<Machine>, bus: EventBus, interval: Duration) {
         // The view as `GET /machines/{id}/status` shows it (job progress included), so the
         // last `status` event, the retained MQTT status and the API agree once it settles.
         let current = machine.status_view();
-        let progress = current.job.as_ref().map(|j| (j.run, j.line));
+        // Read after the view: `announced` only ever turns true for a run, so a view taken
+        // before it is still one whose `running` is on the bus by now.
+        let announced = machine.run.borrow().as_ref().is_none_or(|r| r.announced);
+        let progress = current
+            .job
+            .as_ref()
+            .filter(|_| announced)
+            .map(|j| (j.run, j.line));
         if last_sent.as_ref() != Some(&current) {
             bus.transient(EventKind::Status, Some(machine.id), json!(current));
         }
         if progress != last_progress {
-            if let Some(p) = &current.job {
+            if let Some(p) = current.job.as_ref().filter(|_| announced) {
                 bus.transient(EventKind::JobProgress, Some(machine.id), json!(p));
             }
             last_progress = progress;
