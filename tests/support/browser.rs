@@ -25,6 +25,61 @@ pub fn screenshot_dir() -> PathBuf {
     dir
 }
 
+/// Starts chromedriver on an ephemeral port: the child and its port, or what it printed (stdout
+/// and stderr) and how it ended when it never said the port.
+fn start_driver() -> Result<(Child, u16), String> {
+    let mut driver = Command::new(CHROMEDRIVER)
+        .arg("--port=0")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start chromedriver");
+    // Drained on its own thread so chromedriver never blocks on a full pipe; kept (the last
+    // 8 KiB) for the message when it fails.
+    let stderr = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
+    let err_pipe = driver.stderr.take().unwrap();
+    let err_text = stderr.clone();
+    let err_reader = std::thread::spawn(move || {
+        for line in BufReader::new(err_pipe).lines().map_while(Result::ok) {
+            let mut t = err_text.lock().unwrap();
+            t.push_str(&line);
+            t.push('\n');
+            if t.len() > 8192 {
+                let cut = t.len() - 8192;
+                let cut = (cut..t.len()).find(|&i| t.is_char_boundary(i)).unwrap_or(0);
+                t.drain(..cut);
+            }
+        }
+    });
+    // "ChromeDriver was started successfully on port N."
+    let mut out = BufReader::new(driver.stdout.take().unwrap());
+    let mut said = String::new();
+    let mut line = String::new();
+    while out.read_line(&mut line).unwrap_or(0) > 0 {
+        if let Some(rest) = line.split("on port ").nth(1) {
+            if line.contains("started successfully") {
+                if let Ok(port) = rest.trim().trim_end_matches('.').parse::<u16>() {
+                    // Keep draining its stdout so it never blocks on a full pipe.
+                    std::thread::spawn(move || for _ in out.lines() {});
+                    return Ok((driver, port));
+                }
+            }
+        }
+        said.push_str(&line);
+        line.clear();
+    }
+    // Its stdout closed: it exited (or is about to); say how, and what it printed.
+    let _ = driver.kill();
+    let status = driver.wait();
+    let _ = err_reader.join();
+    let stderr = stderr.lock().unwrap();
+    Err(format!(
+        "exit {status:?}; stdout: {said:?}; stderr: {:?}",
+        stderr.as_str()
+    ))
+}
+
 fn require(path: &str, package: &str) {
     assert!(
         Path::new(path).is_file(),
@@ -49,29 +104,16 @@ impl Browser {
     pub fn start_with(extra: &[&str]) -> Browser {
         require(CHROMIUM, "chromium");
         require(CHROMEDRIVER, "chromium-driver");
-        let mut driver = Command::new(CHROMEDRIVER)
-            .arg("--port=0")
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start chromedriver");
-        // "ChromeDriver was started successfully on port N."
-        let mut out = BufReader::new(driver.stdout.take().unwrap());
-        let mut port = None;
-        let mut line = String::new();
-        while out.read_line(&mut line).unwrap_or(0) > 0 {
-            if let Some(rest) = line.split("on port ").nth(1) {
-                if line.contains("started successfully") {
-                    port = rest.trim().trim_end_matches('.').parse::<u16>().ok();
-                    break;
-                }
-            }
-            line.clear();
-        }
-        let port = port.expect("chromedriver did not say which port it listens on");
-        // Keep draining its stdout so it never blocks on a full pipe.
-        std::thread::spawn(move || for _ in out.lines() {});
+        // A chromedriver that exits before it says its port is started once more; the panic
+        // says what both attempts printed and how they ended.
+        let (driver, port) = start_driver().unwrap_or_else(|first| {
+            start_driver().unwrap_or_else(|second| {
+                panic!(
+                    "chromedriver did not say which port it listens on.\n\
+                     first attempt: {first}\nsecond attempt: {second}"
+                )
+            })
+        });
         let profile = tempfile::Builder::new()
             .prefix("fresa-chromium-")
             .tempdir()
