@@ -250,8 +250,14 @@ impl Server {
             base: String::new(),
             token: None,
             log: Arc::new(Mutex::new(Vec::new())),
+            // A pooled connection is dropped after 1 s idle: the server closes an idle
+            // keep-alive connection at its header read timeout (hyper runs it while waiting for
+            // the next request; `slow_clients` sets 2 s), and reusing one the server is closing
+            // at that moment fails the request ("error sending request"), a race of the test's
+            // client, not of the server.
             http: reqwest::blocking::Client::builder()
                 .timeout(Duration::from_secs(60))
+                .pool_idle_timeout(Duration::from_secs(1))
                 .build()
                 .expect("http client"),
         }
