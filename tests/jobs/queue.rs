@@ -263,7 +263,10 @@ fn dispatch_gives_the_part_to_the_free_machine_and_names_why_others_refused() {
         "the part did not run on the busy machine"
     );
 
-    // Again: the free machine runs the same job (no second copy of the program).
+    // Again: the free machine runs the same job (no second copy of the program). The job is
+    // completed when its last line ran; the machine says idle on its next status read, and
+    // dispatch takes only an idle machine, so wait for that as a client would.
+    s.wait_machine_state(free.id, "idle", T);
     let again = s
         .post(
             "/api/v1/queue",
