@@ -86,7 +86,7 @@ fn resync_frame(data: &serde_json::Value) -> Bytes {
 /// A comment line: keeps proxies and clients from closing a quiet stream.
 const KEEP_ALIVE: &[u8] = b":\n\n";
 
-#[utoipa::path(get, path = "/events", tag = "events",
+#[utoipa::path(get, path = "/api/v1/events", tag = "events",
     params(Filter,
         ("Last-Event-ID" = Option<i64>, Header, description = "Resume after this persisted event id"),
         ("access_token" = Option<String>, Query, description = "The token, for browsers' EventSource (accepted here only)")),

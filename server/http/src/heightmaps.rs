@@ -66,7 +66,7 @@ pub struct GridReq {
 /// (audit) its end. STOP or feed hold ends it (`stopped`); an alarm, a probe that does not
 /// touch (naming the point) or a refused move fails it; either way what was probed is kept
 /// and the map is never applied.
-#[utoipa::path(post, path = "/machines/{id}/height-maps", tag = "height maps",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/height-maps", tag = "height maps",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = GridReq, example = json!({"x0": 0, "x1": 10, "y0": 0, "y1": 10, "nx": 2, "ny": 2, "clearance": 2, "distance": 15, "feed": 300})),
     responses(
@@ -97,7 +97,7 @@ pub async fn create(
 }
 
 /// The machine's height maps, newest first.
-#[utoipa::path(get, path = "/machines/{id}/height-maps", tag = "height maps",
+#[utoipa::path(get, path = "/api/v1/machines/{id}/height-maps", tag = "height maps",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     responses(
         (status = 200, description = "Its maps (with their points)", body = [HeightMapView]),
@@ -134,7 +134,7 @@ async fn one(
         })
 }
 
-#[utoipa::path(get, path = "/machines/{id}/height-maps/{hid}", tag = "height maps",
+#[utoipa::path(get, path = "/api/v1/machines/{id}/height-maps/{hid}", tag = "height maps",
     params(("id" = i64, Path, description = "machine id", example = 1),
            ("hid" = i64, Path, description = "height map id", example = 1)),
     responses(
@@ -150,7 +150,7 @@ pub async fn get_one(
 
 /// Deletes a map (not one being probed: stop the machine to end that first). Recorded as
 /// `height_map.deleted`. Runs that used it keep its number; resuming one is then refused.
-#[utoipa::path(delete, path = "/machines/{id}/height-maps/{hid}", tag = "height maps",
+#[utoipa::path(delete, path = "/api/v1/machines/{id}/height-maps/{hid}", tag = "height maps",
     params(("id" = i64, Path, description = "machine id", example = 1),
            ("hid" = i64, Path, description = "height map id", example = 1)),
     responses(
@@ -179,7 +179,7 @@ pub struct FitParams {
 /// How a map fits a job's program, as a start with it would check: the program's cutting XY
 /// extent against the map's area (both in the work coordinates in force now), the overhang
 /// if it leaves it, and the Z correction range over the program's area.
-#[utoipa::path(get, path = "/machines/{id}/height-maps/{hid}/fit", tag = "height maps",
+#[utoipa::path(get, path = "/api/v1/machines/{id}/height-maps/{hid}/fit", tag = "height maps",
     params(("id" = i64, Path, description = "machine id", example = 1),
            ("hid" = i64, Path, description = "height map id", example = 1), FitParams),
     responses(

@@ -74,7 +74,7 @@ pub enum JobAction {
     Cancel,
 }
 
-#[utoipa::path(get, path = "/jobs", tag = "jobs", params(ListParams),
+#[utoipa::path(get, path = "/api/v1/jobs", tag = "jobs", params(ListParams),
     responses(
         (status = 200, description = "Jobs, newest first", body = [JobView]),
         (status = 400, description = "`invalid_query`", body = ErrorBody),
@@ -93,7 +93,7 @@ pub async fn list(
     Ok(Json(out))
 }
 
-#[utoipa::path(get, path = "/jobs/{id}", tag = "jobs",
+#[utoipa::path(get, path = "/api/v1/jobs/{id}", tag = "jobs",
     params(("id" = i64, Path, description = "job id", example = 1)),
     responses(
         (status = 200, description = "The job", body = JobView),
@@ -122,7 +122,7 @@ pub struct GcodeParams {
     lines: Option<u32>,
 }
 
-#[utoipa::path(get, path = "/jobs/{id}/gcode", tag = "jobs",
+#[utoipa::path(get, path = "/api/v1/jobs/{id}/gcode", tag = "jobs",
     params(("id" = i64, Path, description = "job id", example = 1), GcodeParams),
     responses(
         (status = 200, description = "The stored program, or with `from_line`/`lines` that window of its lines (each ending with a newline; empty past the end)", content_type = "text/plain", body = String),
@@ -152,7 +152,7 @@ pub async fn gcode(
 /// Upload: the raw body is the program (`?machine=ID&name=NAME[&sha256=HEX]`), or a multipart
 /// form with a `file` part (and optional `machine`, `name`, `sha256` parts). Streamed to disk,
 /// checked, hashed, analysed; the job exists only once all of that succeeded.
-#[utoipa::path(post, path = "/jobs", tag = "jobs", params(UploadParams),
+#[utoipa::path(post, path = "/api/v1/jobs", tag = "jobs", params(UploadParams),
     request_body(content(
         (String = "text/plain", example = "G21 G90\nG0 X1 Y1\nG1 X5 F300\nM2\n"),
         (UploadForm = "multipart/form-data"),
@@ -379,7 +379,7 @@ fn body_or_default<T: Default + serde::de::DeserializeOwned>(
         .map_err(|e| ApiError::bad_request("invalid_json", format!("{action}: {e}")))
 }
 
-#[utoipa::path(post, path = "/jobs/{id}/{action}", tag = "jobs",
+#[utoipa::path(post, path = "/api/v1/jobs/{id}/{action}", tag = "jobs",
     params(("id" = i64, Path, description = "job id", example = 1),
            ("action" = inline(JobAction), Path, description = "`resume` also continues an `interrupted` or `failed` run from the next unacknowledged line, through the same preamble as a start at that line", example = "start")),
     request_body(content = Option<ControlBody>, description = "Optional: `from_line` and `height_map` for `start`, `confirm_part_zero` / `confirm_line` for `resume`", example = json!({"from_line": 2})),
@@ -448,7 +448,7 @@ pub struct PreviewParams {
 /// the modal state the lines before N leave, and the preamble (as steps and as G-code-like
 /// text, moves in machine coordinates) that brings the machine there. Moves nothing. A start
 /// that cannot be made is refused here with the same code and message.
-#[utoipa::path(get, path = "/jobs/{id}/start-preview", tag = "jobs",
+#[utoipa::path(get, path = "/api/v1/jobs/{id}/start-preview", tag = "jobs",
     params(("id" = i64, Path, description = "job id", example = 1), PreviewParams),
     responses(
         (status = 200, description = "The state at the line and the preamble", body = fresa_core::start_at::StartPlan),
@@ -473,7 +473,7 @@ pub struct ToolpathParams {
 
 /// The job's path for previews in the binary format of `fresa_core::toolpath` (README: Toolpath
 /// format), decimated to `max_vertices` (default 250000).
-#[utoipa::path(get, path = "/jobs/{id}/toolpath", tag = "jobs",
+#[utoipa::path(get, path = "/api/v1/jobs/{id}/toolpath", tag = "jobs",
     params(
         ("id" = i64, Path, description = "job id", example = 1),
         ("max_vertices" = Option<usize>, Query, description = "vertex budget, 1000..2000000 (default 250000)"),

@@ -178,7 +178,9 @@ fn described_router(
         .layer(middleware::Layer(authenticate));
     // The console's files need no token (the API calls they make do); still behind the guard.
     OpenApiRouter::with_openapi(openapi::ApiDoc::openapi())
-        .nest("/api/v1", api)
+        // Merged, not nested: each API handler's annotation carries its full `/api/v1/...` path,
+        // so no request pays for `nest`'s per-request URI rewrite (a new `Uri` for every call).
+        .merge(api)
         .routes(public(
             routes!(console::index).map(|r| r.layer(compression())),
         ))
@@ -210,7 +212,7 @@ fn compression() -> tower_http::compression::CompressionLayer {
 
 /// The nodes sharing this server's store: each one's address, version, last heartbeat,
 /// whether it is reachable, and the machines it drives. A server on its own is one node.
-#[utoipa::path(get, path = "/nodes", tag = "server",
+#[utoipa::path(get, path = "/api/v1/nodes", tag = "server",
     responses(
         (status = 200, description = "Every node, by name: `name`, `url`, `version`, `started_at`, `last_heartbeat` (ms since the epoch), `reachable`, `this_node`, `machines` (ids)", body = [Object]),
     ))]
@@ -220,7 +222,7 @@ async fn nodes(State(app): State<SharedApp>) -> Result<Json<serde_json::Value>, 
 
 /// Who the caller is and whether this server needs a token: the console disables what the role
 /// may not do and asks for a token when one is needed.
-#[utoipa::path(get, path = "/whoami", tag = "server",
+#[utoipa::path(get, path = "/api/v1/whoami", tag = "server",
     responses(
         (status = 200, description = "`{\"name\", \"role\", \"auth_required\"}`: the caller's token name (or `local`), its role, and whether this server needs a token", body = Object),
     ))]
@@ -465,7 +467,7 @@ async fn records_metrics(app: &fresa_core::App) -> String {
     out
 }
 
-#[utoipa::path(get, path = "/plugins", tag = "system",
+#[utoipa::path(get, path = "/api/v1/plugins", tag = "system",
     responses((status = 200, description = "Loaded `plugins`, load `failures`, `skipped` libraries with their reason, and the host's `abi`", body = Object)))]
 async fn plugins(State(app): State<SharedApp>) -> Json<serde_json::Value> {
     Json(serde_json::json!({

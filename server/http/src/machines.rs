@@ -55,7 +55,7 @@ pub struct Done {
     pub ok: bool,
 }
 
-#[utoipa::path(get, path = "/machines", tag = "machines",
+#[utoipa::path(get, path = "/api/v1/machines", tag = "machines",
     responses((status = 200, description = "Every machine", body = [MachineView])))]
 pub async fn list(State(app): State<SharedApp>) -> Result<Json<Vec<MachineView>>, ApiError> {
     // Every machine in the store: this node's live, the others' as of their node's heartbeat.
@@ -80,7 +80,7 @@ pub async fn list(State(app): State<SharedApp>) -> Result<Json<Vec<MachineView>>
     Ok(Json(out))
 }
 
-#[utoipa::path(get, path = "/machines/{id}", tag = "machines",
+#[utoipa::path(get, path = "/api/v1/machines/{id}", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     responses(
         (status = 200, description = "The machine", body = MachineView),
@@ -131,7 +131,7 @@ pub struct NewMachine {
     maintenance: Option<Vec<fresa_core::records::MaintenanceItem>>,
 }
 
-#[utoipa::path(post, path = "/machines", tag = "machines",
+#[utoipa::path(post, path = "/api/v1/machines", tag = "machines",
     request_body(content = NewMachine, example = json!({"name": "router-2", "backend": "sim-machine", "config": {"time_scale": 0.01}})),
     responses(
         (status = 201, description = "Created", body = Created),
@@ -174,7 +174,7 @@ pub struct StatusWait {
 /// The longest a status request may wait for `until`: a waiting request holds a connection.
 const MAX_STATUS_WAIT_S: f64 = 60.0;
 
-#[utoipa::path(get, path = "/machines/{id}/status", tag = "machines",
+#[utoipa::path(get, path = "/api/v1/machines/{id}/status", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1), StatusWait),
     responses(
         (status = 200, description = "The machine's status (with `until`: once it is in that state)", body = StatusView),
@@ -258,7 +258,7 @@ pub struct NodeReq {
 
 /// Moves a machine to another node (the hardware moved): that node starts driving it within a
 /// heartbeat, and this one lets go. Refused while a run is active.
-#[utoipa::path(put, path = "/machines/{id}/node", tag = "machines",
+#[utoipa::path(put, path = "/api/v1/machines/{id}/node", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = NodeReq, example = json!({"node": "hall-2"})),
     responses(
@@ -296,7 +296,7 @@ pub struct JogReq {
     direction: Option<String>,
 }
 
-#[utoipa::path(post, path = "/machines/{id}/jog", tag = "machines",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/jog", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = JogReq, example = json!({"axis": "X", "distance": 5.0})),
     responses(
@@ -343,7 +343,7 @@ pub async fn jog(
 }
 
 /// Keeps a continuous jog going for another 250 ms.
-#[utoipa::path(post, path = "/machines/{id}/jog/keepalive", tag = "machines",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/jog/keepalive", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     responses(
         (status = 200, description = "Still held", body = Done),
@@ -367,7 +367,7 @@ pub struct JogCancelled {
 
 /// Ends the jog under way and drops every jog still queued for the machine (HTTP, MQTT, CLI,
 /// pendant wheel moves and macros); answered once the backend confirmed motion stopped.
-#[utoipa::path(post, path = "/machines/{id}/jog/cancel", tag = "machines",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/jog/cancel", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     responses(
         (status = 200, description = "Stopped; nothing queued before it will move the machine", body = JogCancelled),
@@ -420,7 +420,7 @@ pub struct ProbeReq {
 /// A probing move for scripts: moves until the probe input changes (or the distance ends) and
 /// answers where it tripped. Refused if the probe already reads what it looks for; a stop
 /// during it answers `stopped` once motion ended; a dropped connection stops it.
-#[utoipa::path(post, path = "/machines/{id}/probe", tag = "machines",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/probe", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = ProbeReq, example = json!({"axis": "Z", "toward": "-", "distance": 40, "feed": 300})),
     responses(
@@ -475,7 +475,7 @@ pub struct OverridesView {
 /// operator needs it: chatter, a tool about to break). Applied from the backend's next planning
 /// interval; jogs and probing moves keep their own feeds. Recorded as `machine.command`
 /// (`set_overrides`). Overrides start at 100 % whenever the server starts.
-#[utoipa::path(post, path = "/machines/{id}/overrides", tag = "machines",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/overrides", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = OverridesReq, example = json!({"feed": 50, "rapid": 25})),
     responses(
@@ -537,7 +537,7 @@ pub struct TouchOffReq {
 /// thickness where the tool touched (on X/Y: so the part's edge behind the plate reads 0,
 /// the tool's radius taken into account), retracts, and answers once the retract ended. A
 /// probe that does not touch changes nothing.
-#[utoipa::path(post, path = "/machines/{id}/touch-off", tag = "machines",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/touch-off", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = TouchOffReq, example = json!({"axis": "Z", "plate_mm": 15, "distance": 40, "feed": 300, "retract_mm": 5})),
     responses(
@@ -619,7 +619,7 @@ fn yes() -> bool {
 /// chord's midpoint, and X again through the centre; ends on the centre and, with `set_zero`,
 /// moves the active work offset so X and Y read 0 there. A probe that finds no wall changes
 /// nothing. Recorded as `machine.touch_off` (`source` `bore_centre` / `boss_centre`).
-#[utoipa::path(post, path = "/machines/{id}/find-centre", tag = "machines",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/find-centre", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = FindCentreReq, example = json!({"kind": "bore", "tool_diameter_mm": 6, "distance": 20, "feed": 100})),
     responses(
@@ -666,7 +666,7 @@ pub struct MdiReq {
     line: String,
 }
 
-#[utoipa::path(post, path = "/machines/{id}/mdi", tag = "machines",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/mdi", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = MdiReq, example = json!({"line": "G91 G0 Z5"})),
     responses(
@@ -697,7 +697,7 @@ pub struct CommandDone {
     result: Value,
 }
 
-#[utoipa::path(post, path = "/machines/{id}/commands", tag = "machines",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/commands", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = Command, example = json!({"command": "zero", "axis": "X"})),
     responses(
@@ -733,7 +733,7 @@ pub struct OffsetsView {
     offsets: std::collections::BTreeMap<String, AxisValues>,
 }
 
-#[utoipa::path(get, path = "/machines/{id}/offsets", tag = "machines",
+#[utoipa::path(get, path = "/api/v1/machines/{id}/offsets", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     responses(
         (status = 200, description = "The work offsets", body = OffsetsView),
@@ -772,7 +772,7 @@ pub struct OffsetSet {
     values: AxisValues,
 }
 
-#[utoipa::path(put, path = "/machines/{id}/offsets/{name}", tag = "machines",
+#[utoipa::path(put, path = "/api/v1/machines/{id}/offsets/{name}", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1),
            ("name" = WorkOffset, Path, description = "G54..G59", example = "G55")),
     request_body(content = OffsetReq, example = json!({"x": 10.0, "y": 20.0})),
@@ -840,7 +840,7 @@ pub struct PartZeroReq {
     note: Option<String>,
 }
 
-#[utoipa::path(post, path = "/machines/{id}/part-zero", tag = "machines",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/part-zero", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = Option<PartZeroReq>, description = "Optional: an empty body records the current machine position", example = json!({"note": "vise jaw, left"})),
     responses(
@@ -873,7 +873,7 @@ pub async fn record_part_zero(
     Ok((StatusCode::CREATED, Json(json!(row))))
 }
 
-#[utoipa::path(get, path = "/machines/{id}/part-zero", tag = "machines",
+#[utoipa::path(get, path = "/api/v1/machines/{id}/part-zero", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     responses(
         (status = 200, description = "Part-zero history, newest first: `id`, `machine_id`, `x`, `y`, `z`, `a`, `source`, `actor`, `note`, `created_at`", body = [Object]),
@@ -889,7 +889,7 @@ pub async fn part_zeros(
 
 /// `GET /machines/{id}/as-program`: the controller program the backend generates (robot
 /// backends), as a download.
-#[utoipa::path(get, path = "/machines/{id}/as-program", tag = "machines",
+#[utoipa::path(get, path = "/api/v1/machines/{id}/as-program", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     responses(
         (status = 200, description = "The generated program (kawasaki-as `fresa-v1`), as an attachment", content_type = "text/plain", body = String),

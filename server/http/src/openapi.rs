@@ -198,7 +198,7 @@ pub struct Document(Arc<std::sync::OnceLock<axum::body::Bytes>>);
 /// fetch it without credentials.
 #[utoipa::path(
     get,
-    path = "/openapi.json",
+    path = "/api/v1/openapi.json",
     tag = "system",
     responses((status = 200, description = "The OpenAPI 3.1 document", content_type = "application/json", body = Object))
 )]

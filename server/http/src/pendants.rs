@@ -55,7 +55,7 @@ pub struct Pendant {
     created_at: i64,
 }
 
-#[utoipa::path(post, path = "/pendants", tag = "pendants",
+#[utoipa::path(post, path = "/api/v1/pendants", tag = "pendants",
     request_body(content = NewPendant, example = json!({"name": "bench-1", "address": "127.0.0.1:8001", "dialect": "firmware"})),
     responses(
         (status = 201, description = "Created; the server connects to it", body = Created),
@@ -79,7 +79,7 @@ pub async fn create(
     Ok((StatusCode::CREATED, Json(Created { id })))
 }
 
-#[utoipa::path(get, path = "/pendants", tag = "pendants",
+#[utoipa::path(get, path = "/api/v1/pendants", tag = "pendants",
     responses((status = 200, description = "Every pendant", body = [Pendant])))]
 pub async fn list(State(app): State<SharedApp>) -> Json<Vec<Value>> {
     Json(
@@ -99,7 +99,7 @@ async fn pendant(app: &SharedApp, id: i64) -> Result<std::sync::Arc<core::Pendan
         .ok_or_else(|| ApiError::not_found("unknown_pendant", format!("no pendant with id {id}")))
 }
 
-#[utoipa::path(get, path = "/pendants/{id}", tag = "pendants",
+#[utoipa::path(get, path = "/api/v1/pendants/{id}", tag = "pendants",
     params(("id" = i64, Path, description = "pendant id", example = 1)),
     responses(
         (status = 200, description = "The pendant", body = Pendant),
@@ -131,7 +131,7 @@ pub struct PatchPendant {
     macros: Option<BTreeMap<String, Option<Value>>>,
 }
 
-#[utoipa::path(patch, path = "/pendants/{id}", tag = "pendants",
+#[utoipa::path(patch, path = "/api/v1/pendants/{id}", tag = "pendants",
     params(("id" = i64, Path, description = "pendant id", example = 1)),
     request_body(content = PatchPendant, example = json!({"machine": null})),
     responses(
@@ -150,7 +150,7 @@ pub async fn patch(
     Ok(Json(core::pendant_json(&p)))
 }
 
-#[utoipa::path(delete, path = "/pendants/{id}", tag = "pendants",
+#[utoipa::path(delete, path = "/api/v1/pendants/{id}", tag = "pendants",
     params(("id" = i64, Path, description = "pendant id", example = 1)),
     responses(
         (status = 204, description = "Removed; its link is closed"),
@@ -166,7 +166,7 @@ pub async fn delete(
     Ok(StatusCode::NO_CONTENT)
 }
 
-#[utoipa::path(get, path = "/pendants/discovered", tag = "pendants",
+#[utoipa::path(get, path = "/api/v1/pendants/discovered", tag = "pendants",
     responses((status = 200, description = "Pendants announced on the LAN by mDNS (`MPGnnnnnn`, `_http._tcp`)", body = Object)))]
 pub async fn discovered(State(app): State<SharedApp>) -> Result<Json<Value>, ApiError> {
     Ok(Json(core::discovered(&app).await?))
@@ -182,7 +182,7 @@ pub struct PendantNodeReq {
 /// Moves a pendant to another node (it was carried to another hall): that node opens its link
 /// within a heartbeat and this one closes it. The machine binding is kept only if that machine
 /// is driven by the new node.
-#[utoipa::path(put, path = "/pendants/{id}/node", tag = "pendants",
+#[utoipa::path(put, path = "/api/v1/pendants/{id}/node", tag = "pendants",
     params(("id" = i64, Path, description = "pendant id", example = 1)),
     request_body(content = PendantNodeReq, example = json!({"node": "hall-2"})),
     responses(

@@ -41,7 +41,7 @@ pub struct AddReq {
 
 /// The machine's queue: its state (`idle`, `waiting_confirm`, `running`, `held` with the
 /// `reason`) and its entries in order, each with `count`, `done` and its state.
-#[utoipa::path(get, path = "/machines/{id}/queue", tag = "queue",
+#[utoipa::path(get, path = "/api/v1/machines/{id}/queue", tag = "queue",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     responses(
         (status = 200, description = "The queue", body = QueueView),
@@ -56,7 +56,7 @@ pub async fn get(
 
 /// Adds `count` parts of a job at the end of the queue (`queue.add`). An idle queue then waits
 /// for a confirm (`queue.waiting_confirm`): nothing starts until an operator confirms.
-#[utoipa::path(post, path = "/machines/{id}/queue", tag = "queue",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/queue", tag = "queue",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = AddReq, example = json!({"job": 1, "count": 3, "confirm_between": true})),
     responses(
@@ -85,7 +85,7 @@ pub async fn add(
 }
 
 /// Removes an entry (`queue.remove`); not the one whose part is running.
-#[utoipa::path(delete, path = "/machines/{id}/queue/{entry}", tag = "queue",
+#[utoipa::path(delete, path = "/api/v1/machines/{id}/queue/{entry}", tag = "queue",
     params(("id" = i64, Path, description = "machine id", example = 1),
            ("entry" = i64, Path, description = "queue entry id", example = 1)),
     responses(
@@ -110,7 +110,7 @@ pub struct MoveReq {
 }
 
 /// Moves an entry to `position` (`queue.move`).
-#[utoipa::path(post, path = "/machines/{id}/queue/{entry}/move", tag = "queue",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/queue/{entry}/move", tag = "queue",
     params(("id" = i64, Path, description = "machine id", example = 1),
            ("entry" = i64, Path, description = "queue entry id", example = 1)),
     request_body(content = MoveReq, example = json!({"position": 1})),
@@ -134,7 +134,7 @@ pub async fn move_entry(
 /// `queue.confirm` names the `run`, `machine` and `entry`. A refused start leaves the queue
 /// waiting and answers the start's refusal. The pendant's START does the same while the queue
 /// waits.
-#[utoipa::path(post, path = "/machines/{id}/queue/confirm", tag = "queue",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/queue/confirm", tag = "queue",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     responses(
         (status = 200, description = "The part started: `machine`, `job`, `run`, `entry`", body = Started),
@@ -152,7 +152,7 @@ pub async fn confirm(
 
 /// Ends a hold (`queue.release`): a part still running goes on; otherwise the next part waits
 /// for a confirm.
-#[utoipa::path(post, path = "/machines/{id}/queue/release", tag = "queue",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/queue/release", tag = "queue",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     responses(
         (status = 200, description = "The queue", body = QueueView),
@@ -177,7 +177,7 @@ pub struct TakeReq {
 /// Starts one part of a job on this machine if it is free (idle, no run, an idle empty
 /// queue): what `POST /queue` asks of each machine it tries. For a job of another machine it
 /// runs its own newest job with the same program, or a copy made for it.
-#[utoipa::path(post, path = "/machines/{id}/queue/take", tag = "queue",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/queue/take", tag = "queue",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = TakeReq, example = json!({"job": 1})),
     responses(
@@ -219,7 +219,7 @@ pub struct Dispatched {
 /// program (the same start as `POST /jobs/{id}/start`, with its whole-program check), on any
 /// node. Recorded as `queue.dispatch`. When none takes it: 409 `no_machine_free` with
 /// `refused`, each machine's `code` and `message`.
-#[utoipa::path(post, path = "/queue", tag = "queue",
+#[utoipa::path(post, path = "/api/v1/queue", tag = "queue",
     request_body(content = DispatchReq, example = json!({"job": 1, "machines": [1]})),
     responses(
         (status = 200, description = "The machine chosen and the run", body = Dispatched),

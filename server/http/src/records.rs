@@ -60,7 +60,7 @@ pub struct PartsParams {
     cursor: Option<String>,
 }
 
-#[utoipa::path(get, path = "/parts", tag = "records",
+#[utoipa::path(get, path = "/api/v1/parts", tag = "records",
     params(PartsParams),
     responses(
         (status = 200, description = "A page of part records (one per run that ended), newest first; with `Accept: text/csv` the same as CSV (header row; operators joined with `;`, confirmations counted; the next page's cursor in `X-Next-Cursor`)", body = PartsPage),
@@ -104,7 +104,7 @@ pub struct UtilisationParams {
     to: Option<String>,
 }
 
-#[utoipa::path(get, path = "/reports/utilisation", tag = "records",
+#[utoipa::path(get, path = "/api/v1/reports/utilisation", tag = "records",
     params(UtilisationParams),
     responses(
         (status = 200, description = "Seconds per machine, UTC day and state (`cutting`, `idle`, `held`, `alarm`, `unresponsive`, `offline`) from the recorded state changes; with `Accept: text/csv` one row per machine and day", body = UtilisationReport),
@@ -123,7 +123,7 @@ pub async fn utilisation(
     Ok(Json(report).into_response())
 }
 
-#[utoipa::path(get, path = "/machines/{id}/counters", tag = "records",
+#[utoipa::path(get, path = "/api/v1/machines/{id}/counters", tag = "records",
     params(("id" = i64, Path, example = 1)),
     responses(
         (status = 200, description = "Spindle-on and motion hours, distance per axis, jobs run, the state now and each maintenance interval (`since_done`, `due`)", body = CountersView),
@@ -136,7 +136,7 @@ pub async fn counters(
     Ok(Json(reports::counters(&app, id).await?))
 }
 
-#[utoipa::path(post, path = "/machines/{id}/maintenance/{name}/done", tag = "records",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/maintenance/{name}/done", tag = "records",
     params(("id" = i64, Path, example = 1), ("name" = String, Path, example = "lubricate")),
     responses(
         (status = 200, description = "The interval, started again from the counter's value now; event `machine.maintenance_done`", body = MaintenanceView),

@@ -12,7 +12,7 @@ use fresa_core::tool_setter::MeasureReport;
 use fresa_core::SharedApp;
 use serde_json::Value;
 
-#[utoipa::path(get, path = "/machines/{id}/run-settings", tag = "machines",
+#[utoipa::path(get, path = "/api/v1/machines/{id}/run-settings", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     responses(
         (status = 200, description = "The machine's run settings (the defaults until changed)", body = RunSettingsView),
@@ -29,7 +29,7 @@ pub async fn get_run_settings(
 /// `tool_change` (`hold`, `ignore`, `refuse`), `tool_change_position` (machine X Y Z, or null),
 /// `tool_setter` (`{x, y, z, distance_mm, feed_mm_min, reference_tool}`, or null). They apply
 /// from the next job start.
-#[utoipa::path(patch, path = "/machines/{id}/run-settings", tag = "machines",
+#[utoipa::path(patch, path = "/api/v1/machines/{id}/run-settings", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = Object, example = json!({"optional_stop": true, "tool_change": "hold",
         "tool_change_position": {"x": 0, "y": 0, "z": 0},
@@ -56,7 +56,7 @@ pub async fn patch_run_settings(
 /// goes into the tool table; during a tool-change hold for it, without G43, the work offset's
 /// Z is moved by the new length minus the old tool's. Allowed while the machine is idle or
 /// held for a tool change.
-#[utoipa::path(post, path = "/machines/{id}/tools/{tool}/measure", tag = "machines",
+#[utoipa::path(post, path = "/api/v1/machines/{id}/tools/{tool}/measure", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1),
            ("tool" = i64, Path, description = "tool number", example = 1)),
     responses(

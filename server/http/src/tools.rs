@@ -62,7 +62,7 @@ pub struct ToolReq {
     description: String,
 }
 
-#[utoipa::path(get, path = "/machines/{id}/tools", tag = "machines",
+#[utoipa::path(get, path = "/api/v1/machines/{id}/tools", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     responses(
         (status = 200, description = "The tool table, by tool number", body = Vec<ToolView>),
@@ -76,7 +76,7 @@ pub async fn list_tools(
     Ok(Json(rows.into_iter().map(ToolView::from).collect()))
 }
 
-#[utoipa::path(put, path = "/machines/{id}/tools", tag = "machines",
+#[utoipa::path(put, path = "/api/v1/machines/{id}/tools", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1)),
     request_body(content = Vec<ToolView>, example = json!([
         {"tool": 1, "diameter_mm": 6.0, "description": "6 mm flat end mill"},
@@ -97,7 +97,7 @@ pub async fn replace_tools(
     Ok(Json(stored.into_iter().map(ToolView::from).collect()))
 }
 
-#[utoipa::path(put, path = "/machines/{id}/tools/{tool}", tag = "machines",
+#[utoipa::path(put, path = "/api/v1/machines/{id}/tools/{tool}", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1),
            ("tool" = i64, Path, description = "tool number", example = 4)),
     request_body(content = ToolReq, example = json!({"diameter_mm": 6.0, "description": "6 mm flat end mill"})),
@@ -122,7 +122,7 @@ pub async fn set_tool(
     Ok(Json(stored.into()))
 }
 
-#[utoipa::path(delete, path = "/machines/{id}/tools/{tool}", tag = "machines",
+#[utoipa::path(delete, path = "/api/v1/machines/{id}/tools/{tool}", tag = "machines",
     params(("id" = i64, Path, description = "machine id", example = 1),
            ("tool" = i64, Path, description = "tool number", example = 1)),
     responses(

@@ -69,7 +69,7 @@ pub struct CreatedWebhook {
     secret: String,
 }
 
-#[utoipa::path(get, path = "/webhooks", tag = "webhooks",
+#[utoipa::path(get, path = "/api/v1/webhooks", tag = "webhooks",
     responses((status = 200, description = "Every webhook (without secrets)", body = [WebhookView])))]
 pub async fn list(State(app): State<SharedApp>) -> Result<Json<Vec<WebhookView>>, ApiError> {
     Ok(Json(
@@ -82,7 +82,7 @@ pub async fn list(State(app): State<SharedApp>) -> Result<Json<Vec<WebhookView>>
     ))
 }
 
-#[utoipa::path(get, path = "/webhooks/{id}", tag = "webhooks",
+#[utoipa::path(get, path = "/api/v1/webhooks/{id}", tag = "webhooks",
     params(("id" = i64, Path, description = "webhook id", example = 1)),
     responses(
         (status = 200, description = "The webhook (without its secret)", body = WebhookView),
@@ -102,7 +102,7 @@ pub async fn get_one(
 /// `Fresa-Event` (type), `Fresa-Delivery` (`<webhook>-<event id>`, the same on every retry) and
 /// `Fresa-Signature: t=<unix seconds>,v1=<hex HMAC-SHA256(secret, "<t>.<body>")>`. A 2xx answer
 /// is a success; anything else is retried with doubling delays.
-#[utoipa::path(post, path = "/webhooks", tag = "webhooks",
+#[utoipa::path(post, path = "/api/v1/webhooks", tag = "webhooks",
     request_body(content = NewWebhook, example = json!({"url": "http://erp.lan:9000/fresa", "events": ["job.state"]})),
     responses(
         (status = 201, description = "Registered; the answer carries the signing `secret`, shown this once", body = CreatedWebhook),
@@ -123,7 +123,7 @@ pub async fn create(
     ))
 }
 
-#[utoipa::path(delete, path = "/webhooks/{id}", tag = "webhooks",
+#[utoipa::path(delete, path = "/api/v1/webhooks/{id}", tag = "webhooks",
     params(("id" = i64, Path, description = "webhook id", example = 1)),
     responses(
         (status = 204, description = "Removed; deliveries waiting for it are dropped"),
