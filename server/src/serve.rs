@@ -12,8 +12,8 @@ use fresa_core::config::Settings;
 use fresa_core::App;
 use fresa_http::admission::{Admission, ConnectionSlot};
 use hyper::body::Incoming;
-use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
-use hyper_util::server::conn::auto;
+use hyper::server::conn::http1;
+use hyper_util::rt::{TokioIo, TokioTimer};
 use std::collections::BTreeMap;
 use std::io;
 use std::pin::Pin;
@@ -273,11 +273,11 @@ async fn accept_loop(
     let stream_places = limits.max_event_streams;
     let streams = Arc::new(Semaphore::new(stream_places));
     let lingering = Arc::new(Semaphore::new(MAX_LINGERING_REFUSALS));
-    // HTTP/1 only (as before): `auto` would otherwise first wait for a 24-byte HTTP/2 preface,
-    // a wait the header read timeout does not cover.
-    let mut builder = auto::Builder::new(TokioExecutor::new()).http1_only();
+    // HTTP/1 only, with hyper's own HTTP/1 connection: hyper-util's `auto` would first wait for
+    // a 24-byte HTTP/2 preface (a wait the header read timeout does not cover), and even with
+    // `http1_only` it wraps every connection and read in its version sniffing.
+    let mut builder = http1::Builder::new();
     builder
-        .http1()
         .timer(TokioTimer::new())
         .header_read_timeout(limits.header_read_timeout);
     let builder = Arc::new(builder);
@@ -481,7 +481,7 @@ impl AcceptErrors {
 /// progress and no bytes moving for `idle` (hyper's header read timeout also closes a kept-alive
 /// connection whose next request head does not arrive in time).
 async fn serve_connection(
-    builder: Arc<auto::Builder<TokioExecutor>>,
+    builder: Arc<http1::Builder>,
     stream: TcpStream,
     router: fresa_http::Service,
     idle: Duration,
