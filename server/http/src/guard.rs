@@ -60,10 +60,7 @@ where
     fn call(&mut self, req: Request) -> Self::Future {
         use axum::response::IntoResponse;
         use futures_util::future::Either;
-        match uri_length(&req)
-            .and_then(|()| one_host(&self.settings, req.uri(), req.headers()))
-            .and_then(|()| check(&self.settings, req.method(), req.headers()))
-        {
+        match admit(&self.settings, req.method(), req.uri(), req.headers()) {
             Ok(()) => Either::Left(self.inner.call(req)),
             Err(e) => Either::Right(std::future::ready(Ok(e.into_response()))),
         }
@@ -74,8 +71,26 @@ where
 /// hyper's own buffer limit hyper answers itself, without a body).
 pub const MAX_URI_BYTES: usize = 8192;
 
-fn uri_length(req: &Request) -> Result<(), ApiError> {
-    let len = req.uri().path_and_query().map_or(0, |p| p.as_str().len());
+/// Everything the guard checks, in order; the `Host` header is looked up once.
+fn admit(
+    settings: &Settings,
+    method: &Method,
+    uri: &Uri,
+    headers: &HeaderMap,
+) -> Result<(), ApiError> {
+    uri_length(uri)?;
+    let host = one_host(settings, uri, headers)?;
+    if !host_allowed(settings, host) {
+        return Err(host_not_allowed(host));
+    }
+    if matches!(*method, Method::GET | Method::HEAD | Method::OPTIONS) {
+        return Ok(());
+    }
+    same_site(settings, method, headers, host)
+}
+
+fn uri_length(uri: &Uri) -> Result<(), ApiError> {
+    let len = uri.path_and_query().map_or(0, |p| p.as_str().len());
     if len > MAX_URI_BYTES {
         return Err(ApiError::new(
             StatusCode::URI_TOO_LONG,
@@ -91,7 +106,12 @@ fn uri_length(req: &Request) -> Result<(), ApiError> {
 /// route by either, so both must be checked and be the same name. A request without `Host` is
 /// refused whatever its method: HTTP/1.1 requires one (RFC 9112 3.2), every client we know sends
 /// it (browsers, curl, reqwest and so the CLI), and without it there is no name to check.
-fn one_host(settings: &Settings, uri: &Uri, headers: &HeaderMap) -> Result<(), ApiError> {
+/// Gives the `Host` header's text.
+fn one_host<'h>(
+    settings: &Settings,
+    uri: &Uri,
+    headers: &'h HeaderMap,
+) -> Result<&'h str, ApiError> {
     let mut hosts = headers.get_all(header::HOST).iter();
     let host = hosts.next();
     let more = hosts.count();
@@ -127,7 +147,7 @@ fn one_host(settings: &Settings, uri: &Uri, headers: &HeaderMap) -> Result<(), A
             ));
         }
     }
-    Ok(())
+    Ok(host)
 }
 
 fn host_not_allowed(host: &str) -> ApiError {
@@ -140,16 +160,14 @@ fn host_not_allowed(host: &str) -> ApiError {
     )
 }
 
-fn check(settings: &Settings, method: &Method, headers: &HeaderMap) -> Result<(), ApiError> {
-    let host = headers.get(header::HOST).and_then(|h| h.to_str().ok());
-    if let Some(host) = host {
-        if !host_allowed(settings, host) {
-            return Err(host_not_allowed(host));
-        }
-    }
-    if matches!(*method, Method::GET | Method::HEAD | Method::OPTIONS) {
-        return Ok(());
-    }
+/// A state-changing request comes from this server's own pages, an allowed origin, or no
+/// browser at all.
+fn same_site(
+    settings: &Settings,
+    method: &Method,
+    headers: &HeaderMap,
+    host: &str,
+) -> Result<(), ApiError> {
     if let Some(origin) = headers.get(header::ORIGIN) {
         let origin = origin.to_str().unwrap_or("(not text)");
         if !origin_allowed(settings, origin, host) {
@@ -214,7 +232,7 @@ fn host_allowed(settings: &Settings, host: &str) -> bool {
     }
 }
 
-fn origin_allowed(settings: &Settings, origin: &str, host: Option<&str>) -> bool {
+fn origin_allowed(settings: &Settings, origin: &str, host: &str) -> bool {
     let origin = origin.trim_end_matches('/');
     if settings
         .cors_origins
@@ -224,7 +242,6 @@ fn origin_allowed(settings: &Settings, origin: &str, host: Option<&str>) -> bool
         return true;
     }
     // Same origin: the page was served by this server, under the name the request uses.
-    let Some(host) = host else { return false };
     ["http://", "https://"].iter().any(|scheme| {
         origin
             .strip_prefix(scheme)
@@ -286,7 +303,8 @@ mod tests {
     fn one_host_agreeing_with_an_absolute_target() {
         let s = settings("127.0.0.1:7878", &[], &[]);
         let uri = |u: &str| u.parse::<Uri>().unwrap();
-        let code = |u: &str, h: &HeaderMap| one_host(&s, &uri(u), h).map_err(|e| e.code);
+        let code =
+            |u: &str, h: &HeaderMap| one_host(&s, &uri(u), h).map(|_| ()).map_err(|e| e.code);
         let own = headers(&[("host", "127.0.0.1:7878")]);
         assert_eq!(code("/api/v1/machines", &own), Ok(()));
         assert_eq!(code("http://127.0.0.1:7878/api/v1/machines", &own), Ok(()));
@@ -315,25 +333,21 @@ mod tests {
         let s = settings("127.0.0.1:7878", &[], &["http://tablet.lan:8080"]);
         let post = Method::POST;
         let h = |o: &str| headers(&[("host", "127.0.0.1:7878"), ("origin", o)]);
-        assert!(check(&s, &post, &h("http://127.0.0.1:7878")).is_ok());
-        assert!(check(&s, &post, &h("http://tablet.lan:8080")).is_ok());
+        let check = |m: &Method, h: &HeaderMap| admit(&s, m, &Uri::from_static("/"), h);
+        assert!(check(&post, &h("http://127.0.0.1:7878")).is_ok());
+        assert!(check(&post, &h("http://tablet.lan:8080")).is_ok());
         assert_eq!(
-            check(&s, &post, &h("http://evil.example"))
-                .unwrap_err()
-                .code,
+            check(&post, &h("http://evil.example")).unwrap_err().code,
             "cross_origin"
         );
-        assert_eq!(
-            check(&s, &post, &h("null")).unwrap_err().code,
-            "cross_origin"
-        );
-        assert!(check(&s, &Method::GET, &h("http://evil.example")).is_ok());
+        assert_eq!(check(&post, &h("null")).unwrap_err().code, "cross_origin");
+        assert!(check(&Method::GET, &h("http://evil.example")).is_ok());
         let fetch = headers(&[("host", "127.0.0.1:7878"), ("sec-fetch-site", "cross-site")]);
-        assert_eq!(check(&s, &post, &fetch).unwrap_err().code, "cross_origin");
-        assert!(check(&s, &post, &headers(&[("host", "127.0.0.1:7878")])).is_ok());
+        assert_eq!(check(&post, &fetch).unwrap_err().code, "cross_origin");
+        assert!(check(&post, &headers(&[("host", "127.0.0.1:7878")])).is_ok());
         let rebound = headers(&[("host", "evil.example:7878")]);
         assert_eq!(
-            check(&s, &Method::GET, &rebound).unwrap_err().code,
+            check(&Method::GET, &rebound).unwrap_err().code,
             "host_not_allowed"
         );
     }
