@@ -109,6 +109,22 @@ fn server_with_hang_machine() -> (Server, i64, i64) {
 fn a_hung_jog_times_out_then_the_machine_is_unresponsive_and_refuses_jogs_at_once() {
     let (s, h, _) = server_with_hang_machine();
     s.jog(h, "X", 1.0).expect_error(504, "backend_timeout");
+    // The server's request log names a server error at ERROR (with DEBUG off, as by default).
+    let line = s.wait_log(
+        Duration::from_secs(10),
+        "request failed with a server error",
+    );
+    for part in [
+        "ERROR",
+        "method=POST",
+        &format!("/api/v1/machines/{h}/jog"),
+        "status=504",
+    ] {
+        assert!(
+            line.contains(part),
+            "{part:?} is not in the log line {line:?}"
+        );
+    }
     assert_unresponsive(
         &s.get(&format!("/api/v1/machines/{h}")).expect(200),
         "GET machine H",

@@ -15,6 +15,7 @@ pub mod openapi;
 mod pendants;
 mod queue;
 mod records;
+mod request_log;
 mod toolchange;
 mod tools;
 mod webhooks;
@@ -50,21 +51,7 @@ pub fn router(app: SharedApp, admission: Option<std::sync::Arc<admission::Admiss
     } else {
         router.layer(cors(&app.settings.cors_origins))
     };
-    router
-        .layer(
-            tower_http::trace::TraceLayer::new_for_http().make_span_with(
-                |req: &axum::http::Request<_>| {
-                    // The URI without secrets: an `access_token` in the query is not logged.
-                    tracing::debug_span!(
-                        "request",
-                        method = %req.method(),
-                        uri = %auth::redacted_uri(req.uri()),
-                        version = ?req.version(),
-                    )
-                },
-            ),
-        )
-        .with_state(app)
+    router.layer(request_log::RequestLog).with_state(app)
 }
 
 /// The OpenAPI description of [`router`], as served (for tools and tests without a server).
