@@ -51,7 +51,7 @@ pub fn router(app: SharedApp, admission: Option<std::sync::Arc<admission::Admiss
     } else {
         router.layer(cors(&app.settings.cors_origins))
     };
-    router.layer(request_log::RequestLog).with_state(app)
+    router.with_state(app)
 }
 
 /// The OpenAPI description of [`router`], as served (for tools and tests without a server).
@@ -179,17 +179,20 @@ fn described_router(
         .split_for_parts()
 }
 
-/// The whole HTTP service: the router behind the cross-site and rebinding guard. The guard wraps
-/// the router once (not each route), so a request pays for it once. `admission` is shared with
-/// the accept loop (per-client connections) and read by auth, the event stream and `/metrics`.
+/// The whole HTTP service: the router inside the request log, behind the cross-site and
+/// rebinding guard. Both wrap the router once, not each route (axum's `Router::layer` wraps every
+/// route, and each such layer costs a request a clone of the boxed route and a boxed future), so
+/// a request pays for each once. `admission` is shared with the accept loop (per-client
+/// connections) and read by auth, the event stream and `/metrics`.
 pub fn service(app: SharedApp, admission: std::sync::Arc<admission::Admission>) -> Service {
     use tower::Layer;
     let settings = std::sync::Arc::new(app.settings.clone());
-    guard::Guard(settings).layer(router(app, Some(admission)))
+    let logged = request_log::RequestLog.layer(router(app, Some(admission)));
+    guard::Guard(settings).layer(logged)
 }
 
 /// What `service` returns: serve it with hyper (requests with an axum `Body`).
-pub type Service = guard::Guarded<Router>;
+pub type Service = guard::Guarded<request_log::Logged<Router>>;
 
 /// gzip for the console's files and toolpaths (not for the event stream, whose events must not
 /// wait in a compressor's buffer).
