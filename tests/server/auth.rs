@@ -41,12 +41,20 @@ fn every_request_needs_a_valid_token_with_the_right_role() {
         s.log()
     );
 
-    // Health checks stay open; the API does not.
+    // Health checks, the console and the API's description stay open; the API does not, and
+    // neither does a path under it that does not exist (no listing of endpoints without a
+    // token) nor `/metrics`. A path outside the API is a plain 404.
     s.get("/healthz").expect(200);
+    s.get("/").expect(200);
+    s.get("/api/v1/openapi.json").expect(200);
     let msg = s
         .get("/api/v1/machines")
         .expect_error(401, "token_required");
     assert!(msg.contains("Authorization: Bearer"), "{msg}");
+    s.get("/api/v1/no-such-endpoint")
+        .expect_error(401, "token_required");
+    s.get("/metrics").expect_error(401, "token_required");
+    s.get("/no-such-page").expect_error(404, "not_found");
     s.post(
         "/api/v1/machines",
         &json!({"name": "m", "backend": "sim-machine"}),
@@ -66,6 +74,8 @@ fn every_request_needs_a_valid_token_with_the_right_role() {
     // Viewer: may read, may not change anything.
     s.token = Some(viewer.clone());
     s.get("/api/v1/machines").expect(200);
+    s.get("/api/v1/no-such-endpoint")
+        .expect_error(404, "not_found");
     let msg = s
         .post(
             "/api/v1/machines",

@@ -10,7 +10,7 @@ mod guard;
 mod heightmaps;
 mod jobs;
 pub(crate) mod machines;
-mod middleware;
+pub(crate) mod middleware;
 pub mod openapi;
 mod pendants;
 mod queue;
@@ -38,25 +38,20 @@ use utoipa_axum::routes;
 /// `#[utoipa::path(METHOD, path = ...)]` gives its method and path, so the router and the
 /// OpenAPI description (`GET /api/v1/openapi.json`) are built from the same lines.
 ///
-/// `admission` (shared with the accept loop) is what the event stream and `/metrics` read and
-/// authentication counts wrong tokens in; only those routes carry it.
-pub fn router(app: SharedApp, admission: Option<std::sync::Arc<admission::Admission>>) -> Router {
-    let (router, _) = described_router(app.clone(), admission);
-    let router = router
+/// `admission` (shared with the accept loop) is what the event stream and `/metrics` read; only
+/// those routes carry it. Authentication, forwarding and CORS are around the router, in
+/// [`service`].
+fn router(app: SharedApp, admission: Option<std::sync::Arc<admission::Admission>>) -> Router {
+    let (router, _) = described_router(admission);
+    router
         .fallback(not_found)
-        .method_not_allowed_fallback(method_not_allowed);
-    // CORS only when some origin is allowed: deny-by-default needs no layer at all.
-    let router = if app.settings.cors_origins.is_empty() {
-        router
-    } else {
-        router.layer(cors(&app.settings.cors_origins))
-    };
-    router.with_state(app)
+        .method_not_allowed_fallback(method_not_allowed)
+        .with_state(app)
 }
 
 /// The OpenAPI description of [`router`], as served (for tools and tests without a server).
-pub fn openapi_document(app: SharedApp) -> String {
-    doc_json(&described_router(app, None).1)
+pub fn openapi_document() -> String {
+    doc_json(&described_router(None).1)
 }
 
 fn doc_json(doc: &utoipa::openapi::OpenApi) -> String {
@@ -67,11 +62,9 @@ fn doc_json(doc: &utoipa::openapi::OpenApi) -> String {
 }
 
 fn described_router(
-    app: SharedApp,
     admission: Option<std::sync::Arc<admission::Admission>>,
 ) -> (Router<SharedApp>, utoipa::openapi::OpenApi) {
     use auth::Role::{Admin, Operator, Viewer};
-    let authenticate = auth::Authenticate::new(app.clone(), admission.clone());
     let with_admission = axum::Extension(admission);
     let api = OpenApiRouter::new()
         .routes(needs(Viewer, routes!(machines::list)))
@@ -151,18 +144,12 @@ fn described_router(
         ))
         .routes(needs(Viewer, routes!(nodes)))
         .routes(needs(Admin, routes!(machines::set_node)))
-        // Authentication, then forwarding (it needs to know the caller), as one layer.
-        .layer(middleware::Layer((
-            authenticate.clone(),
-            forward::ForwardState::new(app.clone()),
-        )))
-        // Outside the auth layer: the description is public (see `openapi::openapi_json`).
+        // Public, like the console's files (see `Gate`): the description (`openapi::openapi_json`).
         .routes(public(routes!(openapi::openapi_json).map(|r| {
             r.layer(axum::Extension(openapi::Document::default()))
         })));
     let metrics = OpenApiRouter::new()
-        .routes(needs(Viewer, routes!(metrics)).map(|r| r.layer(with_admission.clone())))
-        .layer(middleware::Layer(authenticate));
+        .routes(needs(Viewer, routes!(metrics)).map(|r| r.layer(with_admission.clone())));
     // The console's files need no token (the API calls they make do); still behind the guard.
     OpenApiRouter::with_openapi(openapi::ApiDoc::openapi())
         // Merged, not nested: each API handler's annotation carries its full `/api/v1/...` path,
@@ -179,20 +166,87 @@ fn described_router(
         .split_for_parts()
 }
 
-/// The whole HTTP service: the router inside the request log, behind the cross-site and
-/// rebinding guard. Both wrap the router once, not each route (axum's `Router::layer` wraps every
-/// route, and each such layer costs a request a clone of the boxed route and a boxed future), so
-/// a request pays for each once. `admission` is shared with the accept loop (per-client
-/// connections) and read by auth, the event stream and `/metrics`.
+/// The whole HTTP service, from the outside in: the cross-site and rebinding guard, the request
+/// log, CORS (only when some origin is allowed: deny-by-default needs no layer at all), the
+/// [`Gate`] (authentication, then forwarding), the router. Each wraps the router once, not each
+/// route (axum's `Router::layer` wraps every route, and each such layer costs a request a clone
+/// of the boxed route and a boxed future), so a request pays for each once. `admission` is
+/// shared with the accept loop (per-client connections) and read by auth, the event stream and
+/// `/metrics`.
 pub fn service(app: SharedApp, admission: std::sync::Arc<admission::Admission>) -> Service {
     use tower::Layer;
     let settings = std::sync::Arc::new(app.settings.clone());
-    let logged = request_log::RequestLog.layer(router(app, Some(admission)));
-    guard::Guard(settings).layer(logged)
+    let gate = Gate {
+        authenticate: auth::Authenticate::new(app.clone(), Some(admission.clone())),
+        forward: forward::ForwardState::new(app.clone()),
+    };
+    let origins = app.settings.cors_origins.clone();
+    let gated = middleware::Layer(gate).layer(router(app, Some(admission)));
+    let with_cors = if origins.is_empty() {
+        tower::util::Either::Right(gated)
+    } else {
+        tower::util::Either::Left(cors(&origins).layer(gated))
+    };
+    guard::Guard(settings).layer(request_log::RequestLog.layer(with_cors))
 }
 
 /// What `service` returns: serve it with hyper (requests with an axum `Body`).
-pub type Service = guard::Guarded<request_log::Logged<Router>>;
+pub type Service =
+    guard::Guarded<request_log::Logged<tower::util::Either<tower_http::cors::Cors<Gated>, Gated>>>;
+
+/// The router behind the [`Gate`].
+pub type Gated = middleware::Service<Gate, Router>;
+
+/// Which requests authentication and forwarding see, decided from the path before routing:
+/// everything under `/api/v1/` but its OpenAPI description passes authentication and then the
+/// forwarding check (it needs to know the caller); `/metrics` passes authentication only; the
+/// console's files, `/healthz`, the description and paths outside the API need no token. An
+/// unknown path under `/api/v1/` is authenticated before it is answered 404.
+#[derive(Clone)]
+pub struct Gate {
+    authenticate: auth::Authenticate,
+    forward: forward::ForwardState,
+}
+
+enum Scope {
+    Public,
+    Authenticated,
+    AuthenticatedAndForwarded,
+}
+
+fn scope(path: &str) -> Scope {
+    match path.strip_prefix("/api/v1/") {
+        Some("openapi.json") => Scope::Public,
+        Some(_) => Scope::AuthenticatedAndForwarded,
+        None if path == "/metrics" => Scope::Authenticated,
+        None => Scope::Public,
+    }
+}
+
+impl middleware::Middleware for Gate {
+    fn fast(&self, req: axum::extract::Request) -> middleware::Fast {
+        match scope(req.uri().path()) {
+            Scope::Public => middleware::Fast::Pass(req),
+            Scope::Authenticated => self.authenticate.fast(req),
+            Scope::AuthenticatedAndForwarded => match self.authenticate.fast(req) {
+                middleware::Fast::Pass(req) => self.forward.fast(req),
+                slow => slow,
+            },
+        }
+    }
+
+    fn slow(
+        self,
+        req: axum::extract::Request,
+        next: impl middleware::Next,
+    ) -> futures_util::future::BoxFuture<'static, axum::response::Response> {
+        match scope(req.uri().path()) {
+            Scope::Public => next.run(req),
+            Scope::Authenticated => self.authenticate.slow(req, next),
+            Scope::AuthenticatedAndForwarded => (self.authenticate, self.forward).slow(req, next),
+        }
+    }
+}
 
 /// gzip for the console's files and toolpaths (not for the event stream, whose events must not
 /// wait in a compressor's buffer).

@@ -8,8 +8,6 @@
 
 use axum::extract::Request;
 use axum::response::Response;
-use axum::routing::future::RouteFuture;
-use axum::routing::Route;
 use futures_util::future::{BoxFuture, Either};
 use std::convert::Infallible;
 use std::task::{Context, Poll};
@@ -36,18 +34,6 @@ pub(crate) enum Fast {
 /// What runs after a middleware: the route, or the rest of a pair and then the route.
 pub(crate) trait Next: Send + 'static {
     fn run(self, req: Request) -> BoxFuture<'static, Response>;
-}
-
-impl Next for Route {
-    fn run(mut self, req: Request) -> BoxFuture<'static, Response> {
-        let call = tower::Service::call(&mut self, req);
-        Box::pin(async move {
-            match call.await {
-                Ok(r) => r,
-                Err(never) => match never {},
-            }
-        })
-    }
 }
 
 /// `middleware`, then `next`.
@@ -86,13 +72,14 @@ impl<A: Middleware, B: Middleware> Middleware for (A, B) {
     }
 }
 
-/// The tower layer of a [`Middleware`], for `Router::layer` (which wraps every route).
+/// The tower layer of a [`Middleware`], around the whole router (`crate::service`): a request
+/// pays for it once, where `Router::layer` would wrap every route.
 #[derive(Clone)]
 pub(crate) struct Layer<M>(pub M);
 
-impl<M: Middleware> tower::Layer<Route> for Layer<M> {
-    type Service = Service<M>;
-    fn layer(&self, inner: Route) -> Service<M> {
+impl<M: Middleware, S> tower::Layer<S> for Layer<M> {
+    type Service = Service<M, S>;
+    fn layer(&self, inner: S) -> Service<M, S> {
         Service {
             middleware: self.0.clone(),
             inner,
@@ -101,27 +88,51 @@ impl<M: Middleware> tower::Layer<Route> for Layer<M> {
 }
 
 #[derive(Clone)]
-pub(crate) struct Service<M> {
+pub struct Service<M, S> {
     middleware: M,
-    inner: Route,
+    inner: S,
 }
 
-impl<M: Middleware> tower::Service<Request> for Service<M> {
+impl<M, S> tower::Service<Request> for Service<M, S>
+where
+    M: Middleware,
+    S: tower::Service<Request, Response = Response, Error = Infallible> + Clone + Send + 'static,
+    S::Future: Send + 'static,
+{
     type Response = Response;
     type Error = Infallible;
-    type Future = Either<RouteFuture<Infallible>, BoxFuture<'static, Result<Response, Infallible>>>;
+    type Future = Either<S::Future, BoxFuture<'static, Result<Response, Infallible>>>;
 
     fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), Infallible>> {
-        tower::Service::<Request>::poll_ready(&mut self.inner, cx)
+        self.inner.poll_ready(cx)
     }
 
     fn call(&mut self, req: Request) -> Self::Future {
         match self.middleware.fast(req) {
             Fast::Pass(req) => Either::Left(self.inner.call(req)),
             Fast::Slow(req) => {
-                let slow = self.middleware.clone().slow(req, self.inner.clone());
+                let slow = self.middleware.clone().slow(req, Inner(self.inner.clone()));
                 Either::Right(Box::pin(async move { Ok(slow.await) }))
             }
         }
+    }
+}
+
+/// The service a [`Service`] wraps, as what runs after its middleware.
+struct Inner<S>(S);
+
+impl<S> Next for Inner<S>
+where
+    S: tower::Service<Request, Response = Response, Error = Infallible> + Send + 'static,
+    S::Future: Send + 'static,
+{
+    fn run(self, req: Request) -> BoxFuture<'static, Response> {
+        let call = tower::ServiceExt::oneshot(self.0, req);
+        Box::pin(async move {
+            match call.await {
+                Ok(r) => r,
+                Err(never) => match never {},
+            }
+        })
     }
 }

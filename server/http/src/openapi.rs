@@ -202,14 +202,11 @@ pub struct Document(Arc<std::sync::OnceLock<axum::body::Bytes>>);
     tag = "system",
     responses((status = 200, description = "The OpenAPI 3.1 document", content_type = "application/json", body = Object))
 )]
-pub async fn openapi_json(
-    axum::extract::State(app): axum::extract::State<SharedApp>,
-    Extension(doc): Extension<Document>,
-) -> impl IntoResponse {
+pub async fn openapi_json(Extension(doc): Extension<Document>) -> impl IntoResponse {
     // Described again from the same routes the server was built from (a few ms, once).
     let json = doc
         .0
-        .get_or_init(|| crate::openapi_document(app).into())
+        .get_or_init(|| crate::openapi_document().into())
         .clone();
     (
         [(axum::http::header::CONTENT_TYPE, "application/json")],
