@@ -15,7 +15,7 @@ use crate::auth::{
 use crate::error::ApiError;
 use crate::middleware::{Fast, Middleware, Next};
 use axum::body::Body;
-use axum::extract::{OriginalUri, Request};
+use axum::extract::Request;
 use axum::http::{HeaderMap, HeaderName, Method, StatusCode};
 use axum::response::{IntoResponse, Response};
 use fresa_core::nodes::{Owner, RemoteNode};
@@ -74,13 +74,6 @@ fn target(method: &Method, path: &str) -> Target {
     }
 }
 
-fn path(req: &Request) -> &axum::http::Uri {
-    match req.extensions().get::<OriginalUri>() {
-        Some(u) => &u.0,
-        None => req.uri(),
-    }
-}
-
 impl Middleware for ForwardState {
     /// Not forwarded: a request another node forwarded, one no machine's task serves, and the
     /// common case, a machine this node drives (answered from memory).
@@ -88,7 +81,7 @@ impl Middleware for ForwardState {
         if req.extensions().get::<ForwardedBy>().is_some() {
             return Fast::Pass(req);
         }
-        match target(req.method(), path(&req).path()) {
+        match target(req.method(), req.uri().path()) {
             Target::None => Fast::Pass(req),
             Target::Machine(m) if self.app.machines.is_local(m) => Fast::Pass(req),
             Target::Machine(_) | Target::Job(_) => Fast::Slow(req),
@@ -103,7 +96,7 @@ impl Middleware for ForwardState {
 impl ForwardState {
     /// A job's machine looked up, a remote machine's owner asked, the request forwarded.
     async fn slow_path(self, req: Request, next: impl Next) -> Response {
-        let machine = match target(req.method(), path(&req).path()) {
+        let machine = match target(req.method(), req.uri().path()) {
             Target::Machine(m) => m,
             // Guarded, with the running job known from memory: during a database outage a
             // pause or cancel must not wait for the pool's timeout here.
@@ -116,7 +109,7 @@ impl ForwardState {
         if self.app.machines.is_local(machine) {
             return next.run(req).await;
         }
-        let path = path(&req).clone();
+        let path = req.uri().clone();
         let node = match self.app.machine_owner(machine).await {
             Ok(Owner::Remote(node)) => node,
             Ok(Owner::Local | Owner::Unknown) => return next.run(req).await,
