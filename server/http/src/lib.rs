@@ -10,7 +10,7 @@ mod guard;
 mod heightmaps;
 mod jobs;
 pub(crate) mod machines;
-pub(crate) mod middleware;
+mod middleware;
 pub mod openapi;
 mod pendants;
 mod queue;
@@ -177,8 +177,10 @@ pub fn service(app: SharedApp, admission: std::sync::Arc<admission::Admission>) 
     use tower::Layer;
     let settings = std::sync::Arc::new(app.settings.clone());
     let gate = Gate {
-        authenticate: auth::Authenticate::new(app.clone(), Some(admission.clone())),
-        forward: forward::ForwardState::new(app.clone()),
+        pair: (
+            auth::Authenticate::new(app.clone(), Some(admission.clone())),
+            forward::ForwardState::new(app.clone()),
+        ),
     };
     let origins = app.settings.cors_origins.clone();
     let gated = middleware::Layer(gate).layer(router(app, Some(admission)));
@@ -201,11 +203,12 @@ pub type Gated = middleware::Service<Gate, Router>;
 /// everything under `/api/v1/` but its OpenAPI description passes authentication and then the
 /// forwarding check (it needs to know the caller); `/metrics` passes authentication only; the
 /// console's files, `/healthz`, the description and paths outside the API need no token. An
-/// unknown path under `/api/v1/` is authenticated before it is answered 404.
+/// unknown path under `/api/v1/` is authenticated before it is answered 404. The route table
+/// declares each route's role; a test checks that this split agrees with it for every route.
 #[derive(Clone)]
 pub struct Gate {
-    authenticate: auth::Authenticate,
-    forward: forward::ForwardState,
+    /// Authentication, then forwarding (it needs to know the caller).
+    pair: (auth::Authenticate, forward::ForwardState),
 }
 
 enum Scope {
@@ -227,11 +230,8 @@ impl middleware::Middleware for Gate {
     fn fast(&self, req: axum::extract::Request) -> middleware::Fast {
         match scope(req.uri().path()) {
             Scope::Public => middleware::Fast::Pass(req),
-            Scope::Authenticated => self.authenticate.fast(req),
-            Scope::AuthenticatedAndForwarded => match self.authenticate.fast(req) {
-                middleware::Fast::Pass(req) => self.forward.fast(req),
-                slow => slow,
-            },
+            Scope::Authenticated => self.pair.0.fast(req),
+            Scope::AuthenticatedAndForwarded => self.pair.fast(req),
         }
     }
 
@@ -242,8 +242,8 @@ impl middleware::Middleware for Gate {
     ) -> futures_util::future::BoxFuture<'static, axum::response::Response> {
         match scope(req.uri().path()) {
             Scope::Public => next.run(req),
-            Scope::Authenticated => self.authenticate.slow(req, next),
-            Scope::AuthenticatedAndForwarded => (self.authenticate, self.forward).slow(req, next),
+            Scope::Authenticated => self.pair.0.slow(req, next),
+            Scope::AuthenticatedAndForwarded => self.pair.slow(req, next),
         }
     }
 }
@@ -524,4 +524,38 @@ async fn plugins(State(app): State<SharedApp>) -> Json<serde_json::Value> {
 
 async fn not_found(uri: axum::http::Uri) -> error::ApiError {
     error::ApiError::not_found("not_found", format!("no such endpoint: {}", uri.path()))
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+    use super::*;
+
+    /// The `Gate` decides from the path which requests are authenticated; the route table
+    /// declares each route's role (`x-fresa-role` in the description). They must agree for every
+    /// route, or a new route could be reachable without a token.
+    #[test]
+    fn the_gate_authenticates_exactly_the_routes_declared_with_a_role() {
+        let (_, mut doc) = described_router(None);
+        let mut operations = 0;
+        for (path, item) in doc.paths.paths.iter_mut() {
+            for op in openapi::operations(item) {
+                let role = op
+                    .extensions
+                    .as_ref()
+                    .and_then(|e| e.get("x-fresa-role"))
+                    .and_then(|v| v.as_str())
+                    .expect(path)
+                    .to_string();
+                let authenticated = !matches!(scope(path), Scope::Public);
+                assert_eq!(
+                    authenticated,
+                    role != "none",
+                    "{path} is declared with role {role}"
+                );
+                operations += 1;
+            }
+        }
+        assert!(operations > 60, "only {operations} operations described");
+    }
 }

@@ -113,7 +113,7 @@ pub fn public((schemas, mut paths, method_router): Routes) -> Routes {
     (schemas, paths, method_router)
 }
 
-fn operations(item: &mut PathItem) -> impl Iterator<Item = &mut Operation> {
+pub(crate) fn operations(item: &mut PathItem) -> impl Iterator<Item = &mut Operation> {
     [
         item.get.as_mut(),
         item.put.as_mut(),
