@@ -244,18 +244,51 @@ fn tokens_are_listed_without_secrets_and_names_are_unique() {
     assert_eq!(list.lines().count(), 3, "{list}");
 }
 
+/// Revocation goes through the database (`fresa token revoke` is another process). Anything
+/// that changes state asks the database, so it is refused at once; a read may trust the
+/// database's last "valid" for `READ_TOKEN_RECHECK_MS` (1 s), so a status poll with a token does
+/// not wait for the database each time.
 #[test]
 fn a_revoked_token_stops_working_at_once() {
     let mut s = Server::unstarted(network_opts());
     let admin = s.create_token("admin", "alice");
     let ops = s.create_token("operator", "olga");
+    let viewer = s.create_token("viewer", "victor");
     s.spawn().unwrap();
     s.token = Some(ops.clone());
     s.get("/api/v1/machines").expect(200);
 
     let out = token_cli(&s, &["revoke", "olga"]);
     assert!(out.status.success(), "{}", output_text(&out));
+    // A change right after a read that was accepted: the database is asked, not the read's
+    // answer (a valid operator would get 403 here: only admins create machines).
+    s.post(
+        "/api/v1/machines",
+        &json!({"name": "m", "backend": "sim-machine"}),
+    )
+    .expect_error(401, "invalid_token");
     s.get("/api/v1/machines").expect_error(401, "invalid_token");
+
+    // A token only read with stops working for reads too, once its last check is a second old.
+    s.token = Some(viewer);
+    s.get("/api/v1/machines").expect(200);
+    let out = token_cli(&s, &["revoke", "victor"]);
+    assert!(out.status.success(), "{}", output_text(&out));
+    let deadline = std::time::Instant::now() + T;
+    loop {
+        let r = s.get("/api/v1/machines");
+        if r.status == 401 {
+            r.expect_error(401, "invalid_token");
+            break;
+        }
+        r.expect(200);
+        assert!(
+            std::time::Instant::now() < deadline,
+            "a revoked token still reads after {T:?}"
+        );
+        // Waiting out a time window, not for an event: there is nothing to wait on.
+        std::thread::sleep(Duration::from_millis(100));
+    }
     // Others are untouched; revoking again names what is missing.
     s.token = Some(admin);
     s.get("/api/v1/machines").expect(200);

@@ -10,7 +10,9 @@
 //! ```
 //!
 //! `FRESA_BIN` names another `fresa` binary (its directory must hold the sim-machine plugin),
-//! e.g. an older build to compare against. Needs `wrk` and `taskset` on PATH.
+//! e.g. an older build to compare against. `--token` makes a viewer token first and sends it
+//! with every request (to both servers: the bare route ignores it), as a client on the network
+//! must. Needs `wrk` and `taskset` on PATH.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -29,6 +31,7 @@ fn main() {
         bare(args[1].parse().unwrap(), &args[2]);
         return;
     }
+    let with_token = args.iter().any(|a| a == "--token");
     let nums: Vec<u64> = args.iter().filter_map(|a| a.parse().ok()).collect();
     let rounds = nums.first().copied().unwrap_or(5);
     let seconds = nums.get(1).copied().unwrap_or(8);
@@ -43,6 +46,7 @@ fn main() {
         fresa.display()
     );
     let data = tempdir();
+    let token = with_token.then(|| create_token(&fresa, &data.join("data")));
     let fresa_port = free_port();
     let mut server = Killed(
         Command::new("taskset")
@@ -81,13 +85,18 @@ fn main() {
         "the bare route serves other bytes"
     );
     println!(
-        "{} bytes of status JSON; wrk -t1 -c{connections} -d{seconds}s, {rounds} rounds each",
-        body.len()
+        "{} bytes of status JSON; wrk -t1 -c{connections} -d{seconds}s, {rounds} rounds each{}",
+        body.len(),
+        if token.is_some() {
+            ", with a token"
+        } else {
+            ""
+        }
     );
     let mut ratios = Vec::new();
     for round in 1..=rounds {
-        let f = wrk(fresa_port, seconds, connections);
-        let b = wrk(bare_port, seconds, connections);
+        let f = wrk(fresa_port, seconds, connections, token.as_deref());
+        let b = wrk(bare_port, seconds, connections, token.as_deref());
         println!(
             "round {round}: fresa {f:>8.0} req/s   bare axum {b:>8.0} req/s   {:>5.1} %",
             100.0 * f / b
@@ -140,10 +149,32 @@ fn bare(port: u16, file: &str) {
     });
 }
 
+/// A viewer token in the data directory `fresa serve` is about to open; gives its secret.
+fn create_token(fresa: &std::path::Path, data: &std::path::Path) -> String {
+    let out = Command::new(fresa)
+        .args(["token", "create", "--role", "viewer", "--name", "bench"])
+        .arg("--data-dir")
+        .arg(data)
+        .output()
+        .expect("run fresa token create");
+    assert!(out.status.success(), "fresa token create failed: {out:?}");
+    let text =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    text.lines()
+        .map(str::trim)
+        .find(|l| l.starts_with("fresa_"))
+        .unwrap_or_else(|| panic!("no secret in: {text}"))
+        .to_string()
+}
+
 /// Requests a second with `wrk`, on CPU 1.
-fn wrk(port: u16, seconds: u64, connections: u64) -> f64 {
-    let out = Command::new("taskset")
-        .args(["-c", "1", "wrk", "-t1"])
+fn wrk(port: u16, seconds: u64, connections: u64, token: Option<&str>) -> f64 {
+    let mut wrk = Command::new("taskset");
+    wrk.args(["-c", "1", "wrk", "-t1"]);
+    if let Some(token) = token {
+        wrk.arg("-H").arg(format!("Authorization: Bearer {token}"));
+    }
+    let out = wrk
         .arg(format!("-c{connections}"))
         .arg(format!("-d{seconds}s"))
         .arg(format!("http://127.0.0.1:{port}{PATH}"))

@@ -59,6 +59,19 @@ struct Failures {
     peers: HashMap<IpAddr, Bucket>,
 }
 
+impl Failures {
+    /// `peer`'s bucket; once [`MAX_TRACKED_ADDRESSES`] are tracked, a new address shares the
+    /// overflow bucket.
+    fn bucket(&mut self, peer: IpAddr) -> Option<&mut Bucket> {
+        let key = if self.peers.contains_key(&peer) || self.peers.len() < MAX_TRACKED_ADDRESSES {
+            peer
+        } else {
+            OVERFLOW
+        };
+        self.peers.get_mut(&key)
+    }
+}
+
 /// Failed token attempts an address may still make: refills at `per_minute` a minute.
 struct Bucket {
     allowance: f64,
@@ -340,12 +353,7 @@ impl Admission {
         let per_minute = self.limits.max_auth_failures_per_minute;
         let rate = self.per_second();
         let mut f = lock(&self.failures);
-        let key = if f.peers.contains_key(&peer) || f.peers.len() < MAX_TRACKED_ADDRESSES {
-            peer
-        } else {
-            OVERFLOW
-        };
-        let Some(b) = f.peers.get_mut(&key) else {
+        let Some(b) = f.bucket(peer) else {
             return Ok(());
         };
         b.refill(f64::from(per_minute), rate);
@@ -367,6 +375,14 @@ impl Admission {
             retry,
             false,
         ))
+    }
+
+    /// Whether `peer` presented no wrong token lately (it has no allowance being counted
+    /// down): only then may a read skip [`Self::may_check_token`] and the database. Counts
+    /// nothing, so the request that then takes the full check is counted once.
+    pub fn no_failed_tokens(&self, peer: Option<IpAddr>) -> bool {
+        let Some(peer) = peer else { return true };
+        lock(&self.failures).bucket(peer).is_none()
     }
 
     /// A wrong token (or node secret) from `peer`: counted, logged without the token, and
@@ -585,6 +601,11 @@ mod tests {
         assert!((1..=20).contains(&retry), "{retry}");
         assert!(a.may_check_token(Some(good)).is_ok());
         assert!(a.may_check_token(None).is_ok());
+        // Only an address without failures may skip the check (a read's remembered token),
+        // and asking counts nothing.
+        assert!(!a.no_failed_tokens(Some(bad)));
+        assert!(a.no_failed_tokens(Some(good)));
+        assert!(a.no_failed_tokens(None));
         let m = a.prometheus();
         assert!(m.contains("fresa_auth_failures_total 3\n"), "{m}");
         assert!(m.contains("fresa_auth_rate_limited_total 1"), "{m}");

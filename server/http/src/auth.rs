@@ -5,7 +5,7 @@ use super::error::ApiError;
 use crate::admission::Admission;
 use crate::middleware::{Fast, Middleware, Next};
 use axum::extract::Request;
-use axum::http::StatusCode;
+use axum::http::{Method, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::MethodRouter;
 use fresa_core::SharedApp;
@@ -48,7 +48,24 @@ pub struct Caller {
 }
 
 pub fn hash_token(secret: &str) -> String {
-    hex::encode(Sha256::digest(secret.as_bytes()))
+    TokenHash::of(secret).as_str().to_string()
+}
+
+/// A token's SHA-256 as the 64 lowercase hex digits the store keeps, made on the stack (a read
+/// with a token hashes it on every request).
+struct TokenHash([u8; 64]);
+
+impl TokenHash {
+    fn of(secret: &str) -> TokenHash {
+        let mut hex = [0; 64];
+        // Cannot fail: 32 bytes are always 64 digits.
+        let _ = hex::encode_to_slice(Sha256::digest(secret.as_bytes()), &mut hex);
+        TokenHash(hex)
+    }
+
+    fn as_str(&self) -> &str {
+        std::str::from_utf8(&self.0).unwrap_or_default()
+    }
 }
 
 pub fn new_secret() -> String {
@@ -59,9 +76,9 @@ pub fn new_secret() -> String {
 /// The token of a request. `?access_token=` is accepted on `GET /api/v1/events` only, because
 /// a browser's EventSource cannot send headers; anywhere else a secret in the URL (which ends up
 /// in logs, proxies and browser history) is refused.
-fn bearer(req: &Request) -> Result<Option<String>, ApiError> {
+fn bearer(req: &Request) -> Result<Option<&str>, ApiError> {
     if let Some(v) = req.headers().get(axum::http::header::AUTHORIZATION) {
-        return Ok(v.to_str().ok().and_then(bearer_token).map(str::to_string));
+        return Ok(v.to_str().ok().and_then(bearer_token));
     }
     let Some(token) = query_token(req.uri()) else {
         return Ok(None);
@@ -86,11 +103,9 @@ fn bearer_token(value: &str) -> Option<&str> {
         .then(|| token.trim_start_matches(' ').trim_end())
 }
 
-fn query_token(uri: &axum::http::Uri) -> Option<String> {
-    uri.query().and_then(|q| {
-        q.split('&')
-            .find_map(|kv| kv.strip_prefix("access_token=").map(str::to_string))
-    })
+fn query_token(uri: &axum::http::Uri) -> Option<&str> {
+    uri.query()
+        .and_then(|q| q.split('&').find_map(|kv| kv.strip_prefix("access_token=")))
 }
 
 /// The URI as it may be logged: the value of any `access_token` replaced.
@@ -196,7 +211,17 @@ impl Middleware for Authenticate {
                 .uri()
                 .query()
                 .is_some_and(|q| q.contains("access_token="));
-        if token_given || self.app.auth_required {
+        if token_given {
+            return match self.recently_accepted(&req) {
+                Some(caller) => {
+                    req.extensions_mut().insert(ByToken);
+                    req.extensions_mut().insert(caller);
+                    Fast::Pass(req)
+                }
+                None => Fast::Slow(req),
+            };
+        }
+        if self.app.auth_required {
             return Fast::Slow(req);
         }
         req.extensions_mut().insert(self.local.clone());
@@ -213,7 +238,35 @@ impl Middleware for Authenticate {
     }
 }
 
+/// How long a read may go on trusting the database's "this token is valid": a status poll with a
+/// token would otherwise wait for a database round trip on every request (2.4 times its cost,
+/// README: Measurements). Anything that changes state always asks the database, so a revoked
+/// token is refused at once there, and on reads at most this much later.
+pub const READ_TOKEN_RECHECK_MS: i64 = 1_000;
+
 impl Authenticate {
+    /// The caller of a read (GET, HEAD) whose token the database accepted within
+    /// [`READ_TOKEN_RECHECK_MS`]; `None` sends the request to [`Self::check`], which asks the
+    /// database (and refuses a rate-limited address, a node's request or a bad token).
+    fn recently_accepted(&self, req: &Request) -> Option<Caller> {
+        if !matches!(*req.method(), Method::GET | Method::HEAD)
+            || req.headers().contains_key(NODE_TOKEN)
+        {
+            return None;
+        }
+        if let Some(a) = &self.admission {
+            if !a.no_failed_tokens(crate::admission::peer(req)) {
+                return None;
+            }
+        }
+        let hash = TokenHash::of(bearer(req).ok()??);
+        let token = self
+            .app
+            .store
+            .token_accepted_within(hash.as_str(), READ_TOKEN_RECHECK_MS)?;
+        Some(caller_of(token))
+    }
+
     /// The request with its [`Caller`] (and [`ForwardedBy`], [`ByToken`]) set, or the refusal.
     async fn check(&self, mut req: Request) -> Result<Request, Response> {
         let app = &self.app;
@@ -238,21 +291,21 @@ impl Authenticate {
             req.extensions_mut().insert(ByToken);
             return Ok(req);
         }
-        let caller = match bearer(&req).map_err(IntoResponse::into_response)? {
-            Some(secret) => {
+        let hash = bearer(&req)
+            .map_err(IntoResponse::into_response)?
+            .map(TokenHash::of);
+        let caller = match hash {
+            Some(hash) => {
                 may_check().map_err(IntoResponse::into_response)?;
                 let found = app
                     .store
-                    .token_by_hash(&hash_token(&secret))
+                    .token_by_hash(hash.as_str())
                     .await
                     .map_err(|e| ApiError::from(e).into_response())?;
                 match found {
                     Some(t) => {
                         req.extensions_mut().insert(ByToken);
-                        Caller {
-                            name: Arc::from(t.name),
-                            role: Role::parse(&t.role).unwrap_or(Role::Viewer),
-                        }
+                        caller_of(t)
                     }
                     None => {
                         return Err(failed(ApiError::new(
@@ -274,6 +327,13 @@ impl Authenticate {
         };
         req.extensions_mut().insert(caller);
         Ok(req)
+    }
+}
+
+fn caller_of(token: fresa_core::store::TokenRow) -> Caller {
+    Caller {
+        name: Arc::from(token.name),
+        role: Role::parse(&token.role).unwrap_or(Role::Viewer),
     }
 }
 

@@ -654,6 +654,15 @@ async fn expired_and_revoked_tokens_are_not_found(s: &Store) {
         .unwrap();
     assert!(s.token_by_hash("h-old").await.unwrap().is_none());
     assert!(s.token_by_hash("h-new").await.unwrap().is_some());
+    // What the database just accepted is known without asking it again (reads use this for a
+    // second); what it refused, or accepted longer ago than asked, is not.
+    assert_eq!(
+        s.token_accepted_within("h-new", 60_000).unwrap().name,
+        "new"
+    );
+    assert!(s.token_accepted_within("h-new", 0).is_none());
+    assert!(s.token_accepted_within("h-old", 60_000).is_none());
+    assert!(s.token_accepted_within("h-none", 60_000).is_none());
     assert_eq!(s.token_count().await.unwrap(), 1);
     let listed = s.list_tokens().await.unwrap();
     assert!(listed.iter().any(|t| t.name == "old" && t.expired));
@@ -661,6 +670,7 @@ async fn expired_and_revoked_tokens_are_not_found(s: &Store) {
         .iter()
         .any(|t| t.name == "new" && !t.expired && t.last_used.is_some()));
     assert!(s.revoke_token("new").await.unwrap());
+    assert!(s.token_accepted_within("h-new", 60_000).is_none());
     assert!(!s.revoke_token("new").await.unwrap());
     assert!(s.token_by_hash("h-new").await.unwrap().is_none());
 }

@@ -119,21 +119,34 @@ impl Store {
 
     /// A token the database accepted within [`KNOWN_TOKEN_TTL_MS`], while it is unreachable.
     fn known_token(&self, hash: &str, now: i64) -> Result<Option<TokenRow>> {
-        let known = self
-            .known_tokens
-            .lock()
-            .ok()
-            .and_then(|k| k.get(hash).cloned());
-        match known {
-            Some((row, expires, accepted))
-                if now - accepted < KNOWN_TOKEN_TTL_MS && expires.is_none_or(|t| t > now) =>
-            {
-                Ok(Some(row))
-            }
-            _ => Err(sqlx::Error::Io(std::io::Error::new(
+        match self.accepted_since(hash, now - KNOWN_TOKEN_TTL_MS, now) {
+            Some(row) => Ok(Some(row)),
+            None => Err(sqlx::Error::Io(std::io::Error::new(
                 std::io::ErrorKind::NotConnected,
                 "the database is unreachable and this token was not checked recently",
             ))),
+        }
+    }
+
+    /// The token with this hash if [`Store::token_by_hash`] accepted it less than `within_ms`
+    /// ago and it has not expired since; `None` means "ask the database". Answered from memory,
+    /// without waiting: a caller that may act on a slightly old answer (a read) uses it to skip
+    /// the database round trip, at the price of seeing a revocation up to `within_ms` late.
+    pub fn token_accepted_within(&self, hash: &str, within_ms: i64) -> Option<TokenRow> {
+        let now = now_ms();
+        self.accepted_since(hash, now - within_ms, now)
+    }
+
+    /// The token if the database accepted it after `since` and it is unexpired at `now`.
+    fn accepted_since(&self, hash: &str, since: i64, now: i64) -> Option<TokenRow> {
+        let known = self.known_tokens.lock().ok()?;
+        match known.get(hash) {
+            Some((row, expires, accepted))
+                if *accepted > since && expires.is_none_or(|t| t > now) =>
+            {
+                Some(row.clone())
+            }
+            _ => None,
         }
     }
 
