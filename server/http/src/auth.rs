@@ -239,9 +239,9 @@ impl Middleware for Authenticate {
 }
 
 /// How long a read may go on trusting the database's "this token is valid": a status poll with a
-/// token would otherwise wait for a database round trip on every request (2.4 times its cost,
-/// README: Measurements). Anything that changes state always asks the database, so a revoked
-/// token is refused at once there, and on reads at most this much later.
+/// token would otherwise wait for a database round trip on every request (11,300 status reads a
+/// second instead of 65,000; README: Measurements). Anything that changes state always asks the
+/// database, so a revoked token is refused at once there, and on reads at most this much later.
 pub const READ_TOKEN_RECHECK_MS: i64 = 1_000;
 
 impl Authenticate {
