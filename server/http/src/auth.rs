@@ -45,6 +45,10 @@ pub struct Caller {
     /// Shared: the local caller's name is made once, not per request.
     pub name: Arc<str>,
     pub role: Role,
+    /// Whether a token (or a node's secret) names this caller, rather than it being a tokenless
+    /// local caller: the event stream counts its streams against that name. A field rather
+    /// than an extension of its own: each extension past the request's third costs a rehash.
+    pub by_token: bool,
 }
 
 pub fn hash_token(secret: &str) -> String {
@@ -162,6 +166,7 @@ fn forwarded_caller(app: &SharedApp, req: &Request) -> Option<Result<(Caller, St
             Caller {
                 name: header(CALLER_NAME).map_or_else(|| Arc::from("node"), Arc::from),
                 role,
+                by_token: true,
             },
             header(FORWARDED_BY).unwrap_or_default(),
         )),
@@ -172,11 +177,6 @@ fn forwarded_caller(app: &SharedApp, req: &Request) -> Option<Result<(Caller, St
         )),
     })
 }
-
-/// Set on a request whose caller a token (or a node's secret) names, rather than a tokenless
-/// local caller: the event stream counts its streams against that name.
-#[derive(Debug, Clone, Copy)]
-pub struct ByToken;
 
 /// Says who is calling before any route runs (see [`Caller`]); a plain [`Middleware`] so the
 /// common case (a tokenless caller on a loopback-only server) costs no allocation.
@@ -197,6 +197,7 @@ impl Authenticate {
             local: Caller {
                 name: Arc::from("local"),
                 role: Role::Admin,
+                by_token: false,
             },
         }
     }
@@ -214,7 +215,6 @@ impl Middleware for Authenticate {
         if token_given {
             return match self.recently_accepted(&req) {
                 Some(caller) => {
-                    req.extensions_mut().insert(ByToken);
                     req.extensions_mut().insert(caller);
                     Fast::Pass(req)
                 }
@@ -267,7 +267,7 @@ impl Authenticate {
         Some(caller_of(token))
     }
 
-    /// The request with its [`Caller`] (and [`ForwardedBy`], [`ByToken`]) set, or the refusal.
+    /// The request with its [`Caller`] (and [`ForwardedBy`]) set, or the refusal.
     async fn check(&self, mut req: Request) -> Result<Request, Response> {
         let app = &self.app;
         let peer = crate::admission::peer(&req);
@@ -288,7 +288,6 @@ impl Authenticate {
             let (caller, node) = forwarded.map_err(failed)?;
             req.extensions_mut().insert(caller);
             req.extensions_mut().insert(ForwardedBy(node));
-            req.extensions_mut().insert(ByToken);
             return Ok(req);
         }
         let hash = bearer(&req)
@@ -303,10 +302,7 @@ impl Authenticate {
                     .await
                     .map_err(|e| ApiError::from(e).into_response())?;
                 match found {
-                    Some(t) => {
-                        req.extensions_mut().insert(ByToken);
-                        caller_of(t)
-                    }
+                    Some(t) => caller_of(t),
                     None => {
                         return Err(failed(ApiError::new(
                             StatusCode::UNAUTHORIZED,
@@ -334,6 +330,7 @@ fn caller_of(token: fresa_core::store::TokenRow) -> Caller {
     Caller {
         name: Arc::from(token.name),
         role: Role::parse(&token.role).unwrap_or(Role::Viewer),
+        by_token: true,
     }
 }
 

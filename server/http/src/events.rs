@@ -5,7 +5,7 @@
 
 use super::error::{ApiError, Query};
 use crate::admission::Admission;
-use crate::auth::{ByToken, Caller};
+use crate::auth::Caller;
 use axum::body::{Body, Bytes};
 use axum::extract::State;
 use axum::http::HeaderMap;
@@ -103,7 +103,6 @@ pub async fn stream(
     headers: HeaderMap,
     Query(f): Query<Filter>,
     Extension(caller): Extension<Caller>,
-    by_token: Option<Extension<ByToken>>,
     Extension(admission): Extension<Option<Arc<Admission>>>,
     connection: Option<Extension<crate::admission::Connection>>,
 ) -> Result<Response, Response> {
@@ -143,7 +142,7 @@ pub async fn stream(
     // Counted per token; tokenless local callers only against the server's cap.
     let slot = match admission {
         Some(a) => Some(
-            a.open_stream(by_token.map(|_| &*caller.name))
+            a.open_stream(caller.by_token.then_some(&*caller.name))
                 .map_err(IntoResponse::into_response)?,
         ),
         None => None,
