@@ -1216,7 +1216,7 @@ pub async fn token(cmd: TokenCmd) -> Res {
                 .insert_token(
                     &name,
                     &role,
-                    &fresa_http::auth::hash_token(&secret),
+                    fresa_core::store::TokenHash::of(&secret).as_str(),
                     expires_at,
                 )
                 .await

@@ -8,6 +8,7 @@ use axum::extract::Request;
 use axum::http::{Method, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::MethodRouter;
+use fresa_core::store::TokenHash;
 use fresa_core::SharedApp;
 use futures_util::future::BoxFuture;
 use sha2::{Digest, Sha256};
@@ -49,27 +50,6 @@ pub struct Caller {
     /// local caller: the event stream counts its streams against that name. A field rather
     /// than an extension of its own: each extension past the request's third costs a rehash.
     pub by_token: bool,
-}
-
-pub fn hash_token(secret: &str) -> String {
-    TokenHash::of(secret).as_str().to_string()
-}
-
-/// A token's SHA-256 as the 64 lowercase hex digits the store keeps, made on the stack (a read
-/// with a token hashes it on every request).
-struct TokenHash([u8; 64]);
-
-impl TokenHash {
-    fn of(secret: &str) -> TokenHash {
-        let mut hex = [0; 64];
-        // Cannot fail: 32 bytes are always 64 digits.
-        let _ = hex::encode_to_slice(Sha256::digest(secret.as_bytes()), &mut hex);
-        TokenHash(hex)
-    }
-
-    fn as_str(&self) -> &str {
-        std::str::from_utf8(&self.0).unwrap_or_default()
-    }
 }
 
 pub fn new_secret() -> String {

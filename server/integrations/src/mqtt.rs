@@ -29,7 +29,6 @@ use fresa_core::SharedApp;
 use rumqttc::{AsyncClient, Event, EventLoop, LastWill, MqttOptions, Packet, QoS};
 use serde::Deserialize;
 use serde_json::{json, Value};
-use sha2::{Digest, Sha256};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
@@ -521,7 +520,7 @@ async fn run_command(
     body.remove("request_id");
     let caller = app
         .store
-        .token_by_hash(&hex::encode(Sha256::digest(token.as_bytes())))
+        .token_by_hash(fresa_core::store::TokenHash::of(&token).as_str())
         .await?
         .ok_or_else(|| {
             Error::new(

@@ -111,7 +111,7 @@ pub use pendants::{MacroAction, PendantRow};
 pub use queue::{QueueEntryRow, QueueStateRow};
 pub use records::{CountersRow, MarkRow, PartFilter, PartRow};
 pub use run_settings::{MachineXyz, RunSettings, ToolChangePolicy, ToolSetter};
-pub use tokens::{is_unique_violation, TokenInfo, TokenRow};
+pub use tokens::{is_unique_violation, TokenHash, TokenInfo, TokenRow};
 pub use tools::ToolRow;
 pub use webhooks::{DeliveryOutcome, WebhookRow, WebhookTarget};
 

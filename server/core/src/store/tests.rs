@@ -998,3 +998,13 @@ async fn a_half_made_store_is_replaced_at_the_next_start() {
     assert!(!dir.join("fresa.db.new-wal").exists());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// The stored form of a secret is its SHA-256 in lowercase hex: databases made by earlier
+/// versions hold tokens in this form, so it must never change.
+#[test]
+fn a_token_is_stored_as_its_sha256_in_lowercase_hex() {
+    assert_eq!(
+        TokenHash::of("abc").as_str(),
+        "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad"
+    );
+}

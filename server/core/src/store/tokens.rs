@@ -17,6 +17,25 @@ pub(crate) type KnownTokens = std::sync::Arc<
     std::sync::Mutex<std::collections::HashMap<String, (TokenRow, Option<i64>, i64)>>,
 >;
 
+/// A token's SHA-256 as the 64 lowercase hex digits the `tokens` table keeps: the one place
+/// that says how a secret is stored, for everything that checks or creates tokens (HTTP, MQTT,
+/// `fresa token`). Made on the stack, since a read with a token hashes it on every request.
+pub struct TokenHash([u8; 64]);
+
+impl TokenHash {
+    pub fn of(secret: &str) -> TokenHash {
+        use sha2::{Digest, Sha256};
+        let mut hex = [0; 64];
+        // Cannot fail: 32 bytes are always 64 digits.
+        let _ = hex::encode_to_slice(Sha256::digest(secret.as_bytes()), &mut hex);
+        TokenHash(hex)
+    }
+
+    pub fn as_str(&self) -> &str {
+        std::str::from_utf8(&self.0).unwrap_or_default()
+    }
+}
+
 #[derive(Debug, Clone, FromRow)]
 pub struct TokenRow {
     pub name: String,
