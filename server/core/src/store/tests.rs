@@ -663,6 +663,14 @@ async fn expired_and_revoked_tokens_are_not_found(s: &Store) {
     assert!(s.token_accepted_within("h-new", 0).is_none());
     assert!(s.token_accepted_within("h-old", 60_000).is_none());
     assert!(s.token_accepted_within("h-none", 60_000).is_none());
+    // The wall clock set back an hour: an acceptance "in the future" is not trusted.
+    let hour_ago = now_ms() - 3_600_000;
+    assert!(s
+        .accepted_since("h-new", hour_ago - 60_000, hour_ago)
+        .is_none());
+    assert!(s
+        .accepted_since("h-new", now_ms() - 60_000, now_ms())
+        .is_some());
     assert_eq!(s.token_count().await.unwrap(), 1);
     let listed = s.list_tokens().await.unwrap();
     assert!(listed.iter().any(|t| t.name == "old" && t.expired));

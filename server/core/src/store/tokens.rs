@@ -156,12 +156,15 @@ impl Store {
         self.accepted_since(hash, now - within_ms, now)
     }
 
-    /// The token if the database accepted it after `since` and it is unexpired at `now`.
-    fn accepted_since(&self, hash: &str, since: i64, now: i64) -> Option<TokenRow> {
+    /// The token if the database accepted it after `since` (and not after `now`) and it is
+    /// unexpired at `now`. Times are the wall clock's: an acceptance that looks later than now
+    /// means the clock was set back, and is not trusted (else a clock set back an hour would let
+    /// reads trust a revoked token for that hour).
+    pub(super) fn accepted_since(&self, hash: &str, since: i64, now: i64) -> Option<TokenRow> {
         let known = self.known_tokens.lock().ok()?;
         match known.get(hash) {
             Some((row, expires, accepted))
-                if *accepted > since && expires.is_none_or(|t| t > now) =>
+                if (since + 1..=now).contains(accepted) && expires.is_none_or(|t| t > now) =>
             {
                 Some(row.clone())
             }
