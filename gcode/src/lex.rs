@@ -159,8 +159,11 @@ fn parse_number_hot(b: &[u8], i: &mut usize) -> Result<f64, LexError> {
     let exact = (1..=15).contains(&ndig)
         || (ndig > 0 && ndig <= 19 && mant < (1u64 << 53) && frac < POW10.len());
     if exact && !continues {
-        *i = j;
-        let v = mant as f64 / POW10[frac];
+        // The blanks after the number are skipped too: the caller would only step over them.
+        *i = k;
+        // Below 2^53, so the signed conversion (one instruction; the unsigned one is several on
+        // baseline x86-64) is exact.
+        let v = (mant as i64) as f64 / POW10[frac];
         return Ok(if neg { -v } else { v });
     }
     parse_number_general(b, i)
