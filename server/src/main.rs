@@ -281,9 +281,11 @@ fn main() -> ExitCode {
     let result: Result<(), Box<dyn std::error::Error>> = rt.block_on(async move {
         match cli.command {
             Cmd::Serve(args) => {
+                // First: a stop sent at any moment from here on shuts down cleanly.
+                let shutdown = serve::wait_for_signal();
                 let settings = config::Settings::resolve(args.into())?;
                 logging::init_console(settings.log.as_deref().unwrap_or(logging::DEFAULT_FILTER));
-                serve::run(settings, serve::wait_for_signal(), |_| {}).await
+                serve::run(settings, shutdown, |_| {}).await
             }
             Cmd::Machine { server, command } => client::machine(server, command).await,
             Cmd::Job { server, command } => client::job(server, command).await,

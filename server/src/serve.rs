@@ -144,41 +144,58 @@ mod systemd {
 
 /// Console use: SIGTERM or Ctrl-C (Linux); Ctrl-C, Ctrl-Break or closing the console window
 /// (Windows).
-pub async fn wait_for_signal() {
-    let ctrl_c = async {
-        let _ = tokio::signal::ctrl_c().await;
-    };
+///
+/// The listeners are registered when this is called (inside the runtime), not when the future
+/// is first polled: `run` polls it only once the server answers, and a SIGTERM sent right
+/// after the first answer (a service manager's stop, a script's `kill`) either found no
+/// handler and killed the process without stopping motion, or landed between tokio's handler
+/// and its first listener and was lost, leaving the server running.
+pub fn wait_for_signal() -> impl std::future::Future<Output = ()> {
     #[cfg(unix)]
-    let term = async {
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(mut s) => {
-                s.recv().await;
-            }
-            Err(_) => std::future::pending::<()>().await,
-        }
+    let (first, second) = {
+        use tokio::signal::unix::{signal, SignalKind};
+        (
+            signal(SignalKind::interrupt()).ok(),
+            signal(SignalKind::terminate()).ok(),
+        )
     };
     #[cfg(windows)]
-    let term = async {
+    let (first, second, third) = {
+        use tokio::signal::windows;
         // Windows gives a closing console about 5 s: enough to stop motion, not to drain.
-        let (brk, close) = (
-            tokio::signal::windows::ctrl_break(),
-            tokio::signal::windows::ctrl_close(),
-        );
-        match (brk, close) {
-            (Ok(mut brk), Ok(mut close)) => {
-                tokio::select! {
-                    _ = brk.recv() => {}
-                    _ = close.recv() => {}
-                }
-            }
-            _ => std::future::pending::<()>().await,
-        }
+        (
+            windows::ctrl_c().ok(),
+            windows::ctrl_break().ok(),
+            windows::ctrl_close().ok(),
+        )
     };
-    #[cfg(not(any(unix, windows)))]
-    let term = std::future::pending::<()>();
-    tokio::select! {
-        _ = ctrl_c => {}
-        _ = term => {}
+    async move {
+        // A listener that could not be registered never fires; the others still do.
+        macro_rules! recv {
+            ($s:expr) => {
+                async {
+                    match $s {
+                        Some(mut s) => {
+                            s.recv().await;
+                        }
+                        None => std::future::pending::<()>().await,
+                    }
+                }
+            };
+        }
+        #[cfg(unix)]
+        tokio::select! {
+            _ = recv!(first) => {}
+            _ = recv!(second) => {}
+        }
+        #[cfg(windows)]
+        tokio::select! {
+            _ = recv!(first) => {}
+            _ = recv!(second) => {}
+            _ = recv!(third) => {}
+        }
+        #[cfg(not(any(unix, windows)))]
+        std::future::pending::<()>().await
     }
 }
 
@@ -742,6 +759,22 @@ impl AsyncWrite for Tracked {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A SIGTERM sent before the shutdown future is first polled (the server already answers
+    /// then) still shuts down. Before, the process died of it, or ignored it, depending on
+    /// where the signal fell.
+    #[cfg(unix)]
+    #[tokio::test]
+    async fn a_sigterm_before_the_first_poll_is_not_lost() {
+        let shutdown = wait_for_signal();
+        // SAFETY: sends a signal to this process; the listener above has its handler in place.
+        assert_eq!(unsafe { libc::kill(libc::getpid(), libc::SIGTERM) }, 0);
+        let done = tokio::time::timeout(Duration::from_secs(30), shutdown).await;
+        assert!(
+            done.is_ok(),
+            "the SIGTERM sent before the first poll was lost"
+        );
+    }
 
     #[test]
     fn at_the_cap_the_oldest_quiet_connection_gives_way() {
