@@ -5,7 +5,7 @@ use super::error::ApiError;
 use crate::admission::Admission;
 use crate::middleware::{Fast, Middleware, Next};
 use axum::extract::Request;
-use axum::http::{Method, StatusCode};
+use axum::http::{HeaderName, Method, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::MethodRouter;
 use fresa_core::store::TokenHash;
@@ -114,8 +114,10 @@ pub fn redacted_uri(uri: &axum::http::Uri) -> String {
 
 // ---- requests forwarded by another node of the same store (see `forward`) ----
 
-/// The node secret, proving a request comes from a node of the same store.
-pub const NODE_TOKEN: &str = "x-fresa-node-token";
+/// The node secret, proving a request comes from a node of the same store. A `HeaderName`,
+/// not text: authentication asks for it on every request, and a name given as text is parsed
+/// and validated at each lookup.
+pub static NODE_TOKEN: HeaderName = HeaderName::from_static("x-fresa-node-token");
 /// The forwarding node's name.
 pub const FORWARDED_BY: &str = "x-fresa-forwarded-by";
 /// The original caller's token name and role, vouched for by the node secret.
@@ -131,7 +133,7 @@ pub struct ForwardedBy(pub String);
 /// A request another node forwarded: the node secret vouches for the caller it names (that node
 /// checked the caller's token). `None`: not a forwarded request.
 fn forwarded_caller(app: &SharedApp, req: &Request) -> Option<Result<(Caller, String), ApiError>> {
-    let given = req.headers().get(NODE_TOKEN)?;
+    let given = req.headers().get(&NODE_TOKEN)?;
     // Compared as digests: the time taken says nothing about the secret.
     let valid = Sha256::digest(given.as_bytes()) == Sha256::digest(app.node_secret.as_bytes());
     let header = |name: &str| {
@@ -187,7 +189,7 @@ impl Middleware for Authenticate {
     fn fast(&self, mut req: Request) -> Fast {
         let headers = req.headers();
         let token_given = headers.contains_key(axum::http::header::AUTHORIZATION)
-            || headers.contains_key(NODE_TOKEN)
+            || headers.contains_key(&NODE_TOKEN)
             || req
                 .uri()
                 .query()
@@ -230,7 +232,7 @@ impl Authenticate {
     /// database (and refuses a rate-limited address, a node's request or a bad token).
     fn recently_accepted(&self, req: &Request) -> Option<Caller> {
         if !matches!(*req.method(), Method::GET | Method::HEAD)
-            || req.headers().contains_key(NODE_TOKEN)
+            || req.headers().contains_key(&NODE_TOKEN)
         {
             return None;
         }
@@ -261,7 +263,7 @@ impl Authenticate {
             }
             e.into_response()
         };
-        if req.headers().contains_key(NODE_TOKEN) {
+        if req.headers().contains_key(&NODE_TOKEN) {
             may_check().map_err(IntoResponse::into_response)?;
         }
         if let Some(forwarded) = forwarded_caller(app, &req) {

@@ -191,7 +191,7 @@ async fn forward(
         .client
         .request(parts.method.clone(), &url)
         .headers(headers)
-        .header(NODE_TOKEN, &st.app.node_secret)
+        .header(NODE_TOKEN.clone(), &st.app.node_secret)
         .header(FORWARDED_BY, &st.app.settings.node.name)
         .header(CALLER_ROLE, caller.role.name());
     // A token name is ASCII-safe by construction, but never fail a request over a header.

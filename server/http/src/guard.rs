@@ -28,8 +28,14 @@ pub struct Guard(pub std::sync::Arc<Settings>);
 impl<S> tower::Layer<S> for Guard {
     type Service = Guarded<S>;
     fn layer(&self, inner: S) -> Guarded<S> {
+        let ip = self.0.listen.ip();
         Guarded {
             settings: self.0.clone(),
+            listen_name: match ip {
+                IpAddr::V4(v4) => v4.to_string(),
+                IpAddr::V6(v6) => format!("[{v6}]"),
+            }
+            .into(),
             inner,
         }
     }
@@ -38,6 +44,9 @@ impl<S> tower::Layer<S> for Guard {
 #[derive(Clone)]
 pub struct Guarded<S> {
     settings: std::sync::Arc<Settings>,
+    /// The listen address's IP as a `Host` header writes it (`127.0.0.1`, `[::1]`): the name
+    /// nearly every request carries, recognised without parsing it as an address.
+    listen_name: std::sync::Arc<str>,
     inner: S,
 }
 
@@ -60,7 +69,13 @@ where
     fn call(&mut self, req: Request) -> Self::Future {
         use axum::response::IntoResponse;
         use futures_util::future::Either;
-        match admit(&self.settings, req.method(), req.uri(), req.headers()) {
+        match admit(
+            &self.settings,
+            &self.listen_name,
+            req.method(),
+            req.uri(),
+            req.headers(),
+        ) {
             Ok(()) => Either::Left(self.inner.call(req)),
             Err(e) => Either::Right(std::future::ready(Ok(e.into_response()))),
         }
@@ -74,13 +89,14 @@ pub const MAX_URI_BYTES: usize = 8192;
 /// Everything the guard checks, in order; the `Host` header is looked up once.
 fn admit(
     settings: &Settings,
+    listen_name: &str,
     method: &Method,
     uri: &Uri,
     headers: &HeaderMap,
 ) -> Result<(), ApiError> {
     uri_length(uri)?;
     let host = one_host(settings, uri, headers)?;
-    if !host_allowed(settings, host) {
+    if !(names_listen_address(host, listen_name) || host_allowed(settings, host)) {
         return Err(host_not_allowed(host));
     }
     if matches!(*method, Method::GET | Method::HEAD | Method::OPTIONS) {
@@ -209,6 +225,17 @@ fn host_name(host: &str) -> &str {
     }
 }
 
+/// `host` is the listen address's IP (`listen_name`), with or without a port: one of the names
+/// [`host_allowed`] admits (the port is not checked there either), told by comparing bytes.
+fn names_listen_address(host: &str, listen_name: &str) -> bool {
+    host.strip_prefix(listen_name).is_some_and(|rest| {
+        rest.is_empty()
+            || rest
+                .strip_prefix(':')
+                .is_some_and(|port| !port.is_empty() && port.bytes().all(|b| b.is_ascii_digit()))
+    })
+}
+
 fn host_allowed(settings: &Settings, host: &str) -> bool {
     let name = host_name(host);
     if settings
@@ -299,6 +326,32 @@ mod tests {
         assert!(!host_allowed(&any, "evil.example:7878"));
     }
 
+    /// The byte comparison for the listen address admits only what `host_allowed` admits, and
+    /// the usual forms of it.
+    #[test]
+    fn the_listen_address_is_recognised_without_parsing() {
+        let s = settings("127.0.0.1:7878", &[], &[]);
+        for (host, fast) in [
+            ("127.0.0.1:7878", true),
+            ("127.0.0.1", true),
+            ("127.0.0.1:80", true),
+            ("127.0.0.1:", false),
+            ("127.0.0.1:78a", false),
+            ("127.0.0.1.evil.example", false),
+            ("127.0.0.1.evil.example:7878", false),
+            ("127.0.0.10:7878", false),
+            (" 127.0.0.1:7878", false),
+        ] {
+            assert_eq!(names_listen_address(host, "127.0.0.1"), fast, "{host}");
+            if fast {
+                assert!(host_allowed(&s, host), "{host}");
+            }
+        }
+        assert!(names_listen_address("[::1]:7878", "[::1]"));
+        assert!(!names_listen_address("[::1]x", "[::1]"));
+        assert!(!host_allowed(&s, "127.0.0.1.evil.example"));
+    }
+
     #[test]
     fn one_host_agreeing_with_an_absolute_target() {
         let s = settings("127.0.0.1:7878", &[], &[]);
@@ -333,7 +386,8 @@ mod tests {
         let s = settings("127.0.0.1:7878", &[], &["http://tablet.lan:8080"]);
         let post = Method::POST;
         let h = |o: &str| headers(&[("host", "127.0.0.1:7878"), ("origin", o)]);
-        let check = |m: &Method, h: &HeaderMap| admit(&s, m, &Uri::from_static("/"), h);
+        let check =
+            |m: &Method, h: &HeaderMap| admit(&s, "127.0.0.1", m, &Uri::from_static("/"), h);
         assert!(check(&post, &h("http://127.0.0.1:7878")).is_ok());
         assert!(check(&post, &h("http://tablet.lan:8080")).is_ok());
         assert_eq!(
