@@ -11,12 +11,15 @@ mod service;
 
 use fresa_core::config;
 
+#[cfg(all(target_os = "linux", feature = "mimalloc"))]
+mod alloc;
+
 /// mimalloc on Linux (README: Measurements, "Status reads"): glibc's malloc and free were about
 /// a fifth of a status request's instructions. Plugins keep their own allocator: the C ABI has
 /// whoever allocates a buffer free it (`plugin-api/src/abi.rs`), so no buffer crosses heaps.
 #[cfg(all(target_os = "linux", feature = "mimalloc"))]
 #[global_allocator]
-static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+static ALLOCATOR: alloc::MiMalloc = alloc::MiMalloc;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
