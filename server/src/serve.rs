@@ -47,8 +47,27 @@ pub async fn run(
     let listener =
         bind(settings.listen).map_err(|e| format!("cannot listen on {}: {e}", settings.listen))?;
     let bound = listener.local_addr()?;
-    let app = App::start(settings).await?;
-    let heartbeat = fresa_core::nodes::start(&app, bound).await?;
+    // A stop while starting ends the start at once: a database that does not answer holds it
+    // for the pool's timeout (10 s), and the signal, heard from the first moment, must not wait
+    // for that. Nothing has moved yet; once the machines exist, motion is stopped first.
+    tokio::pin!(shutdown);
+    let app = tokio::select! {
+        app = App::start(settings) => app?,
+        () = &mut shutdown => {
+            tracing::info!("stopped while starting");
+            return Ok(());
+        }
+    };
+    let limit = STOP_MOTION_LIMIT.min(app.settings.plugin_call_timeout);
+    let heartbeat = tokio::select! {
+        heartbeat = fresa_core::nodes::start(&app, bound) => heartbeat?,
+        () = &mut shutdown => {
+            tracing::info!("stopped while starting: stopping all motion");
+            app.stop_motion(limit).await;
+            app.stop_rest(limit).await;
+            return Ok(());
+        }
+    };
     let admission = fresa_http::admission::Admission::new(&app.settings.edges);
     let router = fresa_http::service(app.clone(), admission.clone());
     let integrations = fresa_integrations::start(app.clone());
@@ -72,7 +91,7 @@ pub async fn run(
     ));
     ready(bound);
     tokio::select! {
-        _ = shutdown => {}
+        () = &mut shutdown => {}
         r = &mut server => {
             // The server ended on its own (an accept loop error): still stop motion.
             tracing::error!(result = ?r, "HTTP server ended");
@@ -81,7 +100,6 @@ pub async fn run(
     systemd::stopping();
     // First: it could otherwise start a machine moved here while motion is being stopped.
     heartbeat.stop().await;
-    let limit = STOP_MOTION_LIMIT.min(app.settings.plugin_call_timeout);
     tracing::info!("shutting down: stopping all motion");
     app.stop_motion(limit).await;
     let grace = app.settings.shutdown_grace;

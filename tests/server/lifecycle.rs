@@ -8,7 +8,7 @@
 use fresa_tests::{assert_every_line_once, back_and_forth, bin_dir, fresa_cmd, wait_for, Server};
 use std::io::Write;
 use std::net::TcpStream;
-use std::process::Stdio;
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 const T: Duration = Duration::from_secs(30);
@@ -213,4 +213,63 @@ fn a_sigterm_right_after_ready_shuts_down_cleanly() {
             "round {round}: no clean shutdown in the log:\n{log}"
         );
     }
+}
+
+/// A stop while the server is still starting ends the start at once. Here the database (a
+/// PostgreSQL address whose listener accepts and never answers) holds the start for the pool's
+/// 10 s timeout; the SIGTERM is sent once the server has connected to it, and the server must
+/// be gone well before that timeout, with a clean exit. (Before the signals were heard from
+/// the start, a SIGTERM there killed the process by the default action; in between, it waited
+/// for the timeout.)
+#[test]
+fn a_sigterm_while_the_database_does_not_answer_ends_the_start_at_once() {
+    let silent = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!("postgres://fresa:x@{}/fresa", silent.local_addr().unwrap());
+    let dir = tempfile::tempdir().unwrap();
+    let err_path = dir.path().join("stderr");
+    let child = fresa_cmd()
+        .arg("serve")
+        .args(["--listen", "127.0.0.1:0", "--database-url", &url])
+        .arg("--data-dir")
+        .arg(dir.path().join("data"))
+        .arg("--plugin-dir")
+        .arg(bin_dir())
+        .env("FRESA_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&err_path).unwrap())
+        .spawn()
+        .expect("spawn the server");
+    let mut server = KillOnDrop(child);
+    // The server is inside its start, waiting on the database, once it has connected.
+    silent.set_nonblocking(true).unwrap();
+    let _held = wait_for(T, "the server to connect to its database", || {
+        if let Some(st) = server.0.try_wait().unwrap() {
+            panic!(
+                "the server exited ({st}) before connecting:\n{}",
+                std::fs::read_to_string(&err_path).unwrap_or_default()
+            );
+        }
+        silent.accept().ok()
+    });
+    let sent = Instant::now();
+    assert!(Command::new("kill")
+        .arg("-TERM")
+        .arg(server.0.id().to_string())
+        .status()
+        .unwrap()
+        .success());
+    let status = loop {
+        if let Some(st) = server.0.try_wait().unwrap() {
+            break st;
+        }
+        assert!(
+            sent.elapsed() < Duration::from_secs(5),
+            "still starting 5 s after SIGTERM:\n{}",
+            std::fs::read_to_string(&err_path).unwrap_or_default()
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    let log = std::fs::read_to_string(&err_path).unwrap_or_default();
+    assert!(status.success(), "exit {status}:\n{log}");
+    assert!(log.contains("stopped while starting"), "{log}");
 }
