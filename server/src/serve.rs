@@ -160,8 +160,11 @@ mod systemd {
     pub fn spawn_watchdog(_app: fresa_core::SharedApp) {}
 }
 
-/// Console use: SIGTERM or Ctrl-C (Linux); Ctrl-C, Ctrl-Break or closing the console window
-/// (Windows).
+/// Console use: SIGTERM, Ctrl-C or SIGHUP (Linux); Ctrl-C, Ctrl-Break or closing the console
+/// window (Windows). SIGHUP (the terminal or SSH session that started the server went away)
+/// used to end the process by its default action, without stopping motion (a Mach3 PC goes on
+/// cutting); it now takes the same path as SIGTERM, unless it was ignored when the server
+/// started (`nohup`), which then still holds.
 ///
 /// The listeners are registered when this is called (inside the runtime), not when the future
 /// is first polled: `run` polls it only once the server answers, and a SIGTERM sent right
@@ -170,11 +173,14 @@ mod systemd {
 /// and its first listener and was lost, leaving the server running.
 pub fn wait_for_signal() -> impl std::future::Future<Output = ()> {
     #[cfg(unix)]
-    let (first, second) = {
+    let (first, second, third) = {
         use tokio::signal::unix::{signal, SignalKind};
         (
             signal(SignalKind::interrupt()).ok(),
             signal(SignalKind::terminate()).ok(),
+            (!hangup_ignored())
+                .then(|| signal(SignalKind::hangup()).ok())
+                .flatten(),
         )
     };
     #[cfg(windows)]
@@ -202,18 +208,33 @@ pub fn wait_for_signal() -> impl std::future::Future<Output = ()> {
             };
         }
         #[cfg(unix)]
-        tokio::select! {
-            _ = recv!(first) => {}
-            _ = recv!(second) => {}
-        }
+        let signal = tokio::select! {
+            _ = recv!(first) => "SIGINT",
+            _ = recv!(second) => "SIGTERM",
+            _ = recv!(third) => "SIGHUP",
+        };
         #[cfg(windows)]
-        tokio::select! {
-            _ = recv!(first) => {}
-            _ = recv!(second) => {}
-            _ = recv!(third) => {}
-        }
+        let signal = tokio::select! {
+            _ = recv!(first) => "Ctrl-C",
+            _ = recv!(second) => "Ctrl-Break",
+            _ = recv!(third) => "console closed",
+        };
+        #[cfg(any(unix, windows))]
+        tracing::info!(signal, "stop requested");
         #[cfg(not(any(unix, windows)))]
         std::future::pending::<()>().await
+    }
+}
+
+/// Whether SIGHUP is ignored (inherited from `nohup` or a parent that chose so).
+#[cfg(unix)]
+fn hangup_ignored() -> bool {
+    // SAFETY: reads this process's disposition of one signal (no new action is given) into a
+    // zeroed `sigaction`, a plain C struct.
+    unsafe {
+        let mut old: libc::sigaction = std::mem::zeroed();
+        libc::sigaction(libc::SIGHUP, std::ptr::null(), &mut old) == 0
+            && old.sa_sigaction == libc::SIG_IGN
     }
 }
 

@@ -1,6 +1,7 @@
 //! Process lifecycle (issue 11): SIGTERM stops motion before anything else, even while a slow
-//! upload keeps a request open, and the run comes back `interrupted` and resumable; a second
-//! server on the same data directory refuses to start and leaves the first one alone.
+//! upload keeps a request open, and the run comes back `interrupted` and resumable; a stop at
+//! any moment of the start (or SIGHUP, unless under `nohup`) is clean; a second server on the
+//! same data directory refuses to start and leaves the first one alone.
 
 #![cfg(unix)]
 #![allow(clippy::unwrap_used, clippy::expect_used)]
@@ -272,4 +273,60 @@ fn a_sigterm_while_the_database_does_not_answer_ends_the_start_at_once() {
     let log = std::fs::read_to_string(&err_path).unwrap_or_default();
     assert!(status.success(), "exit {status}:\n{log}");
     assert!(log.contains("stopped while starting"), "{log}");
+}
+
+/// SIGHUP (the terminal or SSH session that started the server went away) stops motion and
+/// exits cleanly, like SIGTERM; it used to end the process by its default action, stopping
+/// nothing. Under `nohup` (SIGHUP ignored from the start) it stays ignored: the server is
+/// then stopped by the SIGTERM sent after it, and its log names that signal alone.
+#[test]
+fn sighup_stops_like_sigterm_unless_the_server_was_started_under_nohup() {
+    let mut s = Server::start();
+    s.send_signal("HUP");
+    let status = s.wait_exit(EXIT, "the server to exit after SIGHUP");
+    let log = s.log();
+    assert!(status.success(), "exit {status} after SIGHUP:\n{log}");
+    assert!(
+        log.contains("signal=\"SIGHUP\"") && log.contains("motion stopped"),
+        "no clean stop on SIGHUP:\n{log}"
+    );
+
+    let dir = tempfile::tempdir().unwrap();
+    let err_path = dir.path().join("stderr");
+    let child = Command::new("nohup")
+        .arg(bin_dir().join("fresa"))
+        .arg("serve")
+        .args(["--listen", "127.0.0.1:0"])
+        .arg("--data-dir")
+        .arg(dir.path().join("data"))
+        .arg("--plugin-dir")
+        .arg(bin_dir())
+        .env("FRESA_LOG", "info")
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&err_path).unwrap())
+        .spawn()
+        .expect("run nohup (coreutils)");
+    let mut nohup = KillOnDrop(child);
+    let read_log = || std::fs::read_to_string(&err_path).unwrap_or_default();
+    wait_for(T, "the server under nohup to listen", || {
+        read_log().contains("listening on").then_some(())
+    });
+    let pid = nohup.0.id().to_string();
+    for signal in ["-HUP", "-TERM"] {
+        assert!(Command::new("kill")
+            .args([signal, &pid])
+            .status()
+            .unwrap()
+            .success());
+    }
+    let status = wait_for(EXIT, "the server under nohup to exit after SIGTERM", || {
+        nohup.0.try_wait().unwrap()
+    });
+    let log = read_log();
+    assert!(status.success(), "exit {status}:\n{log}");
+    assert!(
+        log.contains("signal=\"SIGTERM\"") && !log.contains("SIGHUP"),
+        "under nohup SIGHUP must stay ignored:\n{log}"
+    );
 }
