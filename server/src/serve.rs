@@ -59,13 +59,22 @@ pub async fn run(
         }
     };
     let limit = STOP_MOTION_LIMIT.min(app.settings.plugin_call_timeout);
-    let heartbeat = tokio::select! {
-        heartbeat = fresa_core::nodes::start(&app, bound) => heartbeat?,
-        () = &mut shutdown => {
-            tracing::info!("stopped while starting: stopping all motion");
+    let registered = tokio::select! {
+        registered = fresa_core::nodes::start(&app, bound) => Some(registered),
+        () = &mut shutdown => None,
+    };
+    let heartbeat = match registered {
+        Some(Ok(heartbeat)) => heartbeat,
+        // Stopped, or the node could not register: the machines exist now, so their backends
+        // are told to stop before the process ends, on either path.
+        not_started => {
+            tracing::info!("the start did not finish: stopping all motion");
             app.stop_motion(limit).await;
             app.stop_rest(limit).await;
-            return Ok(());
+            return match not_started {
+                Some(Err(e)) => Err(e.into()),
+                _ => Ok(()),
+            };
         }
     };
     let admission = fresa_http::admission::Admission::new(&app.settings.edges);
