@@ -95,6 +95,42 @@ fn status_until_waits_for_the_state_and_says_when_it_did_not_come() {
     .expect_error(400, "invalid_query");
 }
 
+/// A plain status poll is answered in front of the router (`status_polls`): its answer is the
+/// route's to the byte, status, headers and body, as the router gives it for a poll with a query.
+#[test]
+fn a_plain_status_poll_answers_what_the_route_answers() {
+    let s = Server::start();
+    let m = s.sim("m", 1.0).id;
+    s.jog(m, "X", 5.0).expect(200);
+    s.get(&format!("/api/v1/machines/{m}/status?until=idle"))
+        .expect(200);
+    let fetch = |path: &str| {
+        let r = s.req(reqwest::Method::GET, path).send().unwrap();
+        let mut headers: Vec<(String, Vec<u8>)> = r
+            .headers()
+            .iter()
+            .filter(|(name, _)| *name != "date")
+            .map(|(name, value)| (name.to_string(), value.as_bytes().to_vec()))
+            .collect();
+        headers.sort();
+        (r.status().as_u16(), headers, r.text().unwrap())
+    };
+    let polled = fetch(&format!("/api/v1/machines/{m}/status"));
+    let routed = fetch(&format!(
+        "/api/v1/machines/{m}/status?until=idle&timeout_s=0"
+    ));
+    assert_eq!(polled, routed);
+    assert_eq!(polled.0, 200);
+    let st: Value = fresa_tests::serde_json::from_str(&polled.2).unwrap();
+    assert!(
+        (axis(&st["machine_position"], "x") - 5.0).abs() < 1e-9,
+        "{st}"
+    );
+    // A machine that does not exist is the router's 404, as before.
+    s.get("/api/v1/machines/999/status")
+        .expect_error(404, "unknown_machine");
+}
+
 /// A continuous jog moves while its keep-alives come and stops when they stop (the deadman
 /// cancels it, as `jog/cancel` does); it is bounded by `max_jog_mm` and one at a time.
 #[test]

@@ -114,6 +114,15 @@ fn every_request_needs_a_valid_token_with_the_right_role() {
     )
     .expect_error(403, "forbidden");
     s.assert_no_jobs();
+    // A status poll is answered in front of the router (`status_polls`), still behind the gate.
+    s.get(&format!("/api/v1/machines/{}/status", m.id))
+        .expect(200);
+    s.token = None;
+    s.get(&format!("/api/v1/machines/{}/status", m.id))
+        .expect_error(401, "token_required");
+    s.token = Some("fresa_not_a_real_token".into());
+    s.get(&format!("/api/v1/machines/{}/status", m.id))
+        .expect_error(401, "invalid_token");
 
     s.token = Some(operator.clone());
     let job = s.upload(m.id, "j", "G0 X1\nG0 X0\n")["id"]

@@ -16,6 +16,7 @@ mod pendants;
 mod queue;
 mod records;
 mod request_log;
+mod status_polls;
 mod toolchange;
 mod tools;
 mod webhooks;
@@ -168,11 +169,11 @@ fn described_router(
 
 /// The whole HTTP service, from the outside in: the cross-site and rebinding guard, the request
 /// log, CORS (only when some origin is allowed: deny-by-default needs no layer at all), the
-/// [`Gate`] (authentication, then forwarding), the router. Each wraps the router once, not each
-/// route (axum's `Router::layer` wraps every route, and each such layer costs a request a clone
-/// of the boxed route and a boxed future), so a request pays for each once. `admission` is
-/// shared with the accept loop (per-client connections) and read by auth, the event stream and
-/// `/metrics`.
+/// [`Gate`] (authentication, then forwarding), the status polls' shortcut (`status_polls`), the
+/// router. Each wraps the router once, not each route (axum's `Router::layer` wraps every route,
+/// and each such layer costs a request a clone of the boxed route and a boxed future), so a
+/// request pays for each once. `admission` is shared with the accept loop (per-client
+/// connections) and read by auth, the event stream and `/metrics`.
 pub fn service(app: SharedApp, admission: std::sync::Arc<admission::Admission>) -> Service {
     use tower::Layer;
     let settings = std::sync::Arc::new(app.settings.clone());
@@ -183,7 +184,8 @@ pub fn service(app: SharedApp, admission: std::sync::Arc<admission::Admission>) 
         ),
     };
     let origins = app.settings.cors_origins.clone();
-    let gated = middleware::Layer(gate).layer(router(app, Some(admission)));
+    let routed = status_polls::StatusPolls::new(app.clone(), router(app, Some(admission)));
+    let gated = middleware::Layer(gate).layer(routed);
     let with_cors = if origins.is_empty() {
         tower::util::Either::Right(gated)
     } else {
@@ -196,8 +198,8 @@ pub fn service(app: SharedApp, admission: std::sync::Arc<admission::Admission>) 
 pub type Service =
     guard::Guarded<request_log::Logged<tower::util::Either<tower_http::cors::Cors<Gated>, Gated>>>;
 
-/// The router behind the [`Gate`].
-pub type Gated = middleware::Service<Gate, Router>;
+/// The router behind the [`Gate`], with status polls answered in front of it.
+pub type Gated = middleware::Service<Gate, status_polls::StatusPolls<Router>>;
 
 /// Which requests authentication and forwarding see, decided from the path before routing:
 /// everything under `/api/v1/` but its OpenAPI description passes authentication and then the

@@ -1108,6 +1108,11 @@ impl Machines {
         self.write().insert(m.id, m);
     }
     pub async fn get(&self, id: i64) -> Option<Arc<Machine>> {
+        self.local(id)
+    }
+    /// Machine `id` if this node drives it, without waiting (the status shortcut in front of the
+    /// HTTP router asks this on every poll).
+    pub fn local(&self, id: i64) -> Option<Arc<Machine>> {
         self.read().get(&id).cloned()
     }
     /// Whether this node drives machine `id`, without waiting (the forwarding layer asks this
