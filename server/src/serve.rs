@@ -17,7 +17,7 @@ use hyper_util::rt::{TokioIo, TokioTimer};
 use std::collections::BTreeMap;
 use std::io;
 use std::pin::Pin;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicU8, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
 use std::time::Duration;
@@ -353,14 +353,16 @@ async fn accept_loop(
     let clear_at = (max / 10).max(1);
     let mut at_cap = false;
     let open = OpenConnections::default();
+    // Ends with this loop, also if the loop is aborted at the end of the shutdown grace.
+    let _idle_checks = tokio_util::task::AbortOnDropHandle::new(tokio::spawn(
+        open.clone().close_idle_every(limits.idle_timeout),
+    ));
     let start = |stream: TcpStream, peer, (permit, slot)| {
         let _ = stream.set_nodelay(true);
         tokio::spawn(serve_connection(
             builder.clone(),
             stream,
             router.clone(),
-            limits.idle_timeout,
-            drain.clone(),
             (
                 fresa_http::admission::Connection::new(peer, permit, streams.clone()),
                 slot,
@@ -450,8 +452,9 @@ async fn accept_loop(
             }
         }
     }
-    // New connections are refused from here on.
+    // New connections are refused from here on; the open ones finish what they are answering.
     drop(listener);
+    open.drain();
     drop(permit);
     // Every open connection holds a permit, of one cap or the other: all of them back means
     // all closed.
@@ -542,15 +545,14 @@ impl AcceptErrors {
     }
 }
 
-/// Serves one connection until it ends, the server drains, or it sits idle: no request in
-/// progress and no bytes moving for `idle` (hyper's header read timeout also closes a kept-alive
-/// connection whose next request head does not arrive in time).
+/// Serves one connection until it ends or the accept loop orders it to: drain (finish the
+/// request in progress, then close) or close now (at the cap, or idle: see
+/// [`OpenConnections::close_idle`]). hyper's header read timeout also closes a kept-alive
+/// connection whose next request head does not arrive in time.
 async fn serve_connection(
     builder: Arc<http1::Builder>,
     stream: TcpStream,
     router: fresa_http::Service,
-    idle: Duration,
-    drain: CancellationToken,
     held: (
         fresa_http::admission::Connection,
         ConnectionSlot,
@@ -559,12 +561,11 @@ async fn serve_connection(
 ) {
     // Held until the connection ends: its place, its address's count, its entry in the list.
     let (connection, _slot, me) = held;
-    let activity = me.activity.clone();
     let io = TokioIo::new(Tracked {
         inner: stream,
-        activity: activity.clone(),
+        activity: me.activity.clone(),
     });
-    let in_flight = activity.clone();
+    let in_flight = me.activity.clone();
     let service = hyper::service::service_fn(move |req: hyper::Request<Incoming>| {
         let router = router.clone();
         let guard = InFlight::enter(in_flight.clone());
@@ -583,48 +584,72 @@ async fn serve_connection(
     });
     let conn = builder.serve_connection(io, service);
     tokio::pin!(conn);
+    // The orders are read with an atomic load on each wake, where a `select!` over a drain
+    // token, a close token and an idle timer polled all three on every wake (about a twentieth
+    // of a status poll's instructions).
     let mut draining = false;
-    // Idle: nothing in progress and no bytes moved during one whole period, so a connection
-    // is closed between `idle` and twice `idle` after it went quiet.
-    let mut check = tokio::time::interval_at(tokio::time::Instant::now() + idle, idle);
-    let mut seen = activity.moves();
-    loop {
-        tokio::select! {
-            r = conn.as_mut() => {
-                if let Err(e) = r {
-                    tracing::debug!("connection ended: {e}");
-                }
-                break;
-            }
-            _ = drain.cancelled(), if !draining => {
-                draining = true;
-                conn.as_mut().graceful_shutdown();
-            }
-            _ = me.close.cancelled() => {
-                tracing::debug!("closing a quiet connection to make room at the connection cap");
-                break;
-            }
-            _ = check.tick() => {
-                let now = activity.moves();
-                if !activity.in_flight() && now == seen {
-                    tracing::debug!("closing a connection idle for {idle:?}");
-                    break;
-                }
-                seen = now;
-            }
+    std::future::poll_fn(|cx| {
+        // Registered before the orders are read, so an order given in between still wakes us.
+        me.orders.task.register(cx.waker());
+        if me.orders.given(Orders::CLOSE) {
+            tracing::debug!("closing a connection (idle, or making room at the connection cap)");
+            return Poll::Ready(());
         }
+        if !draining && me.orders.given(Orders::DRAIN) {
+            draining = true;
+            conn.as_mut().graceful_shutdown();
+        }
+        std::future::Future::poll(conn.as_mut(), cx).map(|r| {
+            if let Err(e) = r {
+                tracing::debug!("connection ended: {e}");
+            }
+        })
+    })
+    .await;
+}
+
+/// What the accept loop tells a connection's task; read by its task on every wake.
+#[derive(Default)]
+struct Orders {
+    given: AtomicU8,
+    task: futures_util::task::AtomicWaker,
+}
+
+impl Orders {
+    /// Finish the request in progress, then close.
+    const DRAIN: u8 = 1;
+    /// Close now.
+    const CLOSE: u8 = 2;
+
+    fn give(&self, order: u8) {
+        self.given.fetch_or(order, Ordering::Release);
+        self.task.wake();
+    }
+
+    fn given(&self, order: u8) -> bool {
+        self.given.load(Ordering::Acquire) & order != 0
     }
 }
 
 /// The open connections in the order they were accepted, so that at the cap the oldest with no
-/// request in progress can be closed to make room.
+/// request in progress can be closed to make room, idle ones closed, and all of them drained.
 #[derive(Clone, Default)]
 struct OpenConnections(Arc<Mutex<OpenList>>);
 
 #[derive(Default)]
 struct OpenList {
     next: u64,
-    conns: BTreeMap<u64, (Arc<Activity>, CancellationToken)>,
+    conns: BTreeMap<u64, Open>,
+    /// Set once the server drains: a connection registered after that is told at once.
+    draining: bool,
+}
+
+/// One connection as the list sees it.
+struct Open {
+    activity: Arc<Activity>,
+    orders: Arc<Orders>,
+    /// Its byte counter at the last idle check; `None` before its first one.
+    seen: Option<u64>,
 }
 
 impl OpenConnections {
@@ -636,16 +661,26 @@ impl OpenConnections {
 
     fn register(&self) -> OpenConnection {
         let activity = Arc::new(Activity::new());
-        let close = CancellationToken::new();
+        let orders = Arc::new(Orders::default());
         let mut list = self.list();
+        if list.draining {
+            orders.give(Orders::DRAIN);
+        }
         let id = list.next;
         list.next += 1;
-        list.conns.insert(id, (activity.clone(), close.clone()));
+        list.conns.insert(
+            id,
+            Open {
+                activity: activity.clone(),
+                orders: orders.clone(),
+                seen: None,
+            },
+        );
         OpenConnection {
             id,
             open: self.clone(),
             activity,
-            close,
+            orders,
         }
     }
 
@@ -656,24 +691,59 @@ impl OpenConnections {
         let oldest = list
             .conns
             .iter()
-            .find(|(_, (activity, _))| !activity.in_flight())
+            .find(|(_, open)| !open.activity.in_flight())
             .map(|(id, _)| *id);
         match oldest.and_then(|id| list.conns.remove(&id)) {
-            Some((_, close)) => {
-                close.cancel();
+            Some(open) => {
+                open.orders.give(Orders::CLOSE);
                 true
             }
             None => false,
         }
     }
+
+    /// One idle check, run every idle period: closes each connection with no request in
+    /// progress whose bytes have not moved since the last check. A connection is checked first
+    /// one check after it opened, so it is closed between one and two periods after it went
+    /// quiet (no clock read per request: bytes moving only bump a counter).
+    fn close_idle(&self) {
+        let mut list = self.list();
+        list.conns.retain(|_, open| {
+            let now = open.activity.moves();
+            let idle = open.seen == Some(now) && !open.activity.in_flight();
+            open.seen = Some(now);
+            if idle {
+                open.orders.give(Orders::CLOSE);
+            }
+            !idle
+        });
+    }
+
+    /// Runs [`Self::close_idle`] every `idle` until dropped (aborted).
+    async fn close_idle_every(self, idle: Duration) {
+        let mut check = tokio::time::interval_at(Instant::now() + idle, idle);
+        loop {
+            check.tick().await;
+            self.close_idle();
+        }
+    }
+
+    /// Tells every open connection, and any registered from now on, to drain.
+    fn drain(&self) {
+        let mut list = self.list();
+        list.draining = true;
+        for open in list.conns.values() {
+            open.orders.give(Orders::DRAIN);
+        }
+    }
 }
 
-/// One connection's entry in [`OpenConnections`]; `close` is cancelled to close it.
+/// One connection's entry in [`OpenConnections`], removed when the connection's task ends.
 struct OpenConnection {
     id: u64,
     open: OpenConnections,
     activity: Arc<Activity>,
-    close: CancellationToken,
+    orders: Arc<Orders>,
 }
 
 impl Drop for OpenConnection {
@@ -684,7 +754,7 @@ impl Drop for OpenConnection {
 
 /// Whether a connection moved bytes, and how many of its requests are being answered. Bytes
 /// moving only bump a counter (no clock read per read or write: this is on every request's
-/// path); the idle check compares the counter across one idle period.
+/// path); the idle check ([`OpenConnections::close_idle`]) compares it across one idle period.
 struct Activity {
     moves: AtomicU64,
     in_flight: AtomicUsize,
@@ -830,12 +900,40 @@ mod tests {
         let (a, b, c) = (open.register(), open.register(), open.register());
         // `a` is answering a request (an event stream, say): never closed to make room.
         let _busy = InFlight::enter(a.activity.clone());
+        let closed = |c: &OpenConnection| c.orders.given(Orders::CLOSE);
         assert!(open.close_oldest_quiet());
-        assert!(!a.close.is_cancelled() && b.close.is_cancelled() && !c.close.is_cancelled());
+        assert!(!closed(&a) && closed(&b) && !closed(&c));
         assert!(open.close_oldest_quiet());
-        assert!(c.close.is_cancelled());
+        assert!(closed(&c));
         assert!(!open.close_oldest_quiet(), "only the busy one is left");
         drop((b, c));
         assert_eq!(open.list().conns.len(), 1);
+    }
+
+    #[test]
+    fn a_connection_is_closed_after_a_whole_idle_period_without_bytes_or_requests() {
+        let open = OpenConnections::default();
+        let (quiet, busy, talking) = (open.register(), open.register(), open.register());
+        let _busy = InFlight::enter(busy.activity.clone());
+        let closed = |c: &OpenConnection| c.orders.given(Orders::CLOSE);
+        // The first check after they opened only looks.
+        open.close_idle();
+        assert!(!closed(&quiet) && !closed(&busy) && !closed(&talking));
+        talking.activity.touch();
+        let late = open.register();
+        open.close_idle();
+        assert!(closed(&quiet), "no bytes and no request for a whole period");
+        assert!(
+            !closed(&busy),
+            "a request in progress (an event stream) is not idle"
+        );
+        assert!(!closed(&talking), "its bytes moved");
+        assert!(!closed(&late), "opened during the period");
+        open.drain();
+        assert!(busy.orders.given(Orders::DRAIN) && late.orders.given(Orders::DRAIN));
+        assert!(
+            open.register().orders.given(Orders::DRAIN),
+            "one accepted while draining drains too"
+        );
     }
 }

@@ -3,7 +3,7 @@
 //! half a request line, half a head) hold at most the cap of the server's sockets while
 //! `/healthz` and a machine stop still answer 200; a half-sent request is closed by the server;
 //! a stalled upload is dropped with a JSON error and leaves no temporary file; reaching the cap
-//! (and clearing it) is logged.
+//! (and clearing it) is logged; idle connections are closed, a quiet event stream is not.
 
 #![cfg(unix)]
 #![allow(clippy::unwrap_used, clippy::expect_used)]
@@ -69,6 +69,47 @@ fn server_sockets(s: &Server) -> usize {
         .filter_map(|e| std::fs::read_link(e.ok()?.path()).ok())
         .filter(|l| l.to_string_lossy().starts_with("socket:"))
         .count()
+}
+
+/// A connection that sends nothing, and one kept alive after its answer that sends nothing
+/// more, are closed by the idle check (`idle_timeout_secs`, here 1 s) long before the header
+/// read timeout (here 60 s) would; a connection whose request is in progress (an event stream
+/// quiet for longer than that) is not.
+#[test]
+fn idle_connections_are_closed_and_a_quiet_event_stream_is_not() {
+    let mut s = Server::unstarted(Default::default());
+    s.write_config("header_read_timeout_secs = 60\nidle_timeout_secs = 1\n");
+    s.spawn()
+        .unwrap_or_else(|e| panic!("server did not start: {e}"));
+    let mut silent = stalled(&s, b"");
+    let mut kept = stalled(&s, b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n");
+    // An event stream from the end of the log: nothing to send while nothing happens.
+    let mut stream = stalled(
+        &s,
+        b"GET /api/v1/events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n",
+    );
+    let (mut silent_got, mut kept_got, mut stream_got) = (Vec::new(), Vec::new(), Vec::new());
+    let kept_answer = wait_for(T, "the idle connections to be closed", || {
+        let silent_closed = closed_by_server(&mut silent, &mut silent_got);
+        let kept_closed = closed_by_server(&mut kept, &mut kept_got);
+        assert!(
+            closed_by_server(&mut stream, &mut stream_got).is_none(),
+            "the event stream was closed while its request was in progress: {}",
+            String::from_utf8_lossy(&stream_got)
+        );
+        silent_closed.and(kept_closed)
+    });
+    assert!(silent_got.is_empty(), "{silent_got:?}");
+    assert!(
+        kept_answer.starts_with(b"HTTP/1.1 200"),
+        "{}",
+        String::from_utf8_lossy(&kept_answer)
+    );
+    assert!(
+        stream_got.starts_with(b"HTTP/1.1 200"),
+        "{}",
+        String::from_utf8_lossy(&stream_got)
+    );
 }
 
 /// A client with no connection pool: every request queues like a new client would.
