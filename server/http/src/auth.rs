@@ -310,7 +310,7 @@ impl Authenticate {
 
 fn caller_of(token: fresa_core::store::TokenRow) -> Caller {
     Caller {
-        name: Arc::from(token.name),
+        name: token.name,
         role: Role::parse(&token.role).unwrap_or(Role::Viewer),
         by_token: true,
     }

@@ -529,7 +529,7 @@ async fn run_command(
                 "the API token is not valid",
             )
         })?;
-    if !matches!(caller.role.as_str(), "operator" | "admin") {
+    if !matches!(&*caller.role, "operator" | "admin") {
         return Err(Error::new(
             fresa_core::ErrorKind::BadRequest,
             "forbidden",

@@ -636,7 +636,10 @@ async fn duplicate_token_names_survive_the_unique_name_migration() {
         .collect();
     assert_eq!(names, ["ana", "ana#2", "bo"]);
     // The second "ana" still works under its new name.
-    assert_eq!(s.token_by_hash("h2").await.unwrap().unwrap().name, "ana#2");
+    assert_eq!(
+        &*s.token_by_hash("h2").await.unwrap().unwrap().name,
+        "ana#2"
+    );
     let e = s
         .insert_token("bo", "viewer", "h4", None)
         .await
@@ -657,7 +660,7 @@ async fn expired_and_revoked_tokens_are_not_found(s: &Store) {
     // What the database just accepted is known without asking it again (reads use this for a
     // second); what it refused, or accepted longer ago than asked, is not.
     assert_eq!(
-        s.token_accepted_within("h-new", 60_000).unwrap().name,
+        &*s.token_accepted_within("h-new", 60_000).unwrap().name,
         "new"
     );
     assert!(s.token_accepted_within("h-new", 0).is_none());

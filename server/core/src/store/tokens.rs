@@ -36,10 +36,12 @@ impl TokenHash {
     }
 }
 
-#[derive(Debug, Clone, FromRow)]
+/// A valid token's name and role. Shared text: the tokens the store remembers are handed out
+/// on every read that carries one (`token_accepted_within`), and a clone is a count, not a copy.
+#[derive(Debug, Clone)]
 pub struct TokenRow {
-    pub name: String,
-    pub role: String,
+    pub name: std::sync::Arc<str>,
+    pub role: std::sync::Arc<str>,
 }
 
 /// What `fresa token list` shows: everything but the hash. Times are UTC, `YYYY-MM-DD HH:MM`.
@@ -115,12 +117,12 @@ impl Store {
             self.forget_token(|h, _| h == hash);
             return Ok(None);
         };
+        let row = TokenRow {
+            name: name.into(),
+            role: role.into(),
+        };
         if let Ok(mut known) = self.known_tokens.lock() {
-            let row = TokenRow {
-                name: name.clone(),
-                role: role.clone(),
-            };
-            known.insert(hash.to_string(), (row, expires_at, now));
+            known.insert(hash.to_string(), (row.clone(), expires_at, now));
         }
         if last_used.is_none_or(|t| now - t >= LAST_USED_GRANULARITY_MS) {
             // Best effort: a busy database must not turn a valid token into an error.
@@ -133,7 +135,7 @@ impl Store {
                 tracing::debug!(error = %e, "could not record a token's last use");
             }
         }
-        Ok(Some(TokenRow { name, role }))
+        Ok(Some(row))
     }
 
     /// A token the database accepted within [`KNOWN_TOKEN_TTL_MS`], while it is unreachable.
@@ -229,7 +231,7 @@ impl Store {
             .await?
             .rows_affected();
         tx.commit().await?;
-        self.forget_token(|_, row| row.name == name);
+        self.forget_token(|_, row| &*row.name == name);
         Ok(n > 0)
     }
 }
