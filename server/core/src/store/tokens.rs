@@ -12,9 +12,18 @@ const LAST_USED_GRANULARITY_MS: i64 = 60_000;
 /// table (a revocation made meanwhile by another process is seen once the database returns).
 const KNOWN_TOKEN_TTL_MS: i64 = 10 * 60_000;
 
-/// Tokens the database accepted: hash -> (row, expires_at, when it was accepted).
+/// Tokens the database accepted: hash -> (row, expires_at, when it was accepted). Keyed by the
+/// digest, which a client cannot choose (that would take a SHA-256 preimage), so a fast hasher
+/// without SipHash's defence against chosen keys is safe here; every read with a token looks
+/// one up.
 pub(crate) type KnownTokens = std::sync::Arc<
-    std::sync::Mutex<std::collections::HashMap<String, (TokenRow, Option<i64>, i64)>>,
+    std::sync::Mutex<
+        std::collections::HashMap<
+            String,
+            (TokenRow, Option<i64>, i64),
+            foldhash::fast::RandomState,
+        >,
+    >,
 >;
 
 /// A token's SHA-256 as the 64 lowercase hex digits the `tokens` table keeps: the one place
