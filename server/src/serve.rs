@@ -47,6 +47,13 @@ pub async fn run(
     let listener =
         bind(settings.listen).map_err(|e| format!("cannot listen on {}: {e}", settings.listen))?;
     let bound = listener.local_addr()?;
+    let admission = fresa_http::admission::Admission::new(&settings.edges);
+    // The routing table needs nothing from the store: built while the store opens (see
+    // `fresa_http::Routes`).
+    let routes = tokio::task::spawn_blocking({
+        let admission = admission.clone();
+        move || fresa_http::routes(Some(admission))
+    });
     // A stop while starting ends the start at once: a database that does not answer holds it
     // for the pool's timeout (10 s), and the signal, heard from the first moment, must not wait
     // for that. Nothing has moved yet; once the machines exist, motion is stopped first.
@@ -77,8 +84,10 @@ pub async fn run(
             };
         }
     };
-    let admission = fresa_http::admission::Admission::new(&app.settings.edges);
-    let router = fresa_http::service(app.clone(), admission.clone());
+    let routes = routes
+        .await
+        .map_err(|e| format!("building the routes failed: {e}"))?;
+    let router = fresa_http::service(app.clone(), admission.clone(), routes);
     let integrations = fresa_integrations::start(app.clone());
     // This exact phrase is what scripts and tests wait for.
     tracing::info!("listening on http://{bound}");

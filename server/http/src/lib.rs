@@ -42,13 +42,20 @@ use utoipa_axum::routes;
 /// `admission` (shared with the accept loop) is what the event stream and `/metrics` read; only
 /// those routes carry it. Authentication, forwarding and CORS are around the router, in
 /// [`service`].
-fn router(app: SharedApp, admission: Option<std::sync::Arc<admission::Admission>>) -> Router {
+pub fn routes(admission: Option<std::sync::Arc<admission::Admission>>) -> Routes {
     let (router, _) = described_router(admission);
-    router
-        .fallback(not_found)
-        .method_not_allowed_fallback(method_not_allowed)
-        .with_state(app)
+    Routes(
+        router
+            .fallback(not_found)
+            .method_not_allowed_fallback(method_not_allowed),
+    )
 }
+
+/// The routing table of [`routes`], before it is given the app. Building it is about a quarter
+/// of a first start's instructions (each route's OpenAPI operation is made with it, then
+/// dropped), and it needs nothing from the store, so `fresa serve` builds it on a thread of its
+/// own while the store opens.
+pub struct Routes(Router<SharedApp>);
 
 /// The OpenAPI description of [`router`], as served (for tools and tests without a server).
 pub fn openapi_document() -> String {
@@ -174,7 +181,11 @@ fn described_router(
 /// and each such layer costs a request a clone of the boxed route and a boxed future), so a
 /// request pays for each once. `admission` is shared with the accept loop (per-client
 /// connections) and read by auth, the event stream and `/metrics`.
-pub fn service(app: SharedApp, admission: std::sync::Arc<admission::Admission>) -> Service {
+pub fn service(
+    app: SharedApp,
+    admission: std::sync::Arc<admission::Admission>,
+    routes: Routes,
+) -> Service {
     use tower::Layer;
     let settings = std::sync::Arc::new(app.settings.clone());
     let gate = Gate {
@@ -184,7 +195,7 @@ pub fn service(app: SharedApp, admission: std::sync::Arc<admission::Admission>) 
         ),
     };
     let origins = app.settings.cors_origins.clone();
-    let routed = status_polls::StatusPolls::new(app.clone(), router(app, Some(admission)));
+    let routed = status_polls::StatusPolls::new(app.clone(), routes.0.with_state(app));
     let gated = middleware::Layer(gate).layer(routed);
     let with_cors = if origins.is_empty() {
         tower::util::Either::Right(gated)
