@@ -15,6 +15,15 @@ const EVERY_BLOCK_ALIGN: usize = std::mem::size_of::<usize>();
 
 pub struct MiMalloc;
 
+/// Gives the calling thread's free pages back to the system now. For a thread that built
+/// something large and is done allocating (the routing table, whose OpenAPI scaffolding is
+/// dropped at once): mimalloc keeps a thread's freed pages in its heap, even after the thread
+/// has ended, and they showed as up to 1 MiB more idle memory.
+pub fn release_thread_garbage() {
+    // SAFETY: takes no pointers; collects only the calling thread's own heap.
+    unsafe { mi::mi_collect(true) }
+}
+
 // SAFETY: each call passes the layout's size (and, above `EVERY_BLOCK_ALIGN`, its alignment) to
 // mimalloc, which returns null or a block of at least that size and alignment; blocks are
 // freed and resized only with pointers it returned (`GlobalAlloc`'s contract on the caller).

@@ -52,7 +52,12 @@ pub async fn run(
     // `fresa_http::Routes`).
     let routes = tokio::task::spawn_blocking({
         let admission = admission.clone();
-        move || fresa_http::routes(Some(admission))
+        move || {
+            let routes = fresa_http::routes(Some(admission));
+            #[cfg(all(target_os = "linux", feature = "mimalloc"))]
+            crate::alloc::release_thread_garbage();
+            routes
+        }
     });
     // A stop while starting ends the start at once: a database that does not answer holds it
     // for the pool's timeout (10 s), and the signal, heard from the first moment, must not wait
