@@ -71,27 +71,30 @@ pub async fn run(
         }
     };
     let limit = STOP_MOTION_LIMIT.min(app.settings.plugin_call_timeout);
-    let registered = tokio::select! {
-        registered = fresa_core::nodes::start(&app, bound) => Some(registered),
+    let finished = tokio::select! {
+        finished = async {
+            let heartbeat = fresa_core::nodes::start(&app, bound).await?;
+            let routes = routes
+                .await
+                .map_err(|e| format!("building the HTTP routes failed (a bug): {e}"))?;
+            Ok::<_, Box<dyn std::error::Error + Send + Sync>>((heartbeat, routes))
+        } => Some(finished),
         () = &mut shutdown => None,
     };
-    let heartbeat = match registered {
-        Some(Ok(heartbeat)) => heartbeat,
-        // Stopped, or the node could not register: the machines exist now, so their backends
-        // are told to stop before the process ends, on either path.
+    let (heartbeat, routes) = match finished {
+        Some(Ok(finished)) => finished,
+        // Stopped, or the node could not register, or the routes could not be built: the
+        // machines exist now, so their backends are told to stop before the process ends.
         not_started => {
             tracing::info!("the start did not finish: stopping all motion");
             app.stop_motion(limit).await;
             app.stop_rest(limit).await;
             return match not_started {
-                Some(Err(e)) => Err(e.into()),
+                Some(Err(e)) => Err(e as Box<dyn std::error::Error>),
                 _ => Ok(()),
             };
         }
     };
-    let routes = routes
-        .await
-        .map_err(|e| format!("building the routes failed: {e}"))?;
     let router = fresa_http::service(app.clone(), admission.clone(), routes);
     let integrations = fresa_integrations::start(app.clone());
     // This exact phrase is what scripts and tests wait for.
