@@ -98,13 +98,31 @@ pub fn fresa_bin() -> PathBuf {
 /// A `fresa` command with no `FRESA_*` variable inherited from the environment.
 pub fn fresa_cmd() -> Command {
     let mut cmd = Command::new(fresa_bin());
+    without_fresa_env(&mut cmd).stdin(Stdio::null());
+    cmd
+}
+
+/// `cmd` without the `FRESA_*` variables of the test's environment (a developer's own settings
+/// must not reach the servers under test).
+pub fn without_fresa_env(cmd: &mut Command) -> &mut Command {
     for (k, _) in std::env::vars_os() {
         if k.to_string_lossy().starts_with("FRESA_") {
             cmd.env_remove(k);
         }
     }
-    cmd.stdin(Stdio::null());
     cmd
+}
+
+/// Sends `kill -SIGNAL PID` (e.g. `"TERM"`, `"HUP"`) and returns at once.
+#[track_caller]
+pub fn send_signal(pid: u32, signal: &str) {
+    let ok = Command::new("kill")
+        .arg(format!("-{signal}"))
+        .arg(pid.to_string())
+        .status()
+        .expect("run kill")
+        .success();
+    assert!(ok, "kill -{signal} {pid} failed");
 }
 
 /// Polls `f` until it returns `Some`, or panics after `timeout` naming `what`.
@@ -238,6 +256,15 @@ impl Server {
         let mut s = Server::unstarted(opts);
         s.spawn()
             .unwrap_or_else(|e| panic!("server did not start: {e}"));
+        s
+    }
+
+    /// A server started with this config file (`fresa.toml`, TOML text) and default options.
+    pub fn start_with_config(toml: &str) -> Server {
+        let mut s = Server::unstarted(Opts::default());
+        s.write_config(toml);
+        s.spawn()
+            .unwrap_or_else(|e| panic!("server did not start with {toml:?}: {e}"));
         s
     }
 
@@ -412,13 +439,7 @@ impl Server {
     /// SIGTERM: the server shuts down cleanly. Waits for it to exit.
     pub fn terminate(&mut self) -> std::process::ExitStatus {
         let mut c = self.child.take().expect("server running");
-        let ok = Command::new("kill")
-            .arg("-TERM")
-            .arg(c.id().to_string())
-            .status()
-            .expect("run kill")
-            .success();
-        assert!(ok, "kill -TERM failed");
+        send_signal(c.id(), "TERM");
         let deadline = Instant::now() + Duration::from_secs(30);
         loop {
             if let Some(s) = c.try_wait().expect("try_wait") {
@@ -445,26 +466,12 @@ impl Server {
 
     /// Sends `kill -SIGNAL` (e.g. `"INT"`: Ctrl-C, also under Wine) and returns at once.
     pub fn send_signal(&self, signal: &str) {
-        let pid = self.pid().expect("server running");
-        let ok = Command::new("kill")
-            .arg(format!("-{signal}"))
-            .arg(pid.to_string())
-            .status()
-            .expect("run kill")
-            .success();
-        assert!(ok, "kill -{signal} {pid} failed");
+        send_signal(self.pid().expect("server running"), signal);
     }
 
     /// Sends SIGTERM and returns at once (see [`Server::wait_exit`]).
     pub fn send_sigterm(&self) {
-        let pid = self.pid().expect("server running");
-        let ok = Command::new("kill")
-            .arg("-TERM")
-            .arg(pid.to_string())
-            .status()
-            .expect("run kill")
-            .success();
-        assert!(ok, "kill -TERM {pid} failed");
+        self.send_signal("TERM");
     }
 
     /// Whether the server process has exited (reaping it if so), without waiting.

@@ -239,10 +239,7 @@ fn job_state_events_of_instant_jobs_end_with_the_final_state() {
 #[test]
 fn a_quiet_stream_gets_keep_alive_comments_between_its_events() {
     use std::io::{Read, Write};
-    let mut s = Server::unstarted(Default::default());
-    s.write_config("sse_keepalive_secs = 1\n");
-    s.spawn()
-        .unwrap_or_else(|e| panic!("server did not start: {e}"));
+    let s = Server::start_with_config("sse_keepalive_secs = 1\n");
     let port: u16 = s.base.rsplit(':').next().unwrap().parse().unwrap();
     let mut c = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
     // Only machine.created events: nothing else in this test makes one after the first.

@@ -7,7 +7,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fresa_tests::serde_json::{self, json, Value};
-use fresa_tests::{assert_every_line_once, back_and_forth, sha256_hex, wait_for, Opts, Server};
+use fresa_tests::{assert_every_line_once, back_and_forth, sha256_hex, wait_for, Server};
 use std::time::Duration;
 
 const T: Duration = Duration::from_secs(60);
@@ -497,9 +497,7 @@ fn part_records_and_counters_on_postgresql() {
         .build()
         .unwrap()
         .block_on(fresa_core::store::test_postgres::fresh_database());
-    let mut s = Server::unstarted(Opts::default());
-    s.write_config(&format!("database_url = \"{db}\"\n"));
-    s.spawn().unwrap();
+    let mut s = Server::start_with_config(&format!("database_url = \"{db}\"\n"));
     let m = s.sim("pg", 0.0);
     s.wait_machine_state(m.id, "idle", T);
     let program = back_and_forth(30, 1.0, 600.0);

@@ -67,12 +67,9 @@ fn a_page_on_another_origin_can_neither_upload_nor_start_a_job() {
 
 #[test]
 fn a_rebound_host_name_reaches_nothing_unless_it_is_allowed() {
-    let s = Server::unstarted(Opts::default());
-    s.write_config(
+    let s = Server::start_with_config(
         "allowed_hosts = [\"fresa.shop.lan\"]\ncors_origins = [\"http://tablet.lan:8080\"]\n",
     );
-    let mut s = s;
-    s.spawn().unwrap();
     let p = port(&s);
     for host in [format!("evil.example:{p}"), "evil.example".to_string()] {
         let msg = s

@@ -7,7 +7,10 @@
 #![cfg(unix)]
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use fresa_tests::{assert_every_line_once, back_and_forth, bin_dir, fresa_cmd, wait_for, Server};
+use fresa_tests::{
+    assert_every_line_once, back_and_forth, bin_dir, fresa_bin, fresa_cmd, send_signal, wait_for,
+    without_fresa_env, Server,
+};
 use std::io::Write;
 use std::net::TcpStream;
 use std::process::{Command, Stdio};
@@ -270,12 +273,7 @@ fn a_sigterm_while_the_database_does_not_answer_ends_the_start_at_once() {
         silent.accept().ok()
     });
     let sent = Instant::now();
-    assert!(Command::new("kill")
-        .arg("-TERM")
-        .arg(server.0.id().to_string())
-        .status()
-        .unwrap()
-        .success());
+    send_signal(server.0.id(), "TERM");
     let status = loop {
         if let Some(st) = server.0.try_wait().unwrap() {
             break st;
@@ -296,7 +294,7 @@ fn a_sigterm_while_the_database_does_not_answer_ends_the_start_at_once() {
 /// execs the rest, such as `nohup`; none: `fresa` itself), with `extra` arguments, its log in
 /// `dir/stderr`. No `FRESA_*` variable is passed on (as `fresa_cmd`).
 fn serve_through(wrapper: &[&str], dir: &std::path::Path, extra: &[&str]) -> KillOnDrop {
-    let fresa = bin_dir().join("fresa");
+    let fresa = fresa_bin();
     let mut cmd = match wrapper.split_first() {
         Some((program, args)) => {
             let mut c = Command::new(program);
@@ -305,12 +303,8 @@ fn serve_through(wrapper: &[&str], dir: &std::path::Path, extra: &[&str]) -> Kil
         }
         None => Command::new(&fresa),
     };
-    for (k, _) in std::env::vars_os() {
-        if k.to_string_lossy().starts_with("FRESA_") {
-            cmd.env_remove(k);
-        }
-    }
-    cmd.arg("serve")
+    without_fresa_env(&mut cmd)
+        .arg("serve")
         .args(["--listen", "127.0.0.1:0"])
         .args(extra)
         .arg("--data-dir")
@@ -336,12 +330,8 @@ fn serve_through(wrapper: &[&str], dir: &std::path::Path, extra: &[&str]) -> Kil
 #[test]
 fn sighup_stops_like_sigterm_unless_the_server_was_started_under_nohup() {
     for (wrapper, signals, stopped_by) in [
-        (
-            &["env", "--default-signal=HUP"][..],
-            &["-HUP"][..],
-            "SIGHUP",
-        ),
-        (&["nohup"][..], &["-HUP", "-TERM"][..], "SIGTERM"),
+        (&["env", "--default-signal=HUP"][..], &["HUP"][..], "SIGHUP"),
+        (&["nohup"][..], &["HUP", "TERM"][..], "SIGTERM"),
     ] {
         let dir = tempfile::tempdir().unwrap();
         let mut server = serve_through(wrapper, dir.path(), &[]);
@@ -349,13 +339,8 @@ fn sighup_stops_like_sigterm_unless_the_server_was_started_under_nohup() {
         wait_for(T, "the server to listen", || {
             read_log().contains("listening on").then_some(())
         });
-        let pid = server.0.id().to_string();
         for signal in signals {
-            assert!(Command::new("kill")
-                .args([*signal, &pid])
-                .status()
-                .unwrap()
-                .success());
+            send_signal(server.0.id(), signal);
         }
         let status = wait_for(EXIT, "the server to exit", || server.0.try_wait().unwrap());
         let log = read_log();

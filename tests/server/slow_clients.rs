@@ -21,14 +21,10 @@ const SLOWLORIS: usize = 300;
 /// A server whose connection limits are small enough to hit quickly. The idle timeout is long,
 /// so a connection closed within seconds was closed by the header read timeout.
 fn server(max_connections: usize) -> Server {
-    let mut s = Server::unstarted(Default::default());
-    s.write_config(&format!(
+    Server::start_with_config(&format!(
         "header_read_timeout_secs = 2\nidle_timeout_secs = 60\nupload_idle_timeout_secs = 2\n\
          max_connections = {max_connections}\n"
-    ));
-    s.spawn()
-        .unwrap_or_else(|e| panic!("server did not start: {e}"));
-    s
+    ))
 }
 
 fn addr(s: &Server) -> SocketAddr {
@@ -77,10 +73,7 @@ fn server_sockets(s: &Server) -> usize {
 /// quiet for longer than that) is not.
 #[test]
 fn idle_connections_are_closed_and_a_quiet_event_stream_is_not() {
-    let mut s = Server::unstarted(Default::default());
-    s.write_config("header_read_timeout_secs = 60\nidle_timeout_secs = 1\n");
-    s.spawn()
-        .unwrap_or_else(|e| panic!("server did not start: {e}"));
+    let s = Server::start_with_config("header_read_timeout_secs = 60\nidle_timeout_secs = 1\n");
     let mut silent = stalled(&s, b"");
     let mut kept = stalled(&s, b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n");
     // An event stream from the end of the log: nothing to send while nothing happens.
@@ -420,9 +413,7 @@ fn a_stop_is_answered_while_streams_and_silent_clients_hold_every_connection() {
 /// requests: a stop is answered while silent clients hold more than the connection cap.
 #[test]
 fn streams_beyond_max_connections_leave_every_connection_slot_for_a_stop() {
-    let mut s = Server::unstarted(fresa_tests::Opts::default());
-    s.write_config("max_connections = 16\nmax_event_streams = 64\n");
-    s.spawn().unwrap();
+    let s = Server::start_with_config("max_connections = 16\nmax_event_streams = 64\n");
     let m = s.sim("m", 0.0);
     // Eight at a time, each batch answered before the next: at the connection cap the oldest
     // connection without a request in progress makes room, which a stream whose head was not
