@@ -15,6 +15,12 @@ const EVERY_BLOCK_ALIGN: usize = std::mem::size_of::<usize>();
 
 pub struct MiMalloc;
 
+/// Whether every mimalloc block already has the layout's alignment, so the plain calls serve it.
+#[inline(always)]
+fn plain_call_aligns(layout: Layout) -> bool {
+    layout.align() <= EVERY_BLOCK_ALIGN
+}
+
 /// Gives the calling thread's free pages back to the system now. For a thread that built
 /// something large and is done allocating (the routing table, whose OpenAPI scaffolding is
 /// dropped at once): mimalloc keeps a thread's freed pages in its heap, even after the thread
@@ -51,7 +57,7 @@ unsafe impl GlobalAlloc for MiMalloc {
         let ptr = ptr.cast::<c_void>();
         // SAFETY: see the impl.
         unsafe {
-            if layout.align() <= EVERY_BLOCK_ALIGN {
+            if plain_call_aligns(layout) {
                 mi::mi_realloc(ptr, new_size).cast()
             } else {
                 mi::mi_realloc_aligned(ptr, new_size, layout.align()).cast()
@@ -73,7 +79,7 @@ unsafe fn block(
 ) -> *mut u8 {
     // SAFETY: both are mimalloc's allocation calls, given the layout's size (and alignment).
     unsafe {
-        if layout.align() <= EVERY_BLOCK_ALIGN {
+        if plain_call_aligns(layout) {
             plain(layout.size()).cast()
         } else {
             aligned(layout.size(), layout.align()).cast()

@@ -911,13 +911,16 @@ mod tests {
         );
     }
 
+    fn closed(c: &OpenConnection) -> bool {
+        c.orders.given(Orders::CLOSE)
+    }
+
     #[test]
     fn at_the_cap_the_oldest_quiet_connection_gives_way() {
         let open = OpenConnections::default();
         let (a, b, c) = (open.register(), open.register(), open.register());
         // `a` is answering a request (an event stream, say): never closed to make room.
         let _busy = InFlight::enter(a.activity.clone());
-        let closed = |c: &OpenConnection| c.orders.given(Orders::CLOSE);
         assert!(open.close_oldest_quiet());
         assert!(!closed(&a) && closed(&b) && !closed(&c));
         assert!(open.close_oldest_quiet());
@@ -932,7 +935,6 @@ mod tests {
         let open = OpenConnections::default();
         let (quiet, busy, talking) = (open.register(), open.register(), open.register());
         let _busy = InFlight::enter(busy.activity.clone());
-        let closed = |c: &OpenConnection| c.orders.given(Orders::CLOSE);
         // The first check after they opened only looks.
         open.close_idle();
         assert!(!closed(&quiet) && !closed(&busy) && !closed(&talking));
