@@ -2,13 +2,16 @@
 //! the simulated port (which timestamps every write), stepping both motors every tick.
 //!
 //! Run (from the workspace root):
-//!   cargo bench -p fresa-parport-stepper --bench jitter-bench -- [--hz 20000] [--secs 5] [--cpu N] [--spin-us 20] [--no-rt]
-//! `--cpu N` pins the loop to CPU N (pick an idle one). Real-time priority is tried and reported.
+//!   cargo bench -p fresa-parport-stepper --bench jitter-bench -- [--hz 20000] [--secs 5] [--cpu N] [--spin-us 20] [--no-rt | --fifo]
+//! `--cpu N` pins the loop to CPU N (pick an idle one). The loop asks for the scheduling the
+//! plugin's output thread would (`output::scheduling`: SCHED_FIFO, or nice -20 when it spins
+//! whole ticks under the kernel's real-time throttling) and reports it; `--no-rt` asks for
+//! none, `--fifo` for SCHED_FIFO whatever the throttling.
 //! Under `cargo test --all-targets` (no `--bench` argument) it does a quick smoke run.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fresa_parport_stepper::output::{
-    pin_to_cpu, realtime_priority, tight_timer_slack, Output, Pacer,
+    pin_to_cpu, rt_throttle_limit, scheduling, tight_timer_slack, Output, Pacer, Scheduling,
 };
 use fresa_parport_stepper::port::{Register, SharedSimPort, SimPort};
 use fresa_parport_stepper::Config;
@@ -41,11 +44,14 @@ fn main() {
     if let Err(e) = tight_timer_slack() {
         println!("could not set the timer slack: {e}");
     }
-    let rt = if std::env::args().any(|a| a == "--no-rt") {
-        Err("--no-rt".to_string())
+    let flag = |name: &str| std::env::args().any(|a| a == name);
+    let always_spins = spin_us >= 1e6 / hz;
+    let sched = if flag("--fifo") {
+        Scheduling::RealTime
     } else {
-        realtime_priority()
+        scheduling(!flag("--no-rt"), always_spins, rt_throttle_limit())
     };
+    let applied = sched.apply();
     let ticks = (hz * secs) as u64;
     let config = serde_json::json!({"port": "sim", "tick_hz": hz, "spin_us": spin_us,
         "axes": {"x": {"max_rate": hz / 2.0}, "y": {"max_rate": hz / 2.0}}});
@@ -99,10 +105,10 @@ fn main() {
         .collect();
     gaps.sort_by(|a, b| a.total_cmp(b));
     println!(
-        "{hz} Hz, {ticks} ticks, spin {spin_us} us, real-time priority: {}",
-        match &rt {
-            Ok(()) => "yes".to_string(),
-            Err(e) => format!("no ({e})"),
+        "{hz} Hz, {ticks} ticks, spin {spin_us} us, scheduling: {sched:?}{}",
+        match &applied {
+            Ok(()) => String::new(),
+            Err(e) => format!(" NOT applied ({e})"),
         }
     );
     println!(
@@ -110,6 +116,14 @@ fn main() {
         percentile(&late, 0.5),
         percentile(&late, 0.99),
         late.last().unwrap()
+    );
+    // A stall (throttled, preempted) shows as one write late by its length: the schedule
+    // shifts after it.
+    let stalls: Vec<f64> = late.iter().copied().filter(|&us| us > 1000.0).collect();
+    println!(
+        "stalls over 1 ms: {}, {:.1} ms in all",
+        stalls.len(),
+        stalls.iter().fold(0.0, |a, b| a + b) / 1000.0
     );
     println!(
         "period error |interval - {:.0} us|: p50 {:.1} us  p99 {:.1} us  max {:.1} us; overruns {}",

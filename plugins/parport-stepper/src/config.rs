@@ -328,7 +328,8 @@ impl Config {
         let mut tick_hz = 20_000.0;
         let mut idle_off_ms = 15.0;
         // Spinning the whole period at SCHED_FIFO trips the kernel's real-time throttling (95 % of
-        // each second by default) and stalls the loop for 50 ms; 40 us still sleeps part of
+        // each second by default) and stalls the loop for 50 ms (such a loop takes nice -20
+        // instead, see `output::scheduling`, and then shares its CPU); 40 us still sleeps part of
         // every 50 us tick, and covers a stock kernel's wake-up latency (15-25 us measured on
         // a VM), so the tick starts on time (see the README's jitter measurements).
         let mut spin_us = 40.0;

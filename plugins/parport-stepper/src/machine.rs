@@ -3,7 +3,10 @@
 //! executes plans, reads the inputs every tick and reports what happened.
 
 use crate::config::{Config, Input, InputFunction, PortSpec};
-use crate::output::{pin_to_cpu, realtime_priority, tight_timer_slack, Output, Pacer};
+use crate::output::{
+    pin_to_cpu, rt_throttle_limit, scheduling, tight_timer_slack, Output, Pacer, Scheduling,
+    HIGHEST_NICE,
+};
 use crate::planner::{
     self, Action, Builder, Item, Machine, Pace, PlanEnd, PlanStream, ProgramStream, Retimable,
     Scale, Start,
@@ -1150,36 +1153,51 @@ impl Stepper {
                     );
                 }
             }
-            if let Some(cpu) = cpu {
-                match pin_to_cpu(cpu) {
-                    Ok(()) => log(LogLevel::Info, &format!("output loop pinned to CPU {cpu}")),
-                    Err(e) => log(
-                        LogLevel::Warn,
-                        &format!("output loop could NOT be pinned to CPU {cpu} ({e}); it runs on any CPU"),
-                    ),
+            let pinned = match cpu.map(|cpu| (cpu, pin_to_cpu(cpu))) {
+                None => false,
+                Some((cpu, Ok(()))) => {
+                    log(LogLevel::Info, &format!("output loop pinned to CPU {cpu}"));
+                    true
                 }
-            }
-            if want_rt && always_spins {
-                if let Some(limit) = rt_throttle_limit() {
+                Some((cpu, Err(e))) => {
                     log(
                         LogLevel::Warn,
-                        &format!(
-                            "output loop spins every whole tick (spin_us >= the {:.1} us period) at real-time priority, but the kernel throttles real-time threads (kernel.sched_rt_runtime_us = {limit}): expect the loop to stall about 50 ms each second. Set `sysctl kernel.sched_rt_runtime_us=-1`, or lower spin_us or tick_hz",
-                            period * 1e6
-                        ),
+                        &format!("output loop could NOT be pinned to CPU {cpu} ({e}); it runs on any CPU"),
                     );
+                    false
                 }
-            }
-            if want_rt {
-                match realtime_priority() {
-                        Ok(()) => log(LogLevel::Info, "output loop runs with real-time priority (SCHED_FIFO)"),
+            };
+            let sched = scheduling(want_rt, always_spins, rt_throttle_limit());
+            match (&sched, sched.apply()) {
+                (Scheduling::AsStarted, _) => {}
+                (Scheduling::RealTime, Ok(())) => log(LogLevel::Info, "output loop runs with real-time priority (SCHED_FIFO)"),
+                (Scheduling::RealTime, Err(e)) => log(
+                    LogLevel::Warn,
+                    &format!(
+                        "output loop could NOT get real-time priority ({e}); step timing may jitter under load. Grant CAP_SYS_NICE (e.g. `setcap cap_sys_nice+ep fresa`) or raise RLIMIT_RTPRIO"
+                    ),
+                ),
+                (Scheduling::HighestNormal { rt_limit }, applied) => {
+                    let why = format!(
+                        "output loop spins every whole tick (spin_us >= the {:.1} us period) and the kernel throttles real-time threads (kernel.sched_rt_runtime_us = {rt_limit}), which would stop it about 50 ms each second",
+                        period * 1e6
+                    );
+                    match applied {
+                        Ok(()) => log(
+                            if pinned { LogLevel::Info } else { LogLevel::Warn },
+                            &format!(
+                                "{why}: it runs at the highest normal priority (nice {HIGHEST_NICE}) instead of SCHED_FIFO. Other work on its CPU can still delay it by milliseconds{}; `sysctl kernel.sched_rt_runtime_us=-1` lets it take SCHED_FIFO",
+                                if pinned { "" } else { ": give it a CPU of its own (`cpu`, best with isolcpus=)" }
+                            ),
+                        ),
                         Err(e) => log(
                             LogLevel::Warn,
                             &format!(
-                                "output loop could NOT get real-time priority ({e}); step timing may jitter under load. Grant CAP_SYS_NICE (e.g. `setcap cap_sys_nice+ep fresa`) or raise RLIMIT_RTPRIO"
+                                "{why}; it could NOT take the highest normal priority (nice {HIGHEST_NICE}) instead ({e}), so other work may delay it. Grant CAP_SYS_NICE (e.g. `setcap cap_sys_nice+ep fresa`) or raise RLIMIT_NICE"
                             ),
                         ),
                     }
+                }
             }
             worker_core.worker(out)
         })?;
@@ -1215,14 +1233,6 @@ impl Stepper {
             Ok(on)
         })
     }
-}
-
-/// The kernel's real-time runtime limit (`kernel.sched_rt_runtime_us`) when real-time threads
-/// are throttled (None: not throttled, or not known).
-fn rt_throttle_limit() -> Option<i64> {
-    let text = std::fs::read_to_string("/proc/sys/kernel/sched_rt_runtime_us").ok()?;
-    let v: i64 = text.trim().parse().ok()?;
-    (v >= 0).then_some(v)
 }
 
 #[cfg(target_os = "linux")]

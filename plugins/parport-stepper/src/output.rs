@@ -395,6 +395,36 @@ pub fn pin_to_cpu(cpu: usize) -> Result<(), String> {
     }
 }
 
+/// Gives the calling thread the highest normal (`SCHED_OTHER`) priority, nice -20: it then
+/// gets nearly all of a CPU it shares, and the kernel's real-time throttling never applies
+/// to it. Err says why not (lowering a nice value needs `CAP_SYS_NICE` or `RLIMIT_NICE`).
+pub fn highest_normal_priority() -> Result<(), String> {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: plain syscalls on the calling thread (Linux keeps a nice value per thread,
+        // named by its id); no memory is passed.
+        let r = unsafe {
+            libc::setpriority(
+                libc::PRIO_PROCESS,
+                libc::gettid() as libc::id_t,
+                HIGHEST_NICE,
+            )
+        };
+        if r == 0 {
+            Ok(())
+        } else {
+            Err(io::Error::last_os_error().to_string())
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        Err("only implemented on Linux".into())
+    }
+}
+
+/// The nice value `highest_normal_priority` asks for.
+pub const HIGHEST_NICE: i32 = -20;
+
 /// Asks for real-time (SCHED_FIFO) priority for the calling thread. Err says why not.
 pub fn realtime_priority() -> Result<(), String> {
     #[cfg(target_os = "linux")]
@@ -416,6 +446,48 @@ pub fn realtime_priority() -> Result<(), String> {
     {
         Err("only implemented on Linux".into())
     }
+}
+
+/// How the output thread asks to be scheduled.
+#[derive(Debug, PartialEq, Eq)]
+pub enum Scheduling {
+    /// As the thread started (`realtime_priority: false`, or virtual time).
+    AsStarted,
+    /// `SCHED_FIFO`.
+    RealTime,
+    /// Nice -20. A loop that spins every whole tick never sleeps, and under the kernel's
+    /// real-time throttling a `SCHED_FIFO` thread that never sleeps is stopped for the rest of
+    /// each second once it has run `rt_limit` µs of it (measured: ~50 ms stalls, the CPU idle
+    /// meanwhile). A normal thread is never throttled; at nice -20 it keeps nearly all of its
+    /// CPU, and other work delays it only when that work runs on the same CPU.
+    HighestNormal { rt_limit: i64 },
+}
+
+pub fn scheduling(want_rt: bool, always_spins: bool, rt_limit: Option<i64>) -> Scheduling {
+    match (want_rt, always_spins, rt_limit) {
+        (false, _, _) => Scheduling::AsStarted,
+        (true, true, Some(rt_limit)) => Scheduling::HighestNormal { rt_limit },
+        (true, _, _) => Scheduling::RealTime,
+    }
+}
+
+impl Scheduling {
+    /// Asks the kernel for it, for the calling thread. Err says why not.
+    pub fn apply(&self) -> Result<(), String> {
+        match self {
+            Scheduling::AsStarted => Ok(()),
+            Scheduling::RealTime => realtime_priority(),
+            Scheduling::HighestNormal { .. } => highest_normal_priority(),
+        }
+    }
+}
+
+/// The kernel's real-time runtime limit (`kernel.sched_rt_runtime_us`) when real-time threads
+/// are throttled (None: not throttled, or not known).
+pub fn rt_throttle_limit() -> Option<i64> {
+    let text = std::fs::read_to_string("/proc/sys/kernel/sched_rt_runtime_us").ok()?;
+    let v: i64 = text.trim().parse().ok()?;
+    (v >= 0).then_some(v)
 }
 
 #[cfg(test)]
@@ -449,5 +521,18 @@ mod tests {
         let mut v = Lateness::new(None);
         v.record(Duration::from_micros(5));
         assert_eq!((v.n, v.ready), (0, None));
+    }
+
+    #[test]
+    fn only_a_loop_that_spins_whole_ticks_under_throttling_gives_up_sched_fifo() {
+        use Scheduling::*;
+        assert_eq!(scheduling(false, true, Some(950_000)), AsStarted);
+        assert_eq!(scheduling(false, false, None), AsStarted);
+        assert_eq!(scheduling(true, false, Some(950_000)), RealTime);
+        assert_eq!(scheduling(true, true, None), RealTime);
+        assert_eq!(
+            scheduling(true, true, Some(950_000)),
+            HighestNormal { rt_limit: 950_000 }
+        );
     }
 }

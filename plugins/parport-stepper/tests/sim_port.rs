@@ -1124,3 +1124,62 @@ fn feed_overrides_during_a_move_ramp_to_the_new_rate_within_the_limits() {
     }
     eprintln!("{}", report.join("\n"));
 }
+
+/// A loop that spins every whole tick never sleeps. Under the kernel's real-time throttling
+/// (`kernel.sched_rt_runtime_us` >= 0, a stock kernel) SCHED_FIFO would have it stopped about
+/// 50 ms each second, so it takes the highest normal priority (nice -20) instead; with no
+/// throttling it takes SCHED_FIFO. Read back from the kernel, for the output thread itself.
+#[test]
+fn a_loop_that_spins_whole_ticks_is_not_left_to_real_time_throttling() {
+    let throttled = std::fs::read_to_string("/proc/sys/kernel/sched_rt_runtime_us")
+        .unwrap()
+        .trim()
+        .parse::<i64>()
+        .unwrap()
+        >= 0;
+    // The output thread logs how it is scheduled once it has asked; the sink, called on that
+    // thread, reads the thread's own scheduling then (/proc/thread-self/stat: nice, policy).
+    let (tx, rx) = std::sync::mpsc::channel();
+    let tx = Mutex::new(tx);
+    let log = Arc::new(move |_level, line: &str| {
+        if line.contains("priority") {
+            let stat = std::fs::read_to_string("/proc/thread-self/stat").unwrap();
+            let fields: Vec<String> = stat[stat.rfind(')').unwrap() + 2..]
+                .split(' ')
+                .map(str::to_string)
+                .collect();
+            // Fields 19 (nice) and 41 (policy: 0 normal, 1 SCHED_FIFO), counted from 1.
+            let _ = tx.lock().unwrap().send((
+                line.to_string(),
+                fields[16].parse::<i32>().unwrap(),
+                fields[38].parse::<u32>().unwrap(),
+            ));
+        }
+    });
+    // 40 kHz with spin_us at the 25 us period: the whole tick spins (the loop is idle here).
+    let m = Stepper::new(
+        &sim(json!({"tick_hz": 40000, "spin_us": 25, "realtime_priority": true})),
+        Arc::new(|_: &Event| {}),
+        log,
+        Timing::Real,
+    )
+    .unwrap();
+    let (line, nice, policy) = rx.recv_timeout(Duration::from_secs(30)).unwrap();
+    drop(m);
+    let refused = line.contains("could NOT");
+    if throttled {
+        assert!(
+            line.contains("kernel.sched_rt_runtime_us") && line.contains("nice -20"),
+            "{line}"
+        );
+        assert_eq!(policy, 0, "not SCHED_FIFO under throttling: {line}");
+        if !refused {
+            assert_eq!(nice, -20, "{line}");
+        }
+    } else {
+        assert!(line.contains("SCHED_FIFO"), "{line}");
+        if !refused {
+            assert_eq!(policy, 1, "{line}");
+        }
+    }
+}
