@@ -4,8 +4,8 @@
 
 use crate::config::{Config, Input, InputFunction, PortSpec};
 use crate::output::{
-    pin_to_cpu, rt_throttle_limit, scheduling, tight_timer_slack, Output, Pacer, Scheduling,
-    HIGHEST_NICE,
+    avoid_cpu, pin_to_cpu, rt_throttle_limit, scheduling, tight_timer_slack, Output, Pacer,
+    Scheduling, HIGHEST_NICE,
 };
 use crate::planner::{
     self, Action, Builder, Item, Machine, Pace, PlanEnd, PlanStream, ProgramStream, Retimable,
@@ -112,6 +112,8 @@ pub struct Stepper {
 
 struct Core {
     cfg: Config,
+    /// The CPU the output thread pins itself to (`cpu`, in real time only).
+    loop_cpu: Option<usize>,
     kit: Kit,
     /// The feed and rapid override the planner plans for (set with the kit's overrides).
     scale: Arc<Mutex<Scale>>,
@@ -504,9 +506,16 @@ impl Core {
         let machine = self.cfg.machine.clone();
         let scale = Arc::clone(&self.scale);
         let feeder = Arc::clone(&lane);
+        let loop_cpu = self.loop_cpu;
         std::thread::Builder::new()
             .name("parport planner".into())
             .spawn(move || {
+                if let Some(cpu) = loop_cpu {
+                    // Started by the output thread, it would share that thread's CPU. The
+                    // only failure is a process given that one CPU, where the loop's log line
+                    // already says other work shares it.
+                    let _ = avoid_cpu(cpu);
+                }
                 let _done = PlannerDone(&feeder);
                 plan(&feeder, &machine, &scale);
             })
@@ -1123,8 +1132,10 @@ impl Stepper {
             jog_feed_mm_min: cfg.jog_feed_mm_min,
             travel: [cfg.machine.travel[0], cfg.machine.travel[1], None, None],
         };
+        let loop_cpu = cfg.cpu.filter(|_| timing == Timing::Real);
         let core = Arc::new(Core {
             cfg,
+            loop_cpu,
             kit: Kit::new(kit_cfg, sink, exec_log, Drive::default()),
             scale: Arc::new(Mutex::new(Scale::default())),
         });
@@ -1141,7 +1152,7 @@ impl Stepper {
         });
         let worker_core = Arc::clone(&core);
         let want_rt = core.cfg.realtime_priority && timing == Timing::Real;
-        let cpu = core.cfg.cpu.filter(|_| timing == Timing::Real);
+        let cpu = core.loop_cpu;
         let period = 1.0 / core.cfg.machine.tick_hz;
         let always_spins = core.cfg.spin.as_secs_f64() >= period;
         let worker = MotionThread::spawn("parport output", move || {
