@@ -347,6 +347,31 @@ impl Output {
     }
 }
 
+/// A libc call's result as these functions report it: Err holds the OS's reason.
+#[cfg(target_os = "linux")]
+fn os_status(r: libc::c_int) -> Result<(), String> {
+    if r == 0 {
+        Ok(())
+    } else {
+        Err(io::Error::last_os_error().to_string())
+    }
+}
+
+/// A CPU number a `cpu_set_t` can hold (the CPU_* macros index it unchecked).
+#[cfg(target_os = "linux")]
+fn cpu_in_range(cpu: usize) -> Result<(), String> {
+    if cpu < libc::CPU_SETSIZE as usize {
+        Ok(())
+    } else {
+        Err(format!("CPU {cpu} is out of range"))
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+fn not_on_this_os() -> Result<(), String> {
+    Err("only implemented on Linux".into())
+}
+
 /// Sets the calling thread's timer slack to 1 ns: a normal thread's sleeps may end up to
 /// 50 us late (the default slack), which is a whole tick at 20 kHz. (Real-time threads have
 /// none.) Err says why not.
@@ -355,16 +380,10 @@ pub fn tight_timer_slack() -> Result<(), String> {
     {
         // SAFETY: PR_SET_TIMERSLACK takes a plain integer argument; no memory is passed.
         let r = unsafe { libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong, 0, 0, 0) };
-        if r == 0 {
-            Ok(())
-        } else {
-            Err(io::Error::last_os_error().to_string())
-        }
+        os_status(r)
     }
     #[cfg(not(target_os = "linux"))]
-    {
-        Err("only implemented on Linux".into())
-    }
+    not_on_this_os()
 }
 
 /// Pins the calling thread to CPU `cpu` (an isolated or otherwise idle core keeps other work
@@ -372,9 +391,7 @@ pub fn tight_timer_slack() -> Result<(), String> {
 pub fn pin_to_cpu(cpu: usize) -> Result<(), String> {
     #[cfg(target_os = "linux")]
     {
-        if cpu >= libc::CPU_SETSIZE as usize {
-            return Err(format!("CPU {cpu} is out of range"));
-        }
+        cpu_in_range(cpu)?;
         // SAFETY: a zeroed cpu_set_t is valid; CPU_SET writes within it (cpu checked above);
         // sched_setaffinity reads it for the calling thread.
         let r = unsafe {
@@ -382,16 +399,12 @@ pub fn pin_to_cpu(cpu: usize) -> Result<(), String> {
             libc::CPU_SET(cpu, &mut set);
             libc::sched_setaffinity(0, std::mem::size_of_val(&set), &set)
         };
-        if r == 0 {
-            Ok(())
-        } else {
-            Err(io::Error::last_os_error().to_string())
-        }
+        os_status(r)
     }
     #[cfg(not(target_os = "linux"))]
     {
         let _ = cpu;
-        Err("only implemented on Linux".into())
+        not_on_this_os()
     }
 }
 
@@ -403,31 +416,32 @@ pub fn pin_to_cpu(cpu: usize) -> Result<(), String> {
 pub fn avoid_cpu(cpu: usize) -> Result<(), String> {
     #[cfg(target_os = "linux")]
     {
-        if cpu >= libc::CPU_SETSIZE as usize {
-            return Err(format!("CPU {cpu} is out of range"));
-        }
+        cpu_in_range(cpu)?;
         // SAFETY: a zeroed cpu_set_t is valid; sched_getaffinity fills it and CPU_CLR and
         // CPU_COUNT stay within it (cpu checked above); sched_setaffinity reads it.
         unsafe {
             let mut set: libc::cpu_set_t = std::mem::zeroed();
             // The main thread (its id is the process's) keeps the CPUs the process was given.
-            if libc::sched_getaffinity(libc::getpid(), std::mem::size_of_val(&set), &mut set) != 0 {
-                return Err(io::Error::last_os_error().to_string());
-            }
+            os_status(libc::sched_getaffinity(
+                libc::getpid(),
+                std::mem::size_of_val(&set),
+                &mut set,
+            ))?;
             libc::CPU_CLR(cpu, &mut set);
             if libc::CPU_COUNT(&set) == 0 {
                 return Err(format!("CPU {cpu} is the only one this process may use"));
             }
-            if libc::sched_setaffinity(0, std::mem::size_of_val(&set), &set) != 0 {
-                return Err(io::Error::last_os_error().to_string());
-            }
+            os_status(libc::sched_setaffinity(
+                0,
+                std::mem::size_of_val(&set),
+                &set,
+            ))
         }
-        Ok(())
     }
     #[cfg(not(target_os = "linux"))]
     {
         let _ = cpu;
-        Err("only implemented on Linux".into())
+        not_on_this_os()
     }
 }
 
@@ -446,16 +460,10 @@ pub fn highest_normal_priority() -> Result<(), String> {
                 HIGHEST_NICE,
             )
         };
-        if r == 0 {
-            Ok(())
-        } else {
-            Err(io::Error::last_os_error().to_string())
-        }
+        os_status(r)
     }
     #[cfg(not(target_os = "linux"))]
-    {
-        Err("only implemented on Linux".into())
-    }
+    not_on_this_os()
 }
 
 /// The nice value `highest_normal_priority` asks for.
@@ -472,16 +480,10 @@ pub fn realtime_priority() -> Result<(), String> {
             };
             libc::sched_setscheduler(0, libc::SCHED_FIFO, &param)
         };
-        if r == 0 {
-            Ok(())
-        } else {
-            Err(io::Error::last_os_error().to_string())
-        }
+        os_status(r)
     }
     #[cfg(not(target_os = "linux"))]
-    {
-        Err("only implemented on Linux".into())
-    }
+    not_on_this_os()
 }
 
 /// How the output thread asks to be scheduled.
