@@ -739,6 +739,10 @@ impl OpenConnections {
     /// Runs [`Self::close_idle`] every `idle` until dropped (aborted).
     async fn close_idle_every(self, idle: Duration) {
         let mut check = tokio::time::interval_at(Instant::now() + idle, idle);
+        // After a stall the default (Burst) would run missed checks back to back, and the
+        // second would close connections whose bytes moved just before the first: each check
+        // must come a whole period after the one before.
+        check.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             check.tick().await;
             self.close_idle();
