@@ -137,7 +137,7 @@ pub async fn create_machine(app: &App, req: NewMachine, actor: &str) -> Result<i
         &app.machine_options(),
     )
     .await;
-    app.machines.insert(m).await;
+    app.machines.insert(m);
     app.bus
         .record_or_log(
             EventKind::MachineCreated,
@@ -410,7 +410,7 @@ pub async fn delete_pendant(app: &App, id: i64, actor: &str) -> Result<()> {
 /// machine's task on this node, so both must be here).
 pub async fn check_pendant_machine(app: &App, machine: Option<i64>) -> Result<()> {
     if let Some(id) = machine {
-        if app.machines.get(id).await.is_none() {
+        if app.machines.get(id).is_none() {
             if let Some(row) = app.store.machine(id).await? {
                 return Err(Error::invalid(
                     "machine_on_other_node",

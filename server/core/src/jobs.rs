@@ -115,7 +115,7 @@ pub async fn analysis_options(app: &App, machine_id: i64) -> Result<fresa_gcode:
         tools: crate::tools::gcode_table(app, machine_id).await?,
         ..fresa_gcode::Config::default()
     };
-    let profile = match app.machines.get(machine_id).await {
+    let profile = match app.machines.get(machine_id) {
         Some(m) => m.motion_profile().await,
         None => None,
     };
@@ -274,7 +274,7 @@ pub fn gcode_error(e: &fresa_gcode::GcodeError, max_segments: u64) -> Error {
 /// The job `job_id` as a machine of this node knows it: its current job, with the run as the
 /// task last reported it (`None` while the run is not known in memory).
 async fn known(app: &App, job_id: i64) -> Option<(JobRow, Option<RunRow>)> {
-    for m in app.machines.all().await {
+    for m in app.machines.all() {
         if let Some(job) = m.current_job().filter(|j| j.id == job_id) {
             let run = m.current_run().filter(|r| r.job_id == job_id);
             return Some((job, run));
@@ -359,7 +359,7 @@ pub async fn list(
         .map(|r| (r.job_id, r))
         .collect();
     if !health.is_up() {
-        for m in app.machines.all().await {
+        for m in app.machines.all() {
             if let Some(run) = m.current_run().filter(|r| ids.contains(&r.job_id)) {
                 runs.insert(run.job_id, run);
             }
@@ -385,7 +385,7 @@ pub async fn program(app: &App, job_id: i64) -> Result<(JobRow, std::path::PathB
 
 async fn load_job(app: &App, job_id: i64) -> Result<(JobRow, Arc<Machine>)> {
     let job = job(app, job_id).await?;
-    let machine = app.machines.get(job.machine_id).await.ok_or_else(|| {
+    let machine = app.machines.get(job.machine_id).ok_or_else(|| {
         Error::conflict(
             "machine_unavailable",
             format!("machine {} of job {job_id} is not loaded", job.machine_id),
@@ -476,7 +476,7 @@ pub async fn pause_because(
 /// Why the job's run holds, while its machine (on this node) holds it: the machine's status's
 /// `hold`, as the job view shows it.
 pub async fn live_hold(app: &App, job_id: i64) -> Option<fresa_plugin_api::contract::Hold> {
-    for m in app.machines.all().await {
+    for m in app.machines.all() {
         if m.current_job().is_some_and(|j| j.id == job_id) {
             let held = m
                 .run()

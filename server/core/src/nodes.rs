@@ -71,7 +71,7 @@ impl App {
     /// Which node drives machine `id`. A machine this node has loaded is local whatever the
     /// store says a moment later (its task ends only once idle).
     pub async fn machine_owner(&self, id: i64) -> crate::Result<Owner> {
-        if self.machines.get(id).await.is_some() {
+        if self.machines.get(id).is_some() {
             return Ok(Owner::Local);
         }
         let Some(row) = self.store.machine(id).await? else {
@@ -212,7 +212,7 @@ impl Heartbeat {
 }
 
 async fn beat(app: &SharedApp) -> crate::Result<()> {
-    let local = app.machines.all().await;
+    let local = app.machines.all();
     let statuses: BTreeMap<String, MachineStatus> = local
         .iter()
         .map(|m| (m.id.to_string(), m.status()))
@@ -234,7 +234,7 @@ async fn reconcile(app: &SharedApp) -> crate::Result<()> {
         .filter(|r| r.node.as_deref() == Some(me))
         .map(|r| r.id)
         .collect();
-    let loaded = app.machines.all().await;
+    let loaded = app.machines.all();
     let loaded_ids: HashSet<i64> = loaded.iter().map(|m| m.id).collect();
     for row in rows {
         if ours.contains(&row.id) && !loaded_ids.contains(&row.id) {
@@ -249,7 +249,7 @@ async fn reconcile(app: &SharedApp) -> crate::Result<()> {
                 machine = m.id,
                 "machine moved to another node: letting it go"
             );
-            app.machines.remove(m.id).await;
+            app.machines.remove(m.id);
             m.close_gate();
             if let Err(e) = m.shutdown_backend().await {
                 tracing::error!(machine = m.id, error = %e, "shutdown of a machine moved away failed");

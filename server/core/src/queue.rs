@@ -533,7 +533,7 @@ async fn step(app: &App, first: bool) {
     };
     for row in states {
         let machine = row.machine_id;
-        if app.machines.get(machine).await.is_none() {
+        if app.machines.get(machine).is_none() {
             continue;
         }
         // Only a running queue moves by itself; the others change through the API, which
@@ -642,7 +642,7 @@ pub struct Refusal {
 /// queue idle. The job is the machine's own, or a copy of it made for this machine (same
 /// program). The start is `jobs::start`'s, so the backend's whole-program check applies.
 pub async fn take(app: &App, machine: i64, job_id: i64, actor: &str) -> Result<Started> {
-    let m = app.machines.get(machine).await.ok_or_else(|| {
+    let m = app.machines.get(machine).ok_or_else(|| {
         Error::conflict(
             "machine_unavailable",
             format!("machine {machine} is not driven by this node"),

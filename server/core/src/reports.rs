@@ -178,7 +178,7 @@ pub fn utilisation_csv(r: &UtilisationReport) -> String {
 
 /// The machine this node drives, or why not.
 async fn local(app: &App, id: i64) -> Result<std::sync::Arc<crate::machine::Machine>> {
-    if let Some(m) = app.machines.get(id).await {
+    if let Some(m) = app.machines.get(id) {
         return Ok(m);
     }
     match app.store.health().read(app.store.machine(id)).await? {

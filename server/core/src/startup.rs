@@ -235,7 +235,7 @@ impl App {
     /// still open or queued. Bounded: a backend that does not answer its urgent shutdown call
     /// within `limit` is left behind (it is logged), so the process can still exit.
     pub async fn stop_motion(&self, limit: std::time::Duration) {
-        let machines = self.machines.all().await;
+        let machines = self.machines.all();
         for m in &machines {
             m.close_gate();
         }
@@ -279,7 +279,7 @@ impl App {
     pub async fn stop_rest(&self, limit: std::time::Duration) {
         self.shutdown.cancel();
         // Maintenance counters and the `offline` state change, so a restart goes on from here.
-        let machines = self.machines.all().await;
+        let machines = self.machines.all();
         let flushes = machines.iter().map(|m| m.flush_records(&self.store));
         if tokio::time::timeout(limit, futures_util::future::join_all(flushes))
             .await
@@ -316,7 +316,7 @@ pub(crate) async fn load_machine(app: &App, row: crate::store::MachineRow) {
     if let Some(reason) = m.unavailable_reason() {
         tracing::error!(machine = m.id, reason, "machine offline");
     }
-    app.machines.insert(m).await;
+    app.machines.insert(m);
 }
 
 /// Removes `.upload-*.tmp` files a killed process left in `programs/` (a clean shutdown

@@ -127,7 +127,7 @@ async fn go_to_setter(
 /// Measures tool `tool` on the machine's tool setter (the tool in the spindle is taken to be
 /// it) and stores its length; see the module's description.
 pub async fn measure(app: &App, machine_id: i64, tool: i64, actor: &str) -> Result<MeasureReport> {
-    let m: Arc<Machine> = app.machines.get(machine_id).await.ok_or_else(|| {
+    let m: Arc<Machine> = app.machines.get(machine_id).ok_or_else(|| {
         Error::not_found(
             "unknown_machine",
             format!("no machine with id {machine_id}"),

@@ -18,7 +18,6 @@ use utoipa::{IntoParams, ToSchema};
 async fn machine(app: &SharedApp, id: i64) -> Result<Arc<Machine>, ApiError> {
     app.machines
         .get(id)
-        .await
         .ok_or_else(|| ApiError::not_found("unknown_machine", format!("no machine with id {id}")))
 }
 

@@ -346,7 +346,6 @@ async fn healthz(State(app): State<SharedApp>) -> impl IntoResponse {
     let unresponsive: Vec<i64> = app
         .machines
         .all()
-        .await
         .iter()
         .filter(|m| m.unresponsive().is_some())
         .map(|m| m.id)
@@ -391,7 +390,7 @@ async fn metrics(
     let _ = writeln!(out, "# TYPE fresa_machine_state gauge");
     let mut input_lines = String::new();
     let mut output_lines = String::new();
-    for m in app.machines.all().await {
+    for m in app.machines.all() {
         let status = m.status();
         let state = status.state.as_str();
         let name = m.row().name.replace(['\\', '"', '\n'], "_");
@@ -485,7 +484,7 @@ async fn records_metrics(app: &fresa_core::App) -> String {
     let mut counters = String::from(
         "# HELP fresa_machine_spindle_seconds_total Spindle-on time of each machine.\n# TYPE fresa_machine_spindle_seconds_total counter\n# HELP fresa_machine_motion_seconds_total Motion time (running, jogging, homing) of each machine.\n# TYPE fresa_machine_motion_seconds_total counter\n# HELP fresa_machine_distance_mm_total Distance travelled per axis.\n# TYPE fresa_machine_distance_mm_total counter\n# HELP fresa_machine_jobs_total Runs ended on each machine.\n# TYPE fresa_machine_jobs_total counter\n# HELP fresa_maintenance_due 1 while a maintenance interval is due.\n# TYPE fresa_maintenance_due gauge\n",
     );
-    for m in app.machines.all().await {
+    for m in app.machines.all() {
         for (state, secs) in m.state_seconds() {
             let _ = writeln!(
                 out,

@@ -22,7 +22,6 @@ use utoipa::ToSchema;
 async fn machine(app: &SharedApp, id: i64) -> Result<Arc<Machine>, ApiError> {
     app.machines
         .get(id)
-        .await
         .ok_or_else(|| ApiError::not_found("unknown_machine", format!("no machine with id {id}")))
 }
 
@@ -68,7 +67,7 @@ pub async fn list(State(app): State<SharedApp>) -> Result<Json<Vec<MachineView>>
         .collect();
     let mut out = Vec::new();
     for row in app.store.list_machines().await? {
-        match app.machines.get(row.id).await {
+        match app.machines.get(row.id) {
             Some(m) => out.push(machine_json(&m)),
             None => {
                 let node = row.node.as_deref().and_then(|n| nodes.get(n));
@@ -90,7 +89,7 @@ pub async fn get_one(
     State(app): State<SharedApp>,
     Path(id): Path<i64>,
 ) -> Result<Json<MachineView>, ApiError> {
-    match app.machines.get(id).await {
+    match app.machines.get(id) {
         Some(m) => Ok(Json(machine_json(&m))),
         None => remote_view(&app, id).await.map(Json),
     }
@@ -187,7 +186,7 @@ pub async fn status(
     Path(id): Path<i64>,
     Query(wait): Query<StatusWait>,
 ) -> Result<axum::response::Response, ApiError> {
-    match app.machines.get(id).await {
+    match app.machines.get(id) {
         Some(m) => {
             if let Some(target) = wait.until {
                 wait_for_state(&m, target, wait.timeout_s).await?;

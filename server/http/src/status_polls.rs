@@ -29,7 +29,7 @@ impl<S> StatusPolls<S> {
     }
 
     fn answer(&self, req: &Request) -> Option<Response> {
-        let machine = self.app.machines.local(polled_machine(req)?)?;
+        let machine = self.app.machines.get(polled_machine(req)?)?;
         let json = machine.status_json().ok()?;
         Some(
             (

@@ -277,13 +277,7 @@ enum Announce {
 /// What a consumer needs after the broker lost it: the birth message and every machine's status.
 async fn announcement(app: &SharedApp) -> Vec<Announce> {
     let mut v = vec![Announce::Online];
-    v.extend(
-        app.machines
-            .all()
-            .await
-            .iter()
-            .map(|m| Announce::Status(m.id)),
-    );
+    v.extend(app.machines.all().iter().map(|m| Announce::Status(m.id)));
     v
 }
 
@@ -304,7 +298,7 @@ async fn announce(
                 online_payload(true, &settings.node),
             ),
             Announce::Status(id) => {
-                let Some(m) = app.machines.get(*id).await else {
+                let Some(m) = app.machines.get(*id) else {
                     left.remove(0);
                     continue;
                 };
@@ -599,7 +593,7 @@ async fn machine(
     app: &SharedApp,
     id: i64,
 ) -> fresa_core::Result<Arc<fresa_core::machine::Machine>> {
-    app.machines.get(id).await.ok_or_else(|| {
+    app.machines.get(id).ok_or_else(|| {
         fresa_core::Error::not_found("unknown_machine", format!("no machine with id {id}"))
     })
 }

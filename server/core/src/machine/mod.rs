@@ -1109,27 +1109,24 @@ impl Machines {
             .write()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
-    pub async fn insert(&self, m: Arc<Machine>) {
+    pub fn insert(&self, m: Arc<Machine>) {
         self.write().insert(m.id, m);
     }
-    pub async fn get(&self, id: i64) -> Option<Arc<Machine>> {
-        self.local(id)
-    }
-    /// Machine `id` if this node drives it, without waiting (the status shortcut in front of the
-    /// HTTP router asks this on every poll).
-    pub fn local(&self, id: i64) -> Option<Arc<Machine>> {
+    /// Machine `id` if this node drives it (the status shortcut in front of the HTTP router asks
+    /// this on every poll).
+    pub fn get(&self, id: i64) -> Option<Arc<Machine>> {
         self.read().get(&id).cloned()
     }
-    /// Whether this node drives machine `id`, without waiting (the forwarding layer asks this
+    /// Whether this node drives machine `id` (the forwarding layer asks this
     /// on every machine request).
     pub fn is_local(&self, id: i64) -> bool {
         self.read().contains_key(&id)
     }
     /// Forgets a machine (moved to another node); the caller stops its backend.
-    pub async fn remove(&self, id: i64) -> Option<Arc<Machine>> {
+    pub fn remove(&self, id: i64) -> Option<Arc<Machine>> {
         self.write().remove(&id)
     }
-    pub async fn all(&self) -> Vec<Arc<Machine>> {
+    pub fn all(&self) -> Vec<Arc<Machine>> {
         let mut v: Vec<_> = self.read().values().cloned().collect();
         v.sort_by_key(|m| m.id);
         v

@@ -449,7 +449,7 @@ async fn other_input(app: &Arc<App>, p: &Arc<Pendant>, input: Input) {
 
 async fn bound_machine(app: &App, p: &Pendant) -> Option<Arc<Machine>> {
     let id = p.row().machine_id?;
-    app.machines.get(id).await
+    app.machines.get(id)
 }
 
 /// Records that pendant input did nothing, and why.

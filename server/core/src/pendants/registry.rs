@@ -57,7 +57,7 @@ impl Pendant {
     /// rebind must not wait for the status task to bind it, nor be dropped when it does).
     pub async fn set_machine(&self, app: &crate::App, machine: Option<i64>) {
         let m = match machine {
-            Some(id) => app.machines.get(id).await,
+            Some(id) => app.machines.get(id),
             None => None,
         };
         lock(&self.row).machine_id = machine;
