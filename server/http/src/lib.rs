@@ -57,7 +57,7 @@ pub fn routes(admission: Option<std::sync::Arc<admission::Admission>>) -> Routes
 /// own while the store opens.
 pub struct Routes(Router<SharedApp>);
 
-/// The OpenAPI description of [`router`], as served (for tools and tests without a server).
+/// The OpenAPI description of [`routes`], as served (for tools and tests without a server).
 pub fn openapi_document() -> String {
     doc_json(&described_router(None).1)
 }
