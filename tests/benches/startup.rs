@@ -3,6 +3,11 @@
 //! file-backed pages of the binary and libraries (shared, clean, reclaimable page cache).
 //! Two cases: a first start with `--demo` on a fresh data directory (migrations, demo machine,
 //! simulated pendant), and a restart of a plain server on an existing one.
+//! Then, for each case, one more start whose idle working set is read: the pages it touches in
+//! the 10 s after that RSS reading (the accessed bits cleared through `/proc/PID/clear_refs`,
+//! then smaps' `Referenced` summed). The RSS also holds what the start touched once (the routing
+//! table, migrations) and the binary's pages the kernel maps around each fault; this says how
+//! much of it the idle server actually uses.
 //! A measurement, not a test: `cargo bench -p fresa-tests --bench startup [-- RUNS]` (default
 //! 10). `FRESA_BIN` names another `fresa` build (its directory must hold the plugins).
 
@@ -32,8 +37,40 @@ fn rss(pid: u32) -> (f64, f64) {
     (mib("RssAnon"), mib("RssFile"))
 }
 
-/// One start: milliseconds to ready, and the RSS split 3 s later.
-fn start(fresa: &PathBuf, data_dir: &std::path::Path, demo: bool) -> (f64, (f64, f64)) {
+/// The pages `pid` touches during `window` from now, MiB: private (no file behind them), of the
+/// `fresa` binary, and of the shared libraries. The last is an upper bound: a library's page
+/// cache is shared, and another process's use can mark it referenced too.
+fn working_set(pid: u32, window: Duration) -> [f64; 3] {
+    std::fs::write(format!("/proc/{pid}/clear_refs"), "1").unwrap();
+    std::thread::sleep(window);
+    let smaps = std::fs::read_to_string(format!("/proc/{pid}/smaps")).unwrap();
+    let mut kib = [0u64; 3];
+    let mut which = 0;
+    for line in smaps.lines() {
+        let mut fields = line.split_whitespace();
+        let first = fields.next().unwrap_or("");
+        if first.contains('-') && first.chars().all(|c| c.is_ascii_hexdigit() || c == '-') {
+            // "start-end perms offset dev inode [path]"
+            which = match fields.nth(4) {
+                Some(path) if path.starts_with('/') && path.ends_with("/fresa") => 1,
+                Some(path) if path.starts_with('/') => 2,
+                _ => 0,
+            };
+        } else if first == "Referenced:" {
+            kib[which] += fields.next().and_then(|v| v.parse().ok()).unwrap_or(0);
+        }
+    }
+    kib.map(|k| k as f64 / 1024.0)
+}
+
+/// One start: milliseconds to ready, the RSS split 3 s later, and, given a window, the working
+/// set over that window after it.
+fn start(
+    fresa: &PathBuf,
+    data_dir: &std::path::Path,
+    demo: bool,
+    window: Option<Duration>,
+) -> (f64, (f64, f64), Option<[f64; 3]>) {
     let port = TcpListener::bind("127.0.0.1:0")
         .unwrap()
         .local_addr()
@@ -58,10 +95,11 @@ fn start(fresa: &PathBuf, data_dir: &std::path::Path, demo: bool) -> (f64, (f64,
     let ready = t0.elapsed().as_secs_f64() * 1e3;
     std::thread::sleep(Duration::from_secs(3));
     let mem = rss(child.id());
+    let touched = window.map(|w| working_set(child.id(), w));
     // SIGTERM, as a service manager stops it: the next restart finds a clean data directory.
     let _ = Command::new("kill").arg(child.id().to_string()).status();
     child.wait().unwrap();
-    (ready, mem)
+    (ready, mem, touched)
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -77,7 +115,7 @@ fn main() {
     let fresa = std::env::var_os("FRESA_BIN").map_or_else(fresa_tests::fresa_bin, PathBuf::from);
     let kept = tempfile::tempdir().unwrap();
     // The restarts' data directory, made once beforehand (migrations applied).
-    start(&fresa, kept.path(), false);
+    start(&fresa, kept.path(), false, None);
     for (case, demo) in [
         ("first start --demo, fresh data directory", true),
         ("restart", false),
@@ -85,7 +123,12 @@ fn main() {
         let results: Vec<_> = (0..runs)
             .map(|_| {
                 let fresh = tempfile::tempdir().unwrap();
-                start(&fresa, if demo { fresh.path() } else { kept.path() }, demo)
+                start(
+                    &fresa,
+                    if demo { fresh.path() } else { kept.path() },
+                    demo,
+                    None,
+                )
             })
             .collect();
         let ready: Vec<f64> = results.iter().map(|r| r.0).collect();
@@ -99,6 +142,16 @@ fn main() {
             median(ready),
             median(results.iter().map(|r| r.1 .0).collect()),
             median(results.iter().map(|r| r.1 .1).collect()),
+        );
+        let fresh = tempfile::tempdir().unwrap();
+        let dir = if demo { fresh.path() } else { kept.path() };
+        let window = Duration::from_secs(10);
+        let (_, (private, file), touched) = start(&fresa, dir, demo, Some(window));
+        let [own, binary, libraries] = touched.unwrap();
+        println!(
+            "  of an RSS of {private:.1} + {file:.1} MiB, touched in the next {} s: {own:.1} MiB \
+             private, {binary:.1} MiB of the binary, {libraries:.1} MiB of shared libraries (at most)",
+            window.as_secs()
         );
     }
 }
