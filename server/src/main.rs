@@ -13,6 +13,8 @@ use fresa_core::config;
 
 #[cfg(all(target_os = "linux", feature = "mimalloc"))]
 mod alloc;
+#[cfg(target_os = "linux")]
+mod resident;
 
 /// mimalloc on Linux (README: Measurements, "Status reads"): glibc's malloc and free were about
 /// a fifth of a status request's instructions. Plugins keep their own allocator: the C ABI has

@@ -2,14 +2,15 @@
 //! upload keeps a request open, and the run comes back `interrupted` and resumable; a stop at
 //! any moment of the start (or SIGHUP, unless under `nohup`) is clean, and drains open
 //! connections at once; a second server on the same data directory refuses to start and leaves
-//! the first one alone.
+//! the first one alone. Once ready, the server unmaps the pages of read-only files (its code)
+//! that only the start used.
 
 #![cfg(unix)]
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fresa_tests::{
     assert_every_line_once, back_and_forth, bin_dir, fresa_bin, fresa_cmd, send_signal, wait_for,
-    without_fresa_env, Server,
+    without_fresa_env, Opts, Server,
 };
 use std::io::Write;
 use std::net::TcpStream;
@@ -245,6 +246,45 @@ fn sigterm_drains_kept_alive_and_silent_connections_at_once() {
     assert!(
         !log.contains("connections still open"),
         "the kept-alive connection was not drained:\n{log}"
+    );
+}
+
+/// Once ready, the server unmaps the pages of read-only files (its binary, plugins, libraries)
+/// that the start mapped (`resident.rs`): what is resident of its binary afterwards, with
+/// requests answered (their code is mapped back as it runs), is less than what was dropped.
+#[test]
+fn once_ready_the_server_unmaps_the_code_that_only_the_start_used() {
+    let s = Server::start_with(Opts {
+        log: Some("info,fresa::resident=debug".into()),
+        ..Opts::default()
+    });
+    let line = s.wait_log(T, "unmapped the start's pages of read-only files");
+    let dropped: u64 = line
+        .split_once("kib=")
+        .and_then(|(_, v)| v.split_whitespace().next()?.parse().ok())
+        .unwrap_or_else(|| panic!("no kib= in {line:?}"));
+    for _ in 0..20 {
+        s.get("/healthz").expect(200);
+        s.get("/api/v1/machines").expect(200);
+    }
+    let pid = s.pid().unwrap();
+    let exe = std::fs::read_link(format!("/proc/{pid}/exe")).unwrap();
+    let smaps = std::fs::read_to_string(format!("/proc/{pid}/smaps")).unwrap();
+    // Rss of the binary's read-only mappings: "start-end perms offset dev inode path".
+    let mut resident = 0u64;
+    let mut counted = false;
+    for l in smaps.lines() {
+        let f: Vec<&str> = l.split_whitespace().collect();
+        if f.len() >= 5 && f[0].contains('-') && !f[0].ends_with(':') {
+            counted = !f[1].contains('w') && f[5..].join(" ") == exe.to_string_lossy();
+        } else if counted && f.first() == Some(&"Rss:") {
+            resident += f[1].parse::<u64>().unwrap();
+        }
+    }
+    assert!(dropped > 0, "{line}");
+    assert!(
+        resident < dropped,
+        "{resident} KiB of the binary resident after {dropped} KiB were unmapped"
     );
 }
 
