@@ -7,7 +7,9 @@
 //!   gets its documented status, with a body that matches the documented schema
 //!   (`documented_examples_get_their_documented_status`);
 //! * no route is added around the description (`routes_are_only_added_with_their_description`);
-//! * the document is valid OpenAPI 3.1 for a real validator (`openapi-spec-validator`).
+//! * the document is valid OpenAPI 3.1 for a real validator (`openapi-spec-validator`);
+//! * first requests at once all get the one document, made once
+//!   (`first_requests_at_once_get_the_same_document`).
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -168,6 +170,35 @@ fn document(s: &Server) -> Value {
     let r = s.get("/api/v1/openapi.json");
     assert_eq!(r.status, 200, "{}", r.text);
     r.body
+}
+
+/// The document is made on its first request (on a blocking thread): several first requests
+/// at once wait for the same one, and every answer, then and later, is the same bytes.
+#[test]
+fn first_requests_at_once_get_the_same_document() {
+    let s = Server::start();
+    let path = "/api/v1/openapi.json";
+    let first: Vec<(u16, String)> = std::thread::scope(|scope| {
+        let asking: Vec<_> = (0..6)
+            .map(|_| {
+                scope.spawn(|| {
+                    let r = s.req(reqwest::Method::GET, path).send().unwrap();
+                    (r.status().as_u16(), r.text().unwrap())
+                })
+            })
+            .collect();
+        asking.into_iter().map(|t| t.join().unwrap()).collect()
+    });
+    let later = s.get(path);
+    assert_eq!(later.status, 200);
+    for (status, text) in &first {
+        assert_eq!(*status, 200, "{text}");
+        assert!(
+            *text == later.text,
+            "a first answer differs from a later one"
+        );
+    }
+    assert_eq!(later.body["openapi"], "3.1.0");
 }
 
 struct Answer {
