@@ -900,6 +900,52 @@ pub fn status_kib(pid: u32, field: &str) -> u64 {
         .unwrap_or_else(|| panic!("no {field}: line in /proc/{pid}/status"))
 }
 
+/// One mapping of `/proc/PID/smaps`: permissions, path (empty for anonymous memory, `[name]`
+/// for the stack, heap and vDSO) and its `Name: N kB` fields.
+pub struct SmapsMapping {
+    pub perms: String,
+    pub path: String,
+    fields: Vec<(String, u64)>,
+}
+
+impl SmapsMapping {
+    /// The field `name` (e.g. `"Rss"`), KiB; 0 if absent.
+    pub fn kib(&self, name: &str) -> u64 {
+        self.fields
+            .iter()
+            .find(|(n, _)| n == name)
+            .map_or(0, |(_, v)| *v)
+    }
+}
+
+/// The mappings of process `pid`, from `/proc/PID/smaps`.
+pub fn smaps(pid: u32) -> Vec<SmapsMapping> {
+    let text = std::fs::read_to_string(format!("/proc/{pid}/smaps"))
+        .unwrap_or_else(|e| panic!("cannot read /proc/{pid}/smaps: {e}"));
+    let mut all: Vec<SmapsMapping> = Vec::new();
+    for line in text.lines() {
+        let mut fields = line.split_whitespace();
+        let first = fields.next().unwrap_or("");
+        if let Some(name) = first.strip_suffix(':') {
+            // "Name: N kB" (VmFlags and THPeligible do not parse as a number and are skipped).
+            let value = fields.next().and_then(|v| v.parse().ok());
+            if let (Some(m), Some(v)) = (all.last_mut(), value) {
+                m.fields.push((name.to_string(), v));
+            }
+        } else {
+            // "start-end perms offset dev inode [path]": the path may hold blanks.
+            let perms = fields.next().unwrap_or("").to_string();
+            let path = fields.skip(3).collect::<Vec<_>>().join(" ");
+            all.push(SmapsMapping {
+                perms,
+                path,
+                fields: Vec::new(),
+            });
+        }
+    }
+    all
+}
+
 /// A small deterministic pseudo-random generator (xorshift64*), so a failing randomised test
 /// can be replayed from the seed it prints.
 #[derive(Debug, Clone)]

@@ -43,22 +43,14 @@ fn rss(pid: u32) -> (f64, f64) {
 fn working_set(pid: u32, window: Duration) -> [f64; 3] {
     std::fs::write(format!("/proc/{pid}/clear_refs"), "1").unwrap();
     std::thread::sleep(window);
-    let smaps = std::fs::read_to_string(format!("/proc/{pid}/smaps")).unwrap();
     let mut kib = [0u64; 3];
-    let mut which = 0;
-    for line in smaps.lines() {
-        let mut fields = line.split_whitespace();
-        let first = fields.next().unwrap_or("");
-        if first.contains('-') && first.chars().all(|c| c.is_ascii_hexdigit() || c == '-') {
-            // "start-end perms offset dev inode [path]"
-            which = match fields.nth(4) {
-                Some(path) if path.starts_with('/') && path.ends_with("/fresa") => 1,
-                Some(path) if path.starts_with('/') => 2,
-                _ => 0,
-            };
-        } else if first == "Referenced:" {
-            kib[which] += fields.next().and_then(|v| v.parse().ok()).unwrap_or(0);
-        }
+    for m in fresa_tests::smaps(pid) {
+        let which = match m.path.as_str() {
+            path if path.starts_with('/') && path.ends_with("/fresa") => 1,
+            path if path.starts_with('/') => 2,
+            _ => 0,
+        };
+        kib[which] += m.kib("Referenced");
     }
     kib.map(|k| k as f64 / 1024.0)
 }

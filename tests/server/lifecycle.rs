@@ -269,18 +269,12 @@ fn once_ready_the_server_unmaps_the_code_that_only_the_start_used() {
     }
     let pid = s.pid().unwrap();
     let exe = std::fs::read_link(format!("/proc/{pid}/exe")).unwrap();
-    let smaps = std::fs::read_to_string(format!("/proc/{pid}/smaps")).unwrap();
-    // Rss of the binary's read-only mappings: "start-end perms offset dev inode path".
-    let mut resident = 0u64;
-    let mut counted = false;
-    for l in smaps.lines() {
-        let f: Vec<&str> = l.split_whitespace().collect();
-        if f.len() >= 5 && f[0].contains('-') && !f[0].ends_with(':') {
-            counted = !f[1].contains('w') && f[5..].join(" ") == exe.to_string_lossy();
-        } else if counted && f.first() == Some(&"Rss:") {
-            resident += f[1].parse::<u64>().unwrap();
-        }
-    }
+    let exe = exe.to_string_lossy();
+    let resident: u64 = fresa_tests::smaps(pid)
+        .iter()
+        .filter(|m| !m.perms.contains('w') && m.path == exe)
+        .map(|m| m.kib("Rss"))
+        .sum();
     assert!(dropped > 0, "{line}");
     assert!(
         resident < dropped,
