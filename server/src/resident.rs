@@ -11,6 +11,8 @@
 //! under memory pressure the kernel can reclaim what only the start used first (it keeps
 //! mapped code longer than unmapped pages). Nothing is freed that another process shares.
 
+use std::io::BufRead;
+
 /// Unmaps the pages of the process's unmodified read-only file mappings; logs what it did at
 /// DEBUG. Blocking (reads `/proc/self/smaps`): call it off the runtime's workers.
 pub fn unmap_start_up_pages() {
@@ -23,34 +25,27 @@ pub fn unmap_start_up_pages() {
 /// What [`unmap_start_up_pages`] does: the KiB that were resident in the mappings it dropped.
 /// A mapping the kernel refuses to drop (one of a device, say) is left as it is.
 fn unmap_read_only_file_pages() -> std::io::Result<u64> {
-    let smaps = std::fs::read_to_string("/proc/self/smaps")?;
-    let page = page_size();
+    // Read line by line: the whole text is a few hundred KiB the allocator would then keep.
+    let smaps = std::io::BufReader::new(std::fs::File::open("/proc/self/smaps")?);
     let mut dropped = 0;
-    for m in droppable(&smaps) {
-        // Whole pages only (a mapping's bounds are page-aligned; this keeps it so if not).
-        let start = m.start.next_multiple_of(page);
-        let end = m.end - m.end % page;
-        if end <= start {
-            continue;
-        }
-        // SAFETY: the range lies inside one of this process's private file mappings that is
-        // not writable and held no anonymous (modified) page when smaps was read; without
-        // write access none can appear since. Every page there is the file's page-cache page,
-        // so dropping the entries changes no byte that code or data reads: the next access
-        // maps the same page back. No mapping of a file is moved or unmapped here.
-        let r =
-            unsafe { libc::madvise(start as *mut libc::c_void, end - start, libc::MADV_DONTNEED) };
+    for m in droppable(smaps)? {
+        // SAFETY: the range is one of this process's private file mappings (page-aligned, as
+        // every mapping is) that is not writable and held no anonymous (modified) page when
+        // smaps was read; without write access none can appear since. Every page there is the
+        // file's page-cache page, so dropping the entries changes no byte that code or data
+        // reads: the next access maps the same page back. No mapping is moved or unmapped.
+        let r = unsafe {
+            libc::madvise(
+                m.start as *mut libc::c_void,
+                m.end - m.start,
+                libc::MADV_DONTNEED,
+            )
+        };
         if r == 0 {
-            dropped += m.rss_kib;
+            dropped += m.rss_kib.unwrap_or(0);
         }
     }
     Ok(dropped)
-}
-
-fn page_size() -> usize {
-    // SAFETY: sysconf reads a constant.
-    let size = unsafe { libc::sysconf(libc::_SC_PAGESIZE) };
-    usize::try_from(size).unwrap_or(4096).max(1)
 }
 
 /// One mapping of `/proc/self/smaps`, as far as this module needs it.
@@ -58,78 +53,59 @@ fn page_size() -> usize {
 struct Mapping {
     start: usize,
     end: usize,
-    rss_kib: u64,
+    /// Whether it can be dropped by what its first line says: of a file, not writable.
+    read_only_file: bool,
+    rss_kib: Option<u64>,
+    anonymous_kib: Option<u64>,
 }
 
 /// The mappings that can be dropped: of a file, not writable, with no anonymous page (a
 /// relocated read-only segment, or code a debugger patched, has some), something resident.
-fn droppable(smaps: &str) -> Vec<Mapping> {
-    let mut found = Vec::new();
-    // The mapping being read: its bounds if it is a read-only mapping of a file, and its Rss
-    // and Anonymous once read.
-    let mut current: Option<(usize, usize)> = None;
-    let (mut rss, mut anonymous) = (None, None);
-    let mut close = |current: Option<(usize, usize)>, rss: Option<u64>, anonymous: Option<u64>| {
-        if let (Some((start, end)), Some(rss_kib), Some(0)) = (current, rss, anonymous) {
-            if rss_kib > 0 {
-                found.push(Mapping {
-                    start,
-                    end,
-                    rss_kib,
-                });
-            }
-        }
-    };
+fn droppable(smaps: impl BufRead) -> std::io::Result<Vec<Mapping>> {
+    let mut all: Vec<Mapping> = Vec::new();
     for line in smaps.lines() {
-        match header(line) {
-            Some(h) => {
-                close(current, rss.take(), anonymous.take());
-                current = (!h.writable && h.path.starts_with('/')).then_some((h.start, h.end));
-            }
-            None => {
-                let mut fields = line.split_whitespace();
-                let value = |v: Option<&str>| v.and_then(|v| v.parse::<u64>().ok());
-                match fields.next() {
-                    Some("Rss:") => rss = value(fields.next()),
-                    Some("Anonymous:") => anonymous = value(fields.next()),
-                    _ => {}
-                }
+        let line = line?;
+        if let Some(m) = header(&line) {
+            all.push(m);
+        } else if let Some(m) = all.last_mut() {
+            let mut fields = line.split_whitespace();
+            let field = fields.next();
+            let kib = fields.next().and_then(|v| v.parse().ok());
+            match field {
+                Some("Rss:") => m.rss_kib = kib,
+                Some("Anonymous:") => m.anonymous_kib = kib,
+                _ => {}
             }
         }
     }
-    close(current, rss, anonymous);
-    found
-}
-
-struct Header<'a> {
-    start: usize,
-    end: usize,
-    writable: bool,
-    path: &'a str,
+    all.retain(|m| {
+        m.read_only_file && m.anonymous_kib == Some(0) && m.rss_kib.is_some_and(|kib| kib > 0)
+    });
+    Ok(all)
 }
 
 /// A mapping's first line, `start-end perms offset dev inode [path]`; None for the field lines
 /// (`Name: value`) under it.
-fn header(line: &str) -> Option<Header<'_>> {
-    let (range, rest) = line.split_once(' ')?;
+fn header(line: &str) -> Option<Mapping> {
+    fn field(s: &str) -> (&str, &str) {
+        let s = s.trim_start();
+        s.split_once(' ').unwrap_or((s, ""))
+    }
+    let (range, rest) = field(line);
     let (start, end) = range.split_once('-')?;
     let start = usize::from_str_radix(start, 16).ok()?;
     let end = usize::from_str_radix(end, 16).ok()?;
-    let mut rest = rest.trim_start();
-    let mut perms = "";
-    // perms, offset, dev, inode; then the path, which may hold blanks.
-    for i in 0..4 {
-        let (field, tail) = rest.split_once(' ').unwrap_or((rest, ""));
-        if i == 0 {
-            perms = field;
-        }
-        rest = tail.trim_start();
-    }
-    Some(Header {
+    let (perms, rest) = field(rest);
+    let (_offset, rest) = field(rest);
+    let (_device, rest) = field(rest);
+    let (_inode, path) = field(rest);
+    // The path may hold blanks; anonymous memory has none, the stack and vDSO a `[name]`.
+    Some(Mapping {
         start,
         end,
-        writable: perms.contains('w'),
-        path: rest,
+        read_only_file: !perms.contains('w') && path.trim_start().starts_with('/'),
+        rss_kib: None,
+        anonymous_kib: None,
     })
 }
 
@@ -175,31 +151,25 @@ Anonymous:             0 kB
     /// mapping with no file (anonymous memory, the stack, the vDSO).
     #[test]
     fn only_unmodified_read_only_file_mappings_are_dropped() {
+        let found: Vec<_> = droppable(SMAPS.as_bytes())
+            .unwrap()
+            .into_iter()
+            .map(|m| (m.start, m.end, m.rss_kib))
+            .collect();
         assert_eq!(
-            droppable(SMAPS),
+            found,
             [
-                Mapping {
-                    start: 0x5555a000,
-                    end: 0x5555b000,
-                    rss_kib: 4
-                },
-                Mapping {
-                    start: 0x5555b000,
-                    end: 0x5555f000,
-                    rss_kib: 12
-                },
-                Mapping {
-                    start: 0x55561000,
-                    end: 0x55562000,
-                    rss_kib: 4
-                },
+                (0x5555a000, 0x5555b000, Some(4)),
+                (0x5555b000, 0x5555f000, Some(12)),
+                (0x55561000, 0x55562000, Some(4)),
             ]
         );
     }
 
     fn resident_kib_of_droppable() -> u64 {
-        let smaps = std::fs::read_to_string("/proc/self/smaps").unwrap();
-        droppable(&smaps).iter().map(|m| m.rss_kib).sum()
+        let smaps = std::fs::read("/proc/self/smaps").unwrap();
+        let found = droppable(smaps.as_slice()).unwrap();
+        found.iter().filter_map(|m| m.rss_kib).sum()
     }
 
     /// In this process (the test binary): the pages go, and the code still runs (it is mapped

@@ -118,12 +118,7 @@ pub async fn run(
     ready(bound);
     // The start is done: the code only it ran need not stay mapped (see `resident`).
     #[cfg(target_os = "linux")]
-    tokio::task::spawn_blocking(|| {
-        crate::resident::unmap_start_up_pages();
-        // The smaps text it read (a few hundred KiB) is not kept in this thread's heap.
-        #[cfg(feature = "mimalloc")]
-        crate::alloc::release_thread_garbage();
-    });
+    tokio::task::spawn_blocking(crate::resident::unmap_start_up_pages);
     tokio::select! {
         () = &mut shutdown => {}
         r = &mut server => {
