@@ -53,9 +53,8 @@ pub async fn run(
     let routes = tokio::task::spawn_blocking({
         let admission = admission.clone();
         move || {
-            let routes = fresa_http::routes(Some(admission));
-            #[cfg(all(target_os = "linux", feature = "mimalloc"))]
-            crate::alloc::release_thread_garbage();
+            let routes = fresa_http::routes(Some(admission), release_thread_garbage);
+            release_thread_garbage();
             routes
         }
     });
@@ -270,6 +269,13 @@ fn hangup_ignored() -> bool {
 /// Connections the kernel queues for us while we are at `max_connections` (the default, 128, is
 /// soon full; past it new clients' SYNs are dropped and they retry only after seconds).
 const LISTEN_BACKLOG: u32 = 1024;
+
+/// Gives the calling thread's freed pages back to the system, where the daemon's allocator keeps
+/// them (mimalloc on Linux, see `alloc`); the system allocators elsewhere need nothing.
+fn release_thread_garbage() {
+    #[cfg(all(target_os = "linux", feature = "mimalloc"))]
+    crate::alloc::release_thread_garbage();
+}
 
 fn bind(addr: std::net::SocketAddr) -> io::Result<TcpListener> {
     let socket = if addr.is_ipv4() {

@@ -40,10 +40,15 @@ use utoipa_axum::routes;
 /// OpenAPI description (`GET /api/v1/openapi.json`) are built from the same lines.
 ///
 /// `admission` (shared with the accept loop) is what the event stream and `/metrics` read; only
-/// those routes carry it. Authentication, forwarding and CORS are around the router, in
-/// [`service`].
-pub fn routes(admission: Option<std::sync::Arc<admission::Admission>>) -> Routes {
-    let (router, _) = described_router(admission);
+/// those routes carry it. `release_garbage` is called on the thread that described the API
+/// for its first `GET /api/v1/openapi.json`, once the description is serialised: the daemon's
+/// allocator keeps a thread's freed pages otherwise (see [`openapi::Document`]). Authentication,
+/// forwarding and CORS are around the router, in [`service`].
+pub fn routes(
+    admission: Option<std::sync::Arc<admission::Admission>>,
+    release_garbage: fn(),
+) -> Routes {
+    let (router, _) = described_router(admission, openapi::Document::new(release_garbage));
     Routes(
         router
             .fallback(not_found)
@@ -59,7 +64,7 @@ pub struct Routes(Router<SharedApp>);
 
 /// The OpenAPI description of [`routes`], as served (for tools and tests without a server).
 pub fn openapi_document() -> String {
-    doc_json(&described_router(None).1)
+    doc_json(&described_router(None, openapi::Document::new(|| ())).1)
 }
 
 fn doc_json(doc: &utoipa::openapi::OpenApi) -> String {
@@ -71,6 +76,7 @@ fn doc_json(doc: &utoipa::openapi::OpenApi) -> String {
 
 fn described_router(
     admission: Option<std::sync::Arc<admission::Admission>>,
+    document: openapi::Document,
 ) -> (Router<SharedApp>, utoipa::openapi::OpenApi) {
     use auth::Role::{Admin, Operator, Viewer};
     let with_admission = axum::Extension(admission);
@@ -153,9 +159,9 @@ fn described_router(
         .routes(needs(Viewer, routes!(nodes)))
         .routes(needs(Admin, routes!(machines::set_node)))
         // Public, like the console's files (see `Gate`): the description (`openapi::openapi_json`).
-        .routes(public(routes!(openapi::openapi_json).map(|r| {
-            r.layer(axum::Extension(openapi::Document::default()))
-        })));
+        .routes(public(
+            routes!(openapi::openapi_json).map(|r| r.layer(axum::Extension(document))),
+        ));
     let metrics = OpenApiRouter::new()
         .routes(needs(Viewer, routes!(metrics)).map(|r| r.layer(with_admission.clone())));
     // The console's files need no token (the API calls they make do); still behind the guard.
@@ -548,7 +554,7 @@ mod tests {
     /// route, or a new route could be reachable without a token.
     #[test]
     fn the_gate_authenticates_exactly_the_routes_declared_with_a_role() {
-        let (_, mut doc) = described_router(None);
+        let (_, mut doc) = described_router(None, openapi::Document::new(|| ()));
         let mut operations = 0;
         for (path, item) in doc.paths.paths.iter_mut() {
             for op in openapi::operations(item) {

@@ -190,8 +190,32 @@ fn describe_role(op: &mut Operation, role: Option<Role>) {
 
 /// The description, made on its first request and kept: made at start-up it cost about 1 ms of
 /// every start and 270 KB of memory that most servers never serve.
-#[derive(Clone, Default)]
-pub struct Document(Arc<tokio::sync::OnceCell<axum::body::Bytes>>);
+#[derive(Clone)]
+pub struct Document {
+    json: Arc<tokio::sync::OnceCell<axum::body::Bytes>>,
+    /// Called on the describing thread once only the served bytes are left. Describing builds
+    /// the whole routing table and its operations again (several MiB, all freed at once), and
+    /// the daemon's allocator would otherwise keep those pages: 1.4 MiB more private memory
+    /// for as long as the server runs.
+    release_garbage: fn(),
+}
+
+impl Document {
+    pub fn new(release_garbage: fn()) -> Self {
+        Document {
+            json: Arc::default(),
+            release_garbage,
+        }
+    }
+
+    /// Describes the API: the document exactly as long as it is (the serialiser's buffer has
+    /// grown by doubling), with the describing thread's garbage released.
+    fn describe(&self) -> axum::body::Bytes {
+        let json = crate::openapi_document().into_boxed_str();
+        (self.release_garbage)();
+        axum::body::Bytes::from(json.into_boxed_bytes())
+    }
+}
 
 /// This server's OpenAPI 3.1 description. Public like `/healthz`: it is the same for every Fresa
 /// of this version and holds nothing about this server's machines or jobs, and client generators
@@ -203,15 +227,16 @@ pub struct Document(Arc<tokio::sync::OnceCell<axum::body::Bytes>>);
     responses((status = 200, description = "The OpenAPI 3.1 document", content_type = "application/json", body = Object))
 )]
 pub async fn openapi_json(
-    Extension(doc): Extension<Document>,
+    Extension(document): Extension<Document>,
 ) -> Result<impl IntoResponse, crate::error::ApiError> {
     // Described again from the same routes the server was built from: 4-9 ms of CPU, once,
     // on a blocking thread, not on a runtime worker whose other tasks (a pendant's poll, a
     // STOP) would wait for it. Concurrent first requests wait for the one description.
-    let json = doc
-        .0
+    let json = document
+        .json
         .get_or_try_init(|| async {
-            tokio::task::spawn_blocking(|| crate::openapi_document().into()).await
+            let describing = document.clone();
+            tokio::task::spawn_blocking(move || describing.describe()).await
         })
         .await
         .map_err(|e| {
@@ -222,4 +247,55 @@ pub async fn openapi_json(
         [(axum::http::header::CONTENT_TYPE, "application/json")],
         json,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+    use super::*;
+    use std::sync::Mutex;
+    use std::thread::ThreadId;
+
+    /// The threads the release hook ran on.
+    static RELEASED_ON: Mutex<Vec<ThreadId>> = Mutex::new(Vec::new());
+
+    fn record_release() {
+        RELEASED_ON
+            .lock()
+            .unwrap()
+            .push(std::thread::current().id());
+    }
+
+    async fn served(document: &Document) -> axum::body::Bytes {
+        let answer = openapi_json(Extension(document.clone()))
+            .await
+            .map_err(|_| "describing failed")
+            .unwrap()
+            .into_response();
+        axum::body::to_bytes(answer.into_body(), usize::MAX)
+            .await
+            .unwrap()
+    }
+
+    /// First requests at once describe the API once: the hook that gives the describing
+    /// thread's garbage back runs once, on that blocking thread (not on the runtime's), and
+    /// every answer is the whole document.
+    #[tokio::test]
+    async fn the_describing_thread_releases_its_garbage_once() {
+        let document = Document::new(record_release);
+        let answers = tokio::join!(
+            served(&document),
+            served(&document),
+            served(&document),
+            served(&document)
+        );
+        let later = served(&document).await;
+        let expected = crate::openapi_document();
+        for answer in [answers.0, answers.1, answers.2, answers.3, later] {
+            assert_eq!(answer, expected.as_bytes());
+        }
+        let released_on = RELEASED_ON.lock().unwrap().clone();
+        assert_eq!(released_on.len(), 1, "released {released_on:?}");
+        assert_ne!(released_on[0], std::thread::current().id());
+    }
 }
