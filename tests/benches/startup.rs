@@ -8,6 +8,8 @@
 //! then smaps' `Referenced` summed). The RSS also holds what the start touched once (the routing
 //! table, migrations) and the binary's pages the kernel maps around each fault; this says how
 //! much of it the idle server actually uses.
+//! Last, a first start `--demo` that is used (300 status polls, the console's files, the OpenAPI
+//! document), then left idle for 30 s: the memory a server that has served keeps while it waits.
 //! A measurement, not a test: `cargo bench -p fresa-tests --bench startup [-- RUNS]` (default
 //! 10). `FRESA_BIN` names another `fresa` build (its directory must hold the plugins).
 
@@ -55,14 +57,66 @@ fn working_set(pid: u32, window: Duration) -> [f64; 3] {
     kib.map(|k| k as f64 / 1024.0)
 }
 
-/// One start: milliseconds to ready, the RSS split 3 s later, and, given a window, the working
-/// set over that window after it.
-fn start(
-    fresa: &PathBuf,
-    data_dir: &std::path::Path,
-    demo: bool,
-    window: Option<Duration>,
-) -> (f64, (f64, f64), Option<[f64; 3]>) {
+/// A running `fresa serve`, stopped (SIGTERM) when dropped.
+struct Started {
+    child: std::process::Child,
+    port: u16,
+    /// From exec to the first `/healthz` 200.
+    ready_ms: f64,
+}
+
+impl Started {
+    /// RSS as `rss` gives it, after `wait`.
+    fn rss_after(&self, wait: Duration) -> (f64, f64) {
+        std::thread::sleep(wait);
+        rss(self.child.id())
+    }
+
+    /// One GET on a connection of its own; the whole answer (`Connection: close`).
+    fn get(&self, path: &str) -> Vec<u8> {
+        let mut s = TcpStream::connect(("127.0.0.1", self.port)).unwrap();
+        write!(
+            s,
+            "GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
+        )
+        .unwrap();
+        let mut answer = Vec::new();
+        s.read_to_end(&mut answer).unwrap();
+        assert!(answer.starts_with(b"HTTP/1.1 200"), "GET {path}");
+        answer
+    }
+
+    /// What its first users do: 300 status polls, the console's page and every file it links,
+    /// and the OpenAPI document.
+    fn use_it(&self) {
+        for _ in 0..300 {
+            self.get("/api/v1/machines/1/status");
+        }
+        let page = String::from_utf8_lossy(&self.get("/")).into_owned();
+        for attribute in ["src=\"", "href=\""] {
+            for link in page.split(attribute).skip(1) {
+                let link = link.split('"').next().unwrap_or_default();
+                if !link.starts_with("http") {
+                    self.get(&format!("/{}", link.trim_start_matches('/')));
+                }
+            }
+        }
+        self.get("/api/v1/openapi.json");
+    }
+}
+
+impl Drop for Started {
+    fn drop(&mut self) {
+        // SIGTERM, as a service manager stops it: the next restart finds a clean data directory.
+        let _ = Command::new("kill")
+            .arg(self.child.id().to_string())
+            .status();
+        let _ = self.child.wait();
+    }
+}
+
+/// Starts `fresa serve` and waits until it answers.
+fn start(fresa: &PathBuf, data_dir: &std::path::Path, demo: bool) -> Started {
     let port = TcpListener::bind("127.0.0.1:0")
         .unwrap()
         .local_addr()
@@ -76,7 +130,7 @@ fn start(
         .stdout(Stdio::null())
         .stderr(Stdio::null());
     let t0 = Instant::now();
-    let mut child = cmd.spawn().unwrap();
+    let child = cmd.spawn().unwrap();
     while !healthy(port) {
         assert!(
             t0.elapsed() < Duration::from_secs(30),
@@ -84,14 +138,12 @@ fn start(
         );
         std::thread::sleep(Duration::from_micros(500));
     }
-    let ready = t0.elapsed().as_secs_f64() * 1e3;
-    std::thread::sleep(Duration::from_secs(3));
-    let mem = rss(child.id());
-    let touched = window.map(|w| working_set(child.id(), w));
-    // SIGTERM, as a service manager stops it: the next restart finds a clean data directory.
-    let _ = Command::new("kill").arg(child.id().to_string()).status();
-    child.wait().unwrap();
-    (ready, mem, touched)
+    let ready_ms = t0.elapsed().as_secs_f64() * 1e3;
+    Started {
+        child,
+        port,
+        ready_ms,
+    }
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -106,8 +158,9 @@ fn main() {
         .map_or(10, |a| a.parse().expect("RUNS: a number"));
     let fresa = std::env::var_os("FRESA_BIN").map_or_else(fresa_tests::fresa_bin, PathBuf::from);
     let kept = tempfile::tempdir().unwrap();
+    let idle = Duration::from_secs(3);
     // The restarts' data directory, made once beforehand (migrations applied).
-    start(&fresa, kept.path(), false, None);
+    drop(start(&fresa, kept.path(), false));
     for (case, demo) in [
         ("first start --demo, fresh data directory", true),
         ("restart", false),
@@ -115,12 +168,8 @@ fn main() {
         let results: Vec<_> = (0..runs)
             .map(|_| {
                 let fresh = tempfile::tempdir().unwrap();
-                start(
-                    &fresa,
-                    if demo { fresh.path() } else { kept.path() },
-                    demo,
-                    None,
-                )
+                let server = start(&fresa, if demo { fresh.path() } else { kept.path() }, demo);
+                (server.ready_ms, server.rss_after(idle))
             })
             .collect();
         let ready: Vec<f64> = results.iter().map(|r| r.0).collect();
@@ -138,12 +187,27 @@ fn main() {
         let fresh = tempfile::tempdir().unwrap();
         let dir = if demo { fresh.path() } else { kept.path() };
         let window = Duration::from_secs(10);
-        let (_, (private, file), touched) = start(&fresa, dir, demo, Some(window));
-        let [own, binary, libraries] = touched.unwrap();
+        let server = start(&fresa, dir, demo);
+        let (private, file) = server.rss_after(idle);
+        let [own, binary, libraries] = working_set(server.child.id(), window);
         println!(
             "  of an RSS of {private:.1} + {file:.1} MiB, touched in the next {} s: {own:.1} MiB \
              private, {binary:.1} MiB of the binary, {libraries:.1} MiB of shared libraries (at most)",
             window.as_secs()
         );
     }
+    // Used, then left alone: the memory a server that has served keeps while it waits.
+    let fresh = tempfile::tempdir().unwrap();
+    let server = start(&fresa, fresh.path(), true);
+    let before = server.rss_after(idle);
+    server.use_it();
+    let settle = Duration::from_secs(30);
+    let (private, file) = server.rss_after(settle);
+    println!(
+        "first start --demo, used (300 status polls, the console, the OpenAPI document), then {} s \
+         idle: RSS {private:.1} MiB private + {file:.1} MiB file-backed (before use {:.1} + {:.1})",
+        settle.as_secs(),
+        before.0,
+        before.1
+    );
 }
