@@ -13,16 +13,18 @@
 
 use std::io::BufRead;
 
-/// Unmaps the pages of the process's unmodified read-only file mappings; logs what it did at
-/// DEBUG. Blocking (reads `/proc/self/smaps`): call it off the runtime's workers.
-pub fn unmap_start_up_pages() {
+/// Unmaps the pages of the process's unmodified read-only file mappings, once `work` that ran
+/// code nothing else runs is done (`"start"`: the start; `"describing the API"`: the OpenAPI
+/// document's first request, which builds the routing table again); logs what it did at DEBUG.
+/// Blocking (reads `/proc/self/smaps`): call it off the runtime's workers.
+pub fn unmap_pages_used_once(work: &'static str) {
     match unmap_read_only_file_pages() {
-        Ok(kib) => tracing::debug!(kib, "unmapped the start's pages of read-only files"),
-        Err(e) => tracing::debug!(error = %e, "could not read which pages to unmap"),
+        Ok(kib) => tracing::debug!(kib, work, "unmapped the pages of read-only files"),
+        Err(e) => tracing::debug!(error = %e, work, "could not read which pages to unmap"),
     }
 }
 
-/// What [`unmap_start_up_pages`] does: the KiB that were resident in the mappings it dropped.
+/// What [`unmap_pages_used_once`] does: the KiB that were resident in the mappings it dropped.
 /// A mapping the kernel refuses to drop (one of a device, say) is left as it is.
 fn unmap_read_only_file_pages() -> std::io::Result<u64> {
     // Read line by line: the whole text is a few hundred KiB the allocator would then keep.

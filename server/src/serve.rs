@@ -53,7 +53,7 @@ pub async fn run(
     let routes = tokio::task::spawn_blocking({
         let admission = admission.clone();
         move || {
-            let routes = fresa_http::routes(Some(admission), release_thread_garbage);
+            let routes = fresa_http::routes(Some(admission), after_describing_the_api);
             release_thread_garbage();
             routes
         }
@@ -117,7 +117,7 @@ pub async fn run(
     ready(bound);
     // The start is done: the code only it ran need not stay mapped (see `resident`).
     #[cfg(target_os = "linux")]
-    tokio::task::spawn_blocking(crate::resident::unmap_start_up_pages);
+    tokio::task::spawn_blocking(|| crate::resident::unmap_pages_used_once("start"));
     tokio::select! {
         () = &mut shutdown => {}
         r = &mut server => {
@@ -275,6 +275,15 @@ const LISTEN_BACKLOG: u32 = 1024;
 fn release_thread_garbage() {
     #[cfg(all(target_os = "linux", feature = "mimalloc"))]
     crate::alloc::release_thread_garbage();
+}
+
+/// Run on the thread that described the API for the OpenAPI document's first request, once the
+/// document is serialised. Describing builds the routing table again, as only the start does
+/// otherwise: its garbage goes back to the system and its code need not stay mapped.
+fn after_describing_the_api() {
+    release_thread_garbage();
+    #[cfg(target_os = "linux")]
+    crate::resident::unmap_pages_used_once("describing the API");
 }
 
 fn bind(addr: std::net::SocketAddr) -> io::Result<TcpListener> {

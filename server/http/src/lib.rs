@@ -40,15 +40,15 @@ use utoipa_axum::routes;
 /// OpenAPI description (`GET /api/v1/openapi.json`) are built from the same lines.
 ///
 /// `admission` (shared with the accept loop) is what the event stream and `/metrics` read; only
-/// those routes carry it. `release_garbage` is called on the thread that described the API
-/// for its first `GET /api/v1/openapi.json`, once the description is serialised: the daemon's
-/// allocator keeps a thread's freed pages otherwise (see [`openapi::Document`]). Authentication,
+/// those routes carry it. `after_describing` is called on the thread that described the API
+/// for its first `GET /api/v1/openapi.json`, once the description is serialised: the daemon
+/// gives back what only describing used (see [`openapi::Document`]). Authentication,
 /// forwarding and CORS are around the router, in [`service`].
 pub fn routes(
     admission: Option<std::sync::Arc<admission::Admission>>,
-    release_garbage: fn(),
+    after_describing: fn(),
 ) -> Routes {
-    let (router, _) = described_router(admission, openapi::Document::new(release_garbage));
+    let (router, _) = described_router(admission, openapi::Document::new(after_describing));
     Routes(
         router
             .fallback(not_found)
