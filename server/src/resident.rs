@@ -10,27 +10,55 @@
 //! bytes back (a minor fault). So the resident set counts what the server goes on using, and
 //! under memory pressure the kernel can reclaim what only the start used first (it keeps
 //! mapped code longer than unmapped pages). Nothing is freed that another process shares.
+//!
+//! The OpenAPI document's first request builds the routing table again (`fresa_http::openapi`);
+//! after it, only the binary's own pages are unmapped ([`Files::Binary`]), since machines may
+//! be moving by then.
 
 use std::io::BufRead;
 
-/// Unmaps the pages of the process's unmodified read-only file mappings, once `work` that ran
-/// code nothing else runs is done (`"start"`: the start; `"describing the API"`: the OpenAPI
-/// document's first request, which builds the routing table again); logs what it did at DEBUG.
-/// Blocking (reads `/proc/self/smaps`): call it off the runtime's workers.
-pub fn unmap_pages_used_once(work: &'static str) {
-    match unmap_read_only_file_pages() {
-        Ok(kib) => tracing::debug!(kib, work, "unmapped the pages of read-only files"),
-        Err(e) => tracing::debug!(error = %e, work, "could not read which pages to unmap"),
+/// Which files' pages [`unmap_pages_used_once`] unmaps.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Files {
+    /// Every file mapped read-only: the binary, the plugins, the libraries. For the start,
+    /// which loads the plugins and ends before any of them can move a machine.
+    All,
+    /// The `fresa` binary only (as `/proc/self/exe` names it). For work that ran only the
+    /// binary's code and may come while a plugin's real-time loop (the parallel port's step
+    /// output) runs: its code, in the plugin and the C library, must not fault back in under it.
+    Binary,
+}
+
+/// Unmaps the pages of the process's unmodified read-only mappings of `files`, once `work` that
+/// ran code nothing else runs is done (`"start"`: the start; `"describing the API"`: the
+/// OpenAPI document's first request, which builds the routing table again); logs what it did
+/// at DEBUG. Blocking (reads `/proc/self/smaps`): call it off the runtime's workers.
+pub fn unmap_pages_used_once(work: &'static str, files: Files) {
+    match unmap_read_only_file_pages(files) {
+        Ok(kib) => tracing::debug!(kib, work, ?files, "unmapped the pages of read-only files"),
+        Err(e) => {
+            tracing::debug!(error = %e, work, ?files, "could not read which pages to unmap");
+        }
     }
 }
 
 /// What [`unmap_pages_used_once`] does: the KiB that were resident in the mappings it dropped.
 /// A mapping the kernel refuses to drop (one of a device, say) is left as it is.
-fn unmap_read_only_file_pages() -> std::io::Result<u64> {
+fn unmap_read_only_file_pages(files: Files) -> std::io::Result<u64> {
+    let binary = match files {
+        Files::All => None,
+        Files::Binary => Some(std::fs::read_link("/proc/self/exe")?),
+    };
     // Read line by line: the whole text is a few hundred KiB the allocator would then keep.
     let smaps = std::io::BufReader::new(std::fs::File::open("/proc/self/smaps")?);
     let mut dropped = 0;
     for m in droppable(smaps)? {
+        if binary
+            .as_ref()
+            .is_some_and(|b| b.as_os_str() != m.path.as_str())
+        {
+            continue;
+        }
         // SAFETY: the range is one of this process's private file mappings (page-aligned, as
         // every mapping is) that is not writable and held no anonymous (modified) page when
         // smaps was read; without write access none can appear since. Every page there is the
@@ -57,6 +85,8 @@ struct Mapping {
     end: usize,
     /// Whether it can be dropped by what its first line says: of a file, not writable.
     read_only_file: bool,
+    /// The file's path as smaps gives it (blanks kept), or `[stack]`, `[vdso]`, empty.
+    path: String,
     rss_kib: Option<u64>,
     anonymous_kib: Option<u64>,
 }
@@ -101,11 +131,13 @@ fn header(line: &str) -> Option<Mapping> {
     let (_offset, rest) = field(rest);
     let (_device, rest) = field(rest);
     let (_inode, path) = field(rest);
+    let path = path.trim_start();
     // The path may hold blanks; anonymous memory has none, the stack and vDSO a `[name]`.
     Some(Mapping {
         start,
         end,
-        read_only_file: !perms.contains('w') && path.trim_start().starts_with('/'),
+        read_only_file: !perms.contains('w') && path.starts_with('/'),
+        path: path.to_string(),
         rss_kib: None,
         anonymous_kib: None,
     })
@@ -156,37 +188,60 @@ Anonymous:             0 kB
         let found: Vec<_> = droppable(SMAPS.as_bytes())
             .unwrap()
             .into_iter()
-            .map(|m| (m.start, m.end, m.rss_kib))
+            .map(|m| (m.start, m.end, m.path, m.rss_kib))
             .collect();
+        let fresa = || "/opt/fresa bin/fresa".to_string();
         assert_eq!(
             found,
             [
-                (0x5555a000, 0x5555b000, Some(4)),
-                (0x5555b000, 0x5555f000, Some(12)),
-                (0x55561000, 0x55562000, Some(4)),
+                (0x5555a000, 0x5555b000, fresa(), Some(4)),
+                (0x5555b000, 0x5555f000, fresa(), Some(12)),
+                (0x55561000, 0x55562000, "/usr/lib/libc.so.6".into(), Some(4)),
             ]
         );
     }
 
-    fn resident_kib_of_droppable() -> u64 {
+    /// Resident KiB of the droppable mappings: of this process's own binary, and of the rest.
+    fn resident_kib_of_droppable() -> (u64, u64) {
+        let exe = std::fs::read_link("/proc/self/exe").unwrap();
         let smaps = std::fs::read("/proc/self/smaps").unwrap();
-        let found = droppable(smaps.as_slice()).unwrap();
-        found.iter().filter_map(|m| m.rss_kib).sum()
+        let mut kib = (0, 0);
+        for m in droppable(smaps.as_slice()).unwrap() {
+            let resident = m.rss_kib.unwrap_or(0);
+            if exe.as_os_str() == m.path.as_str() {
+                kib.0 += resident;
+            } else {
+                kib.1 += resident;
+            }
+        }
+        kib
     }
 
     /// In this process (the test binary): the pages go, and the code still runs (it is mapped
-    /// back from the page cache as it is reached).
+    /// back from the page cache as it is reached). `Files::Binary` leaves the libraries'
+    /// pages mapped; `Files::All` drops them too. One test: the two must not run at once.
     #[test]
     fn read_only_file_pages_are_unmapped_and_come_back_as_they_are_used() {
-        let before = resident_kib_of_droppable();
-        assert!(before > 0, "nothing read-only of a file is resident");
-        let dropped = unmap_read_only_file_pages().unwrap();
-        assert!(dropped >= before / 2, "dropped {dropped} KiB of {before}");
+        let (binary, libraries) = resident_kib_of_droppable();
+        assert!(binary > 0 && libraries > 0, "{binary} KiB, {libraries} KiB");
+        let dropped = unmap_read_only_file_pages(Files::Binary).unwrap();
+        assert!(dropped >= binary / 2, "dropped {dropped} KiB of {binary}");
         // Reading smaps again runs code (mapped back): still less than before.
         let after = resident_kib_of_droppable();
         assert!(
-            after < before,
-            "resident {after} KiB after, {before} before"
+            after.0 < binary,
+            "binary: {after:?} KiB after, {binary} before"
+        );
+        assert!(
+            after.1 >= libraries,
+            "libraries: {after:?} KiB after, {libraries} before"
+        );
+        let dropped = unmap_read_only_file_pages(Files::All).unwrap();
+        assert!(dropped >= after.1, "dropped {dropped} KiB of {after:?}");
+        let after_all = resident_kib_of_droppable();
+        assert!(
+            after_all.1 < libraries,
+            "{after_all:?} KiB after, {libraries} before"
         );
     }
 }

@@ -117,7 +117,9 @@ pub async fn run(
     ready(bound);
     // The start is done: the code only it ran need not stay mapped (see `resident`).
     #[cfg(target_os = "linux")]
-    tokio::task::spawn_blocking(|| crate::resident::unmap_pages_used_once("start"));
+    tokio::task::spawn_blocking(|| {
+        crate::resident::unmap_pages_used_once("start", crate::resident::Files::All);
+    });
     tokio::select! {
         () = &mut shutdown => {}
         r = &mut server => {
@@ -279,11 +281,12 @@ fn release_thread_garbage() {
 
 /// Run on the thread that described the API for the OpenAPI document's first request, once the
 /// document is serialised. Describing builds the routing table again, as only the start does
-/// otherwise: its garbage goes back to the system and its code need not stay mapped.
+/// otherwise: its garbage goes back to the system and its code need not stay mapped. Only the
+/// binary's: machines may be moving by now, and a plugin's loop must not fault its code back in.
 fn after_describing_the_api() {
     release_thread_garbage();
     #[cfg(target_os = "linux")]
-    crate::resident::unmap_pages_used_once("describing the API");
+    crate::resident::unmap_pages_used_once("describing the API", crate::resident::Files::Binary);
 }
 
 fn bind(addr: std::net::SocketAddr) -> io::Result<TcpListener> {

@@ -253,24 +253,25 @@ fn sigterm_drains_kept_alive_and_silent_connections_at_once() {
 /// that the start mapped (`resident.rs`): what is resident of its binary afterwards, with
 /// requests answered (their code is mapped back as it runs), is less than what was dropped.
 /// The OpenAPI document's first request builds the routing table again, as only the start
-/// does otherwise, and is followed by the same drop.
+/// does otherwise, and is followed by the same drop, of the binary's pages only.
 #[test]
 fn the_server_unmaps_the_code_that_only_the_start_and_describing_the_api_used() {
     let s = Server::start_with(Opts {
         log: Some("info,fresa::resident=debug".into()),
         ..Opts::default()
     });
-    let dropped = |work: &str| -> u64 {
+    let dropped = |work: &str, files: &str| -> u64 {
         let line = s.wait_log(T, &format!("work=\"{work}\""));
         assert!(
             line.contains("unmapped the pages of read-only files"),
             "{line}"
         );
+        assert!(line.contains(&format!("files={files}")), "{line}");
         line.split_once("kib=")
             .and_then(|(_, v)| v.split_whitespace().next()?.parse().ok())
             .unwrap_or_else(|| panic!("no kib= in {line:?}"))
     };
-    let at_start = dropped("start");
+    let at_start = dropped("start", "All");
     for _ in 0..20 {
         s.get("/healthz").expect(200);
         s.get("/api/v1/machines").expect(200);
@@ -289,7 +290,8 @@ fn the_server_unmaps_the_code_that_only_the_start_and_describing_the_api_used() 
         "{resident} KiB of the binary resident after {at_start} KiB were unmapped"
     );
     s.get("/api/v1/openapi.json").expect(200);
-    assert!(dropped("describing the API") > 0);
+    // Only the binary's pages: machines may be moving, and their plugins' code stays mapped.
+    assert!(dropped("describing the API", "Binary") > 0);
 }
 
 /// A stop while the server is still starting ends the start at once. Here the database (a
