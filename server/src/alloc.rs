@@ -23,8 +23,9 @@ fn plain_call_aligns(layout: Layout) -> bool {
 
 /// Gives the calling thread's free pages back to the system now. For a thread that built
 /// something large and is done allocating (the routing table, whose OpenAPI scaffolding is
-/// dropped at once; the OpenAPI document, described on its first request): mimalloc keeps a thread's freed pages in its heap, even after the thread
-/// has ended, and they showed as up to 1 MiB more idle memory.
+/// dropped at once; the OpenAPI document, described on its first request): mimalloc keeps a
+/// thread's freed pages in its heap, even after the thread has ended, and they showed as up to
+/// 1 MiB more idle memory (1.4 MiB after the document).
 pub fn release_thread_garbage() {
     // SAFETY: takes no pointers; collects only the calling thread's own heap.
     unsafe { mi::mi_collect(true) }

@@ -279,8 +279,8 @@ mod tests {
     }
 
     /// First requests at once describe the API once: the hook that gives back what describing
-    /// used runs once, on that blocking thread (not on the runtime's), and
-    /// every answer is the whole document.
+    /// used runs once, on that blocking thread (not on the runtime's), and every answer is the
+    /// whole document.
     #[tokio::test]
     async fn what_describing_used_is_given_back_once_on_the_describing_thread() {
         let document = Document::new(record_release);
