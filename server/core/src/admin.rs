@@ -410,7 +410,7 @@ pub async fn delete_pendant(app: &App, id: i64, actor: &str) -> Result<()> {
 /// machine's task on this node, so both must be here).
 pub async fn check_pendant_machine(app: &App, machine: Option<i64>) -> Result<()> {
     if let Some(id) = machine {
-        if app.machines.get(id).is_none() {
+        if !app.machines.is_local(id) {
             if let Some(row) = app.store.machine(id).await? {
                 return Err(Error::invalid(
                     "machine_on_other_node",

@@ -71,7 +71,7 @@ impl App {
     /// Which node drives machine `id`. A machine this node has loaded is local whatever the
     /// store says a moment later (its task ends only once idle).
     pub async fn machine_owner(&self, id: i64) -> crate::Result<Owner> {
-        if self.machines.get(id).is_some() {
+        if self.machines.is_local(id) {
             return Ok(Owner::Local);
         }
         let Some(row) = self.store.machine(id).await? else {

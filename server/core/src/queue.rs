@@ -533,7 +533,7 @@ async fn step(app: &App, first: bool) {
     };
     for row in states {
         let machine = row.machine_id;
-        if app.machines.get(machine).is_none() {
+        if !app.machines.is_local(machine) {
             continue;
         }
         // Only a running queue moves by itself; the others change through the API, which

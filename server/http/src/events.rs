@@ -125,7 +125,7 @@ pub async fn stream(
     if let Some(id) = f.machine {
         // A typo would otherwise be a stream that stays silent forever. Unknown only when the
         // store says so: during an outage live events still flow.
-        if app.machines.get(id).is_none() && matches!(app.store.machine(id).await, Ok(None)) {
+        if !app.machines.is_local(id) && matches!(app.store.machine(id).await, Ok(None)) {
             return Err(ApiError::not_found(
                 "unknown_machine",
                 format!("query `machine`: no machine with id {id}"),
