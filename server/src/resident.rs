@@ -45,20 +45,14 @@ pub fn unmap_pages_used_once(work: &'static str, files: Files) {
 /// What [`unmap_pages_used_once`] does: the KiB that were resident in the mappings it dropped.
 /// A mapping the kernel refuses to drop (one of a device, say) is left as it is.
 fn unmap_read_only_file_pages(files: Files) -> std::io::Result<u64> {
-    let binary = match files {
+    let only = match files {
         Files::All => None,
         Files::Binary => Some(std::fs::read_link("/proc/self/exe")?),
     };
     // Read line by line: the whole text is a few hundred KiB the allocator would then keep.
     let smaps = std::io::BufReader::new(std::fs::File::open("/proc/self/smaps")?);
     let mut dropped = 0;
-    for m in droppable(smaps)? {
-        if binary
-            .as_ref()
-            .is_some_and(|b| b.as_os_str() != m.path.as_str())
-        {
-            continue;
-        }
+    for m in droppable(smaps, only.as_deref())? {
         // SAFETY: the range is one of this process's private file mappings (page-aligned, as
         // every mapping is) that is not writable and held no anonymous (modified) page when
         // smaps was read; without write access none can appear since. Every page there is the
@@ -91,9 +85,10 @@ struct Mapping {
     anonymous_kib: Option<u64>,
 }
 
-/// The mappings that can be dropped: of a file, not writable, with no anonymous page (a
-/// relocated read-only segment, or code a debugger patched, has some), something resident.
-fn droppable(smaps: impl BufRead) -> std::io::Result<Vec<Mapping>> {
+/// The mappings that can be dropped: of a file (of `only`, if given), not writable, with no
+/// anonymous page (a relocated read-only segment, or code a debugger patched, has some),
+/// something resident.
+fn droppable(smaps: impl BufRead, only: Option<&std::path::Path>) -> std::io::Result<Vec<Mapping>> {
     let mut all: Vec<Mapping> = Vec::new();
     for line in smaps.lines() {
         let line = line?;
@@ -111,7 +106,10 @@ fn droppable(smaps: impl BufRead) -> std::io::Result<Vec<Mapping>> {
         }
     }
     all.retain(|m| {
-        m.read_only_file && m.anonymous_kib == Some(0) && m.rss_kib.is_some_and(|kib| kib > 0)
+        m.read_only_file
+            && m.anonymous_kib == Some(0)
+            && m.rss_kib.is_some_and(|kib| kib > 0)
+            && only.is_none_or(|file| file.as_os_str() == m.path.as_str())
     });
     Ok(all)
 }
@@ -185,18 +183,28 @@ Anonymous:             0 kB
     /// mapping with no file (anonymous memory, the stack, the vDSO).
     #[test]
     fn only_unmodified_read_only_file_mappings_are_dropped() {
-        let found: Vec<_> = droppable(SMAPS.as_bytes())
-            .unwrap()
-            .into_iter()
-            .map(|m| (m.start, m.end, m.path, m.rss_kib))
-            .collect();
+        let found = |only: Option<&str>| -> Vec<_> {
+            droppable(SMAPS.as_bytes(), only.map(std::path::Path::new))
+                .unwrap()
+                .into_iter()
+                .map(|m| (m.start, m.end, m.path, m.rss_kib))
+                .collect()
+        };
         let fresa = || "/opt/fresa bin/fresa".to_string();
         assert_eq!(
-            found,
+            found(None),
             [
                 (0x5555a000, 0x5555b000, fresa(), Some(4)),
                 (0x5555b000, 0x5555f000, fresa(), Some(12)),
                 (0x55561000, 0x55562000, "/usr/lib/libc.so.6".into(), Some(4)),
+            ]
+        );
+        // Only the binary's (`Files::Binary`): the library is left mapped.
+        assert_eq!(
+            found(Some("/opt/fresa bin/fresa")),
+            [
+                (0x5555a000, 0x5555b000, fresa(), Some(4)),
+                (0x5555b000, 0x5555f000, fresa(), Some(12)),
             ]
         );
     }
@@ -206,7 +214,7 @@ Anonymous:             0 kB
         let exe = std::fs::read_link("/proc/self/exe").unwrap();
         let smaps = std::fs::read("/proc/self/smaps").unwrap();
         let mut kib = (0, 0);
-        for m in droppable(smaps.as_slice()).unwrap() {
+        for m in droppable(smaps.as_slice(), None).unwrap() {
             let resident = m.rss_kib.unwrap_or(0);
             if exe.as_os_str() == m.path.as_str() {
                 kib.0 += resident;
