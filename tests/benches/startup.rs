@@ -21,16 +21,23 @@ use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+/// One GET on a connection of its own: the whole answer (`Connection: close`), or None when the
+/// server does not take the connection or answer within a second.
+fn get(port: u16, path: &str) -> Option<Vec<u8>> {
+    let mut s = TcpStream::connect(("127.0.0.1", port)).ok()?;
+    s.set_read_timeout(Some(Duration::from_secs(1))).ok()?;
+    write!(
+        s,
+        "GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
+    )
+    .ok()?;
+    let mut answer = Vec::new();
+    s.read_to_end(&mut answer).ok()?;
+    Some(answer)
+}
+
 fn healthy(port: u16) -> bool {
-    let Ok(mut s) = TcpStream::connect(("127.0.0.1", port)) else {
-        return false;
-    };
-    let _ = s.set_read_timeout(Some(Duration::from_secs(1)));
-    let req = "GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n";
-    let mut head = [0u8; 12];
-    s.write_all(req.as_bytes()).is_ok()
-        && s.read_exact(&mut head).is_ok()
-        && head.starts_with(b"HTTP/1.1 200")
+    get(port, "/healthz").is_some_and(|answer| answer.starts_with(b"HTTP/1.1 200"))
 }
 
 /// `RssAnon` and `RssFile` of `pid`, MiB.
@@ -72,16 +79,9 @@ impl Started {
         rss(self.child.id())
     }
 
-    /// One GET on a connection of its own; the whole answer (`Connection: close`).
+    /// [`get`], which must answer 200.
     fn get(&self, path: &str) -> Vec<u8> {
-        let mut s = TcpStream::connect(("127.0.0.1", self.port)).unwrap();
-        write!(
-            s,
-            "GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
-        )
-        .unwrap();
-        let mut answer = Vec::new();
-        s.read_to_end(&mut answer).unwrap();
+        let answer = get(self.port, path).unwrap_or_else(|| panic!("GET {path}: no answer"));
         assert!(answer.starts_with(b"HTTP/1.1 200"), "GET {path}");
         answer
     }
