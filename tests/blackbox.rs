@@ -29,7 +29,7 @@
 //! | `server::hardening` | hostile web pages, secrets in logs, loose fields and paths |
 //! | `server::bad_input` | refused input names the problem and leaves nothing half-written |
 //! | `server::slow_clients` | connection, stream and header limits: STOP always gets through |
-//! | `server::lifecycle` | SIGTERM (also while starting and right after ready), SIGHUP, a second server on one data directory, the start's pages unmapped once ready |
+//! | `server::lifecycle` | SIGTERM (also while starting and right after ready), SIGHUP, a second server on one data directory, the start's pages unmapped once ready (and the binary's after the API is described) |
 //! | `server::faults` | a plugin that hangs or misbehaves |
 //! | `store::db_outage` | the database or its disk failing under a running job |
 //! | `store::nodes` | several nodes on one PostgreSQL |

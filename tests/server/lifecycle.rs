@@ -3,7 +3,7 @@
 //! any moment of the start (or SIGHUP, unless under `nohup`) is clean, and drains open
 //! connections at once; a second server on the same data directory refuses to start and leaves
 //! the first one alone. Once ready, the server unmaps the pages of read-only files (its code)
-//! that only the start used.
+//! that only the start used, and its binary's again after the OpenAPI document is described.
 
 #![cfg(unix)]
 #![allow(clippy::unwrap_used, clippy::expect_used)]
