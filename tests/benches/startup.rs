@@ -10,6 +10,8 @@
 //! much of it the idle server actually uses.
 //! Last, a first start `--demo` that is used (the OpenAPI document, 300 status polls, the
 //! console's files), then left idle for 30 s: the memory a server that has served keeps while it waits.
+//! First it says how many of the names `server/link/hot-functions.txt` lists the binary still
+//! defines (see that directory's README).
 //! A measurement, not a test: `cargo bench -p fresa-tests --bench startup [-- RUNS]` (default
 //! 10). `FRESA_BIN` names another `fresa` build (its directory must hold the plugins).
 
@@ -151,12 +153,41 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+/// How many of the names in `server/link/hot-functions.txt` the binary defines, of how many
+/// (`nm`): the list goes stale as names change (see `server/link/README.md`).
+fn hot_functions_found(fresa: &std::path::Path) -> Option<(usize, usize)> {
+    let list = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../server/link/hot-functions.txt"),
+    )
+    .ok()?;
+    let nm = Command::new("nm")
+        .arg("--defined-only")
+        .arg(fresa)
+        .output()
+        .ok()?;
+    let defined: std::collections::HashSet<&str> = std::str::from_utf8(&nm.stdout)
+        .ok()?
+        .lines()
+        .filter_map(|l| l.split_whitespace().nth(2))
+        .collect();
+    let listed: Vec<&str> = list.lines().filter(|l| !l.is_empty()).collect();
+    let found = listed.iter().filter(|n| defined.contains(*n)).count();
+    Some((found, listed.len()))
+}
+
 fn main() {
     let runs: usize = std::env::args()
         .skip(1)
         .find(|a| !a.starts_with('-'))
         .map_or(10, |a| a.parse().expect("RUNS: a number"));
     let fresa = std::env::var_os("FRESA_BIN").map_or_else(fresa_tests::fresa_bin, PathBuf::from);
+    match hot_functions_found(&fresa) {
+        Some((found, listed)) => println!(
+            "server/link/hot-functions.txt: {found} of its {listed} names are in this binary \
+             (a release build links them first; record the list again below about 90 %)"
+        ),
+        None => println!("server/link/hot-functions.txt: not compared (no nm, or no list)"),
+    }
     let kept = tempfile::tempdir().unwrap();
     let idle = Duration::from_secs(3);
     // The restarts' data directory, made once beforehand (migrations applied).
