@@ -25,8 +25,10 @@ fn main() {
 /// this target's default linker since Rust 1.90, unless a linker is chosen by hand.
 fn rust_lld_links() -> bool {
     let flags = env::var("CARGO_ENCODED_RUSTFLAGS").unwrap_or_default();
+    // `-C linker=…`, `-C linker-features=…`, `-C link-arg=-fuse-ld=…`: chosen by hand.
     if env::var_os("CARGO_TARGET_X86_64_UNKNOWN_LINUX_GNU_LINKER").is_some()
         || flags.contains("linker")
+        || flags.contains("fuse-ld")
     {
         return false;
     }
