@@ -14,6 +14,8 @@
 //! * [`heightmap`]: height maps (a probed grid of Z corrections) and how a backend applies one
 //!   to a program's path (bilinear interpolation, moves split at grid lines).
 //! * [`host`]: for the server: load a library, check it, create and call instances.
+//! * [`priority`]: a plugin thread's scheduling priority (nice value), for threads whose
+//!   latency an operator feels.
 //! * [`quiet`]: rate-limited warnings (first one, then one a minute with a count), for plugins
 //!   and the server.
 
@@ -28,6 +30,7 @@ pub mod host;
 pub mod kit;
 pub mod operation;
 pub mod plugin;
+pub mod priority;
 pub mod quiet;
 
 pub use backend::MachineBackend;

@@ -449,21 +449,7 @@ pub fn avoid_cpu(cpu: usize) -> Result<(), String> {
 /// gets nearly all of a CPU it shares, and the kernel's real-time throttling never applies
 /// to it. Err says why not (lowering a nice value needs `CAP_SYS_NICE` or `RLIMIT_NICE`).
 pub fn highest_normal_priority() -> Result<(), String> {
-    #[cfg(target_os = "linux")]
-    {
-        // SAFETY: plain syscalls on the calling thread (Linux keeps a nice value per thread,
-        // named by its id); no memory is passed.
-        let r = unsafe {
-            libc::setpriority(
-                libc::PRIO_PROCESS,
-                libc::gettid() as libc::id_t,
-                HIGHEST_NICE,
-            )
-        };
-        os_status(r)
-    }
-    #[cfg(not(target_os = "linux"))]
-    not_on_this_os()
+    fresa_plugin_api::priority::set_thread_nice(HIGHEST_NICE)
 }
 
 /// The nice value `highest_normal_priority` asks for.
