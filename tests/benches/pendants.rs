@@ -4,13 +4,20 @@
 //! STREAMS clients follow the event stream. Prints the poll round trip's p50, p99 and max, and
 //! the server's CPU and RSS over the measured window. Then, under the same load, the same
 //! pendants are answered by a bare reference (a thread per link that decodes each poll and
-//! writes a canned N51 frame): the floor this machine's scheduler allows.
-//! A measurement, not a test: `cargo bench -p fresa-tests --bench pendants [-- PENDANTS MACHINES
-//! STREAMS SECS]` (defaults 100 5 50 10).
+//! writes a canned N51 frame, at the priority fresa's link threads take): the floor this
+//! machine's scheduler allows.
+//! The fake pendants' threads run at nice -20 when allowed: a pendant is an ESP32 with a CPU of
+//! its own, so its wake-up behind the busy machines on these 2 cores is not the server's
+//! latency. `--no-raise` turns fresa's `raise_priority` off (and runs the bare answerer at
+//! normal priority), for the figure before it.
+//! A measurement, not a test: `cargo bench -p fresa-tests --bench pendants [-- [--no-raise]
+//! PENDANTS MACHINES STREAMS SECS]` (defaults 100 5 50 10).
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fresa_mpg_pendant::codec::{Decoded, Decoder, Frame, Info};
+use fresa_mpg_pendant::transport::LINK_NICE;
+use fresa_plugin_api::priority::set_thread_nice;
 use fresa_tests::{back_and_forth, cpu_ticks, rss_kib, Server};
 use serde_json::json;
 use std::io::{Read, Write};
@@ -23,8 +30,11 @@ const WARM_UP: Duration = Duration::from_secs(2);
 const T: Duration = Duration::from_secs(60);
 
 /// The bare reference for one pendant: connects to it as the server would and answers each
-/// poll with a fixed N51 frame, until the pendant closes.
-fn bare_answerer(addr: std::net::SocketAddr) {
+/// poll with a fixed N51 frame, until the pendant closes. `raise`: at fresa's link priority.
+fn bare_answerer(addr: std::net::SocketAddr, raise: bool) {
+    if raise {
+        set_thread_nice(LINK_NICE).expect("the bare answerer's priority (needs CAP_SYS_NICE)");
+    }
     let mut s = std::net::TcpStream::connect(addr).unwrap();
     s.set_nodelay(true).unwrap();
     let answer = Frame::Positions(Default::default()).encode();
@@ -49,6 +59,8 @@ fn bare_answerer(addr: std::net::SocketAddr) {
 /// One fake pendant: takes the server's connection, polls N0451 at `POLL_HZ` until `stop`, and
 /// returns the round trips of the polls sent after `measure_from`.
 fn pendant(listener: TcpListener, measure_from: Instant, stop: &AtomicBool) -> Vec<Duration> {
+    // The device's own CPU (see the top); without the permission it shares the scheduler.
+    let _ = set_thread_nice(-20);
     let (mut s, _) = listener.accept().unwrap();
     s.set_nodelay(true).unwrap();
     s.set_read_timeout(Some(T)).unwrap();
@@ -136,6 +148,11 @@ fn main() {
             })
     };
     let (pendants, machines, streams, secs) = (arg(0, 100), arg(1, 5), arg(2, 50), arg(3, 10));
+    let raise = !std::env::args().any(|a| a == "--no-raise");
+    let devices = match std::thread::spawn(|| set_thread_nice(-20)).join().unwrap() {
+        Ok(()) => "at nice -20".to_string(),
+        Err(e) => format!("at normal priority (nice -20 refused: {e})"),
+    };
     let s = Server::start();
     let pid = s.pid().unwrap();
     let ids: Vec<i64> = (0..machines.max(1))
@@ -167,7 +184,8 @@ fn main() {
                 s.post(
                     "/api/v1/pendants",
                     &json!({"name": format!("p{i}"), "address": addr.to_string(),
-                            "machine": ids[i as usize % ids.len()], "dialect": "firmware", "config": {}}),
+                            "machine": ids[i as usize % ids.len()], "dialect": "firmware",
+                            "config": {"raise_priority": raise}}),
                 )
                 .expect(201);
             },
@@ -181,7 +199,7 @@ fn main() {
             pendants,
             secs,
             |_, addr| {
-                std::thread::spawn(move || bare_answerer(addr));
+                std::thread::spawn(move || bare_answerer(addr, raise));
             },
             |secs| {
                 std::thread::sleep(secs);
@@ -190,10 +208,15 @@ fn main() {
         );
         load_stop.store(true, Ordering::Relaxed);
         println!(
-            "{pendants} pendants at {POLL_HZ} Hz, {machines} busy machines, {streams} event \
-             streams, {:.1} s each:\n  fresa: {}; server CPU {:.1} % of one core, RSS {:.1} MiB\n  \
-             bare answerer, same load: {}",
+            "{pendants} pendants at {POLL_HZ} Hz ({devices}), {machines} busy machines, \
+             {streams} event streams, {:.1} s each; links {}:\n  fresa: {}; server CPU {:.1} % of \
+             one core, RSS {:.1} MiB\n  bare answerer, same load: {}",
             window.as_secs_f64(),
+            if raise {
+                format!("at nice {LINK_NICE}")
+            } else {
+                "at normal priority (--no-raise)".to_string()
+            },
             summary(&fresa),
             cpu as f64 / window.as_secs_f64(),
             rss as f64 / 1024.0,
