@@ -170,6 +170,47 @@ fn a_half_sent_request_is_closed_after_the_header_read_timeout() {
     s.get("/healthz").expect(200);
 }
 
+/// A head sent a byte at a time keeps bytes moving, so the idle check (60 s here) never closes
+/// the connection; the head check does, once the header read timeout (2 s) has passed since the
+/// previous response ended, and not before. A kept-alive connection, so the wait counts from
+/// that response, not from connecting.
+#[test]
+fn a_head_sent_a_byte_at_a_time_is_closed_after_the_header_read_timeout() {
+    let s = server(MAX_CONNECTIONS);
+    let mut c = stalled(&s, b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n");
+    let mut got = Vec::new();
+    wait_for(T, "the first request's answer", || {
+        assert!(closed_by_server(&mut c, &mut got).is_none(), "closed early");
+        String::from_utf8_lossy(&got)
+            .contains("\"ok\"")
+            .then_some(())
+    });
+    let answered = std::time::Instant::now();
+    got.clear();
+    c.write_all(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")
+        .unwrap();
+    let answer = wait_for(
+        T,
+        "the server to close a head sent a byte at a time",
+        || {
+            // One byte about every 50 ms (the read timeout); a write after the close may fail.
+            let _ = c.write_all(b"a");
+            closed_by_server(&mut c, &mut got)
+        },
+    );
+    assert!(
+        answered.elapsed() >= Duration::from_secs(2),
+        "closed {:?} after the previous answer, before the header read timeout",
+        answered.elapsed()
+    );
+    let text = String::from_utf8_lossy(&answer);
+    assert!(
+        !text.contains("HTTP/1.1 200"),
+        "served the slow head: {text}"
+    );
+    s.get("/healthz").expect(200);
+}
+
 #[test]
 fn a_stalled_upload_is_dropped_with_a_json_error_and_leaves_no_temp_file() {
     let s = server(MAX_CONNECTIONS);
