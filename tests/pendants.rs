@@ -688,6 +688,64 @@ fn fifty_pendants_on_one_machine_at_once() {
     }
 }
 
+/// Nice values of the server's threads with this name (`/proc/PID/task/*/comm`, field 19 of
+/// each task's `stat`).
+#[cfg(target_os = "linux")]
+fn thread_nices(pid: u32, name: &str) -> Vec<i32> {
+    let mut nices = Vec::new();
+    for task in std::fs::read_dir(format!("/proc/{pid}/task")).unwrap() {
+        let dir = task.unwrap().path();
+        let Ok(comm) = std::fs::read_to_string(dir.join("comm")) else {
+            continue; // the thread ended meanwhile
+        };
+        if comm.trim_end() != name {
+            continue;
+        }
+        let Ok(stat) = std::fs::read_to_string(dir.join("stat")) else {
+            continue;
+        };
+        let after_name = &stat[stat.rfind(')').unwrap() + 2..];
+        nices.push(after_name.split(' ').nth(16).unwrap().parse().unwrap());
+    }
+    nices
+}
+
+/// Through the server and the plugin ABI: a pendant's link thread runs at nice -10 and says
+/// so in the server's log, and the server's other threads keep their priority. (The suite runs
+/// as root; the refused case is the plugin's own test.)
+#[cfg(target_os = "linux")]
+#[test]
+fn a_pendants_link_thread_runs_at_nice_minus_10_in_the_server() {
+    let s = Server::start();
+    let m = s.sim("mill", 0.0).id;
+    let sim = PendantSim::start();
+    let p = add_pendant(&s, "wheel", &sim.addr, Some(m), json!({}));
+    wait_connected(&s, p, true);
+    let line = s.wait_log(T, "the link's thread");
+    assert!(
+        line.contains("runs at nice -10"),
+        "this test needs CAP_SYS_NICE (run it as root, as tests/run does): {line}"
+    );
+    let pid = s.pid().unwrap();
+    assert_eq!(thread_nices(pid, "mpg-pendant"), vec![-10]);
+    let server_nice = {
+        let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap();
+        let after_name = &stat[stat.rfind(')').unwrap() + 2..];
+        after_name
+            .split(' ')
+            .nth(16)
+            .unwrap()
+            .parse::<i32>()
+            .unwrap()
+    };
+    assert_ne!(server_nice, -10, "the whole server was raised");
+    // A second pendant's link gets its own raised thread.
+    let sim2 = PendantSim::start();
+    let p2 = add_pendant(&s, "wheel2", &sim2.addr, Some(m), json!({}));
+    wait_connected(&s, p2, true);
+    assert_eq!(thread_nices(pid, "mpg-pendant"), vec![-10, -10]);
+}
+
 #[test]
 fn the_demo_starts_a_simulated_pendant_bound_to_the_demo_machine() {
     let s = Server::start_demo();
