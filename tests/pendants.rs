@@ -3,6 +3,8 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+#[cfg(target_os = "linux")]
+use fresa_plugin_api::priority::nice_in_stat;
 use fresa_tests::{bin_dir, corpus, wait_for, Server, SseEvent};
 use serde_json::{json, Value};
 use std::io::{BufRead, BufReader, Write};
@@ -704,8 +706,7 @@ fn thread_nices(pid: u32, name: &str) -> Vec<i32> {
         let Ok(stat) = std::fs::read_to_string(dir.join("stat")) else {
             continue;
         };
-        let after_name = &stat[stat.rfind(')').unwrap() + 2..];
-        nices.push(after_name.split(' ').nth(16).unwrap().parse().unwrap());
+        nices.push(nice_in_stat(&stat).unwrap());
     }
     nices
 }
@@ -728,16 +729,8 @@ fn a_pendants_link_thread_runs_at_nice_minus_10_in_the_server() {
     );
     let pid = s.pid().unwrap();
     assert_eq!(thread_nices(pid, "mpg-pendant"), vec![-10]);
-    let server_nice = {
-        let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap();
-        let after_name = &stat[stat.rfind(')').unwrap() + 2..];
-        after_name
-            .split(' ')
-            .nth(16)
-            .unwrap()
-            .parse::<i32>()
-            .unwrap()
-    };
+    let server_nice =
+        nice_in_stat(&std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap()).unwrap();
     assert_ne!(server_nice, -10, "the whole server was raised");
     // A second pendant's link gets its own raised thread.
     let sim2 = PendantSim::start();

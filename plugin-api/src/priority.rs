@@ -49,9 +49,13 @@ pub fn set_thread_nice(nice: i32) -> Result<(), String> {
 /// The calling thread's nice value as the kernel reports it (`/proc/thread-self/stat`), for
 /// tests and logs. None where that file does not exist.
 pub fn thread_nice() -> Option<i32> {
-    let stat = std::fs::read_to_string("/proc/thread-self/stat").ok()?;
-    // Field 19 (nice), counted from 1; the command name (field 2) may hold spaces, so count
-    // from the `)` that ends it.
+    nice_in_stat(&std::fs::read_to_string("/proc/thread-self/stat").ok()?)
+}
+
+/// The nice value in the text of a Linux `/proc/.../stat` file (a process's or a thread's).
+pub fn nice_in_stat(stat: &str) -> Option<i32> {
+    // Field 19 (nice), counted from 1; the command name (field 2) may hold spaces and `)`, so
+    // count from the last `)`, the one that ends it.
     let after_name = stat.get(stat.rfind(')')? + 2..)?;
     after_name.split(' ').nth(16)?.parse().ok()
 }
@@ -75,6 +79,14 @@ mod tests {
         .unwrap();
         assert_eq!(nice, 5);
         assert_eq!(thread_nice().unwrap(), before);
+    }
+
+    #[test]
+    fn the_nice_value_is_read_after_a_command_name_that_holds_spaces_and_parentheses() {
+        let stat = "4242 (a (b) c) S 1 4242 4242 0 -1 4194560 600 0 0 0 5 3 0 0 20 -10 3 0 \
+                    12345 1000000 250";
+        assert_eq!(nice_in_stat(stat), Some(-10));
+        assert_eq!(nice_in_stat("4242 (x) S 1"), None);
     }
 
     #[cfg(windows)]
