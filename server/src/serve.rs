@@ -805,25 +805,12 @@ impl OpenConnections {
     /// Runs [`Self::close_slow_heads`] every quarter of `timeout` until dropped (aborted).
     async fn close_slow_heads_every(self, timeout: Duration) {
         let period = (timeout / 4).max(Duration::from_millis(10));
-        let mut check = tokio::time::interval_at(Instant::now() + period, period);
-        check.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-        loop {
-            check.tick().await;
-            self.close_slow_heads(timeout, Instant::now());
-        }
+        every(period, || self.close_slow_heads(timeout, Instant::now())).await
     }
 
     /// Runs [`Self::close_idle`] every `idle` until dropped (aborted).
     async fn close_idle_every(self, idle: Duration) {
-        let mut check = tokio::time::interval_at(Instant::now() + idle, idle);
-        // After a stall the default (Burst) would run missed checks back to back, and the
-        // second would close connections whose bytes moved just before the first: each check
-        // must come a whole period after the one before.
-        check.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-        loop {
-            check.tick().await;
-            self.close_idle();
-        }
+        every(idle, || self.close_idle()).await
     }
 
     /// Tells every open connection, and any registered from now on, to drain.
@@ -833,6 +820,19 @@ impl OpenConnections {
         for open in list.conns.values() {
             open.orders.give(Orders::DRAIN);
         }
+    }
+}
+
+/// Calls `check` every `period`, the first time one period from now, until dropped (aborted).
+async fn every(period: Duration, mut check: impl FnMut()) {
+    let mut tick = tokio::time::interval_at(Instant::now() + period, period);
+    // After a stall the default (Burst) would run missed checks back to back, and an idle
+    // check's second run would close connections whose bytes moved just before its first:
+    // each check must come a whole period after the one before.
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tick.tick().await;
+        check();
     }
 }
 
