@@ -341,8 +341,8 @@ fn raise_priority(s: &Shared) {
     }
     match fresa_plugin_api::priority::set_thread_nice(LINK_NICE) {
         Ok(()) => s.info(&format!(
-            "the link's thread runs at nice {LINK_NICE}, so polls and keys are answered ahead \
-             of other work"
+            "the link's thread runs at nice {LINK_NICE}{AS_ON_THIS_OS}, so polls and keys are \
+             answered ahead of other work"
         )),
         Err(e) => s.warn(&format!(
             "the link's thread could NOT take nice {LINK_NICE} ({e}); on a busy PC polls and \
@@ -350,6 +350,12 @@ fn raise_priority(s: &Shared) {
         )),
     }
 }
+
+/// What `LINK_NICE` becomes where there are no nice values (`set_thread_nice`'s mapping).
+#[cfg(windows)]
+const AS_ON_THIS_OS: &str = " (on Windows: above normal priority)";
+#[cfg(not(windows))]
+const AS_ON_THIS_OS: &str = "";
 
 /// How an admin lets a link's thread raise its priority.
 #[cfg(target_os = "linux")]
